@@ -1,0 +1,184 @@
+"""The material handler's kinematic description, shared by the runtime and the twin.
+
+Everything here is written against an array module ``xp`` (``numpy`` on the machine,
+``jax.numpy`` in the MJX training environment) so that the very same arithmetic runs in both
+places. Functions take one machine's state (no batch axis); the training environment maps them
+over its environments with ``jax.vmap``.
+
+Frames and units follow ../shared/ARCHITECTURE.md: machine frame with its origin on the
+cabin-turn axis at ground level, x forward when ``cabin_turn = 0``, z up; metres, radians.
+
+Sources: joint offsets, ranges and masses from the HEAP URDF parameters quoted in
+``shared/reference/machine-spec.md`` (leggedrobotics/rsl_heap, mm_parameters.urdf.xacro). The
+same numbers are written in ``sim_twin/assets/material_handler.xml``; ``tests/test_machine.py``
+checks that this module's forward kinematics agrees with MuJoCo's on that file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import ModuleType
+
+import numpy as np
+
+JOINT_NAMES: tuple[str, ...] = (
+    "cabin_turn",
+    "boom",
+    "dipper",
+    "telescope",
+    "gripper_pitch",
+    "gripper_roll",
+)
+"""Joints in chain order; every joint vector in Slinger uses this order."""
+
+ACTIVE_JOINTS: tuple[str, ...] = JOINT_NAMES[:4]
+PASSIVE_JOINTS: tuple[str, ...] = JOINT_NAMES[4:]
+NUM_JOINTS = 6
+NUM_ACTIVE = 4
+
+MODE_ACTIVE_JOINTS: dict[str, tuple[str, ...]] = {
+    "2d": ("boom", "dipper", "telescope"),
+    "3d": ("cabin_turn", "boom", "dipper", "telescope"),
+}
+"""Active joints each throwing mode drives (paper Sec. III: the 2D policy holds the cabin)."""
+
+# --- geometry (metres), machine-spec.md table "Kinematic chain" -------------------------------
+CHASSIS_HEIGHT_M = 1.5  # base above ground in the URDF (prismatic helper joint at z = 1.5)
+CABIN_OFFSET_M = (0.0, 0.0, 0.516)  # base -> cabin
+BOOM_OFFSET_M = (0.703, -0.292, 0.5494)  # cabin -> boom pivot
+DIPPER_OFFSET_M = (2.84, 0.0, 0.0)  # boom -> dipper pivot
+TELESCOPE_OFFSET_M = (0.0, 0.0, 0.369)  # dipper -> telescope slide origin
+HANGER_OFFSET_M = (2.0266, 0.0, 0.0)  # telescope -> gripper_pitch axis
+GRIPPER_CENTRE_DROP_M = 1.0  # gripper centre below the pitch/roll axes (spec: 0.8-1.2 m, chosen)
+
+# --- joint limits, machine-spec.md; cabin_turn and the passive joints are unlimited ----------
+JOINT_LOWER = np.array([-np.inf, -1.34, 0.58, 0.0, -np.inf, -np.inf])
+JOINT_UPPER = np.array([np.inf, 0.44, 2.78, 1.8, np.inf, np.inf])
+
+# Joint speed limits of the active joints (rad/s, rad/s, rad/s, m/s). machine-spec.md gives
+# orders of magnitude from the cylinder speeds and lever geometry: boom 0.3-0.5, dipper ~0.6,
+# telescope 0.75 m/s, cabin 1.0 rad/s. We take boom 0.45 (middle of the range).
+ACTIVE_VELOCITY_LIMITS = np.array([1.0, 0.45, 0.6, 0.75])
+
+# --- clearance zone used to end a throw as failed (simplified collision geometry) -----------
+GROUND_CLEARANCE_GRIPPER_M = 0.5  # gripper jaws reach ~0.5 m below the gripper centre
+GROUND_CLEARANCE_ARM_M = 0.3  # half-thickness of the dipper/telescope section
+CABIN_RADIUS_M = 2.0  # cylinder around the turn axis the gripper must stay out of ...
+CABIN_TOP_M = 3.6  # ... below this height (chassis 1.5 + cabin ~2.1)
+
+
+@dataclass(frozen=True)
+class ChainPoints:
+    """Key points of the chain for one state, machine frame, metres.
+
+    Attributes:
+        boom_pivot: (3,) boom joint origin.
+        dipper_pivot: (3,) dipper joint origin (boom tip).
+        hanger: (3,) gripper_pitch axis origin (telescope tip).
+        gripper_centre: (3,) centre of the gripper, where the payload sits.
+        gripper_centre_vel: (3,) its velocity, m/s.
+    """
+
+    boom_pivot: object
+    dipper_pivot: object
+    hanger: object
+    gripper_centre: object
+    gripper_centre_vel: object
+
+
+def _rot_z(xp: ModuleType, a):
+    c, s = xp.cos(a), xp.sin(a)
+    z, o = xp.zeros_like(a), xp.ones_like(a)
+    return xp.stack([xp.stack([c, -s, z]), xp.stack([s, c, z]), xp.stack([z, z, o])])
+
+
+def _rot_y(xp: ModuleType, a):
+    c, s = xp.cos(a), xp.sin(a)
+    z, o = xp.zeros_like(a), xp.ones_like(a)
+    return xp.stack([xp.stack([c, z, s]), xp.stack([z, o, z]), xp.stack([-s, z, c])])
+
+
+def _rot_x(xp: ModuleType, a):
+    c, s = xp.cos(a), xp.sin(a)
+    z, o = xp.zeros_like(a), xp.ones_like(a)
+    return xp.stack([xp.stack([o, z, z]), xp.stack([z, c, -s]), xp.stack([z, s, c])])
+
+
+def forward_kinematics(xp: ModuleType, q, qd) -> ChainPoints:
+    """Positions of the chain's key points and the gripper centre's velocity.
+
+    Args:
+        xp: array module (``numpy`` or ``jax.numpy``).
+        q: (6,) joint positions in JOINT_NAMES order, rad and m (telescope).
+        qd: (6,) joint velocities, rad/s and m/s.
+
+    Returns:
+        ChainPoints in the machine frame. The velocity is J(q) @ qd with the geometric Jacobian
+        columns a_i x (p - o_i) for revolute and a_i for prismatic joints.
+    """
+    dtype = q.dtype
+    e_x = xp.asarray([1.0, 0.0, 0.0], dtype=dtype)
+    e_y = xp.asarray([0.0, 1.0, 0.0], dtype=dtype)
+    e_z = xp.asarray([0.0, 0.0, 1.0], dtype=dtype)
+
+    def vec(t):
+        return xp.asarray(t, dtype=dtype)
+
+    o_turn = vec((0.0, 0.0, CHASSIS_HEIGHT_M + CABIN_OFFSET_M[2]))
+    r_cabin = _rot_z(xp, q[0])
+    o_boom = o_turn + r_cabin @ vec(BOOM_OFFSET_M)
+    r_boom = r_cabin @ _rot_y(xp, q[1])
+    o_dipper = o_boom + r_boom @ vec(DIPPER_OFFSET_M)
+    r_dipper = r_boom @ _rot_y(xp, q[2])
+    o_tele = o_dipper + r_dipper @ vec(TELESCOPE_OFFSET_M)
+    o_hanger = o_tele + r_dipper @ (e_x * (q[3] + HANGER_OFFSET_M[0]))
+    r_pitch = r_dipper @ _rot_y(xp, q[4])
+    r_grip = r_pitch @ _rot_x(xp, q[5])
+    p_c = o_hanger + r_grip @ vec((0.0, 0.0, -GRIPPER_CENTRE_DROP_M))
+
+    axes = (e_z, r_cabin @ e_y, r_boom @ e_y, r_dipper @ e_x, r_dipper @ e_y, r_pitch @ e_x)
+    origins = (o_turn, o_boom, o_dipper, None, o_hanger, o_hanger)
+    vel = xp.zeros(3, dtype=dtype)
+    for i, (axis, origin) in enumerate(zip(axes, origins)):
+        col = axis if origin is None else xp.cross(axis, p_c - origin)
+        vel = vel + col * qd[i]
+    return ChainPoints(o_boom, o_dipper, o_hanger, p_c, vel)
+
+
+def hanging_pitch(q_active) -> float:
+    """gripper_pitch angle (rad) at which the gripper hangs plumb for the given arm pose.
+
+    Args:
+        q_active: (4,) or (6,) joint positions; only boom and dipper are read.
+
+    The boom and dipper both turn about y, so the telescope's pitch is boom + dipper and the
+    gripper hangs plumb when gripper_pitch cancels it.
+    """
+    return -(q_active[1] + q_active[2])
+
+
+def clearance_violations(xp: ModuleType, q, points: ChainPoints):
+    """Flags for the ways a state ends a throw as failed.
+
+    Args:
+        xp: array module.
+        q: (6,) joint positions.
+        points: forward_kinematics(xp, q, qd) of the same state.
+
+    Returns:
+        (ground, cabin, joint_limit): three booleans. Ground: gripper jaws or arm tip below the
+        ground; cabin: gripper centre or telescope tip inside the cabin cylinder; joint_limit: an
+        active joint at or beyond its range (1 mrad / 1 mm tolerance).
+    """
+    ground = (points.gripper_centre[2] < GROUND_CLEARANCE_GRIPPER_M) | (
+        xp.minimum(points.hanger[2], points.dipper_pivot[2]) < GROUND_CLEARANCE_ARM_M
+    )
+
+    def in_cabin(p):
+        return (xp.sqrt(p[0] ** 2 + p[1] ** 2) < CABIN_RADIUS_M) & (p[2] < CABIN_TOP_M)
+
+    cabin = in_cabin(points.gripper_centre) | in_cabin(points.hanger)
+    lo = xp.asarray(JOINT_LOWER[1:4], dtype=q.dtype)
+    hi = xp.asarray(JOINT_UPPER[1:4], dtype=q.dtype)
+    limit = xp.any(q[1:4] <= lo + 1e-3) | xp.any(q[1:4] >= hi - 1e-3)
+    return ground, cabin, limit

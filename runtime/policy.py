@@ -1,0 +1,164 @@
+"""ONNX policy runner with manifest checks.
+
+A policy version is an ONNX file plus a JSON manifest beside it (``<name>.onnx`` and
+``<name>.json``), written by ``sim_twin.export``. The runtime refuses a policy whose manifest
+does not match what this runtime computes (mode, joint order, observation layout, control period,
+release threshold) or whose file does not hash to the manifest's SHA-256, and checks the ONNX
+graph's input/output shapes and that it returns finite actions.
+
+Manifest fields (``format`` = ``slinger-policy/1``): name, mode, joint_order,
+observation_layout [[block, size], ...], observation_size, action_size, control_period_s,
+release_threshold, target_range_m [min, max], onnx_sha256, input_name, output_name, training {...}.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from runtime.machine import JOINT_NAMES
+from runtime.observation import (
+    CONTROL_PERIOD_S,
+    RELEASE_THRESHOLD,
+    num_actions,
+    observation_layout,
+    observation_size,
+)
+
+MANIFEST_FORMAT = "slinger-policy/1"
+
+
+class PolicyError(ValueError):
+    """A policy file or manifest is unusable; the message says why."""
+
+
+def sha256_of(path: str | Path) -> str:
+    """Hex SHA-256 of a file."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def expected_manifest_fields(mode: str) -> dict:
+    """The manifest fields that must equal this runtime's own definitions for ``mode``."""
+    return {
+        "format": MANIFEST_FORMAT,
+        "mode": mode,
+        "joint_order": list(JOINT_NAMES),
+        "observation_layout": [list(b) for b in observation_layout(mode)],
+        "observation_size": observation_size(mode),
+        "action_size": num_actions(mode),
+        "control_period_s": CONTROL_PERIOD_S,
+        "release_threshold": RELEASE_THRESHOLD,
+    }
+
+
+@dataclass
+class PolicyRunner:
+    """A loaded, checked policy. Use :meth:`load`; call :meth:`act` once per control step.
+
+    Attributes:
+        manifest: the parsed manifest.
+        path: the ONNX file.
+    """
+
+    manifest: dict
+    path: Path
+    _session: object
+
+    @property
+    def mode(self) -> str:
+        return self.manifest["mode"]
+
+    @property
+    def version(self) -> str:
+        return self.manifest["name"]
+
+    @property
+    def sha256(self) -> str:
+        return self.manifest["onnx_sha256"]
+
+    @property
+    def target_range_m(self) -> tuple[float, float]:
+        lo, hi = self.manifest["target_range_m"]
+        return float(lo), float(hi)
+
+    @classmethod
+    def load(cls, onnx_path: str | Path, manifest_path: str | Path | None = None) -> "PolicyRunner":
+        """Load and check a policy.
+
+        Args:
+            onnx_path: the ONNX file.
+            manifest_path: its manifest; default: the same path with suffix ``.json``.
+
+        Raises:
+            PolicyError: missing files, a manifest that does not match this runtime, a SHA-256
+                mismatch, a file onnxruntime cannot load, wrong input/output shapes, or
+                non-finite actions on a zero observation.
+        """
+        import onnxruntime as ort
+
+        onnx_path = Path(onnx_path)
+        manifest_path = Path(manifest_path) if manifest_path else onnx_path.with_suffix(".json")
+        if not onnx_path.is_file():
+            raise PolicyError(f"policy file not found: {onnx_path}")
+        if not manifest_path.is_file():
+            raise PolicyError(f"policy manifest not found: {manifest_path}")
+        try:
+            manifest = json.loads(manifest_path.read_text())
+        except json.JSONDecodeError as e:
+            raise PolicyError(f"manifest {manifest_path} is not JSON: {e}") from e
+        mode = manifest.get("mode")
+        if mode not in ("2d", "3d"):
+            raise PolicyError(f"manifest mode must be '2d' or '3d', got {mode!r}")
+        for key, want in expected_manifest_fields(mode).items():
+            if manifest.get(key) != want:
+                raise PolicyError(f"manifest {key} = {manifest.get(key)!r} does not match this runtime ({want!r})")
+        for key in ("name", "onnx_sha256", "target_range_m"):
+            if key not in manifest:
+                raise PolicyError(f"manifest lacks {key!r}")
+        digest = sha256_of(onnx_path)
+        if digest != manifest["onnx_sha256"]:
+            raise PolicyError(f"SHA-256 mismatch: file {digest[:12]}…, manifest {manifest['onnx_sha256'][:12]}…")
+        try:
+            session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+        except Exception as e:  # onnxruntime raises its own exception types
+            raise PolicyError(f"onnxruntime cannot load {onnx_path.name}: {e}") from e
+        inputs, outputs = session.get_inputs(), session.get_outputs()
+        if len(inputs) != 1 or len(outputs) < 1:
+            raise PolicyError("policy graph must have one input and at least one output")
+        if inputs[0].shape[-1] != observation_size(mode):
+            raise PolicyError(f"policy input has {inputs[0].shape[-1]} features, mode {mode} needs {observation_size(mode)}")
+        if outputs[0].shape[-1] != num_actions(mode):
+            raise PolicyError(f"policy output has {outputs[0].shape[-1]} values, mode {mode} needs {num_actions(mode)}")
+        runner = cls(manifest, onnx_path, session)
+        probe = runner.act(np.zeros(observation_size(mode), dtype=np.float32))
+        if not np.all(np.isfinite(probe)):
+            raise PolicyError("policy returns non-finite actions on a zero observation")
+        return runner
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """One policy evaluation.
+
+        Args:
+            obs: (observation_size,) observation (see runtime.observation).
+
+        Returns:
+            (num_actions,) float32 action.
+
+        Raises:
+            PolicyError: if the observation has the wrong size or is not finite.
+        """
+        obs = np.asarray(obs, dtype=np.float32).reshape(1, -1)
+        if obs.shape[1] != self.manifest["observation_size"]:
+            raise PolicyError(f"observation has {obs.shape[1]} values, expected {self.manifest['observation_size']}")
+        if not np.all(np.isfinite(obs)):
+            raise PolicyError("non-finite observation")
+        name = self._session.get_inputs()[0].name
+        return self._session.run(None, {name: obs})[0][0]

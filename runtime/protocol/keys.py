@@ -1,0 +1,111 @@
+"""Zenoh key expressions, all composed here (zenoh-python examples: one module owns the keys).
+
+Layout::
+
+    slinger/machine/<machine_id>/state          MachineState     machine -> *        100 Hz pub
+    slinger/machine/<machine_id>/valve_cmd      ValveCommand     runtime -> machine  100 Hz pub
+    slinger/machine/<machine_id>/gripper_cmd    GripperCommand   runtime -> machine  on change
+    slinger/machine/<machine_id>/impact         ImpactReport     machine -> *        per throw
+    slinger/machine/<machine_id>/sim/reset      SimReset         runtime -> sim machine only
+    slinger/machine/<machine_id>/alive          liveliness token of the machine bridge / plant
+    slinger/runtime/<machine_id>/throw          queryable: ThrowRequest -> ThrowAck
+    slinger/runtime/<machine_id>/abort          queryable: AbortRequest -> AbortAck
+    slinger/runtime/<machine_id>/info           queryable: -> RuntimeInfo
+    slinger/runtime/<machine_id>/status         ThrowStatus      runtime -> server   on change
+    slinger/runtime/<machine_id>/alive          liveliness token of the runtime
+    slinger/server/throw_result                 queryable on the server: ThrowResult -> ResultAck
+
+Machine ids are restricted to ``[A-Za-z0-9_-]{1,64}`` so they can never inject key-expression
+wildcards (``*``, ``**``, ``$*``) or separators.
+"""
+
+from __future__ import annotations
+
+import re
+
+ROOT = "slinger"
+_MACHINE_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+
+def validate_machine_id(machine_id: str) -> str:
+    """Return ``machine_id`` unchanged if it is a legal id.
+
+    Raises:
+        ValueError: if it is empty, longer than 64 characters or contains anything but letters,
+            digits, ``_`` and ``-``.
+    """
+    if not isinstance(machine_id, str) or not _MACHINE_ID.match(machine_id):
+        raise ValueError(f"invalid machine id {machine_id!r}: use 1-64 of [A-Za-z0-9_-]")
+    return machine_id
+
+
+def machine(machine_id: str, leaf: str) -> str:
+    """Key of the machine interface, e.g. ``machine("m1", "state")``."""
+    return f"{ROOT}/machine/{validate_machine_id(machine_id)}/{leaf}"
+
+
+def runtime(machine_id: str, leaf: str) -> str:
+    """Key of a runtime's interface, e.g. ``runtime("m1", "throw")``."""
+    return f"{ROOT}/runtime/{validate_machine_id(machine_id)}/{leaf}"
+
+
+def state(machine_id: str) -> str:
+    return machine(machine_id, "state")
+
+
+def valve_cmd(machine_id: str) -> str:
+    return machine(machine_id, "valve_cmd")
+
+
+def gripper_cmd(machine_id: str) -> str:
+    return machine(machine_id, "gripper_cmd")
+
+
+def impact(machine_id: str) -> str:
+    return machine(machine_id, "impact")
+
+
+def sim_reset(machine_id: str) -> str:
+    return machine(machine_id, "sim/reset")
+
+
+def machine_alive(machine_id: str) -> str:
+    return machine(machine_id, "alive")
+
+
+def throw(machine_id: str) -> str:
+    return runtime(machine_id, "throw")
+
+
+def abort(machine_id: str) -> str:
+    return runtime(machine_id, "abort")
+
+
+def info(machine_id: str) -> str:
+    return runtime(machine_id, "info")
+
+
+def status(machine_id: str) -> str:
+    return runtime(machine_id, "status")
+
+
+def runtime_alive(machine_id: str) -> str:
+    return runtime(machine_id, "alive")
+
+
+ALL_STATES = f"{ROOT}/machine/*/state"
+ALL_RUNTIME_ALIVE = f"{ROOT}/runtime/*/alive"
+ALL_STATUS = f"{ROOT}/runtime/*/status"
+THROW_RESULT = f"{ROOT}/server/throw_result"
+
+
+def machine_id_of(key_expr: str) -> str:
+    """The machine id in a key such as ``slinger/runtime/m1/alive``.
+
+    Raises:
+        ValueError: if the key is not under ``slinger/machine`` or ``slinger/runtime``.
+    """
+    parts = str(key_expr).split("/")
+    if len(parts) < 3 or parts[0] != ROOT or parts[1] not in ("machine", "runtime"):
+        raise ValueError(f"not a Slinger machine/runtime key: {key_expr!r}")
+    return validate_machine_id(parts[2])

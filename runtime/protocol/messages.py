@@ -1,0 +1,231 @@
+"""Wire messages (JSON, pydantic v2). Each carries ``schema_version``; machine-interface
+messages also carry the ``machine_id`` and a monotonic timestamp ``stamp_s`` (seconds on the
+sender's monotonic clock, :func:`time.monotonic`).
+
+Vectors of joint values follow ``runtime.machine.JOINT_NAMES`` (6 joints) or
+``ACTIVE_JOINTS`` (4 joints); positions are in the machine frame (ARCHITECTURE.md), metres.
+
+Non-finite numbers (NaN, inf) are rejected at validation: a malformed or NaN message raises
+:class:`pydantic.ValidationError` in :func:`decode`, which callers log and drop.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal, TypeVar
+
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
+
+from runtime.protocol.keys import validate_machine_id
+
+SCHEMA_VERSION = 1
+
+Mode = Literal["2d", "3d"]
+
+
+def _finite(values: list[float]) -> list[float]:
+    for v in values:
+        if not math.isfinite(v):
+            raise ValueError("non-finite value")
+    return values
+
+
+def _unit_interval(values: list[float]) -> list[float]:
+    if any(abs(v) > 1.0 for v in values):
+        raise ValueError("valve command outside [-1, 1]")
+    return values
+
+
+def _vec(n: int):
+    return Annotated[list[float], Field(min_length=n, max_length=n), AfterValidator(_finite)]
+
+
+Vec3 = _vec(3)
+Vec4 = _vec(4)
+Vec6 = _vec(6)
+MachineId = Annotated[str, AfterValidator(validate_machine_id)]
+
+
+class Message(BaseModel):
+    """Base of all wire messages: strict about unknown fields and the schema version."""
+
+    model_config = ConfigDict(extra="forbid")
+    schema_version: Literal[1] = SCHEMA_VERSION
+
+
+class Stamped(Message):
+    """A message of the machine interface: who sent it and when (monotonic seconds)."""
+
+    machine_id: MachineId
+    stamp_s: float = Field(allow_inf_nan=False)
+
+
+class MachineState(Stamped):
+    """Joint state of the machine, published at 100 Hz by the hardware bridge or the plant.
+
+    Attributes:
+        q: (6,) joint positions, rad / m; the passive joints come from the gripper IMU.
+        qd: (6,) joint velocities, rad/s / m/s.
+        gripper_open: the gripper is physically open (payload free).
+        payload_attached: a payload is held by the gripper.
+        payload_pos_m / payload_vel_mps: (3,) payload state when the machine can observe it
+            (the simulated machine always; real hardware only with a tracker), else None.
+        simulated: True for the simulated machine (sim_twin plant), False for hardware.
+    """
+
+    q: Vec6
+    qd: Vec6
+    gripper_open: bool
+    payload_attached: bool
+    payload_pos_m: Vec3 | None = None
+    payload_vel_mps: Vec3 | None = None
+    simulated: bool = False
+
+
+class ValveCommand(Stamped):
+    """Normalised valve commands of the four active joints, each in [-1, 1] (100 Hz)."""
+
+    u: Annotated[Vec4, AfterValidator(_unit_interval)]
+
+
+class GripperCommand(Stamped):
+    """Open (release the payload) or close (grasp a new payload) the gripper."""
+
+    open: bool
+
+
+class SimReset(Stamped):
+    """Simulated machine only: re-initialise to a collision-free pose with a fresh payload.
+
+    Stands for the operator picking up a new payload between throws (the paper's evaluation
+    re-initialises the arm at random collision-free poses, Sec. IV-A). Real hardware ignores it.
+
+    Attributes:
+        q_active: (4,) pose to start from, or None for a random collision-free pose.
+        seed: seed of the random pose, for reproducible evaluations.
+    """
+
+    q_active: Vec4 | None = None
+    seed: int | None = None
+
+
+class ImpactReport(Stamped):
+    """The payload's first ground contact, measured by the machine (the plant computes it;
+    on hardware an external tracker would)."""
+
+    impact_pos_m: Vec3
+    opening_stamp_s: float
+    impact_stamp_s: float
+    release_pos_m: Vec3
+    release_vel_mps: Vec3
+
+
+class ThrowRequest(Message):
+    """Server -> runtime: throw at ``target_m`` (machine frame, m) in ``mode``."""
+
+    throw_id: Annotated[str, Field(min_length=1, max_length=64)]
+    machine_id: MachineId
+    mode: Mode
+    target_m: Vec3
+
+
+class ThrowAck(Message):
+    """Runtime -> server reply to a ThrowRequest: accepted, or the reason it was refused."""
+
+    throw_id: str
+    accepted: bool
+    reason: str | None = None
+    policy_version: str | None = None
+
+
+class AbortRequest(Message):
+    """Server -> runtime: stop now (valves to neutral)."""
+
+    machine_id: MachineId
+    reason: str = "operator abort"
+
+
+class AbortAck(Message):
+    machine_id: MachineId
+    aborted_throw_id: str | None = None
+
+
+ThrowPhase = Literal["preparing", "swinging", "released", "landed", "failed", "aborted"]
+
+
+class ThrowStatus(Stamped):
+    """Runtime -> server: phase changes of a throw."""
+
+    throw_id: str
+    phase: ThrowPhase
+    detail: str | None = None
+
+
+class PolicyInfo(Message):
+    """What a runtime runs for one mode: the policy version (name) and its SHA-256."""
+
+    mode: Mode
+    version: str
+    sha256: str
+
+
+class RuntimeInfo(Message):
+    machine_id: MachineId
+    busy: bool
+    policies: list[PolicyInfo]
+    machine_online: bool
+    simulated: bool
+
+
+class ThrowResult(Stamped):
+    """Runtime -> server: the outcome of one throw with its telemetry (MCAP bytes, base64).
+
+    Attributes:
+        status: ``landed`` (released, flew and hit the ground), ``failed`` (collision, joint
+            limit, timeout, lost link, bad state) or ``aborted``.
+        impact_m: (3,) first ground contact of the payload, or None.
+        downrange_error_m / crossrange_error_m: see runtime.throw_geometry.impact_errors.
+        telemetry_mcap_b64: the throw's 100 Hz telemetry as an MCAP file, base64-encoded.
+    """
+
+    throw_id: str
+    mode: Mode
+    status: Literal["landed", "failed", "aborted"]
+    failure_reason: str | None = None
+    target_m: Vec3
+    impact_m: Vec3 | None = None
+    downrange_error_m: float | None = None
+    crossrange_error_m: float | None = None
+    policy_version: str | None = None
+    release_stamp_s: float | None = None
+    opening_stamp_s: float | None = None
+    duration_s: float
+    telemetry_mcap_b64: str | None = None
+
+
+class ResultAck(Message):
+    throw_id: str
+    stored: bool
+
+
+M = TypeVar("M", bound=Message)
+
+
+def encode(msg: Message) -> bytes:
+    """Serialise a message to UTF-8 JSON bytes."""
+    return msg.model_dump_json().encode()
+
+
+def decode(cls: type[M], payload: bytes | bytearray | memoryview | str) -> M:
+    """Parse and validate a message.
+
+    Raises:
+        pydantic.ValidationError: malformed JSON, a wrong schema version, a missing or unknown
+            field, a wrong vector length, or a non-finite number.
+    """
+    if isinstance(payload, memoryview):
+        payload = payload.tobytes()
+    return cls.model_validate_json(payload)
+
+
+__all__ = [name for name in dir() if name[0].isupper()] + ["encode", "decode", "ValidationError"]

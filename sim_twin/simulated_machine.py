@@ -1,0 +1,154 @@
+"""The simulated machine: the CPU MuJoCo twin driven through the hydraulic valve model, with the
+gripper's opening delay and the payload's flight. It stands in for the hardware; the Zenoh
+process around it is :mod:`sim_twin.plant`, and evaluation and previews drive it directly.
+
+One :meth:`SimulatedMachine.step` is one 10 ms physics period.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from runtime.machine import forward_kinematics
+from sim_twin.hydraulics import ValveModel
+from sim_twin.initial_pose import sample_pose
+from sim_twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
+from sim_twin.physics import ballistic_impact_time, ballistic_position, passive_friction_force
+from sim_twin.profile import RealityProfile
+
+
+@dataclass
+class Impact:
+    """Payload flight summary; positions in the machine frame (m), times in simulated seconds."""
+
+    impact_pos_m: np.ndarray
+    opening_time_s: float
+    impact_time_s: float
+    release_pos_m: np.ndarray
+    release_vel_mps: np.ndarray
+
+
+class SimulatedMachine:
+    """CPU twin + hydraulics + payload.
+
+    Args:
+        profile: reality profile (default: nominal machine).
+        seed: seed of the release-delay jitter and of random initial poses.
+    """
+
+    def __init__(self, profile: RealityProfile | None = None, seed: int | None = None):
+        self.profile = profile or RealityProfile()
+        self.model = load_model()
+        self.data = mujoco.MjData(self.model)
+        self.valves = ValveModel(self.profile.hydraulics)
+        self.rng = np.random.default_rng(seed)
+        self._inertia = passive_inertia()
+        self.reset()
+
+    # --- state ------------------------------------------------------------------------------
+    @property
+    def time_s(self) -> float:
+        return float(self.data.time)
+
+    @property
+    def q(self) -> np.ndarray:
+        """(6,) joint positions."""
+        return self.data.qpos.copy()
+
+    @property
+    def qd(self) -> np.ndarray:
+        """(6,) joint velocities."""
+        return self.data.qvel.copy()
+
+    @property
+    def gripper_open(self) -> bool:
+        return self._opened
+
+    @property
+    def payload_attached(self) -> bool:
+        return self._attached
+
+    @property
+    def impact(self) -> Impact | None:
+        """Set once the payload has hit the ground."""
+        return self._impact if self._landed else None
+
+    def payload_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """(pos (3,), vel (3,)) of the payload: the gripper centre while held, else its flight."""
+        if self._release is None:
+            pts = forward_kinematics(np, self.data.qpos, self.data.qvel)
+            return pts.gripper_centre, pts.gripper_centre_vel
+        p0, v0, t0 = self._release
+        t = min(self.time_s - t0, self._impact.impact_time_s - t0)
+        pos = ballistic_position(np, p0, v0, t)
+        vel = v0 + np.array([0.0, 0.0, -9.81]) * t
+        if self._landed:
+            vel = np.zeros(3)
+        return pos, vel
+
+    # --- control ----------------------------------------------------------------------------
+    def reset(self, q_active: np.ndarray | None = None, cabin_turn: float | None = 0.0) -> np.ndarray:
+        """Re-initialise at rest with the gripper hanging plumb and a payload in the gripper.
+
+        Args:
+            q_active: (4,) pose, or None for a random collision-free pose (sim_twin.initial_pose).
+            cabin_turn: cabin angle for a random pose (rad), or None for a random one.
+
+        Returns:
+            (6,) the initial joint positions.
+        """
+        mujoco.mj_resetData(self.model, self.data)
+        if q_active is None:
+            q = sample_pose(self.rng, cabin_turn=cabin_turn)
+        else:
+            q = np.zeros(6)
+            q[:4] = np.asarray(q_active, dtype=float)
+            q[4] = -(q[1] + q[2])
+        self.data.qpos[:] = q
+        mujoco.mj_forward(self.model, self.data)
+        self.valves.reset()
+        self._attached, self._opened, self._landed = True, False, False
+        self._open_at: float | None = None
+        self._release: tuple[np.ndarray, np.ndarray, float] | None = None
+        self._impact: Impact | None = None
+        return q
+
+    def step(self, valve_u: np.ndarray, gripper_open_cmd: bool) -> None:
+        """Advance 10 ms.
+
+        Args:
+            valve_u: (4,) valve commands in [-1, 1] (clipped by the valve model).
+            gripper_open_cmd: the gripper-open command; its rising edge starts the opening
+                delay, sampled from the profile's release delay (mean, std).
+        """
+        if gripper_open_cmd and self._attached and self._open_at is None:
+            p = self.profile
+            delay = max(0.0, self.rng.normal(p.release_delay_mean_s, p.release_delay_std_s))
+            self._open_at = self.time_s + delay
+        self.data.ctrl[:] = self.valves.step(valve_u)
+        self.data.qfrc_applied[4:6] = passive_friction_force(
+            np,
+            self.data.qvel[4:6],
+            self._inertia,
+            self.profile.passive_viscous_per_s,
+            self.profile.passive_coulomb_rad_per_s2,
+        )
+        mujoco.mj_step(self.model, self.data)
+        if self._open_at is not None and self._attached and self.time_s >= self._open_at - 1e-9:
+            self._open_payload()
+        if self._release is not None and not self._landed and self.time_s >= self._impact.impact_time_s:
+            self._landed = True
+
+    def _open_payload(self) -> None:
+        pts = forward_kinematics(np, self.data.qpos, self.data.qvel)
+        p0, v0 = pts.gripper_centre.copy(), pts.gripper_centre_vel.copy()
+        t0 = self.time_s
+        t_fall = float(ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
+        hit = ballistic_position(np, p0, v0, t_fall)
+        hit[2] = 0.0
+        self._attached, self._opened = False, True
+        self._release = (p0, v0, t0)
+        self._impact = Impact(hit, t0, t0 + t_fall, p0, v0)
