@@ -162,3 +162,31 @@ class PolicyRunner:
             raise PolicyError("non-finite observation")
         name = self._session.get_inputs()[0].name
         return self._session.run(None, {name: obs})[0][0]
+
+
+def build_manifest(
+    onnx_path: str | Path,
+    mode: str,
+    name: str,
+    target_range_m: tuple[float, float],
+    training: dict | None = None,
+    input_name: str = "obs",
+    output_name: str = "actions",
+) -> dict:
+    """The manifest of an exported policy (see module doc), hashing ``onnx_path``."""
+    return {
+        **expected_manifest_fields(mode),
+        "name": name,
+        "target_range_m": [float(target_range_m[0]), float(target_range_m[1])],
+        "onnx_sha256": sha256_of(onnx_path),
+        "input_name": input_name,
+        "output_name": output_name,
+        "training": training or {},
+    }
+
+
+def write_manifest(onnx_path: str | Path, manifest: dict) -> Path:
+    """Write ``manifest`` beside ``onnx_path`` as ``<stem>.json``; returns its path."""
+    path = Path(onnx_path).with_suffix(".json")
+    path.write_text(json.dumps(manifest, indent=2) + "\n")
+    return path

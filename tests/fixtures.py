@@ -1,0 +1,53 @@
+"""Test helpers shared by several test modules."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+from onnx import TensorProto, helper, numpy_helper
+
+from runtime.observation import num_actions, observation_size
+from runtime.policy import build_manifest, write_manifest
+
+
+def write_test_policy(
+    directory: Path,
+    mode: str = "2d",
+    name: str = "test-linear",
+    seed: int = 0,
+    release_after_bias: float = 0.0,
+    target_range_m: tuple[float, float] = (5.0, 10.7),
+) -> Path:
+    """Write a small random linear-tanh ONNX policy (obs -> actions) with its manifest.
+
+    It is not a throwing policy; it exercises loading, checking and the control loop.
+    The release output is ``tanh(...) + release_after_bias`` so a bias > 1.9 always releases.
+    Returns the ONNX path.
+    """
+    rng = np.random.default_rng(seed)
+    n_obs, n_act = observation_size(mode), num_actions(mode)
+    w = (rng.normal(size=(n_obs, n_act)) * 0.01).astype(np.float32)
+    b = np.zeros(n_act, dtype=np.float32)
+    bias = np.zeros(n_act, dtype=np.float32)
+    bias[-1] = release_after_bias
+    graph = helper.make_graph(
+        [
+            helper.make_node("MatMul", ["obs", "W"], ["h"]),
+            helper.make_node("Add", ["h", "b"], ["z"]),
+            helper.make_node("Tanh", ["z"], ["t"]),
+            helper.make_node("Add", ["t", "bias"], ["actions"]),
+        ],
+        "test_policy",
+        [helper.make_tensor_value_info("obs", TensorProto.FLOAT, [None, n_obs])],
+        [helper.make_tensor_value_info("actions", TensorProto.FLOAT, [None, n_act])],
+        [numpy_helper.from_array(w, "W"), numpy_helper.from_array(b, "b"), numpy_helper.from_array(bias, "bias")],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8  # onnx 1.23 defaults to IR 14, which onnxruntime cannot load
+    directory.mkdir(parents=True, exist_ok=True)
+    path = directory / f"{name}.onnx"
+    onnx.save(model, path)
+    write_manifest(path, build_manifest(path, mode, name, target_range_m, {"kind": "test fixture"}))
+    return path
