@@ -1,0 +1,101 @@
+"""SQLAlchemy 2 typed models. API schemas live in :mod:`server.api.schemas`; never mix them.
+
+Tables: ``machines``, ``policy_versions``, ``throws``. Positions are machine-frame metres,
+timestamps UTC-aware (:class:`server.db.types.UTCDateTime`). Constraint names follow
+:data:`NAMING_CONVENTION` so Alembic batch migrations on SQLite can address them.
+"""
+
+from __future__ import annotations
+
+import uuid
+from datetime import datetime
+
+from sqlalchemy import JSON, Boolean, Float, ForeignKey, Index, MetaData, String, Text
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+
+from server.db.types import UTCDateTime, utcnow
+
+NAMING_CONVENTION = {
+    "ix": "ix_%(column_0_label)s",
+    "uq": "uq_%(table_name)s_%(column_0_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+THROW_STATUSES = ("requested", "preparing", "swinging", "released", "landed", "failed", "aborted")
+"""Row status: ``requested`` until the runtime reports a phase, then the ThrowStatus phase."""
+FINAL_STATUSES = ("landed", "failed", "aborted")
+
+
+class Base(DeclarativeBase):
+    metadata = MetaData(naming_convention=NAMING_CONVENTION)
+
+
+class Machine(Base):
+    """A machine the server has seen (its runtime's liveliness token or its state)."""
+
+    __tablename__ = "machines"
+
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    simulated: Mapped[bool] = mapped_column(Boolean, default=False)
+    first_seen_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    last_seen_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class PolicyVersion(Base):
+    """A policy version (ONNX + manifest) identified by the ONNX file's SHA-256."""
+
+    __tablename__ = "policy_versions"
+
+    id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
+    name: Mapped[str] = mapped_column(String(128))
+    mode: Mapped[str] = mapped_column(String(2))
+    sha256: Mapped[str] = mapped_column(String(64), unique=True)
+    manifest: Mapped[dict] = mapped_column(JSON, default=dict)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class Throw(Base):
+    """One throw at one target and what came of it.
+
+    Columns of note: ``target_*_m`` / ``impact_*_m`` machine frame, m; errors as defined by
+    :func:`runtime.throw_geometry.impact_errors`; ``telemetry_path`` relative to the data dir.
+    """
+
+    __tablename__ = "throws"
+    __table_args__ = (
+        Index("ix_throws_machine_requested", "machine_id", "requested_at"),
+        Index("ix_throws_requested_at", "requested_at"),
+    )
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=lambda: str(uuid.uuid4()))
+    machine_id: Mapped[str] = mapped_column(ForeignKey("machines.id"))
+    mode: Mapped[str] = mapped_column(String(2))
+    target_x_m: Mapped[float] = mapped_column(Float)
+    target_y_m: Mapped[float] = mapped_column(Float)
+    target_z_m: Mapped[float] = mapped_column(Float)
+    status: Mapped[str] = mapped_column(String(16), default="requested")
+    failure_reason: Mapped[str | None] = mapped_column(Text, nullable=True)
+    impact_x_m: Mapped[float | None] = mapped_column(Float, nullable=True)
+    impact_y_m: Mapped[float | None] = mapped_column(Float, nullable=True)
+    impact_z_m: Mapped[float | None] = mapped_column(Float, nullable=True)
+    downrange_error_m: Mapped[float | None] = mapped_column(Float, nullable=True)
+    crossrange_error_m: Mapped[float | None] = mapped_column(Float, nullable=True)
+    policy_version: Mapped[str | None] = mapped_column(String(128), nullable=True)
+    requested_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    released_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    completed_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    duration_s: Mapped[float | None] = mapped_column(Float, nullable=True)
+    telemetry_path: Mapped[str | None] = mapped_column(String(512), nullable=True)
+
+    @property
+    def target_m(self) -> list[float]:
+        return [self.target_x_m, self.target_y_m, self.target_z_m]
+
+    @property
+    def impact_m(self) -> list[float] | None:
+        if self.impact_x_m is None:
+            return None
+        return [self.impact_x_m, self.impact_y_m, self.impact_z_m]
