@@ -71,6 +71,9 @@ class MachineState(Stamped):
         payload_pos_m / payload_vel_mps: (3,) payload state when the machine can observe it
             (the simulated machine always; real hardware only with a tracker), else None.
         simulated: True for the simulated machine (sim_twin plant), False for hardware.
+        reset_count: simulated machine only: how many SimReset requests it has applied since
+            it started (lets the runtime tell a pre-reset state from a post-reset one); None
+            on hardware.
     """
 
     q: Vec6
@@ -80,6 +83,7 @@ class MachineState(Stamped):
     payload_pos_m: Vec3 | None = None
     payload_vel_mps: Vec3 | None = None
     simulated: bool = False
+    reset_count: Annotated[int, Field(ge=0)] | None = None
 
 
 class ValveCommand(Stamped):

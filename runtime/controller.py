@@ -1,0 +1,189 @@
+"""Low-level joint-velocity controller: references (rad/s, m/s) -> valve commands in [-1, 1].
+
+On HEAP "a PID joint velocity controller with feed-forward commands the valves" (Jud et al.
+2021, via shared/reference/machine-spec.md); the throwing paper's policy outputs joint-velocity
+references at 12.5 Hz and this controller tracks them at 100 Hz. It is also the runtime's safety
+layer (ARCHITECTURE.md: "safety clipping lives in runtime's controller, never in the policy"):
+
+* references are clipped to :data:`runtime.machine.ACTIVE_VELOCITY_LIMITS`;
+* near a joint limit the reference *towards* that limit ramps linearly to zero (motion away from
+  the limit is never restricted);
+* any non-finite input gives neutral valves (all zeros) and clears the controller's state.
+
+Per active joint i (ACTIVE_JOINTS order: cabin_turn, boom, dipper, telescope), with
+e = (r - qd) / v_max (normalised velocity error) and r the clipped reference::
+
+    u_ff = r / v_max * (1 - c) + sign(r) * c      (c = dead_band_comp, only if |r| > eps)
+    u    = clip(u_ff + kp * e + ki * integral(e) + kd * de/dt, -1, 1)
+
+With ``c`` equal to the valve dead band the feed-forward inverts the valve's dead band exactly
+(flow = (|u| - db) / (1 - db)); the integrator removes what the feed-forward misses (gravity on
+the servo, a wrong dead-band estimate). Anti-windup: the integrator is clamped to
+``integral_limit`` and does not integrate further while the output is saturated in the same
+direction as the error (conditional integration).
+
+Gains (``ControllerGains`` defaults) were tuned in closed loop against the simulated machine with
+the nominal profile (dead band 0.05, delay 0.04 s, lag 0.1 s); tests/test_controller.py checks the
+resulting step response.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from runtime.machine import ACTIVE_VELOCITY_LIMITS, JOINT_LOWER, JOINT_UPPER, NUM_ACTIVE
+from runtime.observation import PHYSICS_PERIOD_S
+
+_NEGLIGIBLE_REF = 1e-3  # |r| / v_max below this gets no dead-band compensation
+
+
+def _per_joint(value) -> np.ndarray:
+    return np.broadcast_to(np.asarray(value, dtype=float), (NUM_ACTIVE,)).copy()
+
+
+@dataclass
+class ControllerGains:
+    """Gains and safety parameters, each a scalar or (4,) per active joint.
+
+    Attributes:
+        kp: proportional gain on the normalised velocity error (valve fraction per unit error).
+        ki: integral gain, 1/s.
+        kd: derivative gain, s (on the measured error, usually 0: the measured velocity is noisy
+            on hardware and the valve lag already damps).
+        dead_band_comp: valve dead-band compensation, fraction of full command.
+        integral_limit: clamp of the integral term's contribution to u.
+        limit_margin: distance from a joint limit (rad / m) at which the reference towards the
+            limit reaches zero. runtime.machine.clearance_violations flags a limit at 1 mrad.
+        limit_ramp: distance (rad / m) over which the reference towards a limit ramps down to
+            zero, ending at ``limit_margin``.
+    """
+
+    kp: np.ndarray = field(default_factory=lambda: _per_joint(0.6))
+    ki: np.ndarray = field(default_factory=lambda: _per_joint(1.0))
+    kd: np.ndarray = field(default_factory=lambda: _per_joint(0.0))
+    dead_band_comp: np.ndarray = field(default_factory=lambda: _per_joint(0.05))
+    integral_limit: np.ndarray = field(default_factory=lambda: _per_joint(0.3))
+    limit_margin: np.ndarray = field(default_factory=lambda: _per_joint(0.03))
+    limit_ramp: np.ndarray = field(default_factory=lambda: _per_joint(0.15))
+
+    def __post_init__(self) -> None:
+        for name in self.__dataclass_fields__:
+            v = _per_joint(getattr(self, name))
+            if not np.all(np.isfinite(v)) or np.any(v < 0):
+                raise ValueError(f"controller {name} must be finite and >= 0, got {v}")
+            setattr(self, name, v)
+        if np.any(self.dead_band_comp >= 1):
+            raise ValueError("dead_band_comp must be < 1")
+
+
+@dataclass(frozen=True)
+class ControlOutput:
+    """What the controller sent (lerobot habit: report the action after safety clipping).
+
+    Attributes:
+        valve_u: (4,) valve commands in [-1, 1], ACTIVE_JOINTS order.
+        qd_ref: (4,) the reference actually tracked after clipping and limit ramps, rad/s, m/s.
+        neutral: True when the input was rejected (non-finite) and the valves are neutral.
+    """
+
+    valve_u: np.ndarray
+    qd_ref: np.ndarray
+    neutral: bool = False
+
+
+def limit_ramp_scale(q_active, qd_ref, gains: ControllerGains) -> np.ndarray:
+    """(4,) factors in [0, 1] scaling each reference that points towards a nearby joint limit.
+
+    Args:
+        q_active: (4,) active joint positions, rad / m.
+        qd_ref: (4,) references, rad/s / m/s (only their signs are read).
+        gains: supplies ``limit_margin`` and ``limit_ramp``.
+
+    Unlimited joints (cabin_turn) always get 1.
+    """
+    lower, upper = JOINT_LOWER[:NUM_ACTIVE], JOINT_UPPER[:NUM_ACTIVE]
+    with np.errstate(invalid="ignore"):
+        dist = np.where(qd_ref > 0, upper - q_active, np.where(qd_ref < 0, q_active - lower, np.inf))
+        scale = np.clip((dist - gains.limit_margin) / np.maximum(gains.limit_ramp, 1e-9), 0.0, 1.0)
+    return np.where(np.isfinite(dist), scale, 1.0)
+
+
+class JointVelocityController:
+    """PI(D) + feed-forward joint-velocity controller for the 4 active joints, 100 Hz.
+
+    Args:
+        gains: ControllerGains (defaults: tuned on the nominal simulated machine).
+        velocity_limits: (4,) joint speed at full valve opening, rad/s and m/s (default
+            runtime.machine.ACTIVE_VELOCITY_LIMITS); references are clipped to it.
+        dt_s: control period, s (default 0.01).
+    """
+
+    def __init__(
+        self,
+        gains: ControllerGains | None = None,
+        velocity_limits=ACTIVE_VELOCITY_LIMITS,
+        dt_s: float = PHYSICS_PERIOD_S,
+    ):
+        self.gains = gains or ControllerGains()
+        self.velocity_limits = _per_joint(velocity_limits)
+        if np.any(self.velocity_limits <= 0):
+            raise ValueError("velocity limits must be > 0")
+        self.dt_s = float(dt_s)
+        self.last: ControlOutput = ControlOutput(np.zeros(NUM_ACTIVE), np.zeros(NUM_ACTIVE), True)
+        self.reset()
+
+    def reset(self) -> None:
+        """Clear the integrator and derivative memory (call at the start of every throw)."""
+        self._integral = np.zeros(NUM_ACTIVE)
+        self._prev_err: np.ndarray | None = None
+
+    def neutral(self) -> ControlOutput:
+        """Neutral valves, state cleared; returns (and records as sent) the neutral output."""
+        self.reset()
+        self.last = ControlOutput(np.zeros(NUM_ACTIVE), np.zeros(NUM_ACTIVE), True)
+        return self.last
+
+    def step(self, qd_ref, q, qd) -> ControlOutput:
+        """One 10 ms control step.
+
+        Args:
+            qd_ref: (4,) velocity references of the active joints, rad/s and m/s.
+            q: (6,) measured joint positions (JOINT_NAMES order), rad / m.
+            qd: (6,) measured joint velocities, rad/s and m/s.
+
+        Returns:
+            ControlOutput with the valve commands and the reference after safety clipping;
+            neutral (zeros) if any input is non-finite or has the wrong shape.
+        """
+        try:
+            r = np.asarray(qd_ref, dtype=float).reshape(NUM_ACTIVE)
+            q_a = np.asarray(q, dtype=float).reshape(-1)[:NUM_ACTIVE]
+            qd_a = np.asarray(qd, dtype=float).reshape(-1)[:NUM_ACTIVE]
+        except (TypeError, ValueError):
+            return self.neutral()
+        if q_a.shape != (NUM_ACTIVE,) or qd_a.shape != (NUM_ACTIVE,):
+            return self.neutral()
+        if not (np.all(np.isfinite(r)) and np.all(np.isfinite(q_a)) and np.all(np.isfinite(qd_a))):
+            return self.neutral()
+
+        g, vmax = self.gains, self.velocity_limits
+        r = np.clip(r, -vmax, vmax)
+        r = r * limit_ramp_scale(q_a, r, g)
+
+        r_n = r / vmax
+        active = np.abs(r_n) > _NEGLIGIBLE_REF
+        u_ff = np.where(active, r_n * (1.0 - g.dead_band_comp) + np.sign(r_n) * g.dead_band_comp, 0.0)
+
+        err = (r - qd_a) / vmax
+        d_err = np.zeros(NUM_ACTIVE) if self._prev_err is None else (err - self._prev_err) / self.dt_s
+        self._prev_err = err
+        u_unsat = u_ff + g.kp * err + self._integral + g.kd * d_err
+        # conditional integration: do not wind up while saturated in the error's direction
+        saturated = (np.abs(u_unsat) >= 1.0) & (np.sign(u_unsat) == np.sign(err))
+        self._integral = np.where(saturated, self._integral, self._integral + g.ki * err * self.dt_s)
+        self._integral = np.clip(self._integral, -g.integral_limit, g.integral_limit)
+        u = np.clip(u_ff + g.kp * err + self._integral + g.kd * d_err, -1.0, 1.0)
+        self.last = ControlOutput(u, r, False)
+        return self.last
