@@ -1,0 +1,50 @@
+"""GET /api/machines: the machines the server knows or hears, with presence and policies."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+from pydantic import ValidationError
+from sqlalchemy import select
+
+from server.api.deps import FleetDep, SessionDep
+from server.api.schemas import MachineOut
+from server.db.models import Machine
+from server.fleet import Fleet, RuntimeUnavailable
+
+router = APIRouter(prefix="/api/machines", tags=["machines"])
+
+INFO_TIMEOUT_S = 1.0
+
+
+@router.get("", response_model=list[MachineOut])
+def list_machines(db: SessionDep, fleet: FleetDep) -> list[MachineOut]:
+    """All machines in the database plus any heard on Zenoh, sorted by id.
+
+    ``simulated`` is True when the machine's own state says it is the simulated machine.
+    """
+    rows = {m.id: m for m in db.scalars(select(Machine))}
+    states = fleet.latest_states()
+    ids = sorted(set(rows) | fleet.online_ids() | set(states))
+    return [_machine_out(mid, rows.get(mid), fleet) for mid in ids]
+
+
+def _machine_out(mid: str, row: Machine | None, fleet: Fleet) -> MachineOut:
+    online = fleet.is_online(mid)
+    info = fleet.cached_info(mid)
+    if online and info is None:
+        try:
+            info = fleet.query_info(mid, timeout_s=INFO_TIMEOUT_S)
+        except (RuntimeUnavailable, ValidationError):
+            info = None
+    state = fleet.latest_state(mid)
+    simulated = bool(
+        (state is not None and state.simulated)
+        or (info is not None and info.simulated)
+        or (row is not None and row.simulated)
+    )
+    return MachineOut(
+        id=mid, online=online, simulated=simulated,
+        policies={p.mode: p.version for p in info.policies} if info else {},
+        busy=info.busy if info else None,
+        cabin_turn_rad=state.q[0] if state is not None else None,
+    )

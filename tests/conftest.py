@@ -1,0 +1,234 @@
+"""Shared fixtures of the server tests: free ports, a migrated SQLite database, the app on a
+Zenoh loopback endpoint, and a FAKE runtime that speaks the real protocol over real Zenoh.
+
+Every Zenoh session here has multicast scouting off and explicit tcp/127.0.0.1 endpoints, and is
+closed by its fixture (sessions with Python callbacks left open hang the interpreter at exit).
+"""
+
+from __future__ import annotations
+
+import base64
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+from sqlalchemy import create_engine, func, select
+
+from runtime.protocol import keys
+from runtime.protocol.messages import (
+    MachineState,
+    PolicyInfo,
+    ResultAck,
+    RuntimeInfo,
+    ThrowAck,
+    ThrowRequest,
+    ThrowResult,
+    ThrowStatus,
+    decode,
+    encode,
+)
+from runtime.telemetry import TelemetryRecorder, write_mcap
+from runtime.throw_geometry import impact_errors
+from runtime.zenoh_session import open_session
+
+
+def pytest_configure(config) -> None:
+    # Starlette's TestClient warns that it wants httpx2; not our concern here.
+    config.addinivalue_line("filterwarnings", "ignore:Using `httpx` with `starlette.testclient`")
+    config.addinivalue_line("filterwarnings", "ignore:No path_separator found")
+
+
+def free_port() -> int:
+    """A TCP port that was free a moment ago on 127.0.0.1."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(predicate: Callable[[], object], timeout_s: float = 10.0, what: str = "condition"):
+    """Poll ``predicate`` every 50 ms until truthy; return its value or fail the test."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.05)
+    pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
+
+
+class FakeRuntime:
+    """A runtime stand-in: liveliness token, info and throw queryables, 20 Hz MachineState,
+    and, per accepted throw, statuses and a ThrowResult delivered as a query to THROW_RESULT.
+
+    Args:
+        endpoint: Zenoh endpoint of the server to connect to.
+        machine_id: its machine id.
+        refuse: if set, refuse every throw with this reason.
+        silent: never answer throw requests (the server must time out).
+        deliver: deliver a result after accepting (else the throw stays open).
+        cabin_turn_rad: the cabin angle it reports.
+    """
+
+    def __init__(self, endpoint: str, machine_id: str = "m1", refuse: str | None = None,
+                 silent: bool = False, deliver: bool = True, cabin_turn_rad: float = 0.0):
+        self.machine_id, self.refuse, self.silent, self.deliver = machine_id, refuse, silent, deliver
+        self.cabin_turn_rad = cabin_turn_rad
+        self.requests: list[ThrowRequest] = []
+        self.acks: list[ResultAck] = []
+        self.results: list[ThrowResult] = []
+        self._stop = threading.Event()
+        self.session = open_session(mode="peer", connect=(endpoint,))
+        s = self.session
+        self._decls = [
+            s.declare_queryable(keys.throw(machine_id), self._on_throw),
+            s.declare_queryable(keys.info(machine_id), self._on_info),
+        ]
+        self._state_pub = s.declare_publisher(keys.state(machine_id))
+        self._status_pub = s.declare_publisher(keys.status(machine_id))
+        self._token = s.liveliness().declare_token(keys.runtime_alive(machine_id))
+        self._threads = [threading.Thread(target=self._publish_states, daemon=True)]
+        self._threads[0].start()
+
+    def state(self) -> MachineState:
+        return MachineState(machine_id=self.machine_id, stamp_s=time.monotonic(),
+                            q=[self.cabin_turn_rad, -0.5, 1.5, 0.2, 0.0, 0.0], qd=[0.0] * 6,
+                            gripper_open=False, payload_attached=True, simulated=True)
+
+    def _publish_states(self) -> None:
+        while not self._stop.wait(0.05):
+            self._state_pub.put(encode(self.state()))
+
+    def _on_info(self, query) -> None:
+        info = RuntimeInfo(machine_id=self.machine_id, busy=False, machine_online=True, simulated=True,
+                           policies=[PolicyInfo(mode="2d", version="fake-2d", sha256="ab" * 32)])
+        query.reply(keys.info(self.machine_id), encode(info))
+
+    def _on_throw(self, query) -> None:
+        req = decode(ThrowRequest, query.payload.to_bytes())
+        self.requests.append(req)
+        if self.silent:
+            return
+        accepted = self.refuse is None
+        ack = ThrowAck(throw_id=req.throw_id, accepted=accepted, reason=self.refuse,
+                       policy_version="fake-2d" if accepted else None)
+        query.reply(keys.throw(self.machine_id), encode(ack))
+        if accepted and self.deliver:
+            t = threading.Thread(target=self._fly, args=(req,), daemon=True)
+            self._threads.append(t)
+            t.start()
+
+    def make_result(self, req: ThrowRequest, impact=(8.3, -0.1, 0.0)) -> ThrowResult:
+        """A landed result with a small MCAP recording (10 ticks + payload)."""
+        rec = TelemetryRecorder()
+        for i in range(10):
+            q = [self.cabin_turn_rad, -0.5 + 0.01 * i, 1.5, 0.2, 0.0, 0.0]
+            rec.record(0.01 * i, q, [0.0] * 6, [0.0] * 4, [0.0] * 4, i > 5, i > 6, "swinging",
+                       payload_pos_m=[5.0 + 0.3 * i, -0.1, 3.0 - 0.3 * i], payload_vel_mps=[3.0, 0.0, -3.0])
+        rec.event(0.0, "swinging")
+        down, cross = impact_errors(req.target_m, impact)
+        return ThrowResult(
+            machine_id=self.machine_id, stamp_s=time.monotonic(), throw_id=req.throw_id, mode=req.mode,
+            status="landed", target_m=req.target_m, impact_m=list(impact), downrange_error_m=down,
+            crossrange_error_m=cross, policy_version="fake-2d", duration_s=3.2,
+            telemetry_mcap_b64=base64.b64encode(write_mcap(rec, {"throw_id": req.throw_id})).decode(),
+        )
+
+    def _fly(self, req: ThrowRequest) -> None:
+        for phase in ("preparing", "swinging", "released"):
+            time.sleep(0.05)
+            self._status_pub.put(encode(ThrowStatus(machine_id=self.machine_id, stamp_s=time.monotonic(),
+                                                    throw_id=req.throw_id, phase=phase)))
+        time.sleep(0.1)
+        self.send_result(self.make_result(req))
+
+    def send_result(self, result: ThrowResult, timeout_s: float = 10.0) -> ResultAck | None:
+        """Deliver ``result`` as the runtime's outbox does: a query to THROW_RESULT."""
+        self.results.append(result)
+        for reply in self.session.get(keys.THROW_RESULT, payload=encode(result), timeout=timeout_s):
+            if reply.ok is not None:
+                ack = decode(ResultAck, reply.ok.payload.to_bytes())
+                self.acks.append(ack)
+                return ack
+        return None
+
+    def close(self) -> None:
+        """Stop publishing, let in-flight throws finish (bounded), undeclare, close the session."""
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=12.0)
+        self._token.undeclare()
+        for d in self._decls:
+            d.undeclare()
+        self.session.close()
+
+
+@pytest.fixture
+def zenoh_endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def settings(tmp_path: Path, zenoh_endpoint: str):
+    """Server settings: SQLite in tmp (migrated by the app), no 3D view, short query timeout."""
+    from server.config import Settings
+
+    return Settings(data_dir=tmp_path / "var", zenoh_listen=[zenoh_endpoint], viser_enabled=False,
+                    query_timeout_s=2.0, auto_migrate=True)
+
+
+@pytest.fixture
+def client(settings) -> Iterator:
+    """A TestClient of the app; the lifespan (migrations, Zenoh, fleet) runs inside."""
+    from fastapi.testclient import TestClient
+
+    from server.app import create_app
+
+    with TestClient(create_app(settings)) as c:
+        yield c
+
+
+@pytest.fixture
+def fake_runtime_factory(zenoh_endpoint: str) -> Iterator[Callable[..., FakeRuntime]]:
+    made: list[FakeRuntime] = []
+
+    def make(**kwargs) -> FakeRuntime:
+        rt = FakeRuntime(zenoh_endpoint, **kwargs)
+        made.append(rt)
+        return rt
+
+    yield make
+    for rt in made:
+        try:
+            rt.close()
+        except Exception:
+            pass
+
+
+@pytest.fixture
+def throw_count(settings) -> Callable[[], int]:
+    """Number of rows in the throws table, read straight from the database."""
+    from server.db.models import Throw
+
+    engine = create_engine(settings.database_url)
+
+    def count() -> int:
+        with engine.connect() as conn:
+            return conn.scalar(select(func.count()).select_from(Throw))
+
+    yield count
+    engine.dispose()
+
+
+def wait_online(client, machine_id: str = "m1", online: bool = True, timeout_s: float = 10.0) -> dict:
+    """Poll GET /api/machines until ``machine_id`` has the given presence (and a state)."""
+
+    def check():
+        for m in client.get("/api/machines").json():
+            if m["id"] == machine_id and m["online"] is online and (not online or m["cabin_turn_rad"] is not None):
+                return m
+        return None
+
+    return wait_for(check, timeout_s, f"{machine_id} online={online}")
