@@ -1,0 +1,422 @@
+"""The throw state machine, as pure logic: no I/O, no threads, no wall clock.
+
+Time comes only from ``MachineState.stamp_s``. The same class runs inside the Zenoh runtime
+(:mod:`runtime.node` via :mod:`runtime.service`) and directly in a Python loop in the twin's
+evaluation and preview code::
+
+    ex = ThrowExecutor({"2d": PolicyRunner.load(path)}, JointVelocityController())
+    refusal = ex.start(ThrowRequest(...), state)
+    while True:
+        out = ex.tick(state)                  # one call per 100 Hz machine state
+        if out.sim_reset: ...                 # apply it to the simulated machine
+        machine.step(out.valve_u, out.gripper_open)
+        state = <MachineState of the machine>
+        if <payload landed>: out = ex.on_impact(report)
+        if out.finished: break                # a ThrowOutcome
+
+Phases (messages.ThrowPhase): preparing -> swinging -> released -> landed | failed | aborted.
+
+* preparing: gripper commanded closed, valves neutral. On a simulated machine one SimReset is
+  requested (random collision-free pose, fresh payload: stands for picking up a new payload).
+  Then wait until the reset is seen (``state.reset_count`` changed, or ``reset_settle_s`` passed
+  if the machine does not report it), the payload is attached, the gripper closed and both
+  passive joints slower than ``passive_still_radps``. Timeout -> failed.
+* swinging: every SUBSTEPS-th tick (12.5 Hz) the observation is built from the history
+  (control-step history, newest first, filled with the swing-start state; previous action zeros),
+  the policy runs and its action is decoded to velocity references and a release flag; the
+  controller tracks the latest references at 100 Hz. The first release flag commands the gripper
+  open (once per throw) -> released.
+* released: the policy keeps running (paper Sec. III). :meth:`on_impact` -> landed, with the
+  impact errors of runtime.throw_geometry.impact_errors.
+* every tick of swinging/released: runtime.machine.clearance_violations (ground, cabin, joint
+  limit), non-finite state, no release within ``release_timeout_s`` of swing start and no impact
+  within ``impact_timeout_s`` of the release command each end the throw as failed.
+
+Once a throw ends the executor is idle: valves neutral (references zero), gripper command kept.
+Every tick of a throw is recorded (runtime.telemetry.TelemetryRecorder).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from runtime.controller import JointVelocityController
+from runtime.machine import NUM_ACTIVE, clearance_violations, forward_kinematics
+from runtime.observation import HISTORY_STEPS, SUBSTEPS, build_observation, decode_action, num_actions
+from runtime.policy import PolicyError, PolicyRunner
+from runtime.protocol.messages import ImpactReport, MachineState, SimReset, ThrowRequest, ThrowResult
+from runtime.telemetry import TelemetryRecorder, write_mcap
+from runtime.throw_geometry import impact_errors, target_refusal
+
+
+@dataclass
+class ExecutorConfig:
+    """Timeouts and thresholds (seconds of machine time, rad/s).
+
+    Attributes:
+        prepare_timeout_s: longest wait in preparing (reset + payload + gripper at rest).
+        passive_still_radps: passive joints must be slower than this to start swinging.
+        reset_settle_s: wait after a SimReset request when the machine reports no reset_count.
+        release_timeout_s: the policy must release within this time of swing start.
+        impact_timeout_s: an impact must be reported within this time of the release command.
+    """
+
+    prepare_timeout_s: float = 20.0
+    passive_still_radps: float = 0.05
+    reset_settle_s: float = 0.5
+    release_timeout_s: float = 10.0
+    impact_timeout_s: float = 6.0
+
+
+@dataclass(frozen=True)
+class PhaseEvent:
+    """A phase change of a throw, at machine time ``stamp_s``."""
+
+    throw_id: str
+    phase: str
+    stamp_s: float
+    detail: str | None = None
+
+
+@dataclass
+class ThrowOutcome:
+    """A finished throw (what becomes a messages.ThrowResult).
+
+    Attributes:
+        status: "landed", "failed" or "aborted".
+        target_m / impact_m: (3,) machine frame, m (impact None unless landed).
+        downrange_error_m / crossrange_error_m: runtime.throw_geometry.impact_errors, m.
+        release_stamp_s: machine time of the release command; opening_stamp_s: payload free.
+        start_stamp_s / end_stamp_s: machine time of start() and of the last state seen.
+        telemetry: the 100 Hz recording.
+        impact: the machine's ImpactReport, if any.
+    """
+
+    throw_id: str
+    mode: str
+    status: str
+    failure_reason: str | None
+    target_m: np.ndarray
+    policy_version: str
+    start_stamp_s: float
+    end_stamp_s: float
+    telemetry: TelemetryRecorder
+    impact_m: np.ndarray | None = None
+    downrange_error_m: float | None = None
+    crossrange_error_m: float | None = None
+    release_stamp_s: float | None = None
+    opening_stamp_s: float | None = None
+    impact: ImpactReport | None = None
+
+    @property
+    def duration_s(self) -> float:
+        return max(0.0, self.end_stamp_s - self.start_stamp_s)
+
+    def to_message(self, machine_id: str, with_telemetry: bool = True) -> ThrowResult:
+        """The wire ThrowResult (stamp_s = end_stamp_s), telemetry as base64 MCAP if asked."""
+        mcap_b64 = None
+        if with_telemetry:
+            meta = {"throw_id": self.throw_id, "mode": self.mode, "status": self.status, "policy_version": self.policy_version, "target_m": json.dumps(self.target_m.tolist())}
+            mcap_b64 = base64.b64encode(write_mcap(self.telemetry, meta)).decode("ascii")
+        return ThrowResult(
+            machine_id=machine_id,
+            stamp_s=self.end_stamp_s,
+            throw_id=self.throw_id,
+            mode=self.mode,
+            status=self.status,
+            failure_reason=self.failure_reason,
+            target_m=self.target_m.tolist(),
+            impact_m=None if self.impact_m is None else self.impact_m.tolist(),
+            downrange_error_m=self.downrange_error_m,
+            crossrange_error_m=self.crossrange_error_m,
+            policy_version=self.policy_version,
+            release_stamp_s=self.release_stamp_s,
+            opening_stamp_s=self.opening_stamp_s,
+            duration_s=self.duration_s,
+            telemetry_mcap_b64=mcap_b64,
+        )
+
+
+@dataclass(frozen=True)
+class TickOutput:
+    """Commands for the machine and what happened.
+
+    Attributes:
+        valve_u: (4,) valve commands in [-1, 1] (ACTIVE_JOINTS order); zeros = neutral.
+        qd_ref: (4,) references the controller tracked after safety clipping, rad/s, m/s.
+        gripper_open: the gripper-open command.
+        sim_reset: a SimReset to send to a simulated machine, or None.
+        events: phase changes since the previous output.
+        finished: the outcome of a throw that ended since the previous output, or None.
+    """
+
+    valve_u: np.ndarray
+    qd_ref: np.ndarray
+    gripper_open: bool
+    sim_reset: SimReset | None = None
+    events: tuple[PhaseEvent, ...] = ()
+    finished: ThrowOutcome | None = None
+
+
+@dataclass
+class _Throw:
+    request: ThrowRequest
+    policy: PolicyRunner
+    start_stamp_s: float
+    phase: str = "preparing"
+    reset_requested: bool = False
+    reset_count0: int | None = None
+    reset_stamp_s: float = 0.0
+    swing_stamp_s: float = 0.0
+    swing_ticks: int = 0
+    q_hist: np.ndarray = field(default_factory=lambda: np.zeros((HISTORY_STEPS, 6)))
+    qd_hist: np.ndarray = field(default_factory=lambda: np.zeros((HISTORY_STEPS, 6)))
+    prev_action: np.ndarray | None = None
+    qd_ref: np.ndarray = field(default_factory=lambda: np.zeros(NUM_ACTIVE))
+    release_stamp_s: float | None = None
+    opening_stamp_s: float | None = None
+    recorder: TelemetryRecorder = field(default_factory=TelemetryRecorder)
+
+
+def _state_finite(state: MachineState) -> bool:
+    vals = [*state.q, *state.qd, state.stamp_s]
+    return len(state.q) == 6 and len(state.qd) == 6 and bool(np.all(np.isfinite(vals)))
+
+
+class ThrowExecutor:
+    """Runs one throw at a time. Not thread-safe: callers serialise access (the node uses a lock).
+
+    Args:
+        policies: loaded policies by mode ("2d", "3d"); each runner's ``mode`` must match its key.
+        controller: the joint-velocity controller (safety clipping lives there).
+        config: timeouts and thresholds.
+
+    Raises:
+        ValueError: if a policy is filed under the wrong mode.
+    """
+
+    def __init__(self, policies: dict[str, PolicyRunner], controller: JointVelocityController | None = None, config: ExecutorConfig | None = None):
+        for mode, runner in policies.items():
+            if runner.mode != mode:
+                raise ValueError(f"policy {runner.version!r} is a {runner.mode} policy, filed under {mode!r}")
+        self.policies = dict(policies)
+        self.controller = controller or JointVelocityController()
+        self.config = config or ExecutorConfig()
+        self._throw: _Throw | None = None
+        self._gripper_cmd = False
+        self._events: list[PhaseEvent] = []
+        self._finished: ThrowOutcome | None = None
+        self._last_stamp_s: float | None = None
+
+    # --- queries ----------------------------------------------------------------------------
+    @property
+    def busy(self) -> bool:
+        return self._throw is not None
+
+    @property
+    def throw_id(self) -> str | None:
+        return self._throw.request.throw_id if self._throw else None
+
+    @property
+    def phase(self) -> str | None:
+        return self._throw.phase if self._throw else None
+
+    # --- commands ---------------------------------------------------------------------------
+    def start(self, request: ThrowRequest, state: MachineState | None) -> str | None:
+        """Begin a throw; returns the reason it is refused, or None when accepted.
+
+        Args:
+            request: the validated ThrowRequest.
+            state: the latest machine state (None if none has arrived yet).
+
+        Refused when: busy, no policy for the mode, no or non-finite machine state, or the
+        target is not servable (runtime.throw_geometry.target_refusal with the policy's
+        ``target_range_m`` and the current cabin angle).
+        """
+        if self._throw is not None:
+            return f"runtime busy with throw {self._throw.request.throw_id!r}"
+        policy = self.policies.get(request.mode)
+        if policy is None:
+            return f"no {request.mode} policy loaded on this runtime"
+        if state is None:
+            return "no machine state received yet"
+        if not _state_finite(state):
+            return "machine state is not finite"
+        refusal = target_refusal(request.mode, request.target_m, float(state.q[0]), policy.target_range_m)
+        if refusal:
+            return refusal
+        self._throw = _Throw(request=request, policy=policy, start_stamp_s=state.stamp_s)
+        self._last_stamp_s = state.stamp_s
+        self._gripper_cmd = False
+        self.controller.neutral()
+        self._emit("preparing", state.stamp_s)
+        return None
+
+    def tick(self, state: MachineState) -> TickOutput:
+        """Advance one 100 Hz machine state; returns the commands to send."""
+        th = self._throw
+        self._last_stamp_s = state.stamp_s
+        if th is None:
+            return self._output(self.controller.neutral())
+        if not _state_finite(state):
+            return self._finish("failed", "non-finite machine state", state.stamp_s)
+        if th.phase == "preparing":
+            return self._tick_preparing(th, state)
+        return self._tick_swinging(th, state)
+
+    def drain(self) -> TickOutput:
+        """The last commands again with the events (and outcome) pending since the last output,
+        without advancing the throw (e.g. to publish "preparing" right after :meth:`start`)."""
+        return self._output(self.controller.last)
+
+    def on_impact(self, report: ImpactReport) -> TickOutput:
+        """The payload hit the ground: a released throw ends as landed. Ignored otherwise."""
+        th = self._throw
+        if th is None or th.phase != "released":
+            return self.drain()
+        impact = np.asarray(report.impact_pos_m, dtype=float)
+        down, cross = impact_errors(th.request.target_m, impact)
+        th.opening_stamp_s = report.opening_stamp_s
+        end = max(report.impact_stamp_s, self._last_stamp_s or report.stamp_s)
+        return self._finish(
+            "landed",
+            f"downrange {down:+.2f} m, crossrange {cross:+.2f} m",
+            end,
+            impact_m=impact,
+            downrange_error_m=down,
+            crossrange_error_m=cross,
+            impact=report,
+        )
+
+    def abort(self, reason: str = "operator abort") -> TickOutput:
+        """End the current throw as aborted (valves neutral). No effect when idle."""
+        if self._throw is None:
+            return self._output(self.controller.neutral())
+        return self._finish("aborted", reason, self._last_stamp_s)
+
+    def fail(self, reason: str) -> TickOutput:
+        """End the current throw as failed (valves neutral), e.g. "machine link lost"."""
+        if self._throw is None:
+            return self._output(self.controller.neutral())
+        return self._finish("failed", reason, self._last_stamp_s)
+
+    # --- phases -----------------------------------------------------------------------------
+    def _tick_preparing(self, th: _Throw, state: MachineState) -> TickOutput:
+        cfg = self.config
+        reset = None
+        if state.simulated and not th.reset_requested:
+            reset = SimReset(machine_id=state.machine_id, stamp_s=state.stamp_s)
+            th.reset_requested, th.reset_count0, th.reset_stamp_s = True, state.reset_count, state.stamp_s
+        if not state.simulated:
+            reset_seen = True
+        elif reset is not None:
+            reset_seen = False
+        elif state.reset_count is not None and th.reset_count0 is not None:
+            reset_seen = state.reset_count != th.reset_count0
+        else:
+            reset_seen = state.stamp_s - th.reset_stamp_s >= cfg.reset_settle_s
+        still = bool(np.all(np.abs(np.asarray(state.qd[4:6])) < cfg.passive_still_radps))
+        if reset_seen and state.payload_attached and not state.gripper_open and still:
+            return self._begin_swing(th, state)
+        if state.stamp_s - th.start_stamp_s > cfg.prepare_timeout_s:
+            return self._finish("failed", f"not ready to swing within {cfg.prepare_timeout_s:.0f} s (payload, gripper or passive joints)", state.stamp_s)
+        out = self.controller.neutral()
+        self._record(th, state, out.valve_u, out.qd_ref)
+        return self._output(out, sim_reset=reset)
+
+    def _begin_swing(self, th: _Throw, state: MachineState) -> TickOutput:
+        th.phase, th.swing_stamp_s, th.swing_ticks = "swinging", state.stamp_s, 0
+        th.q_hist[:] = np.asarray(state.q, dtype=float)
+        th.qd_hist[:] = np.asarray(state.qd, dtype=float)
+        th.prev_action = np.zeros(num_actions(th.request.mode), dtype=np.float32)
+        self.controller.reset()
+        self._emit("swinging", state.stamp_s)
+        return self._tick_swinging(th, state)
+
+    def _tick_swinging(self, th: _Throw, state: MachineState) -> TickOutput:
+        cfg, now = self.config, state.stamp_s
+        q, qd = np.asarray(state.q, dtype=float), np.asarray(state.qd, dtype=float)
+        ground, cabin, limit = clearance_violations(np, q, forward_kinematics(np, q, qd))
+        for flag, why in ((ground, "ground"), (cabin, "cabin"), (limit, "joint limit")):
+            if flag:
+                return self._finish("failed", f"clearance violation: {why}", now)
+        if th.release_stamp_s is None and now - th.swing_stamp_s > cfg.release_timeout_s:
+            return self._finish("failed", f"no release within {cfg.release_timeout_s:.0f} s", now)
+        if th.release_stamp_s is not None and now - th.release_stamp_s > cfg.impact_timeout_s:
+            return self._finish("failed", f"no impact within {cfg.impact_timeout_s:.0f} s of release", now)
+        if th.swing_ticks % SUBSTEPS == 0:
+            failure = self._control_step(th, state, q, qd)
+            if failure:
+                return self._finish("failed", failure, now)
+        th.swing_ticks += 1
+        if th.release_stamp_s is not None and th.opening_stamp_s is None and state.gripper_open:
+            th.opening_stamp_s = now
+        out = self.controller.step(th.qd_ref, q, qd)
+        self._record(th, state, out.valve_u, out.qd_ref)
+        return self._output(out)
+
+    def _control_step(self, th: _Throw, state: MachineState, q: np.ndarray, qd: np.ndarray) -> str | None:
+        """One 12.5 Hz policy step; returns a failure reason or None."""
+        th.q_hist = np.roll(th.q_hist, 1, axis=0)
+        th.qd_hist = np.roll(th.qd_hist, 1, axis=0)
+        th.q_hist[0], th.qd_hist[0] = q, qd
+        mode = th.request.mode
+        opened = 1.0 if state.gripper_open else 0.0
+        obs = build_observation(np, mode, th.q_hist, th.qd_hist, th.prev_action, th.request.target_m, opened)
+        try:
+            action = np.asarray(th.policy.act(obs), dtype=np.float32)
+        except PolicyError as e:
+            return f"policy error: {e}"
+        if action.shape != (num_actions(mode),) or not np.all(np.isfinite(action)):
+            return "policy returned a non-finite or misshaped action"
+        th.prev_action = action
+        qd_ref, release = decode_action(np, mode, action)
+        th.qd_ref = np.asarray(qd_ref, dtype=float)
+        if bool(release) and th.release_stamp_s is None:
+            th.release_stamp_s = state.stamp_s
+            self._gripper_cmd = True
+            th.phase = "released"
+            self._emit("released", state.stamp_s)
+        return None
+
+    # --- helpers ----------------------------------------------------------------------------
+    def _emit(self, phase: str, stamp_s: float, detail: str | None = None) -> None:
+        th = self._throw
+        self._events.append(PhaseEvent(th.request.throw_id, phase, stamp_s, detail))
+        th.recorder.event(stamp_s, phase, detail)
+
+    def _record(self, th: _Throw, state: MachineState, valve_u, qd_ref) -> None:
+        th.recorder.record(
+            state.stamp_s, state.q, state.qd, qd_ref, valve_u, self._gripper_cmd, state.gripper_open,
+            th.phase, state.payload_pos_m, state.payload_vel_mps,
+        )
+
+    def _finish(self, status: str, detail: str | None, stamp_s: float | None, **result) -> TickOutput:
+        th = self._throw
+        end = th.start_stamp_s if stamp_s is None else stamp_s
+        self._emit(status, end, detail)
+        self._finished = ThrowOutcome(
+            throw_id=th.request.throw_id,
+            mode=th.request.mode,
+            status=status,
+            failure_reason=None if status == "landed" else detail,
+            target_m=np.asarray(th.request.target_m, dtype=float),
+            policy_version=th.policy.version,
+            start_stamp_s=th.start_stamp_s,
+            end_stamp_s=end,
+            telemetry=th.recorder,
+            release_stamp_s=th.release_stamp_s,
+            opening_stamp_s=th.opening_stamp_s,
+            **result,
+        )
+        self._throw = None
+        return self._output(self.controller.neutral())
+
+    def _output(self, ctrl, sim_reset: SimReset | None = None) -> TickOutput:
+        events, self._events = tuple(self._events), []
+        finished, self._finished = self._finished, None
+        return TickOutput(ctrl.valve_u.copy(), ctrl.qd_ref.copy(), self._gripper_cmd, sim_reset, events, finished)

@@ -1,0 +1,141 @@
+"""The runtime process (one per machine): policies + controller + throw executor behind Zenoh.
+
+Wiring (keys in runtime/protocol/README.md):
+
+* subscribes keys.state(id) and keys.impact(id) -> runtime.service.RuntimeService;
+* publishes keys.valve_cmd (every state tick), keys.gripper_cmd (on change), keys.sim_reset,
+  keys.status (phase changes);
+* queryables keys.throw (ThrowRequest -> ThrowAck), keys.abort (AbortRequest -> AbortAck),
+  keys.info (-> RuntimeInfo);
+* liveliness token keys.runtime_alive(id);
+* a watchdog thread (every 50 ms): no valid state for 0.2 s during a throw -> failed;
+* the outbox delivers finished ThrowResults to keys.THROW_RESULT until the server acks.
+
+Entry points: ``build_parser(parser)`` and ``run(args)`` (used by ``slinger runtime``), and
+``python -m runtime.node --machine-id m1 --policy-2d policies/p2d.onnx --listen tcp/0.0.0.0:7447``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import threading
+from pathlib import Path
+
+from runtime.controller import JointVelocityController
+from runtime.executor import ThrowExecutor
+from runtime.outbox import Outbox, zenoh_deliverer
+from runtime.policy import PolicyError, PolicyRunner
+from runtime.protocol import keys
+from runtime.service import LINK_TIMEOUT_S, RuntimeService
+from runtime.zenoh_session import open_session
+
+log = logging.getLogger(__name__)
+
+WATCHDOG_PERIOD_S = 0.05
+
+
+def default_outbox_dir(machine_id: str) -> Path:
+    """~/.slinger/outbox/<machine_id>"""
+    return Path.home() / ".slinger" / "outbox" / machine_id
+
+
+def build_parser(parser: argparse.ArgumentParser) -> None:
+    """Add the runtime's arguments to ``parser``."""
+    parser.add_argument("--machine-id", required=True, help="machine id, [A-Za-z0-9_-]{1,64}")
+    parser.add_argument("--policy-2d", type=Path, default=None, help="2D policy ONNX file (manifest beside it)")
+    parser.add_argument("--policy-3d", type=Path, default=None, help="3D policy ONNX file (manifest beside it)")
+    parser.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to (repeatable)")
+    parser.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
+    parser.add_argument("--mode", default="peer", choices=("peer", "client"), help="Zenoh session mode")
+    parser.add_argument("--outbox-dir", type=Path, default=None, help="durable outbox directory (default ~/.slinger/outbox/<machine-id>)")
+    parser.add_argument("--link-timeout", type=float, default=LINK_TIMEOUT_S, help="seconds without machine state that fail a throw")
+
+
+def load_policies(args: argparse.Namespace) -> dict[str, PolicyRunner]:
+    """Load --policy-2d / --policy-3d.
+
+    Raises:
+        PolicyError: a policy does not load or check, sits under the wrong mode, or none given.
+    """
+    policies = {}
+    for mode, path in (("2d", args.policy_2d), ("3d", args.policy_3d)):
+        if path is None:
+            continue
+        runner = PolicyRunner.load(path)
+        if runner.mode != mode:
+            raise PolicyError(f"{path} is a {runner.mode} policy, given as --policy-{mode}")
+        policies[mode] = runner
+        log.info("%s policy %s (sha256 %s…)", mode, runner.version, runner.sha256[:12])
+    if not policies:
+        raise PolicyError("give at least one of --policy-2d, --policy-3d")
+    return policies
+
+
+def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
+    """Run the runtime until SIGINT/SIGTERM (or ``stop`` is set). Returns the exit code
+    (2: bad arguments or policy)."""
+    try:
+        machine_id = keys.validate_machine_id(args.machine_id)
+        policies = load_policies(args)
+    except (ValueError, PolicyError) as e:
+        log.error("cannot start runtime: %s", e)
+        return 2
+    stop = stop or threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    outbox_dir = args.outbox_dir or default_outbox_dir(machine_id)
+    executor = ThrowExecutor(policies, JointVelocityController())
+
+    with open_session(args.mode, listen=args.listen, connect=args.connect) as session:
+        pubs = {
+            k: session.declare_publisher(k)
+            for k in (keys.valve_cmd(machine_id), keys.gripper_cmd(machine_id), keys.sim_reset(machine_id), keys.status(machine_id))
+        }
+        outbox = Outbox(outbox_dir, zenoh_deliverer(session))
+        service = RuntimeService(machine_id, executor, lambda key, data: pubs[key].put(data), outbox.put, link_timeout_s=args.link_timeout)
+
+        def reply(handler):
+            def on_query(query):
+                payload = query.payload.to_bytes() if query.payload is not None else b""
+                try:
+                    query.reply(query.key_expr, handler(payload))
+                except Exception:
+                    log.exception("query on %s failed", query.key_expr)
+
+            return on_query
+
+        entities = [
+            session.declare_subscriber(keys.state(machine_id), lambda s: service.on_state(s.payload.to_bytes())),
+            session.declare_subscriber(keys.impact(machine_id), lambda s: service.on_impact(s.payload.to_bytes())),
+            session.declare_queryable(keys.throw(machine_id), reply(service.handle_throw)),
+            session.declare_queryable(keys.abort(machine_id), reply(service.handle_abort)),
+            session.declare_queryable(keys.info(machine_id), reply(lambda _p: service.handle_info())),
+            session.liveliness().declare_token(keys.runtime_alive(machine_id)),
+            *pubs.values(),
+        ]
+        outbox.start()
+        log.info("runtime %s up: policies %s, outbox %s", machine_id, sorted(policies), outbox_dir)
+        try:
+            while not stop.wait(WATCHDOG_PERIOD_S):
+                service.check_watchdog()
+        finally:
+            service.shutdown()
+            outbox.stop()
+            for entity in entities:
+                entity.undeclare()
+    log.info("runtime %s stopped", machine_id)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    parser = argparse.ArgumentParser(prog="python -m runtime.node", description="Slinger runtime (one per machine)")
+    build_parser(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,131 @@
+"""JointVelocityController: closed-loop step response on the nominal simulated machine, safety
+clipping, limit ramps, non-finite input, anti-windup."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from runtime.controller import ControllerGains, JointVelocityController, limit_ramp_scale
+from runtime.machine import ACTIVE_VELOCITY_LIMITS, JOINT_UPPER, clearance_violations, forward_kinematics
+from sim_twin.simulated_machine import SimulatedMachine
+
+START = np.array([0.0, -0.5, 1.6, 0.9])
+
+
+def _closed_loop(ref_fn, seconds: float, q_active=START):
+    sim = SimulatedMachine(seed=0)
+    sim.reset(q_active=q_active)
+    ctrl = JointVelocityController()
+    qs, qds, us = [], [], []
+    for k in range(int(round(seconds / 0.01))):
+        out = ctrl.step(ref_fn(k * 0.01), sim.q, sim.qd)
+        sim.step(out.valve_u, False)
+        qs.append(sim.q)
+        qds.append(sim.qd)
+        us.append(out.valve_u)
+    return np.array(qs), np.array(qds), np.array(us)
+
+
+@pytest.mark.parametrize("joint", [0, 1, 2, 3])
+@pytest.mark.parametrize("fraction", [0.3, -0.7])
+def test_step_response_is_fast_without_big_overshoot(joint, fraction):
+    ref = np.zeros(4)
+    ref[joint] = fraction * ACTIVE_VELOCITY_LIMITS[joint]
+    _, qd, _ = _closed_loop(lambda t: ref, 1.0)
+    y = qd[:, joint] / ref[joint]
+    t90_s = (np.argmax(y >= 0.9) + 1) * 0.01 if np.any(y >= 0.9) else np.inf
+    assert t90_s <= 0.35
+    assert y.max() - 1.0 < 0.15
+    assert abs(y[-10:].mean() - 1.0) < 0.05
+    others = [j for j in range(4) if j != joint]
+    assert np.abs(qd[:, others]).max() < 0.02
+
+
+def test_cabin_held_still_while_the_arm_swings_in_2d():
+    def ref(t):
+        return np.array([0.0, 0.3 * np.sin(3 * t), -0.4 * np.sin(3 * t), 0.5 * np.cos(3 * t)])
+
+    q, qd, _ = _closed_loop(ref, 3.0)
+    assert np.abs(q[:, 0]).max() < 5e-3
+    assert np.abs(qd[:, 0]).max() < 0.02
+    # and the arm does follow: boom velocity correlates with its reference
+    boom_ref = 0.3 * np.sin(3 * np.arange(1, 301) * 0.01)
+    assert np.corrcoef(qd[:, 1], boom_ref)[0, 1] > 0.9
+
+
+def test_references_are_clipped_to_the_velocity_limits():
+    ctrl = JointVelocityController()
+    q, qd = np.array([0.0, -0.5, 1.6, 0.9, 0, 0]), np.zeros(6)
+    out = ctrl.step(np.array([5.0, -5.0, 5.0, -5.0]), q, qd)
+    np.testing.assert_allclose(out.qd_ref, [1.0, -0.45, 0.6, -0.75])
+    assert np.all(np.abs(out.valve_u) <= 1.0)
+    assert ctrl.last is out
+
+
+def test_reference_towards_a_limit_ramps_to_zero_but_away_is_free():
+    gains = ControllerGains()
+    at_upper = np.array([0.0, JOINT_UPPER[1] - 0.01, JOINT_UPPER[2] - 0.1, JOINT_UPPER[3] - 0.5])
+    scale_in = limit_ramp_scale(at_upper, np.array([1.0, 1.0, 1.0, 1.0]), gains)
+    np.testing.assert_allclose(scale_in, [1.0, 0.0, (0.1 - 0.03) / 0.15, 1.0])
+    scale_out = limit_ramp_scale(at_upper, -np.ones(4), gains)
+    np.testing.assert_allclose(scale_out, 1.0)
+
+
+def test_driving_into_a_limit_stops_short_of_it():
+    ref = np.array([0.0, 0.0, 0.0, 0.75])  # telescope out at full speed
+    q, qd, _ = _closed_loop(lambda t: ref, 3.0)
+    assert q[:, 3].max() < JOINT_UPPER[3] - 2e-3
+    assert abs(qd[-1, 3]) < 0.01
+    for qi in q[::10]:
+        assert not clearance_violations(np, qi, forward_kinematics(np, qi, np.zeros(6)))[2]
+
+
+@pytest.mark.parametrize("bad", ["ref", "q", "qd", "shape"])
+def test_non_finite_or_misshaped_input_gives_neutral_valves(bad):
+    ctrl = JointVelocityController()
+    ref, q, qd = np.full(4, 0.2), np.array([0.0, -0.5, 1.6, 0.9, 0, 0]), np.zeros(6)
+    ctrl.step(ref, q, qd)
+    assert np.any(ctrl.last.valve_u != 0)
+    if bad == "ref":
+        ref = np.array([0.1, np.nan, 0.0, 0.0])
+    elif bad == "q":
+        q = q.copy()
+        q[2] = np.inf
+    elif bad == "qd":
+        qd = np.full(6, np.nan)
+    else:
+        ref = np.zeros(3)
+    out = ctrl.step(ref, q, qd)
+    assert out.neutral
+    np.testing.assert_array_equal(out.valve_u, np.zeros(4))
+    np.testing.assert_array_equal(ctrl._integral, np.zeros(4))
+
+
+def test_anti_windup_bounds_the_integrator():
+    ctrl = JointVelocityController()
+    q = np.array([0.0, -0.5, 1.6, 0.9, 0, 0])
+    ref = np.array([0.0, 0.4, 0.0, 0.0])
+    for _ in range(500):  # a stuck joint: full error for 5 s
+        out = ctrl.step(ref, q, np.zeros(6))
+    assert out.valve_u[1] == pytest.approx(1.0)
+    assert abs(ctrl._integral[1]) <= ctrl.gains.integral_limit[1] + 1e-12
+    out = ctrl.step(np.zeros(4), q, np.zeros(6))  # reference back to zero, joint at rest
+    assert abs(out.valve_u[1]) <= ctrl.gains.integral_limit[1] + 1e-9
+    assert abs(out.valve_u[1]) < 0.35
+
+
+def test_feed_forward_inverts_the_dead_band():
+    ctrl = JointVelocityController(ControllerGains(kp=0.0, ki=0.0))
+    q = np.array([0.0, -0.5, 1.6, 0.9, 0, 0])
+    out = ctrl.step(np.array([0.0, 0.45 * 0.5, -0.3, 0.0]), q, np.zeros(6))
+    np.testing.assert_allclose(out.valve_u, [0.0, 0.05 + 0.95 * 0.5, -(0.05 + 0.95 * 0.5), 0.0])
+
+
+def test_invalid_gains_are_rejected():
+    with pytest.raises(ValueError):
+        ControllerGains(kp=-1.0)
+    with pytest.raises(ValueError):
+        ControllerGains(dead_band_comp=1.0)
+    with pytest.raises(ValueError):
+        JointVelocityController(velocity_limits=[1.0, 0.0, 1.0, 1.0])
