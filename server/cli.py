@@ -1,0 +1,213 @@
+"""The ``slinger`` command.
+
+Subcommands::
+
+    slinger up          the whole stack on this machine (server, 3D view, simulated machines, runtimes)
+    slinger server      only the server (API + console + 3D view)
+    slinger db upgrade  alembic upgrade head on the configured database
+    slinger plant       the simulated machine            (sim_twin.plant)
+    slinger runtime     the runtime of one machine        (runtime.node)
+    slinger train       train a policy                   (sim_twin.train)
+    slinger evaluate    evaluate a policy                (sim_twin.evaluate)
+
+Settings not given as options come from ``SLINGER_*`` environment variables (server.config).
+Modules behind subcommands are imported only when that subcommand runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+import threading
+import time
+from pathlib import Path
+
+log = logging.getLogger("slinger")
+
+DELEGATED = {
+    "plant": ("sim_twin.plant", "the simulated machine"),
+    "runtime": ("runtime.node", "the runtime of one machine"),
+    "train": ("sim_twin.train", "train a throwing policy (needs the 'train' extra)"),
+    "evaluate": ("sim_twin.evaluate", "evaluate a policy version"),
+}
+
+
+def _settings(args: argparse.Namespace, **extra):
+    from server.config import Settings
+
+    overrides = {k: v for k, v in {
+        "host": getattr(args, "host", None), "port": getattr(args, "port", None),
+        "database_url": getattr(args, "database_url", None), "data_dir": getattr(args, "data_dir", None),
+        "viser_port": getattr(args, "viser_port", None), **extra,
+    }.items() if v is not None}
+    return Settings(**overrides)
+
+
+def _add_server_options(p: argparse.ArgumentParser, default_port: int = 8000) -> None:
+    p.add_argument("--host", default=None, help="HTTP bind address (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=None, help=f"HTTP port (default {default_port})")
+    p.add_argument("--viser-port", type=int, default=None, help="3D view port (default 8080; next free one if busy)")
+    p.add_argument("--database-url", default=None, help="SQLAlchemy URL (default sqlite:///<data-dir>/slinger.db)")
+    p.add_argument("--data-dir", type=Path, default=None, help="database, telemetry and logs (default ./var)")
+
+
+def _serve(settings, zenoh_session=None, on_started=None) -> int:
+    """Run uvicorn in this thread until Ctrl-C/SIGTERM (uvicorn handles both gracefully)."""
+    import uvicorn
+
+    from server.app import create_app
+
+    app = create_app(settings, zenoh_session=zenoh_session)
+    server = uvicorn.Server(uvicorn.Config(app, host=settings.host, port=settings.port, log_level="info"))
+    if on_started is not None:
+        def wait_started() -> None:
+            while not server.started and not server.should_exit:
+                time.sleep(0.1)
+            if server.started:
+                on_started(app)
+
+        threading.Thread(target=wait_started, daemon=True).start()
+    try:
+        server.run()
+    except KeyboardInterrupt:  # uvicorn re-raises the Ctrl-C it handled, after a clean shutdown
+        log.info("stopped by Ctrl-C")
+    return 0 if server.started else 1
+
+
+def _print_urls(settings):
+    def show(app) -> None:
+        scene = app.state.scene
+        print(f"Slinger console: http://{settings.host}:{settings.port}/", flush=True)
+        if scene is not None:
+            print(f"3D view:         http://{settings.viser_host}:{scene.port}/", flush=True)
+        print(f"API docs:        http://{settings.host}:{settings.port}/docs", flush=True)
+
+    return show
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from runtime.zenoh_session import open_session
+    from server import stack
+    from server.db.migrate import upgrade
+
+    hub = f"tcp/127.0.0.1:{args.zenoh_port}"
+    settings = _settings(args, zenoh_listen=[hub])
+    policies, problems = {}, []
+    for mode, given, default in (("2d", args.policy_2d, stack.DEFAULT_POLICY_2D),
+                                 ("3d", args.policy_3d, stack.DEFAULT_POLICY_3D)):
+        path, problem = stack.resolve_policy(given, default)
+        if path is not None:
+            policies[mode] = path
+        elif given is not None or mode == "2d":
+            problems.append(f"{mode}: {problem}")
+    for p in problems:
+        log.error("policy %s", p)
+    if not policies:
+        log.error("NOT starting any runtime: no usable policy. Train one (slinger train) and export it "
+                  "to policies/throw2d.onnx + .json, or pass --policy-2d PATH. Server and simulated "
+                  "machines start anyway; the console will show the runtimes offline.")
+    upgrade(settings.database_url)
+    if policies:
+        stack.register_policies(settings.database_url, settings.data_dir, policies)
+    children = stack.Children()
+    with open_session(mode="peer", listen=(hub,)) as session:
+        try:
+            stack.spawn_machines(children, args.machines, hub, policies, settings.data_dir)
+            children.watch()
+            log.info("child logs in %s", settings.data_dir / "logs")
+            return _serve(settings, zenoh_session=session, on_started=_print_urls(settings))
+        finally:
+            children.stop()
+
+
+def cmd_server(args: argparse.Namespace) -> int:
+    extra = {"zenoh_mode": args.zenoh_mode, "auto_migrate": args.migrate or None}
+    if args.listen:
+        extra["zenoh_listen"] = args.listen
+    if args.connect:
+        extra["zenoh_connect"] = args.connect
+    settings = _settings(args, **{k: v for k, v in extra.items() if v is not None})
+    return _serve(settings, on_started=_print_urls(settings))
+
+
+def cmd_db_upgrade(args: argparse.Namespace) -> int:
+    from server.db.migrate import upgrade
+
+    upgrade(_settings(args).database_url, args.revision)
+    return 0
+
+
+def _delegate(module_name: str, rest: list[str], prog: str) -> int:
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as e:
+        if e.name and (module_name == e.name or module_name.startswith(e.name + ".")):
+            print(f"slinger: '{prog}' is not available: module {module_name} does not exist yet", file=sys.stderr)
+        else:
+            print(f"slinger: '{prog}' needs the missing package {e.name!r} (for training: pip install -e '.[train]')",
+                  file=sys.stderr)
+        return 2
+    if hasattr(module, "build_parser") and hasattr(module, "run"):
+        parser = argparse.ArgumentParser(prog=f"slinger {prog}", description=(module.__doc__ or "").splitlines()[0] if module.__doc__ else None)
+        module.build_parser(parser)
+        return int(module.run(parser.parse_args(rest)) or 0)
+    if hasattr(module, "main"):
+        return int(module.main(rest) or 0)
+    print(f"slinger: {module_name} has neither build_parser/run nor main", file=sys.stderr)
+    return 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="slinger", description="Slinger: dynamic throwing with material handlers")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    up = sub.add_parser("up", help="whole stack on this machine: server, 3D view, simulated machines, runtimes")
+    _add_server_options(up)
+    up.add_argument("--zenoh-port", type=int, default=7447, help="port of the embedded Zenoh peer on 127.0.0.1 (default 7447)")
+    up.add_argument("--machines", type=int, default=1, help="number of simulated machines, ids m1..mN (default 1)")
+    up.add_argument("--policy-2d", type=Path, default=None, help="2D policy ONNX (default policies/throw2d.onnx in the repo)")
+    up.add_argument("--policy-3d", type=Path, default=None, help="3D policy ONNX (default policies/throw3d.onnx if present)")
+    up.set_defaults(func=cmd_up)
+
+    srv = sub.add_parser("server", help="only the server: API, console, 3D view")
+    _add_server_options(srv)
+    srv.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on (repeatable)")
+    srv.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to, e.g. a router (repeatable)")
+    srv.add_argument("--zenoh-mode", choices=("peer", "client"), default=None, help="Zenoh session mode (default peer)")
+    srv.add_argument("--migrate", action="store_true", help="alembic upgrade head before serving")
+    srv.set_defaults(func=cmd_server)
+
+    db = sub.add_parser("db", help="database maintenance")
+    db_sub = db.add_subparsers(dest="db_command", required=True)
+    dbu = db_sub.add_parser("upgrade", help="alembic upgrade to head (or --revision)")
+    dbu.add_argument("--database-url", default=None, help="SQLAlchemy URL (default from SLINGER_DATABASE_URL / settings)")
+    dbu.add_argument("--data-dir", type=Path, default=None)
+    dbu.add_argument("--revision", default="head")
+    dbu.set_defaults(func=cmd_db_upgrade)
+
+    for name, (module, help_text) in DELEGATED.items():
+        p = sub.add_parser(name, help=help_text, add_help=False)
+        p.set_defaults(delegate=module)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``slinger`` console script; returns the exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    args, rest = parser.parse_known_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.getLogger("alembic.runtime.plugins").setLevel(logging.WARNING)
+    if getattr(args, "delegate", None):
+        return _delegate(args.delegate, rest, args.command)
+    if rest:
+        parser.error(f"unrecognized arguments: {' '.join(rest)}")
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
