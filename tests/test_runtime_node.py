@@ -1,0 +1,278 @@
+"""The runtime's message handling (RuntimeService, driven without Zenoh, with the simulated
+machine on the other side of the wire messages), its bad-input paths, and a Zenoh integration
+test with the plant and the runtime as subprocesses on loopback."""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from runtime import node
+from runtime.executor import ThrowExecutor
+from runtime.policy import PolicyError, PolicyRunner, build_manifest, write_manifest
+from runtime.protocol import keys
+from runtime.protocol.messages import (
+    AbortAck,
+    GripperCommand,
+    ResultAck,
+    RuntimeInfo,
+    SimReset,
+    ThrowAck,
+    ThrowRequest,
+    ThrowResult,
+    ThrowStatus,
+    ValveCommand,
+    decode,
+    encode,
+)
+from runtime.service import RuntimeService
+from runtime.telemetry import read_telemetry
+from runtime.throw_geometry import ARM_PLANE_OFFSET_M
+from runtime.zenoh_session import open_session
+from sim_twin.plant import TwinMachine
+from sim_twin.simulated_machine import SimulatedMachine
+from tests.fixtures import write_test_policy
+
+REPO = Path(__file__).resolve().parents[1]
+TARGET = [8.0, ARM_PLANE_OFFSET_M, 0.0]
+
+
+@pytest.fixture(scope="module")
+def policy_path(tmp_path_factory) -> Path:
+    return write_test_policy(tmp_path_factory.mktemp("pol"), "2d", release_after_bias=2.0)
+
+
+@pytest.fixture(scope="module")
+def holding_path(tmp_path_factory) -> Path:
+    return write_test_policy(tmp_path_factory.mktemp("hold"), "2d", name="hold", release_after_bias=-2.0)
+
+
+def _throw_payload(throw_id="t1", target=TARGET, mode="2d", machine_id="m1") -> bytes:
+    return encode(ThrowRequest(throw_id=throw_id, machine_id=machine_id, mode=mode, target_m=target))
+
+
+class Harness:
+    """RuntimeService + a simulated machine that obeys the service's wire messages."""
+
+    def __init__(self, path: Path):
+        self.sent: list[tuple[str, bytes]] = []
+        self.results: list[ThrowResult] = []
+        self.now_s = 100.0
+        ex = ThrowExecutor({"2d": PolicyRunner.load(path)})
+        self.service = RuntimeService("m1", ex, lambda k, d: self.sent.append((k, d)), self.results.append, clock=lambda: self.now_s)
+        self.twin = TwinMachine(SimulatedMachine(seed=1), "m1")
+        self.valve_u, self.gripper_open, self._seen = np.zeros(4), False, 0
+
+    def of(self, key: str, cls):
+        return [decode(cls, d) for k, d in self.sent if k == key]
+
+    def tick(self, n: int = 1) -> None:
+        for _ in range(n):
+            self.service.on_state(encode(self.twin.state()))
+            for key, data in self.sent[self._seen :]:
+                if key == keys.valve_cmd("m1"):
+                    self.valve_u = np.asarray(decode(ValveCommand, data).u)
+                elif key == keys.gripper_cmd("m1"):
+                    self.gripper_open = decode(GripperCommand, data).open
+                elif key == keys.sim_reset("m1"):
+                    self.twin.apply_reset(decode(SimReset, data))
+                    self.gripper_open = False
+            self._seen = len(self.sent)
+            report = self.twin.step(self.valve_u, self.gripper_open)
+            self.now_s += 0.01
+            if report is not None:
+                self.service.on_impact(encode(report))
+
+
+def test_service_runs_a_throw_over_wire_messages(policy_path):
+    h = Harness(policy_path)
+    h.tick()
+    ack = decode(ThrowAck, h.service.handle_throw(_throw_payload()))
+    assert ack.accepted and ack.policy_version == "test-linear"
+    for _ in range(300):
+        h.tick()
+        if h.results:
+            break
+    phases = [s.phase for s in h.of(keys.status("m1"), ThrowStatus)]
+    assert phases == ["preparing", "swinging", "released", "landed"]
+    res = h.results[0]
+    assert res.status == "landed" and res.impact_m is not None and res.downrange_error_m is not None
+    assert len(read_telemetry(base64.b64decode(res.telemetry_mcap_b64))["t_s"]) > 10
+    valves = h.of(keys.valve_cmd("m1"), ValveCommand)
+    assert len(valves) >= h.twin.reset_count + 10  # one per state tick
+    assert [g.open for g in h.of(keys.gripper_cmd("m1"), GripperCommand)] == [False, True]
+    assert len(h.of(keys.sim_reset("m1"), SimReset)) == 1
+    info = decode(RuntimeInfo, h.service.handle_info())
+    assert not info.busy and info.machine_online and info.simulated
+    assert info.policies[0].version == "test-linear" and len(info.policies[0].sha256) == 64
+
+
+def test_malformed_nan_and_foreign_states_are_dropped(policy_path):
+    h = Harness(policy_path)
+    good = json.loads(encode(h.twin.state()))
+    bad = [b"garbage", json.dumps({**good, "q": [float("nan")] * 6}).encode(), json.dumps({**good, "machine_id": "m2"}).encode(), json.dumps({**good, "qd": [0.0]}).encode()]
+    for payload in bad:
+        h.service.on_state(payload)
+    assert h.service.dropped == 4 and h.sent == [] and h.service.latest_state is None
+    h.service.on_impact(b"{}")
+    assert h.service.dropped == 5
+    h.tick()
+    assert len(h.of(keys.valve_cmd("m1"), ValveCommand)) == 1
+
+
+def test_refusals_offline_busy_malformed_and_out_of_reach(policy_path):
+    h = Harness(policy_path)
+    assert "offline" in decode(ThrowAck, h.service.handle_throw(_throw_payload())).reason
+    h.tick()
+    far = decode(ThrowAck, h.service.handle_throw(_throw_payload(target=[30.0, -0.3, 0.0])))
+    assert not far.accepted and "beyond" in far.reason
+    assert "3d" in decode(ThrowAck, h.service.handle_throw(_throw_payload(mode="3d", target=[6.0, 5.0, 0.0]))).reason
+    assert "serves" in decode(ThrowAck, h.service.handle_throw(_throw_payload(machine_id="m2"))).reason
+    bad = decode(ThrowAck, h.service.handle_throw(b'{"throw_id": "x"}'))
+    assert not bad.accepted and "malformed" in bad.reason
+    assert decode(ThrowAck, h.service.handle_throw(_throw_payload("a"))).accepted
+    busy = decode(ThrowAck, h.service.handle_throw(_throw_payload("b")))
+    assert not busy.accepted and "busy" in busy.reason
+
+
+def test_dropped_link_fails_the_throw_with_neutral_valves(holding_path):
+    h = Harness(holding_path)
+    h.tick()
+    assert decode(ThrowAck, h.service.handle_throw(_throw_payload())).accepted
+    h.tick(30)
+    assert h.service.executor.phase == "swinging"
+    assert np.any(h.of(keys.valve_cmd("m1"), ValveCommand)[-1].u)
+    h.now_s += 0.15  # the machine goes silent
+    assert not h.service.check_watchdog()
+    h.now_s += 0.1
+    assert h.service.check_watchdog()
+    assert h.of(keys.valve_cmd("m1"), ValveCommand)[-1].u == [0.0] * 4
+    status = h.of(keys.status("m1"), ThrowStatus)[-1]
+    assert status.phase == "failed" and status.detail == "machine link lost"
+    assert h.results[-1].status == "failed" and h.results[-1].failure_reason == "machine link lost"
+    assert not h.service.check_watchdog()  # idle now: nothing more to fail
+
+
+def test_abort_query(holding_path):
+    h = Harness(holding_path)
+    h.tick()
+    assert decode(AbortAck, h.service.handle_abort(b"")).aborted_throw_id is None
+    h.service.handle_throw(_throw_payload("t7"))
+    h.tick(20)
+    ack = decode(AbortAck, h.service.handle_abort(b'{"machine_id": "m1", "reason": "stop!"}'))
+    assert ack.aborted_throw_id == "t7"
+    assert h.results[-1].status == "aborted" and h.results[-1].failure_reason == "stop!"
+    assert h.of(keys.valve_cmd("m1"), ValveCommand)[-1].u == [0.0] * 4
+
+
+def test_wrong_onnx_file_is_refused(tmp_path, policy_path):
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"this is not an onnx graph")
+    write_manifest(bad, build_manifest(bad, "2d", "bad", (5.0, 10.7)))
+    with pytest.raises(PolicyError):
+        PolicyRunner.load(bad)
+    parser = argparse.ArgumentParser()
+    node.build_parser(parser)
+    assert node.run(parser.parse_args(["--machine-id", "m1", "--policy-2d", str(bad)])) == 2
+    assert node.run(parser.parse_args(["--machine-id", "m1"])) == 2  # no policy at all
+    assert node.run(parser.parse_args(["--machine-id", "m1", "--policy-3d", str(policy_path)])) == 2  # wrong mode
+
+
+# --- Zenoh integration ------------------------------------------------------------------------
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _spawn(args: list[str], log_path: Path) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    log = open(log_path, "wb")
+    return subprocess.Popen([sys.executable, "-m", *args], cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+
+
+def _stop(proc: subprocess.Popen) -> int | None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+    return proc.returncode
+
+
+def _wait_for(predicate, timeout_s: float, what: str):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_plant_and_runtime_throw_over_zenoh(tmp_path, policy_path):
+    port, mid = _free_port(), "itest"
+    endpoint = f"tcp/127.0.0.1:{port}"
+    outbox = tmp_path / "outbox"
+    runtime = _spawn(["runtime.node", "--machine-id", mid, "--policy-2d", str(policy_path), "--listen", endpoint, "--outbox-dir", str(outbox)], tmp_path / "runtime.log")
+    plant = None
+    statuses: list[ThrowStatus] = []
+    results: list[ThrowResult] = []
+    got_result = threading.Event()
+
+    def on_result(query):
+        res = decode(ThrowResult, query.payload.to_bytes())
+        results.append(res)
+        query.reply(query.key_expr, encode(ResultAck(throw_id=res.throw_id, stored=True)))
+        got_result.set()
+
+    try:
+        with open_session(connect=[endpoint]) as session:
+            subs = [
+                session.declare_subscriber(keys.status(mid), lambda s: statuses.append(decode(ThrowStatus, s.payload.to_bytes()))),
+                session.declare_queryable(keys.THROW_RESULT, on_result),
+            ]
+
+            def info() -> RuntimeInfo | None:
+                for reply in session.get(keys.info(mid), timeout=1.0):
+                    if reply.ok is not None:
+                        return decode(RuntimeInfo, reply.ok.payload.to_bytes())
+                return None
+
+            _wait_for(lambda: runtime.poll() is not None or info(), 20, "runtime up")
+            assert runtime.poll() is None, (tmp_path / "runtime.log").read_text()
+            plant = _spawn(["sim_twin.plant", "--machine-id", mid, "--connect", endpoint, "--seed", "3"], tmp_path / "plant.log")
+            _wait_for(lambda: (i := info()) is not None and i.machine_online, 20, "machine online")
+
+            acks = [decode(ThrowAck, r.ok.payload.to_bytes()) for r in session.get(keys.throw(mid), payload=_throw_payload("z1", machine_id=mid), timeout=5.0) if r.ok]
+            assert len(acks) == 1 and acks[0].accepted, acks
+            assert got_result.wait(20), (tmp_path / "runtime.log").read_text()[-3000:]
+            res = results[0]
+            assert res.status == "landed", res.failure_reason
+            assert res.impact_m is not None and abs(res.impact_m[2]) < 1e-9 and res.downrange_error_m is not None
+            assert res.policy_version == "test-linear"
+            tel = read_telemetry(base64.b64decode(res.telemetry_mcap_b64))
+            assert len(tel["t_s"]) > 10 and np.all(np.diff(tel["t_s"]) > 0)
+            assert 0.007 < np.median(np.diff(tel["t_s"])) < 0.013  # ~100 Hz over the wire
+            _wait_for(lambda: [s.phase for s in statuses][-1:] == ["landed"], 5, "landed status")
+            assert [s.phase for s in statuses] == ["preparing", "swinging", "released", "landed"]
+            _wait_for(lambda: not list(outbox.glob("*.json")), 5, "outbox drained")
+            for sub in subs:
+                sub.undeclare()
+    finally:
+        codes = [_stop(p) for p in (plant, runtime) if p is not None]
+    assert codes == [0, 0], [(tmp_path / f).read_text()[-2000:] for f in ("plant.log", "runtime.log")]
