@@ -159,7 +159,7 @@ def run_throw(twin: TwinMachine, executor, request, max_s: float = 30.0):
     return out.finished, events + list(out.events)
 
 
-class _Inbox:
+class PlantInbox:
     """Latest commands from the runtime, written by Zenoh callback threads."""
 
     def __init__(self, machine_id: str):
@@ -169,6 +169,7 @@ class _Inbox:
         self.valve_rx_s = -np.inf
         self.gripper_open = False
         self.resets: list[SimReset] = []
+        self.watchdog_tripped = False
 
     def _decode(self, cls, sample):
         try:
@@ -224,7 +225,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             signal.signal(sig, lambda *_: stop.set())
     sim = SimulatedMachine(profile, seed=args.seed)  # random collision-free pose, cabin_turn 0
     twin = TwinMachine(sim, machine_id, clock=time.monotonic)
-    inbox = _Inbox(machine_id)
+    inbox = PlantInbox(machine_id)
     with open_session(args.mode, listen=args.listen, connect=args.connect) as session:
         pub_state = session.declare_publisher(keys.state(machine_id))
         pub_impact = session.declare_publisher(keys.impact(machine_id))
@@ -247,26 +248,36 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     return 0
 
 
-def _loop(twin: TwinMachine, inbox: _Inbox, pub_state, pub_impact, stop: threading.Event) -> None:
-    next_s = time.monotonic()
-    watchdog_tripped = False
-    while not stop.is_set():
-        now = time.monotonic()
-        with inbox.lock:
-            resets, inbox.resets = inbox.resets, []
-            fresh = now - inbox.valve_rx_s <= VALVE_WATCHDOG_S
-            u = inbox.valve_u.copy() if fresh else np.zeros(4)
-            if resets:
-                inbox.gripper_open = False  # a fresh payload sits in a closed gripper
-            gripper = inbox.gripper_open
-        for r in resets:
-            q = twin.apply_reset(r)
-            log.info("sim reset %d: q_active %s", twin.reset_count, np.round(q[:4], 3).tolist())
-        if not fresh and not watchdog_tripped and np.isfinite(inbox.valve_rx_s):
+def plant_tick(twin: TwinMachine, inbox: PlantInbox, now_s: float) -> tuple[MachineState, ImpactReport | None]:
+    """One 10 ms plant period at local monotonic time ``now_s``: apply pending resets, the
+    latest valve command (neutral if older than VALVE_WATCHDOG_S) and the gripper command, step.
+
+    Returns:
+        (the new MachineState, an ImpactReport the first time the payload is down, else None).
+    """
+    with inbox.lock:
+        resets, inbox.resets = inbox.resets, []
+        fresh = now_s - inbox.valve_rx_s <= VALVE_WATCHDOG_S
+        u = inbox.valve_u.copy() if fresh else np.zeros(4)
+        if resets:
+            inbox.gripper_open = False  # a fresh payload sits in a closed gripper
+        gripper = inbox.gripper_open
+        if not fresh and not inbox.watchdog_tripped and np.isfinite(inbox.valve_rx_s):
             log.warning("no valve command for %.0f ms: valves neutral", VALVE_WATCHDOG_S * 1e3)
-        watchdog_tripped = not fresh
-        report = twin.step(u, gripper)
-        pub_state.put(encode(twin.state()))
+        inbox.watchdog_tripped = not fresh
+    for r in resets:
+        q = twin.apply_reset(r)
+        log.info("sim reset %d: q_active %s", twin.reset_count, np.round(q[:4], 3).tolist())
+    report = twin.step(u, gripper)
+    return twin.state(), report
+
+
+def _loop(twin: TwinMachine, inbox: PlantInbox, pub_state, pub_impact, stop: threading.Event) -> None:
+    """Real-time 100 Hz schedule (absolute deadlines, so the period does not drift)."""
+    next_s = time.monotonic()
+    while not stop.is_set():
+        state, report = plant_tick(twin, inbox, time.monotonic())
+        pub_state.put(encode(state))
         if report is not None:
             pub_impact.put(encode(report))
             log.info("impact at %s", np.round(report.impact_pos_m, 2).tolist())
