@@ -20,11 +20,16 @@ With ``c`` equal to the valve dead band the feed-forward inverts the valve's dea
 (flow = (|u| - db) / (1 - db)); the integrator removes what the feed-forward misses (gravity on
 the servo, a wrong dead-band estimate). Anti-windup: the integrator is clamped to
 ``integral_limit`` and does not integrate further while the output is saturated in the same
-direction as the error (conditional integration).
+direction as the error (conditional integration), nor while the error is larger than
+``integral_band`` (a transient the feed-forward and P term are handling: integrating it only
+makes overshoot that bleeds off slowly).
 
 Gains (``ControllerGains`` defaults) were tuned in closed loop against the simulated machine with
-the nominal profile (dead band 0.05, delay 0.04 s, lag 0.1 s); tests/test_controller.py checks the
-resulting step response.
+the nominal profile (dead band 0.05, delay 0.04 s, lag 0.1 s): kp 0.6, ki 3.0 1/s, integral band
+0.05, integral limit 0.3. Measured velocity steps (every joint alike) of 0.1 / 0.3 / 0.7 v_max:
+90 % rise in 0.13-0.16 s, overshoot 6 / 2 / 0 %, error after 1.5 s < 0.5 %. Feed-forward alone
+rises in 0.29 s. On a worse machine (dead band 0.10 with compensation 0.05, delay 0.08 s, lag
+0.2 s) the same gains rise in 0.31-0.67 s without overshoot. tests/test_controller.py checks it.
 """
 
 from __future__ import annotations
@@ -54,6 +59,7 @@ class ControllerGains:
             on hardware and the valve lag already damps).
         dead_band_comp: valve dead-band compensation, fraction of full command.
         integral_limit: clamp of the integral term's contribution to u.
+        integral_band: the integrator runs only while |normalised error| is below this.
         limit_margin: distance from a joint limit (rad / m) at which the reference towards the
             limit reaches zero. runtime.machine.clearance_violations flags a limit at 1 mrad.
         limit_ramp: distance (rad / m) over which the reference towards a limit ramps down to
@@ -61,10 +67,11 @@ class ControllerGains:
     """
 
     kp: np.ndarray = field(default_factory=lambda: _per_joint(0.6))
-    ki: np.ndarray = field(default_factory=lambda: _per_joint(1.0))
+    ki: np.ndarray = field(default_factory=lambda: _per_joint(3.0))
     kd: np.ndarray = field(default_factory=lambda: _per_joint(0.0))
     dead_band_comp: np.ndarray = field(default_factory=lambda: _per_joint(0.05))
     integral_limit: np.ndarray = field(default_factory=lambda: _per_joint(0.3))
+    integral_band: np.ndarray = field(default_factory=lambda: _per_joint(0.05))
     limit_margin: np.ndarray = field(default_factory=lambda: _per_joint(0.03))
     limit_ramp: np.ndarray = field(default_factory=lambda: _per_joint(0.15))
 
@@ -182,7 +189,8 @@ class JointVelocityController:
         u_unsat = u_ff + g.kp * err + self._integral + g.kd * d_err
         # conditional integration: do not wind up while saturated in the error's direction
         saturated = (np.abs(u_unsat) >= 1.0) & (np.sign(u_unsat) == np.sign(err))
-        self._integral = np.where(saturated, self._integral, self._integral + g.ki * err * self.dt_s)
+        hold = saturated | (np.abs(err) >= g.integral_band)
+        self._integral = np.where(hold, self._integral, self._integral + g.ki * err * self.dt_s)
         self._integral = np.clip(self._integral, -g.integral_limit, g.integral_limit)
         u = np.clip(u_ff + g.kp * err + self._integral + g.kd * d_err, -1.0, 1.0)
         self.last = ControlOutput(u, r, False)
