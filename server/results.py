@@ -63,8 +63,12 @@ class ResultStore:
 
     # --- throws --------------------------------------------------------------------------------
     def apply_status(self, status: ThrowStatus) -> None:
-        """Follow a ThrowStatus: phase into ``status`` (never regressing a final status),
-        first phase stamps ``started_at``, ``released`` stamps ``released_at``."""
+        """Follow a ThrowStatus: the phase becomes ``status``; the first phase stamps
+        ``started_at``, ``released`` stamps ``released_at``.
+
+        Final phases (landed/failed/aborted) are NOT applied here: only the stored ThrowResult
+        makes a row final, so a client that sees a final status also sees the impact, errors and
+        telemetry. A final row is never changed by a late status."""
         with self.sessions.begin() as db:
             row = db.get(Throw, status.throw_id)
             if row is None:
@@ -75,13 +79,9 @@ class ResultStore:
                 row.started_at = now
             if status.phase == "released" and row.released_at is None:
                 row.released_at = now
-            if row.status in FINAL_STATUSES:
+            if row.status in FINAL_STATUSES or status.phase in FINAL_STATUSES:
                 return
             row.status = status.phase
-            if status.phase in FINAL_STATUSES:
-                row.completed_at = row.completed_at or now
-                if status.detail and status.phase != "landed":
-                    row.failure_reason = row.failure_reason or status.detail
 
     def store_result(self, result: ThrowResult) -> Throw:
         """Store a ThrowResult: MCAP file first (atomic rename), then the row, one commit.

@@ -94,7 +94,9 @@ class ConsoleScene:
         s = self.server.scene
         s.set_up_direction("+z")
         cam = self.server.initial_camera
-        cam.position, cam.look_at, cam.up = (-9.0, -13.0, 11.0), (5.0, 0.0, 0.0), (0.0, 0.0, 1.0)
+        cam.position, cam.look_at, cam.up = (-7.0, -13.0, 13.0), (6.0, 0.0, 0.0), (0.0, 0.0, 1.0)
+        self.server.gui.configure_theme(control_layout="collapsible", control_width="small",
+                                        show_share_button=False)
         s.add_grid("/ground", width=40.0, height=40.0, cell_size=1.0, section_size=5.0,
                    plane_color=(150, 165, 130), plane_opacity=0.35)
         s.add_box("/machine/chassis", color=GREY, dimensions=(4.0, 2.4, 1.0), position=(0, 0, CHASSIS_HEIGHT_M - 0.6))
@@ -105,6 +107,7 @@ class ConsoleScene:
         self._payload = s.add_icosphere("/machine/payload", radius=0.3, color=RED, visible=False)
         self._plane = s.add_line_segments("/plane2d", np.zeros((1, 2, 3)), BLUE, thickness=0.05)
         self._label = s.add_label("/machine/label", "no machine", position=(0, 0, 5.0))
+        self._plane_label = s.add_label("/plane2d/label", "2D throwing plane", position=(PLANE_LENGTH_M, 0, 0.3))
         s.on_click()(self._on_click)
         self._thread = threading.Thread(target=self._run, name="scene-draw", daemon=True)
         self._thread.start()
@@ -180,6 +183,7 @@ class ConsoleScene:
             self._gripper.wxyz = wxyz
             self._plane.points = plane
             self._plane.visible = self.mode == "2d"
+            self._plane_label.position = tuple(plane[0, 1])
             self._label.text = f"{kind} {machine_id}"
             if state.payload_pos_m is not None and state.payload_attached is False:
                 self._payload.position = tuple(state.payload_pos_m)

@@ -232,3 +232,66 @@ def wait_online(client, machine_id: str = "m1", online: bool = True, timeout_s: 
         return None
 
     return wait_for(check, timeout_s, f"{machine_id} online={online}")
+
+
+class SlingerUp:
+    """``slinger up`` as a subprocess with the test policy and free ports (context manager).
+
+    On exit it sends SIGINT (what Ctrl-C does) and waits; :attr:`returncode` and :attr:`output`
+    are set afterwards. Attributes: base_url, viser_port, data_dir.
+    """
+
+    def __init__(self, tmp_path: Path, machines: int = 1):
+        from server.stack import slinger_command
+        from tests.fixtures import write_test_policy
+
+        policy = write_test_policy(tmp_path / "policies", "2d", release_after_bias=2.0)
+        self.port, self.viser_port, zport = free_port(), free_port(), free_port()
+        self.data_dir = tmp_path / "var"
+        self.base_url = f"http://127.0.0.1:{self.port}"
+        self._log_path = tmp_path / "up.log"
+        self.argv = slinger_command(
+            "up", "--policy-2d", str(policy), "--data-dir", str(self.data_dir), "--machines", str(machines),
+            "--port", str(self.port), "--zenoh-port", str(zport), "--viser-port", str(self.viser_port))
+        self.cwd = tmp_path
+        self.returncode: int | None = None
+        self.output = ""
+
+    def __enter__(self) -> "SlingerUp":
+        import subprocess
+
+        self._log = open(self._log_path, "wb")
+        self.proc = subprocess.Popen(self.argv, stdout=self._log, stderr=subprocess.STDOUT,
+                                     start_new_session=True, cwd=self.cwd)
+        return self
+
+    def wait_machine_online(self, machine_id: str = "m1", timeout_s: float = 90.0) -> dict:
+        import httpx
+
+        def online():
+            if self.proc.poll() is not None:
+                pytest.fail(f"slinger up exited early:\n{self._log_path.read_text()[-3000:]}")
+            try:
+                ms = httpx.get(f"{self.base_url}/api/machines", timeout=2).json()
+            except httpx.HTTPError:
+                return None
+            return next((m for m in ms if m["id"] == machine_id and m["online"]
+                         and m["cabin_turn_rad"] is not None), None)
+
+        return wait_for(online, timeout_s, f"slinger up: {machine_id} online")
+
+    def __exit__(self, *exc) -> None:
+        import os
+        import signal
+        import subprocess
+
+        try:
+            if self.proc.poll() is None:
+                os.kill(self.proc.pid, signal.SIGINT)
+            self.returncode = self.proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.returncode = self.proc.wait(timeout=5)
+        finally:
+            self._log.close()
+            self.output = self._log_path.read_text(errors="replace")

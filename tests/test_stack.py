@@ -7,11 +7,7 @@ a throw is short: swing start -> release -> flight -> impact.
 
 from __future__ import annotations
 
-import os
-import signal
 import subprocess
-import time
-from pathlib import Path
 
 import httpx
 import numpy as np
@@ -20,7 +16,7 @@ import pytest
 from runtime.telemetry import read_telemetry
 from runtime.throw_geometry import impact_errors
 from server.stack import Children, resolve_policy, slinger_command
-from tests.conftest import free_port, wait_for, wait_online
+from tests.conftest import SlingerUp, wait_for, wait_online
 from tests.fixtures import write_test_policy
 
 TARGET_2D = [8.0, -0.292, 0.0]
@@ -92,45 +88,46 @@ def test_resolve_policy_explains_what_is_missing(tmp_path):
 
 def test_slinger_up_end_to_end_and_ctrl_c(tmp_path):
     """`slinger up` as the operator runs it; Ctrl-C (SIGINT) stops server, plant and runtime."""
-    policy = write_test_policy(tmp_path / "policies", "2d", release_after_bias=2.0)
-    port, zport, vport = free_port(), free_port(), free_port()
-    log = open(tmp_path / "up.log", "wb")
-    proc = subprocess.Popen(
-        slinger_command("up", "--policy-2d", str(policy), "--data-dir", str(tmp_path / "var"),
-                        "--port", str(port), "--zenoh-port", str(zport), "--viser-port", str(vport)),
-        stdout=log, stderr=subprocess.STDOUT, start_new_session=True, cwd=tmp_path,
-    )
-    base = f"http://127.0.0.1:{port}"
-    try:
-        def online():
-            try:
-                ms = httpx.get(f"{base}/api/machines", timeout=2).json()
-            except httpx.HTTPError:
-                return None
-            return ms and ms[0]["online"] and ms[0]["cabin_turn_rad"] is not None and ms[0]
-
-        m = wait_for(online, 90, "slinger up: m1 online")
-        assert m["id"] == "m1" and m["simulated"]
-        assert httpx.get(f"{base}/api/scene").json()["viser_port"] == vport
+    with SlingerUp(tmp_path) as up:
+        m = up.wait_machine_online()
+        assert m["simulated"] and m["policies"] == {"2d": "test-linear"}
+        base = up.base_url
+        assert httpx.get(f"{base}/api/scene").json()["viser_port"] == up.viser_port
         assert "Slinger" in httpx.get(f"{base}/", follow_redirects=True).text
         r = httpx.post(f"{base}/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D}, timeout=10)
         assert r.status_code == 202, r.text
         tid = r.json()["id"]
         row = wait_for(lambda: _landed_or_final(lambda: httpx.get(f"{base}/api/throws/{tid}").json()), 60, "throw end")
         assert row["status"] == "landed" and row["impact"] is not None
-        assert (tmp_path / "var" / "telemetry" / f"{tid}.mcap").is_file()
-    finally:
-        os.kill(proc.pid, signal.SIGINT)
-        try:
-            rc = proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            raise
-        finally:
-            log.close()
-    out = (tmp_path / "up.log").read_text()
-    assert rc == 0, out[-3000:]
-    assert f"Slinger console: http://127.0.0.1:{port}/" in out
-    # the children are gone too (they have their own sessions; up must have stopped them)
+        assert (up.data_dir / "telemetry" / f"{tid}.mcap").is_file()
+    assert up.returncode == 0, up.output[-3000:]
+    assert f"Slinger console: http://127.0.0.1:{up.port}/" in up.output
+    # the children are gone too (they run in their own sessions; up must have stopped them)
     ps = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
-    assert str(tmp_path / "var" / "outbox") not in ps
+    assert str(up.data_dir / "outbox") not in ps
+
+
+def test_slinger_up_without_policy_refuses_the_runtime(tmp_path):
+    """No policy: the server and the simulated machine run, the runtime is not started."""
+    up = SlingerUp(tmp_path)
+    i = up.argv.index("--policy-2d")
+    up.argv[i + 1] = str(tmp_path / "missing.onnx")
+    with up:
+        import time
+
+        wait_for(lambda: httpx.get(f"{up.base_url}/api/health", timeout=2).status_code == 200
+                 if _reachable(up.base_url) else None, 60, "server up")
+        wait_for(lambda: httpx.get(f"{up.base_url}/api/machines").json(), 60, "plant state")
+        time.sleep(1.0)
+        ms = httpx.get(f"{up.base_url}/api/machines").json()
+        assert [(m["id"], m["online"], m["simulated"]) for m in ms] == [("m1", False, True)]
+    assert up.returncode == 0
+    assert "NOT starting any runtime" in up.output and "missing.onnx" in up.output
+
+
+def _reachable(base: str) -> bool:
+    try:
+        httpx.get(f"{base}/api/health", timeout=1)
+        return True
+    except httpx.HTTPError:
+        return False
