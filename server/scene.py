@@ -95,14 +95,14 @@ class ConsoleScene:
         s.set_up_direction("+z")
         cam = self.server.initial_camera
         cam.position, cam.look_at, cam.up = (-7.0, -13.0, 13.0), (6.0, 0.0, 0.0), (0.0, 0.0, 1.0)
-        self.server.gui.configure_theme(control_layout="collapsible", control_width="small",
-                                        show_share_button=False)
+        self.server.gui.configure_theme(control_width="small", show_share_button=False)
+        self.server.gui.main_panel.minimize()  # keep the view clear; the operator can open it
         s.add_grid("/ground", width=40.0, height=40.0, cell_size=1.0, section_size=5.0,
                    plane_color=(150, 165, 130), plane_opacity=0.35)
         s.add_box("/machine/chassis", color=GREY, dimensions=(4.0, 2.4, 1.0), position=(0, 0, CHASSIS_HEIGHT_M - 0.6))
         self._cabin = s.add_box("/machine/cabin", color=YELLOW, dimensions=(2.6, 2.0, 1.6))
         self._links = s.add_line_segments("/machine/arm", np.zeros((3, 2, 3)), YELLOW, thickness=0.25)
-        self._rope = s.add_line_segments("/machine/gripper/hanger", np.zeros((1, 2, 3)), DARK, thickness=0.12)
+        self._rope = s.add_line_segments("/machine/rope", np.zeros((1, 2, 3)), DARK, thickness=0.12)
         self._gripper = s.add_box("/machine/gripper", color=DARK, dimensions=(0.9, 0.9, 1.0))
         self._payload = s.add_icosphere("/machine/payload", radius=0.3, color=RED, visible=False)
         self._plane = s.add_line_segments("/plane2d", np.zeros((1, 2, 3)), BLUE, thickness=0.05)
