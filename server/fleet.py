@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 
 import zenoh
@@ -58,7 +59,7 @@ class Fleet:
         self._lock = threading.Lock()
         self._alive: set[str] = set()
         self._states: dict[str, MachineState] = {}
-        self._infos: dict[str, RuntimeInfo] = {}
+        self._infos: dict[str, tuple[float, RuntimeInfo]] = {}
         self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue()
         self._worker: threading.Thread | None = None
         self._decls: list = []
@@ -111,8 +112,25 @@ class Fleet:
             return dict(self._states)
 
     def cached_info(self, machine_id: str) -> RuntimeInfo | None:
+        """The last RuntimeInfo of ``machine_id`` (None if none since it came online)."""
         with self._lock:
-            return self._infos.get(machine_id)
+            entry = self._infos.get(machine_id)
+        return entry[1] if entry else None
+
+    def fresh_info(self, machine_id: str, max_age_s: float = 2.0, timeout_s: float = 1.0) -> RuntimeInfo | None:
+        """RuntimeInfo at most ``max_age_s`` old: the cache, else a query (``timeout_s``);
+        the stale cached one if the runtime does not answer; None for an offline runtime."""
+        if not self.is_online(machine_id):
+            return None
+        with self._lock:
+            entry = self._infos.get(machine_id)
+        if entry is not None and time.monotonic() - entry[0] <= max_age_s:
+            return entry[1]
+        try:
+            return self.query_info(machine_id, timeout_s=timeout_s)
+        except (RuntimeUnavailable, ValidationError) as e:
+            log.debug("RuntimeInfo of %s: %s", machine_id, e)
+            return entry[1] if entry else None
 
     # --- queries -------------------------------------------------------------------------------
     def query_info(self, machine_id: str, timeout_s: float | None = None) -> RuntimeInfo:
@@ -123,7 +141,7 @@ class Fleet:
         """
         info = decode(RuntimeInfo, self._query_one(keys.info(machine_id), None, timeout_s))
         with self._lock:
-            self._infos[machine_id] = info
+            self._infos[machine_id] = (time.monotonic(), info)
         return info
 
     def request_throw(self, request: ThrowRequest) -> ThrowAck:

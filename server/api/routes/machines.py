@@ -3,17 +3,17 @@
 from __future__ import annotations
 
 from fastapi import APIRouter
-from pydantic import ValidationError
 from sqlalchemy import select
 
 from server.api.deps import FleetDep, SessionDep
 from server.api.schemas import MachineOut
 from server.db.models import Machine
-from server.fleet import Fleet, RuntimeUnavailable
+from server.fleet import Fleet
 
 router = APIRouter(prefix="/api/machines", tags=["machines"])
 
 INFO_TIMEOUT_S = 1.0
+INFO_MAX_AGE_S = 2.0  # busy flag and policies are at most this old
 
 
 @router.get("", response_model=list[MachineOut])
@@ -30,12 +30,7 @@ def list_machines(db: SessionDep, fleet: FleetDep) -> list[MachineOut]:
 
 def _machine_out(mid: str, row: Machine | None, fleet: Fleet) -> MachineOut:
     online = fleet.is_online(mid)
-    info = fleet.cached_info(mid)
-    if online and info is None:
-        try:
-            info = fleet.query_info(mid, timeout_s=INFO_TIMEOUT_S)
-        except (RuntimeUnavailable, ValidationError):
-            info = None
+    info = fleet.fresh_info(mid, max_age_s=INFO_MAX_AGE_S, timeout_s=INFO_TIMEOUT_S)
     state = fleet.latest_state(mid)
     simulated = bool(
         (state is not None and state.simulated)
