@@ -82,3 +82,19 @@ def test_click_sets_target_and_throw_is_drawn(scene, tmp_path):
     assert len(names["/throw/payload_path"].points) == 19
     scene.show_throw(None, None, scene.target)  # a new throw replaces the old drawing
     assert "/throw/payload_path" not in scene.server.scene._handle_from_node_name
+
+
+def test_scene_reports_the_port_viser_really_uses():
+    """Viser moves on to the next free port when the asked one is busy; the scene must say so."""
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        taken = busy.getsockname()[1]
+        s = ConsoleScene(_Fleet(_state([0.0, -0.5, 1.5, 0.4, 0.0, 0.0])), port=taken)
+        s.start()
+        try:
+            assert s.port is not None and s.port != taken
+        finally:
+            s.stop()
