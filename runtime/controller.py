@@ -35,6 +35,7 @@ rises in 0.29 s. On a worse machine (dead band 0.10 with compensation 0.05, dela
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from types import ModuleType
 
 import numpy as np
 
@@ -100,21 +101,55 @@ class ControlOutput:
     neutral: bool = False
 
 
-def limit_ramp_scale(q_active, qd_ref, gains: ControllerGains) -> np.ndarray:
+def limit_ramp_scale(q_active, qd_ref, gains: ControllerGains, xp: ModuleType = np) -> np.ndarray:
     """(4,) factors in [0, 1] scaling each reference that points towards a nearby joint limit.
 
     Args:
         q_active: (4,) active joint positions, rad / m.
         qd_ref: (4,) references, rad/s / m/s (only their signs are read).
         gains: supplies ``limit_margin`` and ``limit_ramp``.
+        xp: array module (numpy on the machine, jax.numpy in training).
 
     Unlimited joints (cabin_turn) always get 1.
     """
     lower, upper = JOINT_LOWER[:NUM_ACTIVE], JOINT_UPPER[:NUM_ACTIVE]
-    with np.errstate(invalid="ignore"):
-        dist = np.where(qd_ref > 0, upper - q_active, np.where(qd_ref < 0, q_active - lower, np.inf))
-        scale = np.clip((dist - gains.limit_margin) / np.maximum(gains.limit_ramp, 1e-9), 0.0, 1.0)
-    return np.where(np.isfinite(dist), scale, 1.0)
+    dist = xp.where(qd_ref > 0, upper - q_active, xp.where(qd_ref < 0, q_active - lower, xp.inf))
+    scale = xp.clip((dist - gains.limit_margin) / xp.maximum(gains.limit_ramp, 1e-9), 0.0, 1.0)
+    return xp.where(xp.isfinite(dist), scale, 1.0)
+
+
+def pid_ff_law(xp: ModuleType, gains: ControllerGains, vmax, dt_s: float, r, q_a, qd_a, integral, prev_err):
+    """The controller's arithmetic for one step, shared with the MJX training environment.
+
+    Args:
+        xp: array module.
+        gains: ControllerGains.
+        vmax: (4,) velocity limits, rad/s and m/s.
+        dt_s: control period, s.
+        r: (4,) references; q_a, qd_a: (4,) active joint positions and velocities.
+        integral: (4,) integrator state (its contribution to u); prev_err: (4,) previous
+            normalised error (pass the current error on the first step).
+
+    Returns:
+        (u (4,) valve commands in [-1, 1], r (4,) reference after clipping and limit ramps,
+        integral (4,) new integrator state, err (4,) normalised error).
+    """
+    g = gains
+    r = xp.clip(r, -vmax, vmax)
+    r = r * limit_ramp_scale(q_a, r, g, xp)
+    r_n = r / vmax
+    active = xp.abs(r_n) > _NEGLIGIBLE_REF
+    u_ff = xp.where(active, r_n * (1.0 - g.dead_band_comp) + xp.sign(r_n) * g.dead_band_comp, 0.0)
+    err = (r - qd_a) / vmax
+    d_err = (err - prev_err) / dt_s
+    u_unsat = u_ff + g.kp * err + integral + g.kd * d_err
+    # conditional integration: do not wind up while saturated in the error's direction
+    saturated = (xp.abs(u_unsat) >= 1.0) & (xp.sign(u_unsat) == xp.sign(err))
+    hold = saturated | (xp.abs(err) >= g.integral_band)
+    integral = xp.where(hold, integral, integral + g.ki * err * dt_s)
+    integral = xp.clip(integral, -g.integral_limit, g.integral_limit)
+    u = xp.clip(u_ff + g.kp * err + integral + g.kd * d_err, -1.0, 1.0)
+    return u, r, integral, err
 
 
 class JointVelocityController:
@@ -175,23 +210,10 @@ class JointVelocityController:
         if not (np.all(np.isfinite(r)) and np.all(np.isfinite(q_a)) and np.all(np.isfinite(qd_a))):
             return self.neutral()
 
-        g, vmax = self.gains, self.velocity_limits
-        r = np.clip(r, -vmax, vmax)
-        r = r * limit_ramp_scale(q_a, r, g)
-
-        r_n = r / vmax
-        active = np.abs(r_n) > _NEGLIGIBLE_REF
-        u_ff = np.where(active, r_n * (1.0 - g.dead_band_comp) + np.sign(r_n) * g.dead_band_comp, 0.0)
-
-        err = (r - qd_a) / vmax
-        d_err = np.zeros(NUM_ACTIVE) if self._prev_err is None else (err - self._prev_err) / self.dt_s
-        self._prev_err = err
-        u_unsat = u_ff + g.kp * err + self._integral + g.kd * d_err
-        # conditional integration: do not wind up while saturated in the error's direction
-        saturated = (np.abs(u_unsat) >= 1.0) & (np.sign(u_unsat) == np.sign(err))
-        hold = saturated | (np.abs(err) >= g.integral_band)
-        self._integral = np.where(hold, self._integral, self._integral + g.ki * err * self.dt_s)
-        self._integral = np.clip(self._integral, -g.integral_limit, g.integral_limit)
-        u = np.clip(u_ff + g.kp * err + self._integral + g.kd * d_err, -1.0, 1.0)
+        with np.errstate(invalid="ignore"):
+            prev = self._prev_err if self._prev_err is not None else (r - qd_a) / self.velocity_limits
+            u, r, self._integral, self._prev_err = pid_ff_law(
+                np, self.gains, self.velocity_limits, self.dt_s, r, q_a, qd_a, self._integral, prev
+            )
         self.last = ControlOutput(u, r, False)
         return self.last

@@ -11,11 +11,23 @@ velocity bandwidth ~0.5 Hz, proportional pilot valves with a dead band. The nomi
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from types import ModuleType
 
 import numpy as np
 
 from runtime.machine import ACTIVE_VELOCITY_LIMITS
 from runtime.observation import PHYSICS_PERIOD_S
+
+
+def dead_band_flow(xp: ModuleType, u, dead_band):
+    """Normalised flow through a proportional valve with a dead band: 0 inside |u| < db, then
+    linear to 1 at |u| = 1. u and dead_band broadcast; any array module."""
+    return xp.sign(u) * xp.maximum(xp.abs(u) - dead_band, 0.0) / (1.0 - dead_band)
+
+
+def lag_step(y, x, lag_s, dt_s: float):
+    """One backward-Euler step of the first-order lag tau * dy/dt = x - y."""
+    return y + dt_s / (lag_s + dt_s) * (x - y)
 
 
 @dataclass
@@ -69,12 +81,10 @@ class ValveModel:
             (4,) joint-velocity setpoints, rad/s and m/s.
         """
         u = np.clip(np.asarray(u, dtype=float), -1.0, 1.0)
-        db = self.params.dead_band
-        flow = np.sign(u) * np.maximum(np.abs(u) - db, 0.0) / (1.0 - db)
+        flow = dead_band_flow(np, u, self.params.dead_band)
         self._buffer = np.roll(self._buffer, 1, axis=0)
         self._buffer[0] = flow
         delayed = self._buffer[self._delay_steps, np.arange(4)]
-        alpha = self.dt / (self.params.lag_s + self.dt)
-        self._lagged = self._lagged + alpha * (delayed - self._lagged)
+        self._lagged = lag_step(self._lagged, delayed, self.params.lag_s, self.dt)
         vmax = self.params.velocity_limit
         return np.clip(self._lagged * vmax, -vmax, vmax)

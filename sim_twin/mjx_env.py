@@ -8,7 +8,11 @@ Per control step (12.5 Hz) the policy's action is decoded into joint-velocity re
 release flag; 8 physics steps (100 Hz) follow, in each of which the *training joint-velocity
 controller* drives the stiff velocity servos of the MJCF: a first-order lag with per-episode
 random time constant, gain error and velocity-command noise (the paper's "artificial velocity
-command randomization", Sec. III-B, standing in for the hydraulics it does not simulate).
+command randomization", Sec. III-B), or, with ``randomization.actuation = "hydraulic"``, the
+runtime's own PID + feed-forward law (runtime.controller.pid_ff_law) feeding a valve model with
+per-episode random dead band, transport delay, lag and full-open speed (sim_twin.hydraulics),
+plus velocity-command noise. Evaluation still runs the runtime's controller object on the
+simulated machine, at the nominal parameters.
 
 Payload (paper Sec. III-B): held at the gripper centre; the release command opens the gripper
 after the release delay (sampled per episode around the identified 258 ms); the payload then
@@ -34,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
+from runtime.controller import ControllerGains, pid_ff_law
 from runtime.machine import ACTIVE_VELOCITY_LIMITS, clearance_violations, forward_kinematics
 from runtime.observation import (
     PHYSICS_PERIOD_S,
@@ -44,10 +49,12 @@ from runtime.observation import (
     observation_size,
 )
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
+from sim_twin.hydraulics import dead_band_flow, lag_step
 from sim_twin.initial_pose import pose_from_uniform, pose_is_valid
 from sim_twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
 from sim_twin.physics import ballistic_impact_time, ballistic_position, passive_friction_force
 
+MAX_VALVE_DELAY_STEPS = 12  # longest valve transport delay the training env can model (0.12 s)
 POSE_CANDIDATES = 16  # rejection sampling without loops: first valid of 16 (P(all bad) ~ 2e-3)
 FALLBACK_POSE_U = np.array([0.45, 0.45, 0.5])  # a known valid pose if all candidates fail
 
@@ -109,6 +116,8 @@ class ThrowEnvCore:
         self.w = {k: float(v) for k, v in r.items()}
         self.rand = cfg.randomization
         self.forced = cfg.forced_release
+        self.hydraulic = self.rand.get("actuation", "lag") == "hydraulic"
+        self.gains = ControllerGains()
 
     # --- reset ------------------------------------------------------------------------------
     def _sample_pose(self, key):
@@ -149,6 +158,11 @@ class ThrowEnvCore:
         gain = 1.0 + jax.random.uniform(ks[4], (4,), minval=-g, maxval=g)
         fr = rd.get("friction_scale", [0.7, 1.3])
         fric = jax.random.uniform(ks[5], (), minval=fr[0], maxval=fr[1])
+        kh = jax.random.split(ks[6], 5)
+        db = rd.get("dead_band", [0.05, 0.05])
+        dl = rd.get("valve_delay_s", [0.04, 0.04])
+        vs = rd.get("velocity_scale", [1.0, 1.0])
+        valve_delay = jnp.round(jax.random.uniform(kh[1], (4,), minval=dl[0], maxval=dl[1]) / PHYSICS_PERIOD_S)
         zeros6 = jnp.zeros(6)
         data = self.data0.replace(qpos=q, qvel=zeros6, ctrl=jnp.zeros(4), qfrc_applied=zeros6, time=jnp.zeros(()))
         pts = forward_kinematics(jnp, q, zeros6)
@@ -175,7 +189,13 @@ class ThrowEnvCore:
             gain=gain,
             delay_steps=jnp.maximum(1, jnp.round(delay_s / PHYSICS_PERIOD_S)).astype(jnp.int32),
             fric=fric,
-            key=ks[6],
+            key=kh[0],
+            integral=jnp.zeros(4),
+            prev_err=jnp.zeros(4),
+            valve_buf=jnp.zeros((MAX_VALVE_DELAY_STEPS + 1, 4)),
+            valve_delay=jnp.clip(valve_delay, 0, MAX_VALVE_DELAY_STEPS).astype(jnp.int32),
+            dead_band=jax.random.uniform(kh[2], (4,), minval=db[0], maxval=db[1]),
+            vscale=jax.random.uniform(kh[3], (4,), minval=vs[0], maxval=vs[1]),
         )
         return state, self.observe(state)
 
@@ -183,14 +203,29 @@ class ThrowEnvCore:
         return build_observation(jnp, self.mode, s["q_hist"], s["qd_hist"], s["prev_action"], s["target"], s["opened"])
 
     # --- step -------------------------------------------------------------------------------
+    def _actuate(self, s: EnvState, target_v) -> tuple[EnvState, jnp.ndarray]:
+        """Training joint-velocity controller: new state and the servo setpoints (4,)."""
+        dt = PHYSICS_PERIOD_S
+        if not self.hydraulic:
+            lag_v = jnp.clip(lag_step(s["lag_v"], target_v, s["tau"], dt), -self.vmax, self.vmax)
+            return EnvState(s, lag_v=lag_v), lag_v
+        data = s["data"]
+        u, _, integral, err = pid_ff_law(
+            jnp, self.gains, self.vmax, dt, target_v, data.qpos[:4], data.qvel[:4], s["integral"], s["prev_err"]
+        )
+        buf = jnp.concatenate([dead_band_flow(jnp, u, s["dead_band"])[None], s["valve_buf"][:-1]])
+        delayed = buf[s["valve_delay"], jnp.arange(4)]
+        lag_v = lag_step(s["lag_v"], delayed, s["tau"], dt)
+        vmax = self.vmax * s["vscale"]
+        setpoint = jnp.clip(lag_v * vmax, -vmax, vmax)
+        return EnvState(s, lag_v=lag_v, integral=integral, prev_err=err, valve_buf=buf), setpoint
+
     def _substep(self, s: EnvState, target_v) -> EnvState:
         dt = PHYSICS_PERIOD_S
-        alpha = dt / (s["tau"] + dt)
-        lag_v = s["lag_v"] + alpha * (target_v - s["lag_v"])
-        lag_v = jnp.clip(lag_v, -self.vmax, self.vmax)
+        s, setpoint = self._actuate(s, target_v)
         data = s["data"]
         fric = passive_friction_force(jnp, data.qvel[4:6], self.inertia * s["fric"])
-        data = data.replace(ctrl=lag_v, qfrc_applied=jnp.zeros(6).at[4:6].set(fric))
+        data = data.replace(ctrl=setpoint, qfrc_applied=jnp.zeros(6).at[4:6].set(fric))
         data = mjx.step(self.model, data)
         countdown = s["countdown"]
         open_now = (countdown == 1) & ~s["opened"]
@@ -201,7 +236,7 @@ class ThrowEnvCore:
         t_flight = jnp.where(open_now, ballistic_impact_time(jnp, p0, v0, PAYLOAD_RADIUS_M), s["t_flight"])
         t_open = jnp.where(s["opened"], s["t_open"] + dt, s["t_open"])
         return EnvState(
-            s, data=data, lag_v=lag_v, countdown=countdown, opened=s["opened"] | open_now,
+            s, data=data, countdown=countdown, opened=s["opened"] | open_now,
             ball_p0=p0, ball_v0=v0, t_flight=t_flight, t_open=t_open,
         )
 
@@ -224,7 +259,7 @@ class ThrowEnvCore:
             release_cmd=s["release_cmd"] | do_release,
         )
         noise = jax.random.normal(k_noise, (4,)) * self.rand.get("velocity_noise", 0.02) * self.vmax
-        target_v = qd_ref * s["gain"] + noise
+        target_v = (qd_ref if self.hydraulic else qd_ref * s["gain"]) + noise
         s = jax.lax.fori_loop(0, SUBSTEPS, lambda _, st: self._substep(st, target_v), s)
 
         data = s["data"]
