@@ -5,6 +5,7 @@ Subcommands::
     slinger up          the whole stack on this machine (server, 3D view, simulated machines, runtimes)
     slinger server      only the server (API + console + 3D view)
     slinger db upgrade  alembic upgrade head on the configured database
+    slinger user add    add a user (the first admin: slinger user add --admin); user list
     slinger plant       the simulated machine            (sim_twin.plant)
     slinger runtime     the runtime of one machine        (runtime.node)
     slinger train       train a policy                   (sim_twin.train)
@@ -109,6 +110,9 @@ def cmd_up(args: argparse.Namespace) -> int:
                   "to policies/throw2d.onnx + .json, or pass --policy-2d PATH. Server and simulated "
                   "machines start anyway; the console will show the runtimes offline.")
     upgrade(settings.database_url)
+    from server.users_cli import ensure_local_admin
+
+    ensure_local_admin(settings.database_url)
     if policies:
         stack.register_policies(settings.database_url, settings.data_dir, policies)
     children = stack.Children()
@@ -187,6 +191,10 @@ def build_parser() -> argparse.ArgumentParser:
     dbu.add_argument("--data-dir", type=Path, default=None)
     dbu.add_argument("--revision", default="head")
     dbu.set_defaults(func=cmd_db_upgrade)
+
+    from server.users_cli import build_parser as build_user_parser
+
+    build_user_parser(sub)
 
     for name, (module, help_text) in DELEGATED.items():
         p = sub.add_parser(name, help=help_text, add_help=False)

@@ -9,8 +9,16 @@ from __future__ import annotations
 from functools import lru_cache
 from pathlib import Path
 
-from pydantic import Field, model_validator
+from pydantic import BaseModel, Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class KeepOutZone(BaseModel):
+    """A circle on the ground (machine frame) that no target may lie in."""
+
+    name: str
+    center_m: list[float] = Field(min_length=2, max_length=2)
+    radius_m: float = Field(gt=0)
 
 
 class Settings(BaseSettings):
@@ -28,6 +36,15 @@ class Settings(BaseSettings):
         zenoh_multicast_scouting: discover peers by multicast (off by default: explicit endpoints).
         query_timeout_s: how long a Zenoh query to a runtime may take, s.
         auto_migrate: run ``alembic upgrade head`` when the app starts.
+        session_ttl_s: how long a log-in stays valid, s.
+        cookie_secure: mark the session cookie Secure (serve over HTTPS).
+        keep_out_zones: ground circles no target may lie in, e.g.
+            ``SLINGER_KEEP_OUT_ZONES='[{"name": "truck", "center_m": [7, 3], "radius_m": 1.5}]'``.
+        clearance_radius_m: the swing must stay within this horizontal distance of the turn
+            axis (the machine's clearance zone), m.
+        preview_rollouts: Monte Carlo rollouts of a full preview (1 sigma impact ellipse).
+        eval_distances_m / eval_throws: the small twin evaluation of an uploaded policy version
+            (throws per distance); empty distances: the policy's trained range in 3 steps.
     """
 
     model_config = SettingsConfigDict(env_prefix="SLINGER_", env_file=None, extra="ignore")
@@ -45,6 +62,13 @@ class Settings(BaseSettings):
     zenoh_multicast_scouting: bool = False
     query_timeout_s: float = 5.0
     auto_migrate: bool = False
+    session_ttl_s: float = 12 * 3600.0
+    cookie_secure: bool = False
+    keep_out_zones: list[KeepOutZone] = Field(default_factory=list)
+    clearance_radius_m: float = 12.0
+    preview_rollouts: int = 200
+    eval_distances_m: list[float] = Field(default_factory=list)
+    eval_throws: int = 4
 
     @model_validator(mode="after")
     def _default_database(self) -> "Settings":

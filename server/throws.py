@@ -17,6 +17,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from runtime.protocol.messages import ThrowAck, ThrowRequest
 from runtime.throw_geometry import target_refusal
 from server.api.schemas import ThrowCreate
+from server.auth import audit
 from server.db.models import Machine, PolicyVersion, Throw
 from server.fleet import Fleet, RuntimeUnavailable
 from server.results import ensure_machine
@@ -40,7 +41,7 @@ class ThrowService:
         self.fleet = fleet
         self.sessions = sessions
 
-    def create(self, body: ThrowCreate) -> tuple[Throw, ThrowAck]:
+    def create(self, body: ThrowCreate, username: str = "system") -> tuple[Throw, ThrowAck]:
         """Check, record and hand a throw to its runtime.
 
         Returns:
@@ -74,7 +75,7 @@ class ThrowService:
             ensure_machine(db, mid, simulated=state.simulated)
             db.add(Throw(id=throw_id, machine_id=mid, mode=body.mode, status="requested",
                          target_x_m=body.target[0], target_y_m=body.target[1],
-                         target_z_m=body.target[2]))
+                         target_z_m=body.target[2], requested_by=username))
         try:
             ack = self.fleet.request_throw(
                 ThrowRequest(throw_id=throw_id, machine_id=mid, mode=body.mode, target_m=body.target)
@@ -91,6 +92,8 @@ class ThrowService:
         with self.sessions.begin() as db:
             row = db.get(Throw, throw_id)
             row.policy_version = ack.policy_version
+            audit(db, username, "throw", throw_id, machine_id=mid, mode=body.mode, target_m=body.target,
+                  policy_version=ack.policy_version)
         log.info("throw %s accepted by %s (%s, target %s)", throw_id, mid, body.mode, body.target)
         return row, ack
 

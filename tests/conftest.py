@@ -179,14 +179,35 @@ def settings(tmp_path: Path, zenoh_endpoint: str):
                     query_timeout_s=2.0, auto_migrate=True)
 
 
+ADMIN = ("admin", "admin-pass-1")
+"""User name and password of the admin the test fixtures create."""
+
+
+def add_user(sessions, username: str, password: str, role: str) -> None:
+    """Create a user straight in the database (``sessions``: the app's session factory)."""
+    from server.auth import create_user
+
+    with sessions.begin() as db:
+        create_user(db, username, password, role)
+
+
+def login(client, username: str, password: str) -> None:
+    """Log ``client`` (TestClient or httpx.Client) in; the session cookie stays in the client."""
+    r = client.post("/api/auth/login", json={"username": username, "password": password})
+    assert r.status_code == 200, r.text
+
+
 @pytest.fixture
 def client(settings) -> Iterator:
-    """A TestClient of the app; the lifespan (migrations, Zenoh, fleet) runs inside."""
+    """A TestClient of the app, logged in as an admin; the lifespan (migrations, Zenoh, fleet)
+    runs inside. ``client.cookies.clear()`` logs it out."""
     from fastapi.testclient import TestClient
 
     from server.app import create_app
 
     with TestClient(create_app(settings)) as c:
+        add_user(c.app.state.sessions, *ADMIN, "admin")
+        login(c, *ADMIN)
         yield c
 
 
@@ -241,7 +262,7 @@ class SlingerUp:
     are set afterwards. Attributes: base_url, viser_port, data_dir.
     """
 
-    def __init__(self, tmp_path: Path, machines: int = 1):
+    def __init__(self, tmp_path: Path, machines: int = 1, create_admin: bool = True):
         from server.stack import slinger_command
         from tests.fixtures import write_test_policy
 
@@ -254,16 +275,44 @@ class SlingerUp:
             "up", "--policy-2d", str(policy), "--data-dir", str(self.data_dir), "--machines", str(machines),
             "--port", str(self.port), "--zenoh-port", str(zport), "--viser-port", str(self.viser_port))
         self.cwd = tmp_path
+        self.create_admin = create_admin
+        self._http = None
         self.returncode: int | None = None
         self.output = ""
 
     def __enter__(self) -> "SlingerUp":
         import subprocess
 
+        if self.create_admin:  # as an operator would: slinger user add --admin
+            from server.stack import slinger_command
+
+            subprocess.run(slinger_command("user", "add", "--admin", "--password", ADMIN[1], "--data-dir",
+                                       str(self.data_dir)), check=True, capture_output=True, timeout=60,
+                           cwd=self.cwd)
         self._log = open(self._log_path, "wb")
         self.proc = subprocess.Popen(self.argv, stdout=self._log, stderr=subprocess.STDOUT,
                                      start_new_session=True, cwd=self.cwd)
         return self
+
+    def log_text(self) -> str:
+        return self._log_path.read_text(errors="replace")
+
+    @property
+    def http(self):
+        """An httpx.Client on the server, logged in as the admin (made on first use)."""
+        import httpx
+
+        if self._http is None:
+            def up():
+                try:
+                    return httpx.get(f"{self.base_url}/api/health", timeout=2).status_code == 200
+                except httpx.HTTPError:
+                    return False
+
+            wait_for(up, 60, "slinger up serving HTTP")
+            self._http = httpx.Client(base_url=self.base_url, timeout=10)
+            login(self._http, *ADMIN)
+        return self._http
 
     def wait_machine_online(self, machine_id: str = "m1", timeout_s: float = 90.0) -> dict:
         import httpx
@@ -272,7 +321,9 @@ class SlingerUp:
             if self.proc.poll() is not None:
                 pytest.fail(f"slinger up exited early:\n{self._log_path.read_text()[-3000:]}")
             try:
-                ms = httpx.get(f"{self.base_url}/api/machines", timeout=2).json()
+                if self.proc.poll() is None and self._http is None:
+                    self.http  # noqa: B018 (logs in once the server answers)
+                ms = self.http.get("/api/machines", timeout=2).json()
             except httpx.HTTPError:
                 return None
             return next((m for m in ms if m["id"] == machine_id and m["online"]
@@ -285,6 +336,8 @@ class SlingerUp:
         import signal
         import subprocess
 
+        if self._http is not None:
+            self._http.close()
         try:
             if self.proc.poll() is None:
                 os.kill(self.proc.pid, signal.SIGINT)

@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import math
 
-import httpx
 import numpy as np
 import pytest
 
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M, PLANE_TOLERANCE_M
-from tests.conftest import SlingerUp, wait_for
+from tests.conftest import ADMIN, SlingerUp, wait_for
 
 pytestmark = pytest.mark.browser
 
@@ -44,30 +43,41 @@ def browser():
             b.close()
 
 
-def _clicked_target(page, base_url: str, x: float, y: float, previous) -> np.ndarray:
+def log_in(page, base_url: str, user: tuple[str, str] = ADMIN) -> None:
+    """Open the console: it sends us to the log-in page; log in there and come back."""
+    page.goto(f"{base_url}/")
+    page.wait_for_url("**/login.html**", timeout=20_000)
+    page.fill("#username", user[0])
+    page.fill("#password", user[1])
+    page.click("#login")
+    page.wait_for_url("**/console/", timeout=20_000)
+    page.locator("#who", has_text=user[0]).wait_for(timeout=20_000)
+
+
+def _clicked_target(page, http, x: float, y: float, previous) -> np.ndarray:
     """Click the canvas at page pixel (x, y); return the new target the server computed."""
     page.mouse.click(x, y)
 
     def changed():
-        t = httpx.get(f"{base_url}/api/scene", timeout=2).json()["target"]
+        t = http.get("/api/scene", timeout=2).json()["target"]
         return t if t is not None and t != previous else None
 
     return np.array(wait_for(changed, 10, f"a target from the click at ({x:.0f}, {y:.0f})"))
 
 
-def click_ground_at(page, base_url: str, canvas_box: dict, want_xy, tol_m: float = 0.1) -> np.ndarray:
+def click_ground_at(page, http, canvas_box: dict, want_xy, tol_m: float = 0.1) -> np.ndarray:
     """Click the 3D view so that the target lands within ``tol_m`` of ``want_xy`` (see module doc)."""
     px = np.array([canvas_box["x"] + 0.5 * canvas_box["width"], canvas_box["y"] + 0.6 * canvas_box["height"]])
     lo = np.array([canvas_box["x"] + 5, canvas_box["y"] + 5])
     hi = lo + np.array([canvas_box["width"], canvas_box["height"]]) - 10
     step = 30.0
-    t0 = _clicked_target(page, base_url, *px, None)
+    t0 = _clicked_target(page, http, *px, None)
     for _ in range(8):
-        tx = _clicked_target(page, base_url, px[0] + step, px[1], t0.tolist())
-        ty = _clicked_target(page, base_url, px[0], px[1] + step, tx.tolist())
+        tx = _clicked_target(page, http, px[0] + step, px[1], t0.tolist())
+        ty = _clicked_target(page, http, px[0], px[1] + step, tx.tolist())
         jac = np.column_stack([(tx - t0)[:2], (ty - t0)[:2]]) / step  # metres per pixel
         px = np.clip(px + np.linalg.solve(jac, np.asarray(want_xy) - t0[:2]), lo, hi)
-        t0 = _clicked_target(page, base_url, *px, ty.tolist())
+        t0 = _clicked_target(page, http, *px, ty.tolist())
         if np.hypot(*(t0[:2] - want_xy)) < tol_m:
             return t0
     last = t0
@@ -78,7 +88,7 @@ def test_click_ground_throw_and_see_it_in_history(tmp_path, browser):
     with SlingerUp(tmp_path) as up:
         machine = up.wait_machine_online()
         page = browser.new_page(viewport={"width": 1400, "height": 850})
-        page.goto(f"{up.base_url}/")
+        log_in(page, up.base_url)
         # the page says honestly that this is the simulated machine, and that it is online
         page.locator("#machine-kind", has_text="SIMULATED machine").wait_for(timeout=20_000)
         page.locator("#machine-online", has_text="online").wait_for(timeout=20_000)
@@ -94,7 +104,7 @@ def test_click_ground_throw_and_see_it_in_history(tmp_path, browser):
         r = 8.0
         want = np.array([r * math.cos(yaw) - ARM_PLANE_OFFSET_M * math.sin(yaw),
                          r * math.sin(yaw) + ARM_PLANE_OFFSET_M * math.cos(yaw)])
-        target = click_ground_at(page, up.base_url, box, want)
+        target = click_ground_at(page, up.http, box, want)
         assert target[2] == 0.0 and np.hypot(*(target[:2] - want)) < PLANE_TOLERANCE_M
 
         # the page shows the clicked target and enables Throw
@@ -112,7 +122,7 @@ def test_click_ground_throw_and_see_it_in_history(tmp_path, browser):
         assert cells[3] != "–" and cells[4] != "–" and cells[5] != "–"  # impact and errors shown
         page.locator("#status", has_text="landed").wait_for(timeout=5_000)
 
-        stored = httpx.get(f"{up.base_url}/api/throws").json()
+        stored = up.http.get("/api/throws").json()
         assert len(stored) == 1 and stored[0]["target"] == pytest.approx(target.tolist())
         page.screenshot(path=str(tmp_path / "console.png"))
     assert up.returncode == 0

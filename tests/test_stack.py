@@ -16,7 +16,7 @@ import pytest
 from runtime.telemetry import read_telemetry
 from runtime.throw_geometry import impact_errors
 from server.stack import Children, resolve_policy, slinger_command
-from tests.conftest import SlingerUp, wait_for, wait_online
+from tests.conftest import SlingerUp, login, wait_for, wait_online
 from tests.fixtures import write_test_policy
 
 TARGET_2D = [8.0, -0.292, 0.0]
@@ -91,13 +91,13 @@ def test_slinger_up_end_to_end_and_ctrl_c(tmp_path):
     with SlingerUp(tmp_path) as up:
         m = up.wait_machine_online()
         assert m["simulated"] and m["policies"] == {"2d": "test-linear"}
-        base = up.base_url
-        assert httpx.get(f"{base}/api/scene").json()["viser_port"] == up.viser_port
-        assert "Slinger" in httpx.get(f"{base}/", follow_redirects=True).text
-        r = httpx.post(f"{base}/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D}, timeout=10)
+        http = up.http
+        assert http.get("/api/scene").json()["viser_port"] == up.viser_port
+        assert "Slinger" in http.get("/", follow_redirects=True).text
+        r = http.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D})
         assert r.status_code == 202, r.text
         tid = r.json()["id"]
-        row = wait_for(lambda: _landed_or_final(lambda: httpx.get(f"{base}/api/throws/{tid}").json()), 60, "throw end")
+        row = wait_for(lambda: _landed_or_final(lambda: http.get(f"/api/throws/{tid}").json()), 60, "throw end")
         assert row["status"] == "landed" and row["impact"] is not None
         assert (up.data_dir / "telemetry" / f"{tid}.mcap").is_file()
     assert up.returncode == 0, up.output[-3000:]
@@ -108,8 +108,11 @@ def test_slinger_up_end_to_end_and_ctrl_c(tmp_path):
 
 
 def test_slinger_up_without_policy_refuses_the_runtime(tmp_path):
-    """No policy: the server and the simulated machine run, the runtime is not started."""
-    up = SlingerUp(tmp_path)
+    """No policy: the server and the simulated machine run, the runtime is not started.
+    No user yet: `slinger up` creates a local admin and prints its credentials once."""
+    import re
+
+    up = SlingerUp(tmp_path, create_admin=False)
     i = up.argv.index("--policy-2d")
     up.argv[i + 1] = str(tmp_path / "missing.onnx")
     with up:
@@ -117,9 +120,14 @@ def test_slinger_up_without_policy_refuses_the_runtime(tmp_path):
 
         wait_for(lambda: httpx.get(f"{up.base_url}/api/health", timeout=2).status_code == 200
                  if _reachable(up.base_url) else None, 60, "server up")
-        wait_for(lambda: httpx.get(f"{up.base_url}/api/machines").json(), 60, "plant state")
+        assert httpx.get(f"{up.base_url}/api/machines").status_code == 401  # not logged in
+        match = wait_for(lambda: re.search(r"user: admin\s+password: (\S+)", up.log_text()), 30, "credentials")
+        http = httpx.Client(base_url=up.base_url, timeout=10)
+        login(http, "admin", match.group(1))
+        wait_for(lambda: http.get("/api/machines").json(), 60, "plant state")
         time.sleep(1.0)
-        ms = httpx.get(f"{up.base_url}/api/machines").json()
+        ms = http.get("/api/machines").json()
+        http.close()
         assert [(m["id"], m["online"], m["simulated"]) for m in ms] == [("m1", False, True)]
     assert up.returncode == 0
     assert "NOT starting any runtime" in up.output and "missing.onnx" in up.output
@@ -131,3 +139,26 @@ def _reachable(base: str) -> bool:
         return True
     except httpx.HTTPError:
         return False
+
+
+def test_slinger_up_prints_credentials_only_once(tmp_path):
+    """A second `slinger up` on the same data finds the admin and prints no password."""
+    from server.db.session import make_engine, make_sessionmaker
+    from server.db.migrate import upgrade
+    from server.users_cli import ensure_local_admin
+    from server.auth import user_count
+
+    url = f"sqlite:///{tmp_path / 'v.db'}"
+    upgrade(url)
+    import contextlib
+    import io
+
+    for expect in (True, False):
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            ensure_local_admin(url)
+        assert ("password:" in buf.getvalue()) is expect
+    engine = make_engine(url)
+    with make_sessionmaker(engine)() as db:
+        assert user_count(db) == 1
+    engine.dispose()

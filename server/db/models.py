@@ -1,6 +1,7 @@
 """SQLAlchemy 2 typed models. API schemas live in :mod:`server.api.schemas`; never mix them.
 
-Tables: ``machines``, ``policy_versions``, ``throws``. Positions are machine-frame metres,
+Tables: ``machines``, ``policy_versions``, ``throws``, ``users``, ``auth_sessions``,
+``audit_log``, ``policy_deployments``. Positions are machine-frame metres,
 timestamps UTC-aware (:class:`server.db.types.UTCDateTime`). Constraint names follow
 :data:`NAMING_CONVENTION` so Alembic batch migrations on SQLite can address them.
 """
@@ -54,6 +55,14 @@ class PolicyVersion(Base):
     sha256: Mapped[str] = mapped_column(String(64), unique=True)
     manifest: Mapped[dict] = mapped_column(JSON, default=dict)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    onnx_path: Mapped[str | None] = mapped_column(String(512), nullable=True)
+    """The ONNX file relative to the data dir (None: the server has no copy)."""
+    notes: Mapped[str | None] = mapped_column(Text, nullable=True)
+    uploaded_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    evaluation_status: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    """None (not evaluated), ``pending``, ``running``, ``done`` or ``failed``."""
+    metrics: Mapped[dict | None] = mapped_column(JSON, nullable=True)
+    """The twin evaluation report (sim_twin.evaluate format)."""
 
 
 class Throw(Base):
@@ -89,6 +98,9 @@ class Throw(Base):
     completed_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     duration_s: Mapped[float | None] = mapped_column(Float, nullable=True)
     telemetry_path: Mapped[str | None] = mapped_column(String(512), nullable=True)
+    preview: Mapped[dict | None] = mapped_column(JSON, nullable=True)
+    """The twin preview the throw was sent with (sim_twin.preview summary), if any."""
+    requested_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
 
     @property
     def target_m(self) -> list[float]:
@@ -99,3 +111,71 @@ class Throw(Base):
         if self.impact_x_m is None:
             return None
         return [self.impact_x_m, self.impact_y_m, self.impact_z_m]
+
+
+ROLES = ("viewer", "operator", "admin")
+"""Roles in increasing order of rights: viewer reads, operator previews and throws, admin manages
+policy versions, machines and users."""
+
+
+class User(Base):
+    """An account. ``password_hash`` is an argon2id hash (server.auth)."""
+
+    __tablename__ = "users"
+
+    id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
+    username: Mapped[str] = mapped_column(String(64), unique=True)
+    password_hash: Mapped[str] = mapped_column(String(255))
+    role: Mapped[str] = mapped_column(String(16))
+    active: Mapped[bool] = mapped_column(Boolean, default=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+
+
+class AuthSession(Base):
+    """A log-in: the SHA-256 of its random token (never the token itself) and its expiry."""
+
+    __tablename__ = "auth_sessions"
+
+    token_sha256: Mapped[str] = mapped_column(String(64), primary_key=True)
+    user_id: Mapped[int] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"))
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    expires_at: Mapped[datetime] = mapped_column(UTCDateTime)
+
+
+class AuditEntry(Base):
+    """Who did what: throws, aborts, promotions, rollbacks, uploads, user changes, log-ins."""
+
+    __tablename__ = "audit_log"
+    __table_args__ = (Index("ix_audit_log_at", "at"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
+    at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    username: Mapped[str] = mapped_column(String(64))
+    action: Mapped[str] = mapped_column(String(32))
+    subject: Mapped[str | None] = mapped_column(String(128), nullable=True)
+    detail: Mapped[dict] = mapped_column(JSON, default=dict)
+
+
+DEPLOYMENT_STATUSES = ("offered", "active", "failed", "superseded")
+
+
+class PolicyDeployment(Base):
+    """One promotion (or rollback) of a policy version to one machine and mode.
+
+    ``previous_sha256`` is what the machine ran for that mode before (rollback goes there);
+    ``status``: offered -> active (the runtime confirmed) | failed (its reason).
+    """
+
+    __tablename__ = "policy_deployments"
+    __table_args__ = (Index("ix_policy_deployments_machine_mode", "machine_id", "mode", "requested_at"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
+    machine_id: Mapped[str] = mapped_column(ForeignKey("machines.id"))
+    mode: Mapped[str] = mapped_column(String(2))
+    policy_version_id: Mapped[int] = mapped_column(ForeignKey("policy_versions.id"))
+    previous_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    status: Mapped[str] = mapped_column(String(16), default="offered")
+    reason: Mapped[str | None] = mapped_column(Text, nullable=True)
+    requested_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    requested_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    confirmed_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)

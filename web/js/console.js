@@ -3,26 +3,7 @@
 // there sets the server-side target, which this page reads back from GET /api/scene.
 "use strict";
 
-const $ = (id) => document.getElementById(id);
 const state = { machines: [], machineId: null, mode: "2d", target: null, viserPort: null, lastThrowId: null };
-
-async function api(method, path, body) {
-  const res = await fetch(path, {
-    method,
-    headers: body ? { "Content-Type": "application/json" } : {},
-    body: body ? JSON.stringify(body) : undefined,
-  });
-  const data = await res.json().catch(() => null);
-  if (!res.ok) {
-    let detail = data && data.detail;
-    if (Array.isArray(detail)) detail = detail.map((d) => `${(d.loc || []).join(".")}: ${d.msg}`).join("; ");
-    throw new Error(`${res.status}: ${detail || res.statusText}`);
-  }
-  return data;
-}
-
-const fmt = (v, n = 2) => (v === null || v === undefined ? "–" : Number(v).toFixed(n));
-const fmtVec = (v) => (v ? v.map((x) => fmt(x)).join(", ") : "–");
 
 function setStatus(text, isError = false) {
   $("status").textContent = text;
@@ -116,7 +97,8 @@ async function doThrow() {
   }
 }
 
-function init() {
+async function init() {
+  try { await whoAmI(); } catch (e) { return; }
   $("throw").addEventListener("click", doThrow);
   $("machine").addEventListener("change", (e) => {
     state.machineId = e.target.value;

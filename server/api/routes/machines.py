@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 from sqlalchemy import select
 
-from server.api.deps import FleetDep, SessionDep
+from server.api.deps import FleetDep, SessionDep, ViewerDep
 from server.api.schemas import MachineOut
 from server.db.models import Machine
 from server.fleet import Fleet
@@ -17,7 +17,7 @@ INFO_MAX_AGE_S = 2.0  # busy flag and policies are at most this old
 
 
 @router.get("", response_model=list[MachineOut])
-def list_machines(db: SessionDep, fleet: FleetDep) -> list[MachineOut]:
+def list_machines(db: SessionDep, fleet: FleetDep, _user: ViewerDep) -> list[MachineOut]:
     """All machines in the database plus any heard on Zenoh, sorted by id.
 
     ``simulated`` is True when the machine's own state says it is the simulated machine.

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException
 
-from server.api.deps import SceneDep
+from server.api.deps import OperatorDep, SceneDep, ViewerDep
 from server.api.schemas import SceneState, SceneUpdate
 
 router = APIRouter(prefix="/api/scene", tags=["scene"])
@@ -18,13 +18,13 @@ def _state(scene) -> SceneState:
 
 
 @router.get("", response_model=SceneState)
-def get_scene(scene: SceneDep) -> SceneState:
+def get_scene(scene: SceneDep, _user: ViewerDep) -> SceneState:
     """Where the 3D view is served, and the target clicked in it (None until a click)."""
     return _state(scene)
 
 
 @router.put("", response_model=SceneState)
-def update_scene(update: SceneUpdate, scene: SceneDep) -> SceneState:
+def update_scene(update: SceneUpdate, scene: SceneDep, _user: OperatorDep) -> SceneState:
     """Pick the machine shown, the mode (draws the 2D plane) or type a target."""
     if scene is None:
         raise HTTPException(409, "the 3D view is disabled")

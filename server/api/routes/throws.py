@@ -6,7 +6,7 @@ from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import FileResponse
 from sqlalchemy import select
 
-from server.api.deps import SessionDep, ThrowServiceDep
+from server.api.deps import OperatorDep, SessionDep, ThrowServiceDep, ViewerDep
 from server.api.schemas import Problem, ThrowCreate, ThrowCreated, ThrowOut
 from server.db.models import Throw
 from server.throws import ThrowRefused
@@ -24,14 +24,14 @@ router = APIRouter(prefix="/api/throws", tags=["throws"])
         503: {"model": Problem, "description": "runtime offline or not answering"},
     },
 )
-def create_throw(body: ThrowCreate, service: ThrowServiceDep) -> ThrowCreated:
+def create_throw(body: ThrowCreate, service: ThrowServiceDep, user: OperatorDep) -> ThrowCreated:
     """Throw at ``target`` ([x, y, z], machine frame, m) with ``machine_id`` in ``mode``.
 
     202 means the runtime accepted the throw; follow it with GET /api/throws/{id}.
     On any error no throw is recorded.
     """
     try:
-        row, ack = service.create(body)
+        row, ack = service.create(body, user.username)
     except ThrowRefused as e:
         raise HTTPException(e.status_code, e.detail) from e
     return ThrowCreated(id=row.id, status=row.status, policy_version=ack.policy_version)
@@ -40,6 +40,7 @@ def create_throw(body: ThrowCreate, service: ThrowServiceDep) -> ThrowCreated:
 @router.get("", response_model=list[ThrowOut])
 def list_throws(
     db: SessionDep,
+    _user: ViewerDep,
     machine_id: str | None = None,
     limit: int = Query(50, ge=1, le=500),
 ) -> list[ThrowOut]:
@@ -51,7 +52,7 @@ def list_throws(
 
 
 @router.get("/{throw_id}", response_model=ThrowOut, responses={404: {"model": Problem}})
-def get_throw(throw_id: str, db: SessionDep) -> ThrowOut:
+def get_throw(throw_id: str, db: SessionDep, _user: ViewerDep) -> ThrowOut:
     row = db.get(Throw, throw_id)
     if row is None:
         raise HTTPException(404, f"no throw {throw_id}")
@@ -63,7 +64,7 @@ def get_throw(throw_id: str, db: SessionDep) -> ThrowOut:
     response_class=FileResponse,
     responses={200: {"content": {"application/x-mcap": {}}}, 404: {"model": Problem}},
 )
-def get_telemetry(throw_id: str, db: SessionDep, request: Request) -> FileResponse:
+def get_telemetry(throw_id: str, db: SessionDep, request: Request, _user: ViewerDep) -> FileResponse:
     """The throw's 100 Hz telemetry as an MCAP file."""
     row = db.get(Throw, throw_id)
     if row is None:

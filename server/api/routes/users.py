@@ -1,0 +1,64 @@
+"""Users (admin only): list, add, change role / active / password; and the audit log."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, HTTPException, Query
+from sqlalchemy import delete, select
+
+from server.api.account_schemas import AuditOut, UserCreate, UserOut, UserUpdate
+from server.api.deps import AdminDep, SessionDep
+from server.api.routes.auth import user_out
+from server.auth import AuthError, audit, create_user, hash_password
+from server.db.models import AuditEntry, AuthSession, User
+
+router = APIRouter(prefix="/api", tags=["users"])
+
+
+@router.get("/users", response_model=list[UserOut])
+def list_users(db: SessionDep, _admin: AdminDep) -> list[UserOut]:
+    return [user_out(u) for u in db.scalars(select(User).order_by(User.username))]
+
+
+@router.post("/users", status_code=201, response_model=UserOut, responses={409: {"description": "exists"}})
+def add_user(body: UserCreate, db: SessionDep, admin: AdminDep) -> UserOut:
+    try:
+        user = create_user(db, body.username, body.password, body.role)
+    except AuthError as e:
+        raise HTTPException(409 if "exists" in str(e) else 422, str(e)) from e
+    audit(db, admin.username, "user_add", body.username, role=body.role)
+    db.commit()
+    return user_out(user)
+
+
+@router.patch("/users/{username}", response_model=UserOut, responses={404: {"description": "no such user"}})
+def update_user(username: str, body: UserUpdate, db: SessionDep, admin: AdminDep) -> UserOut:
+    """Change a user's role, deactivate them (ends their sessions) or set a new password."""
+    user = db.scalar(select(User).where(User.username == username))
+    if user is None:
+        raise HTTPException(404, f"no user {username!r}")
+    if user.id == admin.id and (body.active is False or (body.role and body.role != "admin")):
+        raise HTTPException(422, "you cannot demote or deactivate yourself")
+    changes = {}
+    if body.role is not None:
+        user.role = changes["role"] = body.role
+    if body.active is not None:
+        user.active = changes["active"] = body.active
+    if body.password is not None:
+        user.password_hash = hash_password(body.password)
+        changes["password"] = "changed"
+    if body.active is False or body.password is not None:
+        db.execute(delete(AuthSession).where(AuthSession.user_id == user.id))
+    audit(db, admin.username, "user_update", username, **changes)
+    db.commit()
+    return user_out(user)
+
+
+@router.get("/audit", response_model=list[AuditOut])
+def audit_log(db: SessionDep, _admin: AdminDep, action: str | None = None,
+              limit: int = Query(100, ge=1, le=1000)) -> list[AuditOut]:
+    """The audit log, newest first (optionally one action: throw, abort, promote, rollback, ...)."""
+    stmt = select(AuditEntry).order_by(AuditEntry.at.desc(), AuditEntry.id.desc()).limit(limit)
+    if action:
+        stmt = stmt.where(AuditEntry.action == action)
+    return [AuditOut(id=a.id, at=a.at, username=a.username, action=a.action, subject=a.subject,
+                     detail=a.detail or {}) for a in db.scalars(stmt)]

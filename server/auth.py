@@ -1,0 +1,157 @@
+"""Accounts: argon2id password hashes, expiring session tokens, roles and the audit log.
+
+A log-in creates a random token (``secrets.token_urlsafe``); the client holds it as the
+``slinger_session`` cookie (the console) or sends ``Authorization: Bearer <token>`` (scripts).
+The database stores only the token's SHA-256 and its expiry, so a leaked database does not leak
+sessions. Roles are ordered (server.db.models.ROLES): viewer < operator < admin; a route that
+needs a role accepts any higher one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import secrets
+from datetime import timedelta
+
+from argon2 import PasswordHasher
+from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatchError
+from sqlalchemy import delete, func, select
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.db.models import ROLES, AuditEntry, AuthSession, User
+from server.db.types import utcnow
+
+log = logging.getLogger(__name__)
+
+COOKIE_NAME = "slinger_session"
+MIN_PASSWORD_LENGTH = 8
+_hasher = PasswordHasher()  # argon2id with the library's recommended parameters
+
+
+class AuthError(ValueError):
+    """Bad credentials or an invalid account change; the message is safe to show."""
+
+
+def hash_password(password: str) -> str:
+    """argon2id hash of ``password``."""
+    return _hasher.hash(password)
+
+
+def verify_password(password_hash: str, password: str) -> bool:
+    """True if ``password`` matches ``password_hash`` (False for a malformed hash)."""
+    try:
+        return _hasher.verify(password_hash, password)
+    except (VerifyMismatchError, VerificationError, InvalidHashError):
+        return False
+
+
+def role_at_least(role: str, needed: str) -> bool:
+    """True if ``role`` has the rights of ``needed`` (viewer < operator < admin)."""
+    return role in ROLES and ROLES.index(role) >= ROLES.index(needed)
+
+
+def generate_password() -> str:
+    """A random password for a generated account (16 URL-safe characters)."""
+    return secrets.token_urlsafe(12)
+
+
+def create_user(db: Session, username: str, password: str, role: str) -> User:
+    """Add a user inside ``db``'s transaction.
+
+    Raises:
+        AuthError: unknown role, short password, malformed or taken user name.
+    """
+    if role not in ROLES:
+        raise AuthError(f"unknown role {role!r}; use one of {', '.join(ROLES)}")
+    if not username or len(username) > 64 or not all(c.isalnum() or c in "._-@" for c in username):
+        raise AuthError("user name must be 1-64 letters, digits or . _ - @")
+    if len(password) < MIN_PASSWORD_LENGTH:
+        raise AuthError(f"password must have at least {MIN_PASSWORD_LENGTH} characters")
+    if db.scalar(select(User).where(User.username == username)) is not None:
+        raise AuthError(f"user {username!r} exists")
+    user = User(username=username, password_hash=hash_password(password), role=role, active=True)
+    db.add(user)
+    db.flush()
+    return user
+
+
+def user_count(db: Session) -> int:
+    return int(db.scalar(select(func.count()).select_from(User)) or 0)
+
+
+def authenticate(db: Session, username: str, password: str) -> User:
+    """The active user with these credentials.
+
+    Raises:
+        AuthError: "invalid user name or password" (the same text for both, on purpose).
+    """
+    user = db.scalar(select(User).where(User.username == username))
+    if user is None:
+        hash_password(password)  # spend the same time as a real check
+        raise AuthError("invalid user name or password")
+    if not verify_password(user.password_hash, password) or not user.active:
+        raise AuthError("invalid user name or password")
+    if _hasher.check_needs_rehash(user.password_hash):
+        user.password_hash = hash_password(password)
+    return user
+
+
+def _digest(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+def create_session(db: Session, user: User, ttl_s: float) -> tuple[str, AuthSession]:
+    """A new session token for ``user`` valid ``ttl_s`` seconds; expired sessions are purged."""
+    now = utcnow()
+    db.execute(delete(AuthSession).where(AuthSession.expires_at < now))
+    token = secrets.token_urlsafe(32)
+    row = AuthSession(token_sha256=_digest(token), user_id=user.id, created_at=now,
+                      expires_at=now + timedelta(seconds=ttl_s))
+    db.add(row)
+    return token, row
+
+
+def user_for_token(db: Session, token: str | None) -> User | None:
+    """The active user of an unexpired session token, else None."""
+    if not token:
+        return None
+    row = db.get(AuthSession, _digest(token))
+    if row is None or row.expires_at <= utcnow():
+        return None
+    user = db.get(User, row.user_id)
+    return user if user is not None and user.active else None
+
+
+def end_session(db: Session, token: str | None) -> None:
+    """Log out: delete the session of ``token`` (no error if there is none)."""
+    if token:
+        db.execute(delete(AuthSession).where(AuthSession.token_sha256 == _digest(token)))
+
+
+def audit(db: Session, username: str, action: str, subject: str | None = None, **detail) -> None:
+    """Write one audit-log entry inside ``db``'s transaction (and log it)."""
+    db.add(AuditEntry(username=username, action=action, subject=subject, detail=detail))
+    log.info("audit: %s %s %s %s", username, action, subject or "", detail or "")
+
+
+def record_audit(sessions: sessionmaker[Session], username: str, action: str, subject: str | None = None,
+                 **detail) -> None:
+    """:func:`audit` in its own transaction."""
+    with sessions.begin() as db:
+        audit(db, username, action, subject, **detail)
+
+
+def ensure_admin(sessions: sessionmaker[Session], username: str = "admin") -> str | None:
+    """Create an admin with a random password if there is no user at all.
+
+    Returns:
+        The generated password (to show ONCE), or None when users already exist.
+    """
+    with sessions.begin() as db:
+        if user_count(db) > 0:
+            return None
+        password = generate_password()
+        create_user(db, username, password, "admin")
+        audit(db, "system", "user_add", username, role="admin", reason="first local admin")
+    return password

@@ -1,0 +1,48 @@
+// Shared by the console pages: JSON API calls (401 -> log-in page), formatting, the page header.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const session = { user: null };
+
+async function api(method, path, body, isForm = false) {
+  const opts = { method, headers: {} };
+  if (body !== undefined) {
+    if (isForm) opts.body = body;
+    else { opts.headers["Content-Type"] = "application/json"; opts.body = JSON.stringify(body); }
+  }
+  const res = await fetch(path, opts);
+  if (res.status === 401 && !path.startsWith("/api/auth/login")) {
+    location.href = `/console/login.html?next=${encodeURIComponent(location.pathname + location.search)}`;
+    throw new Error("401: log in first");
+  }
+  const data = await res.json().catch(() => null);
+  if (!res.ok) {
+    let detail = data && data.detail;
+    if (Array.isArray(detail)) detail = detail.map((d) => `${(d.loc || []).join(".")}: ${d.msg}`).join("; ");
+    throw new Error(`${res.status}: ${detail || res.statusText}`);
+  }
+  return data;
+}
+
+const fmt = (v, n = 2) => (v === null || v === undefined ? "–" : Number(v).toFixed(n));
+const fmtVec = (v) => (v ? v.map((x) => fmt(x)).join(", ") : "–");
+const ROLE_RANK = { viewer: 0, operator: 1, admin: 2 };
+const can = (role) => session.user && ROLE_RANK[session.user.role] >= ROLE_RANK[role];
+
+async function whoAmI() {
+  session.user = await api("GET", "/api/auth/me");
+  const who = $("who");
+  if (who) who.textContent = `${session.user.username} (${session.user.role})`;
+  for (const el of document.querySelectorAll("[data-role]")) el.hidden = !can(el.dataset.role);
+  return session.user;
+}
+
+async function logout() {
+  await fetch("/api/auth/logout", { method: "POST" });
+  location.href = "/console/login.html";
+}
+
+document.addEventListener("DOMContentLoaded", () => {
+  const btn = $("logout");
+  if (btn) btn.addEventListener("click", logout);
+});
