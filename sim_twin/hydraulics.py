@@ -36,7 +36,8 @@ class HydraulicParams:
 
     Attributes:
         dead_band: valve dead band, fraction of full command (0..1).
-        delay_s: transport delay, s (rounded to whole 10 ms physics steps).
+        delay_s: transport delay, s (a fraction of a 10 ms physics step interpolates linearly
+            between the neighbouring steps; whole steps behave as a pure shift).
         lag_s: first-order lag time constant, s.
         velocity_limit: joint speed at full valve opening, rad/s or m/s.
     """
@@ -62,8 +63,10 @@ class ValveModel:
     def __init__(self, params: HydraulicParams, dt: float = PHYSICS_PERIOD_S):
         self.params = params
         self.dt = dt
-        self._delay_steps = np.round(params.delay_s / dt).astype(int)
-        self._buffer = np.zeros((int(self._delay_steps.max()) + 1, 4))
+        steps = np.round(params.delay_s / dt, 9)
+        self._delay_steps = np.floor(steps).astype(int)
+        self._delay_frac = steps - self._delay_steps
+        self._buffer = np.zeros((int(self._delay_steps.max()) + 2, 4))
         self._lagged = np.zeros(4)
 
     def reset(self) -> None:
@@ -84,7 +87,11 @@ class ValveModel:
         flow = dead_band_flow(np, u, self.params.dead_band)
         self._buffer = np.roll(self._buffer, 1, axis=0)
         self._buffer[0] = flow
-        delayed = self._buffer[self._delay_steps, np.arange(4)]
+        cols = np.arange(4)
+        delayed = self._buffer[self._delay_steps, cols]
+        if np.any(self._delay_frac > 0):
+            frac = self._delay_frac
+            delayed = (1.0 - frac) * delayed + frac * self._buffer[self._delay_steps + 1, cols]
         self._lagged = lag_step(self._lagged, delayed, self.params.lag_s, self.dt)
         vmax = self.params.velocity_limit
         return np.clip(self._lagged * vmax, -vmax, vmax)

@@ -1,5 +1,7 @@
 """The simulated machine: the CPU MuJoCo twin driven through the hydraulic valve model, with the
-gripper's opening delay and the payload's flight. It stands in for the hardware; the Zenoh
+gripper's opening delay and the payload's flight, plus the effects of its reality profile
+(:mod:`sim_twin.effects`: valve parameters, setpoint disturbances, passive friction, masses,
+release delay, grasp offset, flight drag, measurement latency and noise). It stands in for the hardware; the Zenoh
 process around it is :mod:`sim_twin.plant`, and evaluation and previews drive it directly.
 
 One :meth:`SimulatedMachine.step` is one 10 ms physics period.
@@ -13,6 +15,8 @@ import mujoco
 import numpy as np
 
 from runtime.machine import forward_kinematics
+from sim_twin.effects.machine import passive_inertia_of
+from sim_twin.effects.payload import grasp_point, integrate_flight
 from sim_twin.hydraulics import ValveModel
 from sim_twin.initial_pose import sample_pose
 from sim_twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
@@ -41,11 +45,24 @@ class SimulatedMachine:
 
     def __init__(self, profile: RealityProfile | None = None, seed: int | None = None):
         self.profile = profile or RealityProfile()
+        self.effects = self.profile.stack()
         self.model = load_model()
+        if self.effects.has("model"):
+            self.effects.model(self.model)
+            self._inertia = passive_inertia_of(self.model)
+        else:
+            self._inertia = passive_inertia()
         self.data = mujoco.MjData(self.model)
-        self.valves = ValveModel(self.profile.hydraulics)
+        self.valves = ValveModel(self.effects.hydraulics(self.profile.hydraulics))
         self.rng = np.random.default_rng(seed)
-        self._inertia = passive_inertia()
+        p = self.profile
+        self._delay_mean_s, self._delay_std_s = self.effects.release_delay(p.release_delay_mean_s, p.release_delay_std_s)
+        self._viscous, self._coulomb = self.effects.passive_friction(p.passive_viscous_per_s, p.passive_coulomb_rad_per_s2)
+        self._grasp_offset = self.effects.grasp_offset()
+        self._fx_setpoint = self.effects.has("setpoint")
+        self._fx_flight = self.effects.has("flight_accel")
+        self._fx_measure = self.effects.has("measure")
+        self._meas_rng = np.random.default_rng(None if seed is None else [int(seed), 1])
         self.reset()
 
     # --- state ------------------------------------------------------------------------------
@@ -55,13 +72,13 @@ class SimulatedMachine:
 
     @property
     def q(self) -> np.ndarray:
-        """(6,) joint positions."""
-        return self.data.qpos.copy()
+        """(6,) measured joint positions (the true ones unless a measurement effect is on)."""
+        return self._meas_q.copy() if self._fx_measure else self.data.qpos.copy()
 
     @property
     def qd(self) -> np.ndarray:
-        """(6,) joint velocities."""
-        return self.data.qvel.copy()
+        """(6,) measured joint velocities (the true ones unless a measurement effect is on)."""
+        return self._meas_qd.copy() if self._fx_measure else self.data.qvel.copy()
 
     @property
     def gripper_open(self) -> bool:
@@ -79,9 +96,17 @@ class SimulatedMachine:
     def payload_state(self) -> tuple[np.ndarray, np.ndarray]:
         """(pos (3,), vel (3,)) of the payload: the gripper centre while held, else its flight."""
         if self._release is None:
+            if self._grasp_offset is not None:
+                return grasp_point(self.data.qpos, self.data.qvel, self._grasp_offset)
             pts = forward_kinematics(np, self.data.qpos, self.data.qvel)
             return pts.gripper_centre, pts.gripper_centre_vel
         p0, v0, t0 = self._release
+        if self._flight is not None:
+            ts, ps, vs = self._flight
+            t = min(self.time_s - t0, self._impact.impact_time_s - t0)
+            pos = np.array([np.interp(t, ts, ps[:, i]) for i in range(3)])
+            vel = np.zeros(3) if self._landed else np.array([np.interp(t, ts, vs[:, i]) for i in range(3)])
+            return pos, vel
         t = min(self.time_s - t0, self._impact.impact_time_s - t0)
         pos = ballistic_position(np, p0, v0, t)
         vel = v0 + np.array([0.0, 0.0, -9.81]) * t
@@ -113,7 +138,13 @@ class SimulatedMachine:
         self._attached, self._opened, self._landed = True, False, False
         self._open_at: float | None = None
         self._release: tuple[np.ndarray, np.ndarray, float] | None = None
+        self._flight: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._impact: Impact | None = None
+        if self._fx_measure:
+            n = self.effects.history_steps()
+            self._hist_q = np.repeat(self.data.qpos[None].copy(), n, axis=0)
+            self._hist_qd = np.repeat(self.data.qvel[None].copy(), n, axis=0)
+            self._measure()
         return q
 
     def step(self, valve_u: np.ndarray, gripper_open_cmd: bool) -> None:
@@ -125,29 +156,47 @@ class SimulatedMachine:
                 delay, sampled from the profile's release delay (mean, std).
         """
         if gripper_open_cmd and self._attached and self._open_at is None:
-            p = self.profile
-            delay = max(0.0, self.rng.normal(p.release_delay_mean_s, p.release_delay_std_s))
+            delay = max(0.0, self.rng.normal(self._delay_mean_s, self._delay_std_s))
             self._open_at = self.time_s + delay
-        self.data.ctrl[:] = self.valves.step(valve_u)
+        setpoint = self.valves.step(valve_u)
+        if self._fx_setpoint:
+            setpoint = self.effects.setpoint(setpoint, self.data.qpos.copy(), self.data.qvel.copy())
+        self.data.ctrl[:] = setpoint
         self.data.qfrc_applied[4:6] = passive_friction_force(
             np,
             self.data.qvel[4:6],
             self._inertia,
-            self.profile.passive_viscous_per_s,
-            self.profile.passive_coulomb_rad_per_s2,
+            self._viscous,
+            self._coulomb,
         )
         mujoco.mj_step(self.model, self.data)
+        if self._fx_measure:
+            self._hist_q = np.roll(self._hist_q, 1, axis=0)
+            self._hist_qd = np.roll(self._hist_qd, 1, axis=0)
+            self._hist_q[0], self._hist_qd[0] = self.data.qpos, self.data.qvel
+            self._measure()
         if self._open_at is not None and self._attached and self.time_s >= self._open_at - 1e-9:
             self._open_payload()
         if self._release is not None and not self._landed and self.time_s >= self._impact.impact_time_s:
             self._landed = True
 
+    def _measure(self) -> None:
+        self._meas_q, self._meas_qd = self.effects.measure(self._hist_q, self._hist_qd, float(self.model.opt.timestep), self._meas_rng)
+
     def _open_payload(self) -> None:
-        pts = forward_kinematics(np, self.data.qpos, self.data.qvel)
-        p0, v0 = pts.gripper_centre.copy(), pts.gripper_centre_vel.copy()
+        if self._grasp_offset is not None:
+            p0, v0 = grasp_point(self.data.qpos, self.data.qvel, self._grasp_offset)
+        else:
+            pts = forward_kinematics(np, self.data.qpos, self.data.qvel)
+            p0, v0 = pts.gripper_centre.copy(), pts.gripper_centre_vel.copy()
         t0 = self.time_s
-        t_fall = float(ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
-        hit = ballistic_position(np, p0, v0, t_fall)
+        if self._fx_flight:
+            ts, ps, vs, t_hit, hit = integrate_flight(p0, v0, self.effects.flight_accel)
+            self._flight = (ts, ps, vs)
+            t_fall = float(t_hit)
+        else:
+            t_fall = float(ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
+            hit = ballistic_position(np, p0, v0, t_fall)
         hit[2] = 0.0
         self._attached, self._opened = False, True
         self._release = (p0, v0, t0)

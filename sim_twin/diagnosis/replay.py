@@ -1,0 +1,250 @@
+"""Replay logged throws in the twin: same initial state, same references, the runtime's
+controller in the loop, a candidate set of effects on top of the nominal machine.
+
+For every throw the replay starts from the logged state at swing start (valves neutral), feeds
+the logged joint-velocity references (as tracked after the runtime's safety clipping) through
+the runtime's PID + feed-forward law (:func:`runtime.controller.pid_ff_law`, the same arithmetic
+as :class:`runtime.controller.JointVelocityController`), the valve model and the effects'
+setpoint and friction hooks, and steps MuJoCo at 100 Hz. Many throws and many effect
+configurations run in one batch (one MjData per pair, the controller and valves vectorised),
+which is what makes fitting affordable on two cores.
+
+The payload part is computed from the replayed joint states afterwards: the grasp point while
+held, the release at the logged opening row (``conditioned``: isolates flight from release
+timing) and at the row the model's release delay predicts (``predicted``), and the flight
+(analytic, or RK4 with the effects' flight acceleration) to the impact.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from dataclasses import dataclass, replace
+from functools import lru_cache
+
+import mujoco
+import numpy as np
+
+from runtime.controller import ControllerGains, pid_ff_law
+from runtime.machine import ACTIVE_VELOCITY_LIMITS
+from sim_twin.diagnosis.dataset import TICK_S, LoggedThrow
+from sim_twin.effects import EffectStack
+from sim_twin.effects.machine import passive_inertia_of
+from sim_twin.effects.payload import grasp_point, integrate_flight
+from sim_twin.hydraulics import dead_band_flow, lag_step
+from sim_twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
+from sim_twin.physics import ballistic_impact_time, ballistic_position, passive_friction_force
+from sim_twin.profile import RealityProfile
+
+log = logging.getLogger(__name__)
+
+MAX_RELEASE_DELAY_S = 0.8  # replays run at least this long after the release command
+REPLAY_GAINS = replace(ControllerGains(), limit_margin=0.0, limit_ramp=1e-9)
+"""The runtime's gains; the limit ramp is off because the logged references already carry it."""
+
+
+@dataclass
+class Replay:
+    """One throw replayed under one effect configuration.
+
+    Attributes:
+        q, qd: (R, 6) true replayed states on the replay rows (R >= logged rows).
+        meas_q, meas_qd: (R, 6) what the sensors would have given (measurement effects).
+        held_pos_m: (T_open, 3) grasp point on the logged rows before the logged opening.
+        delay_mean_s / delay_std_s: the model's release delay.
+        cond: flight released at the logged opening row: dict(t_s (F,), pos_m (F, 3) at the
+            logged payload times, impact_m (3,), impact_t_s).
+        pred: the same released at the model's predicted opening row.
+    """
+
+    q: np.ndarray
+    qd: np.ndarray
+    meas_q: np.ndarray
+    meas_qd: np.ndarray
+    held_pos_m: np.ndarray
+    delay_mean_s: float
+    delay_std_s: float
+    cond: dict
+    pred: dict
+
+
+def replay_rows(th: LoggedThrow) -> int:
+    """Rows to replay: the logged ones, extended (last reference held) to cover any release
+    delay up to MAX_RELEASE_DELAY_S after the command."""
+    return max(len(th.t_s), th.cmd_row + int(np.ceil(MAX_RELEASE_DELAY_S / TICK_S)) + 2)
+
+
+@lru_cache(maxsize=1)
+def _base_model() -> mujoco.MjModel:
+    return load_model()
+
+
+class _Column:
+    """Static per-configuration quantities."""
+
+    def __init__(self, stack: EffectStack, base: RealityProfile):
+        self.stack = stack
+        self.model = copy.copy(_base_model())
+        if stack.has("model"):
+            stack.model(self.model)
+            self.inertia = passive_inertia_of(self.model)
+        else:
+            self.inertia = passive_inertia()
+        self.hyd = stack.hydraulics(base.hydraulics)
+        self.viscous, self.coulomb = stack.passive_friction(base.passive_viscous_per_s, base.passive_coulomb_rad_per_s2)
+        self.delay_mean_s, self.delay_std_s = stack.release_delay(base.release_delay_mean_s, base.release_delay_std_s)
+        self.offset = stack.grasp_offset()
+        self.flight = stack.flight_accel if stack.has("flight_accel") else None
+        self.setpoint = stack.has("setpoint")
+
+
+def simulate(throws: list[LoggedThrow], stacks: list[EffectStack], base: RealityProfile | None = None) -> list[list[tuple[np.ndarray, np.ndarray]]]:
+    """Batched dynamic replay.
+
+    Args:
+        throws: N logged throws.
+        stacks: K effect configurations (on top of ``base``, default the nominal profile).
+
+    Returns:
+        [k][n] -> (q (R_n, 6), qd (R_n, 6)) true replayed states, row 0 = logged swing start.
+    """
+    base = base or RealityProfile()
+    cols = [_Column(s, base) for s in stacks]
+    N, K = len(throws), len(cols)
+    M = N * K
+    rows = np.array([replay_rows(th) for th in throws])
+    T = int(rows.max())
+    ref = np.zeros((N, T, 4))
+    for n, th in enumerate(throws):
+        L = len(th.t_s)
+        ref[n, :L] = th.qd_ref
+        ref[n, L:] = th.qd_ref[-1]
+    sys_col = np.repeat(np.arange(K), N)
+    sys_thr = np.tile(np.arange(N), K)
+    datas = []
+    for i in range(M):
+        d = mujoco.MjData(cols[sys_col[i]].model)
+        th = throws[sys_thr[i]]
+        d.qpos[:], d.qvel[:] = th.q[0], th.qd[0]
+        mujoco.mj_forward(cols[sys_col[i]].model, d)
+        datas.append(d)
+    models = [cols[sys_col[i]].model for i in range(M)]
+    per = lambda f: np.stack([f(cols[c]) for c in sys_col])  # noqa: E731
+    db = per(lambda c: c.hyd.dead_band)
+    steps = np.round(per(lambda c: c.hyd.delay_s) / TICK_S, 9)
+    i0 = np.floor(steps).astype(int)
+    frac = steps - i0
+    lag = per(lambda c: c.hyd.lag_s)
+    vmax = per(lambda c: c.hyd.velocity_limit)
+    visc = per(lambda c: np.full(2, c.viscous))
+    coul = per(lambda c: np.full(2, c.coulomb))
+    inertia = per(lambda c: c.inertia)
+    Lb = int(i0.max()) + 2
+    buf = np.zeros((Lb, M, 4))
+    lagged = np.zeros((M, 4))
+    integral = np.zeros((M, 4))
+    prev_err = None
+    Q = np.stack([d.qpos.copy() for d in datas])
+    QD = np.stack([d.qvel.copy() for d in datas])
+    outq = np.zeros((M, T, 6))
+    outqd = np.zeros((M, T, 6))
+    outq[:, 0], outqd[:, 0] = Q, QD
+    idx = np.arange(M)
+    sp_cols = [(k, np.flatnonzero(sys_col == k)) for k in range(K) if cols[k].setpoint]
+    ctrl_vmax = ACTIVE_VELOCITY_LIMITS
+    head = 0
+    for t in range(T - 1):
+        r = ref[sys_thr, t]
+        if prev_err is None:
+            prev_err = (np.clip(r, -ctrl_vmax, ctrl_vmax) - QD[:, :4]) / ctrl_vmax
+        u, _, integral, prev_err = pid_ff_law(np, REPLAY_GAINS, ctrl_vmax, TICK_S, r, Q[:, :4], QD[:, :4], integral, prev_err)
+        head = (head - 1) % Lb
+        buf[head] = dead_band_flow(np, np.clip(u, -1.0, 1.0), db)
+        a = np.take_along_axis(buf, ((head + i0) % Lb)[None], axis=0)[0]
+        delayed = np.where(frac > 0, (1 - frac) * a + frac * np.take_along_axis(buf, ((head + i0 + 1) % Lb)[None], axis=0)[0], a)
+        lagged = lag_step(lagged, delayed, lag, TICK_S)
+        sp = np.clip(lagged * vmax, -vmax, vmax)
+        for k, sel in sp_cols:
+            sp[sel] = cols[k].stack.setpoint(sp[sel], Q[sel], QD[sel])
+        frc = passive_friction_force(np, QD[:, 4:6], inertia, visc, coul)
+        for i in idx:
+            d = datas[i]
+            d.ctrl[:] = sp[i]
+            d.qfrc_applied[4:6] = frc[i]
+            mujoco.mj_step(models[i], d)
+            Q[i] = d.qpos
+            QD[i] = d.qvel
+        outq[:, t + 1], outqd[:, t + 1] = Q, QD
+    res = [[None] * N for _ in range(K)]
+    for i in range(M):
+        n = sys_thr[i]
+        res[sys_col[i]][n] = (outq[i, : rows[n]], outqd[i, : rows[n]])
+    return res
+
+
+def _measure(stack: EffectStack, q: np.ndarray, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-free measurement of a whole trajectory (R, 6) through the stack's measure hooks."""
+    if not stack.has("measure"):
+        return q, qd
+    H = stack.history_steps()
+    lags = np.minimum(np.arange(R := len(q))[None, :], np.arange(H)[:, None])
+    rows = np.arange(R)[None, :] - lags
+    return stack.measure(q[rows], qd[rows], TICK_S, None)
+
+
+def open_row(th: LoggedThrow, delay_s: float) -> int:
+    """Row at which the payload is free for a deterministic delay (SimulatedMachine.step: the
+    first step at or after command + delay)."""
+    return th.cmd_row + int(np.ceil(max(delay_s, 0.0) / TICK_S - 1e-9))
+
+
+def _flight(th: LoggedThrow, col: _Column, q, qd, row: int) -> dict:
+    row = min(row, len(q) - 1)
+    p0, v0 = grasp_point(q[row], qd[row], col.offset)
+    t_open = row * TICK_S
+    if col.flight is None:
+        t_hit = float(ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
+        hit = ballistic_position(np, p0, v0, t_hit)
+        tt = np.clip(th.payload_t_s - t_open, 0.0, t_hit)
+        pos = p0 + v0 * tt[:, None] + 0.5 * np.array([0.0, 0.0, -9.81]) * tt[:, None] ** 2
+    else:
+        ts, ps, _, t_hit, hit = integrate_flight(p0, v0, col.flight)
+        t_hit = float(t_hit)
+        tt = np.clip(th.payload_t_s - t_open, 0.0, t_hit)
+        pos = np.stack([np.interp(tt, ts, ps[:, j]) for j in range(3)], axis=-1)
+    hit = np.array(hit, dtype=float)
+    hit[2] = 0.0
+    return {"pos_m": pos, "impact_m": hit, "impact_t_s": t_open + t_hit, "open_row": row}
+
+
+def finish(th: LoggedThrow, col: _Column, q: np.ndarray, qd: np.ndarray) -> Replay:
+    """Measurement, held payload and flights for one dynamic replay."""
+    mq, mqd = _measure(col.stack, q, qd)
+    n_held = th.open_row if th.open_row is not None else th.cmd_row
+    held = grasp_point(q[:n_held], qd[:n_held], col.offset)[0]
+    log_row = th.open_row if th.open_row is not None else open_row(th, col.delay_mean_s)
+    return Replay(
+        q=q, qd=qd, meas_q=mq, meas_qd=mqd, held_pos_m=held,
+        delay_mean_s=col.delay_mean_s, delay_std_s=col.delay_std_s,
+        cond=_flight(th, col, q, qd, log_row),
+        pred=_flight(th, col, q, qd, open_row(th, col.delay_mean_s)),
+    )
+
+
+def replay(throws: list[LoggedThrow], stacks: list[EffectStack], base: RealityProfile | None = None, dynamics_cache: list | None = None) -> list[list[Replay]]:
+    """Replay ``throws`` under each stack; returns [k][n] Replays.
+
+    Args:
+        dynamics_cache: the nominal ``simulate`` result for these throws ([n] -> (q, qd)); used
+            for stacks whose effects all act outside the dynamics (release, payload, flight,
+            measurement), which then cost no MuJoCo stepping.
+    """
+    base = base or RealityProfile()
+    dyn_idx = [k for k, s in enumerate(stacks) if dynamics_cache is None or any(e.stage == "dynamics" for e in s.effects)]
+    sims = simulate(throws, [stacks[k] for k in dyn_idx], base) if dyn_idx else []
+    out = []
+    for k, stack in enumerate(stacks):
+        col = _Column(stack, base)
+        traj = sims[dyn_idx.index(k)] if k in dyn_idx else dynamics_cache
+        out.append([finish(th, col, *traj[n]) for n, th in enumerate(throws)])
+    return out

@@ -1,0 +1,236 @@
+"""The effect interface: a named, parameterised physical phenomenon the twin can switch on.
+
+An effect is a class with a unique ``name``, a documented tuple of :class:`Param` (physical
+meaning, unit, the value that reproduces the nominal twin, prior range, source) and any of the
+hooks below. The simulated machine (:mod:`sim_twin.simulated_machine`) and the diagnosis's
+batched replay (:mod:`sim_twin.diagnosis.replay`) call the same hooks, so an effect behaves the
+same in the machine that generates throws and in the twin that explains them.
+
+Hooks (defaults leave everything unchanged; arrays may carry leading batch dimensions ``...``):
+
+=====================  =============================================================  ==========
+hook                   what it changes                                                stage
+=====================  =============================================================  ==========
+``hydraulics(hp)``     valve parameters (dead band, transport delay, lag, full-open   dynamics
+                       speed) -> a new :class:`sim_twin.hydraulics.HydraulicParams`
+``setpoint(sp, q, qd)`` joint-velocity servo setpoints (..., 4) after the valve model  dynamics
+                       (rate limits, disturbances), given the true state (..., 6)
+``passive_friction``   (viscous 1/s, coulomb rad/s^2) of the passive joints           dynamics
+``model(m)``           masses / inertias of a private ``mujoco.MjModel`` copy          dynamics
+``release_delay``      (mean s, std s) of the gripper opening delay                    release
+``grasp_offset()``     (3,) payload position in the gripper frame relative to the      payload
+                       gripper centre, m (x along the jaws, z up)
+``flight_accel(p, v)`` extra payload acceleration in flight (..., 3), m/s^2            flight
+``measure(hq, hqd,     measured (q, qd) (..., 6) from the history of true states       measurement
+  dt, rng)``           (newest first, (H, ..., 6)); rng None = noise-free expectation
+=====================  =============================================================  ==========
+
+``stage`` says where the effect acts. Effects whose stage is not ``"dynamics"`` leave the joint
+motion under logged references unchanged, so the replay can reuse one dynamic rollout for them.
+A user effect (loaded by ``package.module:Class``) that overrides a dynamics hook must say
+``stage = "dynamics"`` (the default for subclasses that do not say otherwise).
+
+Parameters are keyword arguments; values outside ``(lo, hi)`` raise ValueError.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+STAGES = ("dynamics", "release", "payload", "flight", "measurement")
+
+
+@dataclass(frozen=True)
+class Param:
+    """One effect parameter.
+
+    Attributes:
+        name: keyword name, with its unit as suffix where it has one (``_s``, ``_kg``...).
+        unit: unit in words ("s", "1/s", "-", ...).
+        nominal: the value at which the effect reproduces the nominal twin exactly.
+        lo / hi: prior range (also the fit's bounds).
+        doc: physical meaning.
+        source: where the nominal value and range come from.
+        stochastic: True for spreads (noise std, jitter): fitted from the spread of residuals,
+            not from their mean.
+    """
+
+    name: str
+    unit: str
+    nominal: float
+    lo: float
+    hi: float
+    doc: str
+    source: str
+    stochastic: bool = False
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k) for k in ("name", "unit", "nominal", "lo", "hi", "doc", "source", "stochastic")}
+
+
+class Effect:
+    """Base class of all effects. Subclasses set ``name``, ``params``, ``stage`` and hooks.
+
+    Args:
+        **values: parameter values by name; missing ones take their ``nominal``.
+
+    Raises:
+        ValueError: unknown parameter name, non-finite value or value outside (lo, hi).
+    """
+
+    name: ClassVar[str] = ""
+    summary: ClassVar[str] = ""
+    params: ClassVar[tuple[Param, ...]] = ()
+    stage: ClassVar[str] = "dynamics"
+
+    def __init__(self, **values: float):
+        known = {p.name: p for p in self.params}
+        unknown = set(values) - set(known)
+        if unknown:
+            raise ValueError(f"effect {self.name!r}: unknown parameters {sorted(unknown)} (has {sorted(known)})")
+        self.values: dict[str, float] = {}
+        for p in self.params:
+            v = float(values.get(p.name, p.nominal))
+            if not math.isfinite(v):
+                raise ValueError(f"effect {self.name!r}: {p.name} must be finite, got {v}")
+            if not (p.lo - 1e-12 <= v <= p.hi + 1e-12):
+                raise ValueError(f"effect {self.name!r}: {p.name} = {v} {p.unit} outside its range [{p.lo}, {p.hi}]")
+            self.values[p.name] = v
+
+    def __getattr__(self, item: str) -> float:
+        values = self.__dict__.get("values")
+        if values is not None and item in values:
+            return values[item]
+        raise AttributeError(item)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({', '.join(f'{k}={v:.6g}' for k, v in self.values.items())})"
+
+    @classmethod
+    def describe(cls) -> dict:
+        """JSON-able documentation of the effect (name, summary, stage, parameters)."""
+        return {"name": cls.name, "summary": cls.summary, "stage": cls.stage, "params": [p.to_dict() for p in cls.params]}
+
+    def to_dict(self) -> dict:
+        """The profile entry that rebuilds this effect (see :func:`sim_twin.effects.effect_from_dict`)."""
+        return {"effect": self.spec(), "params": dict(self.values)}
+
+    @classmethod
+    def spec(cls) -> str:
+        """Registry name for library effects, ``module:Class`` for user code."""
+        from sim_twin.effects import EFFECTS
+
+        if EFFECTS.get(cls.name) is cls:
+            return cls.name
+        return f"{cls.__module__}:{cls.__qualname__}"
+
+    # --- hooks (defaults: no change) --------------------------------------------------------
+    def hydraulics(self, hp):
+        return hp
+
+    def setpoint(self, sp: np.ndarray, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        return sp
+
+    def passive_friction(self, viscous_per_s: float, coulomb_rad_per_s2: float) -> tuple[float, float]:
+        return viscous_per_s, coulomb_rad_per_s2
+
+    def model(self, mj_model) -> None:
+        return None
+
+    def release_delay(self, mean_s: float, std_s: float) -> tuple[float, float]:
+        return mean_s, std_s
+
+    def grasp_offset(self) -> np.ndarray | None:
+        return None
+
+    def flight_accel(self, pos_m: np.ndarray, vel_mps: np.ndarray) -> np.ndarray | None:
+        return None
+
+    def measure(self, hist_q: np.ndarray, hist_qd: np.ndarray, dt_s: float, rng: np.random.Generator | None):
+        return hist_q[0], hist_qd[0]
+
+    def history_steps(self) -> int:
+        """How many past true states ``measure`` needs (1 = only the current one)."""
+        return 1
+
+
+def _overrides(effect: Effect, hook: str) -> bool:
+    return getattr(type(effect), hook) is not getattr(Effect, hook)
+
+
+class EffectStack:
+    """A profile's effects applied in order (each hook composes left to right).
+
+    Args:
+        effects: Effect instances.
+    """
+
+    def __init__(self, effects: list[Effect] | tuple[Effect, ...] = ()):
+        self.effects = list(effects)
+        for e in self.effects:
+            if not isinstance(e, Effect):
+                raise TypeError(f"{e!r} is not a sim_twin.effects.Effect")
+
+    def __bool__(self) -> bool:
+        return bool(self.effects)
+
+    def has(self, hook: str) -> bool:
+        return any(_overrides(e, hook) for e in self.effects)
+
+    def hydraulics(self, hp):
+        for e in self.effects:
+            hp = e.hydraulics(hp)
+        return hp
+
+    def setpoint(self, sp, q, qd):
+        for e in self.effects:
+            sp = e.setpoint(sp, q, qd)
+        return sp
+
+    def passive_friction(self, viscous, coulomb):
+        for e in self.effects:
+            viscous, coulomb = e.passive_friction(viscous, coulomb)
+        return viscous, coulomb
+
+    def model(self, mj_model) -> None:
+        for e in self.effects:
+            e.model(mj_model)
+
+    def release_delay(self, mean_s, std_s):
+        for e in self.effects:
+            mean_s, std_s = e.release_delay(mean_s, std_s)
+        return mean_s, std_s
+
+    def grasp_offset(self) -> np.ndarray | None:
+        total = None
+        for e in self.effects:
+            off = e.grasp_offset()
+            if off is not None:
+                total = np.asarray(off, dtype=float) if total is None else total + off
+        return total
+
+    def flight_accel(self, pos, vel):
+        total = None
+        for e in self.effects:
+            a = e.flight_accel(pos, vel)
+            if a is not None:
+                total = a if total is None else total + a
+        return total
+
+    def history_steps(self) -> int:
+        return max([1] + [e.history_steps() for e in self.effects])
+
+    def measure(self, hist_q, hist_qd, dt_s, rng):
+        """Measured (q, qd): the first measuring effect reads the true history; later ones see
+        the history with the current row replaced by the previous effect's output."""
+        q, qd = hist_q[0], hist_qd[0]
+        for e in self.effects:
+            if _overrides(e, "measure"):
+                hq, hqd = hist_q.copy(), hist_qd.copy()
+                hq[0], hqd[0] = q, qd
+                q, qd = e.measure(hq, hqd, dt_s, rng)
+        return q, qd

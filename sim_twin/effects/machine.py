@@ -1,0 +1,70 @@
+"""Machine-body effects: cabin drift under vibration and the hanging (gripper + payload) mass."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_twin.effects.base import Effect, Param
+
+GRIPPER_BODY = "gripper"
+NOMINAL_GRIPPER_MASS_KG = 839.0  # MJCF: gripper parts 52 + 61 + 267 kg and jaws 233 + 226 kg
+
+
+class CabinDrift(Effect):
+    """The slew brake slips when the arm swings hard: a creep of the cabin turn proportional to
+    the arm's speed, added to the cabin servo's setpoint (the runtime's controller fights it):
+
+        qd_cabin += rate_per_arm_speed * (|qd_boom| + |qd_dipper|)      (rad/s, sign = direction)
+    """
+
+    name = "cabin_drift"
+    summary = "cabin-turn creep proportional to arm speed (vibration)"
+    stage = "dynamics"
+    params = (Param("rate_per_arm_speed", "(rad/s)/(rad/s)", 0.0, -0.2, 0.2, "cabin creep per unit boom + dipper speed, left positive",
+                    "CHOSEN: no published value; slew-brake slip of a few degrees per throw"),)
+
+    def setpoint(self, sp, q, qd):
+        out = np.array(sp, dtype=float, copy=True)
+        out[..., 0] = out[..., 0] + self.rate_per_arm_speed * (np.abs(qd[..., 1]) + np.abs(qd[..., 2]))
+        return out
+
+
+class HangingMass(Effect):
+    """Mass of the gripper (mass and inertia of the MJCF gripper body scaled together) plus the
+    held payload (a point mass at the gripper centre, which is also the gripper's centre of mass).
+    Changes the compound pendulum of the passive joints (rotator 388 kg at 0.25 m, gripper at
+    1.0 m); passive friction stays an acceleration (paper eq. 1). In flight only drag would see
+    the payload mass and PayloadDrag uses the model's 0.6 kg."""
+
+    name = "hanging_mass"
+    summary = "gripper and held payload mass (passive pendulum dynamics)"
+    stage = "dynamics"
+    params = (
+        Param("gripper_mass_kg", "kg", NOMINAL_GRIPPER_MASS_KG, 300.0, 2500.0, "gripper mass without rotator",
+              "machine-spec.md: 52 + 61 + 267 + 233 + 226 kg; range CHOSEN (other grippers, attachments)"),
+        Param("payload_mass_kg", "kg", 0.0, 0.0, 500.0, "extra held mass at the gripper centre (the 0.6 kg ball is neglected by the model)",
+              "CHOSEN: material handling loads up to 500 kg"),
+    )
+
+    def model(self, mj_model) -> None:
+        bid = mj_model.body(GRIPPER_BODY).id
+        scale = self.gripper_mass_kg / NOMINAL_GRIPPER_MASS_KG
+        mj_model.body_inertia[bid] = mj_model.body_inertia[bid] * scale
+        mj_model.body_mass[bid] = self.gripper_mass_kg + self.payload_mass_kg
+
+
+def passive_inertia_of(mj_model) -> np.ndarray:
+    """(2,) effective inertia (kg m^2) of gripper_pitch and gripper_roll for a (modified) model,
+    at the same reference pose as sim_twin.model.passive_inertia."""
+    import mujoco
+
+    from runtime.machine import hanging_pitch
+
+    data = mujoco.MjData(mj_model)
+    q = np.array([0.0, -0.6, 1.5, 0.9, 0.0, 0.0])
+    q[4] = hanging_pitch(q)
+    data.qpos[:] = q
+    mujoco.mj_forward(mj_model, data)
+    full = np.zeros((mj_model.nv, mj_model.nv))
+    mujoco.mj_fullM(mj_model, data, full)
+    return np.diag(full)[4:6].copy()

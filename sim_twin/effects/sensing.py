@@ -1,0 +1,56 @@
+"""Sensing effects: the gripper IMU that measures the passive joints (paper: a wireless IMU)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_twin.effects.base import Effect, Param
+
+MAX_LATENCY_S = 0.2
+
+
+class ImuPassive(Effect):
+    """Latency and white noise of the passive-joint measurement (gripper_pitch, gripper_roll).
+
+    The measured angle and rate are the true ones ``latency_s`` ago (linear interpolation between
+    10 ms steps) plus Gaussian noise (std ``angle_noise_rad`` and ``rate_noise_radps``). The
+    active joints' encoders are unaffected.
+    """
+
+    name = "imu_passive"
+    summary = "gripper-IMU latency and noise on the passive joints"
+    stage = "measurement"
+    params = (
+        Param("latency_s", "s", 0.0, 0.0, MAX_LATENCY_S, "measurement latency (wireless link, filtering)",
+              "CHOSEN: wireless IMUs 10-100 ms; the paper does not report it"),
+        Param("angle_noise_rad", "rad", 0.0, 0.0, 0.05, "angle noise standard deviation", "CHOSEN", stochastic=True),
+        Param("rate_noise_radps", "rad/s", 0.0, 0.0, 0.5, "rate noise standard deviation", "CHOSEN", stochastic=True),
+    )
+
+    def history_steps(self) -> int:
+        return int(np.ceil(MAX_LATENCY_S / 0.01)) + 2
+
+    def measure(self, hist_q, hist_qd, dt_s, rng):
+        d = self.latency_s / dt_s
+        i0 = int(np.floor(d + 1e-9))
+        i0 = min(i0, hist_q.shape[0] - 1)
+        i1 = min(i0 + 1, hist_q.shape[0] - 1)
+        f = d - i0
+        q = np.array(hist_q[0], dtype=float, copy=True)
+        qd = np.array(hist_qd[0], dtype=float, copy=True)
+        q[..., 4:6] = (1 - f) * hist_q[i0][..., 4:6] + f * hist_q[i1][..., 4:6]
+        qd[..., 4:6] = (1 - f) * hist_qd[i0][..., 4:6] + f * hist_qd[i1][..., 4:6]
+        if rng is not None:
+            q[..., 4:6] += rng.normal(0.0, 1.0, q[..., 4:6].shape) * self.angle_noise_rad
+            qd[..., 4:6] += rng.normal(0.0, 1.0, qd[..., 4:6].shape) * self.rate_noise_radps
+        return q, qd
+
+    def estimate_spread(self, spreads: dict) -> dict:
+        """Noise stds from the white part of the passive residual: first differences of white
+        noise have sqrt(2) times its std; the smooth part differences to ~0 at 100 Hz."""
+        out = {}
+        if spreads.get("passive_q_hf_rad") is not None:
+            out["angle_noise_rad"] = float(spreads["passive_q_hf_rad"] / np.sqrt(2))
+        if spreads.get("passive_qd_hf_radps") is not None:
+            out["rate_noise_radps"] = float(spreads["passive_qd_hf_radps"] / np.sqrt(2))
+        return out
