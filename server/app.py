@@ -19,7 +19,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-from server.api.routes import auth, health, machines, scene, throws, users
+from server.api.routes import auth, health, machines, previews, scene, throws, users
 from server.config import Settings, get_settings
 from server.db.migrate import upgrade
 from server.db.models import Throw
@@ -27,6 +27,7 @@ from server.db.session import make_engine, make_sessionmaker
 from server.fleet import Fleet
 from server.results import ResultStore
 from server.scene import ConsoleScene
+from server.previews import PreviewService
 from server.throws import ThrowService
 
 log = logging.getLogger(__name__)
@@ -69,7 +70,10 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         scene_obj = ConsoleScene(fleet, settings.viser_host, settings.viser_port) if settings.viser_enabled else None
         app.state.settings, app.state.sessions, app.state.store = settings, sessions, store
         app.state.fleet, app.state.scene = fleet, scene_obj
-        app.state.throws = ThrowService(fleet, sessions)
+        app.state.throws = ThrowService(fleet, sessions, settings.keep_out_zones,
+                                        previews=lambda pid: app.state.previews.get(pid))
+        app.state.previews = PreviewService(fleet, sessions, app.state.throws, settings.data_dir,
+                                            settings.clearance_radius_m)
         try:
             fleet.start()
             if scene_obj is not None:
@@ -91,7 +95,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         lifespan=lifespan,
     )
     app.add_exception_handler(RequestValidationError, _validation_error)
-    for module in (health, auth, users, machines, throws, scene):
+    for module in (health, auth, users, machines, throws, previews, scene):
         app.include_router(module.router)
     if WEB_DIR.is_dir():
         app.mount("/console", StaticFiles(directory=WEB_DIR, html=True), name="console")

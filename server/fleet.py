@@ -24,6 +24,8 @@ from pydantic import ValidationError
 
 from runtime.protocol import keys
 from runtime.protocol.messages import (
+    AbortAck,
+    AbortRequest,
     MachineState,
     ResultAck,
     RuntimeInfo,
@@ -155,6 +157,18 @@ class Fleet:
             return decode(ThrowAck, payload)
         except ValidationError as e:
             raise RuntimeUnavailable(f"malformed ThrowAck from {request.machine_id}: {e}") from e
+
+    def abort(self, machine_id: str, reason: str = "operator abort") -> AbortAck:
+        """Ask the runtime to stop now (valves to neutral); returns its AbortAck.
+
+        Raises:
+            RuntimeUnavailable: no valid reply within the timeout.
+        """
+        payload = self._query_one(keys.abort(machine_id), encode(AbortRequest(machine_id=machine_id, reason=reason)))
+        try:
+            return decode(AbortAck, payload)
+        except ValidationError as e:
+            raise RuntimeUnavailable(f"malformed AbortAck from {machine_id}: {e}") from e
 
     def _query_one(self, key: str, payload: bytes | None, timeout_s: float | None = None) -> bytes:
         timeout_s = timeout_s or self.query_timeout_s

@@ -51,15 +51,29 @@ class ResultStore:
                 if db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == p.sha256)) is None:
                     db.add(PolicyVersion(name=p.version, mode=p.mode, sha256=p.sha256, manifest={}))
 
-    def register_policy(self, manifest: dict) -> None:
-        """Record a policy version from its manifest (``slinger up`` registers what it deploys)."""
+    def register_policy(self, manifest: dict, onnx_path: Path | None = None) -> None:
+        """Record a policy version from its manifest (``slinger up`` registers what it deploys);
+        with ``onnx_path`` the server keeps a copy of the file (previews, promotions, rollbacks)
+        at ``<data_dir>/policies/<sha256>.onnx`` with its manifest beside it."""
+        rel = self.store_policy_file(manifest, onnx_path) if onnx_path is not None else None
         with self.sessions.begin() as db:
             row = db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == manifest["onnx_sha256"]))
             if row is None:
                 db.add(PolicyVersion(name=manifest["name"], mode=manifest["mode"],
-                                     sha256=manifest["onnx_sha256"], manifest=manifest))
-            elif not row.manifest:
-                row.manifest = manifest
+                                     sha256=manifest["onnx_sha256"], manifest=manifest, onnx_path=rel))
+            else:
+                row.manifest = row.manifest or manifest
+                row.onnx_path = row.onnx_path or rel
+
+    def store_policy_file(self, manifest: dict, onnx_path: Path) -> str:
+        """Copy a policy file and write its manifest into ``<data_dir>/policies``; returns the
+        ONNX path relative to the data dir."""
+        import json
+
+        rel = Path("policies") / f"{manifest['onnx_sha256']}.onnx"
+        _write_atomic(self.data_dir / rel, Path(onnx_path).read_bytes())
+        _write_atomic(self.data_dir / rel.with_suffix(".json"), (json.dumps(manifest, indent=2) + "\n").encode())
+        return rel.as_posix()
 
     # --- throws --------------------------------------------------------------------------------
     def apply_status(self, status: ThrowStatus) -> None:

@@ -86,6 +86,8 @@ class ConsoleScene:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
+        self.preview_names: list[str] = []
+        """Scene names of the preview drawn last (under /preview)."""
 
     # --- lifecycle -----------------------------------------------------------------------------
     def start(self) -> None:
@@ -190,6 +192,16 @@ class ConsoleScene:
                 self._payload.visible = True
             else:
                 self._payload.visible = False
+
+    # --- previews ------------------------------------------------------------------------------
+    def show_preview(self, summary: dict) -> None:
+        """Draw a preview (server.scene_preview): paths, release and its velocity, impact, 1 sigma
+        ellipse, and in 3D mode the swept clearance zone."""
+        if self.server is None:
+            return
+        from server.scene_preview import draw_preview
+
+        self.preview_names = draw_preview(self.server, summary, summary.get("mode", self.mode))
 
     # --- throws --------------------------------------------------------------------------------
     def show_throw(self, telemetry_path: Path | None, impact_m, target_m) -> None:

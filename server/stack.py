@@ -137,6 +137,6 @@ def register_policies(database_url: str, data_dir: Path, policies: dict[str, Pat
     try:
         store = ResultStore(make_sessionmaker(engine), data_dir)
         for path in policies.values():
-            store.register_policy(json.loads(path.with_suffix(".json").read_text()))
+            store.register_policy(json.loads(path.with_suffix(".json").read_text()), onnx_path=path)
     finally:
         engine.dispose()

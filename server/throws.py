@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import logging
 import uuid
+from typing import Callable
 
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from runtime.protocol.messages import ThrowAck, ThrowRequest
-from runtime.throw_geometry import target_refusal
+from runtime.protocol.messages import MachineState, ThrowAck, ThrowRequest
+from server.targets import serve_refusal
 from server.api.schemas import ThrowCreate
 from server.auth import audit
 from server.db.models import Machine, PolicyVersion, Throw
@@ -35,11 +36,43 @@ class ThrowRefused(Exception):
 
 
 class ThrowService:
-    """Creates throws. Args: fleet (Zenoh side), sessions (database session factory)."""
+    """Creates throws.
 
-    def __init__(self, fleet: Fleet, sessions: sessionmaker[Session]):
+    Args:
+        fleet: the Zenoh side.
+        sessions: database session factory.
+        keep_out_zones: ground circles no target may lie in (server.config.KeepOutZone).
+        previews: looks up a preview summary by id (None: unknown or expired).
+    """
+
+    def __init__(self, fleet: Fleet, sessions: sessionmaker[Session], keep_out_zones=(),
+                 previews: Callable[[str], dict | None] | None = None):
         self.fleet = fleet
         self.sessions = sessions
+        self.keep_out_zones = list(keep_out_zones)
+        self.previews = previews or (lambda _id: None)
+
+    def checked_state(self, mid: str, mode: str, target) -> MachineState:
+        """The machine's latest state if it can serve ``target`` in ``mode`` now.
+
+        Raises:
+            ThrowRefused: 404 unknown machine; 503 runtime offline or no state; 422 a target
+                the mode cannot serve (with the reason).
+        """
+        with self.sessions() as db:
+            known = db.get(Machine, mid) is not None
+        state = self.fleet.latest_state(mid)
+        online = self.fleet.is_online(mid)
+        if not (known or online or state is not None):
+            raise ThrowRefused(404, f"unknown machine {mid!r}")
+        if not online:
+            raise ThrowRefused(503, f"the runtime of machine {mid} is offline")
+        if state is None:
+            raise ThrowRefused(503, f"no state from machine {mid} yet: is the machine connected?")
+        reason = serve_refusal(mode, target, state.q[0], self._target_range(mid, mode), self.keep_out_zones)
+        if reason is not None:
+            raise ThrowRefused(422, reason)
+        return state
 
     def create(self, body: ThrowCreate, username: str = "system") -> tuple[Throw, ThrowAck]:
         """Check, record and hand a throw to its runtime.
@@ -54,28 +87,18 @@ class ThrowService:
                 No throw row remains in any of these cases.
         """
         mid = body.machine_id
-        with self.sessions() as db:
-            known = db.get(Machine, mid) is not None
-        state = self.fleet.latest_state(mid)
-        online = self.fleet.is_online(mid)
-        if not (known or online or state is not None):
-            raise ThrowRefused(404, f"unknown machine {mid!r}")
-        if not online:
-            raise ThrowRefused(503, f"the runtime of machine {mid} is offline")
-        if state is None:
-            raise ThrowRefused(503, f"no state from machine {mid} yet: is the machine connected?")
-        trained = self._target_range(mid, body.mode)
-        extra = {"target_range_m": trained} if trained else {}
-        reason = target_refusal(body.mode, body.target, state.q[0], **extra)
-        if reason is not None:
-            raise ThrowRefused(422, reason)
+        state = self.checked_state(mid, body.mode, body.target)
+        preview = self._preview_of(body)
+        if body.mode == "3d" and not body.confirm_clearance:
+            raise ThrowRefused(422, "a 3D throw turns the cabin: confirm that the swept clearance zone is "
+                                    "clear (confirm_clearance: true)")
 
         throw_id = str(uuid.uuid4())
         with self.sessions.begin() as db:
             ensure_machine(db, mid, simulated=state.simulated)
             db.add(Throw(id=throw_id, machine_id=mid, mode=body.mode, status="requested",
                          target_x_m=body.target[0], target_y_m=body.target[1],
-                         target_z_m=body.target[2], requested_by=username))
+                         target_z_m=body.target[2], requested_by=username, preview=preview))
         try:
             ack = self.fleet.request_throw(
                 ThrowRequest(throw_id=throw_id, machine_id=mid, mode=body.mode, target_m=body.target)
@@ -96,6 +119,22 @@ class ThrowService:
                   policy_version=ack.policy_version)
         log.info("throw %s accepted by %s (%s, target %s)", throw_id, mid, body.mode, body.target)
         return row, ack
+
+    def _preview_of(self, body: ThrowCreate) -> dict | None:
+        """The stored form of the preview the throw is sent with (422 if unknown or another
+        request's); None without a preview id."""
+        if body.preview_id is None:
+            return None
+        p = self.previews(body.preview_id)
+        if p is None:
+            raise ThrowRefused(422, f"unknown or expired preview {body.preview_id!r}: preview again")
+        same_target = all(abs(a - b) < 1e-6 for a, b in zip(p["target_m"], body.target))
+        if p["machine_id"] != body.machine_id or p["mode"] != body.mode or not same_target:
+            raise ThrowRefused(422, "the preview was made for another machine, mode or target: preview again")
+        keep = {k: v for k, v in p.items() if k != "mc"}
+        if p.get("mc"):
+            keep["mc"] = {k: v for k, v in p["mc"].items() if k != "impacts_m"}
+        return keep
 
     def _delete(self, throw_id: str) -> None:
         with self.sessions.begin() as db:

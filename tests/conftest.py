@@ -19,6 +19,7 @@ from sqlalchemy import create_engine, func, select
 
 from runtime.protocol import keys
 from runtime.protocol.messages import (
+    AbortAck,
     MachineState,
     PolicyInfo,
     ResultAck,
@@ -73,8 +74,11 @@ class FakeRuntime:
     """
 
     def __init__(self, endpoint: str, machine_id: str = "m1", refuse: str | None = None,
-                 silent: bool = False, deliver: bool = True, cabin_turn_rad: float = 0.0):
+                 silent: bool = False, deliver: bool = True, cabin_turn_rad: float = 0.0,
+                 policies: list[PolicyInfo] | None = None):
         self.machine_id, self.refuse, self.silent, self.deliver = machine_id, refuse, silent, deliver
+        self.policies = policies or [PolicyInfo(mode="2d", version="fake-2d", sha256="ab" * 32)]
+        self.aborts: list[bytes] = []
         self.cabin_turn_rad = cabin_turn_rad
         self.requests: list[ThrowRequest] = []
         self.acks: list[ResultAck] = []
@@ -85,6 +89,7 @@ class FakeRuntime:
         self._decls = [
             s.declare_queryable(keys.throw(machine_id), self._on_throw),
             s.declare_queryable(keys.info(machine_id), self._on_info),
+            s.declare_queryable(keys.abort(machine_id), self._on_abort),
         ]
         self._state_pub = s.declare_publisher(keys.state(machine_id))
         self._status_pub = s.declare_publisher(keys.status(machine_id))
@@ -94,7 +99,7 @@ class FakeRuntime:
 
     def state(self) -> MachineState:
         return MachineState(machine_id=self.machine_id, stamp_s=time.monotonic(),
-                            q=[self.cabin_turn_rad, -0.5, 1.5, 0.2, 0.0, 0.0], qd=[0.0] * 6,
+                            q=[self.cabin_turn_rad, -0.5, 1.5, 0.2, -1.0, 0.0], qd=[0.0] * 6,
                             gripper_open=False, payload_attached=True, simulated=True)
 
     def _publish_states(self) -> None:
@@ -103,8 +108,12 @@ class FakeRuntime:
 
     def _on_info(self, query) -> None:
         info = RuntimeInfo(machine_id=self.machine_id, busy=False, machine_online=True, simulated=True,
-                           policies=[PolicyInfo(mode="2d", version="fake-2d", sha256="ab" * 32)])
+                           policies=self.policies)
         query.reply(keys.info(self.machine_id), encode(info))
+
+    def _on_abort(self, query) -> None:
+        self.aborts.append(query.payload.to_bytes() if query.payload is not None else b"")
+        query.reply(keys.abort(self.machine_id), encode(AbortAck(machine_id=self.machine_id)))
 
     def _on_throw(self, query) -> None:
         req = decode(ThrowRequest, query.payload.to_bytes())
@@ -255,6 +264,12 @@ def wait_online(client, machine_id: str = "m1", online: bool = True, timeout_s: 
     return wait_for(check, timeout_s, f"{machine_id} online={online}")
 
 
+def add_user_cli(up: "SlingerUp", username: str, password: str, role: str) -> None:
+    """Add a user to a running ``slinger up`` through the admin API."""
+    r = up.http.post("/api/users", json={"username": username, "password": password, "role": role})
+    assert r.status_code == 201, r.text
+
+
 class SlingerUp:
     """``slinger up`` as a subprocess with the test policy and free ports (context manager).
 
@@ -262,18 +277,22 @@ class SlingerUp:
     are set afterwards. Attributes: base_url, viser_port, data_dir.
     """
 
-    def __init__(self, tmp_path: Path, machines: int = 1, create_admin: bool = True):
+    def __init__(self, tmp_path: Path, machines: int = 1, create_admin: bool = True, with_3d: bool = False):
         from server.stack import slinger_command
         from tests.fixtures import write_test_policy
 
         policy = write_test_policy(tmp_path / "policies", "2d", release_after_bias=2.0)
+        extra = []
+        if with_3d:
+            extra = ["--policy-3d", str(write_test_policy(tmp_path / "policies", "3d", name="test-linear-3d",
+                                                          release_after_bias=2.0))]
         self.port, self.viser_port, zport = free_port(), free_port(), free_port()
         self.data_dir = tmp_path / "var"
         self.base_url = f"http://127.0.0.1:{self.port}"
         self._log_path = tmp_path / "up.log"
         self.argv = slinger_command(
             "up", "--policy-2d", str(policy), "--data-dir", str(self.data_dir), "--machines", str(machines),
-            "--port", str(self.port), "--zenoh-port", str(zport), "--viser-port", str(self.viser_port))
+            "--port", str(self.port), "--zenoh-port", str(zport), "--viser-port", str(self.viser_port), *extra)
         self.cwd = tmp_path
         self.create_admin = create_admin
         self._http = None

@@ -109,6 +109,10 @@ def test_click_ground_throw_and_see_it_in_history(tmp_path, browser):
 
         # the page shows the clicked target and enables Throw
         page.locator("#target", has_text=f"x {target[0]:.2f}").wait_for(timeout=5_000)
+        assert page.locator("#throw").is_disabled()  # not before a preview
+        page.locator("#preview:not([disabled])").wait_for(timeout=5_000)
+        page.click("#preview")
+        page.locator("#pv-sigma", has_text="rollouts").wait_for(timeout=20_000)
         page.locator("#throw:not([disabled])").wait_for(timeout=5_000)
         page.click("#throw")
         page.locator("#status", has_text="accepted").wait_for(timeout=15_000)

@@ -56,6 +56,10 @@ class ThrowCreate(BaseModel):
     machine_id: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")]
     mode: Literal["2d", "3d"]
     target: Vec3
+    preview_id: str | None = Field(default=None, max_length=64)
+    """The preview this throw was shown (its prediction is stored with the throw)."""
+    confirm_clearance: bool = False
+    """3D throws only: the operator confirmed that the swept clearance zone is clear."""
 
 
 class ThrowCreated(BaseModel):
@@ -83,6 +87,10 @@ class ThrowOut(BaseModel):
     completed_at: datetime | None
     duration_s: float | None
     telemetry_url: str | None
+    target_distance_m: float | None = None
+    requested_by: str | None = None
+    preview: dict | None = None
+    """The twin preview the throw was sent with (predicted impact, errors, ellipse), if any."""
 
     @classmethod
     def of(cls, row: Throw) -> "ThrowOut":
@@ -94,6 +102,8 @@ class ThrowOut(BaseModel):
             started_at=row.started_at, released_at=row.released_at,
             completed_at=row.completed_at, duration_s=row.duration_s,
             telemetry_url=f"/api/throws/{row.id}/telemetry" if row.telemetry_path else None,
+            target_distance_m=math.hypot(row.target_x_m, row.target_y_m),
+            requested_by=row.requested_by, preview=row.preview,
         )
 
 
@@ -104,6 +114,8 @@ class SceneState(BaseModel):
     machine_id: str | None
     mode: Literal["2d", "3d"]
     target: list[float] | None
+    preview: list[str] = Field(default_factory=list)
+    """Scene names of the preview drawn in the 3D view (paths, release, impact, ellipse, ...)."""
 
 
 class SceneUpdate(BaseModel):

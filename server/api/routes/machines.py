@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, HTTPException
+from pydantic import BaseModel, Field
 from sqlalchemy import select
 
-from server.api.deps import FleetDep, SessionDep, ViewerDep
+from server.api.deps import FleetDep, OperatorDep, SessionDep, ViewerDep
+from server.auth import audit
 from server.api.schemas import MachineOut
 from server.db.models import Machine
-from server.fleet import Fleet
+from server.fleet import Fleet, RuntimeUnavailable
 
 router = APIRouter(prefix="/api/machines", tags=["machines"])
 
@@ -43,3 +45,29 @@ def _machine_out(mid: str, row: Machine | None, fleet: Fleet) -> MachineOut:
         busy=info.busy if info else None,
         cabin_turn_rad=state.q[0] if state is not None else None,
     )
+
+
+class AbortIn(BaseModel):
+    reason: str = Field(default="operator abort", max_length=200)
+
+
+class AbortOut(BaseModel):
+    machine_id: str
+    aborted_throw_id: str | None
+
+
+@router.post("/{machine_id}/abort", response_model=AbortOut,
+             responses={503: {"description": "the runtime did not answer"}})
+def abort(machine_id: str, db: SessionDep, fleet: FleetDep, user: OperatorDep, body: AbortIn | None = None) -> AbortOut:
+    """E-stop: the runtime ends any throw as aborted and puts the valves to neutral. Logged in the
+    audit log even when the runtime does not answer."""
+    reason = f"{(body or AbortIn()).reason} ({user.username})"
+    try:
+        ack = fleet.abort(machine_id, reason)
+    except (RuntimeUnavailable, ValueError) as e:
+        audit(db, user.username, "abort", machine_id, reason=reason, delivered=False, error=str(e))
+        db.commit()
+        raise HTTPException(503, f"abort of {machine_id} not confirmed: {e}") from e
+    audit(db, user.username, "abort", machine_id, reason=reason, delivered=True, throw_id=ack.aborted_throw_id)
+    db.commit()
+    return AbortOut(machine_id=machine_id, aborted_throw_id=ack.aborted_throw_id)

@@ -14,7 +14,7 @@ def _state(scene) -> SceneState:
     if scene is None:
         return SceneState(viser_port=None, machine_id=None, mode="2d", target=None)
     return SceneState(viser_port=scene.port, machine_id=scene.machine_id, mode=scene.mode,
-                      target=scene.target)
+                      target=scene.target, preview=list(scene.preview_names))
 
 
 @router.get("", response_model=SceneState)

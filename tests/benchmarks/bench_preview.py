@@ -1,0 +1,103 @@
+"""Preview latency on this machine: the single-rollout preview (nominal swing in the twin) and
+the 200-rollout Monte Carlo impact ellipse, both through the HTTP API (POST /api/previews, what
+the console calls) and of sim_twin.preview.preview_throw alone.
+
+Run: ``python tests/benchmarks/bench_preview.py [--repeats 10]``. Prints median / max seconds per
+case and the bar (0.3 s single rollout, 3 s for 200 rollouts); no assertions.
+The HTTP part uses the app with a loopback Zenoh peer and a fake runtime that reports the trained
+2D policy from different start poses (tests.conftest.FakeRuntime).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))  # tests.conftest (the fake runtime)
+POLICY = REPO / "policies" / "throw2d.onnx"
+TARGETS = [[d, -0.292, 0.0] for d in (7.5, 8.0, 8.5, 9.0, 9.5)]
+
+
+def bench_function(repeats: int) -> dict:
+    from runtime.policy import PolicyRunner
+    from sim_twin.initial_pose import sample_pose
+    from sim_twin.preview import PreviewRequest, preview_throw
+
+    policy = PolicyRunner.load(POLICY)
+    rng = np.random.default_rng(0)
+    out = {}
+    for rollouts in (1, 200):
+        times = []
+        for i in range(repeats):
+            q = sample_pose(rng, cabin_turn=0.0)
+            t = time.perf_counter()
+            s = preview_throw(policy, PreviewRequest("2d", TARGETS[i % len(TARGETS)], q.tolist(), [0.0] * 6, rollouts=rollouts))
+            times.append(time.perf_counter() - t)
+            assert s["status"] in ("ok", "failed")
+        out[rollouts] = times
+    return out
+
+
+def bench_http(repeats: int) -> dict:
+    from fastapi.testclient import TestClient
+
+    from runtime.protocol.messages import PolicyInfo
+    from server.app import create_app
+    from server.config import Settings
+    from tests.conftest import ADMIN, FakeRuntime, add_user, free_port, login, wait_online
+
+    manifest = json.loads(POLICY.with_suffix(".json").read_text())
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with tempfile.TemporaryDirectory() as tmp:
+        settings = Settings(data_dir=Path(tmp), zenoh_listen=[endpoint], viser_enabled=False, auto_migrate=True)
+        with TestClient(create_app(settings)) as client:
+            add_user(client.app.state.sessions, *ADMIN, "admin")
+            login(client, *ADMIN)
+            client.app.state.store.register_policy(manifest, onnx_path=POLICY)
+            rt = FakeRuntime(endpoint, policies=[PolicyInfo(mode="2d", version=manifest["name"], sha256=manifest["onnx_sha256"])])
+            try:
+                wait_online(client)
+                out = {}
+                for rollouts in (1, 200):
+                    times = []
+                    for i in range(repeats + 1):
+                        t = time.perf_counter()
+                        r = client.post("/api/previews", json={"machine_id": "m1", "mode": "2d",
+                                                               "target": TARGETS[i % len(TARGETS)], "rollouts": rollouts})
+                        dt = time.perf_counter() - t
+                        assert r.status_code == 200, r.text
+                        if i > 0 or rollouts == 200:  # the very first call loads the policy
+                            times.append(dt)
+                    out[rollouts] = times
+            finally:
+                rt.close()
+    return out
+
+
+def main() -> int:
+    logging.basicConfig(level=logging.WARNING)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=10)
+    args = ap.parse_args()
+    import os
+
+    print(f"cores: {os.cpu_count()}")
+    for name, res in (("preview_throw()", bench_function(args.repeats)), ("POST /api/previews", bench_http(args.repeats))):
+        for rollouts, times in res.items():
+            bar = 0.3 if rollouts == 1 else 3.0
+            print(f"{name:22s} rollouts={rollouts:3d}: median {statistics.median(times):.3f} s, "
+                  f"max {max(times):.3f} s over {len(times)} (bar {bar} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

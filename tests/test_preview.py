@@ -1,0 +1,158 @@
+"""Previews: the twin rollout (sim_twin.preview) and the API (POST /api/previews, throws sent as
+previewed, keep-out zones, 3D confirmation). Uses the real trained 2D policy."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from runtime.executor import ThrowExecutor
+from runtime.policy import PolicyRunner
+from runtime.protocol.messages import PolicyInfo, ThrowRequest
+from server.config import KeepOutZone
+from sim_twin.plant import TwinMachine
+from sim_twin.preview import PreviewRequest, preview_throw
+from sim_twin.profile import RealityProfile
+from sim_twin.simulated_machine import SimulatedMachine
+from tests.conftest import add_user, login, wait_for, wait_online
+
+POLICY = Path(__file__).resolve().parent.parent / "policies" / "throw2d.onnx"
+TARGET = [8.5, -0.292, 0.0]
+Q0 = [0.0, -0.5, 1.5, 0.2, -1.0, 0.0]
+
+pytestmark = pytest.mark.skipif(not POLICY.is_file(), reason="no trained 2D policy")
+
+
+@pytest.fixture(scope="module")
+def policy():
+    return PolicyRunner.load(POLICY)
+
+
+def test_preview_predicts_what_the_twin_does(policy):
+    """The nominal preview equals a full twin rollout from the same state with the mean delay."""
+    s = preview_throw(policy, PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=0))
+    assert s["status"] == "ok", s["reason"]
+    assert s["mc"] is None
+    profile = dataclasses.replace(RealityProfile(), release_delay_std_s=0.0)
+    sim = SimulatedMachine(profile, seed=0)
+    sim.reset(q_active=np.array(Q0[:4]))
+    sim.data.qpos[4] = Q0[4]
+    twin = TwinMachine(sim, "check")
+    ex = ThrowExecutor({"2d": policy})
+    state = lambda: twin.state().model_copy(update={"simulated": False})  # noqa: E731
+    assert ex.start(ThrowRequest(throw_id="c", machine_id="check", mode="2d", target_m=TARGET), state()) is None
+    for _ in range(3000):
+        out = ex.tick(state())
+        twin.step(out.valve_u, out.gripper_open)
+        if sim.impact is not None:
+            break
+    assert sim.impact is not None
+    assert s["impact_m"] == pytest.approx(sim.impact.impact_pos_m.tolist(), abs=1e-6)
+    assert s["release_pos_m"] == pytest.approx(sim.impact.release_pos_m.tolist(), abs=1e-9)
+    assert s["clearance"]["inside"] is True and s["clearance"]["max_radius_m"] > 3.0
+    assert set(s["peak_joint_speeds"]) == {"cabin_turn", "boom", "dipper", "telescope"}
+    assert 0.5 < s["duration_s"] < 5.0 and s["flight_s"] > 0.1
+
+
+def test_monte_carlo_ellipse_over_release_delay(policy):
+    s = preview_throw(policy, PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=200, seed=3))
+    mc = s["mc"]
+    assert mc["rollouts"] == 200 and len(mc["impacts_m"]) == 200
+    assert 0.001 < mc["sigma_downrange_m"] < 0.5
+    ell = mc["ellipse"]
+    assert ell["semi_major_m"] >= ell["semi_minor_m"] >= 0 and len(ell["outline_m"]) == 65
+    # the scatter is about the nominal impact (delay jitter is symmetric)
+    assert np.hypot(*(np.array(ell["center_m"]) - s["impact_m"][:2])) < 0.1
+    # reproducible with the same seed
+    again = preview_throw(policy, PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=200, seed=3))
+    assert again["mc"]["impacts_m"] == mc["impacts_m"]
+
+
+# --- API ----------------------------------------------------------------------------------------
+@pytest.fixture
+def machine(client, fake_runtime_factory):
+    """A fake runtime that reports the trained policy, whose file the server has."""
+    manifest = json.loads(POLICY.with_suffix(".json").read_text())
+    client.app.state.store.register_policy(manifest, onnx_path=POLICY)
+    rt = fake_runtime_factory(policies=[PolicyInfo(mode="2d", version=manifest["name"], sha256=manifest["onnx_sha256"])])
+    wait_online(client)
+    return rt
+
+
+def test_preview_api_and_throw_as_previewed(client, machine):
+    r = client.post("/api/previews", json={"machine_id": "m1", "mode": "2d", "target": TARGET, "rollouts": 50})
+    assert r.status_code == 200, r.text
+    p = r.json()
+    assert p["status"] == "ok" and p["mc"]["rollouts"] == 50 and p["mc"]["ellipse"]["semi_major_m"] > 0
+    assert p["policy_version"] == "throw2d-v1" and p["start_q"] == pytest.approx(Q0)
+    assert client.get(f"/api/previews/{p['id']}").json()["impact_m"] == p["impact_m"]
+    r = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET, "preview_id": p["id"]})
+    assert r.status_code == 202, r.text
+    row = wait_for(lambda: (t := client.get(f"/api/throws/{r.json()['id']}").json())["status"] == "landed" and t, 10)
+    assert row["preview"]["impact_m"] == p["impact_m"] and "impacts_m" not in row["preview"]["mc"]
+    # a preview of another target cannot be sent
+    other = [8.0, -0.292, 0.0]
+    r = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": other, "preview_id": p["id"]})
+    assert r.status_code == 422 and "another" in r.json()["detail"]
+    r = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET, "preview_id": "nope"})
+    assert r.status_code == 422 and "preview again" in r.json()["detail"]
+
+
+@pytest.mark.parametrize(("target", "reason"), [
+    ([3.0, -0.292, 0.0], "too close"),
+    ([15.0, -0.292, 0.0], "beyond the policy's trained range"),
+    ([0.5, 8.0, 0.0], "2D throwing plane"),
+    ([7.0, -0.292, 0.0], "keep-out zone 'truck'"),
+])
+def test_preview_refuses_targets_with_reason(client, machine, target, reason):
+    client.app.state.throws.keep_out_zones = [KeepOutZone(name="truck", center_m=[7.0, 0.0], radius_m=1.0)]
+    r = client.post("/api/previews", json={"machine_id": "m1", "mode": "2d", "target": target, "rollouts": 0})
+    assert r.status_code == 422 and reason in r.json()["detail"], r.text
+    r = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": target})
+    assert r.status_code == 422 and reason in r.json()["detail"]
+    assert machine.requests == []
+
+
+def test_preview_bad_input_and_roles(client, machine):
+    for body in ({"machine_id": "m1", "mode": "2d"}, {"machine_id": "m1", "mode": "2d", "target": TARGET, "rollouts": -1},
+                 {"machine_id": "m1", "mode": "5d", "target": TARGET}):
+        assert client.post("/api/previews", json=body).status_code == 422
+    assert client.post("/api/previews", json={"machine_id": "zz", "mode": "2d", "target": TARGET}).status_code == 404
+    assert client.post("/api/previews", json={"machine_id": "m1", "mode": "3d", "target": [8, 0, 0]}).status_code == 422
+    add_user(client.app.state.sessions, "vera", "viewer-pass", "viewer")
+    client.cookies.clear()
+    login(client, "vera", "viewer-pass")
+    assert client.post("/api/previews", json={"machine_id": "m1", "mode": "2d", "target": TARGET}).status_code == 403
+
+
+def test_preview_without_the_policy_file_is_409(client, fake_runtime_factory):
+    fake_runtime_factory()
+    wait_online(client)
+    r = client.post("/api/previews", json={"machine_id": "m1", "mode": "2d", "target": TARGET})
+    assert r.status_code == 409 and "no file" in r.json()["detail"]
+
+
+def test_3d_throw_needs_confirmation(client, fake_runtime_factory):
+    rt = fake_runtime_factory()
+    wait_online(client)
+    body = {"machine_id": "m1", "mode": "3d", "target": [8.0, 2.0, 0.0]}
+    r = client.post("/api/throws", json=body)
+    assert r.status_code == 422 and "confirm" in r.json()["detail"] and rt.requests == []
+    r = client.post("/api/throws", json={**body, "confirm_clearance": True})
+    assert r.status_code == 202, r.text
+
+
+def test_abort_reaches_the_runtime_and_is_audited(client, fake_runtime_factory):
+    rt = fake_runtime_factory()
+    wait_online(client)
+    r = client.post("/api/machines/m1/abort", json={"reason": "person in zone"})
+    assert r.status_code == 200, r.text
+    assert len(rt.aborts) == 1 and b"person in zone" in rt.aborts[0]
+    entry = client.get("/api/audit", params={"action": "abort"}).json()[0]
+    assert entry["subject"] == "m1" and entry["detail"]["delivered"] is True and entry["username"] == "admin"
+    assert client.post("/api/machines/ghost/abort").status_code == 503
+    assert client.get("/api/audit", params={"action": "abort"}).json()[0]["detail"]["delivered"] is False
