@@ -35,6 +35,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tb-dir", type=Path, default=None, help="TensorBoard dir (default <log-dir>/tb)")
     parser.add_argument("--resume", type=Path, default=None, help="checkpoint.pt to resume from")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--keep-every", type=int, default=0, help="also keep checkpoint_<iter>.pt every N iterations")
     parser.add_argument("--export", type=Path, default=None, help="write ONNX + manifest here at the end")
     parser.add_argument("--name", default=None, help="policy version name for the export")
 
@@ -93,6 +94,9 @@ def run(args: argparse.Namespace) -> int:
             **stats,
         )
         runner.save(str(args.log_dir / "checkpoint.pt"))
+        it = runner.current_learning_iteration
+        if args.keep_every and it % args.keep_every == 0:
+            runner.save(str(args.log_dir / f"checkpoint_{it}.pt"))
         curve.save()
         log.info("checkpoint at iteration %d: %s", runner.current_learning_iteration, stats)
         if args.max_minutes and (time.time() - start) / 60.0 > args.max_minutes:
