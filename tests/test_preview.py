@@ -88,7 +88,8 @@ def test_preview_api_and_throw_as_previewed(client, machine):
     assert r.status_code == 200, r.text
     p = r.json()
     assert p["status"] == "ok" and p["mc"]["rollouts"] == 50 and p["mc"]["ellipse"]["semi_major_m"] > 0
-    assert p["policy_version"] == "throw2d-v1" and p["start_q"] == pytest.approx(Q0)
+    assert p["policy_version"] == json.loads(POLICY.with_suffix(".json").read_text())["name"]
+    assert p["start_q"] == pytest.approx(Q0)
     assert client.get(f"/api/previews/{p['id']}").json()["impact_m"] == p["impact_m"]
     r = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET, "preview_id": p["id"]})
     assert r.status_code == 202, r.text

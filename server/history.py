@@ -1,0 +1,127 @@
+"""Throw history queries: filters, sorting and pagination in SQL; accuracy statistics per mode,
+policy version and target distance (the paper's figure, live from the database); CSV export.
+
+Target distance is the horizontal distance of the target from the turn axis; filters compare
+squared distances so that no SQL ``sqrt`` is needed (SQLite lacks it in some builds).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass
+from datetime import datetime
+
+import numpy as np
+from sqlalchemy import Select, func, select
+
+from server.db.models import Throw
+
+_DIST2 = Throw.target_x_m * Throw.target_x_m + Throw.target_y_m * Throw.target_y_m
+SORTS = {
+    "requested_at": Throw.requested_at, "machine_id": Throw.machine_id, "mode": Throw.mode,
+    "policy_version": Throw.policy_version, "status": Throw.status, "target_distance": _DIST2,
+    "downrange_error": Throw.downrange_error_m, "crossrange_error": Throw.crossrange_error_m,
+    "duration": Throw.duration_s,
+}
+DISTANCE_BIN_M = 0.5
+
+
+@dataclass
+class ThrowFilter:
+    """History filters; None means "any". Distances in m, times UTC-aware."""
+
+    machine_id: str | None = None
+    policy_version: str | None = None
+    mode: str | None = None
+    status: str | None = None
+    min_distance_m: float | None = None
+    max_distance_m: float | None = None
+    since: datetime | None = None
+    until: datetime | None = None
+
+    def apply(self, stmt: Select) -> Select:
+        for col, value in ((Throw.machine_id, self.machine_id), (Throw.policy_version, self.policy_version),
+                           (Throw.mode, self.mode), (Throw.status, self.status)):
+            if value:
+                stmt = stmt.where(col == value)
+        if self.min_distance_m is not None:
+            stmt = stmt.where(_DIST2 >= self.min_distance_m ** 2)
+        if self.max_distance_m is not None:
+            stmt = stmt.where(_DIST2 <= self.max_distance_m ** 2)
+        if self.since is not None:
+            stmt = stmt.where(Throw.requested_at >= self.since)
+        if self.until is not None:
+            stmt = stmt.where(Throw.requested_at <= self.until)
+        return stmt
+
+
+def page(db, flt: ThrowFilter, sort: str = "requested_at", order: str = "desc", limit: int = 50,
+         offset: int = 0) -> tuple[list[Throw], int]:
+    """(rows of one page, total matching rows)."""
+    col = SORTS[sort]
+    key = col.desc() if order == "desc" else col.asc()
+    total = db.scalar(flt.apply(select(func.count()).select_from(Throw)))
+    rows = list(db.scalars(flt.apply(select(Throw)).order_by(key, Throw.id).limit(limit).offset(offset)))
+    return rows, int(total or 0)
+
+
+CSV_COLUMNS = ["id", "machine_id", "mode", "policy_version", "status", "failure_reason", "requested_at",
+               "target_x_m", "target_y_m", "target_z_m", "target_distance_m", "impact_x_m", "impact_y_m",
+               "impact_z_m", "downrange_error_m", "crossrange_error_m", "duration_s", "requested_by",
+               "predicted_downrange_error_m", "predicted_crossrange_error_m"]
+
+
+def to_csv(rows: list[Throw]) -> str:
+    """The rows as CSV (header: CSV_COLUMNS)."""
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(CSV_COLUMNS)
+    for t in rows:
+        p = t.preview or {}
+        w.writerow([t.id, t.machine_id, t.mode, t.policy_version or "", t.status, t.failure_reason or "",
+                    t.requested_at.isoformat(), t.target_x_m, t.target_y_m, t.target_z_m,
+                    round(math.hypot(t.target_x_m, t.target_y_m), 4),
+                    *(("" if v is None else v) for v in (t.impact_x_m, t.impact_y_m, t.impact_z_m,
+                                                          t.downrange_error_m, t.crossrange_error_m, t.duration_s)),
+                    t.requested_by or "", p.get("downrange_error_m", ""), p.get("crossrange_error_m", "")])
+    return buf.getvalue()
+
+
+def error_ellipse(down: np.ndarray, cross: np.ndarray, n: int = 48) -> dict | None:
+    """1 sigma ellipse of the (downrange, crossrange) errors: semi-axes, angle, outline."""
+    if len(down) < 3:
+        return None
+    pts = np.column_stack([down, cross])
+    mean, cov = pts.mean(axis=0), np.cov(pts.T)
+    vals, vecs = np.linalg.eigh(cov)
+    vals = np.clip(vals, 0, None)
+    ang = np.linspace(0, 2 * math.pi, n + 1)
+    outline = mean + np.outer(math.sqrt(vals[1]) * np.cos(ang), vecs[:, 1]) + np.outer(math.sqrt(vals[0]) * np.sin(ang), vecs[:, 0])
+    return {"semi_major_m": math.sqrt(vals[1]), "semi_minor_m": math.sqrt(vals[0]),
+            "angle_rad": math.atan2(vecs[1, 1], vecs[0, 1]), "outline_m": np.round(outline, 4).tolist()}
+
+
+def accuracy(rows: list[Throw], bin_m: float = DISTANCE_BIN_M) -> list[dict]:
+    """Landed throws grouped by mode, policy version and target distance (bins of ``bin_m``):
+    n, mean impact distance, bias, sigma downrange/crossrange, mean crossrange, error ellipse,
+    and the individual errors (for the scatter plot)."""
+    groups: dict[tuple, list[Throw]] = {}
+    for t in rows:
+        if t.status != "landed" or t.downrange_error_m is None:
+            continue
+        d = round(math.hypot(t.target_x_m, t.target_y_m) / bin_m) * bin_m
+        groups.setdefault((t.mode, t.policy_version or "?", round(d, 3)), []).append(t)
+    out = []
+    for (mode, version, d), ts in sorted(groups.items()):
+        dr = np.array([t.downrange_error_m for t in ts])
+        cr = np.array([t.crossrange_error_m for t in ts])
+        out.append({
+            "mode": mode, "policy_version": version, "target_distance_m": d, "n": len(ts),
+            "mean_impact_distance_m": float(d + dr.mean()), "bias_m": float(dr.mean()),
+            "sigma_downrange_m": float(dr.std()), "mean_crossrange_m": float(cr.mean()),
+            "sigma_crossrange_m": float(cr.std()), "mean_abs_error_m": float(np.hypot(dr, cr).mean()),
+            "ellipse": error_ellipse(dr, cr), "errors_m": np.round(np.column_stack([dr, cr]), 4).tolist(),
+        })
+    return out
