@@ -133,8 +133,11 @@ def evaluate(
             done += 1
             n = sum(len(v) for v in results.values())
             log.info("evaluate: %d/%d throws (%.0f s)", n, throws * len(distances_m), time.time() - t0)
+    from runtime.policy import PolicyRunner
+
     return {
         "policy": str(policy_path),
+        "policy_version": PolicyRunner.load(policy_path).version,
         "mode": mode,
         "profile": prof or "nominal",
         "throws_per_target": throws,
@@ -158,14 +161,33 @@ def plot_reports(reports: list[dict], out: Path) -> None:
         d = np.array([t["target_m"] for t in rows])
         ax.plot([d.min() - 0.5, d.max() + 0.5], [d.min() - 0.5, d.max() + 0.5], "k--", lw=0.8, label="target")
         ax.errorbar(d, [t["mean_impact_m"] for t in rows], yerr=[t["sigma_downrange_m"] for t in rows], fmt="o", capsize=4, label="mean impact ± 1σ downrange")
+        ax.errorbar(d + 0.08, [t["target_m"] + t["mean_crossrange_m"] for t in rows], yerr=[t["sigma_crossrange_m"] for t in rows],
+                    fmt="s", ms=3, capsize=3, alpha=0.7, label="target + mean crossrange ± 1σ")
         ax.set_xlabel("target distance [m]")
         ax.set_ylabel("impact distance [m]")
-        ax.set_title(f"{rep['mode'].upper()} policy, {rep['throws_per_target']} throws/target ({rep['profile']})", fontsize=10)
+        name = rep.get("policy_version", rep["mode"])
+        ax.set_title(f"{rep['mode'].upper()} policy {name}, {rep['throws_per_target']} throws/target ({rep['profile']} twin)", fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)
+
+
+def markdown_table(report: dict) -> str:
+    """The per-target statistics of a report as a Markdown table (for the README)."""
+    head = (f"**{report['mode'].upper()} `{report.get('policy_version', report['policy'])}`**, "
+            f"{report['throws_per_target']} throws per target, {report['profile']} profile\n\n"
+            "| target [m] | success | mean impact [m] | bias [m] | σ downrange [m] | mean crossrange [m] | σ crossrange [m] | duration [s] |\n"
+            "|---|---|---|---|---|---|---|---|\n")
+    rows = []
+    for t in report["targets"]:
+        def f(key, fmt="{:+.3f}"):
+            return "n/a" if t[key] is None else fmt.format(t[key])
+        rows.append(f"| {t['target_m']:.1f} | {100 * t['success_rate']:.1f} % | {f('mean_impact_m', '{:.3f}')} | {f('bias_m')} | "
+                    f"{f('sigma_downrange_m', '{:.3f}')} | {f('mean_crossrange_m')} | {f('sigma_crossrange_m', '{:.3f}')} | "
+                    f"{f('mean_duration_s', '{:.2f}')} |")
+    return head + "\n".join(rows) + "\n"
 
 
 def parse_targets(spec: str) -> list[float]:
@@ -191,10 +213,18 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=None)
     parser.add_argument("--out", type=Path, default=None, help="JSON report (default reports/eval_<mode>.json)")
     parser.add_argument("--plot", type=Path, default=None, help="PNG figure (default beside the JSON)")
+    parser.add_argument("--combine", type=Path, nargs="+", default=None,
+                        help="only draw the figure of these JSON reports side by side (e.g. 2D and 3D) to --plot")
 
 
 def run(args: argparse.Namespace) -> int:
     from runtime.policy import PolicyRunner
+
+    if args.combine:
+        reports = [json.loads(p.read_text()) for p in args.combine]
+        plot_reports(reports, args.plot or Path("reports/eval.png"))
+        print("\n".join(markdown_table(r) for r in reports))
+        return 0
 
     mode = PolicyRunner.load(args.policy).mode
     targets = parse_targets(args.targets or ("7.5:10:0.5" if mode == "2d" else "7:9.5:0.5"))
