@@ -9,7 +9,9 @@ Wiring (keys in runtime/protocol/README.md):
   keys.info (-> RuntimeInfo);
 * liveliness token keys.runtime_alive(id);
 * a watchdog thread (every 50 ms): no valid state for 0.2 s during a throw -> failed;
-* the outbox delivers finished ThrowResults to keys.THROW_RESULT until the server acks.
+* the outbox delivers finished ThrowResults to keys.THROW_RESULT until the server acks;
+* queryable keys.policy_offer (PolicyOffer -> PolicyOfferAck): runtime.policy_update fetches,
+  checks and installs offered policy versions between throws, publishing keys.policy_status.
 
 Entry points: ``build_parser(parser)`` and ``run(args)`` (used by ``slinger runtime``), and
 ``python -m runtime.node --machine-id m1 --policy-2d policies/p2d.onnx --listen tcp/0.0.0.0:7447``.
@@ -27,7 +29,9 @@ from runtime.controller import JointVelocityController
 from runtime.executor import ThrowExecutor
 from runtime.outbox import Outbox, zenoh_deliverer
 from runtime.policy import PolicyError, PolicyRunner
+from runtime.policy_update import PolicyUpdater, zenoh_fetcher
 from runtime.protocol import keys
+from runtime.protocol.messages import encode
 from runtime.service import LINK_TIMEOUT_S, RuntimeService
 from runtime.zenoh_session import open_session
 
@@ -50,6 +54,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
     parser.add_argument("--mode", default="peer", choices=("peer", "client"), help="Zenoh session mode")
     parser.add_argument("--outbox-dir", type=Path, default=None, help="durable outbox directory (default ~/.slinger/outbox/<machine-id>)")
+    parser.add_argument("--policy-dir", type=Path, default=None, help="where promoted policy files are kept (default: <outbox-dir>-policies)")
     parser.add_argument("--link-timeout", type=float, default=LINK_TIMEOUT_S, help="seconds without machine state that fail a throw")
 
 
@@ -95,6 +100,9 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             for k in (keys.valve_cmd(machine_id), keys.gripper_cmd(machine_id), keys.sim_reset(machine_id), keys.status(machine_id))
         }
         outbox = Outbox(outbox_dir, zenoh_deliverer(session))
+        status_pub = session.declare_publisher(keys.policy_status(machine_id))
+        updater = PolicyUpdater(machine_id, getattr(args, "policy_dir", None) or Path(f"{outbox_dir}-policies"),
+                                zenoh_fetcher(session), lambda msg: status_pub.put(encode(msg)))
         service = RuntimeService(machine_id, executor, lambda key, data: pubs[key].put(data), outbox.put, link_timeout_s=args.link_timeout)
 
         def reply(handler):
@@ -113,6 +121,8 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             session.declare_queryable(keys.throw(machine_id), reply(service.handle_throw)),
             session.declare_queryable(keys.abort(machine_id), reply(service.handle_abort)),
             session.declare_queryable(keys.info(machine_id), reply(lambda _p: service.handle_info())),
+            session.declare_queryable(keys.policy_offer(machine_id), reply(updater.handle_offer)),
+            status_pub,
             session.liveliness().declare_token(keys.runtime_alive(machine_id)),
             *pubs.values(),
         ]
@@ -121,6 +131,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         try:
             while not stop.wait(WATCHDOG_PERIOD_S):
                 service.check_watchdog()
+                updater.apply_pending(executor, service.lock)
         finally:
             service.shutdown()
             outbox.stop()

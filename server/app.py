@@ -19,7 +19,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-from server.api.routes import auth, health, machines, previews, scene, throws, users
+from server.api.routes import auth, health, machines, policies, previews, scene, throws, users
 from server.config import Settings, get_settings
 from server.db.migrate import upgrade
 from server.db.models import Throw
@@ -27,6 +27,7 @@ from server.db.session import make_engine, make_sessionmaker
 from server.fleet import Fleet
 from server.results import ResultStore
 from server.scene import ConsoleScene
+from server.policies import PolicyService
 from server.previews import PreviewService
 from server.throws import ThrowService
 
@@ -72,10 +73,12 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         app.state.fleet, app.state.scene = fleet, scene_obj
         app.state.throws = ThrowService(fleet, sessions, settings.keep_out_zones,
                                         previews=lambda pid: app.state.previews.get(pid))
+        app.state.policies = PolicyService(fleet, sessions, store, settings)
         app.state.previews = PreviewService(fleet, sessions, app.state.throws, settings.data_dir,
                                             settings.clearance_radius_m)
         try:
             fleet.start()
+            app.state.policies.start()
             if scene_obj is not None:
                 scene_obj.start()
                 fleet.result_listeners.append(lambda tid: _show_result(app, tid))
@@ -83,6 +86,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         finally:
             if scene_obj is not None:
                 scene_obj.stop()
+            app.state.policies.stop()
             fleet.stop()
             if own_session:
                 zsession.close()
@@ -95,7 +99,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         lifespan=lifespan,
     )
     app.add_exception_handler(RequestValidationError, _validation_error)
-    for module in (health, auth, users, machines, throws, previews, scene):
+    for module in (health, auth, users, machines, throws, previews, policies, scene):
         app.include_router(module.router)
     if WEB_DIR.is_dir():
         app.mount("/console", StaticFiles(directory=WEB_DIR, html=True), name="console")

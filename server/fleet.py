@@ -134,6 +134,11 @@ class Fleet:
             log.debug("RuntimeInfo of %s: %s", machine_id, e)
             return entry[1] if entry else None
 
+    def forget_info(self, machine_id: str) -> None:
+        """Drop the cached RuntimeInfo (e.g. after its policies changed) so the next read asks."""
+        with self._lock:
+            self._infos.pop(machine_id, None)
+
     # --- queries -------------------------------------------------------------------------------
     def query_info(self, machine_id: str, timeout_s: float | None = None) -> RuntimeInfo:
         """Ask the runtime for its RuntimeInfo (and cache it).

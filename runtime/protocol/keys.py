@@ -14,6 +14,9 @@ Layout::
     slinger/runtime/<machine_id>/status         ThrowStatus      runtime -> server   on change
     slinger/runtime/<machine_id>/alive          liveliness token of the runtime
     slinger/server/throw_result                 queryable on the server: ThrowResult -> ResultAck
+    slinger/runtime/<machine_id>/policy/offer   queryable: PolicyOffer -> PolicyOfferAck
+    slinger/runtime/<machine_id>/policy/status  PolicyUpdate     runtime -> server   on load / failure
+    slinger/server/policy/<sha256>              queryable on the server: -> the ONNX file's bytes
 
 Machine ids are restricted to ``[A-Za-z0-9_-]{1,64}`` so they can never inject key-expression
 wildcards (``*``, ``**``, ``$*``) or separators.
@@ -93,6 +96,23 @@ def runtime_alive(machine_id: str) -> str:
     return runtime(machine_id, "alive")
 
 
+def policy_offer(machine_id: str) -> str:
+    return runtime(machine_id, "policy/offer")
+
+
+def policy_status(machine_id: str) -> str:
+    return runtime(machine_id, "policy/status")
+
+
+def policy_file(sha256: str) -> str:
+    """Key of a policy file the server serves; ``sha256`` must be 64 hex digits."""
+    if not re.fullmatch(r"[0-9a-f]{64}", sha256 or ""):
+        raise ValueError(f"invalid sha256 {sha256!r}")
+    return f"{ROOT}/server/policy/{sha256}"
+
+
+ALL_POLICY_STATUS = f"{ROOT}/runtime/*/policy/status"
+POLICY_FILES = f"{ROOT}/server/policy/*"
 ALL_STATES = f"{ROOT}/machine/*/state"
 ALL_RUNTIME_ALIVE = f"{ROOT}/runtime/*/alive"
 ALL_STATUS = f"{ROOT}/runtime/*/status"

@@ -212,6 +212,34 @@ class ResultAck(Message):
     stored: bool
 
 
+class PolicyOffer(Message):
+    """Server -> runtime: load this policy version for ``mode`` (fetch the file from
+    keys.policy_file(sha256), check its SHA-256 and the manifest, swap it in between throws)."""
+
+    machine_id: MachineId
+    mode: Mode
+    version: str
+    sha256: Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]
+    manifest: dict
+
+
+class PolicyOfferAck(Message):
+    machine_id: MachineId
+    accepted: bool
+    reason: str | None = None
+
+
+class PolicyUpdate(Stamped):
+    """Runtime -> server: an offered policy version was loaded (``status`` "loaded": it runs
+    from the next throw on) or could not be (``failed`` with the reason)."""
+
+    mode: Mode
+    version: str
+    sha256: str
+    status: Literal["loaded", "failed"]
+    reason: str | None = None
+
+
 M = TypeVar("M", bound=Message)
 
 

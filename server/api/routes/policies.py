@@ -1,0 +1,159 @@
+"""Policy versions: list, upload (admin), promote to machines (admin), roll back (admin),
+deployments, compare (twin evaluation and logged throws per target distance)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Literal
+
+from fastapi import APIRouter, File, Form, HTTPException, Query, Request, UploadFile
+from pydantic import BaseModel, Field
+from sqlalchemy import select
+
+from server.api.deps import AdminDep, SessionDep, ViewerDep
+from server.db.models import PolicyDeployment, PolicyVersion, Throw
+from server.history import accuracy
+from server.throws import ThrowRefused
+
+router = APIRouter(prefix="/api/policies", tags=["policies"])
+
+
+class PolicyOut(BaseModel):
+    id: int
+    name: str
+    mode: str
+    sha256: str
+    target_range_m: list[float] | None
+    created_at: datetime
+    uploaded_by: str | None
+    notes: str | None
+    has_file: bool
+    evaluation_status: str | None
+    metrics: dict | None
+
+
+class DeploymentOut(BaseModel):
+    id: int
+    machine_id: str
+    mode: str
+    policy_version_id: int
+    policy_version: str
+    status: str
+    reason: str | None
+    requested_by: str | None
+    requested_at: datetime
+    confirmed_at: datetime | None
+
+
+class PromoteIn(BaseModel):
+    machine_ids: list[str] = Field(min_length=1, max_length=100)
+
+
+class RollbackIn(BaseModel):
+    machine_id: str
+    mode: Literal["2d", "3d"]
+
+
+def policy_out(p: PolicyVersion) -> PolicyOut:
+    return PolicyOut(id=p.id, name=p.name, mode=p.mode, sha256=p.sha256,
+                     target_range_m=(p.manifest or {}).get("target_range_m"), created_at=p.created_at,
+                     uploaded_by=p.uploaded_by, notes=p.notes, has_file=bool(p.onnx_path),
+                     evaluation_status=p.evaluation_status, metrics=p.metrics)
+
+
+def deployment_out(d: PolicyDeployment, name: str) -> DeploymentOut:
+    return DeploymentOut(id=d.id, machine_id=d.machine_id, mode=d.mode, policy_version_id=d.policy_version_id,
+                         policy_version=name, status=d.status, reason=d.reason, requested_by=d.requested_by,
+                         requested_at=d.requested_at, confirmed_at=d.confirmed_at)
+
+
+def _refused(e: ThrowRefused) -> HTTPException:
+    return HTTPException(e.status_code, e.detail)
+
+
+@router.get("", response_model=list[PolicyOut])
+def list_policies(db: SessionDep, _user: ViewerDep) -> list[PolicyOut]:
+    return [policy_out(p) for p in db.scalars(select(PolicyVersion).order_by(PolicyVersion.id.desc()))]
+
+
+@router.post("", status_code=201, response_model=PolicyOut,
+             responses={409: {"description": "already a version"}, 422: {"description": "rejected, with the reason"}})
+async def upload_policy(
+    request: Request, user: AdminDep,
+    file: UploadFile = File(..., description="the ONNX file (obs -> actions)"),
+    mode: Literal["2d", "3d"] = Form(...),
+    name: str = Form(..., min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.-]+$"),
+    target_min_m: float = Form(5.0, gt=0), target_max_m: float = Form(10.7, gt=0),
+    notes: str | None = Form(None, max_length=2000),
+) -> PolicyOut:
+    """Upload a policy version: the manifest is generated from the mode and metadata; the file is
+    refused with the reason if it is not ONNX, has the wrong input/output shapes for the mode or
+    produces non-finite actions. An accepted version is evaluated in the twin in the background
+    (``evaluation_status`` pending -> running -> done, ``metrics``)."""
+    data = await file.read()
+    from starlette.concurrency import run_in_threadpool
+
+    try:
+        row = await run_in_threadpool(request.app.state.policies.upload, data, mode, name,
+                                      (target_min_m, target_max_m), notes, user.username)
+    except ThrowRefused as e:
+        raise _refused(e) from e
+    return policy_out(row)
+
+
+@router.get("/deployments", response_model=list[DeploymentOut])
+def deployments(db: SessionDep, _user: ViewerDep, machine_id: str | None = None,
+                limit: int = Query(50, ge=1, le=500)) -> list[DeploymentOut]:
+    """Promotions and rollbacks, newest first."""
+    stmt = select(PolicyDeployment, PolicyVersion.name).join(PolicyVersion).order_by(
+        PolicyDeployment.id.desc()).limit(limit)
+    if machine_id:
+        stmt = stmt.where(PolicyDeployment.machine_id == machine_id)
+    return [deployment_out(d, n) for d, n in db.execute(stmt)]
+
+
+@router.get("/compare")
+def compare(db: SessionDep, _user: ViewerDep, ids: list[int] = Query(..., min_length=1, max_length=10)) -> list[dict]:
+    """Per version: the twin evaluation per target distance and the logged throws' accuracy."""
+    out = []
+    for pid in ids:
+        p = db.get(PolicyVersion, pid)
+        if p is None:
+            raise HTTPException(404, f"no policy version {pid}")
+        rows = list(db.scalars(select(Throw).where(Throw.policy_version == p.name, Throw.mode == p.mode)))
+        out.append({"id": p.id, "name": p.name, "mode": p.mode, "evaluation_status": p.evaluation_status,
+                    "twin": (p.metrics or {}).get("targets", []), "logged": accuracy(rows)})
+    return out
+
+
+@router.get("/{policy_id}", response_model=PolicyOut)
+def get_policy(policy_id: int, db: SessionDep, _user: ViewerDep) -> PolicyOut:
+    p = db.get(PolicyVersion, policy_id)
+    if p is None:
+        raise HTTPException(404, f"no policy version {policy_id}")
+    return policy_out(p)
+
+
+@router.post("/{policy_id}/promote", response_model=list[DeploymentOut])
+def promote(policy_id: int, body: PromoteIn, request: Request, user: AdminDep) -> list[DeploymentOut]:
+    """Offer the version to the machines; each runtime fetches it, checks it, loads it between
+    throws and confirms (the deployment turns ``active``; GET /api/machines shows it)."""
+    try:
+        deps = request.app.state.policies.promote(policy_id, body.machine_ids, user.username)
+    except ThrowRefused as e:
+        raise _refused(e) from e
+    with request.app.state.sessions() as db:
+        name = db.get(PolicyVersion, policy_id).name
+    return [deployment_out(d, name) for d in deps]
+
+
+@router.post("/rollback", response_model=DeploymentOut, responses={409: {"description": "nothing to roll back to"}})
+def rollback(body: RollbackIn, request: Request, user: AdminDep) -> DeploymentOut:
+    """Go back to the version the machine ran before its last promotion for that mode."""
+    try:
+        d = request.app.state.policies.rollback(body.machine_id, body.mode, user.username)
+    except ThrowRefused as e:
+        raise _refused(e) from e
+    with request.app.state.sessions() as db:
+        name = db.get(PolicyVersion, d.policy_version_id).name
+    return deployment_out(d, name)

@@ -1,0 +1,225 @@
+"""Policy versions: upload with validation, a small twin evaluation, promotion to machines over
+Zenoh (the runtime fetches the file from this server, checks it and loads it between throws),
+rollback to the previous version, and the deployment record.
+
+Zenoh entities (declared by :meth:`PolicyService.start`): the queryable keys.POLICY_FILES (serves
+``<data_dir>/policies/<sha256>.onnx``) and a subscriber of keys.ALL_POLICY_STATUS (a runtime's
+PolicyUpdate turns the offered deployment active or failed).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import tempfile
+import threading
+from pathlib import Path
+
+import numpy as np
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from runtime.observation import observation_size
+from runtime.policy import PolicyError, PolicyRunner, build_manifest
+from runtime.protocol import keys
+from runtime.protocol.messages import PolicyOffer, PolicyOfferAck, PolicyUpdate, ValidationError, decode, encode
+from server.auth import audit
+from server.db.models import PolicyDeployment, PolicyVersion
+from server.db.types import utcnow
+from server.fleet import Fleet, RuntimeUnavailable
+from server.results import ResultStore, ensure_machine
+from server.throws import ThrowRefused
+
+log = logging.getLogger(__name__)
+MAX_POLICY_BYTES = 50 * 1024 * 1024
+
+
+class PolicyService:
+    """Args: fleet, sessions, store (policy files), settings (eval_distances_m, eval_throws)."""
+
+    def __init__(self, fleet: Fleet, sessions: sessionmaker[Session], store: ResultStore, settings):
+        self.fleet, self.sessions, self.store, self.settings = fleet, sessions, store, settings
+        self._decls: list = []
+        self._threads: list[threading.Thread] = []
+
+    # --- lifecycle ---------------------------------------------------------------------------
+    def start(self) -> None:
+        s = self.fleet.session
+        self._decls = [s.declare_queryable(keys.POLICY_FILES, self._on_file_query, complete=True),
+                       s.declare_subscriber(keys.ALL_POLICY_STATUS, self._on_update)]
+
+    def stop(self) -> None:
+        for d in self._decls:
+            try:
+                d.undeclare()
+            except Exception:
+                log.debug("undeclare failed", exc_info=True)
+        for t in self._threads:
+            t.join(timeout=60)
+
+    # --- upload ------------------------------------------------------------------------------
+    def upload(self, data: bytes, mode: str, name: str, target_range_m: tuple[float, float], notes: str | None,
+               username: str, evaluate: bool = True) -> PolicyVersion:
+        """Validate and store a policy version; start its twin evaluation.
+
+        Raises:
+            ThrowRefused: 422 with the reason (not ONNX, wrong shapes for the mode, non-finite
+                actions, bad range), 409 if this file is already a version.
+        """
+        if not data:
+            raise ThrowRefused(422, "empty file")
+        if len(data) > MAX_POLICY_BYTES:
+            raise ThrowRefused(422, f"file larger than {MAX_POLICY_BYTES // 2**20} MiB")
+        lo, hi = target_range_m
+        if not (0 < lo < hi):
+            raise ThrowRefused(422, "target range must satisfy 0 < min < max")
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "upload.onnx"
+            path.write_bytes(data)
+            manifest = build_manifest(path, mode, name, (lo, hi), {"notes": notes or "", "uploaded_by": username})
+            path.with_suffix(".json").write_text(json.dumps(manifest))
+            try:
+                runner = PolicyRunner.load(path)
+                _probe_finite(runner)
+            except PolicyError as e:
+                reason = str(e)
+                if "onnxruntime cannot load" in reason:
+                    reason = f"not a loadable ONNX model: {reason.split(': ', 1)[-1][:300]}"
+                raise ThrowRefused(422, reason) from e
+            with self.sessions() as db:
+                if db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == manifest["onnx_sha256"])) is not None:
+                    raise ThrowRefused(409, "this ONNX file is already a policy version")
+            rel = self.store.store_policy_file(manifest, path)
+        with self.sessions.begin() as db:
+            row = PolicyVersion(name=name, mode=mode, sha256=manifest["onnx_sha256"], manifest=manifest,
+                                onnx_path=rel, notes=notes, uploaded_by=username,
+                                evaluation_status="pending" if evaluate else None)
+            db.add(row)
+            db.flush()
+            audit(db, username, "policy_upload", str(row.id), name=name, mode=mode, sha256=row.sha256)
+        if evaluate:
+            t = threading.Thread(target=self._evaluate, args=(row.id,), name=f"eval-{row.id}", daemon=True)
+            self._threads = [x for x in self._threads if x.is_alive()] + [t]
+            t.start()
+        return row
+
+    def _evaluate(self, version_id: int) -> None:
+        """The paper's protocol on a small sample (settings.eval_throws per distance), in this
+        process (no worker pool: forking a process that holds Zenoh threads is unsafe)."""
+        from sim_twin.evaluate import _throw_batch, summarise  # the protocol's own throw loop
+
+        with self.sessions.begin() as db:
+            row = db.get(PolicyVersion, version_id)
+            row.evaluation_status = "running"
+            mode, path = row.mode, str(self.store.data_dir / row.onnx_path)
+            lo, hi = row.manifest["target_range_m"]
+        distances = list(self.settings.eval_distances_m) or [round(x * 2) / 2 for x in np.linspace(lo + 0.5, hi - 0.5, 3)]
+        try:
+            targets = []
+            for i, d in enumerate(distances):
+                seeds = [version_id * 1000 + i * 100 + k for k in range(self.settings.eval_throws)]
+                targets.append(summarise(d, _throw_batch(path, mode, d, seeds, None)))
+            metrics = {"protocol": "paper Sec. IV-A (small sample)", "throws_per_target": self.settings.eval_throws,
+                       "profile": "nominal", "targets": targets}
+            status = "done"
+        except Exception as e:
+            log.exception("evaluation of policy version %d failed", version_id)
+            metrics, status = {"error": str(e)}, "failed"
+        with self.sessions.begin() as db:
+            row = db.get(PolicyVersion, version_id)
+            row.metrics, row.evaluation_status = metrics, status
+        log.info("policy version %d evaluated: %s", version_id, status)
+
+    # --- promotion ---------------------------------------------------------------------------
+    def promote(self, version_id: int, machine_ids: list[str], username: str, action: str = "promote") -> list[PolicyDeployment]:
+        """Offer the version to each machine; returns one deployment row per machine (status
+        ``offered`` when the runtime accepted the offer, ``failed`` with the reason otherwise)."""
+        with self.sessions() as db:
+            version = db.get(PolicyVersion, version_id)
+        if version is None:
+            raise ThrowRefused(404, f"no policy version {version_id}")
+        if not version.onnx_path or not (self.store.data_dir / version.onnx_path).is_file():
+            raise ThrowRefused(409, f"the server has no file of {version.name}; upload it")
+        out = []
+        for mid in machine_ids:
+            info = self.fleet.fresh_info(mid, max_age_s=0.0, timeout_s=2.0)
+            previous = next((p.sha256 for p in (info.policies if info else []) if p.mode == version.mode), None)
+            # the row exists before the offer: the runtime's confirmation may come back at once
+            with self.sessions.begin() as db:
+                ensure_machine(db, mid, simulated=bool(info and info.simulated))
+                dep = PolicyDeployment(machine_id=mid, mode=version.mode, policy_version_id=version.id,
+                                       previous_sha256=previous, status="offered", requested_by=username)
+                db.add(dep)
+            status, reason = "offered", None
+            if info is None:
+                status, reason = "failed", f"the runtime of {mid} is offline"
+            else:
+                try:
+                    offer = PolicyOffer(machine_id=mid, mode=version.mode, version=version.name, sha256=version.sha256,
+                                        manifest=version.manifest)
+                    ack = decode(PolicyOfferAck, self.fleet._query_one(keys.policy_offer(mid), encode(offer)))
+                    if not ack.accepted:
+                        status, reason = "failed", ack.reason
+                except (RuntimeUnavailable, ValidationError, ValueError) as e:
+                    status, reason = "failed", str(e)
+            with self.sessions.begin() as db:
+                dep = db.get(PolicyDeployment, dep.id)
+                if status == "failed":
+                    dep.status, dep.reason = status, reason
+                audit(db, username, action, mid, policy_version=version.name, policy_version_id=version.id,
+                      mode=version.mode, status=status, reason=reason)
+            out.append(dep)
+        return out
+
+    def rollback(self, machine_id: str, mode: str, username: str) -> PolicyDeployment:
+        """Promote the version the machine ran before its last active deployment for ``mode``.
+
+        Raises:
+            ThrowRefused: 409 when there is no earlier version to go back to.
+        """
+        with self.sessions() as db:
+            last = db.scalar(select(PolicyDeployment).where(
+                PolicyDeployment.machine_id == machine_id, PolicyDeployment.mode == mode,
+                PolicyDeployment.status == "active").order_by(PolicyDeployment.requested_at.desc(), PolicyDeployment.id.desc()))
+            prev = None
+            if last is not None and last.previous_sha256:
+                prev = db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == last.previous_sha256))
+        if prev is None:
+            raise ThrowRefused(409, f"no previous {mode} policy version of {machine_id} to roll back to")
+        return self.promote(prev.id, [machine_id], username, action="rollback")[0]
+
+    # --- Zenoh callbacks ---------------------------------------------------------------------
+    def _on_file_query(self, query) -> None:
+        sha = str(query.key_expr).rsplit("/", 1)[-1]
+        path = self.store.data_dir / "policies" / f"{sha}.onnx"
+        if len(sha) != 64 or not all(c in "0123456789abcdef" for c in sha) or not path.is_file():
+            query.reply_err(f"no policy file {sha[:16]}".encode())
+            return
+        query.reply(str(query.key_expr), path.read_bytes())
+
+    def _on_update(self, sample) -> None:
+        try:
+            msg = decode(PolicyUpdate, sample.payload.to_bytes())
+        except ValidationError:
+            log.warning("malformed PolicyUpdate dropped")
+            return
+        self.fleet.forget_info(msg.machine_id)
+        with self.sessions.begin() as db:
+            dep = db.scalar(select(PolicyDeployment).join(PolicyVersion).where(
+                PolicyDeployment.machine_id == msg.machine_id, PolicyDeployment.mode == msg.mode,
+                PolicyDeployment.status == "offered", PolicyVersion.sha256 == msg.sha256,
+            ).order_by(PolicyDeployment.id.desc()))
+            if dep is None:
+                return
+            dep.status = "active" if msg.status == "loaded" else "failed"
+            dep.reason, dep.confirmed_at = msg.reason, utcnow()
+        log.info("machine %s %s policy %s: %s", msg.machine_id, msg.mode, msg.version, msg.status)
+
+
+def _probe_finite(runner: PolicyRunner, n: int = 8) -> None:
+    """Non-finite actions on random observations are refused (PolicyRunner checks zeros only)."""
+    rng = np.random.default_rng(0)
+    for _ in range(n):
+        a = runner.act(rng.normal(size=observation_size(runner.mode)).astype(np.float32))
+        if not np.all(np.isfinite(a)):
+            raise PolicyError("policy produces non-finite actions")
