@@ -198,37 +198,46 @@ def open_row(th: LoggedThrow, delay_s: float) -> int:
     return th.cmd_row + int(np.ceil(max(delay_s, 0.0) / TICK_S - 1e-9))
 
 
-def _flight(th: LoggedThrow, col: _Column, q, qd, row: int) -> dict:
-    row = min(row, len(q) - 1)
-    p0, v0 = grasp_point(q[row], qd[row], col.offset)
-    t_open = row * TICK_S
+def _flights(throws: list[LoggedThrow], col: _Column, trajs, rows: list[int]) -> list[dict]:
+    """Flights of all throws of one configuration, released at ``rows`` (batched integration)."""
+    rows = [min(r, len(trajs[n][0]) - 1) for n, r in enumerate(rows)]
+    q = np.stack([trajs[n][0][r] for n, r in enumerate(rows)])
+    qd = np.stack([trajs[n][1][r] for n, r in enumerate(rows)])
+    p0, v0 = grasp_point(q, qd, col.offset)
     if col.flight is None:
-        t_hit = float(ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
-        hit = ballistic_position(np, p0, v0, t_hit)
-        tt = np.clip(th.payload_t_s - t_open, 0.0, t_hit)
-        pos = p0 + v0 * tt[:, None] + 0.5 * np.array([0.0, 0.0, -9.81]) * tt[:, None] ** 2
+        t_hit = ballistic_impact_time(np, p0.T, v0.T, PAYLOAD_RADIUS_M)
+        hit = p0 + v0 * t_hit[:, None] + 0.5 * np.array([0.0, 0.0, -9.81]) * t_hit[:, None] ** 2
+        ts = ps = None
     else:
         ts, ps, _, t_hit, hit = integrate_flight(p0, v0, col.flight)
-        t_hit = float(t_hit)
-        tt = np.clip(th.payload_t_s - t_open, 0.0, t_hit)
-        pos = np.stack([np.interp(tt, ts, ps[:, j]) for j in range(3)], axis=-1)
-    hit = np.array(hit, dtype=float)
-    hit[2] = 0.0
-    return {"pos_m": pos, "impact_m": hit, "impact_t_s": t_open + t_hit, "open_row": row}
+    out = []
+    for n, th in enumerate(throws):
+        t_open = rows[n] * TICK_S
+        tt = np.clip(th.payload_t_s - t_open, 0.0, t_hit[n])
+        if ps is None:
+            pos = p0[n] + v0[n] * tt[:, None] + 0.5 * np.array([0.0, 0.0, -9.81]) * tt[:, None] ** 2
+        else:
+            pos = np.stack([np.interp(tt, ts, ps[:, n, j]) for j in range(3)], axis=-1)
+        h = np.array(hit[n], dtype=float)
+        h[2] = 0.0
+        out.append({"pos_m": pos, "impact_m": h, "impact_t_s": t_open + float(t_hit[n]), "open_row": rows[n]})
+    return out
 
 
-def finish(th: LoggedThrow, col: _Column, q: np.ndarray, qd: np.ndarray) -> Replay:
-    """Measurement, held payload and flights for one dynamic replay."""
-    mq, mqd = _measure(col.stack, q, qd)
-    n_held = th.open_row if th.open_row is not None else th.cmd_row
-    held = grasp_point(q[:n_held], qd[:n_held], col.offset)[0]
-    log_row = th.open_row if th.open_row is not None else open_row(th, col.delay_mean_s)
-    return Replay(
-        q=q, qd=qd, meas_q=mq, meas_qd=mqd, held_pos_m=held,
-        delay_mean_s=col.delay_mean_s, delay_std_s=col.delay_std_s,
-        cond=_flight(th, col, q, qd, log_row),
-        pred=_flight(th, col, q, qd, open_row(th, col.delay_mean_s)),
-    )
+def finish(throws: list[LoggedThrow], col: _Column, trajs) -> list[Replay]:
+    """Measurement, held payload and flights for the dynamic replays ``trajs`` ([n] -> (q, qd))."""
+    cond_rows = [th.open_row if th.open_row is not None else open_row(th, col.delay_mean_s) for th in throws]
+    cond = _flights(throws, col, trajs, cond_rows)
+    pred = _flights(throws, col, trajs, [open_row(th, col.delay_mean_s) for th in throws])
+    out = []
+    for n, th in enumerate(throws):
+        q, qd = trajs[n]
+        mq, mqd = _measure(col.stack, q, qd)
+        n_held = th.open_row if th.open_row is not None else th.cmd_row
+        held = grasp_point(q[:n_held], qd[:n_held], col.offset)[0]
+        out.append(Replay(q=q, qd=qd, meas_q=mq, meas_qd=mqd, held_pos_m=held, delay_mean_s=col.delay_mean_s,
+                          delay_std_s=col.delay_std_s, cond=cond[n], pred=pred[n]))
+    return out
 
 
 def replay(throws: list[LoggedThrow], stacks: list[EffectStack], base: RealityProfile | None = None, dynamics_cache: list | None = None) -> list[list[Replay]]:
@@ -246,5 +255,5 @@ def replay(throws: list[LoggedThrow], stacks: list[EffectStack], base: RealityPr
     for k, stack in enumerate(stacks):
         col = _Column(stack, base)
         traj = sims[dyn_idx.index(k)] if k in dyn_idx else dynamics_cache
-        out.append([finish(th, col, *traj[n]) for n, th in enumerate(throws)])
+        out.append(finish(throws, col, traj))
     return out

@@ -30,27 +30,26 @@ class CabinDrift(Effect):
 
 
 class HangingMass(Effect):
-    """Mass of the gripper (mass and inertia of the MJCF gripper body scaled together) plus the
-    held payload (a point mass at the gripper centre, which is also the gripper's centre of mass).
-    Changes the compound pendulum of the passive joints (rotator 388 kg at 0.25 m, gripper at
-    1.0 m); passive friction stays an acceleration (paper eq. 1). In flight only drag would see
-    the payload mass and PayloadDrag uses the model's 0.6 kg."""
+    """Mass hanging on the passive joints below the rotator: the gripper plus any held load (at
+    the gripper centre, which is also the gripper's centre of mass), with the gripper body's
+    inertia scaled by the same factor. It changes the compound pendulum of the passive joints
+    (rotator 388 kg at 0.25 m below the axes, gripper at 1.0 m); passive friction stays an
+    acceleration (paper eq. 1). The 0.6 kg ball itself is negligible; in flight only drag would
+    see a payload's mass (PayloadDrag uses the model's 0.6 kg)."""
 
     name = "hanging_mass"
-    summary = "gripper and held payload mass (passive pendulum dynamics)"
+    summary = "gripper + held load mass (passive pendulum dynamics)"
     stage = "dynamics"
     params = (
-        Param("gripper_mass_kg", "kg", NOMINAL_GRIPPER_MASS_KG, 300.0, 2500.0, "gripper mass without rotator",
-              "machine-spec.md: 52 + 61 + 267 + 233 + 226 kg; range CHOSEN (other grippers, attachments)"),
-        Param("payload_mass_kg", "kg", 0.0, 0.0, 500.0, "extra held mass at the gripper centre (the 0.6 kg ball is neglected by the model)",
-              "CHOSEN: material handling loads up to 500 kg"),
+        Param("gripper_mass_kg", "kg", NOMINAL_GRIPPER_MASS_KG, 300.0, 2500.0, "gripper plus held load, without the rotator",
+              "machine-spec.md: 52 + 61 + 267 + 233 + 226 kg; range CHOSEN (other grippers, loads up to ~1.5 t)"),
     )
 
     def model(self, mj_model) -> None:
         bid = mj_model.body(GRIPPER_BODY).id
         scale = self.gripper_mass_kg / NOMINAL_GRIPPER_MASS_KG
         mj_model.body_inertia[bid] = mj_model.body_inertia[bid] * scale
-        mj_model.body_mass[bid] = self.gripper_mass_kg + self.payload_mass_kg
+        mj_model.body_mass[bid] = self.gripper_mass_kg
 
 
 def passive_inertia_of(mj_model) -> np.ndarray:
