@@ -19,7 +19,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-from server.api.routes import auth, health, machines, policies, previews, scene, throws, users
+from server.api.routes import auth, diagnosis, health, machines, policies, previews, scene, throws, users
 from server.config import Settings, get_settings
 from server.db.migrate import upgrade
 from server.db.models import Throw
@@ -99,7 +99,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         lifespan=lifespan,
     )
     app.add_exception_handler(RequestValidationError, _validation_error)
-    for module in (health, auth, users, machines, throws, previews, policies, scene):
+    for module in (health, auth, users, machines, throws, previews, policies, scene, diagnosis):
         app.include_router(module.router)
     if WEB_DIR.is_dir():
         app.mount("/console", StaticFiles(directory=WEB_DIR, html=True), name="console")

@@ -10,6 +10,7 @@ Subcommands::
     slinger runtime     the runtime of one machine        (runtime.node)
     slinger train       train a policy                   (sim_twin.train)
     slinger evaluate    evaluate a policy                (sim_twin.evaluate)
+    slinger diagnose    sim-to-real gap diagnosis        (sim_twin.diagnosis.cli)
 
 Settings not given as options come from ``SLINGER_*`` environment variables (server.config).
 Modules behind subcommands are imported only when that subcommand runs.
@@ -32,6 +33,7 @@ DELEGATED = {
     "runtime": ("runtime.node", "the runtime of one machine"),
     "train": ("sim_twin.train", "train a throwing policy (needs the 'train' extra)"),
     "evaluate": ("sim_twin.evaluate", "evaluate a policy version"),
+    "diagnose": ("sim_twin.diagnosis.cli", "sim-to-real gap diagnosis of logged throws (and 'diagnose benchmark')"),
 }
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import io
 import logging
+import multiprocessing
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -214,7 +215,9 @@ def fit_all(train: list[LoggedThrow], test: list[LoggedThrow], candidates: list[
             results.append(_fit_one(name))
             log.info("diagnosis: %d/%d candidates fitted (%.0f s)", i + 1, len(names), time.time() - t0)
     else:
-        with ProcessPoolExecutor(max_workers=workers, initializer=_init, initargs=(train, test, base_dict)) as pool:
+        # spawn, not fork: the server runs diagnoses from a thread of a process with other threads
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init, initargs=(train, test, base_dict)) as pool:
             for i, res in enumerate(pool.map(_fit_one, names)):
                 results.append(res)
                 log.info("diagnosis: %d/%d candidates fitted (%.0f s)", i + 1, len(names), time.time() - t0)
