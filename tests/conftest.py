@@ -282,7 +282,8 @@ class SlingerUp:
         from tests.fixtures import write_test_policy
 
         policy = write_test_policy(tmp_path / "policies", "2d", release_after_bias=2.0)
-        extra = []
+        # no 3D runtime policy unless asked (a missing file keeps the repo's throw3d.onnx out)
+        extra = ["--policy-3d", str(tmp_path / "no-3d-policy.onnx")]
         if with_3d:
             extra = ["--policy-3d", str(write_test_policy(tmp_path / "policies", "3d", name="test-linear-3d",
                                                           release_after_bias=2.0))]

@@ -103,3 +103,10 @@ def test_trajectory_replay_and_mcap(client, fake_runtime_factory):
     assert client.post(f"/api/throws/{tid}/replay").status_code == 409  # 3D view off in API tests
     assert client.get("/api/throws/nope/trajectory").status_code == 404
     assert client.post("/api/throws/nope/replay").status_code == 404
+
+
+def test_fleet_view_of_machines(client, rows):
+    ms = {m["id"]: m for m in client.get("/api/machines").json()}
+    m1 = ms["m1"]
+    assert m1["online"] is False and m1["last_throw_status"] == "failed" and m1["current_mode"] == "3d"
+    assert m1["recent_throws"] == 16 and m1["recent_mean_abs_error_m"] > 0

@@ -46,6 +46,13 @@ class MachineOut(BaseModel):
     policies: dict[str, str] = Field(default_factory=dict)
     busy: bool | None = None
     cabin_turn_rad: float | None = None
+    last_throw_at: datetime | None = None
+    last_throw_status: str | None = None
+    current_mode: str | None = None
+    """Mode of the machine's latest throw."""
+    recent_throws: int = 0
+    recent_mean_abs_error_m: float | None = None
+    """Mean |impact - target| over the last landed throws (at most 20)."""
 
 
 class ThrowCreate(BaseModel):

@@ -9,7 +9,7 @@ from sqlalchemy import select
 from server.api.deps import FleetDep, OperatorDep, SessionDep, ViewerDep
 from server.auth import audit
 from server.api.schemas import MachineOut
-from server.db.models import Machine
+from server.db.models import Machine, Throw
 from server.fleet import Fleet, RuntimeUnavailable
 
 router = APIRouter(prefix="/api/machines", tags=["machines"])
@@ -27,7 +27,26 @@ def list_machines(db: SessionDep, fleet: FleetDep, _user: ViewerDep) -> list[Mac
     rows = {m.id: m for m in db.scalars(select(Machine))}
     states = fleet.latest_states()
     ids = sorted(set(rows) | fleet.online_ids() | set(states))
-    return [_machine_out(mid, rows.get(mid), fleet) for mid in ids]
+    return [_with_throws(db, _machine_out(mid, rows.get(mid), fleet)) for mid in ids]
+
+
+RECENT_THROWS = 20
+
+
+def _with_throws(db, m: MachineOut) -> MachineOut:
+    """Add the latest throw and the accuracy over the last RECENT_THROWS landed throws."""
+    import math
+
+    last = db.scalar(select(Throw).where(Throw.machine_id == m.id).order_by(Throw.requested_at.desc()).limit(1))
+    if last is not None:
+        m.last_throw_at, m.last_throw_status, m.current_mode = last.requested_at, last.status, last.mode
+    landed = list(db.execute(select(Throw.downrange_error_m, Throw.crossrange_error_m).where(
+        Throw.machine_id == m.id, Throw.status == "landed", Throw.downrange_error_m.is_not(None)
+    ).order_by(Throw.requested_at.desc()).limit(RECENT_THROWS)))
+    if landed:
+        m.recent_throws = len(landed)
+        m.recent_mean_abs_error_m = sum(math.hypot(d, c) for d, c in landed) / len(landed)
+    return m
 
 
 def _machine_out(mid: str, row: Machine | None, fleet: Fleet) -> MachineOut:
