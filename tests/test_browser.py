@@ -108,12 +108,12 @@ def test_click_ground_throw_and_see_it_in_history(tmp_path, browser):
         assert target[2] == 0.0 and np.hypot(*(target[:2] - want)) < PLANE_TOLERANCE_M
 
         # the page shows the clicked target and enables Throw
-        page.locator("#target", has_text=f"x {target[0]:.2f}").wait_for(timeout=5_000)
+        page.locator("#target", has_text=f"x {target[0]:.2f}").wait_for(timeout=20_000)
         assert page.locator("#throw").is_disabled()  # not before a preview
-        page.locator("#preview:not([disabled])").wait_for(timeout=5_000)
+        page.locator("#preview:not([disabled])").wait_for(timeout=20_000)
         page.click("#preview")
         page.locator("#pv-sigma", has_text="rollouts").wait_for(timeout=20_000)
-        page.locator("#throw:not([disabled])").wait_for(timeout=5_000)
+        page.locator("#throw:not([disabled])").wait_for(timeout=20_000)
         page.click("#throw")
         page.locator("#status", has_text="accepted").wait_for(timeout=15_000)
 
@@ -124,7 +124,7 @@ def test_click_ground_throw_and_see_it_in_history(tmp_path, browser):
         assert cells[1] == "2d" and cells[6] == "test-linear" and cells[7] == "landed"
         assert cells[2] == ", ".join(f"{v:.2f}" for v in target)
         assert cells[3] != "–" and cells[4] != "–" and cells[5] != "–"  # impact and errors shown
-        page.locator("#status", has_text="landed").wait_for(timeout=5_000)
+        page.locator("#status", has_text="landed").wait_for(timeout=20_000)
 
         stored = up.http.get("/api/throws").json()
         assert len(stored) == 1 and stored[0]["target"] == pytest.approx(target.tolist())

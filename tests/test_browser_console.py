@@ -28,7 +28,7 @@ def test_preview_refusal_3d_confirmation_throw_and_estop(tmp_path, browser):  # 
 
         # a target the 2D mode cannot serve: refused with the reason, nothing moves
         type_target(page, 3.0, -0.29)
-        page.locator("#preview:not([disabled])").wait_for(timeout=5_000)
+        page.locator("#preview:not([disabled])").wait_for(timeout=20_000)
         page.click("#preview")
         page.locator("#status", has_text="too close").wait_for(timeout=10_000)
         assert page.locator("#throw").is_disabled()
@@ -57,14 +57,14 @@ def test_preview_refusal_3d_confirmation_throw_and_estop(tmp_path, browser):  # 
 
         # 3D: the clearance zone is drawn and the throw needs the explicit confirmation
         page.check("input[name=mode][value='3d']")
-        page.locator("#confirm-box").wait_for(state="visible", timeout=5_000)
+        page.locator("#confirm-box").wait_for(state="visible", timeout=20_000)
         type_target(page, 7.0, 3.0)
         page.click("#preview")
         page.locator("#pv-sigma", has_text="rollouts").wait_for(timeout=20_000)
         assert "/preview/clearance_zone" in up.http.get("/api/scene").json()["preview"]
         assert page.locator("#throw").is_disabled()
         page.check("#confirm-clearance")
-        page.locator("#throw:not([disabled])").wait_for(timeout=5_000)
+        page.locator("#throw:not([disabled])").wait_for(timeout=20_000)
 
         # E-stop is there at any time and logged
         page.click("#abort")

@@ -69,9 +69,9 @@ def test_history_filter_sort_page_detail_and_accuracy(live, browser):  # noqa: F
     # sort by target distance, ascending after two clicks
     th = page.locator("th[data-sort=target_distance]")
     th.click()
-    page.locator("th.sorted[data-order=desc]").wait_for(timeout=5_000)
+    page.locator("th.sorted[data-order=desc]").wait_for(timeout=20_000)
     th.click()
-    page.locator("th.sorted[data-order=asc]").wait_for(timeout=5_000)
+    page.locator("th.sorted[data-order=asc]").wait_for(timeout=20_000)
     page.wait_for_timeout(300)
     assert page.locator("#throws tbody tr td:nth-child(5)").first.inner_text() == "8.00"  # m1: 8 and 9 m
     # detail: preview against what happened
