@@ -16,9 +16,12 @@ evaluation and preview code::
 
 Phases (messages.ThrowPhase): preparing -> swinging -> released -> landed | failed | aborted.
 
-* preparing: gripper commanded closed, valves neutral. On a simulated machine one SimReset is
-  requested (random collision-free pose, fresh payload: stands for picking up a new payload).
-  Then wait until the reset is seen (``state.reset_count`` changed, or ``reset_settle_s`` passed
+* preparing: gripper commanded closed, valves neutral. On a simulated machine without a loaded
+  payload (payload gone or gripper open) one SimReset is requested (random collision-free pose,
+  fresh payload: stands for picking up a new payload); a loaded simulated machine throws from
+  where it stands, so that a preview from its current state predicts the throw (the runtime
+  service reloads a simulated machine right after each landed or failed throw). Then wait until
+  the reset, if any, is seen (``state.reset_count`` changed, or ``reset_settle_s`` passed
   if the machine does not report it), the payload is attached, the gripper closed and both
   passive joints slower than ``passive_still_radps``. Timeout -> failed.
 * swinging: every SUBSTEPS-th tick (12.5 Hz) the observation is built from the history
@@ -308,10 +311,11 @@ class ThrowExecutor:
     def _tick_preparing(self, th: _Throw, state: MachineState) -> TickOutput:
         cfg = self.config
         reset = None
-        if state.simulated and not th.reset_requested:
+        loaded = state.payload_attached and not state.gripper_open
+        if state.simulated and not loaded and not th.reset_requested:
             reset = SimReset(machine_id=state.machine_id, stamp_s=state.stamp_s)
             th.reset_requested, th.reset_count0, th.reset_stamp_s = True, state.reset_count, state.stamp_s
-        if not state.simulated:
+        if not state.simulated or not th.reset_requested:
             reset_seen = True
         elif reset is not None:
             reset_seen = False

@@ -30,6 +30,7 @@ from runtime.protocol.messages import (
     MachineState,
     PolicyInfo,
     RuntimeInfo,
+    SimReset,
     ThrowAck,
     ThrowRequest,
     ThrowResult,
@@ -206,6 +207,10 @@ class RuntimeService:
             status = ThrowStatus(machine_id=mid, stamp_s=ev.stamp_s, throw_id=ev.throw_id, phase=ev.phase, detail=ev.detail)
             self.send(keys.status(mid), encode(status))
         if out.finished is not None:
+            if out.finished.status != "aborted" and self.latest_state is not None and self.latest_state.simulated:
+                # simulated machine: pick up the next payload now, so the machine waits loaded
+                # and at rest, and a preview from its current state predicts the next throw
+                self.send(keys.sim_reset(mid), encode(SimReset(machine_id=mid, stamp_s=stamp_s)))
             try:
                 self.on_result(out.finished.to_message(mid))
             except Exception:  # the outbox failing must not stop the control loop

@@ -66,7 +66,7 @@ def test_full_2d_throw_lands_with_impact_and_telemetry(releasing_2d):
     outcome, events = run_throw(twin, ex, _request())
     assert [e.phase for e in events] == ["preparing", "swinging", "released", "landed"]
     assert outcome.status == "landed" and outcome.failure_reason is None
-    assert twin.reset_count == 1  # exactly one sim reset per throw
+    assert twin.reset_count == 0  # a loaded simulated machine throws from where it stands
     down, cross = impact_errors(TARGET_2D, outcome.impact_m)
     assert outcome.downrange_error_m == pytest.approx(down) and outcome.crossrange_error_m == pytest.approx(cross)
     assert outcome.impact_m[2] == 0.0 and abs(outcome.crossrange_error_m) < 0.3  # planar throw
@@ -77,7 +77,8 @@ def test_full_2d_throw_lands_with_impact_and_telemetry(releasing_2d):
     tel = outcome.telemetry
     stamps = np.array([r["t_s"] for r in tel.rows])
     np.testing.assert_allclose(np.diff(stamps), 0.01, atol=1e-9)  # 100 Hz
-    assert sum(1 for a, b in zip(tel.rows, tel.rows[1:]) if b["command_open"] and not a["command_open"]) == 1
+    opens = [False] + [r["command_open"] for r in tel.rows]  # the gripper was closed before the throw
+    assert sum(1 for a, b in zip(opens, opens[1:]) if b and not a) == 1  # opened exactly once
 
     msg = outcome.to_message("m1")
     data = read_telemetry(base64.b64decode(msg.telemetry_mcap_b64))
@@ -152,13 +153,33 @@ def test_refusals_busy_missing_policy_and_no_state(releasing_2d):
     assert ex.throw_id == "t1"
 
 
+def test_second_throw_reloads_the_simulated_machine_once(releasing_2d):
+    twin = _twin()
+    ex = ThrowExecutor({"2d": releasing_2d}, JointVelocityController())
+    first, _ = run_throw(twin, ex, _request())
+    assert first.status == "landed" and not twin.state().payload_attached
+    second, events = run_throw(twin, ex, _request(throw_id="t2"))
+    assert second.status == "landed"
+    assert twin.reset_count == 1  # the payload was gone: exactly one reset (new payload)
+    swing = next(e.stamp_s for e in events if e.phase == "swinging")
+    assert swing > first.end_stamp_s
+
+
 def test_policy_filed_under_the_wrong_mode_is_rejected(releasing_2d):
     with pytest.raises(ValueError):
         ThrowExecutor({"3d": releasing_2d})
 
 
+def _unload(twin):
+    """Open the gripper until the payload is gone (as after a throw)."""
+    for _ in range(60):
+        twin.step(np.zeros(4), True)
+    assert not twin.state().payload_attached
+
+
 def test_preparing_waits_for_the_reset_then_times_out(releasing_2d):
     twin, ex = _twin(), ThrowExecutor({"2d": releasing_2d}, config=ExecutorConfig(prepare_timeout_s=0.5))
+    _unload(twin)
     assert ex.start(_request(), twin.state()) is None
     out = ex.tick(twin.state())
     assert out.sim_reset is not None and not out.gripper_open
@@ -174,8 +195,9 @@ def test_preparing_waits_for_the_reset_then_times_out(releasing_2d):
 def _swinging(ex, twin):
     assert ex.start(_request(), twin.state()) is None
     out = ex.tick(twin.state())
-    twin.apply_reset(out.sim_reset)
-    out = ex.tick(twin.state())
+    if out.sim_reset is not None:
+        twin.apply_reset(out.sim_reset)
+        out = ex.tick(twin.state())
     assert ex.phase in ("swinging", "released")
     return out
 

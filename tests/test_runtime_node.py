@@ -113,7 +113,10 @@ def test_service_runs_a_throw_over_wire_messages(policy_path):
     valves = h.of(keys.valve_cmd("m1"), ValveCommand)
     assert len(valves) >= h.twin.reset_count + 10  # one per state tick
     assert [g.open for g in h.of(keys.gripper_cmd("m1"), GripperCommand)] == [False, True]
+    # the simulated machine was loaded: no reset before the throw, one reload right after it
     assert len(h.of(keys.sim_reset("m1"), SimReset)) == 1
+    h.tick()  # the harness applies the reload
+    assert h.twin.state().payload_attached and not h.twin.state().gripper_open
     info = decode(RuntimeInfo, h.service.handle_info())
     assert not info.busy and info.machine_online and info.simulated
     assert info.policies[0].version == "test-linear" and len(info.policies[0].sha256) == 64
