@@ -21,11 +21,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import threading
 from pathlib import Path
 
 from runtime.controller import JointVelocityController
+from runtime.entrypoint import module_main, stop_on_signals
 from runtime.executor import ThrowExecutor
 from runtime.outbox import Outbox, zenoh_deliverer
 from runtime.policy import PolicyError, PolicyRunner
@@ -87,10 +87,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     except (ValueError, PolicyError) as e:
         log.error("cannot start runtime: %s", e)
         return 2
-    stop = stop or threading.Event()
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
+    stop = stop_on_signals(stop)
     outbox_dir = args.outbox_dir or default_outbox_dir(machine_id)
     executor = ThrowExecutor(policies, JointVelocityController())
 
@@ -142,10 +139,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    parser = argparse.ArgumentParser(prog="python -m runtime.node", description="Slinger runtime (one per machine)")
-    build_parser(parser)
-    return run(parser.parse_args(argv))
+    return module_main('python -m runtime.node', "Slinger runtime (one per machine)", build_parser, run, argv)
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from runtime.entrypoint import module_main
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
 
 log = logging.getLogger(__name__)
@@ -248,10 +249,7 @@ def _fmt(x) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    build_parser(parser)
-    return run(parser.parse_args(argv))
+    return module_main('slinger evaluate', __doc__, build_parser, run, argv)
 
 
 if __name__ == "__main__":

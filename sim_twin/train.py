@@ -19,6 +19,8 @@ import statistics
 import time
 from pathlib import Path
 
+from runtime.entrypoint import module_main
+
 log = logging.getLogger(__name__)
 
 CONFIG_DIR = Path(__file__).parent / "configs"
@@ -111,10 +113,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    build_parser(parser)
-    return run(parser.parse_args(argv))
+    return module_main('slinger train', __doc__, build_parser, run, argv)
 
 
 if __name__ == "__main__":
