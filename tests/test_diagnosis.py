@@ -62,9 +62,9 @@ def test_small_blind_benchmark_names_recovers_and_says_unexplained(tmp_path: Pat
     ]
     rows = [benchmark.run_case(c, 14, POLICY, 2, tmp_path) for c in cases]
     delay, drag, outside = rows
-    assert delay["correct"] and delay["param_ok"] and delay["impact_shrink"] > 0.7
-    assert drag["correct"] and drag["param_ok"]
-    assert outside["answer"] == "unexplained" and outside["correct"]
+    assert delay["correct"] and delay["param_ok"] and delay["impact_shrink"] > 0.7, delay
+    assert drag["correct"] and drag["param_ok"], drag
+    assert outside["answer"] == "unexplained" and outside["correct"], outside
     summary = benchmark.summarise(rows)
     assert summary["named_correctly"] == 1.0 and summary["outside_unexplained"] == 1.0
     text = benchmark.confusion_text(summary)

@@ -25,6 +25,7 @@ import io
 import logging
 import multiprocessing
 import os
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -215,8 +216,9 @@ def fit_all(train: list[LoggedThrow], test: list[LoggedThrow], candidates: list[
             results.append(_fit_one(name))
             log.info("diagnosis: %d/%d candidates fitted (%.0f s)", i + 1, len(names), time.time() - t0)
     else:
-        # spawn, not fork: the server runs diagnoses from a thread of a process with other threads
-        ctx = multiprocessing.get_context("spawn")
+        # fork from a main thread (CLI, tests); spawn when called from a worker thread (the server),
+        # where forking a process with other threads running is unsafe
+        ctx = multiprocessing.get_context("fork" if threading.current_thread() is threading.main_thread() else "spawn")
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init, initargs=(train, test, base_dict)) as pool:
             for i, res in enumerate(pool.map(_fit_one, names)):
                 results.append(res)
