@@ -91,6 +91,8 @@ def _diagnose(args) -> int:
     cands = [c.strip() for c in args.candidates.split(",")] if args.candidates else None
     rep = diagnose(dataset_dir, out, args.test_fraction, args.seed, args.workers, cands, args.policy if args.accuracy_throws else None,
                    args.accuracy_throws, plots=not args.no_plots)
+    carriers = rep["where"]["conditioned"]["carriers"]
+    print(f"Where: the gap is carried by {', '.join(carriers['channels']) or '-'} in the {', '.join(carriers['phases']) or '-'} phase(s)")
     print(f"Verdict: {rep['verdict']['text']}")
     for r in rep["which"]:
         print(f"  {r['effect']:18s} score {r['score']:+.3f}  held-out J {r['j_test_nominal']:.3g} -> {r['j_test']:.3g}  "

@@ -117,6 +117,11 @@ def diagnose(dataset_dir: str | Path, out_dir: str | Path | None = None, test_fr
     nominal_all = rp.replay(throws, [EffectStack()])[0]
     where = rs.decompose(throws, nominal_all)
     where_pred = rs.decompose(throws, nominal_all, predicted=True)
+    where["carriers"] = {
+        "channels": [c for c, v in sorted(where["channels"].items(), key=lambda kv: -kv[1].get("share", 0)) if v.get("share", 0) >= 0.1],
+        "phases": [p for p, v in sorted(where["phases"].items(), key=lambda kv: -kv[1]) if v >= 0.1],
+    }
+    log.info("where: J %.3g, carried by %s in %s", where["J"], where["carriers"]["channels"], where["carriers"]["phases"])
     log.info("where: J %.3g; groups %s; phases %s (%.1f s)", where["J"], {k: round(v, 2) for k, v in where["groups"].items()},
              {k: round(v, 2) for k, v in where["phases"].items()}, time.time() - t0)
 
