@@ -18,7 +18,7 @@ import logging
 import re
 import threading
 import uuid
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from sqlalchemy import select
@@ -72,7 +72,7 @@ class DiagnosisRuns:
             try:
                 data = path.read_bytes()
                 tel = read_telemetry(data)
-            except Exception as e:  # a missing or corrupt file drops that throw, not the run
+            except Exception as e:  # noqa: BLE001  a missing or corrupt file drops that throw, not the run
                 log.warning("throw %s: telemetry %s unusable (%s), skipped", t.id, path, e)
                 continue
             landed = [s for s, p in zip(tel["event_t_s"], tel["event_phase"]) if p == "landed"]
@@ -93,7 +93,7 @@ class DiagnosisRuns:
         with self._lock:
             if self._thread is not None and self._thread.is_alive():
                 raise DiagnosisBusy("a diagnosis is already running; wait for it to finish")
-            run_id = f"{datetime.now(timezone.utc):%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:6]}"
+            run_id = f"{datetime.now(UTC):%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:6]}"
             run_dir = self.root / run_id
             n = self.export(machine_id, limit, run_dir / "dataset")
             if n < 4:
@@ -173,4 +173,4 @@ class DiagnosisRuns:
 
 
 def _now() -> str:
-    return datetime.now(timezone.utc).isoformat()
+    return datetime.now(UTC).isoformat()

@@ -79,7 +79,7 @@ def run_case(case: dict, throws: int, policy: Path, workers: int, workdir: Path)
     best = report["which"][0]
     hf = report["how_far"]["impact_error_m"]
     row = {**case, "answer": verdict["answer"], "named": verdict["effect"], "best": best["effect"], "best_score": best["score"],
-           "best_params": best["params"], "j_test_nominal": best["j_test_nominal"], "wall_s": None}
+           "best_params": best["params"], "j_test_nominal": best["j_test_nominal"], "landed_throws": report["throws"], "wall_s": None}
     if case["library"]:
         row["correct"] = verdict["answer"] == "named" and verdict["effect"] == case["effect"]
         fitted = next(r for r in report["which"] if r["effect"] == case["effect"])
@@ -165,12 +165,12 @@ def format_summary(result: dict) -> str:
         return "n/a" if x is None else f"{100 * x:.0f}%"
 
     lines = [
-        f"Blind diagnosis benchmark: {s['cases']} cases ({s['library_cases']} library, {s['outside_cases']} outside), "
-        f"{result['throws_per_case']} throws each, seed {result['seed']}, {result['wall_s'] / 60:.1f} min",
+        (f"Blind diagnosis benchmark: {s['cases']} cases ({s['library_cases']} library, {s['outside_cases']} outside), "
+         f"{result['throws_per_case']} throws each, seed {result['seed']}, {result['wall_s'] / 60:.1f} min"),
         f"  named correctly (library):               {pct(s['named_correctly'])}",
         f"  parameter within ±{100 * s['tolerance']:.0f}% of truth:          {pct(s['param_within_tolerance'])}",
-        f"  held-out impact gap shrink when named:   mean {pct(s['impact_gap_shrink_mean'])}, min {pct(s['impact_gap_shrink_min'])}, "
-        f">=70% in {pct(s['impact_gap_shrink_cases_ge_70pct'])} of {s['impact_gap_cases']} cases with an impact gap",
+        (f"  held-out impact gap shrink when named:   mean {pct(s['impact_gap_shrink_mean'])}, min {pct(s['impact_gap_shrink_min'])}, "
+         f">=70% in {pct(s['impact_gap_shrink_cases_ge_70pct'])} of {s['impact_gap_cases']} cases with an impact gap"),
         f"  outside the library -> unexplained:      {pct(s['outside_unexplained'])}",
         "",
         confusion_text(s),

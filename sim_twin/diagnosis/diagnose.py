@@ -48,7 +48,7 @@ def split(throws: list, test_fraction: float, seed: int) -> tuple[list, list]:
     n = len(throws)
     if n < 4:
         raise ds.DatasetError(f"need at least 4 landed throws to diagnose (train and held-out), got {n}")
-    n_test = min(max(2, int(round(test_fraction * n))), n - 2)
+    n_test = min(max(2, round(test_fraction * n)), n - 2)
     order = np.random.default_rng(seed).permutation(n)
     test_idx = set(order[:n_test].tolist())
     return [t for i, t in enumerate(throws) if i not in test_idx], [t for i, t in enumerate(throws) if i in test_idx]

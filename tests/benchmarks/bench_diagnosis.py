@@ -23,7 +23,7 @@ sys.path.insert(0, str(REPO))
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--throws", type=int, default=50)
-    parser.add_argument("--profile", type=Path, default=None, help="hidden reality profile (default: valve lag 0.3 s)")
+    parser.add_argument("--profile", type=Path, default=None, help="hidden reality profile (default: passive viscous friction 0.6 1/s, under which every throw lands)")
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
@@ -32,7 +32,7 @@ def main() -> int:
     from sim_twin.diagnosis.diagnose import diagnose
     from sim_twin.profile import RealityProfile
 
-    prof = RealityProfile.load(args.profile).to_dict() if args.profile else {"name": "lag", "effects": [{"effect": "valve_lag", "params": {"lag_s": 0.3}}]}
+    prof = RealityProfile.load(args.profile).to_dict() if args.profile else {"name": "worn_bearings", "effects": [{"effect": "passive_friction", "params": {"viscous_per_s": 0.6}}]}
     with tempfile.TemporaryDirectory() as tmp:
         data = Path(tmp) / "throws"
         t0 = time.time()
