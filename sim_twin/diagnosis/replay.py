@@ -33,7 +33,10 @@ from sim_twin.effects.machine import passive_inertia_of
 from sim_twin.effects.payload import grasp_point, integrate_flight
 from sim_twin.hydraulics import dead_band_flow, lag_step
 from sim_twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
-from sim_twin.physics import ballistic_impact_time, ballistic_position, passive_friction_force
+from sim_twin.physics import (
+    ballistic_impact_time,
+    passive_friction_force,
+)
 from sim_twin.profile import RealityProfile
 
 log = logging.getLogger(__name__)
@@ -129,7 +132,7 @@ def simulate(throws: list[LoggedThrow], stacks: list[EffectStack], base: Reality
         mujoco.mj_forward(cols[sys_col[i]].model, d)
         datas.append(d)
     models = [cols[sys_col[i]].model for i in range(M)]
-    per = lambda f: np.stack([f(cols[c]) for c in sys_col])  # noqa: E731
+    per = lambda f: np.stack([f(cols[c]) for c in sys_col])
     db = per(lambda c: c.hyd.dead_band)
     steps = np.round(per(lambda c: c.hyd.delay_s) / TICK_S, 9)
     i0 = np.floor(steps).astype(int)

@@ -6,7 +6,7 @@ batch of states (:func:`grasp_point`) and numerical flight integration (:func:`i
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
