@@ -35,11 +35,10 @@ def load_model(path: str | Path = MJCF_PATH) -> mujoco.MjModel:
     return model
 
 
-@lru_cache(maxsize=4)
-def passive_inertia(path: str | Path = MJCF_PATH) -> np.ndarray:
-    """(2,) effective inertia (kg m^2) of gripper_pitch and gripper_roll, from the diagonal of
-    MuJoCo's joint-space mass matrix with the gripper hanging plumb (reference arm pose)."""
-    model = load_model(path)
+def passive_inertia_of(model: mujoco.MjModel) -> np.ndarray:
+    """(2,) effective inertia (kg m^2) of gripper_pitch and gripper_roll of ``model``: the diagonal
+    of MuJoCo's joint-space mass matrix with the gripper hanging plumb at a reference arm pose.
+    Used to turn the paper's friction accelerations into forces (sim_twin.physics)."""
     data = mujoco.MjData(model)
     q = np.array([0.0, -0.6, 1.5, 0.9, 0.0, 0.0])
     q[4] = hanging_pitch(q)
@@ -48,3 +47,9 @@ def passive_inertia(path: str | Path = MJCF_PATH) -> np.ndarray:
     full = np.zeros((model.nv, model.nv))
     mujoco.mj_fullM(model, data, full)
     return np.diag(full)[4:6].copy()
+
+
+@lru_cache(maxsize=4)
+def passive_inertia(path: str | Path = MJCF_PATH) -> np.ndarray:
+    """passive_inertia_of the MJCF at ``path`` (cached)."""
+    return passive_inertia_of(load_model(path))

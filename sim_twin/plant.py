@@ -19,13 +19,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import threading
 import time
 from typing import Callable
 
 import numpy as np
 
+from runtime.entrypoint import module_main, stop_on_signals
 from runtime.observation import PHYSICS_PERIOD_S
 from runtime.protocol import keys
 from runtime.protocol.messages import (
@@ -219,10 +219,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     except (ValueError, OSError) as e:
         log.error("cannot start plant: %s", e)
         return 2
-    stop = stop or threading.Event()
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
+    stop = stop_on_signals(stop)
     sim = SimulatedMachine(profile, seed=args.seed)  # random collision-free pose, cabin_turn 0
     twin = TwinMachine(sim, machine_id, clock=time.monotonic)
     inbox = PlantInbox(machine_id)
@@ -291,10 +288,7 @@ def _loop(twin: TwinMachine, inbox: PlantInbox, pub_state, pub_impact, stop: thr
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    parser = argparse.ArgumentParser(prog="python -m sim_twin.plant", description=__doc__.splitlines()[0])
-    build_parser(parser)
-    return run(parser.parse_args(argv))
+    return module_main('python -m sim_twin.plant', __doc__, build_parser, run, argv)
 
 
 if __name__ == "__main__":

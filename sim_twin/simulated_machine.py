@@ -15,12 +15,20 @@ import mujoco
 import numpy as np
 
 from runtime.machine import forward_kinematics
-from sim_twin.effects.machine import passive_inertia_of
 from sim_twin.effects.payload import grasp_point, integrate_flight
 from sim_twin.hydraulics import ValveModel
 from sim_twin.initial_pose import sample_pose
-from sim_twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
-from sim_twin.physics import ballistic_impact_time, ballistic_position, passive_friction_force
+from sim_twin.model import (
+    PAYLOAD_RADIUS_M,
+    load_model,
+    passive_inertia,
+    passive_inertia_of,
+)
+from sim_twin.physics import (
+    ballistic_impact_time,
+    ballistic_position,
+    passive_friction_force,
+)
 from sim_twin.profile import RealityProfile
 
 

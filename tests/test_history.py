@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import csv
 import io
-import math
 from datetime import datetime, timedelta, timezone
 
 import numpy as np

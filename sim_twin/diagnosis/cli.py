@@ -20,6 +20,8 @@ import logging
 import sys
 from pathlib import Path
 
+from runtime.entrypoint import module_main
+
 log = logging.getLogger(__name__)
 
 
@@ -102,10 +104,7 @@ def _diagnose(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    parser = argparse.ArgumentParser(prog="slinger diagnose", description=__doc__.splitlines()[0])
-    build_parser(parser)
-    return run(parser.parse_args(argv))
+    return module_main('slinger diagnose', __doc__, build_parser, run, argv)
 
 
 if __name__ == "__main__":

@@ -29,10 +29,14 @@ from runtime.controller import ControllerGains, pid_ff_law
 from runtime.machine import ACTIVE_VELOCITY_LIMITS
 from sim_twin.diagnosis.dataset import TICK_S, LoggedThrow
 from sim_twin.effects import EffectStack
-from sim_twin.effects.machine import passive_inertia_of
 from sim_twin.effects.payload import grasp_point, integrate_flight
 from sim_twin.hydraulics import dead_band_flow, lag_step
-from sim_twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
+from sim_twin.model import (
+    PAYLOAD_RADIUS_M,
+    load_model,
+    passive_inertia,
+    passive_inertia_of,
+)
 from sim_twin.physics import (
     ballistic_impact_time,
     passive_friction_force,

@@ -52,18 +52,3 @@ class HangingMass(Effect):
         mj_model.body_mass[bid] = self.gripper_mass_kg
 
 
-def passive_inertia_of(mj_model) -> np.ndarray:
-    """(2,) effective inertia (kg m^2) of gripper_pitch and gripper_roll for a (modified) model,
-    at the same reference pose as sim_twin.model.passive_inertia."""
-    import mujoco
-
-    from runtime.machine import hanging_pitch
-
-    data = mujoco.MjData(mj_model)
-    q = np.array([0.0, -0.6, 1.5, 0.9, 0.0, 0.0])
-    q[4] = hanging_pitch(q)
-    data.qpos[:] = q
-    mujoco.mj_forward(mj_model, data)
-    full = np.zeros((mj_model.nv, mj_model.nv))
-    mujoco.mj_fullM(mj_model, data, full)
-    return np.diag(full)[4:6].copy()
