@@ -20,7 +20,8 @@ from typing import Callable
 
 import numpy as np
 
-from runtime.executor import ThrowExecutor, TickOutput
+from runtime.executor import ThrowExecutor
+from runtime.outcome import TickOutput
 from runtime.protocol import keys
 from runtime.protocol.messages import (
     AbortAck,
