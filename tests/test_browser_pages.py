@@ -100,3 +100,21 @@ def test_viewer_cannot_see_admin_pages_controls(live, browser):  # noqa: F811
     page.fill("#password", "wrong-password")
     page.click("#login")
     page.locator("#login-error", has_text="invalid user name or password").wait_for(timeout=10_000)
+
+
+def test_diagnosis_page_is_linked_everywhere_and_refuses_a_machine_without_throws(live, browser):  # noqa: F811
+    base, app = live
+    _seed(app, n=3)  # rows without telemetry: nothing the diagnosis can replay
+    page = browser.new_page()
+    log_in(page, base)
+    for name in ("history", "accuracy", "policies", "fleet", "admin"):
+        page.goto(f"{base}/console/{name}.html")
+        assert page.locator('nav a[href="diagnosis.html"]').count() == 1, name
+    page.goto(f"{base}/console/diagnosis.html")
+    page.fill("#machine_id", "m1")
+    page.click("#start button[type=submit]")
+    msg = page.locator("#start-msg")
+    wait_for(lambda: msg.text_content() not in ("", "exporting throws…"), 20, "diagnosis start answered")
+    assert "throw" in msg.text_content().lower()  # the reason names the missing logged throws
+    assert "started" not in msg.text_content()
+    page.close()
