@@ -13,6 +13,7 @@ import json
 import logging
 import tempfile
 import threading
+from datetime import datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,14 @@ from sqlalchemy.orm import Session, sessionmaker
 from runtime.observation import observation_size
 from runtime.policy import PolicyError, PolicyRunner, build_manifest
 from runtime.protocol import keys
-from runtime.protocol.messages import PolicyOffer, PolicyOfferAck, PolicyUpdate, ValidationError, decode, encode
+from runtime.protocol.messages import (
+    PolicyOffer,
+    PolicyOfferAck,
+    PolicyUpdate,
+    ValidationError,
+    decode,
+    encode,
+)
 from server.auth import audit
 from server.db.models import PolicyDeployment, PolicyVersion
 from server.db.types import utcnow
@@ -106,7 +114,10 @@ class PolicyService:
     def _evaluate(self, version_id: int) -> None:
         """The paper's protocol on a small sample (settings.eval_throws per distance), in this
         process (no worker pool: forking a process that holds Zenoh threads is unsafe)."""
-        from sim_twin.evaluate import _throw_batch, summarise  # the protocol's own throw loop
+        from sim_twin.evaluate import (  # the protocol's own throw loop
+            _throw_batch,
+            summarise,
+        )
 
         with self.sessions.begin() as db:
             row = db.get(PolicyVersion, version_id)
@@ -214,6 +225,25 @@ class PolicyService:
             dep.status = "active" if msg.status == "loaded" else "failed"
             dep.reason, dep.confirmed_at = msg.reason, utcnow()
         log.info("machine %s %s policy %s: %s", msg.machine_id, msg.mode, msg.version, msg.status)
+
+
+OFFER_TIMEOUT_S = 120.0
+"""A promotion still ``offered`` this long after it was requested failed: the runtime never
+confirmed it (it is offline, or never got between throws)."""
+
+
+def expire_stale_offers(db: Session, now: datetime | None = None, timeout_s: float = OFFER_TIMEOUT_S) -> int:
+    """Mark deployments left ``offered`` for longer than ``timeout_s`` as failed, with the reason.
+
+    Called before deployments are listed (no background timer). Returns how many were expired;
+    the caller commits.
+    """
+    cutoff = (now or utcnow()) - timedelta(seconds=timeout_s)
+    rows = db.scalars(select(PolicyDeployment).where(
+        PolicyDeployment.status == "offered", PolicyDeployment.requested_at < cutoff)).all()
+    for row in rows:
+        row.status, row.reason = "failed", f"no confirmation from the runtime within {timeout_s:.0f} s"
+    return len(rows)
 
 
 def _probe_finite(runner: PolicyRunner, n: int = 8) -> None:

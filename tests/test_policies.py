@@ -103,3 +103,25 @@ def test_promote_and_rollback_on_a_real_runtime(client, machine, tmp_path, quick
     runs("pa")
     actions = [x["action"] for x in client.get("/api/audit").json()]
     assert actions.count("promote") == 2 and actions.count("rollback") == 1
+
+
+def test_unconfirmed_promotion_times_out_with_reason(client, tmp_path, quick_eval):
+    from datetime import timedelta
+
+    from server.db.models import Machine, PolicyDeployment
+    from server.db.types import utcnow
+    from server.policies import OFFER_TIMEOUT_S
+
+    p = upload(client, write_test_policy(tmp_path, "2d"), name="pt").json()
+    with client.app.state.sessions.begin() as db:
+        db.add(Machine(id="m9", simulated=True))
+        db.flush()
+        db.add_all([
+            PolicyDeployment(machine_id="m9", mode="2d", policy_version_id=p["id"], status="offered",
+                             requested_by="admin", requested_at=utcnow() - timedelta(seconds=OFFER_TIMEOUT_S + 5)),
+            PolicyDeployment(machine_id="m9", mode="2d", policy_version_id=p["id"], status="offered",
+                             requested_by="admin", requested_at=utcnow()),
+        ])
+    deps = client.get("/api/policies/deployments", params={"machine_id": "m9"}).json()
+    assert [d["status"] for d in deps] == ["offered", "failed"]  # newest first: the fresh offer waits
+    assert "no confirmation" in deps[1]["reason"]

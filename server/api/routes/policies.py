@@ -13,6 +13,7 @@ from sqlalchemy import select
 from server.api.deps import AdminDep, SessionDep, ViewerDep
 from server.db.models import PolicyDeployment, PolicyVersion, Throw
 from server.history import accuracy
+from server.policies import expire_stale_offers
 from server.throws import ThrowRefused
 
 router = APIRouter(prefix="/api/policies", tags=["policies"])
@@ -104,7 +105,10 @@ async def upload_policy(
 @router.get("/deployments", response_model=list[DeploymentOut])
 def deployments(db: SessionDep, _user: ViewerDep, machine_id: str | None = None,
                 limit: int = Query(50, ge=1, le=500)) -> list[DeploymentOut]:
-    """Promotions and rollbacks, newest first."""
+    """Promotions and rollbacks, newest first (an offer the runtime never confirmed within
+    server.policies.OFFER_TIMEOUT_S is shown failed, with the reason)."""
+    if expire_stale_offers(db):
+        db.commit()
     stmt = select(PolicyDeployment, PolicyVersion.name).join(PolicyVersion).order_by(
         PolicyDeployment.id.desc()).limit(limit)
     if machine_id:
