@@ -29,6 +29,21 @@ const fmtVec = (v) => (v ? v.map((x) => fmt(x)).join(", ") : "–");
 const ROLE_RANK = { viewer: 0, operator: 1, admin: 2 };
 const can = (role) => session.user && ROLE_RANK[session.user.role] >= ROLE_RANK[role];
 
+// The pages of the console, in the order of the navigation bar; [href, label, role needed].
+const SITE_PAGES = [
+  ["index.html", "Console"], ["history.html", "History"], ["accuracy.html", "Accuracy"],
+  ["policies.html", "Policies"], ["fleet.html", "Fleet"], ["diagnosis.html", "Diagnosis"],
+  ["admin.html", "Users", "admin"], ["/docs", "API"],
+];
+
+function renderNav() {
+  for (const nav of document.querySelectorAll("nav[data-site-nav]")) {
+    nav.innerHTML = SITE_PAGES.map(([href, label, role]) =>
+      `<a href="${href}"${role ? ` data-role="${role}"` : ""}${href.startsWith("/") ? ' target="_blank"' : ""}>${label}</a>`).join(" ");
+  }
+}
+renderNav(); // common.js is loaded at the end of <body>: the header is already there
+
 async function whoAmI() {
   session.user = await api("GET", "/api/auth/me");
   const who = $("who");
