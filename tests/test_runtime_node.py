@@ -9,11 +9,9 @@ import base64
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +41,7 @@ from runtime.throw_geometry import ARM_PLANE_OFFSET_M
 from runtime.zenoh_session import open_session
 from sim_twin.plant import TwinMachine
 from sim_twin.simulated_machine import SimulatedMachine
+from tests.conftest import free_port, wait_for
 from tests.fixtures import write_test_policy
 
 REPO = Path(__file__).resolve().parents[1]
@@ -194,12 +193,6 @@ def test_wrong_onnx_file_is_refused(tmp_path, policy_path):
 
 
 # --- Zenoh integration ------------------------------------------------------------------------
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _spawn(args: list[str], log_path: Path) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     log = open(log_path, "wb")
@@ -217,18 +210,8 @@ def _stop(proc: subprocess.Popen) -> int | None:
     return proc.returncode
 
 
-def _wait_for(predicate, timeout_s: float, what: str):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
 def test_plant_and_runtime_throw_over_zenoh(tmp_path, policy_path):
-    port, mid = _free_port(), "itest"
+    port, mid = free_port(), "itest"
     endpoint = f"tcp/127.0.0.1:{port}"
     outbox = tmp_path / "outbox"
     runtime = _spawn(["runtime.node", "--machine-id", mid, "--policy-2d", str(policy_path), "--listen", endpoint, "--outbox-dir", str(outbox)], tmp_path / "runtime.log")
@@ -256,10 +239,10 @@ def test_plant_and_runtime_throw_over_zenoh(tmp_path, policy_path):
                         return decode(RuntimeInfo, reply.ok.payload.to_bytes())
                 return None
 
-            _wait_for(lambda: runtime.poll() is not None or info(), 20, "runtime up")
+            wait_for(lambda: runtime.poll() is not None or info(), 20, "runtime up")
             assert runtime.poll() is None, (tmp_path / "runtime.log").read_text()
             plant = _spawn(["sim_twin.plant", "--machine-id", mid, "--connect", endpoint, "--seed", "3"], tmp_path / "plant.log")
-            _wait_for(lambda: (i := info()) is not None and i.machine_online, 20, "machine online")
+            wait_for(lambda: (i := info()) is not None and i.machine_online, 20, "machine online")
 
             acks = [decode(ThrowAck, r.ok.payload.to_bytes()) for r in session.get(keys.throw(mid), payload=_throw_payload("z1", machine_id=mid), timeout=5.0) if r.ok]
             assert len(acks) == 1 and acks[0].accepted, acks
@@ -271,9 +254,9 @@ def test_plant_and_runtime_throw_over_zenoh(tmp_path, policy_path):
             tel = read_telemetry(base64.b64decode(res.telemetry_mcap_b64))
             assert len(tel["t_s"]) > 10 and np.all(np.diff(tel["t_s"]) > 0)
             assert 0.007 < np.median(np.diff(tel["t_s"])) < 0.013  # ~100 Hz over the wire
-            _wait_for(lambda: [s.phase for s in statuses][-1:] == ["landed"], 5, "landed status")
+            wait_for(lambda: [s.phase for s in statuses][-1:] == ["landed"], 5, "landed status")
             assert [s.phase for s in statuses] == ["preparing", "swinging", "released", "landed"]
-            _wait_for(lambda: not list(outbox.glob("*.json")), 5, "outbox drained")
+            wait_for(lambda: not list(outbox.glob("*.json")), 5, "outbox drained")
             for sub in subs:
                 sub.undeclare()
     finally:
