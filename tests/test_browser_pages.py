@@ -109,12 +109,13 @@ def test_diagnosis_page_is_linked_everywhere_and_refuses_a_machine_without_throw
     log_in(page, base)
     for name in ("history", "accuracy", "policies", "fleet", "admin"):
         page.goto(f"{base}/console/{name}.html")
+        page.locator('nav a[href="diagnosis.html"]').wait_for(state="attached", timeout=20_000)
         assert page.locator('nav a[href="diagnosis.html"]').count() == 1, name
     page.goto(f"{base}/console/diagnosis.html")
     page.fill("#machine_id", "m1")
     page.click("#start button[type=submit]")
     msg = page.locator("#start-msg")
     wait_for(lambda: msg.text_content() not in ("", "exporting throws…"), 20, "diagnosis start answered")
-    assert "throw" in msg.text_content().lower()  # the reason names the missing logged throws
-    assert "started" not in msg.text_content()
+    text = msg.text_content()
+    assert "throw" in text.lower() and "started" not in text, text  # the reason names the missing throws
     page.close()
