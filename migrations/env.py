@@ -64,10 +64,17 @@ def run_migrations_online() -> None:
     engine.dispose()
 
 
+def _ours(name, type_, _parent_names) -> bool:
+    """Tables of the job queue (Huey's PostgresStorage, prefix ``huey_``) are not ours: keep them
+    out of comparisons (``alembic check``)."""
+    return not (type_ == "table" and name and name.startswith("huey_"))
+
+
 def _run(connection) -> None:  # noqa: ANN001
     context.configure(
         connection=connection,
         target_metadata=target_metadata,
+        include_name=_ours,
         render_as_batch=connection.dialect.name == "sqlite",
         compare_type=True,
     )

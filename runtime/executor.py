@@ -8,7 +8,6 @@ evaluation and preview code::
     refusal = ex.start(ThrowRequest(...), state)
     while True:
         out = ex.tick(state)                  # one call per 100 Hz machine state
-        if out.sim_reset: ...                 # apply it to the simulated machine
         machine.step(out.valve_u, out.gripper_open)
         state = <MachineState of the machine>
         if <payload landed>: out = ex.on_impact(report)
@@ -16,15 +15,13 @@ evaluation and preview code::
 
 Phases (messages.ThrowPhase): preparing -> swinging -> released -> landed | failed | aborted.
 
-* preparing: gripper commanded closed, valves neutral. On a simulated machine without a loaded
-  payload (payload gone or gripper open) one SimReset is requested (random collision-free pose,
-  fresh payload: stands for picking up a new payload); a loaded simulated machine throws from
-  where it stands, so that a preview from its current state predicts the throw (the runtime
-  service reloads a simulated machine right after each landed or failed throw). Then wait until
-  the reset, if any, is seen (``state.reset_count`` changed, or ``reset_settle_s`` passed
-  if the machine does not report it), the payload is attached, the gripper closed and both
-  passive joints slower than ``passive_still_radps``. Timeout -> failed.
+* preparing: gripper commanded closed, valves neutral; wait until the payload is attached, the
+  gripper closed and both passive joints slower than ``passive_still_radps``. Timeout -> failed.
+  The executor never asks whether the machine is simulated: loading a payload is the machine's
+  business (the simulated machine, sim_twin.plant, reloads by itself after its payload landed).
 * swinging: every SUBSTEPS-th tick (12.5 Hz) the observation is built from the history
+  and the policy's aim target (the requested target, or a site-adapted version's aim correction
+  of it: PolicyRunner.aim_target)
   (control-step history, newest first, filled with the swing-start state; previous action zeros),
   the policy runs and its action is decoded to velocity references and a release flag; the
   controller tracks the latest references at 100 Hz. The first release flag commands the gripper
@@ -56,12 +53,7 @@ from runtime.observation import (
 )
 from runtime.outcome import PhaseEvent, ThrowOutcome, TickOutput
 from runtime.policy import PolicyError, PolicyRunner
-from runtime.protocol.messages import (
-    ImpactReport,
-    MachineState,
-    SimReset,
-    ThrowRequest,
-)
+from runtime.protocol.messages import ImpactReport, MachineState, ThrowRequest
 from runtime.telemetry import TelemetryRecorder
 from runtime.throw_geometry import impact_errors, target_refusal
 
@@ -71,16 +63,14 @@ class ExecutorConfig:
     """Timeouts and thresholds (seconds of machine time, rad/s).
 
     Attributes:
-        prepare_timeout_s: longest wait in preparing (reset + payload + gripper at rest).
+        prepare_timeout_s: longest wait in preparing (payload loaded, gripper closed, at rest).
         passive_still_radps: passive joints must be slower than this to start swinging.
-        reset_settle_s: wait after a SimReset request when the machine reports no reset_count.
         release_timeout_s: the policy must release within this time of swing start.
         impact_timeout_s: an impact must be reported within this time of the release command.
     """
 
     prepare_timeout_s: float = 20.0
     passive_still_radps: float = 0.05
-    reset_settle_s: float = 0.5
     release_timeout_s: float = 10.0
     impact_timeout_s: float = 6.0
 
@@ -90,10 +80,8 @@ class _Throw:
     request: ThrowRequest
     policy: PolicyRunner
     start_stamp_s: float
+    aim_m: np.ndarray  # the target the policy is given (runtime.aim: the site's aim correction)
     phase: str = "preparing"
-    reset_requested: bool = False
-    reset_count0: int | None = None
-    reset_stamp_s: float = 0.0
     swing_stamp_s: float = 0.0
     swing_ticks: int = 0
     q_hist: np.ndarray = field(default_factory=lambda: np.zeros((HISTORY_STEPS, 6)))
@@ -172,7 +160,7 @@ class ThrowExecutor:
         refusal = target_refusal(request.mode, request.target_m, float(state.q[0]), policy.target_range_m)
         if refusal:
             return refusal
-        self._throw = _Throw(request=request, policy=policy, start_stamp_s=state.stamp_s)
+        self._throw = _Throw(request=request, policy=policy, start_stamp_s=state.stamp_s, aim_m=policy.aim_target(request.target_m))
         self._last_stamp_s = state.stamp_s
         self._gripper_cmd = False
         self.controller.neutral()
@@ -230,27 +218,14 @@ class ThrowExecutor:
     # --- phases -----------------------------------------------------------------------------
     def _tick_preparing(self, th: _Throw, state: MachineState) -> TickOutput:
         cfg = self.config
-        reset = None
-        loaded = state.payload_attached and not state.gripper_open
-        if state.simulated and not loaded and not th.reset_requested:
-            reset = SimReset(machine_id=state.machine_id, stamp_s=state.stamp_s)
-            th.reset_requested, th.reset_count0, th.reset_stamp_s = True, state.reset_count, state.stamp_s
-        if not state.simulated or not th.reset_requested:
-            reset_seen = True
-        elif reset is not None:
-            reset_seen = False
-        elif state.reset_count is not None and th.reset_count0 is not None:
-            reset_seen = state.reset_count != th.reset_count0
-        else:
-            reset_seen = state.stamp_s - th.reset_stamp_s >= cfg.reset_settle_s
         still = bool(np.all(np.abs(np.asarray(state.qd[4:6])) < cfg.passive_still_radps))
-        if reset_seen and state.payload_attached and not state.gripper_open and still:
+        if state.payload_attached and not state.gripper_open and still:
             return self._begin_swing(th, state)
         if state.stamp_s - th.start_stamp_s > cfg.prepare_timeout_s:
             return self._finish("failed", f"not ready to swing within {cfg.prepare_timeout_s:.0f} s (payload, gripper or passive joints)", state.stamp_s)
         out = self.controller.neutral()
         self._record(th, state, out.valve_u, out.qd_ref)
-        return self._output(out, sim_reset=reset)
+        return self._output(out)
 
     def _begin_swing(self, th: _Throw, state: MachineState) -> TickOutput:
         th.phase, th.swing_stamp_s, th.swing_ticks = "swinging", state.stamp_s, 0
@@ -290,7 +265,7 @@ class ThrowExecutor:
         th.q_hist[0], th.qd_hist[0] = q, qd
         mode = th.request.mode
         opened = 1.0 if state.gripper_open else 0.0
-        obs = build_observation(np, mode, th.q_hist, th.qd_hist, th.prev_action, th.request.target_m, opened)
+        obs = build_observation(np, mode, th.q_hist, th.qd_hist, th.prev_action, th.aim_m, opened)
         try:
             action = np.asarray(th.policy.act(obs), dtype=np.float32)
         except PolicyError as e:
@@ -330,6 +305,7 @@ class ThrowExecutor:
             failure_reason=None if status == "landed" else detail,
             target_m=np.asarray(th.request.target_m, dtype=float),
             policy_version=th.policy.version,
+            policy_sha256=th.policy.sha256,
             start_stamp_s=th.start_stamp_s,
             end_stamp_s=end,
             telemetry=th.recorder,
@@ -340,7 +316,7 @@ class ThrowExecutor:
         self._throw = None
         return self._output(self.controller.neutral())
 
-    def _output(self, ctrl, sim_reset: SimReset | None = None) -> TickOutput:
+    def _output(self, ctrl) -> TickOutput:
         events, self._events = tuple(self._events), []
         finished, self._finished = self._finished, None
-        return TickOutput(ctrl.valve_u.copy(), ctrl.qd_ref.copy(), self._gripper_cmd, sim_reset, events, finished)
+        return TickOutput(ctrl.valve_u.copy(), ctrl.qd_ref.copy(), self._gripper_cmd, events, finished)

@@ -3,11 +3,16 @@
 Wiring (keys in runtime/protocol/README.md):
 
 * subscribes keys.state(id) and keys.impact(id) -> runtime.service.RuntimeService;
-* publishes keys.valve_cmd (every state tick), keys.gripper_cmd (on change), keys.sim_reset,
-  keys.status (phase changes);
-* queryables keys.throw (ThrowRequest -> ThrowAck), keys.abort (AbortRequest -> AbortAck),
-  keys.info (-> RuntimeInfo);
-* liveliness token keys.runtime_alive(id);
+* publishes keys.valve_cmd (every state tick), keys.gripper_cmd (on change), keys.status (phase
+  changes), keys.runtime_state (RuntimeInfo, 2 Hz and on change);
+* queryables keys.throw (ThrowRequest -> ThrowAck), keys.abort (AbortRequest -> AbortAck,
+  latches E-STOP), keys.estop_reset (EstopReset -> EstopResetAck), keys.info (-> RuntimeInfo);
+* exclusive claim: at start it asks for keys.runtime_alive(id) liveliness; if another runtime
+  holds it, it exits with code 3 ("machine m1 already has a runtime"); else it declares the
+  token and picks its epoch = int(time.time() * 1000) (commands for another epoch are refused);
+* signed commands: ``--command-key PATH`` (64 hex digits, ``slinger certs`` writes
+  ``<site_dir>/machines/<id>/command.key``). Without it every throw, E-STOP reset and policy
+  offer is refused "no command key configured" (aborts still work);
 * a watchdog thread (every 50 ms): no valid state for 0.2 s during a throw -> failed;
 * the outbox delivers finished ThrowResults to keys.THROW_RESULT until the server acks;
 * queryable keys.policy_offer (PolicyOffer -> PolicyOfferAck): runtime.policy_update fetches,
@@ -22,8 +27,10 @@ from __future__ import annotations
 import argparse
 import logging
 import threading
+import time
 from pathlib import Path
 
+from runtime.command_auth import CommandVerifier, load_key
 from runtime.controller import JointVelocityController
 from runtime.entrypoint import module_main, stop_on_signals
 from runtime.executor import ThrowExecutor
@@ -33,7 +40,10 @@ from runtime.policy_update import PolicyUpdater, zenoh_fetcher
 from runtime.protocol import keys
 from runtime.protocol.messages import encode
 from runtime.service import LINK_TIMEOUT_S, RuntimeService
-from runtime.zenoh_session import open_session
+from runtime.zenoh_session import add_session_arguments, claimed_by_other, open_session, session_options
+
+EXIT_ALREADY_CLAIMED = 3
+"""Exit code when another process already holds the machine id's liveliness token."""
 
 log = logging.getLogger(__name__)
 
@@ -50,9 +60,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--machine-id", required=True, help="machine id, [A-Za-z0-9_-]{1,64}")
     parser.add_argument("--policy-2d", type=Path, default=None, help="2D policy ONNX file (manifest beside it)")
     parser.add_argument("--policy-3d", type=Path, default=None, help="3D policy ONNX file (manifest beside it)")
-    parser.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to (repeatable)")
-    parser.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
-    parser.add_argument("--mode", default="peer", choices=("peer", "client"), help="Zenoh session mode")
+    add_session_arguments(parser)
+    parser.add_argument("--command-key", type=Path, default=None,
+                        help="this machine's command key file (64 hex digits); without it every throw, E-STOP reset "
+                             "and policy offer is refused")
     parser.add_argument("--outbox-dir", type=Path, default=None, help="durable outbox directory (default ~/.slinger/outbox/<machine-id>)")
     parser.add_argument("--policy-dir", type=Path, default=None, help="where promoted policy files are kept (default: <outbox-dir>-policies)")
     parser.add_argument("--link-timeout", type=float, default=LINK_TIMEOUT_S, help="seconds without machine state that fail a throw")
@@ -80,27 +91,38 @@ def load_policies(args: argparse.Namespace) -> dict[str, PolicyRunner]:
 
 def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     """Run the runtime until SIGINT/SIGTERM (or ``stop`` is set). Returns the exit code
-    (2: bad arguments or policy)."""
+    (2: bad arguments, policy or command key; 3: the machine already has a runtime)."""
     try:
         machine_id = keys.validate_machine_id(args.machine_id)
         policies = load_policies(args)
-    except (ValueError, PolicyError) as e:
+        key = load_key(args.command_key) if args.command_key else None
+        zenoh_opts = session_options(args, f"runtime-{machine_id}")
+    except (ValueError, OSError, PolicyError) as e:
         log.error("cannot start runtime: %s", e)
         return 2
+    if key is None:
+        log.warning("no command key configured (--command-key): every throw, E-STOP reset and policy offer will be refused")
     stop = stop_on_signals(stop)
     outbox_dir = args.outbox_dir or default_outbox_dir(machine_id)
     executor = ThrowExecutor(policies, JointVelocityController())
 
-    with open_session(args.mode, listen=args.listen, connect=args.connect) as session:
+    with open_session(**zenoh_opts) as session:
+        if claimed_by_other(session, keys.runtime_alive(machine_id)):
+            log.error("machine %s already has a runtime: not starting a second one", machine_id)
+            return EXIT_ALREADY_CLAIMED
+        token = session.liveliness().declare_token(keys.runtime_alive(machine_id))
+        epoch = int(time.time() * 1000)
+        verifier = CommandVerifier(key, epoch) if key is not None else None
         pubs = {
             k: session.declare_publisher(k)
-            for k in (keys.valve_cmd(machine_id), keys.gripper_cmd(machine_id), keys.sim_reset(machine_id), keys.status(machine_id))
+            for k in (keys.valve_cmd(machine_id), keys.gripper_cmd(machine_id), keys.status(machine_id), keys.runtime_state(machine_id))
         }
         outbox = Outbox(outbox_dir, zenoh_deliverer(session))
         status_pub = session.declare_publisher(keys.policy_status(machine_id))
+        service = RuntimeService(machine_id, executor, lambda k, data: pubs[k].put(data), outbox.put,
+                                 verifier=verifier, link_timeout_s=args.link_timeout, epoch=epoch)
         updater = PolicyUpdater(machine_id, getattr(args, "policy_dir", None) or Path(f"{outbox_dir}-policies"),
-                                zenoh_fetcher(session), lambda msg: status_pub.put(encode(msg)))
-        service = RuntimeService(machine_id, executor, lambda key, data: pubs[key].put(data), outbox.put, link_timeout_s=args.link_timeout)
+                                zenoh_fetcher(session), lambda msg: status_pub.put(encode(msg)), authorize=service.authorize)
 
         def reply(handler):
             def on_query(query):
@@ -117,18 +139,20 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             session.declare_subscriber(keys.impact(machine_id), lambda s: service.on_impact(s.payload.to_bytes())),
             session.declare_queryable(keys.throw(machine_id), reply(service.handle_throw)),
             session.declare_queryable(keys.abort(machine_id), reply(service.handle_abort)),
+            session.declare_queryable(keys.estop_reset(machine_id), reply(service.handle_estop_reset)),
             session.declare_queryable(keys.info(machine_id), reply(lambda _p: service.handle_info())),
             session.declare_queryable(keys.policy_offer(machine_id), reply(updater.handle_offer)),
             status_pub,
-            session.liveliness().declare_token(keys.runtime_alive(machine_id)),
+            token,
             *pubs.values(),
         ]
         outbox.start()
-        log.info("runtime %s up: policies %s, outbox %s", machine_id, sorted(policies), outbox_dir)
+        log.info("runtime %s up: epoch %d, policies %s, outbox %s", machine_id, epoch, sorted(policies), outbox_dir)
         try:
             while not stop.wait(WATCHDOG_PERIOD_S):
                 service.check_watchdog()
                 updater.apply_pending(executor, service.lock)
+                service.publish_info()
         finally:
             service.shutdown()
             outbox.stop()

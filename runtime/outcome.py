@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.protocol.messages import ImpactReport, SimReset, ThrowResult
+from runtime.protocol.messages import ImpactReport, ThrowResult
 from runtime.telemetry import TelemetryRecorder, write_mcap
 
 
@@ -52,6 +52,7 @@ class ThrowOutcome:
     release_stamp_s: float | None = None
     opening_stamp_s: float | None = None
     impact: ImpactReport | None = None
+    policy_sha256: str | None = None
 
     @property
     def duration_s(self) -> float:
@@ -75,6 +76,7 @@ class ThrowOutcome:
             downrange_error_m=self.downrange_error_m,
             crossrange_error_m=self.crossrange_error_m,
             policy_version=self.policy_version,
+            policy_sha256=self.policy_sha256,
             release_stamp_s=self.release_stamp_s,
             opening_stamp_s=self.opening_stamp_s,
             duration_s=self.duration_s,
@@ -90,7 +92,6 @@ class TickOutput:
         valve_u: (4,) valve commands in [-1, 1] (ACTIVE_JOINTS order); zeros = neutral.
         qd_ref: (4,) references the controller tracked after safety clipping, rad/s, m/s.
         gripper_open: the gripper-open command.
-        sim_reset: a SimReset to send to a simulated machine, or None.
         events: phase changes since the previous output.
         finished: the outcome of a throw that ended since the previous output, or None.
     """
@@ -98,6 +99,5 @@ class TickOutput:
     valve_u: np.ndarray
     qd_ref: np.ndarray
     gripper_open: bool
-    sim_reset: SimReset | None = None
     events: tuple[PhaseEvent, ...] = ()
     finished: ThrowOutcome | None = None

@@ -8,7 +8,10 @@ graph's input/output shapes and that it returns finite actions.
 
 Manifest fields (``format`` = ``slinger-policy/1``): name, mode, joint_order,
 observation_layout [[block, size], ...], observation_size, action_size, control_period_s,
-release_threshold, target_range_m [min, max], onnx_sha256, input_name, output_name, training {...}.
+release_threshold, target_range_m [min, max], onnx_sha256, input_name, output_name, training {...};
+optional ``aim_correction`` (a version adapted to a site, runtime.aim: checked against the copy
+sealed in the ONNX file's metadata) and ``site_profile`` (the site's fitted reality profile, used
+by the server's previews; not read here).
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from runtime.aim import ONNX_METADATA_KEY, AimCorrection, canonical_json
 from runtime.machine import JOINT_NAMES
 from runtime.observation import (
     CONTROL_PERIOD_S,
@@ -71,6 +75,7 @@ class PolicyRunner:
     manifest: dict
     path: Path
     _session: object
+    aim_correction: AimCorrection | None = None
 
     @property
     def mode(self) -> str:
@@ -137,11 +142,18 @@ class PolicyRunner:
             raise PolicyError(f"policy input has {inputs[0].shape[-1]} features, mode {mode} needs {observation_size(mode)}")
         if outputs[0].shape[-1] != num_actions(mode):
             raise PolicyError(f"policy output has {outputs[0].shape[-1]} values, mode {mode} needs {num_actions(mode)}")
-        runner = cls(manifest, onnx_path, session)
+        runner = cls(manifest, onnx_path, session, _aim_correction(manifest, session))
         probe = runner.act(np.zeros(observation_size(mode), dtype=np.float32))
         if not np.all(np.isfinite(probe)):
             raise PolicyError("policy returns non-finite actions on a zero observation")
         return runner
+
+    def aim_target(self, target_m) -> np.ndarray:
+        """The target (3,) the policy is given for a requested target (3,), machine frame, m:
+        the requested one, or the site's aim correction applied to it (runtime.aim)."""
+        if self.aim_correction is None:
+            return np.asarray(target_m, dtype=float)
+        return self.aim_correction.aim(target_m)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         """One policy evaluation.
@@ -162,6 +174,25 @@ class PolicyRunner:
             raise PolicyError("non-finite observation")
         name = self._session.get_inputs()[0].name
         return self._session.run(None, {name: obs})[0][0]
+
+
+def _aim_correction(manifest: dict, session) -> AimCorrection | None:
+    """The manifest's aim correction, checked against the one sealed in the ONNX metadata.
+
+    Raises:
+        PolicyError: an invalid table, or manifest and file disagree (one has it, the other
+            not, or the tables differ).
+    """
+    block = manifest.get("aim_correction")
+    sealed = session.get_modelmeta().custom_metadata_map.get(ONNX_METADATA_KEY)
+    if block is None and sealed is None:
+        return None
+    if block is None or sealed is None or canonical_json(block) != sealed:
+        raise PolicyError("the manifest's aim_correction does not match the one sealed in the ONNX file")
+    try:
+        return AimCorrection.from_block(block)
+    except ValueError as e:
+        raise PolicyError(str(e)) from e
 
 
 def build_manifest(

@@ -1,7 +1,8 @@
 """Policy updates on the runtime: accept an offered policy version, fetch its file from the
 server, check its SHA-256 and manifest, and swap it into the executor only between throws.
 
-Flow: PolicyOffer (query) -> PolicyOfferAck at once -> a worker thread fetches the bytes
+Flow: PolicyOffer (query; must pass ``authorize``: signed with the machine's command key for
+this runtime's epoch, fresh, not replayed) -> PolicyOfferAck at once -> a worker thread fetches the bytes
 (keys.policy_file), writes ``<policy_dir>/<sha256>.onnx`` + manifest, loads it with
 runtime.policy.PolicyRunner (all manifest, hash and graph checks) -> pending;
 :meth:`PolicyUpdater.apply_pending` (called periodically by the node) installs pending policies
@@ -31,11 +32,14 @@ class PolicyUpdater:
         policy_dir: where fetched policy files are kept.
         fetch: returns the file bytes for a SHA-256 (raises on failure).
         publish: sends a PolicyUpdate.
+        authorize: returns why an offer may not run (e.g. RuntimeService.authorize: "unsigned",
+            "no command key configured", ...) or None; offers it refuses are acked accepted=False.
     """
 
     def __init__(self, machine_id: str, policy_dir: Path, fetch: Callable[[str], bytes],
-                 publish: Callable[[PolicyUpdate], None]):
+                 publish: Callable[[PolicyUpdate], None], authorize: Callable[[PolicyOffer], str | None]):
         self.machine_id = machine_id
+        self.authorize = authorize
         self.policy_dir = Path(policy_dir)
         self.fetch, self.publish = fetch, publish
         self._pending: dict[str, PolicyRunner] = {}
@@ -50,6 +54,10 @@ class PolicyUpdater:
             return encode(PolicyOfferAck(machine_id=self.machine_id, accepted=False, reason=f"malformed offer: {e.errors()[0]['msg']}"))
         if offer.machine_id != self.machine_id:
             return encode(PolicyOfferAck(machine_id=self.machine_id, accepted=False, reason=f"this runtime serves {self.machine_id!r}"))
+        denied = self.authorize(offer)
+        if denied:
+            log.warning("policy offer %s refused: %s", offer.version, denied)
+            return encode(PolicyOfferAck(machine_id=self.machine_id, accepted=False, reason=denied))
         if offer.manifest.get("mode") != offer.mode:
             return encode(PolicyOfferAck(machine_id=self.machine_id, accepted=False, reason="manifest mode differs from the offer"))
         t = threading.Thread(target=self._install, args=(offer,), name="policy-fetch", daemon=True)

@@ -5,10 +5,19 @@ threads), decodes and checks every message (malformed, NaN or foreign-machine me
 and dropped), publishes through an injected ``send(key, payload)`` and hands finished throws to
 the outbox. :mod:`runtime.node` connects it to a Zenoh session; tests drive it directly.
 
-Per valid MachineState: executor.tick -> ValveCommand (every tick, neutral when idle),
-GripperCommand (on change), SimReset (when requested), ThrowStatus (on phase changes),
-ThrowResult (to the outbox). Watchdog (:meth:`check_watchdog`, called periodically): no valid
-state for ``link_timeout_s`` during a throw -> neutral valves, throw failed "machine link lost".
+Per valid MachineState: executor.tick -> ValveCommand (every tick, neutral when idle; carries
+this runtime's claim epoch), GripperCommand (on change), ThrowStatus (on phase changes),
+ThrowResult (MAC'ed, to the outbox), RuntimeInfo on keys.runtime_state (on change and at 2 Hz).
+Watchdog (:meth:`check_watchdog`, called periodically): no valid state for ``link_timeout_s``
+during a throw -> neutral valves, throw failed "machine link lost".
+
+Command checks (runtime.command_auth, issue 8): throws, E-STOP resets and policy offers must be
+signed with the machine's command key for this runtime's epoch, fresh and not replayed; without
+a key (``verifier=None``) every one is refused "no command key configured" (fail safe). An abort
+is honoured even unsigned and LATCHES E-STOP: valves neutral every tick, throws refused
+"E-STOP latched: <reason>" until a signed EstopReset. A MachineState with ``machine_fault``
+refuses throws and fails a running one. The runtime never asks whether the machine is simulated:
+what only the simulated machine does (reloading a payload) happens inside the plant.
 """
 
 from __future__ import annotations
@@ -20,18 +29,22 @@ from typing import Callable
 
 import numpy as np
 
+from runtime.command_auth import CommandVerifier, sign, verify_mac
 from runtime.executor import ThrowExecutor
+from runtime.machine import JOINT_LOWER, JOINT_NAMES, JOINT_UPPER, clearance_violations, forward_kinematics
 from runtime.outcome import TickOutput
 from runtime.protocol import keys
 from runtime.protocol.messages import (
     AbortAck,
     AbortRequest,
+    EstopReset,
+    EstopResetAck,
     GripperCommand,
     ImpactReport,
     MachineState,
+    Message,
     PolicyInfo,
     RuntimeInfo,
-    SimReset,
     ThrowAck,
     ThrowRequest,
     ThrowResult,
@@ -50,12 +63,34 @@ LINK_TIMEOUT_S = 0.2
 ONLINE_TIMEOUT_S = 1.0
 """RuntimeInfo.machine_online: a valid state arrived within this time."""
 
+INFO_PERIOD_S = 0.5
+"""RuntimeInfo is published on keys.runtime_state at least this often (2 Hz) and on change."""
+
+NO_KEY = "no command key configured"
+
 Send = Callable[[str, bytes], None]
 
 
 def _short(e: ValidationError) -> str:
     errs = e.errors()
     return f"{errs[0]['loc']}: {errs[0]['msg']}" if errs else str(e)
+
+
+def pose_refusal(state: MachineState) -> str | None:
+    """Why the machine cannot start a throw from this pose, or None: "joint at end: telescope"
+    (an active joint within 1 mrad / 1 mm of its range end) or "pose outside the envelope:
+    ground" / ": cabin" (runtime.machine.clearance_violations, which would fail the swing at
+    its first tick)."""
+    q, qd = np.asarray(state.q, dtype=float), np.asarray(state.qd, dtype=float)
+    if not np.all(np.isfinite(q)) or not np.all(np.isfinite(qd)):
+        return "machine state is not finite"
+    ground, cabin, limit = clearance_violations(np, q, forward_kinematics(np, q, qd))
+    if limit:
+        at_end = [JOINT_NAMES[j] for j in range(1, 4) if q[j] <= JOINT_LOWER[j] + 1e-3 or q[j] >= JOINT_UPPER[j] - 1e-3]
+        return f"joint at end: {', '.join(at_end)}"
+    if ground or cabin:
+        return f"pose outside the envelope: {'ground' if ground else 'cabin'}"
+    return None
 
 
 class RuntimeService:
@@ -66,8 +101,12 @@ class RuntimeService:
         executor: the throw state machine.
         send: publishes ``payload`` on key expression ``key``.
         on_result: receives every finished ThrowResult (normally ``Outbox.put``).
+        verifier: checks signed commands (key + this runtime's epoch); None: no command key,
+            every throw, E-STOP reset and policy offer is refused with NO_KEY.
         clock: monotonic seconds of this process (watchdog only; throw timing uses stamps).
         link_timeout_s: see LINK_TIMEOUT_S.
+        epoch: this runtime's claim epoch (put into every ValveCommand and RuntimeInfo);
+            default: the verifier's, else 0.
     """
 
     def __init__(
@@ -76,20 +115,40 @@ class RuntimeService:
         executor: ThrowExecutor,
         send: Send,
         on_result: Callable[[ThrowResult], object],
+        verifier: CommandVerifier | None = None,
         clock: Callable[[], float] = time.monotonic,
         link_timeout_s: float = LINK_TIMEOUT_S,
+        epoch: int | None = None,
     ):
         self.machine_id = keys.validate_machine_id(machine_id)
         self.executor = executor
         self.send = send
         self.on_result = on_result
+        self.verifier = verifier
+        self.epoch = int(epoch if epoch is not None else (verifier.epoch if verifier else 0))
         self.clock = clock
         self.link_timeout_s = link_timeout_s
         self.lock = threading.RLock()
         self.latest_state: MachineState | None = None
         self._state_rx_s = -np.inf
         self._gripper_sent: bool | None = None
+        self.estop_reason: str | None = None
+        self._info_sent: RuntimeInfo | None = None
+        self._info_sent_s = -np.inf
         self.dropped = 0  # malformed / foreign messages dropped (for tests and diagnostics)
+
+    # --- command authentication ---------------------------------------------------------------
+    def authorize(self, msg: Message) -> str | None:
+        """None if the signed command ``msg`` may run, else the refusal reason (NO_KEY,
+        "unsigned", "bad signature", "wrong epoch: ...", "stale (...)", "replayed nonce")."""
+        if self.verifier is None:
+            return NO_KEY
+        return self.verifier.check(msg)
+
+    @staticmethod
+    def _who(msg: Message) -> str:
+        auth = getattr(msg, "auth", None)
+        return auth.user if auth is not None else "?"
 
     # --- incoming machine messages -----------------------------------------------------------
     def _decode(self, cls, payload):
@@ -112,7 +171,11 @@ class RuntimeService:
             return
         with self.lock:
             self.latest_state, self._state_rx_s = state, self.clock()
+            if state.machine_fault and self.executor.busy:
+                log.error("machine fault during throw %s: %s", self.executor.throw_id, state.machine_fault)
+                self._publish(self.executor.fail(f"machine fault: {state.machine_fault}"), state.stamp_s)
             self._publish(self.executor.tick(state), state.stamp_s)
+            self.publish_info()
 
     def on_impact(self, payload: bytes) -> None:
         """An ImpactReport arrived: a released throw lands."""
@@ -128,8 +191,8 @@ class RuntimeService:
             if not self.executor.busy or self.clock() - self._state_rx_s <= self.link_timeout_s:
                 return False
             log.error("no machine state for %.0f ms: throw %s failed", self.link_timeout_s * 1e3, self.executor.throw_id)
-            stamp = self.latest_state.stamp_s if self.latest_state else 0.0
-            self._publish(self.executor.fail("machine link lost"), stamp)
+            self._publish(self.executor.fail("machine link lost"), self._stamp())
+            self.publish_info()
             return True
 
     # --- queries ------------------------------------------------------------------------------
@@ -143,76 +206,146 @@ class RuntimeService:
             return encode(ThrowAck(throw_id="", accepted=False, reason=f"malformed request: {_short(e)}"))
         if req.machine_id != self.machine_id:
             return encode(ThrowAck(throw_id=req.throw_id, accepted=False, reason=f"this runtime serves {self.machine_id!r}"))
+        denied = self.authorize(req)
         with self.lock:
             state = self.latest_state if self._online(self.link_timeout_s) else None
-            reason = "machine offline (no recent state)" if state is None and not self.executor.busy else None
-            reason = reason or self.executor.start(req, state)
+            reason = denied or self._throw_refusal(state) or self.executor.start(req, state)
             policy = self.executor.policies.get(req.mode)
             if reason is None:
-                log.info("throw %s accepted: %s at %s", req.throw_id, req.mode, req.target_m)
+                log.info("throw %s accepted for %s: %s at %s", req.throw_id, self._who(req), req.mode, req.target_m)
                 self._publish(self.executor.drain(), state.stamp_s)  # the preparing status
+                self.publish_info()
             else:
-                log.info("throw %s refused: %s", req.throw_id, reason)
-        return encode(ThrowAck(throw_id=req.throw_id, accepted=reason is None, reason=reason, policy_version=policy.version if policy else None))
+                log.warning("throw %s refused%s: %s", req.throw_id, "" if denied else f" for {self._who(req)}", reason)
+        return encode(ThrowAck(throw_id=req.throw_id, accepted=reason is None, reason=reason, policy_version=policy.version if policy else None,
+                               policy_sha256=policy.sha256 if policy else None))
+
+    def _throw_refusal(self, state: MachineState | None) -> str | None:
+        """Why no throw may start now (E-STOP, machine fault, pose), before the executor's checks."""
+        if self.estop_reason is not None:
+            return f"E-STOP latched: {self.estop_reason}"
+        if self.executor.busy:
+            return None  # the executor says "busy"
+        if state is None:
+            return "machine offline (no recent state)"
+        if state.machine_fault:
+            return f"machine fault: {state.machine_fault}"
+        return pose_refusal(state)
 
     def handle_abort(self, payload: bytes) -> bytes:
-        """AbortRequest -> AbortAck; an empty payload aborts with the default reason."""
+        """AbortRequest -> AbortAck; latches E-STOP. Honoured signed or not (an empty or
+        malformed payload aborts with a default reason); the log says who asked, if signed."""
         try:
             req = decode(AbortRequest, payload) if payload else AbortRequest(machine_id=self.machine_id)
         except ValidationError as e:
             self.dropped += 1
             log.warning("malformed AbortRequest (aborting anyway): %s", _short(e))
             req = AbortRequest(machine_id=self.machine_id, reason="abort (malformed request)")
+        signed = self.verifier is not None and verify_mac(req, self.verifier.key) is None
         with self.lock:
             throw_id = self.executor.throw_id
-            stamp = self.latest_state.stamp_s if self.latest_state else 0.0
-            self._publish(self.executor.abort(req.reason), stamp)
-        if throw_id:
-            log.info("throw %s aborted: %s", throw_id, req.reason)
+            self._publish(self.executor.abort(req.reason), self._stamp())
+            self.estop_reason = req.reason
+            self.publish_info()
+        log.warning("E-STOP latched (%s abort by %s): %s%s", "signed" if signed else "UNSIGNED",
+                    self._who(req) if signed else "unknown", req.reason, f"; throw {throw_id} aborted" if throw_id else "")
         return encode(AbortAck(machine_id=self.machine_id, aborted_throw_id=throw_id))
+
+    def handle_estop_reset(self, payload: bytes) -> bytes:
+        """EstopReset (signed) -> EstopResetAck; releases a latched E-STOP."""
+        try:
+            req = decode(EstopReset, payload)
+        except ValidationError as e:
+            self.dropped += 1
+            return encode(EstopResetAck(machine_id=self.machine_id, reset=False, reason=f"malformed request: {_short(e)}"))
+        if req.machine_id != self.machine_id:
+            return encode(EstopResetAck(machine_id=self.machine_id, reset=False, reason=f"this runtime serves {self.machine_id!r}"))
+        denied = self.authorize(req)
+        if denied:
+            log.warning("E-STOP reset refused: %s", denied)
+            return encode(EstopResetAck(machine_id=self.machine_id, reset=False, reason=denied))
+        with self.lock:
+            was, self.estop_reason = self.estop_reason, None
+            self.publish_info()
+        log.warning("E-STOP reset by %s (was latched: %s)", self._who(req), was)
+        return encode(EstopResetAck(machine_id=self.machine_id, reset=True))
 
     def shutdown(self) -> None:
         """Abort a running throw (neutral valves, result to the outbox) before the node exits."""
         with self.lock:
             if self.executor.busy:
-                stamp = self.latest_state.stamp_s if self.latest_state else 0.0
-                self._publish(self.executor.abort("runtime shutting down"), stamp)
+                self._publish(self.executor.abort("runtime shutting down"), self._stamp())
+
+    def info(self) -> RuntimeInfo:
+        """What this runtime is and can do now (policies as version = manifest name, sha256)."""
+        with self.lock:
+            ex, state = self.executor, self.latest_state
+            online = self._online(ONLINE_TIMEOUT_S)
+            if self.estop_reason is not None:
+                why = "E-STOP latched"
+            elif self.verifier is None:
+                why = NO_KEY
+            elif ex.busy:
+                why = f"busy with throw {ex.throw_id}"
+            elif not online:
+                why = "machine offline"
+            elif not ex.policies:
+                why = "no policy loaded"
+            else:
+                why = f"machine fault: {state.machine_fault}" if state.machine_fault else pose_refusal(state)
+            return RuntimeInfo(
+                machine_id=self.machine_id,
+                busy=ex.busy,
+                policies=[PolicyInfo(mode=m, version=p.version, sha256=p.sha256) for m, p in sorted(ex.policies.items())],
+                machine_online=online,
+                simulated=bool(state and state.simulated),
+                epoch=self.epoch,
+                estop_latched=self.estop_reason is not None,
+                estop_reason=self.estop_reason,
+                ready=why is None,
+                not_ready_reason=why,
+                phase=ex.phase,
+                throw_id=ex.throw_id,
+            )
 
     def handle_info(self) -> bytes:
-        """-> RuntimeInfo (policies as version = manifest name, sha256)."""
+        """-> RuntimeInfo (the queryable keys.info)."""
+        return encode(self.info())
+
+    def publish_info(self, now_s: float | None = None) -> bool:
+        """Publish RuntimeInfo on keys.runtime_state if it changed or INFO_PERIOD_S passed since
+        the last one; returns True if it published."""
         with self.lock:
-            info = RuntimeInfo(
-                machine_id=self.machine_id,
-                busy=self.executor.busy,
-                policies=[PolicyInfo(mode=m, version=p.version, sha256=p.sha256) for m, p in sorted(self.executor.policies.items())],
-                machine_online=self._online(ONLINE_TIMEOUT_S),
-                simulated=bool(self.latest_state and self.latest_state.simulated),
-            )
-        return encode(info)
+            info, now = self.info(), self.clock() if now_s is None else now_s
+            if info == self._info_sent and now - self._info_sent_s < INFO_PERIOD_S:
+                return False
+            self._info_sent, self._info_sent_s = info, now
+            self.send(keys.runtime_state(self.machine_id), encode(info))
+            return True
 
     # --- outgoing -----------------------------------------------------------------------------
     def _online(self, within_s: float) -> bool:
         return self.latest_state is not None and self.clock() - self._state_rx_s <= within_s
 
+    def _stamp(self) -> float:
+        return self.latest_state.stamp_s if self.latest_state else 0.0
+
     def _publish(self, out: TickOutput, stamp_s: float) -> None:
         mid = self.machine_id
-        u = np.clip(out.valve_u, -1.0, 1.0)
-        self.send(keys.valve_cmd(mid), encode(ValveCommand(machine_id=mid, stamp_s=stamp_s, u=u.tolist())))
+        u = np.zeros(4) if self.estop_reason is not None else np.clip(out.valve_u, -1.0, 1.0)
+        self.send(keys.valve_cmd(mid), encode(ValveCommand(machine_id=mid, stamp_s=stamp_s, u=u.tolist(), epoch=self.epoch)))
         if out.gripper_open != self._gripper_sent:
             self.send(keys.gripper_cmd(mid), encode(GripperCommand(machine_id=mid, stamp_s=stamp_s, open=out.gripper_open)))
             self._gripper_sent = out.gripper_open
-        if out.sim_reset is not None:
-            self.send(keys.sim_reset(mid), encode(out.sim_reset))
         for ev in out.events:
             log.info("throw %s: %s%s", ev.throw_id, ev.phase, f" ({ev.detail})" if ev.detail else "")
             status = ThrowStatus(machine_id=mid, stamp_s=ev.stamp_s, throw_id=ev.throw_id, phase=ev.phase, detail=ev.detail)
             self.send(keys.status(mid), encode(status))
         if out.finished is not None:
-            if out.finished.status != "aborted" and self.latest_state is not None and self.latest_state.simulated:
-                # simulated machine: pick up the next payload now, so the machine waits loaded
-                # and at rest, and a preview from its current state predicts the next throw
-                self.send(keys.sim_reset(mid), encode(SimReset(machine_id=mid, stamp_s=stamp_s)))
             try:
-                self.on_result(out.finished.to_message(mid))
+                result = out.finished.to_message(mid)
+                if self.verifier is not None:
+                    result = sign(result, self.verifier.key, f"runtime:{mid}", self.epoch)
+                self.on_result(result)
             except Exception:  # the outbox failing must not stop the control loop
                 log.exception("could not store the result of throw %s", out.finished.throw_id)

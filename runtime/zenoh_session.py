@@ -2,7 +2,14 @@
 
 The configuration is built once from data (zenoh-python examples habit) with explicit
 endpoints; multicast scouting is off by default so that nothing joins a session by accident on a
-shared network. Endpoints look like ``tcp/127.0.0.1:7447``.
+shared network. Endpoints look like ``tcp/127.0.0.1:7447`` or, with TLS, ``tls/127.0.0.1:7447``.
+
+TLS (issue 8): with :class:`TlsFiles` the session uses the site CA as the only root
+(``transport/link/tls/root_ca_certificate``), presents its own certificate both when listening
+and when connecting, requires one from every peer (``enable_mtls``) and checks the listening
+peer's name against the endpoint (``verify_name_on_connect``). A peer without a certificate of
+the site CA cannot open a link. On top, Zenoh access control (``access_control``, built by
+runtime.zenoh_acl from the certificates' common names) says which process may send what.
 
 Topology notes: in ``peer`` mode two processes exchange data only over a direct link (one
 listens, the other connects to it; gossip lets peers that *listen* find each other through a
@@ -14,7 +21,11 @@ noticed after the transport lease (``transport/link/tx/lease``, default 10 s).
 
 from __future__ import annotations
 
+import argparse
 import json
+import threading
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Sequence
 
 import zenoh
@@ -22,11 +33,56 @@ import zenoh
 MODES = ("peer", "client", "router")
 
 
+@dataclass(frozen=True)
+class TlsFiles:
+    """PEM files of one process: the site CA certificate, its certificate and private key.
+
+    The site directory layout (server/certs.py): ``<site>/ca.crt``, ``<site>/certs/<cn>.crt``
+    and ``<site>/certs/<cn>.key``.
+    """
+
+    ca: Path
+    cert: Path
+    key: Path
+
+    @classmethod
+    def from_site(cls, site_dir: str | Path, cn: str) -> TlsFiles:
+        site = Path(site_dir)
+        return cls(site / "ca.crt", site / "certs" / f"{cn}.crt", site / "certs" / f"{cn}.key")
+
+    def check(self) -> TlsFiles:
+        """Return self if every file exists.
+
+        Raises:
+            FileNotFoundError: naming the first missing file.
+        """
+        for p in (self.ca, self.cert, self.key):
+            if not Path(p).is_file():
+                raise FileNotFoundError(f"TLS file {p} does not exist (make the site with `slinger certs`)")
+        return self
+
+    def settings(self) -> dict:
+        """The ``transport/link/tls/*`` settings for mutual TLS."""
+        paths = {"ca": str(self.ca), "cert": str(self.cert), "key": str(self.key)}
+        prefix = "transport/link/tls/"
+        return {
+            prefix + "root_ca_certificate": paths["ca"],
+            prefix + "listen_certificate": paths["cert"],
+            prefix + "listen_private_key": paths["key"],
+            prefix + "connect_certificate": paths["cert"],
+            prefix + "connect_private_key": paths["key"],
+            prefix + "enable_mtls": True,
+            prefix + "verify_name_on_connect": True,
+        }
+
+
 def zenoh_config(
     mode: str = "peer",
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
     multicast_scouting: bool = False,
+    tls: TlsFiles | None = None,
+    access_control: dict | None = None,
 ) -> zenoh.Config:
     """A zenoh.Config from explicit settings.
 
@@ -35,9 +91,12 @@ def zenoh_config(
         listen: endpoints to listen on (empty: do not listen).
         connect: endpoints to connect to.
         multicast_scouting: enable UDP multicast discovery (off by default).
+        tls: mutual-TLS files (use ``tls/`` endpoints), or None.
+        access_control: a Zenoh ``access_control`` section (runtime.zenoh_acl.site_acl), or None.
 
     Raises:
         ValueError: for an unknown mode or a non-string endpoint.
+        FileNotFoundError: a TLS file is missing.
     """
     if mode not in MODES:
         raise ValueError(f"zenoh mode must be one of {MODES}, got {mode!r}")
@@ -50,6 +109,10 @@ def zenoh_config(
         "connect/endpoints": list(connect),
         "scouting/multicast/enabled": bool(multicast_scouting),
     }
+    if tls is not None:
+        settings.update(tls.check().settings())
+    if access_control is not None:
+        settings["access_control"] = access_control
     conf = zenoh.Config()
     for key, value in settings.items():
         conf.insert_json5(key, json.dumps(value))
@@ -61,11 +124,86 @@ def open_session(
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
     multicast_scouting: bool = False,
+    tls: TlsFiles | None = None,
+    access_control: dict | None = None,
 ) -> zenoh.Session:
     """Open a session with :func:`zenoh_config`; use it as a context manager (closes on exit).
 
     Raises:
-        ValueError: see zenoh_config.
+        ValueError, FileNotFoundError: see zenoh_config.
         zenoh.ZError: if an endpoint cannot be listened on.
     """
-    return zenoh.open(zenoh_config(mode, listen, connect, multicast_scouting))
+    return zenoh.open(zenoh_config(mode, listen, connect, multicast_scouting, tls, access_control))
+
+
+CLAIM_WAIT_S = 1.5
+"""How long a starting runtime or plant listens for another holder of its machine's token."""
+
+
+def claimed_by_other(session: zenoh.Session, token_key: str, wait_s: float = CLAIM_WAIT_S) -> bool:
+    """True if some process holds the liveliness token ``token_key``.
+
+    Listens with a liveliness subscriber with history for ``wait_s``: tokens already known are
+    reported at once, and those of peers that gossip links this session to while it waits
+    (in a peer mesh a token is only seen over a direct link) arrive within the wait. Two
+    processes starting within the same window can both miss each other; the epoch fence (the
+    machine follows only the newest runtime epoch) covers that case.
+    """
+    seen = threading.Event()
+
+    def on_token(sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            seen.set()
+
+    sub = session.liveliness().declare_subscriber(token_key, on_token, history=True)
+    try:
+        return seen.wait(wait_s)
+    finally:
+        sub.undeclare()
+
+
+def add_session_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--connect/--listen/--mode`` and the TLS options of a process's Zenoh session."""
+    parser.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to, e.g. tls/127.0.0.1:7447 (repeatable)")
+    parser.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on (repeatable)")
+    parser.add_argument("--mode", default="peer", choices=("peer", "client"), help="Zenoh session mode")
+    parser.add_argument("--tls-dir", type=Path, default=None,
+                        help="site directory of `slinger certs`: use mutual TLS with <dir>/ca.crt and this process's "
+                             "<dir>/certs/<cn>.crt/.key, and the site's access control")
+    parser.add_argument("--tls-ca", type=Path, default=None, help="CA certificate (overrides --tls-dir's)")
+    parser.add_argument("--tls-cert", type=Path, default=None, help="this process's certificate (overrides --tls-dir's)")
+    parser.add_argument("--tls-key", type=Path, default=None, help="this process's private key (overrides --tls-dir's)")
+    parser.add_argument("--acl-machines", nargs="*", default=None,
+                        help="machine ids the site's access control names (default: this process's machine)")
+
+
+def tls_files(args: argparse.Namespace, cn: str) -> TlsFiles | None:
+    """TlsFiles from ``--tls-dir`` and/or explicit ``--tls-ca/--tls-cert/--tls-key``, or None.
+
+    Raises:
+        ValueError: only some explicit files given without --tls-dir.
+        FileNotFoundError: a file is missing.
+    """
+    explicit = (args.tls_ca, args.tls_cert, args.tls_key)
+    if args.tls_dir is None and not any(explicit):
+        return None
+    if args.tls_dir is None and not all(explicit):
+        raise ValueError("give --tls-dir, or all of --tls-ca, --tls-cert and --tls-key")
+    base = TlsFiles.from_site(args.tls_dir, cn) if args.tls_dir else None
+    return TlsFiles(args.tls_ca or base.ca, args.tls_cert or base.cert, args.tls_key or base.key).check()
+
+
+def session_options(args: argparse.Namespace, cn: str, machine_ids: Sequence[str] = ()) -> dict:
+    """Keyword arguments of :func:`open_session` for a process with certificate CN ``cn``
+    from the arguments of :func:`add_session_arguments`. With TLS, the site's access control
+    for ``--acl-machines`` (default ``machine_ids``) is enabled.
+
+    Raises:
+        ValueError, FileNotFoundError: see tls_files.
+    """
+    from runtime.zenoh_acl import site_acl
+
+    tls = tls_files(args, cn)
+    acl_ids = args.acl_machines if getattr(args, "acl_machines", None) else list(machine_ids)
+    return {"mode": args.mode, "listen": args.listen, "connect": args.connect, "tls": tls,
+            "access_control": site_acl(acl_ids) if tls is not None else None}

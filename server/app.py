@@ -19,32 +19,45 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-from server.api.routes import auth, diagnosis, health, machines, policies, previews, scene, throws, users
+from server.api.routes import adaptation, auth, diagnosis, health, jobs, live, machines, policies, previews, scene, throws, users
 from server.config import Settings, get_settings
 from server.db.migrate import upgrade
 from server.db.models import Throw
 from server.db.session import make_engine, make_sessionmaker
+from server.command_signer import CommandSigner
 from server.fleet import Fleet
+from server.reconcile import Reconciler
+from server.jobs import JobQueue, JobStore, queue_url
+from server.jobs import tasks as job_tasks
+from server.login_guard import LoginGuard
+from server.live import LiveHub
 from server.results import ResultStore
 from server.scene import ConsoleScene
 from server.policies import PolicyService
 from server.previews import PreviewService
 from server.throws import ThrowService
+from server.web_guard import BodySizeLimit, SecurityHeaders, inline_script_hashes
 
 log = logging.getLogger(__name__)
 
-WEB_DIR = Path(__file__).resolve().parent.parent / "web"
+WEB_DIR = next((d for d in (Path(__file__).resolve().parent / "web", Path(__file__).resolve().parent.parent / "web")
+                if d.is_dir()), Path(__file__).resolve().parent.parent / "web")
+"""The console pages: ``server/web`` in an installed slinger-server wheel, else the repo's web/."""
 
 
 def open_zenoh(settings: Settings) -> zenoh.Session:
     """Open the server's Zenoh session from settings (runtime.zenoh_session builds the config)."""
-    from runtime.zenoh_session import open_session
+    from runtime.zenoh_acl import machines_in_site, site_acl
+    from runtime.zenoh_session import TlsFiles, open_session
 
+    tls_dir = settings.zenoh_tls_dir
     return open_session(
         mode=settings.zenoh_mode,
         listen=tuple(settings.zenoh_listen),
         connect=tuple(settings.zenoh_connect),
         multicast_scouting=settings.zenoh_multicast_scouting,
+        tls=TlsFiles.from_site(tls_dir, "server") if tls_dir else None,
+        access_control=site_acl(machines_in_site(tls_dir)) if tls_dir else None,
     )
 
 
@@ -67,17 +80,29 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         store = ResultStore(sessions, settings.data_dir)
         own_session = zenoh_session is None
         zsession = open_zenoh(settings) if own_session else zenoh_session
-        fleet = Fleet(zsession, store, settings.query_timeout_s)
-        scene_obj = ConsoleScene(fleet, settings.viser_host, settings.viser_port) if settings.viser_enabled else None
+        fleet = Fleet(zsession, store, settings.query_timeout_s, signer=CommandSigner(settings.resolved_site_dir))
+        app.state.live = live_hub = LiveHub(zsession, fleet)
+        app.state.login_guard = LoginGuard(settings.login_failures_per_user, settings.login_failures_per_address,
+                                           settings.login_workers, settings.login_max_pending)
+        app.state.throws = ThrowService(fleet, sessions, settings.keep_out_zones,
+                                        previews=lambda pid: app.state.previews.get(pid),
+                                        gate=settings.gate_limits())
+        scene_obj = _make_scene(app, fleet, settings) if settings.viser_enabled else None
         app.state.settings, app.state.sessions, app.state.store = settings, sessions, store
         app.state.fleet, app.state.scene = fleet, scene_obj
-        app.state.throws = ThrowService(fleet, sessions, settings.keep_out_zones,
-                                        previews=lambda pid: app.state.previews.get(pid))
-        app.state.policies = PolicyService(fleet, sessions, store, settings)
-        app.state.previews = PreviewService(fleet, sessions, app.state.throws, settings.data_dir,
-                                            settings.clearance_radius_m)
+        app.state.reconciler = Reconciler(fleet, sessions, store.mark_lost, settings.result_grace_s,
+                                          settings.runtime_gone_s, settings.reconcile_period_s,
+                                          handshake_s=settings.query_timeout_s + 2.0)
+        app.state.jobs = JobQueue(queue_url(settings), JobStore(sessions), job_tasks.execute)
+        if app.state.jobs.url == "immediate":  # tests: jobs run in this process
+            job_tasks.bind(job_tasks.WorkerContext(sessions, settings.data_dir, settings, app.state.jobs))
+        app.state.policies = PolicyService(fleet, sessions, store, settings, app.state.jobs)
+        app.state.previews = PreviewService(fleet, sessions, app.state.throws, app.state.jobs, settings.data_dir,
+                                            settings.clearance_radius_m, settings.preview_profile)
         try:
             fleet.start()
+            app.state.reconciler.start()
+            live_hub.start()
             app.state.policies.start()
             if scene_obj is not None:
                 scene_obj.start()
@@ -87,10 +112,13 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
             if scene_obj is not None:
                 scene_obj.stop()
             app.state.policies.stop()
+            app.state.reconciler.stop()
+            live_hub.stop()
             fleet.stop()
             if own_session:
                 zsession.close()
             engine.dispose()
+            app.state.login_guard.close()
 
     app = FastAPI(
         title="Slinger",
@@ -99,7 +127,10 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         lifespan=lifespan,
     )
     app.add_exception_handler(RequestValidationError, _validation_error)
-    for module in (health, auth, users, machines, throws, previews, policies, scene, diagnosis):
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes,
+                       overrides={("POST", "/api/policies"): settings.max_policy_upload_bytes})
+    app.add_middleware(SecurityHeaders, script_hashes=inline_script_hashes(WEB_DIR) if WEB_DIR.is_dir() else [])
+    for module in (health, auth, users, machines, throws, previews, policies, scene, live, diagnosis, adaptation, jobs):
         app.include_router(module.router)
     if WEB_DIR.is_dir():
         app.mount("/console", StaticFiles(directory=WEB_DIR, html=True), name="console")
@@ -111,14 +142,34 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
     return app
 
 
+def _make_scene(app: FastAPI, fleet: Fleet, settings: Settings) -> ConsoleScene:
+    """The 3D view, judging clicked targets like a throw request would (mode geometry, the
+    policy's trained range, keep-out zones) and pushing console changes live."""
+    from server.targets import serve_refusal
+
+    def refusal(machine_id: str, mode: str, target) -> str | None:
+        state = fleet.latest_state(machine_id)
+        if state is None:
+            return f"no state from machine {machine_id}"
+        return serve_refusal(mode, target, state.q[0], app.state.throws._target_range(machine_id, mode),  # noqa: SLF001
+                             settings.keep_out_zones)
+
+    return ConsoleScene(
+        fleet, settings.viser_host, settings.viser_port, refusal=refusal,
+        band=lambda mid, mode: app.state.throws._target_range(mid, mode),  # noqa: SLF001
+        zones=settings.keep_out_zones,
+        on_console_change=lambda con: app.state.live.publish("console", con, console_id=con["console_id"]),
+    )
+
+
 def _show_result(app: FastAPI, throw_id: str) -> None:
-    """Fleet result listener: draw the stored throw in the 3D view if it is on the shown machine."""
+    """Fleet result listener: draw the stored throw in the views showing its machine."""
     scene_obj: ConsoleScene = app.state.scene
     with app.state.sessions() as db:
         row = db.get(Throw, throw_id)
-        if row is None or (scene_obj.machine_id not in (None, row.machine_id)):
+        if row is None:
             return
-        scene_obj.show_throw(app.state.store.telemetry_file(row), row.impact_m, row.target_m)
+        scene_obj.show_throw(row.machine_id, app.state.store.telemetry_file(row), row.impact_m, row.target_m)
 
 
 async def _validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:

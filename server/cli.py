@@ -6,11 +6,14 @@ Subcommands::
     slinger server      only the server (API + console + 3D view)
     slinger db upgrade  alembic upgrade head on the configured database
     slinger user add    add a user (the first admin: slinger user add --admin); user list
+    slinger worker      a job worker (previews, evaluations, diagnoses)  (server.jobs.worker)
+    slinger router      the site's Zenoh router              (server.router)
     slinger plant       the simulated machine            (sim_twin.plant)
     slinger runtime     the runtime of one machine        (runtime.node)
     slinger train       train a policy                   (sim_twin.train)
     slinger evaluate    evaluate a policy                (sim_twin.evaluate)
     slinger diagnose    sim-to-real gap diagnosis        (sim_twin.diagnosis.cli)
+    slinger adapt       adapt a policy to a diagnosed site (sim_twin.adapt)
 
 Settings not given as options come from ``SLINGER_*`` environment variables (server.config).
 Modules behind subcommands are imported only when that subcommand runs.
@@ -29,11 +32,15 @@ from pathlib import Path
 log = logging.getLogger("slinger")
 
 DELEGATED = {
+    "worker": ("server.jobs.worker", "a job worker: previews, evaluations, diagnoses, adaptations"),
+    "router": ("server.router", "the site's Zenoh router (fleets: every process connects to it as a client)"),
+    "certs": ("server.certs", "a site's CA, TLS certificates and machine command keys"),
     "plant": ("sim_twin.plant", "the simulated machine"),
     "runtime": ("runtime.node", "the runtime of one machine"),
     "train": ("sim_twin.train", "train a throwing policy (needs the 'train' extra)"),
     "evaluate": ("sim_twin.evaluate", "evaluate a policy version"),
     "diagnose": ("sim_twin.diagnosis.cli", "sim-to-real gap diagnosis of logged throws (and 'diagnose benchmark')"),
+    "adapt": ("sim_twin.adapt", "a policy version adapted to a site's (fitted) reality profile"),
 }
 
 
@@ -91,12 +98,16 @@ def _print_urls(settings):
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from runtime.zenoh_session import open_session
+    from runtime.zenoh_acl import site_acl
+    from runtime.zenoh_session import TlsFiles, open_session
     from server import stack
+    from server.certs import make_site
     from server.db.migrate import upgrade
 
-    hub = f"tcp/127.0.0.1:{args.zenoh_port}"
+    hub = f"tls/127.0.0.1:{args.zenoh_port}"
     settings = _settings(args, zenoh_listen=[hub])
+    ids = stack.machine_ids(args.machines)
+    site = make_site(settings.resolved_site_dir, ids)  # site CA, certificates, command keys (kept)
     policies, problems = {}, []
     for mode, given, default in (("2d", args.policy_2d, stack.DEFAULT_POLICY_2D),
                                  ("3d", args.policy_3d, stack.DEFAULT_POLICY_3D)):
@@ -117,11 +128,15 @@ def cmd_up(args: argparse.Namespace) -> int:
     ensure_local_admin(settings.database_url)
     if policies:
         stack.register_policies(settings.database_url, settings.data_dir, policies)
-    children = stack.Children()
-    with open_session(mode="peer", listen=(hub,)) as session:
+    children = stack.Children(stack_dir=settings.data_dir.resolve())
+    with open_session(mode="peer", listen=(hub,), tls=TlsFiles.from_site(site.root, "server"),
+                      access_control=site_acl(ids)) as session:
         try:
-            stack.spawn_machines(children, args.machines, hub, policies, settings.data_dir)
-            children.watch()
+            from server.jobs.worker import worker_argv
+
+            children.spawn("worker", worker_argv(settings), settings.data_dir / "logs")
+            stack.spawn_machines(children, args.machines, hub, policies, settings.data_dir, site.root)
+            children.supervise()
             log.info("child logs in %s", settings.data_dir / "logs")
             return _serve(settings, zenoh_session=session, on_started=_print_urls(settings))
         finally:
@@ -134,6 +149,8 @@ def cmd_server(args: argparse.Namespace) -> int:
         extra["zenoh_listen"] = args.listen
     if args.connect:
         extra["zenoh_connect"] = args.connect
+    if args.tls_dir:
+        extra["zenoh_tls_dir"] = args.tls_dir
     settings = _settings(args, **{k: v for k, v in extra.items() if v is not None})
     return _serve(settings, on_started=_print_urls(settings))
 
@@ -170,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    up = sub.add_parser("up", help="whole stack on this machine: server, 3D view, simulated machines, runtimes")
+    up = sub.add_parser("up", help="whole stack on this machine: server, a job worker, 3D view, simulated machines, runtimes")
     _add_server_options(up)
     up.add_argument("--zenoh-port", type=int, default=7447, help="port of the embedded Zenoh peer on 127.0.0.1 (default 7447)")
     up.add_argument("--machines", type=int, default=1, help="number of simulated machines, ids m1..mN (default 1)")
@@ -184,6 +201,8 @@ def build_parser() -> argparse.ArgumentParser:
     srv.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to, e.g. a router (repeatable)")
     srv.add_argument("--zenoh-mode", choices=("peer", "client"), default=None, help="Zenoh session mode (default peer)")
     srv.add_argument("--migrate", action="store_true", help="alembic upgrade head before serving")
+    srv.add_argument("--tls-dir", type=Path, default=None,
+                     help="site directory of `slinger certs`: Zenoh over mutual TLS (tls/ endpoints) with the site's access control")
     srv.set_defaults(func=cmd_server)
 
     db = sub.add_parser("db", help="database maintenance")

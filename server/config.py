@@ -6,6 +6,7 @@ Settings are read when :func:`get_settings` is first called, never at import tim
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from pathlib import Path
 
@@ -34,17 +35,45 @@ class Settings(BaseSettings):
         zenoh_mode: ``peer`` or ``client``.
         zenoh_listen / zenoh_connect: Zenoh endpoints, e.g. ``tcp/127.0.0.1:7447``.
         zenoh_multicast_scouting: discover peers by multicast (off by default: explicit endpoints).
+        zenoh_tls_dir: a site directory of ``slinger certs``: the server's Zenoh session uses
+            mutual TLS with its certificate (CN "server") and the site's access control for the
+            machines of the site (``tls/`` endpoints); None: plain TCP.
         query_timeout_s: how long a Zenoh query to a runtime may take, s.
         auto_migrate: run ``alembic upgrade head`` when the app starts.
         session_ttl_s: how long a log-in stays valid, s.
-        cookie_secure: mark the session cookie Secure (serve over HTTPS).
+        cookie_secure: always mark the session cookie Secure (it is anyway when the request came
+            over HTTPS: scheme https or ``X-Forwarded-Proto: https``).
+        max_body_bytes: largest request body, bytes (413 above); policy uploads have
+            ``max_policy_upload_bytes``.
+        login_failures_per_user / login_failures_per_address: failed log-ins allowed per window
+            before 429 (``limits`` notation, server.login_guard).
+        login_workers / login_max_pending: threads checking passwords (default a quarter of the
+            cores, at least 1: argon2 takes a core each), and checks queued or running at most
+            (more: 429 at once).
         keep_out_zones: ground circles no target may lie in, e.g.
             ``SLINGER_KEEP_OUT_ZONES='[{"name": "truck", "center_m": [7, 3], "radius_m": 1.5}]'``.
         clearance_radius_m: the swing must stay within this horizontal distance of the turn
             axis (the machine's clearance zone), m.
         preview_rollouts: Monte Carlo rollouts of a full preview (1 sigma impact ellipse).
+        preview_profile: the site's reality profile with its uncertainty block (parameter ranges,
+            start-state model; sim_twin.uncertainty) that previews sample; default
+            sim_twin/profiles/nominal_uncertain.json. A policy version adapted to a diagnosed site
+            (``slinger adapt``) carries its own fitted profile, which then takes precedence.
         eval_distances_m / eval_throws: the small twin evaluation of an uploaded policy version
             (throws per distance); empty distances: the policy's trained range in 3 steps.
+        site_dir: the site directory of ``slinger certs`` (command keys in
+            ``machines/<id>/command.key``); default ``<data_dir>/site``.
+        require_preview: a throw needs a fresh OK preview of the same request (server.throw_gate);
+            only tests of unrelated parts switch it off.
+        preview_max_age_s / preview_target_tolerance_m / preview_max_active_joint_delta /
+            preview_max_passive_joint_delta: the gate's bounds (server.throw_gate.GateLimits).
+        reconcile_period_s / result_grace_s / runtime_gone_s: bounds of the reconciliation of
+            open throws (server.reconcile), s.
+        preview_timeout_s: how long the API awaits a worker's preview before answering 503 (the
+            bar for a preview is 3 s; this limit only keeps a request from waiting forever).
+        job_queue_url: the job queue of the workers (server.jobs.queue): ``sqlite:///FILE``,
+            ``postgresql://...`` or ``redis://...``; empty: SQLite ``<data_dir>/jobs.db``;
+            ``immediate``: run jobs inside the submitting process (tests only).
     """
 
     model_config = SettingsConfigDict(env_prefix="SLINGER_", env_file=None, extra="ignore")
@@ -60,21 +89,54 @@ class Settings(BaseSettings):
     zenoh_listen: list[str] = Field(default_factory=list)
     zenoh_connect: list[str] = Field(default_factory=list)
     zenoh_multicast_scouting: bool = False
+    zenoh_tls_dir: Path | None = None
     query_timeout_s: float = 5.0
     auto_migrate: bool = False
     session_ttl_s: float = 12 * 3600.0
     cookie_secure: bool = False
+    max_body_bytes: int = Field(1 << 20, ge=1024)
+    max_policy_upload_bytes: int = Field(64 << 20, ge=1024)
+    login_failures_per_user: str = "5/5minutes"
+    login_failures_per_address: str = "20/5minutes"
+    login_workers: int = Field(default_factory=lambda: max(1, (os.cpu_count() or 2) // 4), ge=1, le=16)
+    login_max_pending: int = Field(8, ge=1, le=256)
     keep_out_zones: list[KeepOutZone] = Field(default_factory=list)
     clearance_radius_m: float = 12.0
     preview_rollouts: int = 200
+    preview_profile: Path | None = None
     eval_distances_m: list[float] = Field(default_factory=list)
     eval_throws: int = 4
+    site_dir: Path | None = None
+    require_preview: bool = True
+    preview_max_age_s: float = Field(60.0, gt=0)
+    preview_target_tolerance_m: float = Field(0.05, ge=0)
+    preview_max_active_joint_delta: float = Field(0.05, gt=0)
+    preview_max_passive_joint_delta: float = Field(0.3, gt=0)
+    reconcile_period_s: float = Field(2.0, gt=0)
+    result_grace_s: float = Field(15.0, gt=0)
+    runtime_gone_s: float = Field(30.0, gt=0)
+    job_queue_url: str = ""
+    preview_timeout_s: float = 15.0
 
     @model_validator(mode="after")
     def _default_database(self) -> "Settings":
         if not self.database_url:
             self.database_url = f"sqlite:///{(self.data_dir / 'slinger.db').as_posix()}"
         return self
+
+    @property
+    def resolved_site_dir(self) -> Path:
+        """The site directory (``site_dir``, default ``<data_dir>/site``)."""
+        return self.site_dir if self.site_dir is not None else self.data_dir / "site"
+
+    def gate_limits(self):
+        """The preview gate's bounds, or None when ``require_preview`` is off."""
+        from server.throw_gate import GateLimits
+
+        if not self.require_preview:
+            return None
+        return GateLimits(self.preview_max_age_s, self.preview_target_tolerance_m,
+                          self.preview_max_active_joint_delta, self.preview_max_passive_joint_delta)
 
     @property
     def telemetry_dir(self) -> Path:

@@ -1,14 +1,15 @@
 """Sim-to-real gap diagnosis runs on a machine's stored throws (files only, no database tables).
 
-A run exports the machine's latest landed throws with telemetry to a dataset directory
-(sim_twin.diagnosis.dataset format), runs :func:`sim_twin.diagnosis.diagnose.diagnose` in a
-background thread and keeps everything under ``<data_dir>/diagnosis/<run_id>/``::
+A run is a ``diagnosis`` job in a worker process (server.jobs): it exports the machine's latest
+landed throws with telemetry to a dataset directory (sim_twin.diagnosis.dataset format), runs
+:func:`sim_twin.diagnosis.diagnose.diagnose` and keeps everything under
+``<data_dir>/diagnosis/<run_id>/`` (workers on other hosts share the data dir)::
 
-    status.json   {"id", "machine_id", "status": running|done|failed, "error", "started_at", ...}
+    status.json   {"id", "job_id", "machine_id", "status": queued|running|done|failed, "error", ...}
     dataset/      index.json + throws/*.mcap
-    report/       report.json, profile_fitted.json, where.png, traces.png, which.png, how_far.png
+    report/       report.json, profile_fitted.json, where.png, which.png, how_far.png
 
-One run at a time (the diagnosis uses every core).
+One run at a time (the diagnosis uses every core of its worker).
 """
 
 from __future__ import annotations
@@ -16,12 +17,11 @@ from __future__ import annotations
 import json
 import logging
 import re
-import threading
 import uuid
 from datetime import UTC, datetime
 from pathlib import Path
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from runtime.telemetry import read_telemetry
@@ -30,7 +30,7 @@ from server.db.models import Throw
 log = logging.getLogger(__name__)
 
 RUN_ID = re.compile(r"^[0-9]{8}T[0-9]{6}-[0-9a-f]{6}$")
-REPORT_FILES = ("report.json", "profile_fitted.json", "where.png", "traces.png", "which.png", "how_far.png")
+REPORT_FILES = ("report.json", "profile_fitted.json", "where.png", "which.png", "how_far.png")
 
 
 class DiagnosisBusy(RuntimeError):
@@ -44,15 +44,16 @@ class DiagnosisRuns:
         sessions: database session factory (stored throws).
         data_dir: the server's data folder (telemetry paths are relative to it).
         workers: processes per diagnosis (default: all cores).
+        jobs: the job queue (server.jobs.JobQueue) runs are submitted to; needed by :meth:`start`.
     """
 
-    def __init__(self, sessions: sessionmaker[Session], data_dir: Path, workers: int | None = None):
+    def __init__(self, sessions: sessionmaker[Session], data_dir: Path, workers: int | None = None, jobs=None):
         self.sessions = sessions
         self.workers = workers
+        self.jobs = jobs
         self.data_dir = Path(data_dir)
         self.root = self.data_dir / "diagnosis"
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
+        self._job_id: str | None = None
 
     # --- export -----------------------------------------------------------------------------
     def export(self, machine_id: str, limit: int, directory: Path) -> int:
@@ -64,8 +65,8 @@ class DiagnosisRuns:
         from sim_twin.diagnosis.dataset import write
 
         with self.sessions() as db:
-            rows = list(db.scalars(select(Throw).where(Throw.machine_id == machine_id, Throw.status == "landed",
-                                                       Throw.telemetry_path.is_not(None)).order_by(Throw.requested_at.desc()).limit(limit)))
+            rows = list(db.scalars(select(Throw).where(*self._landed_with_telemetry(machine_id))
+                                   .order_by(Throw.requested_at.desc()).limit(limit)))
         out = []
         for t in rows:
             path = self.data_dir / t.telemetry_path
@@ -83,45 +84,70 @@ class DiagnosisRuns:
         return len(out)
 
     # --- runs -------------------------------------------------------------------------------
+    def _landed_with_telemetry(self, machine_id: str):
+        return (Throw.machine_id == machine_id, Throw.status == "landed", Throw.telemetry_path.is_not(None))
+
     def start(self, machine_id: str, limit: int = 50, requested_by: str | None = None, workers: int | None = None) -> dict:
-        """Export and diagnose in the background; returns the initial status.
+        """Submit a diagnosis job (export + diagnose in a worker); returns the initial status.
 
         Raises:
-            DiagnosisBusy: a run is in progress.
+            DiagnosisBusy: a run is queued or in progress.
             ValueError: the machine has fewer than 4 landed throws with telemetry.
         """
-        with self._lock:
-            if self._thread is not None and self._thread.is_alive():
-                raise DiagnosisBusy("a diagnosis is already running; wait for it to finish")
-            run_id = f"{datetime.now(UTC):%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:6]}"
-            run_dir = self.root / run_id
-            n = self.export(machine_id, limit, run_dir / "dataset")
-            if n < 4:
-                raise ValueError(f"machine {machine_id!r} has {n} landed throws with telemetry; a diagnosis needs at least 4")
-            status = {"id": run_id, "machine_id": machine_id, "throws": n, "status": "running", "error": None,
-                      "started_at": _now(), "finished_at": None, "requested_by": requested_by, "verdict": None}
-            self._write_status(run_dir, status)
-            args = (run_dir, status, workers or self.workers)
-            self._thread = threading.Thread(target=self._run, args=args, name=f"diagnosis-{run_id}", daemon=True)
-            self._thread.start()
-            return status
+        if any(st.get("status") in ("queued", "running") for st in self.list()):
+            raise DiagnosisBusy("a diagnosis is already running; wait for it to finish")
+        with self.sessions() as db:
+            n = db.scalar(select(func.count()).select_from(Throw).where(*self._landed_with_telemetry(machine_id)))
+        n = min(int(n or 0), limit)
+        if n < 4:
+            raise ValueError(f"machine {machine_id!r} has {n} landed throws with telemetry; a diagnosis needs at least 4")
+        run_id = f"{datetime.now(UTC):%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:6]}"
+        status = {"id": run_id, "job_id": None, "machine_id": machine_id, "throws": n, "status": "queued",
+                  "error": None, "started_at": _now(), "finished_at": None, "requested_by": requested_by,
+                  "verdict": None}
+        self._write_status(self.root / run_id, status)
+        self._job_id = self.jobs.submit("diagnosis", {"run_id": run_id, "machine_id": machine_id, "limit": limit,
+                                                      "workers": workers or self.workers},
+                                        subject=machine_id, requested_by=requested_by)
+        status = self._read_status(self.root / run_id) or status
+        if status.get("job_id") is None:
+            status["job_id"] = self._job_id
+        return status
 
-    def _run(self, run_dir: Path, status: dict, workers: int | None) -> None:
+    def run(self, run_id: str, machine_id: str, limit: int, workers: int | None, progress) -> dict:
+        """The job's body (in a worker): export, diagnose, write status.json; returns the status.
+
+        Raises:
+            server.jobs.JobCancelled: from ``progress`` (status.json says failed: cancelled).
+        """
+        from server.jobs.store import JobCancelled
         from sim_twin.diagnosis.diagnose import diagnose
 
+        run_dir = self.root / run_id
+        status = self._read_status(run_dir) or {"id": run_id, "machine_id": machine_id, "requested_by": None}
+        status.update(status="running", error=None)
+        self._write_status(run_dir, status)
         try:
+            progress(0.0, "exporting throws")
+            status["throws"] = self.export(machine_id, limit, run_dir / "dataset")
+            progress(0.1, f"diagnosing {status['throws']} throws")
             report = diagnose(run_dir / "dataset", run_dir / "report", workers=workers)
             status.update(status="done", verdict=report["verdict"])
+        except JobCancelled:
+            status.update(status="failed", error="cancelled")
+            raise
         except Exception as e:  # reported in status.json for the page
-            log.exception("diagnosis %s failed", status["id"])
+            log.exception("diagnosis %s failed", run_id)
             status.update(status="failed", error=f"{type(e).__name__}: {e}")
-        status["finished_at"] = _now()
-        self._write_status(run_dir, status)
+        finally:
+            status["finished_at"] = _now()
+            self._write_status(run_dir, status)
+        return status
 
     def wait(self, timeout_s: float | None = None) -> None:
-        """Block until the current run (if any) finishes (tests)."""
-        if self._thread is not None:
-            self._thread.join(timeout_s)
+        """Block until the last run started here finishes (tests)."""
+        if self._job_id is not None:
+            self.jobs.wait(self._job_id, timeout_s if timeout_s is not None else 3600.0)
 
     def list(self, machine_id: str | None = None) -> list[dict]:
         """Statuses of all runs, newest first."""

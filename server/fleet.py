@@ -4,7 +4,15 @@
 latest :class:`MachineState` per machine (``keys.ALL_STATES``), queries runtimes (ThrowRequest ->
 ThrowAck, RuntimeInfo), follows ThrowStatus (``keys.ALL_STATUS``) into the throws table and is
 the queryable of ``keys.THROW_RESULT``: it stores each result (row + MCAP file, see
-:mod:`server.results`) and replies ``ResultAck(stored=True)`` only after the commit.
+:mod:`server.results`) and replies ``ResultAck(stored=True)`` only after the commit. Results are
+stored only with a valid MAC of their machine's command key and only for throws the server issued;
+anything else is refused with the reason, logged and never shown in the history.
+
+Commands (ThrowRequest, AbortRequest, EstopReset, PolicyOffer) are signed with the machine's
+command key (:class:`server.command_signer.CommandSigner`) for the requesting user and the epoch
+of the runtime's claim (from its RuntimeInfo, which the runtime also publishes on
+``keys.ALL_RUNTIME_STATES``; the cache follows it). Aborts (E-STOP) run on their own threads
+(:meth:`Fleet.abort_async`) so they never queue behind other queries or database work.
 
 Threads: Zenoh calls the callbacks on its own threads; everything that touches the database is
 handed to one worker thread (:class:`server.results.ResultStore` runs there) so writes are
@@ -18,6 +26,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import zenoh
 from pydantic import ValidationError
@@ -26,7 +35,11 @@ from runtime.protocol import keys
 from runtime.protocol.messages import (
     AbortAck,
     AbortRequest,
+    EstopReset,
+    EstopResetAck,
     MachineState,
+    PolicyOffer,
+    PolicyOfferAck,
     ResultAck,
     RuntimeInfo,
     ThrowAck,
@@ -36,10 +49,14 @@ from runtime.protocol.messages import (
     decode,
     encode,
 )
-from server.results import ResultStore
+from server.command_signer import CommandSigner
+from server.results import ResultStore, UnknownThrow
 
 log = logging.getLogger(__name__)
 
+
+RESULT_BATCH = 200
+"""At most this many throw results are stored in one commit (the DB thread drains what arrived)."""
 
 class RuntimeUnavailable(RuntimeError):
     """The runtime did not answer (offline, or no reply within the timeout)."""
@@ -52,17 +69,27 @@ class Fleet:
         session: an open Zenoh session (the caller closes it).
         store: writes statuses and results to the database and telemetry folder.
         query_timeout_s: timeout of queries to runtimes, s.
+        signer: the site's command keys (default: none, so no command can be signed).
     """
 
-    def __init__(self, session: zenoh.Session, store: ResultStore, query_timeout_s: float = 5.0):
+    def __init__(self, session: zenoh.Session, store: ResultStore, query_timeout_s: float = 5.0,
+                 signer: CommandSigner | None = None):
         self.session = session
         self.store = store
         self.query_timeout_s = query_timeout_s
+        self.signer = signer or CommandSigner(None)
         self._lock = threading.Lock()
         self._alive: set[str] = set()
+        self._started_s = time.monotonic()
+        self._offline_since: dict[str, float] = {}
+        self._estop = ThreadPoolExecutor(max_workers=4, thread_name_prefix="estop")
+        self.refused_results: list[tuple[str, str]] = []
+        """(throw id, reason) of the last refused results (bounded), for tests and diagnostics."""
         self._states: dict[str, MachineState] = {}
         self._infos: dict[str, tuple[float, RuntimeInfo]] = {}
         self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue()
+        self._results: list[tuple[zenoh.Query, ThrowResult]] = []
+        """Results waiting for the DB thread; one job stores all that arrived meanwhile."""
         self._worker: threading.Thread | None = None
         self._decls: list = []
         self.result_listeners: list[Callable[[str], None]] = []
@@ -78,6 +105,7 @@ class Fleet:
             s.liveliness().declare_subscriber(keys.ALL_RUNTIME_ALIVE, self._on_alive, history=True),
             s.declare_subscriber(keys.ALL_STATES, self._on_state),
             s.declare_subscriber(keys.ALL_STATUS, self._on_status),
+            s.declare_subscriber(keys.ALL_RUNTIME_STATES, self._on_runtime_state),
             s.declare_queryable(keys.THROW_RESULT, self._on_result, complete=True),
         ]
 
@@ -89,6 +117,7 @@ class Fleet:
             except Exception:  # already closed with the session
                 log.debug("undeclare failed", exc_info=True)
         self._decls = []
+        self._estop.shutdown(wait=False)
         if self._worker is not None:
             self._jobs.put(None)
             self._worker.join(timeout=10.0)
@@ -99,6 +128,14 @@ class Fleet:
         """True while the runtime of ``machine_id`` holds its liveliness token."""
         with self._lock:
             return machine_id in self._alive
+
+    def offline_for_s(self, machine_id: str) -> float:
+        """Seconds since the runtime of ``machine_id`` went offline (since the fleet link started
+        if it was never seen); 0 while online."""
+        with self._lock:
+            if machine_id in self._alive:
+                return 0.0
+            return time.monotonic() - self._offline_since.get(machine_id, self._started_s)
 
     def online_ids(self) -> set[str]:
         with self._lock:
@@ -139,6 +176,20 @@ class Fleet:
         with self._lock:
             self._infos.pop(machine_id, None)
 
+    def submit_db_job(self, job: Callable[[], object]) -> Future:
+        """Run ``job`` on the fleet's database thread; its Future completes when it ran."""
+        done: Future = Future()
+
+        def run() -> None:
+            try:
+                done.set_result(job())
+            except BaseException as e:
+                done.set_exception(e)
+                raise
+
+        self._jobs.put(run)
+        return done
+
     # --- queries -------------------------------------------------------------------------------
     def query_info(self, machine_id: str, timeout_s: float | None = None) -> RuntimeInfo:
         """Ask the runtime for its RuntimeInfo (and cache it).
@@ -151,29 +202,101 @@ class Fleet:
             self._infos[machine_id] = (time.monotonic(), info)
         return info
 
-    def request_throw(self, request: ThrowRequest) -> ThrowAck:
-        """Send a ThrowRequest and wait for the runtime's ThrowAck.
+    def epoch_of(self, machine_id: str, fresh: bool = False) -> int:
+        """The claim epoch of the machine's runtime (RuntimeInfo.epoch): cached, or asked when
+        ``fresh`` or unknown.
 
         Raises:
-            RuntimeUnavailable: no reply within the timeout, an error reply or a malformed ack.
+            RuntimeUnavailable: the runtime is offline or does not answer.
         """
-        payload = self._query_one(keys.throw(request.machine_id), encode(request))
-        try:
-            return decode(ThrowAck, payload)
-        except ValidationError as e:
-            raise RuntimeUnavailable(f"malformed ThrowAck from {request.machine_id}: {e}") from e
+        info = None if fresh else self.cached_info(machine_id)
+        if info is None:
+            if not self.is_online(machine_id):
+                raise RuntimeUnavailable(f"the runtime of {machine_id} is offline")
+            info = self.query_info(machine_id)
+        return info.epoch
 
-    def abort(self, machine_id: str, reason: str = "operator abort") -> AbortAck:
-        """Ask the runtime to stop now (valves to neutral); returns its AbortAck.
+    def _signed_query(self, key_of, msg, machine_id: str, user: str, ack_type, timeout_s: float | None = None):
+        """Sign ``msg`` for the runtime's current epoch, query ``key_of(machine_id)``, decode the
+        ack; once more with a fresh epoch when the runtime says the epoch is wrong (it restarted).
+
+        Raises:
+            RuntimeUnavailable: offline, no reply, an error reply or a malformed ack.
+            ValueError: a malformed command key file.
+        """
+        for attempt in (0, 1):
+            epoch = self.epoch_of(machine_id, fresh=attempt > 0)
+            signed = self.signer.sign(msg, machine_id, user, epoch)
+            payload = self._query_one(key_of(machine_id), encode(signed), timeout_s)
+            try:
+                ack = decode(ack_type, payload)
+            except ValidationError as e:
+                raise RuntimeUnavailable(f"malformed {ack_type.__name__} from {machine_id}: {e}") from e
+            if attempt == 0 and "wrong epoch" in (getattr(ack, "reason", None) or ""):
+                log.info("%s: %s; asking its epoch again", machine_id, ack.reason)
+                self.forget_info(machine_id)
+                continue
+            return ack, epoch
+        return ack, epoch
+
+    def request_throw(self, request: ThrowRequest, user: str = "system") -> tuple[ThrowAck, int]:
+        """Sign a ThrowRequest for ``user``, send it and wait for the runtime's ThrowAck.
+
+        Returns:
+            (ack, epoch of the runtime it was addressed to).
+
+        Raises:
+            RuntimeUnavailable: offline, no reply within the timeout, an error reply or a malformed ack.
+            ValueError: a malformed command key file.
+        """
+        return self._signed_query(keys.throw, request, request.machine_id, user, ThrowAck)
+
+    def estop_reset(self, machine_id: str, user: str) -> EstopResetAck:
+        """Ask the runtime to release its latched E-STOP (signed for ``user``).
+
+        Raises:
+            RuntimeUnavailable, ValueError: as :meth:`request_throw`.
+        """
+        ack, _ = self._signed_query(keys.estop_reset, EstopReset(machine_id=machine_id), machine_id, user,
+                                    EstopResetAck)
+        self.forget_info(machine_id)
+        return ack
+
+    def offer_policy(self, offer: PolicyOffer, user: str) -> PolicyOfferAck:
+        """Offer a policy version to the runtime (signed for ``user``); returns its ack.
+
+        Raises:
+            RuntimeUnavailable, ValueError: as :meth:`request_throw`.
+        """
+        ack, _ = self._signed_query(keys.policy_offer, offer, offer.machine_id, user, PolicyOfferAck)
+        return ack
+
+    def abort(self, machine_id: str, reason: str = "operator abort", user: str = "system",
+              timeout_s: float | None = None) -> AbortAck:
+        """Ask the runtime to stop now (valves neutral; the runtime latches E-STOP); returns its
+        AbortAck. Signed when the server has the key and knows the epoch (from the cache only:
+        no query before the stop), else sent unsigned (the runtime honours unsigned stops).
 
         Raises:
             RuntimeUnavailable: no valid reply within the timeout.
+            ValueError: a malformed machine id.
         """
-        payload = self._query_one(keys.abort(machine_id), encode(AbortRequest(machine_id=machine_id, reason=reason)))
+        request = AbortRequest(machine_id=machine_id, reason=reason[:200])
+        info = self.cached_info(machine_id)
+        if info is not None:
+            try:
+                request = self.signer.sign(request, machine_id, user, info.epoch)
+            except ValueError as e:
+                log.warning("abort of %s sent unsigned: %s", machine_id, e)
+        payload = self._query_one(keys.abort(machine_id), encode(request), timeout_s)
         try:
             return decode(AbortAck, payload)
         except ValidationError as e:
             raise RuntimeUnavailable(f"malformed AbortAck from {machine_id}: {e}") from e
+
+    def abort_async(self, machine_id: str, reason: str, user: str, timeout_s: float | None = None) -> Future:
+        """:meth:`abort` on the dedicated E-STOP threads; returns its Future (AbortAck)."""
+        return self._estop.submit(self.abort, machine_id, reason, user, timeout_s)
 
     def _query_one(self, key: str, payload: bytes | None, timeout_s: float | None = None) -> bytes:
         timeout_s = timeout_s or self.query_timeout_s
@@ -199,12 +322,28 @@ class Fleet:
             log.info("runtime %s online", machine_id)
             with self._lock:
                 self._alive.add(machine_id)
+                self._offline_since.pop(machine_id, None)
+                self._infos.pop(machine_id, None)  # a new claim: its epoch is asked again
             self._jobs.put(lambda: self._register(machine_id))
         else:
             log.info("runtime %s offline", machine_id)
             with self._lock:
                 self._alive.discard(machine_id)
+                self._offline_since[machine_id] = time.monotonic()
                 self._infos.pop(machine_id, None)
+
+    def _on_runtime_state(self, sample: zenoh.Sample) -> None:
+        """A runtime's published RuntimeInfo (2 Hz and on change) refreshes the cache."""
+        try:
+            info = decode(RuntimeInfo, sample.payload.to_bytes())
+            if keys.machine_id_of(str(sample.key_expr)) != info.machine_id:
+                raise ValueError(f"RuntimeInfo of {info.machine_id} on {sample.key_expr}")
+        except (ValidationError, ValueError) as e:
+            log.debug("dropped RuntimeInfo on %s: %s", sample.key_expr, e)
+            return
+        with self._lock:
+            if info.machine_id in self._alive:
+                self._infos[info.machine_id] = (time.monotonic(), info)
 
     def _on_state(self, sample: zenoh.Sample) -> None:
         try:
@@ -231,8 +370,25 @@ class Fleet:
             log.warning("malformed ThrowResult refused: %s", e)
             query.reply_err(f"malformed ThrowResult: {e}".encode())
             return
+        refusal = self.signer.check_result(result)
+        if refusal is not None:
+            self._refuse_result(query, result.throw_id, f"result of throw {result.throw_id!r} refused: {refusal}")
+            return
         # The query stays open until replied (or dropped); reply on the worker after the commit.
-        self._jobs.put(lambda: self._store_and_ack(query, result))
+        with self._lock:
+            self._results.append((query, result))
+            first = len(self._results) == 1
+        if first:
+            self._jobs.put(self._store_and_ack)
+
+    def _refuse_result(self, query: zenoh.Query, throw_id: str, reason: str) -> None:
+        log.warning("%s", reason)
+        with self._lock:
+            self.refused_results = [*self.refused_results[-99:], (throw_id, reason)]
+        try:
+            query.reply_err(reason.encode())
+        finally:
+            query.drop()
 
     # --- worker thread -------------------------------------------------------------------------
     def _work(self) -> None:
@@ -255,13 +411,31 @@ class Fleet:
             return
         self.store.upsert_machine(machine_id, simulated=info.simulated, policies=info.policies)
 
-    def _store_and_ack(self, query: zenoh.Query, result: ThrowResult) -> None:
+    def _store_and_ack(self) -> None:
+        """Store every result that arrived since the last call in one batch, then ack each."""
+        with self._lock:
+            batch, self._results = self._results[:RESULT_BATCH], self._results[RESULT_BATCH:]
+            if self._results:
+                self._jobs.put(self._store_and_ack)
+        if not batch:
+            return
+        t0 = time.monotonic()
         try:
-            self.store.store_result(result)
-            stored = True
+            outcomes = self.store.store_results([r for _, r in batch])
+            log.debug("stored %d results in %.0f ms", len(batch), (time.monotonic() - t0) * 1e3)
         except Exception:
-            log.exception("storing result of throw %s failed", result.throw_id)
-            stored = False
+            log.exception("storing a batch of %d results failed", len(batch))
+            outcomes = [RuntimeError("commit failed")] * len(batch)
+        for (query, result), outcome in zip(batch, outcomes):
+            self._ack(query, result, outcome)
+
+    def _ack(self, query: zenoh.Query, result: ThrowResult, outcome) -> None:
+        if isinstance(outcome, UnknownThrow):
+            self._refuse_result(query, result.throw_id, str(outcome))
+            return
+        stored = not isinstance(outcome, Exception)
+        if not stored:
+            log.error("result of throw %s not stored: %s", result.throw_id, outcome)
         try:
             query.reply(keys.THROW_RESULT, encode(ResultAck(throw_id=result.throw_id, stored=stored)))
         finally:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import logging
 import tempfile
-import threading
 from datetime import datetime, timedelta
 from pathlib import Path
 
@@ -25,11 +24,9 @@ from runtime.policy import PolicyError, PolicyRunner, build_manifest
 from runtime.protocol import keys
 from runtime.protocol.messages import (
     PolicyOffer,
-    PolicyOfferAck,
     PolicyUpdate,
     ValidationError,
     decode,
-    encode,
 )
 from server.auth import audit
 from server.db.models import PolicyDeployment, PolicyVersion
@@ -43,12 +40,12 @@ MAX_POLICY_BYTES = 50 * 1024 * 1024
 
 
 class PolicyService:
-    """Args: fleet, sessions, store (policy files), settings (eval_distances_m, eval_throws)."""
+    """Args: fleet, sessions, store (policy files), settings (eval_distances_m, eval_throws),
+    jobs (server.jobs.JobQueue: the twin evaluation of an upload runs as a job in a worker)."""
 
-    def __init__(self, fleet: Fleet, sessions: sessionmaker[Session], store: ResultStore, settings):
-        self.fleet, self.sessions, self.store, self.settings = fleet, sessions, store, settings
+    def __init__(self, fleet: Fleet, sessions: sessionmaker[Session], store: ResultStore, settings, jobs):
+        self.fleet, self.sessions, self.store, self.settings, self.jobs = fleet, sessions, store, settings, jobs
         self._decls: list = []
-        self._threads: list[threading.Thread] = []
 
     # --- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -62,8 +59,6 @@ class PolicyService:
                 d.undeclare()
             except Exception:
                 log.debug("undeclare failed", exc_info=True)
-        for t in self._threads:
-            t.join(timeout=60)
 
     # --- upload ------------------------------------------------------------------------------
     def upload(self, data: bytes, mode: str, name: str, target_range_m: tuple[float, float], notes: str | None,
@@ -94,52 +89,37 @@ class PolicyService:
                 if "onnxruntime cannot load" in reason:
                     reason = f"not a loadable ONNX model: {reason.split(': ', 1)[-1][:300]}"
                 raise ThrowRefused(422, reason) from e
-            with self.sessions() as db:
-                if db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == manifest["onnx_sha256"])) is not None:
-                    raise ThrowRefused(409, "this ONNX file is already a policy version")
-            rel = self.store.store_policy_file(manifest, path)
+            return self.add_version(manifest, path, username, notes, evaluate)
+
+    def add_version(self, manifest: dict, path: Path, username: str, notes: str | None = None, evaluate: bool = True,
+                    action: str = "policy_upload") -> PolicyVersion:
+        """Store a checked policy file with its manifest as a new version (audited as
+        ``action``) and start its twin evaluation; ``upload`` and ``slinger adapt`` results
+        (server.adaptation) come in here.
+
+        Raises:
+            ThrowRefused: 409 if this file is already a version.
+        """
+        with self.sessions() as db:
+            if db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == manifest["onnx_sha256"])) is not None:
+                raise ThrowRefused(409, "this ONNX file is already a policy version")
+        rel = self.store.store_policy_file(manifest, path)
+        name, mode = manifest["name"], manifest["mode"]
         with self.sessions.begin() as db:
             row = PolicyVersion(name=name, mode=mode, sha256=manifest["onnx_sha256"], manifest=manifest,
                                 onnx_path=rel, notes=notes, uploaded_by=username,
                                 evaluation_status="pending" if evaluate else None)
             db.add(row)
             db.flush()
-            audit(db, username, "policy_upload", str(row.id), name=name, mode=mode, sha256=row.sha256)
+            audit(db, username, action, str(row.id), name=name, mode=mode, sha256=row.sha256)
         if evaluate:
-            t = threading.Thread(target=self._evaluate, args=(row.id,), name=f"eval-{row.id}", daemon=True)
-            self._threads = [x for x in self._threads if x.is_alive()] + [t]
-            t.start()
+            lo, hi = manifest["target_range_m"]
+            distances = list(self.settings.eval_distances_m) or [
+                round(x * 2) / 2 for x in np.linspace(lo + 0.5, hi - 0.5, 3)]
+            self.jobs.submit("evaluation", {"version_id": row.id, "distances_m": distances,
+                                            "throws": self.settings.eval_throws},
+                             subject=str(row.id), requested_by=username)
         return row
-
-    def _evaluate(self, version_id: int) -> None:
-        """The paper's protocol on a small sample (settings.eval_throws per distance), in this
-        process (no worker pool: forking a process that holds Zenoh threads is unsafe)."""
-        from sim_twin.evaluate import (  # the protocol's own throw loop
-            _throw_batch,
-            summarise,
-        )
-
-        with self.sessions.begin() as db:
-            row = db.get(PolicyVersion, version_id)
-            row.evaluation_status = "running"
-            mode, path = row.mode, str(self.store.data_dir / row.onnx_path)
-            lo, hi = row.manifest["target_range_m"]
-        distances = list(self.settings.eval_distances_m) or [round(x * 2) / 2 for x in np.linspace(lo + 0.5, hi - 0.5, 3)]
-        try:
-            targets = []
-            for i, d in enumerate(distances):
-                seeds = [version_id * 1000 + i * 100 + k for k in range(self.settings.eval_throws)]
-                targets.append(summarise(d, _throw_batch(path, mode, d, seeds, None)))
-            metrics = {"protocol": "paper Sec. IV-A (small sample)", "throws_per_target": self.settings.eval_throws,
-                       "profile": "nominal", "targets": targets}
-            status = "done"
-        except Exception as e:
-            log.exception("evaluation of policy version %d failed", version_id)
-            metrics, status = {"error": str(e)}, "failed"
-        with self.sessions.begin() as db:
-            row = db.get(PolicyVersion, version_id)
-            row.metrics, row.evaluation_status = metrics, status
-        log.info("policy version %d evaluated: %s", version_id, status)
 
     # --- promotion ---------------------------------------------------------------------------
     def promote(self, version_id: int, machine_ids: list[str], username: str, action: str = "promote") -> list[PolicyDeployment]:
@@ -168,7 +148,7 @@ class PolicyService:
                 try:
                     offer = PolicyOffer(machine_id=mid, mode=version.mode, version=version.name, sha256=version.sha256,
                                         manifest=version.manifest)
-                    ack = decode(PolicyOfferAck, self.fleet._query_one(keys.policy_offer(mid), encode(offer)))
+                    ack = self.fleet.offer_policy(offer, username)
                     if not ack.accepted:
                         status, reason = "failed", ack.reason
                 except (RuntimeUnavailable, ValidationError, ValueError) as e:
@@ -225,6 +205,52 @@ class PolicyService:
             dep.status = "active" if msg.status == "loaded" else "failed"
             dep.reason, dep.confirmed_at = msg.reason, utcnow()
         log.info("machine %s %s policy %s: %s", msg.machine_id, msg.mode, msg.version, msg.status)
+
+
+def evaluate_version(sessions: sessionmaker[Session], data_dir: Path, version_id: int, distances_m: list[float],
+                     throws: int, progress) -> dict:
+    """The paper's protocol on a small sample (``throws`` per distance) of policy version
+    ``version_id``, in a worker (job kind ``evaluation``); the report and the status go to the
+    version's row as well. ``progress(fraction, message)`` after every distance.
+
+    Raises:
+        server.jobs.JobCancelled: from ``progress`` (the row is left ``failed``: cancelled).
+    """
+    from server.jobs.store import JobCancelled
+    from sim_twin.evaluate import _throw_batch, summarise  # the protocol's own throw loop
+
+    with sessions.begin() as db:
+        row = db.get(PolicyVersion, version_id)
+        row.evaluation_status = "running"
+        mode, path = row.mode, str(Path(data_dir) / row.onnx_path)
+        site = row.manifest.get("site_profile")  # a version adapted to a site is evaluated on that site
+    profile_path, profile_name = None, "nominal"
+    if site:
+        profile_path = str(Path(path).with_suffix(".site_profile.json"))
+        Path(profile_path).write_text(json.dumps({**site, "uncertainty": {}}))
+        profile_name = site.get("name", "site")
+    metrics, status = {"error": "cancelled"}, "failed"
+    try:
+        targets = []
+        for i, d in enumerate(distances_m):
+            progress(i / len(distances_m), f"{throws} throws at {d:.1f} m")
+            seeds = [version_id * 1000 + i * 100 + k for k in range(throws)]
+            targets.append(summarise(d, _throw_batch(path, mode, d, seeds, profile_path)))
+        metrics = {"protocol": "paper Sec. IV-A (small sample)", "throws_per_target": throws,
+                   "profile": profile_name, "targets": targets}
+        status = "done"
+    except JobCancelled:
+        raise
+    except Exception as e:
+        log.exception("evaluation of policy version %d failed", version_id)
+        metrics = {"error": str(e)}
+        raise
+    finally:
+        with sessions.begin() as db:
+            row = db.get(PolicyVersion, version_id)
+            row.metrics, row.evaluation_status = metrics, status
+        log.info("policy version %d evaluated: %s", version_id, status)
+    return metrics
 
 
 OFFER_TIMEOUT_S = 120.0

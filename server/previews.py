@@ -1,30 +1,25 @@
 """Previews: run the machine's active policy in the CPU twin (sim_twin.preview) from its current
-joint state, keep the result for a while so that a throw can be sent "as previewed".
+joint state, as a ``preview`` job in a worker (the API process never imports MuJoCo), and keep
+the result in the job's row so that a throw can be sent "as previewed", also after a restart.
 
 The policy file comes from the server's copy of the policy version the runtime reports
-(RuntimeInfo sha256 -> policy_versions.onnx_path); loaded runners are cached by SHA-256.
+(RuntimeInfo sha256 -> policy_versions.onnx_path); workers cache loaded runners by SHA-256.
 """
 
 from __future__ import annotations
 
 import logging
-import threading
-import uuid
-from collections import OrderedDict
 from pathlib import Path
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from runtime.policy import PolicyError, PolicyRunner
 from server.db.models import PolicyVersion
-from server.db.types import utcnow
 from server.fleet import Fleet
+from server.jobs import JobQueue
 from server.throws import ThrowRefused, ThrowService
 
 log = logging.getLogger(__name__)
-
-KEEP_PREVIEWS = 200
 
 
 class PreviewService:
@@ -34,25 +29,34 @@ class PreviewService:
         fleet: machine states and runtime infos.
         sessions: database sessions (policy versions).
         throws: the throw service (its target checks are the previews' too).
+        jobs: the job queue (previews run on its fast lane).
         data_dir: where policy files live (policy_versions.onnx_path is relative to it).
         clearance_radius_m: see server.config.Settings.
+        profile_path: the site's reality profile with its uncertainty (Settings.preview_profile;
+            None: sim_twin.preview.DEFAULT_SITE_PROFILE); a policy version's own fitted profile
+            takes precedence (sim_twin.preview.site_profile).
+
+    Raises:
+        ValueError / OSError: the site profile cannot be read (checked at start).
     """
 
-    def __init__(self, fleet: Fleet, sessions: sessionmaker[Session], throws: ThrowService, data_dir: Path,
-                 clearance_radius_m: float = 12.0):
-        self.fleet, self.sessions, self.throws = fleet, sessions, throws
+    def __init__(self, fleet: Fleet, sessions: sessionmaker[Session], throws: ThrowService, jobs: JobQueue,
+                 data_dir: Path, clearance_radius_m: float = 12.0, profile_path: Path | None = None):
+        self.fleet, self.sessions, self.throws, self.jobs = fleet, sessions, throws, jobs
         self.data_dir = Path(data_dir)
         self.clearance_radius_m = clearance_radius_m
-        self._runners: dict[str, PolicyRunner] = {}
-        self._store: OrderedDict[str, dict] = OrderedDict()
-        self._lock = threading.Lock()
+        self.profile_path = profile_path
 
     def get(self, preview_id: str) -> dict | None:
-        with self._lock:
-            return self._store.get(preview_id)
+        """The stored summary of a finished preview, None if unknown or not a finished preview."""
+        job = self.jobs.store.get(preview_id)
+        if job is None or job["kind"] != "preview" or job["status"] != "done":
+            return None
+        return {**job["result"], **job["params"]["meta"], "id": job["id"], "created_at": job["created_at"]}
 
-    def active_policy(self, machine_id: str, mode: str) -> tuple[PolicyRunner, str]:
-        """(runner, version name) of the policy ``machine_id`` runs for ``mode``.
+    def active_policy(self, machine_id: str, mode: str) -> tuple[str, str, str]:
+        """(ONNX path relative to the data dir, SHA-256, version name) of the policy
+        ``machine_id`` runs for ``mode``.
 
         Raises:
             ThrowRefused: 422 no policy for the mode; 409 the server has no file of it.
@@ -61,43 +65,47 @@ class PreviewService:
         pol = next((p for p in (info.policies if info else []) if p.mode == mode), None)
         if pol is None:
             raise ThrowRefused(422, f"machine {machine_id} runs no {mode} policy")
-        with self._lock:
-            runner = self._runners.get(pol.sha256)
-        if runner is not None:
-            return runner, pol.version
         with self.sessions() as db:
             row = db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == pol.sha256))
         if row is None or not row.onnx_path or not (self.data_dir / row.onnx_path).is_file():
             raise ThrowRefused(409, f"the server has no file of policy {pol.version} ({pol.sha256[:12]}…): "
                                     "upload that version to preview it")
-        try:
-            runner = PolicyRunner.load(self.data_dir / row.onnx_path)
-        except PolicyError as e:
-            raise ThrowRefused(409, f"policy {pol.version} does not load on the server: {e}") from e
-        with self._lock:
-            self._runners[pol.sha256] = runner
-        return runner, pol.version
+        return row.onnx_path, pol.sha256, pol.version
 
-    def preview(self, machine_id: str, mode: str, target: list[float], rollouts: int) -> dict:
-        """Check the target (as a throw would be checked), run the twin, store and return the
-        summary (sim_twin.preview.preview_throw keys plus id, machine_id, policy_version,
-        created_at, start_q).
+    def submit(self, machine_id: str, mode: str, target: list[float], rollouts: int,
+               requested_by: str | None = None) -> str:
+        """Check the target (as a throw would be checked) and submit the preview job; returns
+        its id (= the preview id).
 
         Raises:
             ThrowRefused: as ThrowService.checked_state and :meth:`active_policy`.
         """
-        from sim_twin.preview import PreviewRequest, preview_throw
-
         state = self.throws.checked_state(machine_id, mode, target)
-        runner, version = self.active_policy(machine_id, mode)
-        summary = preview_throw(runner, PreviewRequest(
-            mode=mode, target_m=list(target), q=list(state.q), qd=list(state.qd), rollouts=rollouts,
-            clearance_radius_m=self.clearance_radius_m))
-        summary.update(id=str(uuid.uuid4()), machine_id=machine_id, mode=mode, target_m=list(target),
-                       policy_version=version, created_at=utcnow().isoformat(), start_q=list(state.q))
-        with self._lock:
-            self._store[summary["id"]] = summary
-            while len(self._store) > KEEP_PREVIEWS:
-                self._store.popitem(last=False)
-        log.info("preview %s for %s %s at %s: %s", summary["id"][:8], machine_id, mode, target, summary["status"])
+        onnx_path, sha, version = self.active_policy(machine_id, mode)
+        request = dict(mode=mode, target_m=list(target), q=list(state.q), qd=list(state.qd), rollouts=rollouts,
+                       clearance_radius_m=self.clearance_radius_m)
+        meta = dict(machine_id=machine_id, mode=mode, target_m=list(target), policy_version=version,
+                    policy_sha256=sha, start_q=list(state.q))
+        profile = str(self.profile_path) if self.profile_path else None
+        return self.jobs.submit("preview", {"onnx_path": onnx_path, "sha256": sha, "request": request, "meta": meta,
+                                            "profile_path": profile}, subject=machine_id, requested_by=requested_by)
+
+    def outcome(self, job: dict | None, timeout_s: float) -> dict:
+        """The summary of a finished preview job.
+
+        Raises:
+            ThrowRefused: 503 no worker answered within ``timeout_s`` (the job is cancelled),
+                the job's own status code (409: the policy does not load) or 500 when it failed.
+        """
+        if job is None or job["status"] in ("queued", "running"):
+            if job is not None:
+                self.jobs.cancel(job["id"])
+            raise ThrowRefused(503, f"no worker finished the preview within {timeout_s:.0f} s: is a worker running "
+                                    "(slinger worker)?")
+        if job["status"] != "done":
+            code = (job.get("result") or {}).get("status_code", 500)
+            raise ThrowRefused(code, f"preview failed: {job['error'] or job['status']}")
+        summary = self.get(job["id"])
+        log.info("preview %s for %s %s at %s: %s", job["id"][:8], summary["machine_id"], summary["mode"],
+                 summary["target_m"], summary["status"])
         return summary

@@ -9,6 +9,7 @@ from __future__ import annotations
 import base64
 import logging
 import os
+from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
 from pathlib import Path
 
@@ -21,6 +22,10 @@ from server.db.models import FINAL_STATUSES, Machine, PolicyVersion, Throw
 from server.db.types import utcnow
 
 log = logging.getLogger(__name__)
+
+
+class UnknownThrow(LookupError):
+    """A result for a throw the server never issued (forged, or from another site's database)."""
 
 
 class ResultStore:
@@ -100,47 +105,98 @@ class ResultStore:
     def store_result(self, result: ThrowResult) -> Throw:
         """Store a ThrowResult: MCAP file first (atomic rename), then the row, one commit.
 
-        Idempotent: a re-delivered result rewrites the same file and the same values. A result
-        for a throw the server has no row for (its ack was lost) creates the row, so nothing the
-        runtime's outbox delivers is dropped. Errors are recomputed from target and impact when
-        the runtime did not send them.
+        Only for throws the server issued: a result whose id has no row, or whose machine, mode
+        or target differ from the row's, is refused (UnknownThrow) and leaves no trace in the
+        history. Idempotent: a re-delivered result rewrites the same file and the same values;
+        a result for a throw marked ``lost`` replaces that status (the runtime did finish it).
+        Errors are recomputed from target and impact when the runtime did not send them.
 
         Raises:
+            UnknownThrow: not a throw the server issued.
             ValueError: the telemetry is not valid base64.
             sqlalchemy.exc.SQLAlchemyError: the commit failed (the caller acks stored=False).
         """
-        rel = None
-        if result.telemetry_mcap_b64:
-            data = base64.b64decode(result.telemetry_mcap_b64, validate=True)
-            rel = Path("telemetry") / f"{_safe_name(result.throw_id)}.mcap"
-            _write_atomic(self.data_dir / rel, data)
-        down, cross = result.downrange_error_m, result.crossrange_error_m
-        if result.impact_m is not None and (down is None or cross is None):
-            down, cross = impact_errors(result.target_m, result.impact_m)
+        outcome = self.store_results([result])[0]
+        if isinstance(outcome, Exception):
+            raise outcome
+        return outcome
+
+    def store_results(self, results: list[ThrowResult]) -> list[Throw | Exception]:
+        """:meth:`store_result` for several results at once (the fleet link drains its queue):
+        the MCAP files are written, synced together and renamed, then every row is updated in
+        one commit. Returns per result the stored row or the exception that refused it
+        (UnknownThrow, ValueError); a failed commit raises for the whole batch."""
+        out: list[Throw | Exception | None] = [None] * len(results)
+        with self.sessions() as db:
+            known = {t.id: t for t in db.scalars(select(Throw).where(Throw.id.in_({r.throw_id for r in results})))}
+        files: dict[int, tuple[Path, bytes]] = {}
+        for i, result in enumerate(results):
+            try:
+                _check_issued(known.get(result.throw_id), result)
+                if result.telemetry_mcap_b64:
+                    data = base64.b64decode(result.telemetry_mcap_b64, validate=True)
+                    files[i] = (Path("telemetry") / f"{_safe_name(result.throw_id)}.mcap", data)
+            except (UnknownThrow, ValueError) as e:
+                out[i] = e
+        _write_all_atomic({self.data_dir / rel: data for rel, data in files.values()})
         now = utcnow()
         with self.sessions.begin() as db:
-            row = db.get(Throw, result.throw_id)
-            if row is None:
-                log.warning("result for unknown throw %s: creating its row", result.throw_id)
-                ensure_machine(db, result.machine_id, simulated=False)
-                row = Throw(id=result.throw_id, machine_id=result.machine_id, mode=result.mode,
-                            target_x_m=result.target_m[0], target_y_m=result.target_m[1],
-                            target_z_m=result.target_m[2], requested_at=now)
-                db.add(row)
-            row.status = result.status
-            row.failure_reason = result.failure_reason
-            if result.impact_m is not None:
-                row.impact_x_m, row.impact_y_m, row.impact_z_m = result.impact_m
-            row.downrange_error_m, row.crossrange_error_m = down, cross
-            row.policy_version = result.policy_version or row.policy_version
-            row.duration_s = result.duration_s
-            row.completed_at = row.completed_at or now
-            if row.started_at is None:
-                row.started_at = row.completed_at - timedelta(seconds=result.duration_s)
-            if rel is not None:
-                row.telemetry_path = rel.as_posix()
-        log.info("stored result of throw %s: %s", result.throw_id, result.status)
-        return row
+            todo = [i for i in range(len(results)) if out[i] is None]
+            rows = {t.id: t for t in db.scalars(select(Throw).where(Throw.id.in_({results[i].throw_id for i in todo})))}
+            for i in todo:
+                row = rows.get(results[i].throw_id)
+                if row is None:  # deleted meanwhile (its handshake failed)
+                    out[i] = UnknownThrow(f"result for throw {results[i].throw_id!r}, which the server withdrew, refused")
+                    continue
+                _apply_result(row, results[i], files[i][0] if i in files else None, now)
+                out[i] = row
+        for r, o in zip(results, out):
+            if isinstance(o, Throw):
+                log.info("stored result of throw %s: %s", r.throw_id, r.status)
+        return out
+
+    def mark_lost(self, throw_id: str, reason: str) -> bool:
+        """Close an open throw as ``lost`` with ``reason``; False if it is already final."""
+        with self.sessions.begin() as db:
+            row = db.get(Throw, throw_id)
+            if row is None or row.status in FINAL_STATUSES:
+                return False
+            row.status, row.failure_reason = "lost", reason
+            row.completed_at = utcnow()
+        return True
+
+
+def _check_issued(known: Throw | None, result: ThrowResult) -> None:
+    """Raise UnknownThrow unless ``known`` is the issued throw ``result`` reports on."""
+    if known is None:
+        raise UnknownThrow(f"result for throw {result.throw_id!r}, which the server never issued, refused")
+    if (known.machine_id, known.mode) != (result.machine_id, result.mode) or any(
+            abs(a - b) > 1e-6 for a, b in zip(known.target_m, result.target_m)):
+        raise UnknownThrow(f"result for throw {result.throw_id!r} does not match the issued throw "
+                           f"({known.machine_id} {known.mode} {known.target_m}), refused")
+
+
+def _apply_result(row: Throw, result: ThrowResult, telemetry: Path | None, now) -> None:
+    """Copy the outcome of ``result`` onto its throw's row (errors recomputed when missing)."""
+    down, cross = result.downrange_error_m, result.crossrange_error_m
+    if result.impact_m is not None and (down is None or cross is None):
+        down, cross = impact_errors(result.target_m, result.impact_m)
+    if row.status == "lost":
+        log.warning("throw %s was lost (%s); its result arrived: %s", row.id, row.failure_reason, result.status)
+        row.completed_at = None
+    row.status = result.status
+    row.failure_reason = result.failure_reason
+    if result.impact_m is not None:
+        row.impact_x_m, row.impact_y_m, row.impact_z_m = result.impact_m
+    row.downrange_error_m, row.crossrange_error_m = down, cross
+    row.policy_version = result.policy_version or row.policy_version
+    row.policy_sha256 = result.policy_sha256 or row.policy_sha256
+    row.duration_s = result.duration_s
+    row.completed_at = row.completed_at or now
+    if row.started_at is None:
+        row.started_at = row.completed_at - timedelta(seconds=result.duration_s)
+    if telemetry is not None:
+        row.telemetry_path = telemetry.as_posix()
 
 
 def ensure_machine(db: Session, machine_id: str, simulated: bool) -> Machine:
@@ -158,6 +214,31 @@ def ensure_machine(db: Session, machine_id: str, simulated: bool) -> Machine:
 def _safe_name(throw_id: str) -> str:
     """Throw ids become file names: keep only [A-Za-z0-9_-] (they are UUIDs in practice)."""
     return "".join(c if c.isalnum() or c in "-_" else "_" for c in throw_id)
+
+
+def _write_all_atomic(files: dict[Path, bytes]) -> None:
+    """Write each file to a temporary name, fsync them concurrently (the file system commits
+    them together), then rename each into place."""
+    if not files:
+        return
+    tmps = {}
+    for path, data in files.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(path.suffix + ".tmp")
+        tmp.write_bytes(data)
+        tmps[path] = tmp
+
+    def sync(p: Path) -> None:
+        fd = os.open(p, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+    with ThreadPoolExecutor(max_workers=min(8, len(tmps))) as pool:
+        list(pool.map(sync, tmps.values()))
+    for path, tmp in tmps.items():
+        os.replace(tmp, path)
 
 
 def _write_atomic(path: Path, data: bytes) -> None:

@@ -1,33 +1,43 @@
-"""The console's 3D view: a viser scene of the selected machine, the target and past throws.
+"""The console's 3D view: one viser server, one private view per console page.
 
-:class:`ConsoleScene` owns the :class:`viser.ViserServer`. Scene names are paths
-(``/machine/boom``, ``/target``, ``/throw/payload``). A drawing thread redraws the selected
-machine from its latest MachineState at ``rate_hz`` (default 20 Hz) inside ``server.atomic()``;
-the arm is drawn from :func:`runtime.machine.forward_kinematics` (no kinematics here).
+Each console page opens a *console* (:meth:`ConsoleScene.open_console`, ``POST /api/consoles``) and
+embeds viser with ``?websocket=ws://host:port/c/<console_id>``: the websocket path binds the viser
+client to that console, so a click in one operator's view sets only that console's target, and
+every shape of a console (machine, targeting overlay, preview, throw) is client-scoped
+(server.scene_view.ClientView). Nothing is shared between operators but the ground grid.
 
-Clicks: viser reports a click as a RAY (origin, direction, world frame = machine frame, z up);
-:func:`ground_point` intersects it with the ground plane z = 0 and the result becomes the target.
+A drawing thread poses each console's machine from its latest MachineState at ``rate_hz``.
+Clicks: viser reports a RAY (origin, direction, machine frame, z up); :func:`ground_point`
+intersects it with z = 0; in 2D mode the point snaps to the throwing line; the reason a target
+cannot be served is computed at once (``refusal``) and drawn, and the console page hears the new
+target over live push (``on_console_change``).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import secrets
 import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import viser
 
-from runtime.machine import CHASSIS_HEIGHT_M, CABIN_OFFSET_M, forward_kinematics
-from runtime.throw_geometry import ARM_PLANE_OFFSET_M
-from server.fleet import Fleet
+from runtime.machine import forward_kinematics
+from runtime.throw_geometry import MIN_TARGET_DISTANCE_M
+from server.scene_view import ClientView, MachineGeometry, snap_to_line
 
 log = logging.getLogger(__name__)
 
-YELLOW, GREY, DARK, RED, BLUE, GREEN = (242, 190, 26), (200, 200, 200), (60, 60, 70), (220, 40, 40), (40, 90, 220), (40, 170, 60)
-PLANE_LENGTH_M = 12.0
+DARK, RED = (60, 60, 70), (200, 40, 40)
 TRAJECTORY_POINTS = 300
+DEFAULT_BAND_M = (MIN_TARGET_DISTANCE_M, 10.7)
+CONSOLE_TTL_S = 12 * 3600.0
+MAX_CONSOLES = 500
 
 
 def ground_point(ray_origin, ray_direction, max_range_m: float = 200.0) -> np.ndarray | None:
@@ -52,65 +62,85 @@ def ground_point(ray_origin, ray_direction, max_range_m: float = 200.0) -> np.nd
     return p
 
 
-def _yaw_wxyz(yaw_rad: float) -> tuple[float, float, float, float]:
-    return (math.cos(yaw_rad / 2), 0.0, 0.0, math.sin(yaw_rad / 2))
+def _segments(points) -> np.ndarray:
+    p = np.asarray(points, dtype=float)
+    return np.stack([p[:-1], p[1:]], axis=1)
 
 
-def _segments(points: np.ndarray) -> np.ndarray:
-    """(N, 3) polyline -> (N-1, 2, 3) line segments."""
-    return np.stack([points[:-1], points[1:]], axis=1)
+@dataclass
+class Console:
+    """One console page's view state (outlives viser reconnects).
+
+    Attributes:
+        machine_id / mode: what the operator looks at; target (3,) m or None, with
+        ``target_reason`` (why it cannot be served, None if it can) and ``snapped`` (moved onto
+        the 2D line). ``preview_names``: the scene names of the drawn preview.
+    """
+
+    console_id: str
+    username: str
+    machine_id: str | None = None
+    mode: str = "2d"
+    target: list[float] | None = None
+    target_reason: str | None = None
+    snapped: bool = False
+    preview_names: list[str] = field(default_factory=list)
+    touched: float = field(default_factory=time.monotonic)
+
+    def public(self) -> dict:
+        return {"console_id": self.console_id, "machine_id": self.machine_id, "mode": self.mode,
+                "target": self.target, "target_reason": self.target_reason, "snapped": self.snapped,
+                "preview": list(self.preview_names)}
 
 
 class ConsoleScene:
-    """The 3D view. :meth:`start` serves it; :meth:`stop` shuts it down.
+    """The 3D view server. :meth:`start` serves it; :meth:`stop` shuts it down.
 
     Args:
-        fleet: source of machine states.
+        fleet: source of machine states (``latest_state``).
         host / port: where viser listens (it moves on to the next free port; read :attr:`port`).
         rate_hz: machine redraw rate.
-
-    Attributes:
-        machine_id: machine shown (None: the first one heard, by id).
-        mode: "2d" or "3d"; the 2D throwing plane is highlighted in 2D mode.
-        target: (3,) target picked by a click (or typed), machine frame, m; None before.
+        refusal: (machine_id, mode, target (3,)) -> reason the target cannot be served, or None.
+        band: (machine_id, mode) -> the policy's trained target range (lo, hi) m, or None.
+        zones: keep-out zones (server.config.KeepOutZone) drawn in every view.
+        on_console_change: called with Console.public() after a click changed a console.
     """
 
-    def __init__(self, fleet: Fleet, host: str = "127.0.0.1", port: int = 8080, rate_hz: float = 20.0):
+    def __init__(self, fleet, host: str = "127.0.0.1", port: int = 8080, rate_hz: float = 20.0,
+                 refusal: Callable | None = None, band: Callable | None = None, zones=(),
+                 on_console_change: Callable[[dict], None] | None = None):
         self.fleet = fleet
         self.host, self.requested_port, self.rate_hz = host, port, rate_hz
+        self.refusal = refusal or (lambda mid, mode, t: None)
+        self.band = band or (lambda mid, mode: None)
+        self.zones = list(zones)
+        self.on_console_change = on_console_change
         self.server: viser.ViserServer | None = None
         self.port: int | None = None
-        self.machine_id: str | None = None
-        self.mode: str = "2d"
-        self.target: list[float] | None = None
+        self.consoles: dict[str, Console] = {}
+        self._views: dict[int, tuple[str, ClientView]] = {}
+        self._geometry: MachineGeometry | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._lock = threading.Lock()
-        self.preview_names: list[str] = []
-        """Scene names of the preview drawn last (under /preview)."""
+        self._lock = threading.RLock()
 
     # --- lifecycle -----------------------------------------------------------------------------
     def start(self) -> None:
+        from sim_twin.model import load_model
+
+        self._geometry = MachineGeometry(load_model())
         self.server = viser.ViserServer(host=self.host, port=self.requested_port, label="Slinger", verbose=False)
         self.port = self.server.get_port()
-        s = self.server.scene
-        s.set_up_direction("+z")
-        cam = self.server.initial_camera
-        cam.position, cam.look_at, cam.up = (-7.0, -13.0, 13.0), (6.0, 0.0, 0.0), (0.0, 0.0, 1.0)
-        self.server.gui.configure_theme(control_width="small", show_share_button=False)
-        self.server.gui.main_panel.minimize()  # keep the view clear; the operator can open it
-        s.add_grid("/ground", width=40.0, height=40.0, cell_size=1.0, section_size=5.0,
-                   plane_color=(150, 165, 130), plane_opacity=0.35)
-        s.add_box("/machine/chassis", color=GREY, dimensions=(4.0, 2.4, 1.0), position=(0, 0, CHASSIS_HEIGHT_M - 0.6))
-        self._cabin = s.add_box("/machine/cabin", color=YELLOW, dimensions=(2.6, 2.0, 1.6))
-        self._links = s.add_line_segments("/machine/arm", np.zeros((3, 2, 3)), YELLOW, thickness=0.25)
-        self._rope = s.add_line_segments("/machine/rope", np.zeros((1, 2, 3)), DARK, thickness=0.12)
-        self._gripper = s.add_box("/machine/gripper", color=DARK, dimensions=(0.9, 0.9, 1.0))
-        self._payload = s.add_icosphere("/machine/payload", radius=0.3, color=RED, visible=False)
-        self._plane = s.add_line_segments("/plane2d", np.zeros((1, 2, 3)), BLUE, thickness=0.05)
-        self._label = s.add_label("/machine/label", "no machine", position=(0, 0, 5.0))
-        self._plane_label = s.add_label("/plane2d/label", "2D throwing plane", position=(PLANE_LENGTH_M, 0, 0.3))
-        s.on_click()(self._on_click)
+        self.server.scene.set_up_direction("+z")
+        # operators get the view only: no logo, no share button, and a (minimised) panel with our
+        # own content so viser's developer controls stay behind its settings button
+        self.server.gui.configure_theme(control_width="small", show_share_button=False, show_logo=False)
+        self.server.gui.add_markdown("Slinger targeting view. Click the ground to set the target.")
+        self.server.gui.main_panel.minimize()
+        self.server.scene.add_grid("/ground", width=40.0, height=40.0, cell_size=1.0, section_size=5.0,
+                                   plane_color=(150, 165, 130), plane_opacity=0.35)
+        self.server.on_client_connect(self._on_connect)
+        self.server.on_client_disconnect(self._on_disconnect)
         self._thread = threading.Thread(target=self._run, name="scene-draw", daemon=True)
         self._thread.start()
         log.info("3D view on http://%s:%d", self.host, self.port)
@@ -123,93 +153,163 @@ class ConsoleScene:
             self.server.stop()
             self.server = None
 
-    # --- target --------------------------------------------------------------------------------
-    def _on_click(self, event) -> None:  # viser.SceneClickEvent
+    # --- consoles ------------------------------------------------------------------------------
+    def open_console(self, username: str) -> Console:
+        """A new console (one per page load) for ``username``."""
+        now = time.monotonic()
+        with self._lock:
+            for cid in [c for c, v in self.consoles.items() if now - v.touched > CONSOLE_TTL_S]:
+                del self.consoles[cid]
+            if len(self.consoles) >= MAX_CONSOLES:
+                del self.consoles[min(self.consoles, key=lambda c: self.consoles[c].touched)]
+            con = Console(secrets.token_hex(12), username)
+            self.consoles[con.console_id] = con
+        return con
+
+    def get_console(self, console_id: str) -> Console | None:
+        with self._lock:
+            con = self.consoles.get(console_id)
+            if con is not None:
+                con.touched = time.monotonic()
+            return con
+
+    def update_console(self, con: Console, machine_id: str | None = None, mode: str | None = None,
+                       target=None) -> Console:
+        """Change what a console shows; a new machine or mode drops the old target, preview and throw."""
+        with self._lock:
+            changed = (machine_id is not None and machine_id != con.machine_id) or (mode is not None and mode != con.mode)
+            if machine_id is not None:
+                con.machine_id = machine_id
+            if mode is not None:
+                con.mode = mode
+            if changed:
+                con.target, con.target_reason, con.preview_names = None, None, []
+                for view in self._views_of(con.console_id):
+                    view.clear("/preview", "/throw", "/target", "/band")
+                    view.framed_for = view.drawn_for = None
+            if target is not None:
+                self._set_target(con, target)
+            else:
+                self._redraw_target(con)
+        return con
+
+    def _views_of(self, console_id: str) -> list[ClientView]:
+        return [v for cid, v in self._views.values() if cid == console_id]
+
+    def _set_target(self, con: Console, target) -> None:
+        t = np.asarray(target, dtype=float)
+        con.snapped = False
+        state = self.fleet.latest_state(con.machine_id) if con.machine_id else None
+        if con.mode == "2d" and state is not None:
+            p = snap_to_line(t[:2], state.q[0])
+            if p is not None:
+                con.snapped = bool(np.hypot(*(p - t[:2])) > 1e-6)
+                t = np.array([p[0], p[1], 0.0])
+        con.target = [round(float(v), 3) for v in t]
+        con.target_reason = self.refusal(con.machine_id, con.mode, con.target) if con.machine_id else "pick a machine first"
+        con.preview_names = []
+        for view in self._views_of(con.console_id):
+            view.clear("/preview")
+        self._redraw_target(con)
+
+    def _redraw_target(self, con: Console) -> None:
+        for view in self._views_of(con.console_id):
+            view.draw_target(con.target, con.target_reason)
+
+    # --- viser clients -------------------------------------------------------------------------
+    def _console_of_client(self, client) -> str | None:
+        """The console id in the client's websocket path (/c/<console_id>)."""
+        try:
+            conn = self.server._websock_server._live_connections[client.client_id]  # noqa: SLF001 (viser has no public path)
+            path = conn.request.path.split("?")[0]
+        except (AttributeError, KeyError):
+            return None
+        parts = [p for p in path.split("/") if p]
+        return parts[1] if len(parts) == 2 and parts[0] == "c" else None
+
+    def _on_connect(self, client) -> None:
+        cid = self._console_of_client(client)
+        view = ClientView(client, self._geometry)
+        with self._lock:
+            view.build(self.zones)
+            self._views[client.client_id] = (cid, view)
+        client.scene.on_click()(lambda event: self._on_click(client.client_id, event))
+        con = self.get_console(cid) if cid else None
+        if con is not None:
+            self._redraw_target(con)
+
+    def _on_disconnect(self, client) -> None:
+        with self._lock:
+            self._views.pop(client.client_id, None)
+
+    def _on_click(self, client_id: int, event) -> None:
+        with self._lock:
+            cid = self._views.get(client_id, (None, None))[0]
+        con = self.get_console(cid) if cid else None
+        if con is None:
+            return  # a view opened outside a console page: look only
         p = ground_point(event.ray_origin, event.ray_direction)
         if p is None:
             log.debug("click ray misses the ground: %s %s", event.ray_origin, event.ray_direction)
             return
-        self.set_target(p.tolist())
+        with self._lock:
+            self._set_target(con, p.tolist())
+        if self.on_console_change is not None:
+            self.on_console_change(con.public())
 
-    def set_target(self, target_m) -> None:
-        """Make ``target_m`` ((3,), m) the target and mark it in the view."""
-        t = [float(v) for v in target_m]
-        self.target = t
-        if self.server is not None:
-            s = self.server.scene
-            with self.server.atomic():
-                s.add_cylinder("/target", radius=0.35, height=0.05, color=GREEN, position=(t[0], t[1], 0.03))
-                s.add_label("/target/label", f"target {math.hypot(t[0], t[1]):.1f} m", position=(0, 0, 0.6))
-
-    # --- machine -------------------------------------------------------------------------------
-    def _selected(self) -> str | None:
-        if self.machine_id is not None:
-            return self.machine_id
-        ids = sorted(self.fleet.latest_states())
-        return ids[0] if ids else None
-
+    # --- drawing -------------------------------------------------------------------------------
     def _run(self) -> None:
         period = 1.0 / self.rate_hz
-        last_stamp = None
         while not self._stop.wait(period):
-            mid = self._selected()
-            state = self.fleet.latest_state(mid) if mid else None
-            if state is None or state.stamp_s == last_stamp:
-                continue
-            last_stamp = state.stamp_s
-            try:
-                self.draw_machine(mid, state)
-            except Exception:
-                log.exception("drawing machine %s failed", mid)
+            with self._lock:
+                views = [(self.consoles.get(cid) if cid else None, v) for cid, v in self._views.values()]
+            for con, view in views:
+                try:
+                    self._draw(con, view)
+                except Exception:
+                    log.exception("drawing a console view failed")
 
-    def draw_machine(self, machine_id: str, state) -> None:  # runtime MachineState
-        """Pose every machine shape from one MachineState (one atomic update)."""
-        q, qd = np.asarray(state.q), np.asarray(state.qd)
-        pts = forward_kinematics(np, q, qd)
-        turn = np.array([0.0, 0.0, CHASSIS_HEIGHT_M + CABIN_OFFSET_M[2]])
-        arm = np.array([[turn, pts.boom_pivot], [pts.boom_pivot, pts.dipper_pivot], [pts.dipper_pivot, pts.hanger]])
-        down = pts.gripper_centre - pts.hanger
-        # gripper box: z axis along hanger -> centre (up), yaw of the cabin
-        wxyz = _align_z(-down, q[0])
-        c, s = math.cos(q[0]), math.sin(q[0])
-        cabin_c = turn + np.array([-0.4 * c - 0.2 * s, -0.4 * s + 0.2 * c, 0.8])
-        y0 = ARM_PLANE_OFFSET_M
-        plane = np.array([[[y0 * -s, y0 * c, 0.02], [PLANE_LENGTH_M * c - y0 * s, PLANE_LENGTH_M * s + y0 * c, 0.02]]])
-        kind = "SIMULATED machine" if state.simulated else "machine"
-        with self.server.atomic():
-            self._cabin.position = tuple(cabin_c)
-            self._cabin.wxyz = _yaw_wxyz(q[0])
-            self._links.points = arm
-            self._rope.points = np.array([[pts.hanger, pts.gripper_centre]])
-            self._gripper.position = tuple(pts.gripper_centre)
-            self._gripper.wxyz = wxyz
-            self._plane.points = plane
-            self._plane.visible = self.mode == "2d"
-            self._plane_label.position = tuple(plane[0, 1])
-            self._label.text = f"{kind} {machine_id}"
-            if state.payload_pos_m is not None and state.payload_attached is False:
-                self._payload.position = tuple(state.payload_pos_m)
-                self._payload.visible = True
-            else:
-                self._payload.visible = False
-
-    # --- previews ------------------------------------------------------------------------------
-    def show_preview(self, summary: dict) -> None:
-        """Draw a preview (server.scene_preview): paths, release and its velocity, impact, 1 sigma
-        ellipse, and in 3D mode the swept clearance zone."""
-        if self.server is None:
+    def _draw(self, con: Console | None, view: ClientView) -> None:
+        mid = con.machine_id if con is not None else None
+        if mid is None:
+            ids = sorted(self.fleet.latest_states())
+            mid = ids[0] if ids else None
+        state = self.fleet.latest_state(mid) if mid else None
+        if state is None:
             return
+        online = self.fleet.is_online(mid) if hasattr(self.fleet, "is_online") else True
+        kind = "SIMULATED machine" if state.simulated else "machine"
+        label = f"{kind} {mid}" + ("" if online else " (runtime OFFLINE: last known pose)")
+        flying = state.payload_pos_m is not None and state.payload_attached is False
+        with self._lock:
+            view.draw_machine(label, state.q, state.payload_pos_m if flying else None)
+            mode = con.mode if con is not None else "2d"
+            band = self.band(mid, mode) or DEFAULT_BAND_M
+            key = (mid, mode, tuple(band), round(float(state.q[0]), 2) if mode == "2d" else None)
+            if view.drawn_for != key:
+                view.draw_band(mode, state.q[0], band)
+                view.drawn_for = key
+            if view.framed_for is None or view.framed_for[:2] != key[:2]:
+                view.frame_camera(state.q[0], band, key)
+
+    # --- previews and throws -------------------------------------------------------------------
+    def show_preview(self, con: Console, summary: dict) -> list[str]:
+        """Draw a preview (server.scene_preview) in the views of ``con`` only."""
         from server.scene_preview import draw_preview
 
-        self.preview_names = draw_preview(self.server, summary, summary.get("mode", self.mode))
+        names: list[str] = []
+        with self._lock:
+            for view in self._views_of(con.console_id):
+                names = draw_preview(view.client, summary, summary.get("mode", con.mode))
+            con.preview_names = names
+            if summary.get("status") != "ok":
+                con.target_reason = f"preview failed: {summary.get('reason')}"
+                self._redraw_target(con)
+        return names
 
-    # --- throws --------------------------------------------------------------------------------
-    def show_throw(self, telemetry_path: Path | None, impact_m, target_m) -> None:
-        """Draw a finished throw: gripper path (FK of the recorded joints), payload path and
-        impact. Missing telemetry just draws the impact."""
-        if self.server is None:
-            return
-        s = self.server.scene
+    def show_throw(self, machine_id: str, telemetry_path: Path | None, impact_m, target_m) -> None:
+        """Draw a finished throw (gripper path from the recorded joints, payload path, impact) in
+        every view showing ``machine_id``. Missing telemetry just draws the impact."""
         gripper = payload = None
         if telemetry_path is not None and Path(telemetry_path).is_file():
             from runtime.telemetry import read_telemetry
@@ -220,30 +320,19 @@ class ConsoleScene:
                 gripper = np.array([forward_kinematics(np, tel["q"][i], tel["qd"][i]).gripper_centre for i in idx])
             if len(tel["payload_pos_m"]) >= 2:
                 payload = np.asarray(tel["payload_pos_m"])
-        with self.server.atomic():
-            s.remove_by_name("/throw")
-            s.add_frame("/throw", show_axes=False)
-            if gripper is not None:
-                s.add_line_segments("/throw/gripper_path", _segments(gripper), DARK, thickness=0.06)
-            if payload is not None:
-                s.add_line_segments("/throw/payload_path", _segments(payload), RED, thickness=0.06)
-            if impact_m is not None:
-                s.add_icosphere("/throw/impact", radius=0.3, color=RED, position=tuple(impact_m))
-                err = math.hypot(impact_m[0] - target_m[0], impact_m[1] - target_m[1])
-                s.add_label("/throw/impact/label", f"impact, {err:.2f} m from target", position=(0, 0, 0.8))
-
-
-def _align_z(axis, yaw_rad: float) -> tuple[float, float, float, float]:
-    """Quaternion (wxyz) of a frame whose z axis is ``axis`` and whose x axis follows the yaw."""
-    z = np.asarray(axis, dtype=float)
-    n = np.linalg.norm(z)
-    if n < 1e-9:
-        return _yaw_wxyz(yaw_rad)
-    z = z / n
-    x = np.array([math.cos(yaw_rad), math.sin(yaw_rad), 0.0])
-    x = x - (x @ z) * z
-    if np.linalg.norm(x) < 1e-6:
-        x = np.array([0.0, 0.0, 1.0]) - z[2] * z
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    return tuple(float(v) for v in viser.transforms.SO3.from_matrix(np.stack([x, y, z], axis=1)).wxyz)
+        with self._lock:
+            views = [v for cid, v in self._views.values() if cid in self.consoles and self.consoles[cid].machine_id == machine_id]
+        for view in views:
+            s = view.client.scene
+            with view.client.atomic():
+                s.remove_by_name("/throw")
+                s.add_frame("/throw", show_axes=False)
+                if gripper is not None:
+                    s.add_line_segments("/throw/gripper_path", _segments(gripper), DARK, thickness=0.06)
+                if payload is not None:
+                    s.add_line_segments("/throw/payload_path", _segments(payload), RED, thickness=0.06)
+                if impact_m is not None:
+                    s.add_icosphere("/throw/impact", radius=0.3, color=RED, position=tuple(impact_m))
+                    err = math.hypot(impact_m[0] - target_m[0], impact_m[1] - target_m[1])
+                    s.add_label("/throw/impact/label", f"impact {err:.2f} m from target", position=(0, 0, -0.4),
+                                anchor="top-right")

@@ -1,6 +1,9 @@
 """Drawing a preview in the 3D view (viser): gripper and payload paths, the release point with its
 velocity vector, the predicted impact, the 1 sigma impact ellipse and, in 3D mode, the swept
 clearance zone. Every shape lives under ``/preview`` so one call replaces the previous preview.
+Drawn client-scoped (one operator's view): the numbers are in the console page, so the only
+label here is the release speed (the predicted errors are in the page, so no label overlaps
+the target's or the throw's); a failed preview is said by the target's own label.
 """
 
 from __future__ import annotations
@@ -37,21 +40,20 @@ def clearance_sector(cabin_sweep_rad, radius_m: float, inner_m: float = CABIN_RA
     return verts.astype(np.float32), np.array(faces, dtype=np.uint32), outline
 
 
-def draw_preview(server, summary: dict, mode: str) -> list[str]:
-    """Draw ``summary`` (sim_twin.preview) in viser ``server``; returns the scene names drawn."""
-    s = server.scene
+def draw_preview(client, summary: dict, mode: str) -> list[str]:
+    """Draw ``summary`` (sim_twin.preview) in one viser client (``client.scene``, ``client.atomic``);
+    returns the scene names drawn."""
+    s = client.scene
     names = []
 
     def add(name, fn, *args, **kwargs):
         fn(name, *args, **kwargs)
         names.append(name)
 
-    with server.atomic():
+    with client.atomic():
         s.remove_by_name("/preview")
         add("/preview", s.add_frame, show_axes=False)
         if summary.get("status") != "ok":
-            add("/preview/label", s.add_label, f"preview failed: {summary.get('reason')}",
-                position=tuple(summary["target_m"][:2]) + (1.0,))
             return names
         if len(summary["gripper_path_m"]) >= 2:
             add("/preview/gripper_path", s.add_line_segments, _segments(summary["gripper_path_m"]), DARK, thickness=0.05)
@@ -61,11 +63,9 @@ def draw_preview(server, summary: dict, mode: str) -> list[str]:
         add("/preview/release", s.add_icosphere, radius=0.18, color=PURPLE, position=tuple(p0))
         add("/preview/release_velocity", s.add_line_segments,
             np.array([[p0, p0 + VELOCITY_ARROW_S * v0]]), PURPLE, thickness=0.08)
-        add("/preview/release/label", s.add_label, f"release {np.linalg.norm(v0):.1f} m/s", position=(0, 0, 0.5))
+        add("/preview/release/label", s.add_label, f"release {np.linalg.norm(v0):.1f} m/s", position=(0, 0, 0.5),
+            anchor="bottom-center")
         add("/preview/impact", s.add_icosphere, radius=0.22, color=ORANGE, position=tuple(summary["impact_m"]))
-        add("/preview/impact/label", s.add_label,
-            f"predicted {summary['downrange_error_m']:+.2f} m down, {summary['crossrange_error_m']:+.2f} m cross",
-            position=(0, 0, 0.7))
         ell = (summary.get("mc") or {}).get("ellipse")
         if ell:
             outline = np.array(ell["outline_m"])

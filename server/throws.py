@@ -1,14 +1,18 @@
 """Starting a throw: checks, the runtime handshake, and the no-half-written-rows rule.
 
 :meth:`ThrowService.create` refuses early what it can (unknown machine 404, runtime offline 503,
-target the mode cannot serve 422 via :func:`runtime.throw_geometry.target_refusal`), then commits
-a ``requested`` row (so that the runtime's first ThrowStatus finds it), asks the runtime and, on
-ANY failure of the handshake, deletes that row again before raising.
+target the mode cannot serve 422 via :func:`runtime.throw_geometry.target_refusal`, no fresh OK
+preview of the same request 409/422 via :mod:`server.throw_gate`), then commits a ``requested``
+row (so that the runtime's first ThrowStatus finds it), signs the request for the user and the
+runtime's epoch and asks the runtime. When the runtime refuses (or nothing could be sent) the row
+is deleted again; when the runtime does not answer, it may still have taken the throw, so the row
+stays and the reconciliation (server.reconcile) closes it with its result or as ``lost``.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import uuid
 from typing import Callable
 
@@ -20,8 +24,10 @@ from server.targets import serve_refusal
 from server.api.schemas import ThrowCreate
 from server.auth import audit
 from server.db.models import Machine, PolicyVersion, Throw
+from server.db.types import utcnow
 from server.fleet import Fleet, RuntimeUnavailable
 from server.results import ensure_machine
+from server.throw_gate import GateLimits, preview_refusal
 
 log = logging.getLogger(__name__)
 
@@ -29,10 +35,12 @@ log = logging.getLogger(__name__)
 class ThrowRefused(Exception):
     """A throw request the server or the runtime refused; ``status_code`` is the HTTP status."""
 
-    def __init__(self, status_code: int, detail: str):
+    def __init__(self, status_code: int, detail: str, condition: str | None = None):
         super().__init__(detail)
         self.status_code = status_code
         self.detail = detail
+        self.condition = condition
+        """The failed gate condition (server.throw_gate), if that was the reason."""
 
 
 class ThrowService:
@@ -43,14 +51,17 @@ class ThrowService:
         sessions: database session factory.
         keep_out_zones: ground circles no target may lie in (server.config.KeepOutZone).
         previews: looks up a preview summary by id (None: unknown or expired).
+        gate: bounds of the preview gate; None switches the gate off (tests of other parts
+            only: Settings.require_preview).
     """
 
     def __init__(self, fleet: Fleet, sessions: sessionmaker[Session], keep_out_zones=(),
-                 previews: Callable[[str], dict | None] | None = None):
+                 previews: Callable[[str], dict | None] | None = None, gate: GateLimits | None = GateLimits()):
         self.fleet = fleet
         self.sessions = sessions
         self.keep_out_zones = list(keep_out_zones)
         self.previews = previews or (lambda _id: None)
+        self.gate = gate
 
     def checked_state(self, mid: str, mode: str, target) -> MachineState:
         """The machine's latest state if it can serve ``target`` in ``mode`` now.
@@ -82,13 +93,20 @@ class ThrowService:
             (or a later phase if the runtime already reported one).
 
         Raises:
-            ThrowRefused: 404 unknown machine; 503 runtime offline, no machine state, or no
-                answer; 422 target the mode cannot serve, or the runtime refused (its reason).
-                No throw row remains in any of these cases.
+            ThrowRefused: 404 unknown machine; 503 runtime offline, no machine state, no
+                answer (the row then stays until reconciled), or no command key; 409 E-STOP latched
+                (as the runtime last reported it); 422 target the
+                mode cannot serve, preview missing/failed/for another request, or the runtime
+                refused (its reason); 409 preview stale, policy changed or machine moved.
         """
         mid = body.machine_id
         state = self.checked_state(mid, body.mode, body.target)
-        preview = self._preview_of(body)
+        info = self.fleet.fresh_info(mid, max_age_s=0.0, timeout_s=1.0)  # ask the runtime now (a latch is instant)
+        if info is not None and info.estop_latched:
+            # named before the preview gate: the operator must reset first (the runtime refuses anyway)
+            raise ThrowRefused(409, f"E-STOP latched on {mid} ({info.estop_reason or 'no reason given'}): "
+                                    "reset it before throwing", "estop_latched")
+        preview = self._preview_of(body, state)
         if body.mode == "3d" and not body.confirm_clearance:
             raise ThrowRefused(422, "a 3D throw turns the cabin: confirm that the swept clearance zone is "
                                     "clear (confirm_clearance: true)")
@@ -99,38 +117,56 @@ class ThrowService:
             db.add(Throw(id=throw_id, machine_id=mid, mode=body.mode, status="requested",
                          target_x_m=body.target[0], target_y_m=body.target[1],
                          target_z_m=body.target[2], requested_by=username, preview=preview))
+        request = ThrowRequest(throw_id=throw_id, machine_id=mid, mode=body.mode, target_m=body.target)
         try:
-            ack = self.fleet.request_throw(
-                ThrowRequest(throw_id=throw_id, machine_id=mid, mode=body.mode, target_m=body.target)
-            )
+            ack, epoch = self.fleet.request_throw(request, username)
             if ack.throw_id != throw_id:
                 raise RuntimeUnavailable(f"ack for throw {ack.throw_id}, expected {throw_id}")
-            if not ack.accepted:
-                raise ThrowRefused(422, ack.reason or "the runtime refused the throw")
+        except RuntimeUnavailable as e:
+            # the request may have reached the runtime: keep the row for the reconciliation
+            log.warning("throw %s: no confirmation from %s (%s); left to reconciliation", throw_id, mid, e)
+            raise ThrowRefused(503, f"runtime of {mid} did not confirm the throw: {e}") from e
         except BaseException as e:
             self._delete(throw_id)
-            if isinstance(e, RuntimeUnavailable):
-                raise ThrowRefused(503, f"runtime of {mid} did not accept the throw: {e}") from e
+            if isinstance(e, ValueError):
+                raise ThrowRefused(503, f"cannot sign the throw for {mid}: {e}") from e
             raise
+        if not ack.accepted:
+            self._delete(throw_id)
+            raise ThrowRefused(422, ack.reason or "the runtime refused the throw")
+        self.fleet.forget_info(mid)  # busy now: the next read asks the runtime
         with self.sessions.begin() as db:
             row = db.get(Throw, throw_id)
-            row.policy_version = ack.policy_version
+            row.policy_version, row.runtime_epoch = ack.policy_version, epoch
+            row.policy_sha256 = ack.policy_sha256 or self._policy_sha256(mid, body.mode, ack.policy_version)
             audit(db, username, "throw", throw_id, machine_id=mid, mode=body.mode, target_m=body.target,
-                  policy_version=ack.policy_version)
+                  policy_version=ack.policy_version, epoch=epoch, preview_id=body.preview_id)
         log.info("throw %s accepted by %s (%s, target %s)", throw_id, mid, body.mode, body.target)
         return row, ack
 
-    def _preview_of(self, body: ThrowCreate) -> dict | None:
-        """The stored form of the preview the throw is sent with (422 if unknown or another
-        request's); None without a preview id."""
-        if body.preview_id is None:
-            return None
-        p = self.previews(body.preview_id)
+    def _preview_of(self, body: ThrowCreate, state: MachineState) -> dict | None:
+        """The stored form of the preview the throw is sent with, after the gate
+        (server.throw_gate) passed; None without a preview when the gate is off.
+
+        Raises:
+            ThrowRefused: the failed gate condition (409/422 with ``condition``).
+        """
+        p = self.previews(body.preview_id) if body.preview_id is not None else None
+        if self.gate is not None:
+            info = self.fleet.fresh_info(body.machine_id, max_age_s=2.0, timeout_s=1.0)
+            sha = next((q.sha256 for q in (info.policies if info else []) if q.mode == body.mode), None)
+            refusal = preview_refusal(p, body.preview_id, body.machine_id, body.mode, body.target, state.q, sha,
+                                      utcnow(), self.gate)
+            if refusal is not None:
+                raise ThrowRefused(refusal.status_code, refusal.message, refusal.condition)
+        elif body.preview_id is not None:
+            if p is None:
+                raise ThrowRefused(422, f"unknown or expired preview {body.preview_id!r}: preview again", "preview_unknown")
+            if p["machine_id"] != body.machine_id or p["mode"] != body.mode or math.dist(p["target_m"], body.target) > 1e-6:
+                raise ThrowRefused(422, "the preview was made for another machine, mode or target: preview again",
+                                   "preview_other")
         if p is None:
-            raise ThrowRefused(422, f"unknown or expired preview {body.preview_id!r}: preview again")
-        same_target = all(abs(a - b) < 1e-6 for a, b in zip(p["target_m"], body.target))
-        if p["machine_id"] != body.machine_id or p["mode"] != body.mode or not same_target:
-            raise ThrowRefused(422, "the preview was made for another machine, mode or target: preview again")
+            return None
         keep = {k: v for k, v in p.items() if k != "mc"}
         if p.get("mc"):
             keep["mc"] = {k: v for k, v in p["mc"].items() if k != "impacts_m"}
@@ -139,6 +175,12 @@ class ThrowService:
     def _delete(self, throw_id: str) -> None:
         with self.sessions.begin() as db:
             db.execute(delete(Throw).where(Throw.id == throw_id))
+
+    def _policy_sha256(self, machine_id: str, mode: str, version: str | None) -> str | None:
+        """The SHA-256 of the policy ``machine_id`` reports for ``mode`` (runtimes whose acks
+        carry no SHA), if its name is the acknowledged one."""
+        info = self.fleet.fresh_info(machine_id, max_age_s=60.0, timeout_s=1.0)
+        return next((p.sha256 for p in (info.policies if info else []) if p.mode == mode and p.version == version), None)
 
     def _target_range(self, machine_id: str, mode: str) -> tuple[float, float] | None:
         """The trained target range of the policy ``machine_id`` runs for ``mode``, from its

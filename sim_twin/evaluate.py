@@ -214,6 +214,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=None)
     parser.add_argument("--out", type=Path, default=None, help="JSON report (default reports/eval_<mode>.json)")
     parser.add_argument("--plot", type=Path, default=None, help="PNG figure (default beside the JSON)")
+    parser.add_argument("--matrix", action="store_true",
+                        help="run the site matrix (nominal + sim_twin/profiles site profiles, sim_twin.matrix) and write "
+                             "reports/site_matrix_<mode>.json/.md/.png (or --out); default 100 throws per target")
     parser.add_argument("--combine", type=Path, nargs="+", default=None,
                         help="only draw the figure of these JSON reports side by side (e.g. 2D and 3D) to --plot")
 
@@ -229,6 +232,15 @@ def run(args: argparse.Namespace) -> int:
 
     mode = PolicyRunner.load(args.policy).mode
     targets = parse_targets(args.targets or ("7.5:10:0.5" if mode == "2d" else "7:9.5:0.5"))
+    if args.matrix:
+        from sim_twin import matrix
+
+        throws = 100 if args.throws == 200 else args.throws  # 200 is the single-profile default
+        rep = matrix.run_matrix(args.policy, mode, targets, throws, seed=args.seed, workers=args.workers)
+        out = args.out or Path("reports") / f"site_matrix_{mode}.json"
+        matrix.write(rep, out)
+        log.info("site matrix %s: all bars met: %s; %s", mode, rep["pass"], out.with_suffix(".md"))
+        return 0
     report = evaluate(args.policy, mode, targets, args.throws, args.profile, args.seed, args.workers)
     out = args.out or Path("reports") / f"eval_{mode}.json"
     out.parent.mkdir(parents=True, exist_ok=True)

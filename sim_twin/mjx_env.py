@@ -11,8 +11,18 @@ random time constant, gain error and velocity-command noise (the paper's "artifi
 command randomization", Sec. III-B), or, with ``randomization.actuation = "hydraulic"``, the
 runtime's own PID + feed-forward law (runtime.controller.pid_ff_law) feeding a valve model with
 per-episode random dead band, transport delay, lag and full-open speed (sim_twin.hydraulics),
-plus velocity-command noise. Evaluation still runs the runtime's controller object on the
+plus velocity-command noise. Either way the servo setpoint passes the hydraulic cylinders
+(sim_twin.hydraulics.cylinder_step: closed valves hold the load, joint ends are hard stops) as in
+the simulated machine. Evaluation still runs the runtime's controller object on the
 simulated machine, at the nominal parameters.
+
+Sensing (paper Sec. IV: "random noises added to the observation vector"): the policy observes
+the joints as the machine measures them, per episode ``encoder_latency_s`` / ``imu_latency_s``
+old (whole 10 ms steps, active joints / passive joints) plus white noise of the std's in
+``obs_noise`` (q_active, qd_active, q_passive, qd_passive); rewards and terminations use the true
+state. Per episode the gripper's mass and inertia are scaled by ``gripper_mass_scale``
+(sim_twin.effects.machine.HangingMass does the same on the CPU twin); the valve parameters are
+drawn per joint.
 
 Payload (paper Sec. III-B): held at the gripper centre; the release command opens the gripper
 after the release delay (sampled per episode around the identified 258 ms); the payload then
@@ -39,7 +49,7 @@ import numpy as np
 from mujoco import mjx
 
 from runtime.controller import ControllerGains, pid_ff_law
-from runtime.machine import ACTIVE_VELOCITY_LIMITS, clearance_violations, forward_kinematics
+from runtime.machine import ACTIVE_VELOCITY_LIMITS, JOINT_LOWER, JOINT_UPPER, NUM_ACTIVE, clearance_violations, forward_kinematics
 from runtime.observation import (
     PHYSICS_PERIOD_S,
     SUBSTEPS,
@@ -49,12 +59,14 @@ from runtime.observation import (
     observation_size,
 )
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
-from sim_twin.hydraulics import dead_band_flow, lag_step
+from sim_twin.hydraulics import cylinder_step, dead_band_flow, lag_step
 from sim_twin.initial_pose import pose_from_uniform, pose_is_valid
 from sim_twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
 from sim_twin.physics import ballistic_impact_time, ballistic_position, passive_friction_force
 
-MAX_VALVE_DELAY_STEPS = 12  # longest valve transport delay the training env can model (0.12 s)
+MAX_VALVE_DELAY_STEPS = 30  # longest valve transport delay the training env can model (0.30 s)
+MAX_SENSOR_LAG_STEPS = 5  # longest sensor latency the training env can model (0.05 s)
+GRIPPER_BODY = "gripper"  # body whose mass and inertia are randomised (sim_twin.effects.machine)
 POSE_CANDIDATES = 16  # rejection sampling without loops: first valid of 16 (P(all bad) ~ 2e-3)
 FALLBACK_POSE_U = np.array([0.45, 0.45, 0.5])  # a known valid pose if all candidates fail
 
@@ -109,6 +121,7 @@ class ThrowEnvCore:
         self.num_act = num_actions(cfg.mode)
         mj_model = load_model()
         self.model = mjx.put_model(mj_model)
+        self.gripper_id = mj_model.body(GRIPPER_BODY).id
         self.data0 = mjx.make_data(mj_model)
         self.inertia = jnp.asarray(passive_inertia(), dtype=jnp.float32)
         self.vmax = jnp.asarray(ACTIVE_VELOCITY_LIMITS, dtype=jnp.float32)
@@ -118,6 +131,8 @@ class ThrowEnvCore:
         self.forced = cfg.forced_release
         self.hydraulic = self.rand.get("actuation", "lag") == "hydraulic"
         self.gains = ControllerGains()
+        self.lower = jnp.asarray(JOINT_LOWER[:NUM_ACTIVE], dtype=jnp.float32)
+        self.upper = jnp.asarray(JOINT_UPPER[:NUM_ACTIVE], dtype=jnp.float32)
 
     # --- reset ------------------------------------------------------------------------------
     def _sample_pose(self, key):
@@ -153,16 +168,29 @@ class ThrowEnvCore:
         rd = self.rand
         delay_s = rd.get("release_delay_mean_s", 0.258) + rd.get("release_delay_std_s", 0.015) * jax.random.normal(ks[2])
         delay_s = delay_s + jax.random.uniform(ks[7], (), minval=-1.0, maxval=1.0) * rd.get("release_delay_shift_s", 0.0)
-        tau = jax.random.uniform(ks[3], (4,), minval=rd.get("lag_s", [0.03, 0.2])[0], maxval=rd.get("lag_s", [0.03, 0.2])[1])
+        lg = rd.get("lag_s", [0.03, 0.2])
         g = rd.get("gain_error", 0.1)
         gain = 1.0 + jax.random.uniform(ks[4], (4,), minval=-g, maxval=g)
         fr = rd.get("friction_scale", [0.7, 1.3])
         fric = jax.random.uniform(ks[5], (), minval=fr[0], maxval=fr[1])
-        kh = jax.random.split(ks[6], 5)
+        kh = jax.random.split(ks[6], 8)
         db = rd.get("dead_band", [0.05, 0.05])
         dl = rd.get("valve_delay_s", [0.04, 0.04])
         vs = rd.get("velocity_scale", [1.0, 1.0])
-        valve_delay = jnp.round(jax.random.uniform(kh[1], (4,), minval=dl[0], maxval=dl[1]) / PHYSICS_PERIOD_S)
+        # valve speed: independent per joint, or (valve_spread < 1) one machine-wide slowness
+        # g ~ U(0, 1) (one pump and pilot circuit) with per-joint spread around it, for delay and lag alike
+        spread = rd.get("valve_spread", 1.0)
+        g = jax.random.uniform(kh[7], ())
+        frac_d = jnp.clip(g + spread * jax.random.uniform(kh[1], (4,), minval=-1.0, maxval=1.0), 0.0, 1.0)
+        frac_l = jnp.clip(g + spread * jax.random.uniform(ks[3], (4,), minval=-1.0, maxval=1.0), 0.0, 1.0)
+        if spread >= 1.0:
+            frac_d, frac_l = jax.random.uniform(kh[1], (4,)), jax.random.uniform(ks[3], (4,))
+        tau = lg[0] + frac_l * (lg[1] - lg[0])
+        valve_delay = jnp.round((dl[0] + frac_d * (dl[1] - dl[0])) / PHYSICS_PERIOD_S)
+        lat = [rd.get("encoder_latency_s", [0.0, 0.0]), rd.get("imu_latency_s", [0.0, 0.0])]
+        sensor_lag = jnp.stack([jax.random.uniform(k, (), minval=lo, maxval=hi) for k, (lo, hi) in zip(kh[4:6], lat)])
+        sensor_lag = jnp.clip(jnp.round(sensor_lag / PHYSICS_PERIOD_S), 0, MAX_SENSOR_LAG_STEPS).astype(jnp.int32)
+        gm = rd.get("gripper_mass_scale", [1.0, 1.0])
         zeros6 = jnp.zeros(6)
         data = self.data0.replace(qpos=q, qvel=zeros6, ctrl=jnp.zeros(4), qfrc_applied=zeros6, time=jnp.zeros(()))
         pts = forward_kinematics(jnp, q, zeros6)
@@ -185,6 +213,11 @@ class ThrowEnvCore:
             err2_min=e2,
             err3_min=jnp.sqrt(e2**2 + err[2] ** 2),
             lag_v=jnp.zeros(4),
+            sensor_lag=sensor_lag,
+            phys_q=jnp.tile(q, (MAX_SENSOR_LAG_STEPS + 1, 1)),
+            phys_qd=jnp.zeros((MAX_SENSOR_LAG_STEPS + 1, 6)),
+            gripper_scale=jax.random.uniform(kh[6], (), minval=gm[0], maxval=gm[1]),
+            x_ref=jnp.clip(q[:NUM_ACTIVE], self.lower, self.upper),
             tau=tau,
             gain=gain,
             delay_steps=jnp.maximum(1, jnp.round(delay_s / PHYSICS_PERIOD_S)).astype(jnp.int32),
@@ -222,11 +255,17 @@ class ThrowEnvCore:
 
     def _substep(self, s: EnvState, target_v) -> EnvState:
         dt = PHYSICS_PERIOD_S
-        s, setpoint = self._actuate(s, target_v)
+        s, flow = self._actuate(s, target_v)
         data = s["data"]
+        x_ref, setpoint = cylinder_step(jnp, s["x_ref"], flow, data.qpos[:NUM_ACTIVE], self.lower, self.upper, dt)
+        s = EnvState(s, x_ref=x_ref)
         fric = passive_friction_force(jnp, data.qvel[4:6], self.inertia * s["fric"])
         data = data.replace(ctrl=setpoint, qfrc_applied=jnp.zeros(6).at[4:6].set(fric))
-        data = mjx.step(self.model, data)
+        g, scale = self.gripper_id, s["gripper_scale"]
+        model = self.model.replace(
+            body_mass=self.model.body_mass.at[g].multiply(scale), body_inertia=self.model.body_inertia.at[g].multiply(scale)
+        )
+        data = mjx.step(model, data)
         countdown = s["countdown"]
         open_now = (countdown == 1) & ~s["opened"]
         countdown = jnp.where(countdown > 0, countdown - 1, countdown)
@@ -238,12 +277,25 @@ class ThrowEnvCore:
         return EnvState(
             s, data=data, countdown=countdown, opened=s["opened"] | open_now,
             ball_p0=p0, ball_v0=v0, t_flight=t_flight, t_open=t_open,
+            phys_q=jnp.concatenate([data.qpos[None], s["phys_q"][:-1]]),
+            phys_qd=jnp.concatenate([data.qvel[None], s["phys_qd"][:-1]]),
         )
+
+    def _measure(self, s: EnvState, key) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """(q (6,), qd (6,)) as the sensors give them: latency per joint group, white noise."""
+        lag = jnp.concatenate([jnp.full(4, s["sensor_lag"][0]), jnp.full(2, s["sensor_lag"][1])])
+        cols = jnp.arange(6)
+        q, qd = s["phys_q"][lag, cols], s["phys_qd"][lag, cols]
+        n = self.rand.get("obs_noise", {})
+        q_std = jnp.asarray([n.get("q_active", 0.0)] * 4 + [n.get("q_passive", 0.0)] * 2)
+        qd_std = jnp.asarray([n.get("qd_active", 0.0)] * 4 + [n.get("qd_passive", 0.0)] * 2)
+        k1, k2 = jax.random.split(key)
+        return q + q_std * jax.random.normal(k1, (6,)), qd + qd_std * jax.random.normal(k2, (6,))
 
     def step(self, s: EnvState, action):
         """One control step. Returns (state, obs, reward, terminated, time_out, info)."""
         w = self.w
-        key, k_force, k_noise = jax.random.split(s["key"], 3)
+        key, k_force, k_noise, k_obs = jax.random.split(s["key"], 4)
         qd_ref, release = decode_action(jnp, self.mode, action)
         # forced release (paper Sec. III-D): near the target at low speed, 5 % of the time
         pts0 = forward_kinematics(jnp, s["data"].qpos, s["data"].qvel)
@@ -293,8 +345,9 @@ class ThrowEnvCore:
         step = s["step"] + 1
         time_out = (step >= self.cfg.max_steps) & ~failed & ~landed
         terminated = failed | landed
-        q_hist = jnp.concatenate([data.qpos[None], s["q_hist"][:3]])
-        qd_hist = jnp.concatenate([data.qvel[None], s["qd_hist"][:3]])
+        q_meas, qd_meas = self._measure(s, k_obs)
+        q_hist = jnp.concatenate([q_meas[None], s["q_hist"][:3]])
+        qd_hist = jnp.concatenate([qd_meas[None], s["qd_hist"][:3]])
         s = EnvState(
             s, step=step, err2_min=jnp.minimum(s["err2_min"], err2), err3_min=jnp.minimum(s["err3_min"], err3),
             q_hist=q_hist, qd_hist=qd_hist, prev_action=action,

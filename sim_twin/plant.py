@@ -5,7 +5,26 @@ Real-time 100 Hz loop (absolute schedule, no drift): apply the latest ValveComma
 watchdog: none for more than 0.1 s -> neutral valves) and GripperCommand, step the physics,
 publish MachineState (simulated=True; q and qd include the passive joints, as the gripper IMU
 gives them; payload position and velocity), publish one ImpactReport when the payload lands,
-apply SimReset requests, and hold the liveliness token keys.machine_alive(id).
+apply SimReset requests (tools and tests; the runtime never sends one), and hold the liveliness
+token keys.machine_alive(id).
+
+What only the simulated machine does stays here, behind the machine interface:
+
+* reloading: RELOAD_AFTER_LANDING_S after its payload landed (or RELOAD_UNLOADED_S after it
+  was lost without a landing) the plant loads a fresh payload at a random collision-free pose
+  keeping the cabin angle, gripper closed, at rest. This stands for the operator picking up
+  the next object; the machine then waits loaded, so a preview from its current state
+  predicts the next throw. A loaded machine that comes to rest where no throw can start (a
+  joint at its end, the gripper at the ground: runtime.machine.clearance_violations, e.g. after
+  a failed throw or an E-STOP) is re-posed the same way once it has rested for 0.5 s.
+* one machine, one plant: at start it asks for keys.machine_alive(id); if another plant holds
+  it, it exits with code 3 ("machine m1 already has a plant").
+* one driver: it follows only the newest ValveCommand epoch it has seen (a runtime's claim
+  epoch); commands of an older epoch are dropped and logged once per epoch.
+* real time: when a period starts more than 100 ms late (sim_twin.realtime.BEHIND_FAULT_S), the
+  plant publishes ``machine_fault`` "behind real time by N ms" and holds the valves neutral
+  until it has kept real time for 1 s (RECOVER_S, RealTimeGuard); the runtime refuses throws
+  with that reason and fails a running one.
 
 :class:`TwinMachine` is the bookkeeping between a SimulatedMachine and the wire messages (a
 clock that keeps running across resets, the reset counter, the one-shot impact report). The
@@ -26,6 +45,7 @@ from typing import Callable
 import numpy as np
 
 from runtime.entrypoint import module_main, stop_on_signals
+from runtime.machine import clearance_violations, forward_kinematics
 from runtime.observation import PHYSICS_PERIOD_S
 from runtime.protocol import keys
 from runtime.protocol.messages import (
@@ -38,15 +58,23 @@ from runtime.protocol.messages import (
     decode,
     encode,
 )
-from runtime.zenoh_session import open_session
+from runtime.zenoh_session import add_session_arguments, claimed_by_other, open_session, session_options
 from sim_twin.initial_pose import sample_pose
 from sim_twin.profile import RealityProfile
+from sim_twin.realtime import RealTimeGuard
 from sim_twin.simulated_machine import SimulatedMachine
 
 log = logging.getLogger(__name__)
 
 VALVE_WATCHDOG_S = 0.1
 """Plant-side watchdog: valves go neutral when no ValveCommand arrived for this long (s)."""
+
+RELOAD_AFTER_LANDING_S = 1.0
+"""Simulated seconds between the payload's landing and the next payload being loaded."""
+RELOAD_UNLOADED_S = 8.0
+"""Simulated seconds without a payload (no landing seen) before reloading anyway; longer than
+the runtime's 6 s impact timeout so that a payload in flight is never taken away."""
+EXIT_ALREADY_CLAIMED = 3
 
 
 class TwinMachine:
@@ -66,6 +94,8 @@ class TwinMachine:
         self._time_offset_s = 0.0
         self._clock = clock or self.sim_time_s
         self._impact_sent = False
+        self._unloaded_since_s: float | None = None
+        self.fault: str | None = None  # published as MachineState.machine_fault
 
     def sim_time_s(self) -> float:
         """Simulated seconds since construction, continuous across resets."""
@@ -85,7 +115,37 @@ class TwinMachine:
             payload_vel_mps=np.asarray(vel, dtype=float).tolist(),
             simulated=True,
             reset_count=self.reset_count,
+            machine_fault=self.fault,
         )
+
+    @property
+    def loaded(self) -> bool:
+        """A payload sits in the closed gripper."""
+        return bool(self.sim.payload_attached and not self.sim.gripper_open)
+
+    def reload_if_due(self, now_s: float | None = None) -> bool:
+        """The operator stand-in: load a fresh payload (apply_reset) RELOAD_AFTER_LANDING_S
+        after the payload landed, or RELOAD_UNLOADED_S after it was lost without a landing.
+
+        Args:
+            now_s: simulated seconds (default: sim_time_s()).
+
+        Returns:
+            True if it reloaded.
+        """
+        now = self.sim_time_s() if now_s is None else now_s
+        if self.loaded:
+            self._unloaded_since_s = None
+            return False
+        if self._unloaded_since_s is None:
+            self._unloaded_since_s = now
+        impact = self.sim.impact
+        landed_ago = None if impact is None else self.sim.time_s - impact.impact_time_s
+        if (landed_ago is not None and landed_ago >= RELOAD_AFTER_LANDING_S) or now - self._unloaded_since_s >= RELOAD_UNLOADED_S:
+            q = self.apply_reset(SimReset(machine_id=self.machine_id, stamp_s=0.0))
+            log.info("payload reloaded (%d): q_active %s", self.reset_count, np.round(q[:4], 3).tolist())
+            return True
+        return False
 
     def apply_reset(self, request: SimReset) -> np.ndarray:
         """Re-initialise: ``request.q_active`` or a random collision-free pose that keeps the
@@ -98,11 +158,12 @@ class TwinMachine:
             q_active = np.asarray(request.q_active, dtype=float)
         else:
             rng = self.sim.rng if request.seed is None else np.random.default_rng(request.seed)
-            q_active = sample_pose(rng, cabin_turn=float(self.sim.q[0]))[:4]
+            q_active = sample_pose(rng, cabin_turn=float(self.sim.data.qpos[0]))[:4]
         self._time_offset_s += self.sim.time_s
         q = self.sim.reset(q_active=q_active)
         self.reset_count += 1
         self._impact_sent = False
+        self._unloaded_since_s = None
         return q
 
     def step(self, valve_u, gripper_open: bool) -> ImpactReport | None:
@@ -126,7 +187,8 @@ class TwinMachine:
 
 def run_throw(twin: TwinMachine, executor, request, max_s: float = 30.0):
     """Drive one throw of ``executor`` (runtime.executor.ThrowExecutor) on ``twin`` in a plain
-    loop, the way evaluation and previews do: tick -> apply SimReset -> step -> impact.
+    loop, the way evaluation does: load a payload if the machine has none (the operator),
+    then tick -> step -> impact.
 
     Args:
         twin: the simulated machine (simulated clock recommended).
@@ -138,6 +200,8 @@ def run_throw(twin: TwinMachine, executor, request, max_s: float = 30.0):
         (outcome, events): the ThrowOutcome (None if the request was refused) and the list of
         PhaseEvents; if refused, events is the refusal reason (str).
     """
+    if not twin.loaded:
+        twin.apply_reset(SimReset(machine_id=twin.machine_id, stamp_s=0.0))
     refusal = executor.start(request, twin.state())
     if refusal is not None:
         return None, refusal
@@ -147,8 +211,6 @@ def run_throw(twin: TwinMachine, executor, request, max_s: float = 30.0):
         events += out.events
         if out.finished is not None:
             return out.finished, events
-        if out.sim_reset is not None:
-            twin.apply_reset(out.sim_reset)
         report = twin.step(out.valve_u, out.gripper_open)
         if report is not None:
             out = executor.on_impact(report)
@@ -170,6 +232,14 @@ class PlantInbox:
         self.gripper_open = False
         self.resets: list[SimReset] = []
         self.watchdog_tripped = False
+        self.still_ticks = 0
+        """Consecutive periods with neutral valves, no reset, the same gripper command and every
+        joint slower than REST_QD_RADPS (plant loop state; see plant_tick)."""
+        self.last_gripper = False
+        self.rest_state: MachineState | None = None
+        self.resting = False
+        self.epoch: int | None = None  # newest ValveCommand epoch seen
+        self._stale_logged: set[int | None] = set()
 
     def _decode(self, cls, sample):
         try:
@@ -183,10 +253,22 @@ class PlantInbox:
         return msg
 
     def on_valve(self, sample) -> None:
+        """Follow only the newest epoch: a newer one takes over (logged), older ones (and
+        epoch-less commands once an epoch was seen) are dropped, logged once per epoch."""
         msg = self._decode(ValveCommand, sample)
-        if msg is not None:
-            with self.lock:
-                self.valve_u, self.valve_rx_s = np.asarray(msg.u, dtype=float), time.monotonic()
+        if msg is None:
+            return
+        with self.lock:
+            if self.epoch is not None and (msg.epoch is None or msg.epoch < self.epoch):
+                if msg.epoch not in self._stale_logged:
+                    self._stale_logged.add(msg.epoch)
+                    log.warning("ignoring valve commands of runtime epoch %s: following the newer epoch %d", msg.epoch, self.epoch)
+                return
+            if msg.epoch is not None and msg.epoch != self.epoch:
+                if self.epoch is not None:
+                    log.warning("a second runtime (epoch %d) took over from epoch %d", msg.epoch, self.epoch)
+                self.epoch = msg.epoch
+            self.valve_u, self.valve_rx_s = np.asarray(msg.u, dtype=float), time.monotonic()
 
     def on_gripper(self, sample) -> None:
         msg = self._decode(GripperCommand, sample)
@@ -206,9 +288,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--machine-id", required=True, help="machine id, [A-Za-z0-9_-]{1,64}")
     parser.add_argument("--profile", default=None, help="reality profile JSON (default: nominal machine)")
     parser.add_argument("--seed", type=int, default=None, help="seed of the start pose and release-delay jitter")
-    parser.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    parser.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on (repeatable)")
-    parser.add_argument("--mode", default="peer", choices=("peer", "client"), help="Zenoh session mode")
+    add_session_arguments(parser)
 
 
 def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
@@ -216,6 +296,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     try:
         machine_id = keys.validate_machine_id(args.machine_id)
         profile = RealityProfile.load(args.profile) if args.profile else RealityProfile()
+        zenoh_opts = session_options(args, f"plant-{machine_id}", [machine_id])
     except (ValueError, OSError) as e:
         log.error("cannot start plant: %s", e)
         return 2
@@ -223,7 +304,10 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     sim = SimulatedMachine(profile, seed=args.seed)  # random collision-free pose, cabin_turn 0
     twin = TwinMachine(sim, machine_id, clock=time.monotonic)
     inbox = PlantInbox(machine_id)
-    with open_session(args.mode, listen=args.listen, connect=args.connect) as session:
+    with open_session(**zenoh_opts) as session:
+        if claimed_by_other(session, keys.machine_alive(machine_id)):
+            log.error("machine %s already has a plant: not starting a second one", machine_id)
+            return EXIT_ALREADY_CLAIMED
         pub_state = session.declare_publisher(keys.state(machine_id))
         pub_impact = session.declare_publisher(keys.impact(machine_id))
         subs = [
@@ -245,9 +329,31 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     return 0
 
 
+REST_QD_RADPS = 5e-3
+"""A joint slower than this (rad/s, m/s) counts as still: with neutral valves the valve model lets a
+loaded arm creep at 1-3 mrad/s, which a resting simulated machine does not integrate."""
+REST_TICKS = 50
+"""Periods (0.5 s: longer than the valve model's transport delay and lag) of stillness with
+neutral valves after which a resting machine is no longer integrated."""
+REST_PUBLISH_EVERY = 5
+"""A resting machine publishes its state every 5th period (20 Hz: well inside the runtime's
+0.2 s link timeout and the 0.1 s valve watchdog); every period again once it moves."""
+
+
+def _outside_envelope(state: MachineState) -> bool:
+    """The runtime could not start a throw from here (runtime.machine.clearance_violations)."""
+    q = np.asarray(state.q, dtype=float)
+    return bool(np.any(clearance_violations(np, q, forward_kinematics(np, q, np.zeros_like(q)))))
+
+
 def plant_tick(twin: TwinMachine, inbox: PlantInbox, now_s: float) -> tuple[MachineState, ImpactReport | None]:
     """One 10 ms plant period at local monotonic time ``now_s``: apply pending resets, the
-    latest valve command (neutral if older than VALVE_WATCHDOG_S) and the gripper command, step.
+    latest valve command (neutral if older than VALVE_WATCHDOG_S or while ``twin.fault`` is
+    set) and the gripper command, step, reload the payload when due; a loaded machine that
+    comes to rest outside the envelope (a joint at its end, gripper at the ground) is re-posed.
+    A machine at rest (REST_TICKS still periods with neutral valves, no reset, the same gripper
+    command, loaded) is not integrated: its state is re-stamped, so that 20 idle simulated
+    machines fit on two cores; any command or reset wakes it.
 
     Returns:
         (the new MachineState, an ImpactReport the first time the payload is down, else None).
@@ -255,31 +361,54 @@ def plant_tick(twin: TwinMachine, inbox: PlantInbox, now_s: float) -> tuple[Mach
     with inbox.lock:
         resets, inbox.resets = inbox.resets, []
         fresh = now_s - inbox.valve_rx_s <= VALVE_WATCHDOG_S
-        u = inbox.valve_u.copy() if fresh else np.zeros(4)
+        u = inbox.valve_u.copy() if fresh and twin.fault is None else np.zeros(4)
         if resets:
             inbox.gripper_open = False  # a fresh payload sits in a closed gripper
         gripper = inbox.gripper_open
         if not fresh and not inbox.watchdog_tripped and np.isfinite(inbox.valve_rx_s):
             log.warning("no valve command for %.0f ms: valves neutral", VALVE_WATCHDOG_S * 1e3)
         inbox.watchdog_tripped = not fresh
+    quiet = not resets and not u.any() and gripper == inbox.last_gripper
+    inbox.last_gripper = gripper
+    inbox.resting = quiet and inbox.still_ticks >= REST_TICKS and inbox.rest_state is not None
+    if inbox.resting:
+        return inbox.rest_state.model_copy(update={"stamp_s": twin._clock(), "machine_fault": twin.fault}), None
     for r in resets:
         q = twin.apply_reset(r)
         log.info("sim reset %d: q_active %s", twin.reset_count, np.round(q[:4], 3).tolist())
     report = twin.step(u, gripper)
-    return twin.state(), report
+    if report is None and twin.reload_if_due():
+        with inbox.lock:
+            inbox.gripper_open = False  # the fresh payload sits in a closed gripper
+    state = twin.state()
+    # the true joint speeds: the simulated machine knows them (the measured ones carry sensor noise)
+    still = quiet and twin.loaded and float(np.max(np.abs(twin.sim.data.qvel))) < REST_QD_RADPS
+    if still and inbox.still_ticks == REST_TICKS - 1 and _outside_envelope(state):
+        # came to rest loaded where no throw can start (e.g. a joint at its end after a failed
+        # throw or an E-STOP): the operator re-poses the arm, as after a landing
+        q = twin.apply_reset(SimReset(machine_id=twin.machine_id, stamp_s=0.0))
+        log.info("at rest outside the envelope: re-posed (%d) to q_active %s", twin.reset_count, np.round(q[:4], 3).tolist())
+        state, still = twin.state(), False
+    inbox.still_ticks = inbox.still_ticks + 1 if still else 0
+    inbox.rest_state = state if still else None
+    return state, report
 
 
 def _loop(twin: TwinMachine, inbox: PlantInbox, pub_state, pub_impact, stop: threading.Event) -> None:
     """Real-time 100 Hz schedule (absolute deadlines, so the period does not drift)."""
-    next_s = time.monotonic()
+    next_s, n, guard = time.monotonic(), 0, RealTimeGuard()
     while not stop.is_set():
         state, report = plant_tick(twin, inbox, time.monotonic())
-        pub_state.put(encode(state))
+        n += 1
+        if not inbox.resting or n % REST_PUBLISH_EVERY == 0:
+            pub_state.put(encode(state))
         if report is not None:
             pub_impact.put(encode(report))
             log.info("impact at %s", np.round(report.impact_pos_m, 2).tolist())
         next_s += PHYSICS_PERIOD_S
-        delay = next_s - time.monotonic()
+        now = time.monotonic()
+        twin.fault = guard.update(now - next_s, now)  # how late the next period starts
+        delay = next_s - now
         if delay > 0:
             stop.wait(delay)
         elif delay < -0.1:

@@ -4,7 +4,9 @@ gripper's opening delay and the payload's flight, plus the effects of its realit
 release delay, grasp offset, flight drag, measurement latency and noise). It stands in for the hardware; the Zenoh
 process around it is :mod:`sim_twin.plant`, and evaluation and previews drive it directly.
 
-One :meth:`SimulatedMachine.step` is one 10 ms physics period.
+One :meth:`SimulatedMachine.step` is one 10 ms physics period. Closed valves hold the load and
+the joint ends are hard stops (:func:`sim_twin.hydraulics.cylinder_step`), however many steps run
+with neutral valves (e.g. while the plant process is stalled).
 """
 
 from __future__ import annotations
@@ -14,9 +16,9 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from runtime.machine import forward_kinematics
+from runtime.machine import JOINT_LOWER, JOINT_UPPER, NUM_ACTIVE, forward_kinematics
 from sim_twin.effects.payload import grasp_point, integrate_flight
-from sim_twin.hydraulics import ValveModel
+from sim_twin.hydraulics import ValveModel, cylinder_step
 from sim_twin.initial_pose import sample_pose
 from sim_twin.model import (
     PAYLOAD_RADIUS_M,
@@ -34,7 +36,8 @@ from sim_twin.profile import RealityProfile
 
 @dataclass
 class Impact:
-    """Payload flight summary; positions in the machine frame (m), times in simulated seconds."""
+    """Payload flight summary; positions in the machine frame (m), times in simulated seconds.
+    ``impact_pos_m`` is the measured landing spot (true one + the profile's impact noise)."""
 
     impact_pos_m: np.ndarray
     opening_time_s: float
@@ -71,6 +74,7 @@ class SimulatedMachine:
         self._fx_flight = self.effects.has("flight_accel")
         self._fx_measure = self.effects.has("measure")
         self._meas_rng = np.random.default_rng(None if seed is None else [int(seed), 1])
+        self._impact_noise_m = float(p.sensing.impact_noise_m)
         self.reset()
 
     # --- state ------------------------------------------------------------------------------
@@ -143,6 +147,7 @@ class SimulatedMachine:
         self.data.qpos[:] = q
         mujoco.mj_forward(self.model, self.data)
         self.valves.reset()
+        self._x_ref = np.clip(q[:NUM_ACTIVE], JOINT_LOWER[:NUM_ACTIVE], JOINT_UPPER[:NUM_ACTIVE])
         self._attached, self._opened, self._landed = True, False, False
         self._open_at: float | None = None
         self._release: tuple[np.ndarray, np.ndarray, float] | None = None
@@ -154,6 +159,19 @@ class SimulatedMachine:
             self._hist_qd = np.repeat(self.data.qvel[None].copy(), n, axis=0)
             self._measure()
         return q
+
+    def set_state(self, q, qd) -> None:
+        """Re-initialise (as :meth:`reset`: valves neutral, payload held) at the true joint
+        state q, qd (6,) (rad, m, rad/s, m/s), e.g. a preview's start; measurement effects see
+        it as held since long."""
+        self.reset(q_active=np.asarray(q, dtype=float)[:4])
+        self.data.qpos[:] = q
+        self.data.qvel[:] = qd
+        mujoco.mj_forward(self.model, self.data)
+        if self._fx_measure:
+            self._hist_q[:] = self.data.qpos
+            self._hist_qd[:] = self.data.qvel
+            self._measure()
 
     def step(self, valve_u: np.ndarray, gripper_open_cmd: bool) -> None:
         """Advance 10 ms.
@@ -169,7 +187,9 @@ class SimulatedMachine:
         setpoint = self.valves.step(valve_u)
         if self._fx_setpoint:
             setpoint = self.effects.setpoint(setpoint, self.data.qpos.copy(), self.data.qvel.copy())
-        self.data.ctrl[:] = setpoint
+        self._x_ref, self.data.ctrl[:] = cylinder_step(
+            np, self._x_ref, setpoint, self.data.qpos[:NUM_ACTIVE], JOINT_LOWER[:NUM_ACTIVE], JOINT_UPPER[:NUM_ACTIVE], float(self.model.opt.timestep)
+        )
         self.data.qfrc_applied[4:6] = passive_friction_force(
             np,
             self.data.qvel[4:6],
@@ -206,6 +226,8 @@ class SimulatedMachine:
             t_fall = float(ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
             hit = ballistic_position(np, p0, v0, t_fall)
         hit[2] = 0.0
+        if self._impact_noise_m > 0:  # the measured landing spot (sim_twin.profile.SensorParams)
+            hit[:2] = hit[:2] + self._meas_rng.normal(0.0, self._impact_noise_m, 2)
         self._attached, self._opened = False, True
         self._release = (p0, v0, t0)
         self._impact = Impact(hit, t0, t0 + t_fall, p0, v0)

@@ -18,8 +18,12 @@ import pytest
 from sqlalchemy import create_engine, func, select
 
 from runtime.protocol import keys
+from runtime.command_auth import CommandVerifier, load_key, new_key, sign, write_key
 from runtime.protocol.messages import (
     AbortAck,
+    AbortRequest,
+    EstopReset,
+    EstopResetAck,
     MachineState,
     PolicyInfo,
     ResultAck,
@@ -60,9 +64,19 @@ def wait_for(predicate: Callable[[], object], timeout_s: float = 10.0, what: str
     pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
 
 
+def machine_key(site_dir: Path, machine_id: str) -> bytes:
+    """The machine's command key in ``site_dir`` (as ``slinger certs`` lays it out), made if missing."""
+    path = site_dir / "machines" / machine_id / "command.key"
+    if not path.is_file():
+        write_key(path, new_key())
+    return load_key(path)
+
+
 class FakeRuntime:
     """A runtime stand-in: liveliness token, info and throw queryables, 20 Hz MachineState,
     and, per accepted throw, statuses and a ThrowResult delivered as a query to THROW_RESULT.
+    Like the real runtime it checks the server's signatures (command key in ``site_dir``, its own
+    epoch), latches E-STOP on an abort until a signed EstopReset, and MACs its results.
 
     Args:
         endpoint: Zenoh endpoint of the server to connect to.
@@ -71,12 +85,20 @@ class FakeRuntime:
         silent: never answer throw requests (the server must time out).
         deliver: deliver a result after accepting (else the throw stays open).
         cabin_turn_rad: the cabin angle it reports.
+        site_dir: the site directory holding (or receiving) the machine's command key.
+        hold: accept throws but never finish them (the throw stays running).
     """
 
     def __init__(self, endpoint: str, machine_id: str = "m1", refuse: str | None = None,
                  silent: bool = False, deliver: bool = True, cabin_turn_rad: float = 0.0,
-                 policies: list[PolicyInfo] | None = None):
+                 policies: list[PolicyInfo] | None = None, site_dir: Path | None = None, hold: bool = False):
         self.machine_id, self.refuse, self.silent, self.deliver = machine_id, refuse, silent, deliver
+        self.hold = hold
+        self.epoch = int(time.time() * 1000)
+        self.key = machine_key(site_dir, machine_id) if site_dir is not None else None
+        self.verifier = CommandVerifier(self.key, self.epoch) if self.key is not None else None
+        self.estop_reason: str | None = None
+        self.current: tuple[str, str] | None = None  # (throw id, phase) of the running throw
         self.policies = policies or [PolicyInfo(mode="2d", version="fake-2d", sha256="ab" * 32)]
         self.aborts: list[bytes] = []
         self.cabin_turn_rad = cabin_turn_rad
@@ -90,6 +112,7 @@ class FakeRuntime:
             s.declare_queryable(keys.throw(machine_id), self._on_throw),
             s.declare_queryable(keys.info(machine_id), self._on_info),
             s.declare_queryable(keys.abort(machine_id), self._on_abort),
+            s.declare_queryable(keys.estop_reset(machine_id), self._on_estop_reset),
         ]
         self._state_pub = s.declare_publisher(keys.state(machine_id))
         self._status_pub = s.declare_publisher(keys.status(machine_id))
@@ -106,25 +129,49 @@ class FakeRuntime:
         while not self._stop.wait(0.05):
             self._state_pub.put(encode(self.state()))
 
+    def info(self) -> RuntimeInfo:
+        current = self.current
+        latched = self.estop_reason is not None
+        return RuntimeInfo(machine_id=self.machine_id, busy=current is not None, machine_online=True, simulated=True,
+                           policies=self.policies, epoch=self.epoch, estop_latched=latched,
+                           estop_reason=self.estop_reason, ready=not latched and current is None,
+                           not_ready_reason="E-STOP latched" if latched else None,
+                           throw_id=current[0] if current else None, phase=current[1] if current else None)
+
     def _on_info(self, query) -> None:
-        info = RuntimeInfo(machine_id=self.machine_id, busy=False, machine_online=True, simulated=True,
-                           policies=self.policies)
-        query.reply(keys.info(self.machine_id), encode(info))
+        query.reply(keys.info(self.machine_id), encode(self.info()))
 
     def _on_abort(self, query) -> None:
-        self.aborts.append(query.payload.to_bytes() if query.payload is not None else b"")
-        query.reply(keys.abort(self.machine_id), encode(AbortAck(machine_id=self.machine_id)))
+        raw = query.payload.to_bytes() if query.payload is not None else b""
+        self.aborts.append(raw)
+        self.estop_reason = decode(AbortRequest, raw).reason if raw else "abort"
+        aborted = self.current[0] if self.current else None
+        query.reply(keys.abort(self.machine_id), encode(AbortAck(machine_id=self.machine_id, aborted_throw_id=aborted)))
+
+    def _check(self, msg) -> str | None:
+        return self.verifier.check(msg) if self.verifier is not None else None
+
+    def _on_estop_reset(self, query) -> None:
+        req = decode(EstopReset, query.payload.to_bytes())
+        reason = self._check(req)
+        if reason is None:
+            self.estop_reason = None
+        ack = EstopResetAck(machine_id=self.machine_id, reset=reason is None, reason=reason)
+        query.reply(keys.estop_reset(self.machine_id), encode(ack))
 
     def _on_throw(self, query) -> None:
         req = decode(ThrowRequest, query.payload.to_bytes())
         self.requests.append(req)
         if self.silent:
             return
-        accepted = self.refuse is None
-        ack = ThrowAck(throw_id=req.throw_id, accepted=accepted, reason=self.refuse,
+        refuse = self.refuse or self._check(req) or ("E-STOP latched" if self.estop_reason else None)
+        accepted = refuse is None
+        ack = ThrowAck(throw_id=req.throw_id, accepted=accepted, reason=refuse,
                        policy_version="fake-2d" if accepted else None)
+        if accepted:
+            self.current = (req.throw_id, "preparing")
         query.reply(keys.throw(self.machine_id), encode(ack))
-        if accepted and self.deliver:
+        if accepted and self.deliver and not self.hold:
             t = threading.Thread(target=self._fly, args=(req,), daemon=True)
             self._threads.append(t)
             t.start()
@@ -138,19 +185,28 @@ class FakeRuntime:
                        payload_pos_m=[5.0 + 0.3 * i, -0.1, 3.0 - 0.3 * i], payload_vel_mps=[3.0, 0.0, -3.0])
         rec.event(0.0, "swinging")
         down, cross = impact_errors(req.target_m, impact)
-        return ThrowResult(
+        result = ThrowResult(
             machine_id=self.machine_id, stamp_s=time.monotonic(), throw_id=req.throw_id, mode=req.mode,
             status="landed", target_m=req.target_m, impact_m=list(impact), downrange_error_m=down,
             crossrange_error_m=cross, policy_version="fake-2d", duration_s=3.2,
             telemetry_mcap_b64=base64.b64encode(write_mcap(rec, {"throw_id": req.throw_id})).decode(),
         )
+        return self.signed(result)
+
+    def signed(self, result: ThrowResult) -> ThrowResult:
+        """``result`` MAC'ed as the real runtime does (unchanged without a key)."""
+        if self.key is None:
+            return result
+        return sign(result, self.key, f"runtime:{self.machine_id}", self.epoch)
 
     def _fly(self, req: ThrowRequest) -> None:
         for phase in ("preparing", "swinging", "released"):
             time.sleep(0.05)
+            self.current = (req.throw_id, phase)
             self._status_pub.put(encode(ThrowStatus(machine_id=self.machine_id, stamp_s=time.monotonic(),
                                                     throw_id=req.throw_id, phase=phase)))
         time.sleep(0.1)
+        self.current = None
         self.send_result(self.make_result(req))
 
     def send_result(self, result: ThrowResult, timeout_s: float = 10.0) -> ResultAck | None:
@@ -181,11 +237,13 @@ def zenoh_endpoint() -> str:
 
 @pytest.fixture
 def settings(tmp_path: Path, zenoh_endpoint: str):
-    """Server settings: SQLite in tmp (migrated by the app), no 3D view, short query timeout."""
+    """Server settings: SQLite in tmp (migrated by the app), no 3D view, short query timeout;
+    the preview gate off (tests of other parts; tests/test_control_chain.py switches it on); jobs
+    run inside the test process (``immediate``; tests/test_jobs.py runs real workers)."""
     from server.config import Settings
 
     return Settings(data_dir=tmp_path / "var", zenoh_listen=[zenoh_endpoint], viser_enabled=False,
-                    query_timeout_s=2.0, auto_migrate=True)
+                    query_timeout_s=2.0, auto_migrate=True, require_preview=False, job_queue_url="immediate")
 
 
 ADMIN = ("admin", "admin-pass-1")
@@ -221,10 +279,11 @@ def client(settings) -> Iterator:
 
 
 @pytest.fixture
-def fake_runtime_factory(zenoh_endpoint: str) -> Iterator[Callable[..., FakeRuntime]]:
+def fake_runtime_factory(zenoh_endpoint: str, settings) -> Iterator[Callable[..., FakeRuntime]]:
     made: list[FakeRuntime] = []
 
     def make(**kwargs) -> FakeRuntime:
+        kwargs.setdefault("site_dir", settings.resolved_site_dir)
         rt = FakeRuntime(zenoh_endpoint, **kwargs)
         made.append(rt)
         return rt

@@ -2,7 +2,7 @@
 # Install everything the tests need on a fresh machine and run them (README's test command).
 # Creates .venv, installs the CPU build of PyTorch 2.13.0 (from local disk) and Slinger with its
 # training and test extras, installs Debian's Chromium for the browser tests, makes sure the local
-# PostgreSQL is up (for the PostgreSQL migration test), then runs pytest.
+# PostgreSQL and Redis are up (PostgreSQL migration and site job-queue tests), then runs pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -19,6 +19,11 @@ fi
 
 if command -v pg_isready >/dev/null && ! pg_isready -q -h 127.0.0.1 -p 5432; then
   pg_ctlcluster --skip-systemctl-redirect "$(ls /etc/postgresql)" main start || true
+fi
+
+# Redis (the site job queue test): start the local server if it is installed but not answering.
+if command -v redis-cli >/dev/null && ! redis-cli -h 127.0.0.1 -p 6379 ping >/dev/null 2>&1; then
+  command -v redis-server >/dev/null && redis-server --bind 127.0.0.1 --port 6379 --daemonize yes >/dev/null || true
 fi
 
 export MUJOCO_GL=egl

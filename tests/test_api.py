@@ -70,17 +70,29 @@ def test_throw_happy_path_stores_result_and_telemetry(client, fake_runtime_facto
     assert client.get(f"/api/throws/{throw_id}").json()["impact"] == row["impact"]
 
 
-def test_result_for_unknown_throw_creates_its_row(client, fake_runtime_factory, throw_count):
-    """A result whose ack was lost on the way (server restarted, row gone) is still stored."""
+def test_results_the_server_did_not_issue_are_refused(client, fake_runtime_factory, throw_count):
+    """A result for an id the server never issued, an unsigned one and one with a bad MAC are
+    refused with the reason and never reach the history."""
     from runtime.protocol.messages import ThrowRequest
 
     rt = fake_runtime_factory(deliver=False)
     wait_online(client)
     req = ThrowRequest(throw_id="orphan-1", machine_id="m1", mode="2d", target_m=TARGET_2D)
-    ack = rt.send_result(rt.make_result(req))
-    assert ack is not None and ack.stored
+    assert rt.send_result(rt.make_result(req)) is None  # signed, but never issued
+    r = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D})
+    issued = ThrowRequest(throw_id=r.json()["id"], machine_id="m1", mode="2d", target_m=TARGET_2D)
+    unsigned = rt.make_result(issued).model_copy(update={"auth": None})
+    assert rt.send_result(unsigned) is None
+    good = rt.make_result(issued)
+    forged = good.model_copy(update={"impact_m": [1.0, 1.0, 0.0]})  # MAC no longer matches
+    assert rt.send_result(forged) is None
+    reasons = [reason for _tid, reason in client.app.state.fleet.refused_results]
+    assert "never issued" in reasons[0] and "unsigned" in reasons[1] and "bad signature" in reasons[2]
+    assert client.get("/api/throws/orphan-1").status_code == 404
+    assert client.get(f"/api/throws/{issued.throw_id}").json()["status"] == "requested"
+    assert rt.send_result(good).stored  # the genuine one is stored
+    assert client.get(f"/api/throws/{issued.throw_id}").json()["status"] == "landed"
     assert throw_count() == 1
-    assert client.get("/api/throws/orphan-1").json()["status"] == "landed"
 
 
 @pytest.mark.parametrize(
@@ -170,13 +182,20 @@ def test_runtime_refusal_is_422_with_its_reason_and_no_row(client, fake_runtime_
     assert throw_count() == 0
 
 
-def test_runtime_not_answering_is_503_and_the_row_is_removed(client, fake_runtime_factory, throw_count):
+def test_runtime_not_answering_is_503_and_the_throw_is_reconciled(client, fake_runtime_factory, throw_count):
+    """No answer: the runtime may have taken the throw, so the row stays until the runtime
+    reports it or the reconciliation finds it is not running it (then ``lost``, with the reason)."""
     rt = fake_runtime_factory(silent=True)
     wait_online(client)
     r = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D})
-    assert r.status_code == 503, r.text
-    assert len(rt.requests) == 1  # the row existed while the runtime was asked ...
-    assert throw_count() == 0  # ... and is gone again
+    assert r.status_code == 503 and "did not confirm" in r.json()["detail"], r.text
+    assert len(rt.requests) == 1 and throw_count() == 1
+    reconciler = client.app.state.reconciler
+    reconciler.handshake_s, reconciler.result_grace_s = 0.0, 0.0
+    lost = reconciler.run_once()
+    assert [tid for tid, _ in lost] == [rt.requests[0].throw_id]
+    row = client.get(f"/api/throws/{rt.requests[0].throw_id}").json()
+    assert row["status"] == "lost" and "not running the throw" in row["failure_reason"]
 
 
 def test_openapi_documents_the_endpoints(client):

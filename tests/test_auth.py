@@ -63,13 +63,13 @@ def test_session_expires(client):
 
 def test_roles_viewer_operator_admin(client, fake_runtime_factory):
     sessions = client.app.state.sessions
-    add_user(sessions, "vera", "viewer-pass", "viewer")
+    add_user(sessions, "vera", "viewer-pass-1", "viewer")
     add_user(sessions, "otto", "operator-pass", "operator")
     rt = fake_runtime_factory()
     wait_online(client)
 
     client.cookies.clear()
-    login(client, "vera", "viewer-pass")
+    login(client, "vera", "viewer-pass-1")
     assert client.get("/api/machines").status_code == 200
     r = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D})
     assert r.status_code == 403 and "operator" in r.json()["detail"]
@@ -80,7 +80,7 @@ def test_roles_viewer_operator_admin(client, fake_runtime_factory):
     login(client, "otto", "operator-pass")
     r = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D})
     assert r.status_code == 202, r.text
-    assert client.post("/api/users", json={"username": "x", "password": "12345678"}).status_code == 403
+    assert client.post("/api/users", json={"username": "x", "password": "123456789012"}).status_code == 403
 
     client.cookies.clear()
     login(client, *ADMIN)
@@ -90,14 +90,14 @@ def test_roles_viewer_operator_admin(client, fake_runtime_factory):
 
 
 def test_users_api(client):
-    r = client.post("/api/users", json={"username": "nina", "password": "nina-pass", "role": "operator"})
+    r = client.post("/api/users", json={"username": "nina", "password": "nina-pass-123", "role": "operator"})
     assert r.status_code == 201 and r.json()["role"] == "operator"
-    assert client.post("/api/users", json={"username": "nina", "password": "nina-pass"}).status_code == 409
+    assert client.post("/api/users", json={"username": "nina", "password": "nina-pass-123"}).status_code == 409
     assert client.post("/api/users", json={"username": "short", "password": "123"}).status_code == 422
-    assert client.post("/api/users", json={"username": "r", "password": "12345678", "role": "god"}).status_code == 422
+    assert client.post("/api/users", json={"username": "r", "password": "123456789012", "role": "god"}).status_code == 422
     assert [u["username"] for u in client.get("/api/users").json()] == ["admin", "nina"]
     # deactivating ends the user's sessions
-    token = client.post("/api/auth/login", json={"username": "nina", "password": "nina-pass"}).json()["token"]
+    token = client.post("/api/auth/login", json={"username": "nina", "password": "nina-pass-123"}).json()["token"]
     client.cookies.clear()
     login(client, *ADMIN)
     assert client.patch("/api/users/nina", json={"active": False}).json()["active"] is False
@@ -116,6 +116,6 @@ def test_cli_user_add(tmp_path, argv_extra, capsys):
     rc = main(["user", "add", "someone", *argv_extra, "--data-dir", data])
     out = capsys.readouterr().out
     assert rc == 0 and "password:" in out  # generated (stdin is not a terminal) and shown once
-    assert main(["user", "add", "someone", "--data-dir", data, "--password", "abcdefgh1"]) == 1  # exists
+    assert main(["user", "add", "someone", "--data-dir", data, "--password", "abcdefgh1234"]) == 1  # exists
     main(["user", "list", "--data-dir", data])
     assert "someone" in capsys.readouterr().out

@@ -1,5 +1,6 @@
 """Policy versions and fleet in headless Chromium with `slinger up`: an upload rejected with its
-reason, an accepted upload, promotion shown on the fleet page, rollback in one action."""
+reason, an accepted upload, promotion (confirmed first) shown active on the policies and fleet
+pages by live push, rollback after a confirmation."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import pytest
 
 from tests.conftest import SlingerUp, wait_for
 from tests.fixtures import write_test_policy
-from tests.test_browser import browser, log_in  # noqa: F401 (fixture)
+from tests.browser import browser, log_in  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.browser
 
@@ -37,13 +38,20 @@ def test_upload_reject_promote_and_rollback(tmp_path, browser):  # noqa: F811
             row = page.locator("#policies tbody tr", has_text=name).first
             row.wait_for(timeout=10_000)
             row.locator("button.promote").click()
+            page.locator("#confirm-dialog[open]").wait_for(timeout=10_000)  # promotion asks first
+            page.click("#confirm-ok")
             page.locator("#p-status", has_text="m1: offered").wait_for(timeout=10_000)
             wait_for(lambda: up.http.get("/api/machines").json()[0]["policies"].get("2d") == name, 30, f"m1 runs {name}")
+            row.locator("td.active-on", has_text="active on m1").wait_for(timeout=20_000)  # pushed live
 
         page.goto(f"{up.base_url}/console/fleet.html")
         cell = page.locator("#fleet tbody tr[data-machine-id=m1] td.policy-2d")
         cell.filter(has_text="pb").wait_for(timeout=10_000)
         page.click("#fleet tbody tr[data-machine-id=m1] button.rollback-2d")
+        page.click("#confirm-dialog[open] button[value=cancel]")  # rollback asks first: cancelled, nothing sent
+        page.locator("#fleet-status", has_text="Rollback cancelled").wait_for(timeout=10_000)
+        page.click("#fleet tbody tr[data-machine-id=m1] button.rollback-2d")
+        page.click("#confirm-ok")
         page.locator("#fleet-status", has_text="rolling m1 back to pa").wait_for(timeout=10_000)
         cell.filter(has_text="pa").wait_for(timeout=30_000)
         page.screenshot(path=str(tmp_path / "fleet.png"))

@@ -3,11 +3,13 @@ clipping, limit ramps, non-finite input, anti-windup."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from runtime.controller import ControllerGains, JointVelocityController, limit_ramp_scale
-from runtime.machine import ACTIVE_VELOCITY_LIMITS, JOINT_UPPER, clearance_violations, forward_kinematics
+from runtime.machine import ACTIVE_VELOCITY_LIMITS, JOINT_LOWER, JOINT_UPPER, clearance_violations, forward_kinematics
 from sim_twin.profile import RealityProfile
 from sim_twin.simulated_machine import SimulatedMachine
 
@@ -36,7 +38,7 @@ def test_step_response_is_fast_without_big_overshoot(joint, fraction):
     _, qd, _ = _closed_loop(lambda t: ref, 1.0)
     y = qd[:, joint] / ref[joint]
     t90_s = (np.argmax(y >= 0.9) + 1) * 0.01 if np.any(y >= 0.9) else np.inf
-    assert t90_s <= 0.35
+    assert t90_s <= 0.55  # nominal valves: 0.10 s delay + 0.16 s lag (feed-forward alone: 0.47 s)
     assert y.max() - 1.0 < 0.15
     assert abs(y[-10:].mean() - 1.0) < 0.02
     others = [j for j in range(4) if j != joint]
@@ -48,7 +50,8 @@ def test_integrator_removes_a_dead_band_mismatch():
     ref = np.array([0.0, 0.1 * ACTIVE_VELOCITY_LIMITS[1], 0.0, 0.0])
     _, qd, _ = _closed_loop(lambda t: ref, 1.5, profile=worse)
     assert abs(qd[-10:, 1].mean() / ref[1] - 1.0) < 0.02  # feed-forward alone would be ~50 % short
-    assert qd[:, 1].max() / ref[1] < 1.1
+    smooth = np.convolve(qd[:, 1], np.ones(5) / 5, mode="valid")  # measured: encoder noise
+    assert smooth.max() / ref[1] < 1.1
 
 
 def test_cabin_held_still_while_the_arm_swings_in_2d():
@@ -58,8 +61,8 @@ def test_cabin_held_still_while_the_arm_swings_in_2d():
     q, qd, _ = _closed_loop(ref, 3.0)
     assert np.abs(q[:, 0]).max() < 5e-3
     assert np.abs(qd[:, 0]).max() < 0.02
-    # and the arm does follow: boom velocity correlates with its reference
-    boom_ref = 0.3 * np.sin(3 * np.arange(1, 301) * 0.01)
+    # and the arm does follow: boom velocity correlates with its reference, 0.2 s later (valves)
+    boom_ref = 0.3 * np.sin(3 * (np.arange(1, 301) * 0.01 - 0.2))
     assert np.corrcoef(qd[:, 1], boom_ref)[0, 1] > 0.9
 
 
@@ -85,7 +88,7 @@ def test_driving_into_a_limit_stops_short_of_it():
     ref = np.array([0.0, 0.0, 0.0, 0.75])  # telescope out at full speed
     q, qd, _ = _closed_loop(lambda t: ref, 3.0)
     assert q[:, 3].max() < JOINT_UPPER[3] - 2e-3
-    assert abs(qd[-1, 3]) < 0.01
+    assert abs(qd[-20:, 3].mean()) < 0.01
     for qi in q[::10]:
         assert not clearance_violations(np, qi, forward_kinematics(np, qi, np.zeros(6)))[2]
 
@@ -149,3 +152,35 @@ def test_invalid_gains_are_rejected():
         ControllerGains(dead_band_comp=1.0)
     with pytest.raises(ValueError):
         JointVelocityController(velocity_limits=[1.0, 0.0, 1.0, 1.0])
+
+
+SLOW = RealityProfile.load(Path(__file__).resolve().parents[1] / "sim_twin" / "profiles" / "slow_hydraulics.json")
+
+
+@pytest.mark.parametrize("joint,sign", [(1, -1), (1, 1), (2, 1), (2, -1), (3, 1), (3, -1)])
+def test_slow_valves_stop_every_joint_short_of_its_end(joint, sign):
+    """Full speed towards an end with slow valves (0.2 s delay, 0.3 s lag, dead band 0.10): the
+    predictive limit ramp brakes early enough; judged from the position alone (no prediction)
+    the same controller runs the joint into its end."""
+    ref = np.zeros(4)
+    ref[joint] = sign * ACTIVE_VELOCITY_LIMITS[joint]
+    start = np.array([0.0, -0.45, 1.7, 0.9])
+    q, _, _ = _closed_loop(lambda t: ref, 6.0, q_active=start, profile=SLOW)
+    end = JOINT_UPPER[joint] if sign > 0 else JOINT_LOWER[joint]
+    gap = sign * (end - q[:, joint])
+    assert gap.min() > 1e-3, f"{gap.min():.4f}"
+    assert gap[-1] < 0.1  # and it did get close to the end
+
+
+def test_without_prediction_slow_valves_overrun_the_end():
+    from dataclasses import replace
+
+    ref = np.array([0.0, 0.0, 0.0, 0.75])
+    sim = SimulatedMachine(SLOW, seed=0)
+    sim.reset(q_active=np.array([0.0, -0.45, 1.7, 0.9]))
+    ctrl = JointVelocityController(replace(ControllerGains(), stop_horizon_s=0.0))
+    top = 0.0
+    for _ in range(400):
+        sim.step(ctrl.step(ref, sim.q, sim.qd).valve_u, False)
+        top = max(top, sim.q[3])
+    assert top > JOINT_UPPER[3] - 1e-3  # reaches the end stop (which holds it: hard stop)

@@ -13,13 +13,14 @@ from runtime.machine import ACTIVE_VELOCITY_LIMITS, forward_kinematics
 from sim_twin.effects import EFFECTS, Effect, effect_from_dict, load_effect, make_effect
 from sim_twin.effects.payload import integrate_flight
 from sim_twin.physics import ballistic_impact_time, ballistic_position
-from sim_twin.profile import RealityProfile
+from sim_twin.profile import RealityProfile, SensorParams
 from sim_twin.simulated_machine import SimulatedMachine
 
 POSE = [0.0, -0.6, 1.5, 0.9]
 
 
 def machine(*effects: Effect, **profile) -> SimulatedMachine:
+    profile.setdefault("sensing", SensorParams.ideal())  # exact comparisons: perfect sensors
     sim = SimulatedMachine(RealityProfile(effects=list(effects), **profile), seed=0)
     sim.reset(q_active=POSE)
     return sim
@@ -82,10 +83,13 @@ def test_valve_delay_and_lag_shape_the_step_response():
         _, qd = run(sim, [0, 0, 0, 1.0], 60)
         return int(np.argmax(qd[:, 3] > 0.01))
 
-    assert first_motion(machine(make_effect("valve_delay", delay_s=0.2))) - first_motion(machine()) == pytest.approx(16, abs=1)
+    from sim_twin.hydraulics import NOMINAL_DELAY_S
+
+    shift = first_motion(machine(make_effect("valve_delay", delay_s=0.2))) - first_motion(machine())
+    assert shift == pytest.approx(round((0.2 - NOMINAL_DELAY_S) / 0.01), abs=1)
     _, qd = run(machine(make_effect("valve_lag", lag_s=0.4)), [0, 0, 0, 1.0], 200)
     t63 = (np.argmax(qd[:, 3] > 0.63 * ACTIVE_VELOCITY_LIMITS[3]) + 1) * 0.01
-    assert t63 == pytest.approx(0.04 + 0.4, abs=0.05)  # transport delay + time constant
+    assert t63 == pytest.approx(NOMINAL_DELAY_S + 0.4, abs=0.05)  # transport delay + time constant
 
 
 def test_joint_rate_limit_caps_the_speed():
@@ -109,7 +113,8 @@ def test_hanging_mass_changes_the_pendulum_period():
         ups = np.flatnonzero((x[:-1] < 0) & (x[1:] >= 0))
         return np.mean(np.diff(ups)) * 0.01
 
-    assert period(2000.0) > period(839.0) * 1.02 > period(400.0) * 1.02
+    # arm held rigid by its cylinders: 400 -> 839 -> 2000 kg gives 2.02 -> 2.09 -> 2.13 s
+    assert period(2000.0) > period(839.0) * 1.01 > period(400.0) * 1.02
 
 
 def test_imu_latency_delays_and_noise_perturbs_the_passive_measurement():

@@ -13,7 +13,7 @@ from runtime.executor import ExecutorConfig, ThrowExecutor
 from runtime.machine import JOINT_UPPER
 from runtime.observation import SUBSTEPS, observation_size
 from runtime.policy import PolicyError, PolicyRunner
-from runtime.protocol.messages import MachineState, ThrowRequest
+from runtime.protocol.messages import MachineState, SimReset, ThrowRequest
 from runtime.telemetry import read_metadata, read_telemetry
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M, impact_errors
 from sim_twin.plant import TwinMachine, run_throw
@@ -52,6 +52,7 @@ class RecordingPolicy:
     def __init__(self, runner, fail_at: int | None = None):
         self.runner, self.fail_at, self.observations = runner, fail_at, []
         self.mode, self.version, self.sha256, self.target_range_m = runner.mode, runner.version, runner.sha256, runner.target_range_m
+        self.aim_target = runner.aim_target
 
     def act(self, obs):
         self.observations.append(np.array(obs))
@@ -126,8 +127,6 @@ def test_no_impact_fails_after_the_timeout(releasing_2d):
         out = ex.tick(twin.state())
         if out.finished:
             break
-        if out.sim_reset:
-            twin.apply_reset(out.sim_reset)
         twin.step(out.valve_u, out.gripper_open)
     assert out.finished.status == "failed" and "no impact" in out.finished.failure_reason
     np.testing.assert_array_equal(out.valve_u, 0.0)
@@ -177,27 +176,36 @@ def _unload(twin):
     assert not twin.state().payload_attached
 
 
-def test_preparing_waits_for_the_reset_then_times_out(releasing_2d):
+def test_preparing_waits_for_a_loaded_machine_then_times_out(releasing_2d):
     twin, ex = _twin(), ThrowExecutor({"2d": releasing_2d}, config=ExecutorConfig(prepare_timeout_s=0.5))
     _unload(twin)
     assert ex.start(_request(), twin.state()) is None
     out = ex.tick(twin.state())
-    assert out.sim_reset is not None and not out.gripper_open
-    for _ in range(60):  # the reset is never applied: stays preparing, then fails
+    assert not out.gripper_open and ex.phase == "preparing"
+    for _ in range(60):  # nobody loads a payload: stays preparing, valves neutral, then fails
         twin.step(out.valve_u, out.gripper_open)
         out = ex.tick(twin.state())
-        assert out.sim_reset is None  # requested only once
+        np.testing.assert_array_equal(out.valve_u, 0.0)
         if out.finished:
             break
     assert out.finished.status == "failed" and "not ready" in out.finished.failure_reason
 
 
+def test_preparing_swings_once_the_machine_is_loaded(releasing_2d):
+    twin, ex = _twin(), ThrowExecutor({"2d": releasing_2d})
+    _unload(twin)
+    assert ex.start(_request(), twin.state()) is None
+    for _ in range(20):
+        twin.step(ex.tick(twin.state()).valve_u, False)
+    assert ex.phase == "preparing"
+    twin.apply_reset(SimReset(machine_id="m1", stamp_s=0.0))  # the machine (operator) loads one
+    ex.tick(twin.state())
+    assert ex.phase in ("swinging", "released")
+
+
 def _swinging(ex, twin):
     assert ex.start(_request(), twin.state()) is None
     out = ex.tick(twin.state())
-    if out.sim_reset is not None:
-        twin.apply_reset(out.sim_reset)
-        out = ex.tick(twin.state())
     assert ex.phase in ("swinging", "released")
     return out
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import time
 
+from runtime.command_auth import CommandVerifier, sign
 from runtime.executor import ThrowExecutor
 from runtime.policy import PolicyRunner
 from runtime.protocol.messages import PolicyOffer, PolicyOfferAck, decode, encode
@@ -16,9 +17,17 @@ class Busy:
     busy = True
 
 
-def _offer(path, machine_id="m1"):
+KEY = bytes(range(32))
+
+
+def _offer(path, machine_id="m1", signed=True):
     m = json.loads(path.with_suffix(".json").read_text())
-    return PolicyOffer(machine_id=machine_id, mode="2d", version=m["name"], sha256=m["onnx_sha256"], manifest=m)
+    offer = PolicyOffer(machine_id=machine_id, mode="2d", version=m["name"], sha256=m["onnx_sha256"], manifest=m)
+    return sign(offer, KEY, "alice", 0) if signed else offer
+
+
+def _updater(tmp_path, fetch, updates):
+    return PolicyUpdater("m1", tmp_path / "store", fetch, updates.append, authorize=CommandVerifier(KEY, 0).check)
 
 
 def _wait(pred, timeout=10):
@@ -34,7 +43,7 @@ def test_fetch_check_and_swap_between_throws(tmp_path):
     old = PolicyRunner.load(write_test_policy(tmp_path / "old", "2d", name="old"))
     new = write_test_policy(tmp_path / "new", "2d", name="new", seed=5)
     updates = []
-    up = PolicyUpdater("m1", tmp_path / "store", lambda sha: new.read_bytes(), updates.append)
+    up = _updater(tmp_path, lambda sha: new.read_bytes(), updates)
     ack = decode(PolicyOfferAck, up.handle_offer(encode(_offer(new))))
     assert ack.accepted
     lock = threading.RLock()
@@ -48,10 +57,23 @@ def test_fetch_check_and_swap_between_throws(tmp_path):
 def test_sha_mismatch_and_wrong_machine_are_refused(tmp_path):
     new = write_test_policy(tmp_path / "new", "2d", name="new")
     updates = []
-    up = PolicyUpdater("m1", tmp_path / "store", lambda sha: b"tampered" + new.read_bytes(), updates.append)
+    up = _updater(tmp_path, lambda sha: b"tampered" + new.read_bytes(), updates)
     assert decode(PolicyOfferAck, up.handle_offer(encode(_offer(new)))).accepted
     assert _wait(lambda: updates)
     assert updates[0].status == "failed" and "SHA-256 mismatch" in updates[0].reason
     ack = decode(PolicyOfferAck, up.handle_offer(encode(_offer(new, "m2"))))
     assert not ack.accepted and "m1" in ack.reason
     assert not decode(PolicyOfferAck, up.handle_offer(b"{nonsense")).accepted
+
+
+def test_unsigned_or_replayed_offers_are_refused_without_fetching(tmp_path):
+    new = write_test_policy(tmp_path / "new", "2d", name="new")
+    fetched = []
+    up = _updater(tmp_path, lambda sha: fetched.append(sha) or new.read_bytes(), [])
+    ack = decode(PolicyOfferAck, up.handle_offer(encode(_offer(new, signed=False))))
+    assert not ack.accepted and ack.reason == "unsigned"
+    offer = encode(_offer(new))
+    assert decode(PolicyOfferAck, up.handle_offer(offer)).accepted
+    ack = decode(PolicyOfferAck, up.handle_offer(offer))
+    assert not ack.accepted and ack.reason == "replayed nonce"
+    assert _wait(lambda: fetched) and len(fetched) == 1

@@ -16,7 +16,7 @@ from runtime.protocol.messages import PolicyInfo, ThrowRequest
 from server.config import KeepOutZone
 from sim_twin.plant import TwinMachine
 from sim_twin.preview import PreviewRequest, preview_throw
-from sim_twin.profile import RealityProfile
+from sim_twin.profile import RealityProfile, SensorParams
 from sim_twin.simulated_machine import SimulatedMachine
 from tests.conftest import add_user, login, wait_for, wait_online
 
@@ -34,10 +34,11 @@ def policy():
 
 def test_preview_predicts_what_the_twin_does(policy):
     """The nominal preview equals a full twin rollout from the same state with the mean delay."""
-    s = preview_throw(policy, PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=0))
+    ideal = dataclasses.replace(RealityProfile(), sensing=SensorParams.ideal())  # exact: perfect sensors
+    s = preview_throw(policy, PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=0), ideal)
     assert s["status"] == "ok", s["reason"]
     assert s["mc"] is None
-    profile = dataclasses.replace(RealityProfile(), release_delay_std_s=0.0)
+    profile = dataclasses.replace(ideal, release_delay_std_s=0.0)
     sim = SimulatedMachine(profile, seed=0)
     sim.reset(q_active=np.array(Q0[:4]))
     sim.data.qpos[4] = Q0[4]
@@ -58,18 +59,61 @@ def test_preview_predicts_what_the_twin_does(policy):
     assert 0.5 < s["duration_s"] < 5.0 and s["flight_s"] > 0.1
 
 
-def test_monte_carlo_ellipse_over_release_delay(policy):
-    s = preview_throw(policy, PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=200, seed=3))
+def test_monte_carlo_ellipse(policy):
+    """Default start-state model and release jitter (4 full rollouts to keep the test short)."""
+    req = PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=200, seed=3, param_rollouts=4)
+    s = preview_throw(policy, req)
     mc = s["mc"]
-    assert mc["rollouts"] == 200 and len(mc["impacts_m"]) == 200
+    assert mc["rollouts"] == 200 and len(mc["impacts_m"]) == 200 and mc["param_rollouts"] == 4
+    assert mc["effects"] == ["release_delay", "start_state"]
     assert 0.001 < mc["sigma_downrange_m"] < 0.5
     ell = mc["ellipse"]
     assert ell["semi_major_m"] >= ell["semi_minor_m"] >= 0 and len(ell["outline_m"]) == 65
     # the scatter is about the nominal impact (delay jitter is symmetric)
     assert np.hypot(*(np.array(ell["center_m"]) - s["impact_m"][:2])) < 0.1
     # reproducible with the same seed
-    again = preview_throw(policy, PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=200, seed=3))
+    again = preview_throw(policy, req)
     assert again["mc"]["impacts_m"] == mc["impacts_m"]
+
+
+def test_preview_follows_the_profiles_payload_effects(policy):
+    """Grasp offset, drag and a slower release of the site profile: the nominal preview equals a
+    twin throw under that profile opened after the mean delay."""
+    effects = [{"effect": "grasp_offset", "params": {"forward_m": 0.15, "up_m": -0.1}},
+               {"effect": "payload_drag", "params": {"drag_coefficient": 0.5}},
+               {"effect": "release_delay", "params": {"mean_s": 0.34, "jitter_s": 0.0}}]
+    profile = RealityProfile.from_dict({"effects": effects})
+    s = preview_throw(policy, PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=0), profile)
+    assert s["status"] == "ok", s["reason"]
+    sim = SimulatedMachine(profile, seed=0)
+    sim.set_state(Q0, [0.0] * 6)
+    twin = TwinMachine(sim, "check")
+    ex = ThrowExecutor({"2d": policy})
+    state = lambda: twin.state().model_copy(update={"simulated": False})  # noqa: E731
+    assert ex.start(ThrowRequest(throw_id="c", machine_id="check", mode="2d", target_m=TARGET), state()) is None
+    for _ in range(3000):
+        twin.step(*(lambda o: (o.valve_u, o.gripper_open))(ex.tick(state())))
+        if sim.impact is not None:
+            break
+    assert s["impact_m"] == pytest.approx(sim.impact.impact_pos_m.tolist(), abs=2e-3)
+    assert s["release_pos_m"] == pytest.approx(sim.impact.release_pos_m.tolist(), abs=1e-6)
+    drag_free = preview_throw(policy, PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=0),
+                              RealityProfile.from_dict({"effects": effects[::2]}))
+    assert drag_free["impact_m"][0] - s["impact_m"][0] > 0.01  # drag shortens the throw
+
+
+def test_site_uncertainty_widens_the_ellipse(policy):
+    """A site whose valve delay is only known within 30-120 ms scatters more than the release
+    jitter alone; failed draws are counted, every rollout is accounted for."""
+    still = {"start.encoder_sigma_rad": 0, "start.imu_sigma_rad": 0, "start.passive_rate_max_radps": 0}
+    req = PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=48, seed=1, param_rollouts=4)
+    jitter = preview_throw(policy, req, RealityProfile.from_dict({"uncertainty": still}))["mc"]
+    site = preview_throw(policy, req, RealityProfile.from_dict({"uncertainty": {**still, "hydraulics.delay_s": {"range": [0.03, 0.12]}}}))["mc"]
+    assert jitter["param_rollouts"] == 1 and jitter["effects"] == ["release_delay"]
+    assert site["param_rollouts"] == 4 and site["effects"] == ["release_delay", "hydraulics.delay_s"]
+    assert len(site["impacts_m"]) == 48 - 12 * site["failed_rollouts"]
+    assert site["sigma_downrange_m"] > 1.4 * jitter["sigma_downrange_m"]  # robust policies: 1.8x measured
+    assert site["ellipse"]["semi_major_m"] > jitter["ellipse"]["semi_major_m"]
 
 
 # --- API ----------------------------------------------------------------------------------------
@@ -124,9 +168,9 @@ def test_preview_bad_input_and_roles(client, machine):
         assert client.post("/api/previews", json=body).status_code == 422
     assert client.post("/api/previews", json={"machine_id": "zz", "mode": "2d", "target": TARGET}).status_code == 404
     assert client.post("/api/previews", json={"machine_id": "m1", "mode": "3d", "target": [8, 0, 0]}).status_code == 422
-    add_user(client.app.state.sessions, "vera", "viewer-pass", "viewer")
+    add_user(client.app.state.sessions, "vera", "viewer-pass-1", "viewer")
     client.cookies.clear()
-    login(client, "vera", "viewer-pass")
+    login(client, "vera", "viewer-pass-1")
     assert client.post("/api/previews", json={"machine_id": "m1", "mode": "2d", "target": TARGET}).status_code == 403
 
 

@@ -92,7 +92,9 @@ def test_isolated_session_opens_and_closes():
 
 def test_readme_documents_every_key_and_message():
     text = README.read_text()
-    for name in ("state", "valve_cmd", "gripper_cmd", "impact", "sim_reset", "machine_alive", "throw", "abort", "info", "status", "runtime_alive"):
+    names = ("state", "valve_cmd", "gripper_cmd", "impact", "sim_reset", "machine_alive", "throw", "abort", "info", "status",
+             "runtime_alive", "estop_reset", "runtime_state")
+    for name in names:
         key = getattr(keys, name)("ID").replace("ID", "<id>")
         assert f"`{key}`" in text, key
     assert f"`{keys.THROW_RESULT}`" in text

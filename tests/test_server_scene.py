@@ -1,16 +1,26 @@
-"""The 3D scene without a browser: click-ray -> ground target, drawing from states and telemetry."""
+"""The 3D view without a browser: click ray -> ground target, targeting geometry, one private view
+per console (viser clients bound by their websocket path), the machine posed from the twin's MJCF.
+
+Viser clients are real websocket connections (the ``websockets`` client with viser's subprotocol),
+so the binding of a view to its console goes through the same path a browser takes."""
 
 from __future__ import annotations
 
+import math
 import time
 
+import mujoco
 import numpy as np
 import pytest
+import viser
+from websockets.sync.client import connect
 
-from runtime.machine import forward_kinematics
 from runtime.protocol.messages import MachineState
 from runtime.telemetry import TelemetryRecorder, write_mcap
+from runtime.throw_geometry import ARM_PLANE_OFFSET_M
 from server.scene import ConsoleScene, ground_point
+from server.scene_view import camera_framing, snap_to_line, strip_mesh
+from sim_twin.model import load_model
 from tests.conftest import free_port, wait_for
 
 
@@ -25,63 +35,138 @@ def test_ground_point_intersects_the_ray_with_z0():
     assert ground_point((0, 0, 1), (1, 0, -1e-6)) is None  # hit beyond the horizon limit
 
 
+def test_targeting_geometry_follows_the_cabin():
+    yaw = 0.4
+    c, s = math.cos(yaw), math.sin(yaw)
+    p = snap_to_line(np.array([8.0 * c + 1.0 * -s, 8.0 * s + 1.0 * c]), yaw)  # 1 m left of the heading
+    assert p[0] * c + p[1] * s == pytest.approx(8.0)  # same distance along the heading
+    assert -p[0] * s + p[1] * c == pytest.approx(ARM_PLANE_OFFSET_M)  # on the throwing line
+    assert snap_to_line(np.array([-5.0 * c, -5.0 * s]), yaw) is None  # behind the machine
+    verts, faces = strip_mesh(yaw, 5.0, 10.0)
+    radii = np.hypot(verts[:, 0], verts[:, 1])
+    assert radii.min() == pytest.approx(5.0, abs=0.02) and radii.max() == pytest.approx(10.0, abs=0.02)
+    assert faces.shape == (2, 3)
+    pos, look = camera_framing(yaw, 5.0, 10.0)
+    assert np.hypot(*look[:2]) == pytest.approx(7.5)  # looks at the middle of the band
+    assert pos[2] > 5.0 and (pos[:2] - look[:2]) @ np.array([c, s]) < 0  # above and behind
+
+
 class _Fleet:
-    def __init__(self, state):
-        self.state = state
+    def __init__(self):
+        self.states = {}
 
     def latest_states(self):
-        return {"m1": self.state}
+        return dict(self.states)
 
     def latest_state(self, machine_id):
-        return self.state if machine_id == "m1" else None
+        return self.states.get(machine_id)
+
+    def is_online(self, machine_id):
+        return machine_id in self.states
 
 
-def _state(q, simulated=True):
-    return MachineState(machine_id="m1", stamp_s=time.monotonic(), q=q, qd=[0.0] * 6,
-                        gripper_open=False, payload_attached=True, simulated=simulated)
+def _state(machine_id, q):
+    return MachineState(machine_id=machine_id, stamp_s=time.monotonic(), q=q, qd=[0.0] * 6,
+                        gripper_open=False, payload_attached=True, simulated=True)
+
+
+Q1 = [0.3, -0.5, 1.5, 0.4, 0.1, 0.0]
 
 
 @pytest.fixture
 def scene():
-    s = ConsoleScene(_Fleet(_state([0.3, -0.5, 1.5, 0.4, 0.1, 0.0])), port=free_port(), rate_hz=50)
+    fleet = _Fleet()
+    fleet.states = {"m1": _state("m1", Q1), "m2": _state("m2", [-1.0, -0.5, 1.5, 0.4, 0.0, 0.0])}
+    changes = []
+
+    def refusal(mid, mode, t):
+        d = math.hypot(t[0], t[1])
+        return None if 5.0 <= d <= 10.7 else f"out of range ({d:.1f} m)"
+
+    s = ConsoleScene(fleet, port=free_port(), rate_hz=50, refusal=refusal, on_console_change=changes.append)
+    s.changes = changes
     s.start()
     yield s
     s.stop()
 
 
-def test_scene_draws_the_machine_from_forward_kinematics(scene):
-    q = np.array([0.3, -0.5, 1.5, 0.4, 0.1, 0.0])
-    pts = forward_kinematics(np, q, np.zeros(6))
-    wait_for(lambda: np.allclose(scene._gripper.position, pts.gripper_centre), 5, "gripper drawn")
-    assert np.allclose(scene._links.points[-1][1], pts.hanger)
-    assert "SIMULATED machine m1" == scene._label.text
-    # the 2D plane leaves the turn axis along the cabin heading
-    start, end = scene._plane.points[0]
-    heading = (end - start)[:2] / np.linalg.norm((end - start)[:2])
-    assert heading == pytest.approx([np.cos(0.3), np.sin(0.3)], abs=1e-6)
-    scene.mode = "3d"
-    scene.fleet.state = _state(list(q))  # new stamp -> redraw
-    wait_for(lambda: scene._plane.visible is False, 5, "plane hidden in 3D mode")
+def _view(scene, console_id):
+    """Open a viser client bound to ``console_id``: a websocket with viser's subprotocol that
+    reports its camera (viser counts a client as connected from its first camera message)."""
+    import msgspec
+
+    from viser._messages import ViewerCameraMessage
+
+    ws = connect(f"ws://127.0.0.1:{scene.port}/c/{console_id}", subprotocols=[f"viser-v{viser.__version__}"],
+                 max_size=None, max_queue=None)
+    cam = ViewerCameraMessage(wxyz=(1.0, 0.0, 0.0, 0.0), position=(-5.0, 0.0, 8.0), fov=1.0, near=0.01, far=100.0,
+                              image_height=600, image_width=800, look_at=(6.0, 0.0, 0.0), up_direction=(0.0, 0.0, 1.0))
+    ws.send(msgspec.msgpack.encode(cam.as_serializable_dict()))
+
+    def bound():
+        return next((v for cid, v in scene._views.values() if cid == console_id), None)
+
+    return ws, wait_for(bound, 10, f"a view bound to {console_id}")
 
 
-def test_click_sets_target_and_throw_is_drawn(scene, tmp_path):
-    class Click:
-        ray_origin, ray_direction = (0.0, 0.0, 10.0), (0.6, 0.0, -0.8)
+def _names(view):
+    return set(view.client.scene._handle_from_node_name)
 
-    scene._on_click(Click())
-    assert scene.target == pytest.approx([7.5, 0.0, 0.0])
-    rec = TelemetryRecorder()
-    for i in range(20):
-        rec.record(0.01 * i, [0.3, -0.5 + 0.02 * i, 1.5, 0.4, 0.0, 0.0], [0.0] * 6, [0.0] * 4, [0.0] * 4, i > 9, i > 10,
-                   "swinging", payload_pos_m=[4 + 0.2 * i, 0.0, 4 - 0.2 * i], payload_vel_mps=[2.0, 0.0, -2.0])
-    path = tmp_path / "t.mcap"
-    path.write_bytes(write_mcap(rec))
-    scene.show_throw(path, [7.0, 0.1, 0.0], scene.target)
-    names = scene.server.scene._handle_from_node_name
-    assert {"/throw/gripper_path", "/throw/payload_path", "/throw/impact"} <= set(names)
-    assert len(names["/throw/payload_path"].points) == 19
-    scene.show_throw(None, None, scene.target)  # a new throw replaces the old drawing
-    assert "/throw/payload_path" not in scene.server.scene._handle_from_node_name
+
+def test_each_console_has_its_own_view_target_and_machine(scene, tmp_path):
+    a, b = scene.open_console("ann"), scene.open_console("bob")
+    scene.update_console(a, machine_id="m1", mode="2d")
+    scene.update_console(b, machine_id="m2", mode="3d")
+    ws_a, va = _view(scene, a.console_id)
+    ws_b, vb = _view(scene, b.console_id)
+    try:
+        # the machine of each view is posed from the twin's MJCF (mujoco forward kinematics)
+        model = load_model()
+        data = mujoco.MjData(model)
+        data.qpos[:] = Q1
+        mujoco.mj_kinematics(model, data)
+        gid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "gripper")
+        wait_for(lambda: np.allclose(va.client.scene._handle_from_node_name["/machine/gripper"].position,
+                                     data.geom_xpos[gid], atol=1e-5), 10, "gripper of m1 posed")
+        assert {"/machine/cabin", "/machine/boom", "/machine/dipper", "/machine/telescope", "/machine/rotator"} <= _names(va)
+        assert va.label.text == "SIMULATED machine m1" and vb.label.text == "SIMULATED machine m2"
+        wait_for(lambda: "/band/area" in _names(va) and "/band/area" in _names(vb), 10, "valid bands drawn")
+        assert "/band/line" in _names(va) and "/band/line" not in _names(vb)  # the 2D line only in 2D
+        assert "/rings" in _names(va)
+
+        # a click in ann's view sets ann's target (snapped onto m1's 2D line), not bob's
+        class Click:
+            ray_origin, ray_direction = (0.0, 0.0, 10.0), (0.6, 0.0, -0.8)
+
+        scene._on_click(va.client.client_id, Click())
+        assert a.target is not None and b.target is None
+        assert -a.target[0] * math.sin(0.3) + a.target[1] * math.cos(0.3) == pytest.approx(ARM_PLANE_OFFSET_M, abs=1e-3)
+        assert a.snapped and a.target_reason is None
+        assert scene.changes[-1]["console_id"] == a.console_id
+        assert "/target" in _names(va) and "/target" not in _names(vb)
+        # bob types an unreachable target: kept where typed (3D), marked with the reason
+        scene.update_console(b, target=[20.0, 1.0, 0.0])
+        assert b.target == [20.0, 1.0, 0.0] and b.target_reason == "out of range (20.0 m)" and not b.snapped
+        assert "cannot throw here" in vb.client.scene._handle_from_node_name["/target/label"].text
+
+        # a finished throw is drawn in the views of its machine only
+        rec = TelemetryRecorder()
+        for i in range(20):
+            rec.record(0.01 * i, Q1, [0.0] * 6, [0.0] * 4, [0.0] * 4, i > 9, i > 10, "swinging",
+                       payload_pos_m=[4 + 0.2 * i, 0.0, 4 - 0.2 * i], payload_vel_mps=[2.0, 0.0, -2.0])
+        mcap = tmp_path / "t.mcap"
+        mcap.write_bytes(write_mcap(rec))
+        scene.show_throw("m1", mcap, [7.0, 0.1, 0.0], a.target)
+        assert {"/throw/payload_path", "/throw/impact"} <= _names(va) and "/throw/impact" not in _names(vb)
+
+        # switching machine drops the old machine's target, preview and throw from the view
+        scene.update_console(a, machine_id="m2")
+        assert a.target is None
+        assert not {"/throw/impact", "/target"} & _names(va)
+    finally:
+        ws_a.close()
+        ws_b.close()
+    wait_for(lambda: not scene._views, 10, "views dropped on disconnect")
 
 
 def test_scene_reports_the_port_viser_really_uses():
@@ -92,9 +177,38 @@ def test_scene_reports_the_port_viser_really_uses():
         busy.bind(("127.0.0.1", 0))
         busy.listen()
         taken = busy.getsockname()[1]
-        s = ConsoleScene(_Fleet(_state([0.0, -0.5, 1.5, 0.4, 0.0, 0.0])), port=taken)
+        s = ConsoleScene(_Fleet(), port=taken)
         s.start()
         try:
             assert s.port is not None and s.port != taken
         finally:
             s.stop()
+
+
+def test_console_api_keeps_each_console_to_its_user(settings):
+    """POST /api/consoles opens a console of the caller; another user gets 403 on it, a viewer
+    may look but not set a target; unknown consoles are 404; GET /api/scene says the port."""
+    from fastapi.testclient import TestClient
+
+    from server.app import create_app
+    from tests.conftest import ADMIN, add_user, login
+
+    settings.viser_enabled, settings.viser_port = True, free_port()
+    with TestClient(create_app(settings)) as c:
+        add_user(c.app.state.sessions, *ADMIN, "admin")
+        add_user(c.app.state.sessions, "vera", "viewer-pass-12", "viewer")
+        login(c, *ADMIN)
+        con = c.post("/api/consoles").json()
+        assert con["viser_path"] == f"/c/{con['console_id']}" and con["viser_port"] == c.get("/api/scene").json()["viser_port"]
+        r = c.put(f"/api/consoles/{con['console_id']}", json={"machine_id": "m1", "mode": "3d", "target": [8.0, 1.0, 0.0]})
+        assert r.status_code == 200 and r.json()["target"] == [8.0, 1.0, 0.0]
+        assert r.json()["target_reason"] == "no state from machine m1"  # judged at once, before any Preview
+        assert c.put(f"/api/consoles/{con['console_id']}", json={"mode": "4d"}).status_code == 422
+        assert c.get("/api/consoles/nope").status_code == 404
+        c.cookies.clear()
+        login(c, "vera", "viewer-pass-12")
+        assert c.get(f"/api/consoles/{con['console_id']}").status_code == 403
+        mine = c.post("/api/consoles").json()["console_id"]
+        assert c.put(f"/api/consoles/{mine}", json={"mode": "3d"}).status_code == 200
+        r = c.put(f"/api/consoles/{mine}", json={"target": [8.0, 0.0, 0.0]})
+        assert r.status_code == 403 and "operator" in r.json()["detail"]

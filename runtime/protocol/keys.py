@@ -12,6 +12,8 @@ Layout::
     slinger/runtime/<machine_id>/abort          queryable: AbortRequest -> AbortAck
     slinger/runtime/<machine_id>/info           queryable: -> RuntimeInfo
     slinger/runtime/<machine_id>/status         ThrowStatus      runtime -> server   on change
+    slinger/runtime/<machine_id>/estop_reset    queryable: EstopReset -> EstopResetAck
+    slinger/runtime/<machine_id>/runtime_state  RuntimeInfo      runtime -> *        2 Hz + on change
     slinger/runtime/<machine_id>/alive          liveliness token of the runtime
     slinger/server/throw_result                 queryable on the server: ThrowResult -> ResultAck
     slinger/runtime/<machine_id>/policy/offer   queryable: PolicyOffer -> PolicyOfferAck
@@ -96,6 +98,16 @@ def runtime_alive(machine_id: str) -> str:
     return runtime(machine_id, "alive")
 
 
+def estop_reset(machine_id: str) -> str:
+    """Queryable of the runtime: signed EstopReset -> EstopResetAck."""
+    return runtime(machine_id, "estop_reset")
+
+
+def runtime_state(machine_id: str) -> str:
+    """The runtime's RuntimeInfo, published at 2 Hz and at once on every change."""
+    return runtime(machine_id, "runtime_state")
+
+
 def policy_offer(machine_id: str) -> str:
     return runtime(machine_id, "policy/offer")
 
@@ -116,6 +128,7 @@ POLICY_FILES = f"{ROOT}/server/policy/*"
 ALL_STATES = f"{ROOT}/machine/*/state"
 ALL_RUNTIME_ALIVE = f"{ROOT}/runtime/*/alive"
 ALL_STATUS = f"{ROOT}/runtime/*/status"
+ALL_RUNTIME_STATES = f"{ROOT}/runtime/*/runtime_state"
 THROW_RESULT = f"{ROOT}/server/throw_result"
 
 

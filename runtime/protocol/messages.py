@@ -72,8 +72,10 @@ class MachineState(Stamped):
             (the simulated machine always; real hardware only with a tracker), else None.
         simulated: True for the simulated machine (sim_twin plant), False for hardware.
         reset_count: simulated machine only: how many SimReset requests it has applied since
-            it started (lets the runtime tell a pre-reset state from a post-reset one); None
-            on hardware.
+            it started (used by the twin's evaluation loop); None on hardware.
+        machine_fault: why the machine cannot be commanded now (e.g. the simulated machine
+            "behind real time by 150 ms"), or None. The runtime refuses throws with this reason
+            and fails a running one.
     """
 
     q: Vec6
@@ -84,12 +86,20 @@ class MachineState(Stamped):
     payload_vel_mps: Vec3 | None = None
     simulated: bool = False
     reset_count: Annotated[int, Field(ge=0)] | None = None
+    machine_fault: Annotated[str, Field(max_length=200)] | None = None
 
 
 class ValveCommand(Stamped):
-    """Normalised valve commands of the four active joints, each in [-1, 1] (100 Hz)."""
+    """Normalised valve commands of the four active joints, each in [-1, 1] (100 Hz).
+
+    Attributes:
+        epoch: the sending runtime's claim epoch (ms since the Unix epoch at its start), or None
+            from senders without a claim (tests, tools). The machine follows only the newest
+            epoch it has seen.
+    """
 
     u: Annotated[Vec4, AfterValidator(_unit_interval)]
+    epoch: Annotated[int, Field(ge=0)] | None = None
 
 
 class GripperCommand(Stamped):
@@ -124,13 +134,34 @@ class ImpactReport(Stamped):
     release_vel_mps: Vec3
 
 
+class CommandAuth(Message):
+    """Who asked for a command and the server's MAC over it (see runtime/command_auth.py).
+
+    Attributes:
+        user: the requesting user (server side) or "runtime:<id>" for runtime results.
+        issued_unix_s: the signer's wall clock (Unix seconds) when it signed.
+        nonce: 32 hex digits, fresh per message (replay protection).
+        epoch: the runtime claim the command addresses (RuntimeInfo.epoch).
+        mac: 64 hex digits, HMAC-SHA256 with the machine's command key over the canonical JSON
+            of the whole message with ``mac`` = "" (command_auth.canonical_bytes).
+    """
+
+    user: Annotated[str, Field(min_length=1, max_length=64)]
+    issued_unix_s: float = Field(allow_inf_nan=False)
+    nonce: Annotated[str, Field(pattern=r"^[0-9a-f]{32}$")]
+    epoch: Annotated[int, Field(ge=0)]
+    mac: Annotated[str, Field(pattern=r"^([0-9a-f]{64})?$")] = ""
+
+
 class ThrowRequest(Message):
-    """Server -> runtime: throw at ``target_m`` (machine frame, m) in ``mode``."""
+    """Server -> runtime: throw at ``target_m`` (machine frame, m) in ``mode``; must be signed
+    (``auth``) for the runtime to accept it."""
 
     throw_id: Annotated[str, Field(min_length=1, max_length=64)]
     machine_id: MachineId
     mode: Mode
     target_m: Vec3
+    auth: CommandAuth | None = None
 
 
 class ThrowAck(Message):
@@ -140,18 +171,38 @@ class ThrowAck(Message):
     accepted: bool
     reason: str | None = None
     policy_version: str | None = None
+    policy_sha256: str | None = None
+    """SHA-256 of the ONNX file of the policy that will run the throw (the version's identity)."""
 
 
 class AbortRequest(Message):
-    """Server -> runtime: stop now (valves to neutral)."""
+    """Server -> runtime: stop now (valves to neutral) and latch E-STOP until a signed
+    EstopReset. Honoured even unsigned (stopping is always safe); ``auth`` names who asked."""
 
     machine_id: MachineId
-    reason: str = "operator abort"
+    reason: Annotated[str, Field(max_length=200)] = "operator abort"
+    auth: CommandAuth | None = None
 
 
 class AbortAck(Message):
     machine_id: MachineId
     aborted_throw_id: str | None = None
+
+
+class EstopReset(Message):
+    """Server -> runtime (query keys.estop_reset): release a latched E-STOP; must be signed."""
+
+    machine_id: MachineId
+    auth: CommandAuth | None = None
+
+
+class EstopResetAck(Message):
+    """Runtime -> server: ``reset`` True when the latch is released (or was not latched),
+    else False with the ``reason`` (unsigned, bad signature, stale, ...)."""
+
+    machine_id: MachineId
+    reset: bool
+    reason: str | None = None
 
 
 ThrowPhase = Literal["preparing", "swinging", "released", "landed", "failed", "aborted"]
@@ -174,11 +225,31 @@ class PolicyInfo(Message):
 
 
 class RuntimeInfo(Message):
+    """What a runtime is and can do now (queryable keys.info; published on keys.runtime_state
+    at 2 Hz and on every change).
+
+    Attributes:
+        epoch: the runtime's claim epoch (ms since the Unix epoch at its start); commands must
+            carry it in ``auth.epoch``.
+        estop_latched / estop_reason: E-STOP is latched (valves neutral, throws refused) and why.
+        ready: a throw would be accepted now (for some mode with a policy); else
+            ``not_ready_reason`` says why ("E-STOP latched", "machine offline", the machine's
+            fault such as "behind real time by 150 ms", ...).
+        phase / throw_id: the running throw's phase and id, or None when idle.
+    """
+
     machine_id: MachineId
     busy: bool
     policies: list[PolicyInfo]
     machine_online: bool
     simulated: bool
+    epoch: Annotated[int, Field(ge=0)] = 0
+    estop_latched: bool = False
+    estop_reason: str | None = None
+    ready: bool = False
+    not_ready_reason: str | None = None
+    phase: ThrowPhase | None = None
+    throw_id: str | None = None
 
 
 class ThrowResult(Stamped):
@@ -201,10 +272,12 @@ class ThrowResult(Stamped):
     downrange_error_m: float | None = None
     crossrange_error_m: float | None = None
     policy_version: str | None = None
+    policy_sha256: str | None = None
     release_stamp_s: float | None = None
     opening_stamp_s: float | None = None
     duration_s: float
     telemetry_mcap_b64: str | None = None
+    auth: CommandAuth | None = None
 
 
 class ResultAck(Message):
@@ -221,6 +294,7 @@ class PolicyOffer(Message):
     version: str
     sha256: Annotated[str, Field(pattern=r"^[0-9a-f]{64}$")]
     manifest: dict
+    auth: CommandAuth | None = None
 
 
 class PolicyOfferAck(Message):

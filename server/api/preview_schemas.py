@@ -28,6 +28,7 @@ class PreviewOut(BaseModel):
     mode: str
     target_m: list[float]
     policy_version: str
+    policy_sha256: str | None = None
     created_at: str
     status: Literal["ok", "failed"]
     reason: str | None = None

@@ -6,21 +6,38 @@ Positions are machine-frame metres ``[x, y, z]``; timestamps are UTC-aware ISO 8
 from __future__ import annotations
 
 import math
-from datetime import datetime
+from datetime import datetime, timezone
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, AwareDatetime, BaseModel, ConfigDict, Field
 
-from server.db.models import Throw
-
-
-def _finite(v: list[float]) -> list[float]:
-    if not all(math.isfinite(x) for x in v):
-        raise ValueError("target must be finite")
-    return v
+from server.db.models import MODES, THROW_STATUSES, Throw
 
 
-Vec3 = Annotated[list[float], Field(min_length=3, max_length=3), AfterValidator(_finite)]
+COORD_LIMIT_M = 1000.0
+"""Bound of any position coordinate the API accepts, m (the machines reach ~12 m)."""
+DISTANCE_LIMIT_M = 10_000.0
+"""Bound of any distance filter the API accepts, m."""
+
+MAX_DB_ID = 2**31 - 1
+"""Largest row id the API accepts (PostgreSQL ``integer``; a larger one is 422, not a 500 from
+the database driver)."""
+DbId = Annotated[int, Field(ge=1, le=MAX_DB_ID)]
+
+
+def _utc(value: datetime) -> datetime:
+    try:
+        return value.astimezone(timezone.utc)
+    except OverflowError as e:  # 0001-01-01T00:00+14:00 has no UTC equivalent
+        raise ValueError("time out of range") from e
+
+
+UtcTime = Annotated[AwareDatetime, AfterValidator(_utc)]
+"""An ISO 8601 time WITH its zone (a naive time is 422), as UTC."""
+
+Coord = Annotated[float, Field(ge=-COORD_LIMIT_M, le=COORD_LIMIT_M, allow_inf_nan=False)]
+"""A finite machine-frame coordinate, m, within +-COORD_LIMIT_M (else 422)."""
+Vec3 = Annotated[list[Coord], Field(min_length=3, max_length=3)]
 
 
 class Health(BaseModel):
@@ -38,6 +55,11 @@ class MachineOut(BaseModel):
         policies: active policy version name per mode (``{"2d": "throw2d-..."}``).
         busy: the runtime is executing a throw (None if unknown).
         cabin_turn_rad: latest cabin angle, rad (None before the first state).
+        estop_latched / estop_reason: the runtime's E-STOP is latched (valves neutral, throws
+            refused until an operator resets it) and why.
+        ready / not_ready_reason: the runtime would accept a throw now, else why not
+            ("E-STOP latched", "machine offline", the machine's fault, ...); None if unknown.
+        phase / throw_id: the running throw's phase and id (None when idle or unknown).
     """
 
     id: str
@@ -46,6 +68,12 @@ class MachineOut(BaseModel):
     policies: dict[str, str] = Field(default_factory=dict)
     busy: bool | None = None
     cabin_turn_rad: float | None = None
+    estop_latched: bool | None = None
+    estop_reason: str | None = None
+    ready: bool | None = None
+    not_ready_reason: str | None = None
+    phase: str | None = None
+    throw_id: str | None = None
     last_throw_at: datetime | None = None
     last_throw_status: str | None = None
     current_mode: str | None = None
@@ -69,10 +97,16 @@ class ThrowCreate(BaseModel):
     """3D throws only: the operator confirmed that the swept clearance zone is clear."""
 
 
+ThrowStatusName = Literal[THROW_STATUSES]  # type: ignore[valid-type]
+"""A throw's status (server.db.models.THROW_STATUSES), an enum in OpenAPI."""
+ModeName = Literal[MODES]  # type: ignore[valid-type]
+
+
 class ThrowCreated(BaseModel):
     id: str
-    status: str
+    status: ThrowStatusName
     policy_version: str | None = None
+    policy_sha256: str | None = None
 
 
 class ThrowOut(BaseModel):
@@ -80,14 +114,16 @@ class ThrowOut(BaseModel):
 
     id: str
     machine_id: str
-    mode: str
-    status: str
+    mode: ModeName
+    status: ThrowStatusName
     failure_reason: str | None
     target: list[float]
     impact: list[float] | None
     downrange_error_m: float | None
     crossrange_error_m: float | None
     policy_version: str | None
+    policy_sha256: str | None = None
+    """SHA-256 of the policy's ONNX file: the version's identity (names are not unique)."""
     requested_at: datetime
     started_at: datetime | None
     released_at: datetime | None
@@ -105,7 +141,7 @@ class ThrowOut(BaseModel):
             id=row.id, machine_id=row.machine_id, mode=row.mode, status=row.status,
             failure_reason=row.failure_reason, target=row.target_m, impact=row.impact_m,
             downrange_error_m=row.downrange_error_m, crossrange_error_m=row.crossrange_error_m,
-            policy_version=row.policy_version, requested_at=row.requested_at,
+            policy_version=row.policy_version, policy_sha256=row.policy_sha256, requested_at=row.requested_at,
             started_at=row.started_at, released_at=row.released_at,
             completed_at=row.completed_at, duration_s=row.duration_s,
             telemetry_url=f"/api/throws/{row.id}/telemetry" if row.telemetry_path else None,

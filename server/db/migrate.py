@@ -1,8 +1,9 @@
 """Run Alembic migrations programmatically (``slinger db upgrade``, app startup, tests).
 
 The Alembic config is ``server/alembic.ini`` (shipped as package data); its script location is
-set here to the repository's ``migrations/`` folder so it works from the repo, an editable
-install, and any working directory.
+set here: ``server/migrations`` inside an installed slinger-server wheel (packaging/: the
+migrations are package data), else the repository's ``migrations/`` folder (the repo, an
+editable install), from any working directory.
 """
 
 from __future__ import annotations
@@ -17,15 +18,16 @@ log = logging.getLogger(__name__)
 
 SERVER_DIR = Path(__file__).resolve().parent.parent
 ALEMBIC_INI = SERVER_DIR / "alembic.ini"
-MIGRATIONS_DIR = SERVER_DIR.parent / "migrations"
+MIGRATIONS_DIR = next((d for d in (SERVER_DIR / "migrations", SERVER_DIR.parent / "migrations")
+                       if (d / "env.py").is_file()), SERVER_DIR.parent / "migrations")
 
 
 def alembic_config(database_url: str) -> Config:
     """An Alembic config for ``database_url``.
 
     Raises:
-        FileNotFoundError: if the migrations folder is missing (a non-editable install without
-            the repository; install with ``pip install -e`` or run from the repo).
+        FileNotFoundError: if the migrations folder is missing (an install of the all-in-one
+            root package without -e; install slinger-server, or ``pip install -e .``).
     """
     if not (MIGRATIONS_DIR / "env.py").is_file():
         raise FileNotFoundError(f"Alembic migrations not found at {MIGRATIONS_DIR}")

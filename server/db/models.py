@@ -1,7 +1,9 @@
 """SQLAlchemy 2 typed models. API schemas live in :mod:`server.api.schemas`; never mix them.
 
 Tables: ``machines``, ``policy_versions``, ``throws``, ``users``, ``auth_sessions``,
-``audit_log``, ``policy_deployments``. Positions are machine-frame metres,
+``audit_log``, ``policy_deployments``, ``jobs``. Modes and statuses are database enums
+(:func:`db_enum`: a VARCHAR with a CHECK constraint on SQLite and PostgreSQL alike, so that a new
+value is one constraint swap in a migration) and ``Literal`` types in the API (OpenAPI enums). Positions are machine-frame metres,
 timestamps UTC-aware (:class:`server.db.types.UTCDateTime`). Constraint names follow
 :data:`NAMING_CONVENTION` so Alembic batch migrations on SQLite can address them.
 """
@@ -11,7 +13,7 @@ from __future__ import annotations
 import uuid
 from datetime import datetime
 
-from sqlalchemy import JSON, Boolean, Float, ForeignKey, Index, MetaData, String, Text
+from sqlalchemy import JSON, BigInteger, Boolean, Enum, Float, ForeignKey, Index, MetaData, String, Text
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from server.db.types import UTCDateTime, utcnow
@@ -24,9 +26,25 @@ NAMING_CONVENTION = {
     "pk": "pk_%(table_name)s",
 }
 
-THROW_STATUSES = ("requested", "preparing", "swinging", "released", "landed", "failed", "aborted")
-"""Row status: ``requested`` until the runtime reports a phase, then the ThrowStatus phase."""
-FINAL_STATUSES = ("landed", "failed", "aborted")
+THROW_STATUSES = ("requested", "preparing", "swinging", "released", "landed", "failed", "aborted", "lost")
+"""Row status: ``requested`` until the runtime reports a phase, then the ThrowStatus phase;
+``lost`` when the server's reconciliation (server.reconcile) finds that the throw's result can
+never arrive (its runtime restarted without it, or stayed away past the bound), with the reason
+in ``failure_reason``. A late result from the runtime still replaces ``lost``."""
+FINAL_STATUSES = ("landed", "failed", "aborted", "lost")
+MODES = ("2d", "3d")
+EVALUATION_STATUSES = ("pending", "running", "done", "failed")
+
+
+def db_enum(values, name: str, length: int = 16) -> Enum:
+    """A database enum of ``values``: VARCHAR(``length``) + CHECK ``ck_<table>_<name>``.
+
+    Not a native PostgreSQL ENUM type: SQLite has none, and a CHECK constraint gains a value by
+    being dropped and re-created in one migration on both databases. Writing a value outside
+    ``values`` raises ``LookupError`` in Python (``StatementError`` from a session) before SQL runs.
+    """
+    return Enum(*values, name=name, native_enum=False, create_constraint=True, length=length,
+                validate_strings=True)
 
 
 class Base(DeclarativeBase):
@@ -51,7 +69,7 @@ class PolicyVersion(Base):
 
     id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
     name: Mapped[str] = mapped_column(String(128))
-    mode: Mapped[str] = mapped_column(String(2))
+    mode: Mapped[str] = mapped_column(db_enum(MODES, "mode", 2))
     sha256: Mapped[str] = mapped_column(String(64), unique=True)
     manifest: Mapped[dict] = mapped_column(JSON, default=dict)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
@@ -59,7 +77,8 @@ class PolicyVersion(Base):
     """The ONNX file relative to the data dir (None: the server has no copy)."""
     notes: Mapped[str | None] = mapped_column(Text, nullable=True)
     uploaded_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
-    evaluation_status: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    evaluation_status: Mapped[str | None] = mapped_column(db_enum(EVALUATION_STATUSES, "evaluation_status"),
+                                                          nullable=True)
     """None (not evaluated), ``pending``, ``running``, ``done`` or ``failed``."""
     metrics: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     """The twin evaluation report (sim_twin.evaluate format)."""
@@ -76,15 +95,16 @@ class Throw(Base):
     __table_args__ = (
         Index("ix_throws_machine_requested", "machine_id", "requested_at"),
         Index("ix_throws_requested_at", "requested_at"),
+        Index("ix_throws_policy_sha256", "policy_sha256", "requested_at"),
     )
 
     id: Mapped[str] = mapped_column(String(36), primary_key=True, default=lambda: str(uuid.uuid4()))
     machine_id: Mapped[str] = mapped_column(ForeignKey("machines.id"))
-    mode: Mapped[str] = mapped_column(String(2))
+    mode: Mapped[str] = mapped_column(db_enum(MODES, "mode", 2))
     target_x_m: Mapped[float] = mapped_column(Float)
     target_y_m: Mapped[float] = mapped_column(Float)
     target_z_m: Mapped[float] = mapped_column(Float)
-    status: Mapped[str] = mapped_column(String(16), default="requested")
+    status: Mapped[str] = mapped_column(db_enum(THROW_STATUSES, "status"), default="requested")
     failure_reason: Mapped[str | None] = mapped_column(Text, nullable=True)
     impact_x_m: Mapped[float | None] = mapped_column(Float, nullable=True)
     impact_y_m: Mapped[float | None] = mapped_column(Float, nullable=True)
@@ -92,6 +112,9 @@ class Throw(Base):
     downrange_error_m: Mapped[float | None] = mapped_column(Float, nullable=True)
     crossrange_error_m: Mapped[float | None] = mapped_column(Float, nullable=True)
     policy_version: Mapped[str | None] = mapped_column(String(128), nullable=True)
+    """The policy version's name, for people; names are not unique, ``policy_sha256`` is."""
+    policy_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    """SHA-256 of the ONNX file that made the throw: the policy identity comparisons and accuracy group by."""
     requested_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     released_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
@@ -101,6 +124,9 @@ class Throw(Base):
     preview: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     """The twin preview the throw was sent with (sim_twin.preview summary), if any."""
     requested_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    runtime_epoch: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    """The claim epoch of the runtime the throw was sent to (RuntimeInfo.epoch): a runtime with
+    another epoch restarted since and cannot be running it."""
 
     @property
     def target_m(self) -> list[float]:
@@ -171,11 +197,46 @@ class PolicyDeployment(Base):
 
     id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
     machine_id: Mapped[str] = mapped_column(ForeignKey("machines.id"))
-    mode: Mapped[str] = mapped_column(String(2))
+    mode: Mapped[str] = mapped_column(db_enum(MODES, "mode", 2))
     policy_version_id: Mapped[int] = mapped_column(ForeignKey("policy_versions.id"))
     previous_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
-    status: Mapped[str] = mapped_column(String(16), default="offered")
+    status: Mapped[str] = mapped_column(db_enum(DEPLOYMENT_STATUSES, "status"), default="offered")
     reason: Mapped[str | None] = mapped_column(Text, nullable=True)
     requested_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
     requested_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     confirmed_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+
+
+JOB_KINDS = ("preview", "evaluation", "diagnosis", "adaptation", "probe", "catalog")
+JOB_STATUSES = ("queued", "running", "done", "failed", "cancelled")
+FINAL_JOB_STATUSES = ("done", "failed", "cancelled")
+
+
+class Job(Base):
+    """One unit of heavy (MuJoCo) work run by a worker process (server.jobs).
+
+    The queue itself lives in the job library's storage (Huey: SQLite file, PostgreSQL tables or
+    Redis); this row is what people and the console see: status, progress, result.
+    ``progress`` is a fraction in [0, 1]; ``result`` the job's JSON answer; ``worker`` the
+    ``host:pid`` that ran it; ``cancel_requested`` is polled by the running job.
+    """
+
+    __tablename__ = "jobs"
+    __table_args__ = (Index("ix_jobs_kind_created", "kind", "created_at"),)
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=lambda: str(uuid.uuid4()))
+    kind: Mapped[str] = mapped_column(db_enum(JOB_KINDS, "kind"))
+    status: Mapped[str] = mapped_column(db_enum(JOB_STATUSES, "status"), default="queued")
+    subject: Mapped[str | None] = mapped_column(String(128), nullable=True)
+    """What the job is about: a machine id, a policy version id."""
+    params: Mapped[dict] = mapped_column(JSON, default=dict)
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    message: Mapped[str | None] = mapped_column(Text, nullable=True)
+    result: Mapped[dict | None] = mapped_column(JSON, nullable=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    worker: Mapped[str | None] = mapped_column(String(128), nullable=True)
+    requested_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -10,7 +12,8 @@ def make_engine(database_url: str) -> Engine:
     """An engine for ``database_url``.
 
     SQLite: allow use from Zenoh callback threads and FastAPI's threadpool, enable foreign keys
-    and WAL, and wait up to 10 s on a locked database instead of failing at once.
+    and WAL, wait up to 10 s on a locked database instead of failing at once, and provide
+    ``sqrt`` where the SQLite build lacks its math functions (server.history uses it).
     """
     if database_url.startswith("sqlite"):
         engine = create_engine(
@@ -22,6 +25,10 @@ def make_engine(database_url: str) -> Engine:
             cur = dbapi_conn.cursor()
             cur.execute("PRAGMA foreign_keys=ON")
             cur.execute("PRAGMA journal_mode=WAL")
+            try:
+                cur.execute("SELECT sqrt(1.0)")
+            except Exception:  # noqa: BLE001  sqlite3.OperationalError: no such function
+                dbapi_conn.create_function("sqrt", 1, lambda x: None if x is None else math.sqrt(x), deterministic=True)
             cur.close()
 
         return engine

@@ -2,14 +2,18 @@
 
 ::
 
-    slinger diagnose DATASET [--out DIR] [--policy P --accuracy-throws N]   diagnose logged throws
-    slinger diagnose benchmark [--cases 33] [--outside 8] [--throws 30]    blind check
-    slinger diagnose generate --profile PROFILE.json --throws 50 --out DIR  make a dataset with the
+    slinger diagnose DATASET [--out DIR] [--candidates a,b,pkg.mod:Class]   diagnose logged throws
+    slinger diagnose benchmark [--small] [--throws 30] [--workers 2]        blind benchmark
+    slinger diagnose generate --mode 2d|3d --throws 50 --out DIR [--profile P.json] [--real-log]
+                                                                             make a dataset with the
                                                                              simulated machine
+    slinger diagnose convert --mapping M.json --impacts I.csv --out DIR LOG...
+                                                                             another machine's CSV/MCAP
     slinger diagnose effects                                                 list the effects library
 
-DATASET is a directory in the sim_twin.diagnosis.dataset format (index.json + throws/*.mcap);
-the console's diagnosis page exports a machine's stored throws to one.
+DATASET is a directory in the sim_twin.diagnosis.dataset format (index.json + throws/*.mcap,
+optional impacts.csv; logformat documents the topics); the console's diagnosis page exports a
+machine's stored throws to one.
 """
 
 from __future__ import annotations
@@ -26,24 +30,29 @@ log = logging.getLogger(__name__)
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("what", help="a dataset directory, or one of: benchmark, generate, effects")
+    parser.add_argument("what", help="a dataset directory, or one of: benchmark, generate, convert, effects")
+    parser.add_argument("inputs", nargs="*", type=Path, help="convert: the throw logs (CSV or MCAP, one per throw)")
     parser.add_argument("--out", type=Path, default=None, help="output directory (diagnosis: default reports/diagnosis/<dataset name>; "
-                        "benchmark: JSON file, default reports/diagnosis_benchmark.json; generate: dataset directory)")
+                        "benchmark: JSON file, default reports/diagnosis_benchmark.json; generate/convert: dataset directory)")
     parser.add_argument("--seed", type=int, default=0, help="split / case / throw seed")
-    parser.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    parser.add_argument("--workers", type=int, default=None, help="processes (generate, benchmark; default: all cores)")
     parser.add_argument("--test-fraction", type=float, default=0.3, help="held-out share of the throws (default 0.3)")
-    parser.add_argument("--candidates", default=None, help="comma-separated candidate effects (default: the whole library)")
-    parser.add_argument("--policy", type=Path, default=Path("policies/throw2d.onnx"), help="2D policy (generate, benchmark, closed-loop accuracy)")
-    parser.add_argument("--accuracy-throws", type=int, default=0, help="closed-loop twin throws per target distance for the accuracy comparison (0: off)")
+    parser.add_argument("--candidates", default=None, help="comma-separated candidates: library names or package.module:Class (default: the library)")
+    parser.add_argument("--mode", choices=("2d", "3d"), default="2d", help="generate: throw mode")
+    parser.add_argument("--policy", type=Path, default=None, help="generate: ONNX policy (default policies/throw<mode>.onnx)")
     parser.add_argument("--no-plots", action="store_true")
-    parser.add_argument("--cases", type=int, default=33, help="benchmark: library cases (default 33, cycling over every library effect)")
-    parser.add_argument("--outside", type=int, default=8, help="benchmark: cases with effects outside the library (default 8)")
+    parser.add_argument("--small", action="store_true", help="benchmark: the small CI version (6 cases, 16 throws)")
+    parser.add_argument("--cases", default=None, help="benchmark: only these case numbers (comma-separated)")
     parser.add_argument("--throws", type=int, default=30, help="benchmark: throws per case; generate: throws")
     parser.add_argument("--profile", type=Path, default=None, help="generate: reality profile JSON (default nominal)")
+    parser.add_argument("--real-log", action="store_true", help="generate: logs like a real machine's (noise, no payload channel, no open flag, missing impacts)")
     parser.add_argument("--keep-data", type=Path, default=None, help="benchmark: keep the generated datasets here")
+    parser.add_argument("--mapping", type=Path, default=None, help="convert: column mapping JSON (sim_twin.diagnosis.convert)")
+    parser.add_argument("--impacts", type=Path, default=None, help="convert: CSV with throw_id, target_x_m, target_y_m, impact_x_m, impact_y_m")
 
 
 def run(args: argparse.Namespace) -> int:
+    from sim_twin.diagnosis.convert import ConvertError
     from sim_twin.diagnosis.dataset import DatasetError
 
     try:
@@ -54,15 +63,25 @@ def run(args: argparse.Namespace) -> int:
             return 0
         if args.what == "generate":
             return _generate(args)
+        if args.what == "convert":
+            from sim_twin.diagnosis.convert import convert
+
+            if not (args.mapping and args.impacts and args.out and args.inputs):
+                raise ValueError("convert needs --mapping, --impacts, --out and the throw logs")
+            log.info("dataset written: %s", convert(args.inputs, args.mapping, args.impacts, args.out))
+            return 0
         if args.what == "benchmark":
             from sim_twin.diagnosis import benchmark
 
             out = args.out or Path("reports") / "diagnosis_benchmark.json"
-            res = benchmark.run(args.cases, args.outside, args.throws, args.seed, args.policy, args.workers or _cores(), out, args.keep_data)
-            log.info("benchmark results: %s and %s", out, out.with_suffix(".txt"))
+            mix = benchmark.SMALL_MIX if args.small else benchmark.MIX
+            throws = benchmark.SMALL_THROWS if args.small else args.throws
+            only = [int(c) for c in args.cases.split(",")] if args.cases else None
+            res = benchmark.run(mix, throws, args.seed, args.workers or _cores(), out, args.keep_data, only=only)
+            print(benchmark.format_summary(res))
             return 0 if res["cases"] else 1
         return _diagnose(args)
-    except (DatasetError, ValueError, OSError) as e:
+    except (DatasetError, ConvertError, ValueError, OSError) as e:
         print(f"slinger diagnose: {e}", file=sys.stderr)
         return 2
 
@@ -75,12 +94,15 @@ def _cores() -> int:
 
 def _generate(args) -> int:
     from sim_twin.diagnosis import dataset
+    from sim_twin.diagnosis.reallog import RealLogSpec
     from sim_twin.profile import RealityProfile
 
     if args.out is None:
         raise ValueError("generate needs --out DIR")
     prof = RealityProfile.load(args.profile).to_dict() if args.profile else {"name": "nominal"}
-    path = dataset.generate(args.out, prof, args.throws, args.policy, seed=args.seed, workers=args.workers or _cores())
+    policy = args.policy or Path("policies") / f"throw{args.mode}.onnx"
+    path = dataset.generate(args.out, prof, args.throws, policy, seed=args.seed, mode=args.mode, workers=args.workers or _cores(),
+                            real_log=RealLogSpec() if args.real_log else None)
     log.info("dataset written: %s", path)
     return 0
 
@@ -91,14 +113,21 @@ def _diagnose(args) -> int:
     dataset_dir = Path(args.what)
     out = args.out or Path("reports") / "diagnosis" / dataset_dir.resolve().name
     cands = [c.strip() for c in args.candidates.split(",")] if args.candidates else None
-    rep = diagnose(dataset_dir, out, args.test_fraction, args.seed, args.workers, cands, args.policy if args.accuracy_throws else None,
-                   args.accuracy_throws, plots=not args.no_plots)
-    carriers = rep["where"]["conditioned"]["carriers"]
-    print(f"Where: the gap is carried by {', '.join(carriers['channels']) or '-'} in the {', '.join(carriers['phases']) or '-'} phase(s)")
+    rep = diagnose(dataset_dir, out, args.test_fraction, args.seed, candidates=cands, plots=not args.no_plots)
+    w = rep["where"]
+    print(f"Where: {', '.join(w['carriers']) or 'no channel beyond its noise'}"
+          + (f" (phases: {', '.join(f'{p} {100 * s:.0f}%' for p, s in w['phases'].items())})" if w["phases"] else ""))
     print(f"Verdict: {rep['verdict']['text']}")
-    for r in rep["which"]:
-        print(f"  {r['effect']:18s} score {r['score']:+.3f}  held-out J {r['j_test_nominal']:.3g} -> {r['j_test']:.3g}  "
-              + ", ".join(f"{k}={v:.4g}" for k, v in r["params"].items()))
+    for r in rep["rounds"]:
+        for c in r["candidates"]:
+            print(f"  round {rep['rounds'].index(r) + 1}: {c['effect']:22s} wins {100 * c['wins']:3.0f}%  chi2 {c['chi2_before']:.0f} -> {c['chi2_after']:.0f}"
+                  f"  {'admissible' if c['admissible'] else c['reason']}")
+    hf = rep.get("how_far")
+    if hf:
+        print(f"Held out ({len(hf['test_throws'])} throws the fit never saw): gap shrink {hf['gap_shrink']:.0%}, impact RMS "
+              f"{hf['impact_rms_m']['before']:.3f} -> {hf['impact_rms_m']['after']:.3f} m; shares {hf['share_of_shrink']}")
+    if rep["skipped"]:
+        print(f"Skipped throws: {rep['skipped']}")
     print(f"Report: {out / 'report.json'} ({rep['wall_s']:.0f} s)")
     return 0
 

@@ -3,17 +3,24 @@
 Layout (``format: slinger-throws/1``)::
 
     <dir>/index.json        {"format": "slinger-throws/1", "machine_id": "m1", "source": {...},
+                             "sensors": {"impact_sigma_m": 0.05, ...}          (optional),
                              "throws": [{"throw_id": "...", "file": "throws/<id>.mcap",
                                          "mode": "2d", "target_m": [x, y, z],
                                          "impact_m": [x, y, 0] | null, "impact_stamp_s": t | null,
                                          "status": "landed", "policy_version": "..."}]}
-    <dir>/throws/<id>.mcap  runtime.telemetry MCAP (100 Hz joint states, references, valve
-                            commands, gripper command / open, payload state, phase events)
+    <dir>/throws/<id>.mcap  one throw's log (:mod:`sim_twin.diagnosis.logformat`: joint encoders,
+                            gripper IMU, valve commands, release command; references, the
+                            payload-free flag and payload tracking optional)
+    <dir>/impacts.csv       optional: throw_id, impact_x_m, impact_y_m[, impact_stamp_s]
 
-The measured impact is what the machine (or a camera) reports; the MCAP is what the runtime
-recorded. :func:`generate` makes such a dataset with the simulated machine under any reality
-profile (the runtime's ThrowExecutor and an ONNX policy in the loop, as in sim_twin.evaluate);
-:func:`export_server_throws` writes the throws a server stored for one machine.
+``sensors`` declares the sensor spec (1 sigma): ``impact_sigma_m`` (impact measurement),
+``encoder_sigma_rad``, ``imu_angle_sigma_rad``, ``imu_rate_sigma_radps``; without it the
+diagnosis measures the noise from the log (:mod:`sim_twin.diagnosis.noise`).
+
+The measured impact is what the machine (or a camera) reports. :func:`generate` makes such a
+dataset with the simulated machine under any reality profile (the runtime's ThrowExecutor and an
+ONNX policy in the loop, as in sim_twin.evaluate), optionally degraded like a real machine's log
+(:mod:`sim_twin.diagnosis.reallog`); the server exports the throws it stored for one machine.
 """
 
 from __future__ import annotations
@@ -26,7 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from runtime.telemetry import read_telemetry, write_mcap
+from runtime.telemetry import write_mcap
+from sim_twin.diagnosis import logformat as lf
 
 log = logging.getLogger(__name__)
 
@@ -45,23 +53,24 @@ class LoggedThrow:
     Attributes:
         throw_id, mode: identity.
         target_m / impact_m: (3,) machine frame, m (impact measured).
-        impact_t_s: measured impact time, s since swing start.
+        impact_t_s: measured impact time, s since swing start (None: not logged).
         t_s: (T,) s since swing start (0 at the first swinging row).
-        q, qd: (T, 6) measured joint states; qd_ref, valve_u: (T, 4).
+        q, qd: (T, 6) measured joint states; valve_u: (T, 4); qd_ref: (T, 4) or None (no
+            runtime references: the replay feeds the logged valve commands).
         cmd_row: row of the release command; open_row: first row with the payload free (None
             if the log does not say).
-        payload_t_s, payload_pos_m: payload samples (s since swing start, (P, 3)).
+        payload_t_s, payload_pos_m: payload samples (s since swing start, (P, 3)); P may be 0.
     """
 
     throw_id: str
     mode: str
     target_m: np.ndarray
     impact_m: np.ndarray
-    impact_t_s: float
+    impact_t_s: float | None
     t_s: np.ndarray
     q: np.ndarray
     qd: np.ndarray
-    qd_ref: np.ndarray
+    qd_ref: np.ndarray | None
     valve_u: np.ndarray
     cmd_row: int
     open_row: int | None
@@ -79,62 +88,55 @@ class LoggedThrow:
         return None if self.open_row is None else float(self.t_s[self.open_row] - self.t_s[self.cmd_row])
 
 
-def from_telemetry(tel: dict, row: dict) -> LoggedThrow:
-    """Build a LoggedThrow from ``runtime.telemetry.read_telemetry`` arrays and its index row.
+def from_log(a: dict, row: dict) -> LoggedThrow:
+    """Build a LoggedThrow from :func:`logformat.arrays` and its index row (impact required).
 
     Raises:
-        DatasetError: no swinging rows, no release command, or no measured impact.
+        DatasetError: no rows after the swing start, no release command, or a misshaped impact.
     """
     tid = row.get("throw_id", "?")
-    if tel["t_s"].size == 0:
-        raise DatasetError(f"throw {tid}: telemetry has no joint states")
-    if row.get("impact_m") is None or row.get("impact_stamp_s") is None:
-        raise DatasetError(f"throw {tid}: no measured impact (impact_m and impact_stamp_s are required)")
-    phase = tel["phase"]
-    if len(phase) != len(tel["t_s"]):
-        raise DatasetError(f"throw {tid}: {len(phase)} reference rows for {len(tel['t_s'])} joint-state rows")
-    swing = np.flatnonzero(phase != "preparing")
-    if swing.size == 0:
-        raise DatasetError(f"throw {tid}: telemetry has no swinging phase")
-    k0 = int(swing[0])
-    cmd = np.flatnonzero(tel["gripper_cmd"][k0:])
+    k0 = a["k0"]
+    if len(a["t_s"]) - k0 < 10:
+        raise DatasetError(f"throw {tid}: fewer than 10 rows after the swing start")
+    cmd = np.flatnonzero(a["gripper_cmd"][k0:])
     if cmd.size == 0:
-        raise DatasetError(f"throw {tid}: no release command in the telemetry")
-    opened = np.flatnonzero(tel["gripper_open"][k0:])
-    t0 = float(tel["t_s"][k0])
-    in_flight = tel["payload_t_s"] >= t0
+        raise DatasetError(f"throw {tid}: no release command in the log")
     impact = np.asarray(row["impact_m"], dtype=float)
-    arrays = [tel[k][k0:] for k in ("q", "qd", "qd_ref", "valve_u")]
-    if not all(np.all(np.isfinite(a)) for a in arrays) or impact.shape != (3,) or not np.all(np.isfinite(impact)):
-        raise DatasetError(f"throw {tid}: non-finite or misshaped values")
+    if impact.shape != (3,) or not np.all(np.isfinite(impact)):
+        raise DatasetError(f"throw {tid}: impact_m must be 3 finite numbers, got {row['impact_m']!r}")
+    opened = np.flatnonzero(a["gripper_open"][k0:]) if a["gripper_open"] is not None else np.zeros(0, dtype=int)
+    t0 = float(a["t_s"][k0])
+    keep = a["payload_t_s"] >= t0
+    stamp = row.get("impact_stamp_s")
     return LoggedThrow(
         throw_id=str(tid),
         mode=str(row.get("mode", "2d")),
         target_m=np.asarray(row["target_m"], dtype=float),
         impact_m=impact,
-        impact_t_s=float(row["impact_stamp_s"]) - t0,
-        t_s=tel["t_s"][k0:] - t0,
-        q=arrays[0],
-        qd=arrays[1],
-        qd_ref=arrays[2],
-        valve_u=arrays[3],
+        impact_t_s=None if stamp is None else float(stamp) - t0,
+        t_s=a["t_s"][k0:] - t0,
+        q=a["q"][k0:],
+        qd=a["qd"][k0:],
+        qd_ref=None if a["qd_ref"] is None else a["qd_ref"][k0:],
+        valve_u=a["valve_u"][k0:],
         cmd_row=int(cmd[0]),
         open_row=int(opened[0]) if opened.size else None,
-        payload_t_s=tel["payload_t_s"][in_flight] - t0,
-        payload_pos_m=tel["payload_pos_m"][in_flight],
+        payload_t_s=a["payload_t_s"][keep] - t0,
+        payload_pos_m=a["payload_pos_m"][keep],
         meta={k: row[k] for k in ("policy_version", "status") if k in row},
     )
 
 
 def load(directory: str | Path) -> tuple[list[LoggedThrow], dict]:
-    """Read a dataset directory; throws that did not land are skipped (logged).
+    """Read a dataset directory. Throws that did not land are skipped; landed throws without a
+    measured impact are skipped with a warning (``index["skipped"]`` lists both with reasons).
 
     Returns:
-        (landed throws in index order, the index dict).
+        (usable throws in index order, the index dict).
 
     Raises:
-        DatasetError: missing/invalid index, unreadable or corrupt MCAP, a landed throw without
-            a measured impact, or no landed throw at all.
+        DatasetError: missing/invalid index or impacts.csv, unreadable or corrupt MCAP, a log
+            without a required channel, or no usable throw at all.
     """
     directory = Path(directory)
     index_path = directory / "index.json"
@@ -146,28 +148,42 @@ def load(directory: str | Path) -> tuple[list[LoggedThrow], dict]:
         raise DatasetError(f"{index_path} is not valid JSON: {e}") from e
     if index.get("format") != FORMAT or not isinstance(index.get("throws"), list):
         raise DatasetError(f"{index_path}: expected format {FORMAT!r} with a 'throws' list")
+    csv_path = directory / "impacts.csv"
+    try:
+        impacts = lf.read_impacts_csv(csv_path) if csv_path.is_file() else {}
+    except lf.LogError as e:
+        raise DatasetError(str(e)) from e
     throws: list[LoggedThrow] = []
+    skipped: list[dict] = []
     for row in index["throws"]:
         tid = row.get("throw_id", "?")
+        row = {**row, **impacts.get(str(tid), {})}
         if row.get("status", "landed") != "landed":
             log.info("throw %s: status %s, skipped", tid, row.get("status"))
+            skipped.append({"throw_id": tid, "reason": f"status {row.get('status')}"})
+            continue
+        if row.get("impact_m") is None:
+            log.warning("throw %s: no measured impact, skipped", tid)
+            skipped.append({"throw_id": tid, "reason": "no measured impact"})
             continue
         path = directory / str(row.get("file", ""))
         try:
-            tel = read_telemetry(path)
+            arr = lf.arrays(lf.read_messages(path))
         except FileNotFoundError as e:
             raise DatasetError(f"throw {tid}: telemetry file {path} not found") from e
-        except Exception as e:  # mcap raises several exception types for corrupt files
-            raise DatasetError(f"throw {tid}: telemetry {path} is not a readable MCAP file ({type(e).__name__}: {e})") from e
-        throws.append(from_telemetry(tel, row))
+        except lf.LogError as e:
+            raise DatasetError(f"throw {tid}: telemetry {path}: {e}") from e
+        throws.append(from_log(arr, row))
+    index["skipped"] = skipped
     if not throws:
-        raise DatasetError(f"{directory}: no landed throws to diagnose")
-    log.info("dataset %s: %d landed throws", directory, len(throws))
+        raise DatasetError(f"{directory}: no landed throws with a measured impact to diagnose")
+    log.info("dataset %s: %d usable throws, %d skipped", directory, len(throws), len(skipped))
     return throws, index
 
 
-def write(directory: str | Path, rows: list[tuple[dict, bytes]], machine_id: str, source: dict | None = None) -> Path:
-    """Write a dataset: ``rows`` are (index row without 'file', MCAP bytes). Returns the index path."""
+def write(directory: str | Path, rows: list[tuple[dict, bytes]], machine_id: str, source: dict | None = None, sensors: dict | None = None) -> Path:
+    """Write a dataset: ``rows`` are (index row without 'file', MCAP bytes); ``sensors`` the
+    declared sensor spec (optional). Returns the index path."""
     directory = Path(directory)
     (directory / "throws").mkdir(parents=True, exist_ok=True)
     out = []
@@ -176,13 +192,15 @@ def write(directory: str | Path, rows: list[tuple[dict, bytes]], machine_id: str
         (directory / rel).write_bytes(mcap)
         out.append({**row, "file": rel})
     index = {"format": FORMAT, "machine_id": machine_id, "source": source or {}, "throws": out}
+    if sensors:
+        index["sensors"] = sensors
     path = directory / "index.json"
     path.write_text(json.dumps(index, indent=1) + "\n")
     return path
 
 
 def _throw_worker(args) -> tuple[dict, bytes] | None:
-    policy_path, profile_dict, seed, distance_m, mode = args
+    policy_path, profile_dict, seed, distance_m, mode, spec = args
     from runtime.executor import ThrowExecutor
     from runtime.policy import PolicyRunner
     from runtime.protocol.messages import ThrowRequest
@@ -207,20 +225,46 @@ def _throw_worker(args) -> tuple[dict, bytes] | None:
         "release_stamp_s": outcome.release_stamp_s, "opening_stamp_s": outcome.opening_stamp_s,
     }
     meta = {"throw_id": req.throw_id, "mode": mode, "status": outcome.status, "policy_version": outcome.policy_version, "target_m": json.dumps(list(req.target_m))}
-    return row, write_mcap(outcome.telemetry, meta)
+    if spec is None:
+        return row, write_mcap(outcome.telemetry, meta)
+    from sim_twin.diagnosis import reallog
+
+    row = reallog.degrade_row(row, spec, np.random.default_rng([seed, 7]))
+    row.pop("opening_stamp_s")
+    return row, reallog.write_log(outcome.telemetry.rows, outcome.telemetry.events, spec, meta)
 
 
 _policy_cache: dict = {}
 
 
-def generate(directory, profile_dict: dict, throws: int, policy_path: str | Path, distances_m=(7.5, 8.0, 8.5, 9.0, 9.5), seed: int = 0, mode: str = "2d", workers: int = 1) -> Path:
+DISTANCES_M = {"2d": (7.5, 8.0, 8.5, 9.0, 9.5), "3d": (7.0, 7.5, 8.0, 8.5, 9.0)}
+"""Target distances per mode (the policies' evaluated range, README)."""
+
+
+def generate(directory, profile_dict: dict, throws: int, policy_path: str | Path, distances_m=None, seed: int = 0, mode: str = "2d",
+             workers: int = 1, real_log=None) -> Path:
     """Throw ``throws`` times with the simulated machine under ``profile_dict`` (targets cycle
-    through ``distances_m``; seed ``seed * 10007 + i`` for throw i) and write a dataset.
+    through ``distances_m``, default DISTANCES_M[mode]; seed ``seed * 10007 + i`` for throw i)
+    and write a dataset.
+
+    Args:
+        mode: "2d" or "3d" (the policy must be for that mode).
+        real_log: a :class:`sim_twin.diagnosis.reallog.RealLogSpec` to make logs like a real
+            machine's (sensor noise in the loop, channels dropped, impact noise, missing
+            impacts), or None for the runtime's full telemetry.
 
     Returns:
         the index path. Throws the policy fails are kept in the index with their status.
+
+    Raises:
+        ValueError: unknown mode.
     """
-    jobs = [(str(policy_path), profile_dict, seed * 10007 + i, float(distances_m[i % len(distances_m)]), mode) for i in range(throws)]
+    if mode not in DISTANCES_M:
+        raise ValueError(f"mode must be one of {sorted(DISTANCES_M)}, got {mode!r}")
+    distances_m = distances_m or DISTANCES_M[mode]
+    if real_log is not None:
+        profile_dict = {**profile_dict, "effects": list(profile_dict.get("effects", [])) + [real_log.noise_effect()]}
+    jobs = [(str(policy_path), profile_dict, seed * 10007 + i, float(distances_m[i % len(distances_m)]), mode, real_log) for i in range(throws)]
     if workers > 1:
         from concurrent.futures import ProcessPoolExecutor
 
@@ -230,4 +274,7 @@ def generate(directory, profile_dict: dict, throws: int, policy_path: str | Path
         results = [_throw_worker(j) for j in jobs]
     rows = [r for r in results if r is not None]
     log.info("generated %d throws (%d landed) under profile %s", len(rows), sum(r[0]["status"] == "landed" for r in rows), profile_dict.get("name"))
-    return write(directory, rows, machine_id="sim", source={"generator": "sim_twin.diagnosis.dataset.generate", "seed": seed, "policy": str(policy_path)})
+    sensors = real_log.sensors() if real_log is not None and real_log.declare else None
+    return write(directory, rows, machine_id="sim", sensors=sensors,
+                 source={"generator": "sim_twin.diagnosis.dataset.generate", "seed": seed, "policy": str(policy_path), "mode": mode,
+                         "real_log": None if real_log is None else {k: getattr(real_log, k) for k in real_log.__dataclass_fields__}})

@@ -4,17 +4,22 @@
 
     report = diagnose("var/datasets/m1", out_dir="reports/diagnosis/m1")
 
-1. **Where**: every throw replayed in the nominal twin (:mod:`replay`); the residual decomposed
-   per channel and phase (:mod:`residuals`); plots of logged against replayed traces.
-2. **Which**: every library effect fitted on a training split and scored on the held-out
-   throws (:mod:`fit`); ranked; the best is named when it explains most of the gap, else the
-   answer is "unexplained".
-3. **How far**: held-out residual per channel and impact error before and after adding the
-   named (or best) effect, and the twin's predicted accuracy against the observed accuracy per
-   target distance (replayed; with ``policy`` also the policy in closed loop in the twin).
+1. **Where**: every throw replayed in the nominal twin (:mod:`replay`); residuals in units of
+   the log's measured noise (or the declared sensor spec) per channel and phase (:mod:`noise`,
+   :mod:`scoring`); channels whose chi-square exceeds their noise carry the gap. None: "no gap".
+2. **Which**: forward selection over the candidates that act where the gap is (:mod:`select`,
+   :mod:`forward`): grid fits, bootstrap win frequencies over throws, admissibility (no channel
+   worse beyond noise, no parameter at a prior bound). Verdict: "named" (the named effects
+   explain every channel to within noise), "ambiguous" (between A and B, with the measurement
+   that would separate them), "unexplained" (with the where and any partial names), "no_gap".
+3. **How far**: held-out throws (never used by the fit) replayed with the named effects
+   fitted on the training throws: chi-square excess, impact error and accuracy per target
+   distance before and after, and each named effect's share of the shrink.
 
-Writes ``report.json``, ``profile_fitted.json`` (the nominal profile plus the named effect) and
-PNG plots into ``out_dir``.
+Writes ``report.json`` (``which``: the named effects with parameters and 1 sigma, what
+``slinger adapt`` reads), ``profile_fitted.json`` (a reality profile: the nominal one plus the
+named effects, their 1 sigma in its ``uncertainty`` block, :func:`sim_twin.uncertainty.with_fitted_sigma`)
+and PNG plots.
 """
 
 from __future__ import annotations
@@ -28,15 +33,18 @@ from pathlib import Path
 import numpy as np
 
 from sim_twin.diagnosis import dataset as ds
-from sim_twin.diagnosis import fit as ft
+from sim_twin.diagnosis import forward as fw
+from sim_twin.diagnosis import noise as nz
 from sim_twin.diagnosis import replay as rp
-from sim_twin.diagnosis import residuals as rs
-from sim_twin.effects import EFFECTS, EffectStack
+from sim_twin.diagnosis import scoring as sc
+from sim_twin.diagnosis import select as sel
+from sim_twin.diagnosis.verdict import verdict_of
+from sim_twin.effects import EFFECTS, Effect, EffectStack, effect_class
 from sim_twin.profile import RealityProfile
 
 log = logging.getLogger(__name__)
 
-REPORT_FORMAT = "slinger-diagnosis/1"
+REPORT_FORMAT = "slinger-diagnosis/2"
 
 
 def split(throws: list, test_fraction: float, seed: int) -> tuple[list, list]:
@@ -45,18 +53,68 @@ def split(throws: list, test_fraction: float, seed: int) -> tuple[list, list]:
     Raises:
         ds.DatasetError: fewer than 4 throws.
     """
-    n = len(throws)
+    mask = split_mask(len(throws), test_fraction, seed)
+    return [t for t, m in zip(throws, mask) if m], [t for t, m in zip(throws, mask) if not m]
+
+
+def split_mask(n: int, test_fraction: float, seed: int) -> np.ndarray:
+    """(n,) bool, True = training throw (see :func:`split`)."""
     if n < 4:
         raise ds.DatasetError(f"need at least 4 landed throws to diagnose (train and held-out), got {n}")
     n_test = min(max(2, round(test_fraction * n)), n - 2)
-    order = np.random.default_rng(seed).permutation(n)
-    test_idx = set(order[:n_test].tolist())
-    return [t for i, t in enumerate(throws) if i not in test_idx], [t for i, t in enumerate(throws) if i in test_idx]
+    mask = np.ones(n, bool)
+    mask[np.random.default_rng(seed).permutation(n)[:n_test]] = False
+    return mask
+
+
+def resolve_candidates(candidates: list[str] | None) -> list[type[Effect]]:
+    """Library names and ``package.module:Class`` user effects, checked before any work.
+
+    Raises:
+        ValueError: unknown name, unimportable class, not an Effect, or an effect without a
+            fittable (non-stochastic) parameter.
+    """
+    out = []
+    for spec in candidates or list(EFFECTS):
+        cls = effect_class(spec)
+        det = [p for p in cls.params if not p.stochastic]
+        if not det:
+            raise ValueError(f"candidate {spec!r}: no deterministic parameter to fit")
+        if len(det) > 2 and not getattr(cls, "joint_base", ""):
+            raise ValueError(f"candidate {spec!r}: {len(det)} parameters; the diagnosis fits at most 2 per effect (or per joint)")
+        out.append(cls)
+    return out
+
+
+def _where(throws, S: np.ndarray, D: np.ndarray, noise: nz.NoiseModel, nominal) -> dict:
+    gaps = fw.channel_gaps(S, D)
+    Sc, Dc = S.sum(axis=0), D.sum(axis=0)
+    chans = {}
+    for c, name in enumerate(nz.CHANNELS):
+        if Dc[c].sum() == 0:
+            continue
+        chans[name] = {"chi2": float(Sc[c].sum()), "dof": float(Dc[c].sum()), "excess_z": nz.gap_test(Sc[c].sum(), Dc[c].sum())[1],
+                       "gap": name in gaps, "group": nz.group_of(name),
+                       "by_phase": {nz.PHASES[p]: {"chi2": float(Sc[c, p]), "dof": float(Dc[c, p])} for p in range(len(nz.PHASES)) if Dc[c, p] > 0}}
+    excess = {n: max(v["chi2"] - v["dof"], 0.0) for n, v in chans.items() if v["gap"]}
+    tot = sum(excess.values())
+    phase_ex = {p: sum(max(v["by_phase"].get(p, {}).get("chi2", 0) - v["by_phase"].get(p, {}).get("dof", 0), 0) for n, v in chans.items() if v["gap"])
+                for p in nz.PHASES}
+    ptot = sum(phase_ex.values())
+    r, _ = sc.impact_residuals(throws, nominal)
+    return {
+        "gap": bool(gaps), "channels": chans,
+        "carriers": sorted(excess, key=lambda n: -excess[n]),
+        "share": {n: e / tot for n, e in excess.items()} if tot > 0 else {},
+        "phases": {p: e / ptot for p, e in phase_ex.items()} if ptot > 0 else {},
+        "groups": sorted({nz.group_of(n) for n in gaps}),
+        "impact": {"mean_downrange_m": float(r[:, 0].mean()), "mean_crossrange_m": float(r[:, 1].mean()),
+                   "rms_m": float(np.sqrt(np.mean(np.sum(r * r, axis=1))))},
+        "noise": noise.to_dict(),
+    }
 
 
 def _accuracy(throws: list, impacts: list[np.ndarray]) -> dict[str, dict]:
-    """Per target distance (rounded to 0.5 m): n, mean and sigma of downrange error, mean
-    crossrange, mean |error| of the given impacts."""
     from runtime.throw_geometry import impact_errors
 
     groups: dict[float, list] = {}
@@ -70,121 +128,100 @@ def _accuracy(throws: list, impacts: list[np.ndarray]) -> dict[str, dict]:
     return out
 
 
-def _closed_loop(policy: Path, profile: RealityProfile, distances: list[float], throws: int, out_dir: Path, tag: str, workers: int) -> dict:
-    """The policy in closed loop in the twin under ``profile`` (sim_twin.evaluate protocol)."""
-    from sim_twin.evaluate import evaluate
-
-    path = out_dir / f"profile_{tag}.json"
-    path.write_text(json.dumps(profile.to_dict(), indent=1) + "\n")
-    rep = evaluate(policy, "2d", distances, throws, path, seed=7, workers=workers)
-    return {f"{t['target_m']:.1f}": {k: t[k] for k in ("landed", "bias_m", "sigma_downrange_m", "mean_crossrange_m", "mean_abs_error_m")} for t in rep["targets"]}
-
-
-def _verdict(ranked: list[ft.CandidateFit]) -> dict:
-    best = ranked[0]
-    if best.j_test_nominal < ft.MIN_GAP_J:
-        return {"answer": "no_gap", "effect": None,
-                "text": f"no significant gap: held-out J {best.j_test_nominal:.2f} < {ft.MIN_GAP_J} (residuals within their channel scales)"}
-    if best.score >= ft.EXPLAINED_SCORE:
-        ps = ", ".join(f"{k} = {v:.4g} ± {best.sigma.get(k, float('nan')):.2g}" for k, v in best.params.items() if k in best.sigma)
-        return {"answer": "named", "effect": best.effect,
-                "text": f"{best.effect} explains {100 * best.gain:.0f}% of the held-out gap ({ps})"}
-    return {"answer": "unexplained", "effect": None,
-            "text": f"no candidate explains most of the gap: the best, {best.effect}, explains {100 * max(best.gain, 0):.0f}% "
-                    f"(penalised score {best.score:.2f} < {ft.EXPLAINED_SCORE})"}
+def _how_far(throws, train: np.ndarray, scorer: sc.Scorer, rounds: list[fw.Round], named: list[Effect]) -> dict:
+    """Held-out throws, named effects fitted on the training throws only."""
+    test = [t for t, m in zip(throws, train) if not m]
+    test_scorer = sc.Scorer(test, scorer.noise)
+    fits = {r.named: next(c for c in r.candidates if c.effect == r.named) for r in rounds if r.decision == "named"}
+    train_effects = [type(e)(**fits[e.spec()].params_train) for e in named]
+    stacks = [EffectStack()] + [EffectStack(train_effects[: i + 1]) for i in range(len(train_effects))]
+    reps = rp.replay(test, stacks)
+    S = [test_scorer.score(r) for r in reps]
+    D = test_scorer.D
+    ex = [float(s.sum() - D.sum()) for s in S]
+    imp = [sc.impact_residuals(test, r)[0] for r in reps]
+    rms = [float(np.sqrt(np.mean(np.sum(i * i, axis=1)))) for i in imp]
+    shares = {}
+    total = ex[0] - ex[-1]
+    for i, e in enumerate(named):
+        shares[e.spec()] = (ex[i] - ex[i + 1]) / total if total > 0 else None
+    return {
+        "test_throws": [t.throw_id for t in test],
+        "named_fitted_on_train": [e.to_dict() for e in train_effects],
+        "chi2_excess_before": ex[0], "chi2_excess_after": ex[-1], "dof": float(D.sum()),
+        "gap_shrink": (1 - max(ex[-1], 0.0) / ex[0]) if ex[0] > 0 and named else None,
+        "impact_rms_m": {"before": rms[0], "after": rms[-1], "steps": rms},
+        "impact_gap_shrink": (1 - rms[-1] / rms[0]) if rms[0] > 0 and named else None,
+        "share_of_shrink": shares,
+        "channels": {nz.CHANNELS[c]: {"chi2_before": float(S[0][:, c].sum()), "chi2_after": float(S[-1][:, c].sum()), "dof": float(D[:, c].sum())}
+                     for c in range(len(nz.CHANNELS)) if D[:, c].sum() > 0},
+        "accuracy": {
+            "observed": _accuracy(test, [t.impact_m for t in test]),
+            "replayed_nominal": _accuracy(test, [r.pred["impact_m"] for r in reps[0]]),
+            "replayed_fitted": _accuracy(test, [r.pred["impact_m"] for r in reps[-1]]),
+        },
+    }
 
 
 def diagnose(dataset_dir: str | Path, out_dir: str | Path | None = None, test_fraction: float = 0.3, seed: int = 0,
              workers: int | None = None, candidates: list[str] | None = None, policy: str | Path | None = None,
-             accuracy_throws: int = 0, plots: bool = True) -> dict:
+             accuracy_throws: int = 0, plots: bool = True, sensors: dict | None = None) -> dict:
     """Run the three questions on a dataset directory (:mod:`dataset` format). Logs progress.
+
+    Args:
+        candidates: library names or ``package.module:Class`` (default: the whole library).
+        sensors: declared sensor spec (overrides the dataset's ``sensors``).
+        workers, policy, accuracy_throws: accepted for compatibility; the diagnosis runs in
+            one process (callers parallelise over datasets).
 
     Returns:
         the report dict (also written to ``out_dir/report.json`` when out_dir is given).
 
     Raises:
-        ds.DatasetError: unusable dataset (message says why).
+        ds.DatasetError: unusable dataset; ValueError: bad candidates (both before any work).
     """
     t0 = time.time()
+    classes = resolve_candidates(candidates)
     throws, index = ds.load(dataset_dir)
-    train, test = split(throws, test_fraction, seed)
-    log.info("diagnosis: %d throws (%d train, %d held out)", len(throws), len(train), len(test))
-    out = Path(out_dir) if out_dir else None
-    if out:
-        out.mkdir(parents=True, exist_ok=True)
-
-    # 1. where
-    nominal_all = rp.replay(throws, [EffectStack()])[0]
-    where = rs.decompose(throws, nominal_all)
-    where_pred = rs.decompose(throws, nominal_all, predicted=True)
-    where["carriers"] = {
-        "channels": [c for c, v in sorted(where["channels"].items(), key=lambda kv: -kv[1].get("share", 0)) if v.get("share", 0) >= 0.1],
-        "phases": [p for p, v in sorted(where["phases"].items(), key=lambda kv: -kv[1]) if v >= 0.1],
-    }
-    log.info("where: J %.3g, carried by %s in %s", where["J"], where["carriers"]["channels"], where["carriers"]["phases"])
-    log.info("where: J %.3g; groups %s; phases %s (%.1f s)", where["J"], {k: round(v, 2) for k, v in where["groups"].items()},
-             {k: round(v, 2) for k, v in where["phases"].items()}, time.time() - t0)
-
-    # 2. which
-    ranked = ft.fit_all(train, test, candidates, workers=workers)
-    verdict = _verdict(ranked)
+    train = split_mask(len(throws), test_fraction, seed)
+    log.info("diagnosis: %d throws (%d train, %d held out), %d candidates", len(throws), int(train.sum()), int((~train).sum()), len(classes))
+    cache = rp.simulate(throws, [EffectStack()], long=True)[0]
+    nominal = rp.replay(throws, [EffectStack()], dynamics_cache=cache)[0]
+    noise = sc.estimate_noise(throws, nominal, {**index.get("sensors", {}), **(sensors or {})})
+    scorer = sc.Scorer(throws, noise)
+    S0 = scorer.score(nominal)
+    where = _where(throws, S0, scorer.D, noise, nominal)
+    log.info("where: gap in %s (%.1f s)", where["carriers"] or "no channel", time.time() - t0)
+    rounds, named = fw.select_effects(lambda base: sel.Evaluator(throws, scorer, base, cache), classes, scorer.D, train, seed)
+    verdict = verdict_of(where, rounds, named)
     log.info("which: %s (%.0f s)", verdict["text"], time.time() - t0)
-
-    # 3. how far (named effect, or the best candidate when unexplained)
-    best = ranked[0]
-    effect = EFFECTS[best.effect](**best.params)
-    reps = rp.replay(test, [EffectStack(), EffectStack([effect])])
-    before, after = rs.decompose(test, reps[0]), rs.decompose(test, reps[1])
-    before_p, after_p = rs.decompose(test, reps[0], predicted=True), rs.decompose(test, reps[1], predicted=True)
-    fitted = RealityProfile(name=f"fitted-{best.effect}", effects=[effect])
-    how_far = {
-        "effect": best.effect,
-        "named": verdict["answer"] == "named",
-        "J_before": before["J"], "J_after": after["J"],
-        "channels": {c: {"rms_before": before["channels"][c]["rms"], "rms_after": after["channels"][c]["rms"], "unit": before["channels"][c]["unit"]}
-                     for c in before["channels"]},
-        "impact_error_m": {
-            "conditioned_before": before["impact"]["rms_m"], "conditioned_after": after["impact"]["rms_m"],
-            "predicted_before": before_p["impact"]["rms_m"], "predicted_after": after_p["impact"]["rms_m"],
-        },
-        "accuracy": {
-            "observed": _accuracy(test, [th.impact_m for th in test]),
-            "replayed_nominal": _accuracy(test, [r.pred["impact_m"] for r in reps[0]]),
-            "replayed_fitted": _accuracy(test, [r.pred["impact_m"] for r in reps[1]]),
-        },
-    }
-    imp = how_far["impact_error_m"]
-    how_far["impact_gap_shrink"] = 1 - imp["predicted_after"] / imp["predicted_before"] if imp["predicted_before"] > 0 else None
-    if policy is not None and accuracy_throws > 0 and out is not None:
-        dists = sorted({round(th.distance_m * 2) / 2 for th in test})
-        how_far["accuracy"]["closed_loop_nominal"] = _closed_loop(Path(policy), RealityProfile(), dists, accuracy_throws, out, "nominal", workers or 1)
-        how_far["accuracy"]["closed_loop_fitted"] = _closed_loop(Path(policy), fitted, dists, accuracy_throws, out, "fitted", workers or 1)
-    log.info("how far: held-out J %.3g -> %.3g; impact error (predicted) %.3f -> %.3f m", before["J"], after["J"],
-             imp["predicted_before"], imp["predicted_after"])
-
+    how_far = _how_far(throws, train, scorer, rounds, named) if named else None
+    fitted = RealityProfile(name="fitted-" + "+".join(e.name for e in named) if named else "fitted-none", effects=named)
     report = {
-        "format": REPORT_FORMAT,
-        "dataset": str(dataset_dir),
-        "machine_id": index.get("machine_id"),
-        "throws": len(throws), "train": [t.throw_id for t in train], "test": [t.throw_id for t in test],
-        "seed": seed,
-        "verdict": verdict,
-        "where": {"conditioned": where, "predicted_release": where_pred},
-        "which": [r.to_dict() for r in ranked],
-        "how_far": how_far,
+        "format": REPORT_FORMAT, "dataset": str(dataset_dir), "machine_id": index.get("machine_id"),
+        "throws": len(throws), "skipped": index.get("skipped", []),
+        "train": [t.throw_id for t, m in zip(throws, train) if m], "test": [t.throw_id for t, m in zip(throws, train) if not m],
+        "seed": seed, "verdict": verdict, "where": where, "rounds": [r.to_dict() for r in rounds], "how_far": how_far,
+        "which": [c.to_dict() for r in rounds for c in r.candidates if r.decision == "named" and c.effect == r.named],
         "effects_library": {name: cls.describe() for name, cls in EFFECTS.items()},
-        "thresholds": {"explained_score": ft.EXPLAINED_SCORE, "min_gap_J": ft.MIN_GAP_J},
+        "method": {"block_rows": nz.BLOCK_ROWS, "z_gap": nz.Z_GAP, "r_gap": nz.R_GAP, "bootstrap": sel.BOOTSTRAP,
+                   "win_freq": sel.WIN_FREQ, "ambiguous_freq": sel.AMBIGUOUS_FREQ, "penalty_per_param": sel.PENALTY_PER_PARAM},
         "wall_s": time.time() - t0,
     }
-    if out:
-        (out / "profile_fitted.json").write_text(json.dumps(fitted.to_dict(), indent=1) + "\n")
+    if out_dir:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        from sim_twin.uncertainty import with_fitted_sigma
+
+        prof = with_fitted_sigma(fitted, {w["effect"]: w["sigma"] for w in report["which"]}).to_dict()
+        (out / "profile_fitted.json").write_text(json.dumps(prof, indent=1) + "\n")
         if plots:
             from sim_twin.diagnosis import plots as pl
 
-            report["plots"] = pl.write_all(report, throws, nominal_all, test, reps, out)
+            report["plots"] = pl.write_all(report, out)
         (out / "report.json").write_text(json.dumps(_json_safe(report), indent=1) + "\n")
     log.info("diagnosis done in %.1f s: %s", time.time() - t0, verdict["text"])
-    return report
+    return _json_safe(report)
 
 
 def _json_safe(v):
@@ -196,4 +233,6 @@ def _json_safe(v):
         return [_json_safe(x) for x in v]
     if isinstance(v, np.generic):
         return v.item()
+    if isinstance(v, np.ndarray):
+        return _json_safe(v.tolist())
     return v

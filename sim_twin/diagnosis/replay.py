@@ -1,10 +1,12 @@
 """Replay logged throws in the twin: same initial state, same references, the runtime's
 controller in the loop, a candidate set of effects on top of the nominal machine.
 
-For every throw the replay starts from the logged state at swing start (valves neutral), feeds
-the logged joint-velocity references (as tracked after the runtime's safety clipping) through
-the runtime's PID + feed-forward law (:func:`runtime.controller.pid_ff_law`, the same arithmetic
-as :class:`runtime.controller.JointVelocityController`), the valve model and the effects'
+For every throw the replay starts from the logged state at swing start (valves neutral; the
+machine is at rest there, so the active joints are the mean of the first REST_ROWS logged rows,
+the velocities zero and the gripper hangs plumb; measurement effects' ``initial_state`` undoes
+calibration offsets), feeds the logged valve commands (what the machine's valves actually got,
+including the controller's reaction to sensor noise and to the effects; the runtime's
+references are not needed) through the valve model and the effects'
 setpoint and friction hooks, and steps MuJoCo at 100 Hz. Many throws and many effect
 configurations run in one batch (one MjData per pair, the controller and valves vectorised),
 which is what makes fitting affordable on two cores.
@@ -12,25 +14,27 @@ which is what makes fitting affordable on two cores.
 The payload part is computed from the replayed joint states afterwards: the grasp point while
 held, the release at the logged opening row (``conditioned``: isolates flight from release
 timing) and at the row the model's release delay predicts (``predicted``), and the flight
-(analytic, or RK4 with the effects' flight acceleration) to the impact.
+(analytic, or RK4 with the effects' flight acceleration) to the impact. Without a logged
+opening the predicted impact is the expectation over the opening rows the model's delay
+distribution gives (smooth in the delay: no 10 ms staircase), with its covariance.
 """
 
 from __future__ import annotations
 
 import copy
 import logging
-from dataclasses import dataclass, replace
+import math
+from dataclasses import dataclass
 from functools import lru_cache
 
 import mujoco
 import numpy as np
 
-from runtime.controller import ControllerGains, pid_ff_law
-from runtime.machine import ACTIVE_VELOCITY_LIMITS
+from runtime.machine import JOINT_LOWER, JOINT_UPPER
 from sim_twin.diagnosis.dataset import TICK_S, LoggedThrow
 from sim_twin.effects import EffectStack
 from sim_twin.effects.payload import grasp_point, integrate_flight
-from sim_twin.hydraulics import dead_band_flow, lag_step
+from sim_twin.hydraulics import cylinder_step, dead_band_flow, lag_step
 from sim_twin.model import (
     PAYLOAD_RADIUS_M,
     load_model,
@@ -45,9 +49,10 @@ from sim_twin.profile import RealityProfile
 
 log = logging.getLogger(__name__)
 
-MAX_RELEASE_DELAY_S = 0.8  # replays run at least this long after the release command
-REPLAY_GAINS = replace(ControllerGains(), limit_margin=0.0, limit_ramp=1e-9)
-"""The runtime's gains; the limit ramp is off because the logged references already carry it."""
+MAX_RELEASE_DELAY_S = 0.8  # nominal-dynamics replays run at least this long after the release command
+SCORE_ROWS_AFTER_CMD = 40  # joint channels are compared up to 0.4 s after the release command
+REST_ROWS = 4  # first logged rows averaged for the start state (valve delay >= 40 ms: nothing moves yet)
+MIN_JITTER_S = 0.002  # floor of the opening-delay spread in the expected impact (keeps it smooth)
 
 
 @dataclass
@@ -59,9 +64,12 @@ class Replay:
         meas_q, meas_qd: (R, 6) what the sensors would have given (measurement effects).
         held_pos_m: (T_open, 3) grasp point on the logged rows before the logged opening.
         delay_mean_s / delay_std_s: the model's release delay.
-        cond: flight released at the logged opening row: dict(t_s (F,), pos_m (F, 3) at the
-            logged payload times, impact_m (3,), impact_t_s).
-        pred: the same released at the model's predicted opening row.
+        cond: flight released at the logged opening row: dict(pos_m (F, 3) at the logged
+            payload times, impact_m (3,), impact_t_s, open_row); without a logged opening the
+            same as pred.
+        pred: released where the model's delay puts it: impact_m is the expectation over the
+            opening rows, impact_cov_m2 (2, 2) its covariance in x, y (release jitter); pos_m
+            from the most likely row.
     """
 
     q: np.ndarray
@@ -75,10 +83,24 @@ class Replay:
     pred: dict
 
 
-def replay_rows(th: LoggedThrow) -> int:
-    """Rows to replay: the logged ones, extended (last reference held) to cover any release
-    delay up to MAX_RELEASE_DELAY_S after the command."""
-    return max(len(th.t_s), th.cmd_row + int(np.ceil(MAX_RELEASE_DELAY_S / TICK_S)) + 2)
+def start_state(th: LoggedThrow, stack: EffectStack) -> tuple[np.ndarray, np.ndarray]:
+    """(q (6,), qd (6,)) true state at swing start (see module doc)."""
+    q = th.q[:REST_ROWS].mean(axis=0)
+    q, _ = stack.initial_state(q, np.zeros(6))
+    q = np.array(q, dtype=float)
+    q[4], q[5] = -(q[1] + q[2]), 0.0
+    return q, np.zeros(6)
+
+
+def score_rows(th: LoggedThrow) -> int:
+    """Logged rows whose joint channels the diagnosis compares."""
+    return min(len(th.t_s), th.cmd_row + SCORE_ROWS_AFTER_CMD)
+
+
+def replay_rows(th: LoggedThrow, delay_s: float = MAX_RELEASE_DELAY_S) -> int:
+    """Rows to replay: the compared ones, extended (valves neutral after the log ends) to cover
+    an opening ``delay_s`` after the command."""
+    return max(score_rows(th), th.cmd_row + int(np.ceil(delay_s / TICK_S)) + 2)
 
 
 @lru_cache(maxsize=1)
@@ -91,6 +113,7 @@ class _Column:
 
     def __init__(self, stack: EffectStack, base: RealityProfile):
         self.stack = stack
+        self.measure_stack = EffectStack(base.sensing.effects() + list(stack.effects))  # the machine's sensing first
         self.model = copy.copy(_base_model())
         if stack.has("model"):
             stack.model(self.model)
@@ -105,11 +128,14 @@ class _Column:
         self.setpoint = stack.has("setpoint")
 
 
-def simulate(throws: list[LoggedThrow], stacks: list[EffectStack], base: RealityProfile | None = None) -> list[list[tuple[np.ndarray, np.ndarray]]]:
+def simulate(throws: list[LoggedThrow], stacks: list[EffectStack], base: RealityProfile | None = None,
+             long: bool = False) -> list[list[tuple[np.ndarray, np.ndarray]]]:
     """Batched dynamic replay.
 
     Args:
         throws: N logged throws.
+        long: replay far enough for any opening delay up to MAX_RELEASE_DELAY_S (a cache for
+            release-stage candidates), else just past the stacks' own delays.
         stacks: K effect configurations (on top of ``base``, default the nominal profile).
 
     Returns:
@@ -119,20 +145,19 @@ def simulate(throws: list[LoggedThrow], stacks: list[EffectStack], base: Reality
     cols = [_Column(s, base) for s in stacks]
     N, K = len(throws), len(cols)
     M = N * K
-    rows = np.array([replay_rows(th) for th in throws])
+    longest = max(MAX_RELEASE_DELAY_S if long else c.delay_mean_s + 5 * max(c.delay_std_s, MIN_JITTER_S) for c in cols)
+    rows = np.array([replay_rows(th, longest) for th in throws])
     T = int(rows.max())
-    ref = np.zeros((N, T, 4))
+    logged_u = np.zeros((N, T, 4))
     for n, th in enumerate(throws):
-        L = len(th.t_s)
-        ref[n, :L] = th.qd_ref
-        ref[n, L:] = th.qd_ref[-1]
+        L = min(len(th.t_s), T)
+        logged_u[n, :L] = th.valve_u[:L]
     sys_col = np.repeat(np.arange(K), N)
     sys_thr = np.tile(np.arange(N), K)
     datas = []
     for i in range(M):
         d = mujoco.MjData(cols[sys_col[i]].model)
-        th = throws[sys_thr[i]]
-        d.qpos[:], d.qvel[:] = th.q[0], th.qd[0]
+        d.qpos[:], d.qvel[:] = start_state(throws[sys_thr[i]], cols[sys_col[i]].stack)
         mujoco.mj_forward(cols[sys_col[i]].model, d)
         datas.append(d)
     models = [cols[sys_col[i]].model for i in range(M)]
@@ -149,22 +174,18 @@ def simulate(throws: list[LoggedThrow], stacks: list[EffectStack], base: Reality
     Lb = int(i0.max()) + 2
     buf = np.zeros((Lb, M, 4))
     lagged = np.zeros((M, 4))
-    integral = np.zeros((M, 4))
-    prev_err = None
     Q = np.stack([d.qpos.copy() for d in datas])
     QD = np.stack([d.qvel.copy() for d in datas])
     outq = np.zeros((M, T, 6))
     outqd = np.zeros((M, T, 6))
     outq[:, 0], outqd[:, 0] = Q, QD
+    lo, hi = JOINT_LOWER[:4], JOINT_UPPER[:4]
+    x_ref = np.clip(Q[:, :4], lo, hi)  # the cylinders' oil columns (SimulatedMachine.reset)
     idx = np.arange(M)
     sp_cols = [(k, np.flatnonzero(sys_col == k)) for k in range(K) if cols[k].setpoint]
-    ctrl_vmax = ACTIVE_VELOCITY_LIMITS
     head = 0
     for t in range(T - 1):
-        r = ref[sys_thr, t]
-        if prev_err is None:
-            prev_err = (np.clip(r, -ctrl_vmax, ctrl_vmax) - QD[:, :4]) / ctrl_vmax
-        u, _, integral, prev_err = pid_ff_law(np, REPLAY_GAINS, ctrl_vmax, TICK_S, r, Q[:, :4], QD[:, :4], integral, prev_err)
+        u = logged_u[sys_thr, t]
         head = (head - 1) % Lb
         buf[head] = dead_band_flow(np, np.clip(u, -1.0, 1.0), db)
         a = np.take_along_axis(buf, ((head + i0) % Lb)[None], axis=0)[0]
@@ -173,6 +194,7 @@ def simulate(throws: list[LoggedThrow], stacks: list[EffectStack], base: Reality
         sp = np.clip(lagged * vmax, -vmax, vmax)
         for k, sel in sp_cols:
             sp[sel] = cols[k].stack.setpoint(sp[sel], Q[sel], QD[sel])
+        x_ref, sp = cylinder_step(np, x_ref, sp, Q[:, :4], lo, hi, TICK_S)
         frc = passive_friction_force(np, QD[:, 4:6], inertia, visc, coul)
         for i in idx:
             d = datas[i]
@@ -231,20 +253,48 @@ def _flights(throws: list[LoggedThrow], col: _Column, trajs, rows: list[int]) ->
     return out
 
 
+def _open_distribution(mean_s: float, std_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(row offsets j (J,), probabilities (J,)) of the opening row cmd_row + j for a delay
+    D = max(0, N(mean, std)): j = ceil(D / dt) (see :func:`open_row`)."""
+    std = max(float(std_s), MIN_JITTER_S)
+    j = np.arange(max(0, int(np.floor((mean_s - 5 * std) / TICK_S))), int(np.ceil((mean_s + 5 * std) / TICK_S)) + 2)
+    cdf = 0.5 * (1.0 + np.vectorize(math.erf)((j * TICK_S - mean_s) / (std * math.sqrt(2.0))))
+    p = np.diff(np.concatenate([[0.0], cdf]))
+    keep = p > 1e-6
+    return j[keep], p[keep] / p[keep].sum()
+
+
 def finish(throws: list[LoggedThrow], col: _Column, trajs) -> list[Replay]:
     """Measurement, held payload and flights for the dynamic replays ``trajs`` ([n] -> (q, qd))."""
-    cond_rows = [th.open_row if th.open_row is not None else open_row(th, col.delay_mean_s) for th in throws]
-    cond = _flights(throws, col, trajs, cond_rows)
-    pred = _flights(throws, col, trajs, [open_row(th, col.delay_mean_s) for th in throws])
+    offs, probs = _open_distribution(col.delay_mean_s, col.delay_std_s)
+    J = len(offs)
+    mix = _flights(throws * J, col, list(trajs) * J, [th.cmd_row + int(o) for o in offs for th in throws])
+    likely = int(np.argmax(probs))
+    pred = []
+    for n, _th in enumerate(throws):
+        hits = np.stack([mix[k * len(throws) + n]["impact_m"] for k in range(J)])
+        mean = probs @ hits
+        dev = hits[:, :2] - mean[:2]
+        pred.append({**mix[likely * len(throws) + n], "impact_m": mean, "impact_cov_m2": (dev * probs[:, None]).T @ dev})
+    logged = [n for n, th in enumerate(throws) if th.open_row is not None]
+    cond = list(pred)
+    if logged:
+        for n, f in zip(logged, _flights([throws[n] for n in logged], col, [trajs[n] for n in logged], [throws[n].open_row for n in logged])):
+            cond[n] = {**f, "impact_cov_m2": np.zeros((2, 2))}
     out = []
     for n, th in enumerate(throws):
         q, qd = trajs[n]
-        mq, mqd = _measure(col.stack, q, qd)
+        mq, mqd = _measure(col.measure_stack, q, qd)
         n_held = th.open_row if th.open_row is not None else th.cmd_row
         held = grasp_point(q[:n_held], qd[:n_held], col.offset)[0]
         out.append(Replay(q=q, qd=qd, meas_q=mq, meas_qd=mqd, held_pos_m=held, delay_mean_s=col.delay_mean_s,
                           delay_std_s=col.delay_std_s, cond=cond[n], pred=pred[n]))
     return out
+
+
+def needs_dynamics(stack: EffectStack) -> bool:
+    """Whether the stack changes the joint motion (dynamics effects, or a changed start state)."""
+    return any(e.stage == "dynamics" for e in stack.effects) or stack.has("initial_state")
 
 
 def replay(throws: list[LoggedThrow], stacks: list[EffectStack], base: RealityProfile | None = None, dynamics_cache: list | None = None) -> list[list[Replay]]:
@@ -256,7 +306,7 @@ def replay(throws: list[LoggedThrow], stacks: list[EffectStack], base: RealityPr
             measurement), which then cost no MuJoCo stepping.
     """
     base = base or RealityProfile()
-    dyn_idx = [k for k, s in enumerate(stacks) if dynamics_cache is None or any(e.stage == "dynamics" for e in s.effects)]
+    dyn_idx = [k for k, s in enumerate(stacks) if dynamics_cache is None or needs_dynamics(s)]
     sims = simulate(throws, [stacks[k] for k in dyn_idx], base) if dyn_idx else []
     out = []
     for k, stack in enumerate(stacks):

@@ -16,24 +16,28 @@ from __future__ import annotations
 
 import importlib
 
-from sim_twin.effects.base import STAGES, Effect, EffectStack, Param
+from sim_twin.effects.base import STAGES, Effect, EffectStack, Param, PerJointEffect
+from sim_twin.effects.calibration import EncoderOffset, ImuOffset
 from sim_twin.effects.friction import PassiveFriction
 from sim_twin.effects.machine import CabinDrift, HangingMass
 from sim_twin.effects.payload import GraspOffset, PayloadDrag
 from sim_twin.effects.release import ReleaseDelay
 from sim_twin.effects.sensing import ImuPassive
-from sim_twin.effects.valve import JointRateLimit, ValveDeadBand, ValveDelay, ValveLag
+from sim_twin.effects.site import Wind
+from sim_twin.effects.structure import Stiction, StructuralCompliance
+from sim_twin.effects.valve import JointRateLimit, ValveAsymmetry, ValveDeadBand, ValveDelay, ValveLag
 
 EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (
         ReleaseDelay, PassiveFriction, ValveDeadBand, ValveDelay, ValveLag, JointRateLimit,
         PayloadDrag, GraspOffset, CabinDrift, ImuPassive, HangingMass,
+        Wind, EncoderOffset, ImuOffset, ValveAsymmetry, StructuralCompliance, Stiction,
     )
 }
 """Library effects by name, in a stable order."""
 
-__all__ = ["EFFECTS", "STAGES", "Effect", "EffectStack", "Param", "effect_class", "effect_from_dict", "load_effect", "make_effect"]
+__all__ = ["EFFECTS", "STAGES", "Effect", "EffectStack", "Param", "PerJointEffect", "effect_class", "effect_from_dict", "load_effect", "make_effect"]
 
 
 def load_effect(spec: str) -> type[Effect]:

@@ -23,6 +23,9 @@ hook                   what it changes                                          
 ``flight_accel(p, v)`` extra payload acceleration in flight (..., 3), m/s^2            flight
 ``measure(hq, hqd,     measured (q, qd) (..., 6) from the history of true states       measurement
   dt, rng)``           (newest first, (H, ..., 6)); rng None = noise-free expectation
+``initial_state(q,     the true state (6,) behind a measured one at rest (inverse of   measurement
+  qd)``                a static ``measure``, e.g. calibration offsets); replays start
+                       from it
 =====================  =============================================================  ==========
 
 ``stage`` says where the effect acts. Effects whose stage is not ``"dynamics"`` leave the joint
@@ -40,6 +43,8 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
+
+from runtime.machine import ACTIVE_JOINTS, JOINT_NAMES
 
 STAGES = ("dynamics", "release", "payload", "flight", "measurement")
 
@@ -86,6 +91,17 @@ class Effect:
     summary: ClassVar[str] = ""
     params: ClassVar[tuple[Param, ...]] = ()
     stage: ClassVar[str] = "dynamics"
+    footprint: ClassVar[tuple[str, ...]] = ()
+    """Channel groups the effect must show up in (active, passive, impact, release, payload);
+    empty: by stage (:meth:`groups`). The diagnosis fits a candidate only where the gap is."""
+
+    @classmethod
+    def groups(cls) -> tuple[str, ...]:
+        """The footprint, or by stage: dynamics and measurement -> active, passive; release,
+        payload, flight -> impact, release, payload."""
+        if cls.footprint:
+            return cls.footprint
+        return ("active", "passive") if cls.stage in ("dynamics", "measurement") else ("impact", "release", "payload")
 
     def __init__(self, **values: float):
         known = {p.name: p for p in self.params}
@@ -157,6 +173,51 @@ class Effect:
         """How many past true states ``measure`` needs (1 = only the current one)."""
         return 1
 
+    def initial_state(self, q: np.ndarray, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return q, qd
+
+
+def joint_params(base: str, unit: str, nominal: float, lo: float, hi: float, doc: str, source: str,
+                 joints: tuple[str, ...] = ACTIVE_JOINTS) -> tuple[Param, ...]:
+    """One Param ``<base>_<joint>`` per joint of ``joints`` with the same prior."""
+    return tuple(Param(f"{base}_{j}", unit, nominal, lo, hi, f"{doc}, {j}", source) for j in joints)
+
+
+class PerJointEffect(Effect):
+    """An effect with one parameter per joint of ``joints`` (default the four active ones);
+    the keyword ``joint_base`` alone sets all of them alike (``ValveLag(lag_s=0.3)``).
+
+    The diagnosis fits such an effect joint by joint from each joint's own channels.
+
+    Raises:
+        ValueError: as Effect, or the all-joint keyword given together with a per-joint one.
+    """
+
+    joint_base: ClassVar[str] = ""
+    joints: ClassVar[tuple[str, ...]] = ACTIVE_JOINTS
+
+    def __init__(self, **values: float):
+        if self.joint_base in values:
+            common = values.pop(self.joint_base)
+            clash = [k for k in values if k.startswith(self.joint_base + "_")]
+            if clash:
+                raise ValueError(f"effect {self.name!r}: give {self.joint_base} (all joints) or {clash}, not both")
+            values.update({f"{self.joint_base}_{j}": common for j in self.joints})
+        super().__init__(**values)
+
+    @classmethod
+    def joint_param_names(cls) -> tuple[str, ...]:
+        return tuple(f"{cls.joint_base}_{j}" for j in cls.joints)
+
+    @classmethod
+    def joint_indices(cls) -> tuple[int, ...]:
+        """Indices of ``joints`` in JOINT_NAMES."""
+        return tuple(JOINT_NAMES.index(j) for j in cls.joints)
+
+    def per_joint_values(self) -> np.ndarray:
+        """(len(joints),) parameter values in ``joints`` order."""
+        return np.array([self.values[n] for n in self.joint_param_names()])
+
 
 def _overrides(effect: Effect, hook: str) -> bool:
     return getattr(type(effect), hook) is not getattr(Effect, hook)
@@ -223,6 +284,12 @@ class EffectStack:
 
     def history_steps(self) -> int:
         return max([1] + [e.history_steps() for e in self.effects])
+
+    def initial_state(self, q, qd):
+        """True state behind a measured one, measurement effects undone last-applied first."""
+        for e in reversed(self.effects):
+            q, qd = e.initial_state(q, qd)
+        return q, qd
 
     def measure(self, hist_q, hist_qd, dt_s, rng):
         """Measured (q, qd): the first measuring effect reads the true history; later ones see

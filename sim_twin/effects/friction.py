@@ -10,6 +10,7 @@ class PassiveFriction(Effect):
     applied as a generalised force (effective inertia x acceleration, sim_twin.physics)."""
 
     name = "passive_friction"
+    footprint = ("passive",)
     summary = "viscous and Coulomb friction of the passive gripper joints"
     stage = "dynamics"
     params = (

@@ -18,6 +18,7 @@ class CabinDrift(Effect):
     """
 
     name = "cabin_drift"
+    footprint = ("active",)
     summary = "cabin-turn creep proportional to arm speed (vibration)"
     stage = "dynamics"
     params = (Param("rate_per_arm_speed", "(rad/s)/(rad/s)", 0.0, -0.2, 0.2, "cabin creep per unit boom + dipper speed, left positive",
@@ -38,6 +39,7 @@ class HangingMass(Effect):
     see a payload's mass (PayloadDrag uses the model's 0.6 kg)."""
 
     name = "hanging_mass"
+    footprint = ("passive",)
     summary = "gripper + held load mass (passive pendulum dynamics)"
     stage = "dynamics"
     params = (

@@ -13,6 +13,7 @@ class ReleaseDelay(Effect):
     """
 
     name = "release_delay"
+    footprint = ("impact", "release")
     summary = "gripper opening delay (command to free payload): mean and jitter"
     stage = "release"
     params = (

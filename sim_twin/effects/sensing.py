@@ -18,6 +18,7 @@ class ImuPassive(Effect):
     """
 
     name = "imu_passive"
+    footprint = ("passive",)
     summary = "gripper-IMU latency and noise on the passive joints"
     stage = "measurement"
     params = (
@@ -54,3 +55,28 @@ class ImuPassive(Effect):
         if spreads.get("passive_qd_hf_radps") is not None:
             out["rate_noise_radps"] = float(spreads["passive_qd_hf_radps"] / np.sqrt(2))
         return out
+
+
+class EncoderNoise(Effect):
+    """White noise of the active joints' encoders (cabin_turn, boom, dipper, telescope): the
+    measured position and velocity are the true ones plus Gaussian noise. Part of every
+    profile's base sensing (sim_twin.profile.SensorParams), not a diagnosis candidate (not in
+    the library registry): at these levels it does not move throws."""
+
+    name = "encoder_noise"
+    summary = "active-joint encoder noise"
+    stage = "measurement"
+    params = (
+        Param("angle_noise_rad", "rad (m)", 0.0, 0.0, 0.01, "position noise standard deviation",
+              "CHOSEN: absolute encoders / cylinder position sensors resolve ~0.02 deg", stochastic=True),
+        Param("rate_noise_radps", "rad/s (m/s)", 0.0, 0.0, 0.1, "velocity noise standard deviation",
+              "CHOSEN: differentiated and filtered encoder signal", stochastic=True),
+    )
+
+    def measure(self, hist_q, hist_qd, dt_s, rng):
+        q = np.array(hist_q[0], dtype=float, copy=True)
+        qd = np.array(hist_qd[0], dtype=float, copy=True)
+        if rng is not None:
+            q[..., :4] += rng.normal(0.0, 1.0, q[..., :4].shape) * self.angle_noise_rad
+            qd[..., :4] += rng.normal(0.0, 1.0, qd[..., :4].shape) * self.rate_noise_radps
+        return q, qd

@@ -1,9 +1,13 @@
 """Preview latency on this machine: the single-rollout preview (nominal swing in the twin) and
 the 200-rollout Monte Carlo impact ellipse, both through the HTTP API (POST /api/previews, what
-the console calls) and of sim_twin.preview.preview_throw alone.
+the console calls: a job run by a `slinger worker` process started here) and of
+sim_twin.preview.preview_throw alone.
 
-Run: ``python tests/benchmarks/bench_preview.py [--repeats 10]``. Prints median / max seconds per
-case and the bar (0.3 s single rollout, 3 s for 200 rollouts); no assertions.
+Run: ``python tests/benchmarks/bench_preview.py [--repeats 10] [--profile P]``. Prints median / max
+wall seconds per case and the bar (0.3 s single rollout, 3 s for 200 rollouts), and for the
+function alone also the CPU seconds of this process (what the wall time is on an idle core when
+the machine is shared); no assertions. The default profile is the server's default site profile
+(sim_twin.preview.DEFAULT_SITE_PROFILE: parameter ranges, start-state model, release jitter).
 The HTTP part uses the app with a loopback Zenoh peer and a fake runtime that reports the trained
 2D policy from different start poses (tests.conftest.FakeRuntime).
 """
@@ -27,24 +31,27 @@ POLICY = REPO / "policies" / "throw2d.onnx"
 TARGETS = [[d, -0.292, 0.0] for d in (7.5, 8.0, 8.5, 9.0, 9.5)]
 
 
-def bench_function(repeats: int) -> dict:
+def bench_function(repeats: int, profile_path: Path | None) -> tuple[dict, dict]:
     from runtime.policy import PolicyRunner
     from sim_twin.initial_pose import sample_pose
-    from sim_twin.preview import PreviewRequest, preview_throw
+    from sim_twin.preview import PreviewRequest, preview_throw, site_profile
 
     policy = PolicyRunner.load(POLICY)
+    profile = site_profile(None, profile_path)
     rng = np.random.default_rng(0)
-    out = {}
+    preview_throw(policy, PreviewRequest("2d", TARGETS[0], sample_pose(rng, cabin_turn=0.0).tolist(), [0.0] * 6, rollouts=24), profile)  # imports
+    out, cpu = {}, {}
     for rollouts in (1, 200):
-        times = []
+        times, cpus = [], []
         for i in range(repeats):
             q = sample_pose(rng, cabin_turn=0.0)
-            t = time.perf_counter()
-            s = preview_throw(policy, PreviewRequest("2d", TARGETS[i % len(TARGETS)], q.tolist(), [0.0] * 6, rollouts=rollouts))
+            t, c = time.perf_counter(), time.process_time()
+            s = preview_throw(policy, PreviewRequest("2d", TARGETS[i % len(TARGETS)], q.tolist(), [0.0] * 6, rollouts=rollouts), profile)
             times.append(time.perf_counter() - t)
+            cpus.append(time.process_time() - c)
             assert s["status"] in ("ok", "failed")
-        out[rollouts] = times
-    return out
+        out[rollouts], cpu[rollouts] = times, cpus
+    return out, cpu
 
 
 def bench_http(repeats: int) -> dict:
@@ -53,13 +60,15 @@ def bench_http(repeats: int) -> dict:
     from runtime.protocol.messages import PolicyInfo
     from server.app import create_app
     from server.config import Settings
-    from tests.conftest import ADMIN, FakeRuntime, add_user, free_port, login, wait_online
+    from tests.conftest import ADMIN, FakeRuntime, add_user, free_port, login, wait_for, wait_online
+    from tests.fleet_site import Worker
 
     manifest = json.loads(POLICY.with_suffix(".json").read_text())
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with tempfile.TemporaryDirectory() as tmp:
         settings = Settings(data_dir=Path(tmp), zenoh_listen=[endpoint], viser_enabled=False, auto_migrate=True)
-        with TestClient(create_app(settings)) as client:
+        with TestClient(create_app(settings)) as client, Worker(settings, "--lanes", "fast") as worker:
+            wait_for(lambda: "consuming" in worker.text(), 120, "preview worker up")  # previews are jobs
             add_user(client.app.state.sessions, *ADMIN, "admin")
             login(client, *ADMIN)
             client.app.state.store.register_policy(manifest, onnx_path=POLICY)
@@ -87,11 +96,17 @@ def main() -> int:
     logging.basicConfig(level=logging.WARNING)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--profile", type=Path, default=None, help="site profile (default: the server's default)")
+    ap.add_argument("--no-http", action="store_true")
     args = ap.parse_args()
     import os
 
-    print(f"cores: {os.cpu_count()}")
-    for name, res in (("preview_throw()", bench_function(args.repeats)), ("POST /api/previews", bench_http(args.repeats))):
+    print(f"cores: {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}")
+    wall, cpu = bench_function(args.repeats, args.profile)
+    cases = [("preview_throw()", wall), ("preview_throw() CPU", cpu)]
+    if not args.no_http:
+        cases.append(("POST /api/previews", bench_http(args.repeats)))
+    for name, res in cases:
         for rollouts, times in res.items():
             bar = 0.3 if rollouts == 1 else 3.0
             print(f"{name:22s} rollouts={rollouts:3d}: median {statistics.median(times):.3f} s, "

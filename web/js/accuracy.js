@@ -55,6 +55,7 @@ async function load() {
   for (const g of groups) (byKey[`${g.mode} · ${g.policy_version}`] ||= []).push(g);
   $("plots").innerHTML = "";
   for (const [k, gs] of Object.entries(byKey)) $("plots").appendChild(figure(k, gs));
+  $("accuracy-empty").hidden = groups.length > 0;
   const body = $("accuracy").querySelector("tbody");
   body.innerHTML = "";
   for (const g of groups) {

@@ -38,8 +38,10 @@ const SITE_PAGES = [
 
 function renderNav() {
   for (const nav of document.querySelectorAll("nav[data-site-nav]")) {
+    const here = location.pathname.split("/").pop() || "index.html";
     nav.innerHTML = SITE_PAGES.map(([href, label, role]) =>
-      `<a href="${href}"${role ? ` data-role="${role}"` : ""}${href.startsWith("/") ? ' target="_blank"' : ""}>${label}</a>`).join(" ");
+      `<a href="${href}"${role ? ` data-role="${role}"` : ""}${href.startsWith("/") ? ' target="_blank"' : ""}` +
+      `${href === here ? ' aria-current="page"' : ""}>${label}</a>`).join(" ");
   }
 }
 renderNav(); // common.js is loaded at the end of <body>: the header is already there
@@ -50,6 +52,27 @@ async function whoAmI() {
   if (who) who.textContent = `${session.user.username} (${session.user.role})`;
   for (const el of document.querySelectorAll("[data-role]")) el.hidden = !can(el.dataset.role);
   return session.user;
+}
+
+/** Ask before a consequential action (promote, rollback, 3D throw): a modal dialog; resolves true on OK. */
+function confirmAction(title, text, okLabel = "Confirm") {
+  let dlg = $("confirm-dialog");
+  if (!dlg) {
+    dlg = document.createElement("dialog");
+    dlg.id = "confirm-dialog";
+    dlg.setAttribute("aria-labelledby", "confirm-title");
+    dlg.innerHTML = '<form method="dialog"><h2 id="confirm-title"></h2><p id="confirm-text"></p><div class="actions">' +
+      '<button value="cancel" type="submit">Cancel</button> <button id="confirm-ok" value="ok" type="submit" class="primary"></button></div></form>';
+    document.body.appendChild(dlg);
+  }
+  $("confirm-title").textContent = title;
+  $("confirm-text").textContent = text;
+  $("confirm-ok").textContent = okLabel;
+  dlg.returnValue = "cancel";
+  return new Promise((resolve) => {
+    dlg.addEventListener("close", () => resolve(dlg.returnValue === "ok"), { once: true });
+    dlg.showModal();
+  });
 }
 
 async function logout() {

@@ -1,10 +1,15 @@
-// Slinger operator console: pick a target (click the 3D view or type it), Preview it in the twin,
-// Throw as previewed, E-stop. Talks to the JSON API only (see /docs). The 3D view is viser on its
-// own port in an iframe; a click on the ground there sets the server-side target (GET /api/scene).
+// Slinger operator console. Each page load opens its own console on the server (POST /api/consoles):
+// its own machine, mode, target and 3D view (viser, bound by the websocket path /c/<id>), never
+// shared with another operator. Machine state, throw progress, live samples and results arrive
+// by live push (live.js); the page sends commands only (preview, throw, E-STOP, reset).
 "use strict";
 
-const state = { machines: [], machineId: null, mode: "2d", target: null, viserPort: null, lastThrowId: null,
-  preview: null, previewKey: null, busy: false };
+const state = { consoleId: null, viserPort: null, machines: new Map(), machineId: null, mode: "2d", target: null,
+  targetReason: null, preview: null, previewKey: null, busy: false, throwId: null, throwStarted: null };
+let plots = null;
+
+const PHASE_PROGRESS = { requested: 0.05, preparing: 0.15, swinging: 0.45, released: 0.8, landed: 1, failed: 1, aborted: 1 };
+const STATE_WORDS = { ready: "READY", not_ready: "NOT READY", throwing: "THROWING", estopped: "E-STOPPED", offline: "OFFLINE" };
 
 function setStatus(text, isError = false) {
   $("status").textContent = text;
@@ -12,93 +17,155 @@ function setStatus(text, isError = false) {
 }
 
 const requestKey = () => JSON.stringify([state.machineId, state.mode, state.target]);
+const selected = () => state.machines.get(state.machineId) || null;
 
-async function refreshScene() {
-  try {
-    const s = await api("GET", "/api/scene");
-    if (s.viser_port && s.viser_port !== state.viserPort) {
-      state.viserPort = s.viser_port;
-      $("viser").src = `${location.protocol}//${location.hostname}:${s.viser_port}/`;
-    }
-    state.target = s.target;
-    if (s.target) {
-      const d = Math.hypot(s.target[0], s.target[1]);
-      $("target").textContent = `x ${fmt(s.target[0])}  y ${fmt(s.target[1])}  z ${fmt(s.target[2])} m  (${fmt(d, 1)} m from the turn axis)`;
-    }
-    updateButtons();
-  } catch (e) { /* server restarting: keep polling */ }
+// --- recovery advice for a state that is not ready -----------------------------------------------
+function recoveryFor(m) {
+  if (!Live.isConnected()) return "Check that the Slinger server is running; this page reconnects by itself.";
+  if (m.state === "offline") return `Start the runtime of ${m.machine_id} (slinger runtime) or check its host and network.`;
+  if (m.state === "estopped") return can("operator") ? "When the area is safe, press Reset E-STOP in the red banner." : "An operator must reset the E-STOP.";
+  const r = (m.reason || "").toLowerCase();
+  if (r.includes("policy")) return "Deploy a policy for this mode on the Policies page.";
+  if (r.includes("real time")) return "Wait for the simulated machine to catch up; if it persists, restart its plant.";
+  if (r.includes("envelope") || r.includes("joint at end")) return "Move the machine back to its ready pose (on the simulated machine: restart its plant).";
+  if (r.includes("machine offline")) return "Start the machine (slinger plant for the simulated machine) or check its link.";
+  return "";
 }
 
-async function refreshMachines() {
-  try {
-    state.machines = await api("GET", "/api/machines");
-  } catch (e) { return; }
-  const sel = $("machine");
-  const ids = state.machines.map((m) => m.id);
-  if (sel.options.length !== ids.length || [...sel.options].some((o, i) => o.value !== ids[i])) {
-    sel.innerHTML = "";
-    for (const id of ids) sel.add(new Option(id, id));
-    if (!ids.includes(state.machineId)) state.machineId = ids[0] || null;
-    sel.value = state.machineId || "";
-    if (state.machineId && can("operator")) api("PUT", "/api/scene", { machine_id: state.machineId }).catch(() => {});
+// --- machine state, shown in the header badge, the state card and the E-STOP banner ---------------
+function renderState() {
+  const m = selected();
+  const badge = $("machine-state");
+  const lost = !Live.isConnected();
+  if (!m) {
+    badge.textContent = lost ? "UNKNOWN: server unreachable" : "no machine";
+    badge.className = "state-badge state-unknown";
+    $("state-line").textContent = lost ? "Server unreachable." : "No machine known yet: start one with slinger up or slinger plant + slinger runtime.";
+    updateButtons();
+    return;
   }
-  const m = state.machines.find((x) => x.id === state.machineId);
-  const kind = $("machine-kind");
-  kind.hidden = !m;
-  if (m) {
-    kind.textContent = m.simulated ? "SIMULATED machine" : "real machine";
-    kind.className = m.simulated ? "badge sim" : "badge";
-    const pol = m.policies[state.mode];
-    $("machine-online").textContent = m.online ? `online · ${state.mode} policy ${pol || "none"}` : "runtime offline";
-    $("machine-online").className = `badge ${m.online ? "online" : "offline"}`;
+  const st = lost ? "unknown" : m.state;
+  const words = lost ? "UNKNOWN (server unreachable)" : STATE_WORDS[m.state] || m.state;
+  const phase = m.state === "throwing" && m.phase ? `: ${m.phase}` : "";
+  badge.textContent = `${m.machine_id} ${words}${phase}`;
+  badge.className = `state-badge state-${st}`;
+  $("machine-kind").hidden = !m.simulated;
+  $("state-line").textContent = `${m.machine_id}: ${words}${phase}` +
+    (m.policies && m.policies[state.mode] ? ` · ${state.mode} policy ${m.policies[state.mode]}` : ` · no ${state.mode} policy`);
+  $("state-reason").textContent = m.state === "ready" || lost ? "" : (m.reason ? `Why: ${m.reason}` : "");
+  $("recovery").textContent = m.state === "ready" && !lost ? "" : recoveryFor(m);
+  const banner = $("estop-banner");
+  banner.hidden = m.state !== "estopped";
+  $("estop-machine").textContent = m.machine_id;
+  $("estop-text").textContent = m.estop_reason ? `Reason: ${m.estop_reason}. Throws are refused until Reset.` : "Throws are refused until Reset.";
+  document.body.classList.toggle("estopped", m.state === "estopped");
+  const progressing = m.state === "throwing";
+  $("progress-box").hidden = !progressing;
+  if (progressing) {
+    $("throw-progress").value = PHASE_PROGRESS[m.phase] || 0.1;
+    const secs = state.throwStarted ? ` · ${((Date.now() - state.throwStarted) / 1000).toFixed(1)} s` : "";
+    $("progress-text").textContent = `${m.phase || "running"}${secs}`;
   }
   updateButtons();
 }
 
+function renderMachineList() {
+  const sel = $("machine");
+  const ids = [...state.machines.keys()].sort();
+  if (sel.options.length !== ids.length || [...sel.options].some((o, i) => o.value !== ids[i])) {
+    sel.innerHTML = "";
+    for (const id of ids) sel.add(new Option(id, id));
+    sel.value = state.machineId || "";
+  }
+  for (const o of sel.options) {
+    const m = state.machines.get(o.value);
+    o.textContent = `${o.value} (${(STATE_WORDS[m.state] || m.state).toLowerCase()})`;
+  }
+}
+
+function onMachineEvent(m) {
+  const known = state.machines.has(m.machine_id);
+  state.machines.set(m.machine_id, m);
+  if (!known) renderMachineList();
+  if (!state.machineId) selectMachine(m.machine_id);
+  renderMachineList();
+  if (m.machine_id === state.machineId) renderState();
+}
+
+// --- console state on the server ------------------------------------------------------------------
+async function openConsole() {
+  const c = await api("POST", "/api/consoles");
+  state.consoleId = c.console_id;
+  state.viserPort = c.viser_port;
+  const ws = `${location.protocol === "https:" ? "wss" : "ws"}://${location.hostname}:${c.viser_port}${c.viser_path}`;
+  $("viser").src = `${location.protocol}//${location.hostname}:${c.viser_port}/?websocket=${encodeURIComponent(ws)}`;
+  if (state.machineId) await putConsole({ machine_id: state.machineId, mode: state.mode });
+}
+
+function applyConsole(c) {
+  if (state.machineId && c.machine_id && c.machine_id !== state.machineId) return; // an answer to an older selection
+  state.target = c.target;
+  state.targetReason = c.target_reason;
+  if (c.target) {
+    const d = Math.hypot(c.target[0], c.target[1]);
+    $("target").textContent = `x ${fmt(c.target[0])}  y ${fmt(c.target[1])} m, ${fmt(d, 1)} m from the turn axis` +
+      (c.snapped ? " (snapped onto the 2D line)" : "");
+  } else {
+    $("target").textContent = "No target yet: click the ground inside the green band.";
+  }
+  $("target-reason").textContent = c.target_reason ? `Cannot throw here: ${c.target_reason}` : "";
+  updateButtons();
+}
+
+async function putConsole(body) {
+  const c = await api("PUT", `/api/consoles/${state.consoleId}`, body);
+  applyConsole(c);
+  return c;
+}
+
+async function selectMachine(id) {
+  state.machineId = id;
+  $("machine").value = id;
+  state.preview = null;
+  $("preview-panel").hidden = true;
+  $("throw-panel").hidden = true;
+  if (state.consoleId) await putConsole({ machine_id: id, mode: state.mode }).catch((e) => setStatus(e.message, true));
+  renderState();
+  refreshHistory();
+}
+
 function updateButtons() {
-  const m = state.machines.find((x) => x.id === state.machineId);
-  const ready = !!(m && m.online && state.target) && !state.busy;
+  const m = selected();
+  const ready = !!(m && m.state === "ready" && Live.isConnected() && state.target && !state.targetReason) && !state.busy;
   $("preview").disabled = !ready;
   const previewed = state.preview && state.preview.status === "ok" && state.previewKey === requestKey();
   const confirmed = state.mode !== "3d" || $("confirm-clearance").checked;
   $("throw").disabled = !(ready && previewed && confirmed);
   $("confirm-box").hidden = state.mode !== "3d";
-  if (state.preview && state.previewKey !== requestKey()) $("preview-panel").classList.add("stale");
-  else $("preview-panel").classList.remove("stale");
+  $("preview-panel").classList.toggle("stale", !!state.preview && state.previewKey !== requestKey());
 }
 
+// --- preview ----------------------------------------------------------------------------------------
 function showPreview(p) {
   $("preview-panel").hidden = false;
   $("pv-policy").textContent = `${p.policy_version} on ${p.machine_id}, ${p.mode}`;
+  for (const id of ["out-down", "out-cross", "out-duration"]) $(id).textContent = "–";
   if (p.status !== "ok") {
-    for (const id of ["pv-down", "pv-cross", "pv-duration", "pv-release", "pv-speeds", "pv-clearance"]) $(id).textContent = "–";
-    $("pv-sigma").textContent = "–";
-    setStatus(`Preview: the twin's swing failed (${p.reason})`, true);
+    for (const id of ["pv-down", "pv-cross", "pv-duration", "pv-release", "pv-speeds", "pv-clearance", "pv-sigma"]) $(id).textContent = "–";
+    setStatus(`Preview failed: the twin's swing ${p.reason}. Nothing was sent to the machine.`, true);
     return;
   }
   $("pv-down").textContent = `${fmt(p.downrange_error_m)} m`;
   $("pv-cross").textContent = `${fmt(p.crossrange_error_m)} m`;
-  $("pv-duration").textContent = `${fmt(p.duration_s)} s (release after ${fmt(p.release_after_s)} s)`;
+  $("pv-duration").textContent = `${fmt(p.duration_s)} s (release at ${fmt(p.release_after_s)} s)`;
   const v = p.release_vel_mps;
-  $("pv-release").textContent = `${fmt(Math.hypot(v[0], v[1], v[2]))} m/s at ${fmtVec(p.release_pos_m)} m`;
-  const sp = p.peak_joint_speeds;
-  $("pv-speeds").textContent = Object.entries(sp).map(([k, x]) => `${k} ${fmt(x)}`).join(", ");
+  $("pv-release").textContent = `${fmt(Math.hypot(v[0], v[1], v[2]))} m/s`;
+  $("pv-speeds").textContent = Object.entries(p.peak_joint_speeds).map(([k, x]) => `${k} ${fmt(x)}`).join(", ");
   const c = p.clearance;
-  $("pv-clearance").textContent = c.inside ? `inside (reach ${fmt(c.max_radius_m, 1)} m of ${fmt(c.radius_m, 1)} m)`
-    : `OUTSIDE: ${c.reasons.join(", ")}`;
+  $("pv-clearance").textContent = c.inside ? `inside (reach ${fmt(c.max_radius_m, 1)} m of ${fmt(c.radius_m, 1)} m)` : `OUTSIDE: ${c.reasons.join(", ")}`;
   $("pv-clearance").className = c.inside ? "ok" : "error";
-  // top view around the target: downrange up, crossrange (left positive) to the left
-  const t = p.target_m, d = Math.hypot(t[0], t[1]), u = [t[0] / d, t[1] / d];
-  const toSvg = (x, y) => { const e = [x - t[0], y - t[1]]; const dn = e[0] * u[0] + e[1] * u[1]; const cr = -e[0] * u[1] + e[1] * u[0]; return [-cr, -dn]; };
-  const [ix, iy] = toSvg(p.impact_m[0], p.impact_m[1]);
-  $("pv-impact").setAttribute("cx", ix); $("pv-impact").setAttribute("cy", iy);
-  if (p.mc && p.mc.ellipse) {
-    $("pv-sigma").textContent = `${fmt(p.mc.sigma_downrange_m, 3)} / ${fmt(p.mc.sigma_crossrange_m, 3)} m (${p.mc.rollouts} rollouts)`;
-    $("pv-ellipse").setAttribute("points", p.mc.ellipse.outline_m.map(([x, y]) => toSvg(x, y).join(",")).join(" "));
-  } else {
-    $("pv-sigma").textContent = "computing…";
-    $("pv-ellipse").setAttribute("points", "");
-  }
+  $("pv-sigma").textContent = p.mc && p.mc.ellipse
+    ? `${fmt(p.mc.sigma_downrange_m, 3)} / ${fmt(p.mc.sigma_crossrange_m, 3)} m (${p.mc.rollouts} rollouts)` : "computing…";
 }
 
 async function doPreview() {
@@ -110,11 +177,19 @@ async function doPreview() {
     const quick = await api("POST", "/api/previews", { ...body, rollouts: 1 });
     state.preview = quick; state.previewKey = key;
     showPreview(quick);
+    await api("POST", `/api/consoles/${state.consoleId}/preview`, { preview_id: quick.id }).then(applyConsole).catch(() => {});
     if (quick.status === "ok") {
-      const full = await api("POST", "/api/previews", body);
-      state.preview = full;
-      showPreview(full);
-      setStatus(`Preview ready: ${fmt(full.downrange_error_m)} m downrange, ${fmt(full.crossrange_error_m)} m crossrange`);
+      let full = null;
+      try { full = await api("POST", "/api/previews", body); } catch (e) {
+        $("pv-sigma").textContent = `unavailable (${e.message})`;
+        setStatus(`Preview ready (nominal rollout only; the 1σ ellipse failed: ${e.message}). Press Throw to send it.`);
+      }
+      if (full) {
+        state.preview = full;
+        showPreview(full);
+        await api("POST", `/api/consoles/${state.consoleId}/preview`, { preview_id: full.id }).then(applyConsole).catch(() => {});
+        setStatus(`Preview ready: ${fmt(full.downrange_error_m)} m downrange, ${fmt(full.crossrange_error_m)} m crossrange. Press Throw to send it.`);
+      }
     }
   } catch (e) {
     state.preview = null;
@@ -125,43 +200,24 @@ async function doPreview() {
   }
 }
 
-async function refreshHistory() {
-  if (!state.machineId) return;
-  let rows;
-  try {
-    rows = await api("GET", `/api/throws?machine_id=${encodeURIComponent(state.machineId)}&limit=30`);
-  } catch (e) { return; }
-  const body = $("history").querySelector("tbody");
-  body.innerHTML = "";
-  for (const t of rows) {
-    const tr = body.insertRow();
-    tr.dataset.throwId = t.id;
-    const cells = [
-      new Date(t.requested_at).toLocaleTimeString(), t.mode, fmtVec(t.target), fmtVec(t.impact),
-      fmt(t.downrange_error_m), fmt(t.crossrange_error_m), t.policy_version || "–", t.status,
-    ];
-    cells.forEach((c, i) => { const td = tr.insertCell(); td.textContent = c; if (i === 7) td.className = `status-${t.status}`; });
-    if (t.failure_reason) tr.title = t.failure_reason;
-    tr.addEventListener("click", () => { location.href = `history.html?throw=${t.id}`; });
-    if (t.id === state.lastThrowId) {
-      const done = ["landed", "failed", "aborted"].includes(t.status);
-      setStatus(`Throw ${t.id.slice(0, 8)}: ${t.status}` + (t.impact ? `, impact ${fmtVec(t.impact)} m, downrange ${fmt(t.downrange_error_m)} m, crossrange ${fmt(t.crossrange_error_m)} m` : "") + (t.failure_reason ? ` (${t.failure_reason})` : ""), t.status === "failed");
-      if (done) state.lastThrowId = null;
-    }
-  }
-}
-
+// --- throw ------------------------------------------------------------------------------------------
 async function doThrow() {
+  if (state.mode === "3d") {
+    const d = Math.hypot(state.target[0], state.target[1]);
+    const ok = await confirmAction("Throw in 3D?", `${state.machineId} will turn its cabin and throw at ${fmt(d, 1)} m. ` +
+      "Only confirm if the swept clearance zone (yellow) is clear of people and objects.", "Throw in 3D");
+    if (!ok) { setStatus("3D throw cancelled."); return; }
+  }
   $("throw").disabled = true;
   setStatus("Sending throw…");
   try {
     const body = { machine_id: state.machineId, mode: state.mode, target: state.target, preview_id: state.preview.id };
     if (state.mode === "3d") body.confirm_clearance = $("confirm-clearance").checked;
     const r = await api("POST", "/api/throws", body);
-    state.lastThrowId = r.id;
+    state.throwId = r.id; state.throwStarted = Date.now();
     $("confirm-clearance").checked = false;
-    setStatus(`Throw ${r.id.slice(0, 8)} accepted (policy ${r.policy_version || "?"})`);
-    refreshHistory();
+    setStatus(`Throw ${r.id.slice(0, 8)} accepted (policy ${r.policy_version || "?"}): watch it live below.`);
+    startThrowPanel(r.id);
   } catch (e) {
     setStatus(`Refused: ${e.message}`, true);
   } finally {
@@ -169,45 +225,143 @@ async function doThrow() {
   }
 }
 
-async function doAbort() {
+function startThrowPanel(throwId) {
+  $("throw-panel").hidden = false;
+  $("tp-id").textContent = `${throwId.slice(0, 8)} · live`;
+  $("tp-result").textContent = "In progress…";
+  $("tp-result").className = "result";
+  $("scrub").disabled = true;
+  plots.reset();
+}
+
+async function showResult(throwId) {
+  let t, tr = null;
+  try { t = await api("GET", `/api/throws/${throwId}`); } catch (e) { return; }
+  if (t.machine_id !== state.machineId) return;
+  $("throw-panel").hidden = false;
+  $("tp-id").textContent = throwId.slice(0, 8);
+  const ok = t.status === "landed";
+  $("tp-result").textContent = ok
+    ? `Landed at ${fmtVec(t.impact)} m: ${fmt(t.downrange_error_m)} m downrange, ${fmt(t.crossrange_error_m)} m crossrange of the target.`
+    : `${t.status.toUpperCase()}: ${t.failure_reason || "no reason given"}`;
+  $("tp-result").className = `result ${ok ? "ok" : "error"}`;
+  if (t.preview && state.preview && state.preview.id === t.preview.id) {
+    $("out-down").textContent = `${fmt(t.downrange_error_m)} m`;
+    $("out-cross").textContent = `${fmt(t.crossrange_error_m)} m`;
+    $("out-duration").textContent = t.duration_s !== undefined && t.duration_s !== null ? `${fmt(t.duration_s)} s` : "–";
+  }
+  try { tr = await api("GET", `/api/throws/${throwId}/trajectory`); } catch (e) { /* no telemetry */ }
+  if (tr) { plots.showTrajectory(tr); plots.enableScrubber(); }
+  if (throwId === state.throwId) { state.throwId = null; state.throwStarted = null; }
+}
+
+// --- E-STOP -----------------------------------------------------------------------------------------
+async function doEstop() {
+  const mid = state.machineId;
+  if (!mid) { setStatus("E-STOP: no machine selected", true); return; }
+  setStatus(`E-STOP sent to ${mid}…`, true);
   try {
-    const r = await api("POST", `/api/machines/${encodeURIComponent(state.machineId)}/abort`, { reason: "E-stop in the console" });
-    setStatus(`STOPPED ${r.machine_id}: valves neutral` + (r.aborted_throw_id ? `, throw ${r.aborted_throw_id.slice(0, 8)} aborted` : ""), true);
+    const r = await api("POST", `/api/machines/${encodeURIComponent(mid)}/estop`, { reason: "E-STOP in the console" });
+    setStatus(`E-STOP confirmed by the runtime of ${r.machine_id}: valves neutral` +
+      (r.aborted_throw_id ? `, throw ${r.aborted_throw_id.slice(0, 8)} aborted` : "") + ".", true);
   } catch (e) {
-    setStatus(`E-stop NOT confirmed: ${e.message}`, true);
+    setStatus(`E-STOP NOT CONFIRMED for ${mid}: ${e.message}. Use the machine's own emergency stop.`, true);
   }
 }
 
+async function doEstopReset() {
+  const mid = state.machineId;
+  try {
+    await api("POST", `/api/machines/${encodeURIComponent(mid)}/estop/reset`);
+    setStatus(`E-STOP of ${mid} reset: waiting for the runtime to confirm…`);
+  } catch (e) {
+    setStatus(`Reset refused: ${e.message}`, true);
+  }
+}
+
+// --- history ----------------------------------------------------------------------------------------
+async function refreshHistory() {
+  if (!state.machineId) return;
+  let rows;
+  try { rows = await api("GET", `/api/throws?machine_id=${encodeURIComponent(state.machineId)}&limit=10`); } catch (e) { return; }
+  const body = $("history").querySelector("tbody");
+  body.innerHTML = "";
+  $("history-empty").hidden = rows.length > 0;
+  $("history").hidden = rows.length === 0;
+  for (const t of rows) {
+    const tr = body.insertRow();
+    tr.dataset.throwId = t.id;
+    const err = t.downrange_error_m === null ? "–" : `${fmt(t.downrange_error_m)} / ${fmt(t.crossrange_error_m)}`;
+    const cells = [new Date(t.requested_at).toLocaleTimeString(), t.mode, fmt(Math.hypot(t.target[0], t.target[1]), 1), err,
+      t.status + (t.failure_reason ? `: ${t.failure_reason}` : "")];
+    cells.forEach((c, i) => { const td = tr.insertCell(); td.textContent = c; if (i === 4) td.className = `status-${t.status}`; });
+    const a = document.createElement("a");
+    a.href = `history.html?throw=${t.id}`; a.textContent = "details";
+    tr.cells[0].append(" ", a);
+  }
+}
+
+// --- wiring -----------------------------------------------------------------------------------------
 async function setTypedTarget(e) {
   e.preventDefault();
   const x = parseFloat($("target-x").value), y = parseFloat($("target-y").value);
-  if (!Number.isFinite(x) || !Number.isFinite(y)) { setStatus("type x and y in metres", true); return; }
-  try { await api("PUT", "/api/scene", { target: [x, y, 0] }); await refreshScene(); } catch (err) { setStatus(err.message, true); }
+  if (!Number.isFinite(x) || !Number.isFinite(y)) { setStatus("Type x and y in metres.", true); return; }
+  try { await putConsole({ target: [x, y, 0] }); } catch (err) { setStatus(err.message, true); }
+}
+
+function wireLive() {
+  Live.on("machine", onMachineEvent);
+  Live.on("console", applyConsole);
+  Live.on("throw", (ev) => {
+    if (ev.machine_id !== state.machineId) return;
+    if (ev.throw_id !== state.throwId && ["preparing", "swinging"].includes(ev.phase)) {
+      state.throwId = ev.throw_id; state.throwStarted = Date.now() - 1000 * ev.elapsed_s;
+      startThrowPanel(ev.throw_id);
+    }
+    const m = selected();
+    if (m) { m.phase = ev.phase; renderState(); }
+  });
+  Live.on("sample", (s) => { if (s.machine_id === state.machineId && s.throw_id === state.throwId) plots.addSample(s); });
+  Live.on("result", (r) => { showResult(r.throw_id); refreshHistory(); });
+  Live.on("disconnected", renderState);
+  Live.on("resumed", renderState);
+  Live.on("connected", async () => {
+    try { await api("GET", `/api/consoles/${state.consoleId}`); } catch (e) { await openConsole().catch(() => {}); }
+    renderState(); refreshHistory();
+  });
 }
 
 async function init() {
   try { await whoAmI(); } catch (e) { return; }
+  plots = new ThrowPlots($("plots"));
+  plots.attachScrubber($("scrub"), $("scrub-play"), $("scrub-readout"));
   $("throw").addEventListener("click", doThrow);
   $("preview").addEventListener("click", doPreview);
-  $("abort").addEventListener("click", doAbort);
+  $("estop").addEventListener("click", doEstop);
+  $("estop-reset").addEventListener("click", doEstopReset);
+  document.addEventListener("keydown", (e) => { if (e.key === "Escape" && can("operator")) doEstop(); });
   $("target-form").addEventListener("submit", setTypedTarget);
   $("confirm-clearance").addEventListener("change", updateButtons);
-  $("machine").addEventListener("change", (e) => {
-    state.machineId = e.target.value;
-    if (can("operator")) api("PUT", "/api/scene", { machine_id: state.machineId }).catch(() => {});
-    refreshHistory();
-  });
+  $("machine").addEventListener("change", (e) => selectMachine(e.target.value));
   for (const r of document.querySelectorAll("input[name=mode]")) {
-    r.addEventListener("change", (e) => {
+    r.addEventListener("change", async (e) => {
       state.mode = e.target.value;
-      if (can("operator")) api("PUT", "/api/scene", { mode: state.mode }).catch(() => {});
-      refreshMachines();
+      await putConsole({ mode: state.mode }).catch((err) => setStatus(err.message, true));
+      renderState();
     });
   }
-  refreshScene(); refreshMachines(); refreshHistory();
-  setInterval(refreshScene, 500);
-  setInterval(refreshMachines, 2000);
-  setInterval(refreshHistory, 1500);
+  try { await openConsole(); } catch (e) { setStatus(`3D view unavailable: ${e.message}`, true); }
+  try {
+    for (const m of await api("GET", "/api/machines")) {
+      if (!state.machines.has(m.id)) state.machines.set(m.id, { machine_id: m.id, state: m.online ? "not_ready" : "offline",
+        reason: m.online ? "waiting for live state" : "runtime offline", policies: m.policies, simulated: m.simulated });
+    }
+  } catch (e) { /* the live stream fills it */ }
+  renderMachineList();
+  const first = [...state.machines.keys()].sort()[0];
+  if (first && !state.machineId) await selectMachine(first);
+  wireLive();
+  Live.start(state.consoleId);
 }
 
 document.addEventListener("DOMContentLoaded", init);

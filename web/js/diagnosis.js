@@ -1,7 +1,10 @@
-// Diagnosis page: start a run on a machine's stored throws, list runs, show a report.
+// Diagnosis page: start a run on a machine's stored throws, list runs, show a report:
+// the where, the verdict with its evidence (wins under resampling, at-bound flags, ambiguity)
+// and how far each named effect shrinks the gap on held-out throws.
 "use strict";
 
 const pct = (x) => (x === null || x === undefined ? "–" : `${(100 * x).toFixed(0)}%`);
+const esc = (s) => String(s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]));
 let polling = null;
 
 async function loadRuns() {
@@ -10,13 +13,67 @@ async function loadRuns() {
   body.innerHTML = "";
   for (const r of runs) {
     const tr = document.createElement("tr");
-    tr.innerHTML = `<td><a href="#${r.id}">${r.id}</a></td><td>${r.machine_id}</td><td>${r.throws}</td>` +
-      `<td class="status-${r.status === "done" ? "landed" : r.status}">${r.status}</td><td>${r.verdict ? r.verdict.text : (r.error || "")}</td>`;
+    tr.innerHTML = `<td><a href="#${esc(r.id)}">${esc(r.id)}</a></td><td>${esc(r.machine_id)}</td><td>${r.throws}</td>` +
+      `<td class="status-${r.status === "done" ? "landed" : esc(r.status)}">${esc(r.status)}</td><td>${esc(r.verdict ? r.verdict.text : (r.error || ""))}</td>`;
     body.appendChild(tr);
   }
   if (runs.some((r) => r.status === "running") && !polling) polling = setTimeout(() => { polling = null; loadRuns(); }, 3000);
   const want = location.hash.slice(1) || (runs.find((r) => r.status === "done") || {}).id;
   if (want) showRun(want);
+}
+
+function paramText(c) {
+  return Object.entries(c.params).map(([k, v]) =>
+    `${esc(k)} = ${Number(v).toPrecision(4)}${c.sigma[k] !== undefined ? " ± " + Number(c.sigma[k]).toPrecision(2) : " (not identifiable)"}` +
+    (c.at_bound.includes(k) ? " <b class=\"flag\">at bound</b>" : "")).join(", ");
+}
+
+function showWhere(w) {
+  const phases = Object.entries(w.phases || {}).map(([p, s]) => `${p} ${pct(s)}`).join(", ");
+  $("where-summary").textContent = w.gap
+    ? `The gap is in ${w.carriers.join(", ")}` + (phases ? ` (share of the excess per phase: ${phases}).` : ".")
+    : "No channel exceeds its measured noise: no gap.";
+  const chans = Object.entries(w.channels).sort((a, b) => (b[1].chi2 / b[1].dof) - (a[1].chi2 / a[1].dof));
+  const sig = w.noise.sigma;
+  $("where").querySelector("tbody").innerHTML = chans.map(([c, v]) =>
+    `<tr class="${v.gap ? "gap" : ""}"><td>${esc(c)}</td><td>${v.gap ? "gap" : "–"}</td><td>${fmt(v.chi2 / v.dof, 2)}</td>` +
+    ["swing", "release", "flight"].map((p) => { const b = v.by_phase[p]; return `<td>${b && b.dof ? fmt(b.chi2 / b.dof, 2) : "–"}</td>`; }).join("") +
+    `<td>${sig[c] !== undefined ? Number(sig[c]).toPrecision(2) : (c.startsWith("impact") ? Number(w.noise.impact_sigma_m).toPrecision(2) + " m" : "–")}</td></tr>`).join("");
+}
+
+function showWhich(rounds) {
+  const rows = [];
+  const gated = [];
+  rounds.forEach((r, i) => {
+    rows.push(`<tr><td>${i + 1}</td><td><i>none (twin as is)</i></td><td>${pct(r.wins_none)}</td><td>–</td><td>–</td><td>${esc(r.decision)}</td></tr>`);
+    for (const c of r.candidates) {
+      rows.push(`<tr class="${c.effect === r.named ? "named" : ""}"><td>${i + 1}</td><td>${esc(c.effect)}</td><td>${pct(c.wins)}</td><td>${pct(c.beats_none)}</td>` +
+        `<td>${c.admissible ? "yes" : "no: " + esc(c.reason)}</td><td>${paramText(c)}</td></tr>`);
+    }
+    for (const [e, why] of Object.entries(r.gated_out)) gated.push(`${e} (round ${i + 1}): ${why}`);
+  });
+  $("which").querySelector("tbody").innerHTML = rows.join("");
+  $("gated").textContent = gated.length ? "Not fitted (they cannot act where the gap is): " + gated.join("; ") : "";
+}
+
+function showHowFar(h) {
+  const shares = $("shares").querySelector("tbody");
+  const acc = $("accuracy").querySelector("tbody");
+  if (!h) {
+    $("howfar").textContent = "No effect named: nothing to add to the twin.";
+    shares.innerHTML = "";
+    acc.innerHTML = "";
+    return;
+  }
+  $("howfar").textContent = `On ${h.test_throws.length} held-out throws: χ² excess over noise ${fmt(h.chi2_excess_before, 1)} → ${fmt(h.chi2_excess_after, 1)} ` +
+    `(gap shrink ${pct(h.gap_shrink)}); impact error RMS ${fmt(h.impact_rms_m.before, 3)} → ${fmt(h.impact_rms_m.after, 3)} m (shrink ${pct(h.impact_gap_shrink)}).`;
+  shares.innerHTML = Object.entries(h.share_of_shrink).map(([e, s]) => `<tr><td>${esc(e)}</td><td>${pct(s)}</td></tr>`).join("");
+  const a = h.accuracy;
+  acc.innerHTML = Object.keys(a.observed).sort((x, y) => x - y).map((d) =>
+    `<tr><td>${d}</td>` + ["observed", "replayed_nominal", "replayed_fitted"].map((k) => {
+      const v = a[k][d];
+      return `<td>${v ? `${fmt(v.mean_downrange_m)} ± ${fmt(v.sigma_downrange_m)}` : "–"}</td>`;
+    }).join("") + "</tr>").join("");
 }
 
 async function showRun(id) {
@@ -25,30 +82,30 @@ async function showRun(id) {
   const rep = run.report;
   $("report").hidden = false;
   $("r-id").textContent = id;
-  $("r-verdict").textContent = rep.verdict.text;
+  const v = rep.verdict;
+  $("r-verdict").textContent = `${v.answer.replace("_", " ")}: ${v.text}`;
+  $("r-verdict").dataset.answer = v.answer;
+  $("r-ambiguity").hidden = v.answer !== "ambiguous";
+  if (v.answer === "ambiguous") $("r-ambiguity").textContent = `Ambiguous between ${v.between.join(" and ")}. To separate them: ${v.measurement}.`;
   const file = (n) => `/api/diagnosis/runs/${id}/files/${n}`;
-  for (const n of ["where", "traces", "which", "how_far"]) $(`img-${n}`).src = file(`${n}.png`);
+  for (const n of ["where", "which", "how_far"]) {
+    const img = $(`img-${n}`);
+    img.hidden = !(rep.plots && rep.plots[n]);
+    if (!img.hidden) img.src = file(`${n}.png`);
+  }
   $("r-json").href = file("report.json");
   $("r-profile").href = file("profile_fitted.json");
-  const w = rep.where.conditioned;
-  const chans = Object.entries(w.channels).sort((a, b) => b[1].share - a[1].share).slice(0, 10);
-  $("where").querySelector("tbody").innerHTML = chans.map(([c, v]) =>
-    `<tr><td>${c}</td><td>${pct(v.share)}</td><td>${fmt(v.rms, 4)} ${v.unit}</td>` +
-    ["swing", "release", "flight"].map((p) => `<td>${v.by_phase[p] === undefined ? "–" : fmt(v.by_phase[p], 4)}</td>`).join("") + "</tr>").join("");
-  $("phases").textContent = "Share of the gap per phase: " + Object.entries(w.phases).map(([p, s]) => `${p} ${pct(s)}`).join(", ");
-  $("which").querySelector("tbody").innerHTML = rep.which.map((r) =>
-    `<tr><td>${r.effect}</td><td>${fmt(r.score, 3)}</td><td>${fmt(r.j_test_nominal, 3)} → ${fmt(r.j_test, 3)}</td><td>` +
-    Object.entries(r.params).map(([k, v]) => `${k} = ${Number(v).toPrecision(4)}${r.sigma[k] !== undefined ? " ± " + Number(r.sigma[k]).toPrecision(2) : ""}`).join(", ") +
-    "</td></tr>").join("");
-  const h = rep.how_far;
-  $("howfar").textContent = `With ${h.effect}${h.named ? "" : " (best candidate, not named)"}: held-out gap J ${fmt(h.J_before, 3)} → ${fmt(h.J_after, 3)}; ` +
-    `impact error ${fmt(h.impact_error_m.predicted_before, 3)} → ${fmt(h.impact_error_m.predicted_after, 3)} m (shrink ${pct(h.impact_gap_shrink)}).`;
-  const acc = h.accuracy;
-  $("accuracy").querySelector("tbody").innerHTML = Object.keys(acc.observed).sort((a, b) => a - b).map((d) =>
-    `<tr><td>${d}</td>` + ["observed", "replayed_nominal", "replayed_fitted"].map((k) => {
-      const a = acc[k][d];
-      return `<td>${a ? `${fmt(a.mean_downrange_m)} ± ${fmt(a.sigma_downrange_m)}` : "–"}</td>`;
-    }).join("") + "</tr>").join("");
+  showWhere(rep.where);
+  showWhich(rep.rounds);
+  showHowFar(rep.how_far);
+}
+
+async function pollAdaptation(id) {
+  const st = await api("GET", `/api/adaptations/${id}`);
+  const last = st.progress.length ? st.progress[st.progress.length - 1] : "";
+  $("adapt-msg").textContent = st.status === "done" ? `version ${st.policy_version} made: evaluate and promote it under Policies`
+    : st.status === "failed" ? `failed: ${st.error}` : `adapting ${st.base_version}… ${last}`;
+  if (st.status === "running") setTimeout(() => pollAdaptation(id), 3000);
 }
 
 document.addEventListener("DOMContentLoaded", async () => {
@@ -62,6 +119,17 @@ document.addEventListener("DOMContentLoaded", async () => {
       loadRuns();
     } catch (e) {
       $("start-msg").textContent = e.message;
+    }
+  });
+  $("adapt").addEventListener("submit", async (ev) => {
+    ev.preventDefault();
+    const id = $("r-id").textContent;
+    $("adapt-msg").textContent = "starting…";
+    try {
+      const st = await api("POST", `/api/diagnosis/runs/${id}/adapt`, { mode: $("adapt-mode").value });
+      pollAdaptation(st.id);
+    } catch (e) {
+      $("adapt-msg").textContent = e.message;
     }
   });
   window.addEventListener("hashchange", () => showRun(location.hash.slice(1)));

@@ -25,6 +25,7 @@ async function load() {
   const rows = await res.json();
   if (!res.ok) { $("page-info").textContent = `error: ${JSON.stringify(rows.detail)}`; return; }
   hist.total = parseInt(res.headers.get("X-Total-Count") || "0", 10);
+  $("throws-empty").hidden = hist.total > 0;
   const body = $("throws").querySelector("tbody");
   body.innerHTML = "";
   for (const t of rows) {
@@ -45,7 +46,7 @@ async function load() {
   }
 }
 
-const side = (p) => `${Math.hypot(p[0], p[1]).toFixed(3)},${(6 - p[2]).toFixed(3)}`;
+let plots = null;
 
 async function showDetail(id) {
   const t = await api("GET", `/api/throws/${id}`);
@@ -62,13 +63,13 @@ async function showDetail(id) {
     try { await api("POST", `/api/throws/${id}/replay`); $("d-status").textContent = "drawn in the 3D view"; }
     catch (e) { $("d-status").textContent = e.message; }
   };
-  $("traj-target").setAttribute("cx", Math.hypot(t.target[0], t.target[1]));
-  $("traj-preview").setAttribute("points", (p.payload_path_m || []).map(side).join(" "));
-  $("traj-gripper").setAttribute("points", ""); $("traj-payload").setAttribute("points", "");
-  if (!t.telemetry_url) return;
+  $("d-failure").textContent = t.failure_reason ? `${t.status.toUpperCase()}: ${t.failure_reason}` : "";
+  $("d-noplot").hidden = !!t.telemetry_url;
+  if (!plots) { plots = new ThrowPlots($("d-plots")); plots.attachScrubber($("scrub"), $("scrub-play"), $("scrub-readout")); }
+  if (!t.telemetry_url) { plots.clear(); return; }
   const tr = await api("GET", `/api/throws/${id}/trajectory`);
-  $("traj-gripper").setAttribute("points", tr.gripper_path_m.map(side).join(" "));
-  $("traj-payload").setAttribute("points", tr.payload_path_m.map(side).join(" "));
+  plots.showTrajectory(tr);
+  plots.enableScrubber();
 }
 
 async function init() {

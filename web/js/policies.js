@@ -1,16 +1,57 @@
-// Policy versions: upload (admin), twin evaluation, promote to machines, compare.
+// Policy versions: upload (admin), twin evaluation (a table per version with the paper's figure:
+// mean impact with 1 sigma against the target distance), promote to machines and roll back (both
+// confirmed first), compare. Which version is active on which machine comes from live push.
 "use strict";
 
 let machineIds = [];
+const active = new Map(); // machine id -> {mode: version}, from live machine states
+let policyRows = [];
 
-function evalText(p) {
-  if (p.evaluation_status !== "done") return p.evaluation_status || "–";
-  return p.metrics.targets.map((t) => `${fmt(t.target_m, 1)} m: ${t.landed}/${t.throws} landed, bias ${fmt(t.bias_m)}, σ ${fmt(t.sigma_downrange_m, 3)}`).join("; ");
+function evalSummary(p) {
+  if (p.evaluation_status !== "done") return p.evaluation_status === "failed" ? `failed: ${(p.metrics || {}).error || "?"}` : (p.evaluation_status || "not evaluated");
+  const t = p.metrics.targets, ok = t.reduce((a, x) => a + x.landed, 0), n = t.reduce((a, x) => a + x.throws, 0);
+  return `${ok}/${n} landed over ${t.length} targets (details below)`;
+}
+
+function activeOn(p) {
+  const on = [...active.entries()].filter(([, pol]) => pol[p.mode] === p.name).map(([id]) => id);
+  return on.length ? `active on ${on.join(", ")}` : "not active";
+}
+
+/** The twin evaluation of ``p`` as a table and the paper's figure (uPlot). */
+function showEvaluation(p) {
+  const box = $("evaluation");
+  box.hidden = false;
+  $("ev-title").textContent = `${p.name} (${p.mode}): twin evaluation, ${p.metrics.throws_per_target} throws per target, ${p.metrics.profile} profile`;
+  const body = $("ev-table").querySelector("tbody");
+  body.innerHTML = "";
+  for (const t of p.metrics.targets) {
+    const tr = body.insertRow();
+    [fmt(t.target_m, 1), `${t.landed}/${t.throws}`, fmt(t.mean_impact_m), fmt(t.bias_m), fmt(t.sigma_downrange_m, 3),
+      fmt(t.sigma_crossrange_m, 3), Object.entries(t.failures || {}).map(([k, v]) => `${k} ×${v}`).join(", ") || "–"]
+      .forEach((c, i) => { const td = tr.insertCell(); td.textContent = c; if (i < 6) td.className = "num"; });
+  }
+  const fig = $("ev-figure");
+  fig.innerHTML = "";
+  const xs = p.metrics.targets.map((t) => t.target_m), mean = p.metrics.targets.map((t) => t.mean_impact_m);
+  const sd = p.metrics.targets.map((t) => t.sigma_downrange_m || 0);
+  const w = Math.min(560, fig.clientWidth || 560);
+  new uPlot({
+    width: w, height: 260, scales: { x: { time: false } },
+    axes: [{ label: "target distance [m]", stroke: "#333" }, { label: "impact distance [m]", stroke: "#333", size: 50 }],
+    series: [{ label: "target [m]" },
+      { label: "ideal", stroke: "#777", dash: [4, 4], points: { show: false } },
+      { label: "mean impact", stroke: "#1f5fbf", width: 2, points: { show: true, size: 8, fill: "#1f5fbf" } },
+      { label: "+1σ", stroke: "#1f5fbf", dash: [2, 3], points: { show: false } },
+      { label: "-1σ", stroke: "#1f5fbf", dash: [2, 3], points: { show: false } }],
+  }, [xs, xs, mean, mean.map((m, i) => (m === null ? null : m + sd[i])), mean.map((m, i) => (m === null ? null : m - sd[i]))], fig);
 }
 
 async function loadPolicies() {
   let ps;
   try { ps = await api("GET", "/api/policies"); machineIds = (await api("GET", "/api/machines")).map((m) => m.id); } catch (e) { return; }
+  policyRows = ps;
+  $("policies-empty").hidden = ps.length > 0;
   const body = $("policies").querySelector("tbody");
   const checked = new Set([...document.querySelectorAll(".cmp:checked")].map((c) => c.value));
   body.innerHTML = "";
@@ -21,8 +62,14 @@ async function loadPolicies() {
     cb.type = "checkbox"; cb.className = "cmp"; cb.value = p.id; cb.checked = checked.has(String(p.id));
     tr.insertCell().appendChild(cb);
     [p.id, p.name, p.mode, p.sha256.slice(0, 12) + "…", p.target_range_m ? p.target_range_m.join("–") : "–",
-      `${new Date(p.created_at).toLocaleString()} ${p.uploaded_by || ""}`, evalText(p)]
-      .forEach((c, i) => { const td = tr.insertCell(); td.textContent = c; if (i === 6) td.className = "eval"; });
+      `${new Date(p.created_at).toLocaleString()} ${p.uploaded_by || ""}`, activeOn(p), evalSummary(p)]
+      .forEach((c, i) => { const td = tr.insertCell(); td.textContent = c; if (i === 7) td.className = "eval"; if (i === 6) td.className = "active-on"; });
+    if (p.evaluation_status === "done") {
+      const b = document.createElement("button");
+      b.type = "button"; b.textContent = "Show evaluation"; b.className = "show-eval";
+      b.addEventListener("click", () => showEvaluation(p));
+      tr.cells[7].append(" ", b);
+    }
     const td = tr.insertCell();
     td.dataset.role = "admin"; td.hidden = !can("admin");
     if (p.has_file) {
@@ -30,11 +77,16 @@ async function loadPolicies() {
       sel.className = "promote-target";
       for (const id of machineIds) sel.add(new Option(id, id));
       const b = document.createElement("button");
-      b.textContent = "Promote"; b.className = "promote";
+      b.type = "button"; b.textContent = "Promote"; b.className = "promote";
+      sel.setAttribute("aria-label", `machine to promote ${p.name} to`);
       b.addEventListener("click", async () => {
+        const ok = await confirmAction(`Promote ${p.name}?`, `${sel.value} will run ${p.name} for every ${p.mode} throw from ` +
+          "its next throw on. You can roll back from the Fleet page.", "Promote");
+        if (!ok) { $("p-status").textContent = "Promotion cancelled."; $("p-status").className = ""; return; }
         try {
           const deps = await api("POST", `/api/policies/${p.id}/promote`, { machine_ids: [sel.value] });
-          $("p-status").textContent = deps.map((d) => `${d.machine_id}: ${d.status}${d.reason ? ` (${d.reason})` : ""}`).join("; ");
+          $("p-status").textContent = deps.map((d) => `${d.machine_id}: ${d.status}${d.reason ? ` (${d.reason})` : ""}`).join("; ") +
+            " · the Active column changes when the runtime confirms.";
           $("p-status").className = deps.some((d) => d.status === "failed") ? "error" : "";
         } catch (e) { $("p-status").textContent = e.message; $("p-status").className = "error"; }
       });
@@ -73,9 +125,23 @@ async function doCompare() {
   }
 }
 
+function renderActive() {
+  for (const tr of $("policies").querySelectorAll("tbody tr")) {
+    const p = policyRows.find((x) => String(x.id) === tr.dataset.policyId);
+    if (p) tr.querySelector(".active-on").textContent = activeOn(p);
+  }
+}
+
 document.addEventListener("DOMContentLoaded", async () => {
   try { await whoAmI(); } catch (e) { return; }
   $("upload").addEventListener("submit", doUpload);
   $("compare").addEventListener("click", doCompare);
-  loadPolicies(); setInterval(loadPolicies, 3000);
+  Live.on("machine", (m) => {
+    const before = JSON.stringify(active.get(m.machine_id) || {});
+    if (m.state !== "offline") active.set(m.machine_id, m.policies || {}); else active.delete(m.machine_id);
+    if (before !== JSON.stringify(active.get(m.machine_id) || {})) renderActive();
+  });
+  Live.on("connected", loadPolicies);
+  await loadPolicies();
+  Live.start();
 });

@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
@@ -18,7 +19,7 @@ router = APIRouter(prefix="/api/diagnosis", tags=["diagnosis"])
 def get_runs(request: Request) -> DiagnosisRuns:
     runs = getattr(request.app.state, "diagnosis_runs", None)
     if runs is None:
-        runs = DiagnosisRuns(request.app.state.sessions, request.app.state.settings.data_dir)
+        runs = DiagnosisRuns(request.app.state.sessions, request.app.state.settings.data_dir, jobs=request.app.state.jobs)
         request.app.state.diagnosis_runs = runs
     return runs
 
@@ -31,12 +32,21 @@ class DiagnosisCreate(BaseModel):
     limit: int = Field(50, ge=4, le=500, description="newest landed throws to diagnose")
 
 
-@router.get("/effects")
-def effects(_user: ViewerDep) -> dict:
-    """The effects library: name, physical meaning, parameters with units, prior ranges, sources."""
-    from sim_twin.effects import EFFECTS
-
-    return {name: cls.describe() for name, cls in EFFECTS.items()}
+@router.get("/effects", responses={503: {"description": "no worker answered"}})
+async def effects(request: Request, _user: ViewerDep) -> dict:
+    """The effects library: name, physical meaning, parameters with units, prior ranges, sources
+    (a ``catalog`` job: the twin lives in the workers; kept once fetched)."""
+    cached = getattr(request.app.state, "effects_catalog", None)
+    if cached is None:
+        jobs = request.app.state.jobs
+        job_id = await run_in_threadpool(jobs.submit, "catalog", {})
+        job = await jobs.wait_async(job_id, 10.0)
+        if job is None or job["status"] != "done":
+            if job is not None and job["status"] in ("queued", "running"):
+                await run_in_threadpool(jobs.cancel, job_id)
+            raise HTTPException(503, f"no worker described the effects library: {(job or {}).get('error') or 'timeout'}")
+        cached = request.app.state.effects_catalog = job["result"]["effects"]
+    return cached
 
 
 @router.get("/runs")

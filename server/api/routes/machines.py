@@ -1,18 +1,26 @@
-"""GET /api/machines: the machines the server knows or hears, with presence and policies."""
+"""GET /api/machines: the machines the server knows or hears, with presence, policies and the
+runtime's state (E-STOP latch, readiness, running throw). E-STOP: POST .../estop (alias .../abort)
+on the fast path; POST .../estop/reset releases the latch (operator, audited)."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter, HTTPException
+import asyncio
+import logging
+import time
+
+from fastapi import APIRouter, HTTPException, Request
 from pydantic import BaseModel, Field
 from sqlalchemy import select
 
 from server.api.deps import FleetDep, OperatorDep, SessionDep, ViewerDep
-from server.auth import audit
+from server.api.deps import session_token
+from server.auth import audit, record_audit, role_at_least, user_for_token
 from server.api.schemas import MachineOut
 from server.db.models import Machine, Throw
 from server.fleet import Fleet, RuntimeUnavailable
 
 router = APIRouter(prefix="/api/machines", tags=["machines"])
+log = logging.getLogger(__name__)
 
 INFO_TIMEOUT_S = 1.0
 INFO_MAX_AGE_S = 2.0  # busy flag and policies are at most this old
@@ -63,6 +71,10 @@ def _machine_out(mid: str, row: Machine | None, fleet: Fleet) -> MachineOut:
         policies={p.mode: p.version for p in info.policies} if info else {},
         busy=info.busy if info else None,
         cabin_turn_rad=state.q[0] if state is not None else None,
+        estop_latched=info.estop_latched if info else None, estop_reason=info.estop_reason if info else None,
+        ready=info.ready if info else (False if not online else None),
+        not_ready_reason=(info.not_ready_reason if info else ("runtime offline" if not online else None)),
+        phase=info.phase if info else None, throw_id=info.throw_id if info else None,
     )
 
 
@@ -75,18 +87,74 @@ class AbortOut(BaseModel):
     aborted_throw_id: str | None
 
 
-@router.post("/{machine_id}/abort", response_model=AbortOut,
-             responses={503: {"description": "the runtime did not answer"}})
-def abort(machine_id: str, db: SessionDep, fleet: FleetDep, user: OperatorDep, body: AbortIn | None = None) -> AbortOut:
-    """E-stop: the runtime ends any throw as aborted and puts the valves to neutral. Logged in the
-    audit log even when the runtime does not answer."""
+class EstopResetOut(BaseModel):
+    machine_id: str
+    reset: bool
+    reason: str | None = None
+
+
+def _operator_or_raise(request: Request):
+    """The logged-in operator (or admin) of ``request``; 401/403 otherwise. Runs on the event
+    loop: one indexed read, so the E-STOP never waits for a free request thread."""
+    with request.app.state.sessions() as db:
+        user = user_for_token(db, session_token(request))
+    if user is None:
+        raise HTTPException(401, "log in first (session missing or expired)", headers={"WWW-Authenticate": "Bearer"})
+    if not role_at_least(user.role, "operator"):
+        raise HTTPException(403, f"needs the operator role (you are {user.role})")
+    return user
+
+
+@router.post("/{machine_id}/estop", response_model=AbortOut, responses={503: {"description": "the runtime did not answer"}})
+@router.post("/{machine_id}/abort", response_model=AbortOut, responses={503: {"description": "the runtime did not answer"}})
+async def estop(machine_id: str, request: Request, body: AbortIn | None = None) -> AbortOut:
+    """E-STOP: the runtime ends any throw as aborted, puts the valves to neutral and LATCHES
+    (throws refused until POST .../estop/reset). Fast path: an async route that sends the abort
+    on the fleet's dedicated E-STOP threads before any database write, so it never queues behind
+    previews, evaluations, diagnoses or log-ins on the request threads. Audited (after the stop)
+    also when the runtime does not answer."""
+    t0 = time.perf_counter()
+    user = _operator_or_raise(request)
+    fleet: Fleet = request.app.state.fleet
     reason = f"{(body or AbortIn()).reason} ({user.username})"
     try:
-        ack = fleet.abort(machine_id, reason)
+        t_auth = time.perf_counter()
+        ack = await asyncio.wrap_future(fleet.abort_async(machine_id, reason, user.username))
+        log.info("E-STOP %s: authenticated in %.1f ms, runtime confirmed after %.1f ms more", machine_id,
+                 (t_auth - t0) * 1e3, (time.perf_counter() - t_auth) * 1e3)
     except (RuntimeUnavailable, ValueError) as e:
-        audit(db, user.username, "abort", machine_id, reason=reason, delivered=False, error=str(e))
-        db.commit()
+        error = str(e)
+        await _audited(fleet, lambda: record_audit(request.app.state.sessions, user.username, "abort", machine_id[:64],
+                                                   reason=reason, delivered=False, error=error))
         raise HTTPException(503, f"abort of {machine_id} not confirmed: {e}") from e
-    audit(db, user.username, "abort", machine_id, reason=reason, delivered=True, throw_id=ack.aborted_throw_id)
-    db.commit()
+    fleet.forget_info(machine_id)
+    await _audited(fleet, lambda: record_audit(request.app.state.sessions, user.username, "abort", machine_id,
+                                               reason=reason, delivered=True, throw_id=ack.aborted_throw_id))
     return AbortOut(machine_id=machine_id, aborted_throw_id=ack.aborted_throw_id)
+
+
+async def _audited(fleet: Fleet, write, timeout_s: float = 5.0) -> None:
+    """Write an audit entry on the fleet's database thread (after the stop went out) and wait
+    for it, bounded: a slow database delays the reply, never the stop."""
+    try:
+        await asyncio.wait_for(asyncio.wrap_future(fleet.submit_db_job(write)), timeout_s)
+    except Exception:
+        log.exception("E-STOP audit entry not written")
+
+
+@router.post("/{machine_id}/estop/reset", response_model=EstopResetOut,
+             responses={409: {"description": "the runtime refused the reset (its reason)"},
+                        503: {"description": "the runtime did not answer, or no command key"}})
+def estop_reset(machine_id: str, db: SessionDep, fleet: FleetDep, user: OperatorDep) -> EstopResetOut:
+    """Release the runtime's latched E-STOP (a signed EstopReset in the operator's name); audited."""
+    try:
+        ack = fleet.estop_reset(machine_id, user.username)
+    except (RuntimeUnavailable, ValueError) as e:
+        audit(db, user.username, "estop_reset", machine_id[:64], delivered=False, error=str(e))
+        db.commit()
+        raise HTTPException(503, f"E-STOP reset of {machine_id} not confirmed: {e}") from e
+    audit(db, user.username, "estop_reset", machine_id, delivered=True, reset=ack.reset, reason=ack.reason)
+    db.commit()
+    if not ack.reset:
+        raise HTTPException(409, f"the runtime of {machine_id} kept E-STOP latched: {ack.reason}")
+    return EstopResetOut(machine_id=machine_id, reset=True, reason=ack.reason)

@@ -6,13 +6,14 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Literal
 
-from fastapi import APIRouter, File, Form, HTTPException, Query, Request, UploadFile
+from fastapi import APIRouter, File, Form, HTTPException, Path, Query, Request, UploadFile
 from pydantic import BaseModel, Field
 from sqlalchemy import select
 
 from server.api.deps import AdminDep, SessionDep, ViewerDep
+from server.api.schemas import COORD_LIMIT_M, MAX_DB_ID, DbId
 from server.db.models import PolicyDeployment, PolicyVersion, Throw
-from server.history import accuracy
+from server.history import ThrowFilter, accuracy
 from server.policies import expire_stale_offers
 from server.throws import ThrowRefused
 
@@ -84,7 +85,8 @@ async def upload_policy(
     file: UploadFile = File(..., description="the ONNX file (obs -> actions)"),
     mode: Literal["2d", "3d"] = Form(...),
     name: str = Form(..., min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.-]+$"),
-    target_min_m: float = Form(5.0, gt=0), target_max_m: float = Form(10.7, gt=0),
+    target_min_m: float = Form(5.0, gt=0, le=COORD_LIMIT_M, allow_inf_nan=False),
+    target_max_m: float = Form(10.7, gt=0, le=COORD_LIMIT_M, allow_inf_nan=False),
     notes: str | None = Form(None, max_length=2000),
 ) -> PolicyOut:
     """Upload a policy version: the manifest is generated from the mode and metadata; the file is
@@ -117,21 +119,22 @@ def deployments(db: SessionDep, _user: ViewerDep, machine_id: str | None = None,
 
 
 @router.get("/compare")
-def compare(db: SessionDep, _user: ViewerDep, ids: list[int] = Query(..., min_length=1, max_length=10)) -> list[dict]:
+def compare(db: SessionDep, _user: ViewerDep, ids: list[DbId] = Query(..., min_length=1, max_length=10)) -> list[dict]:
     """Per version: the twin evaluation per target distance and the logged throws' accuracy."""
     out = []
     for pid in ids:
         p = db.get(PolicyVersion, pid)
         if p is None:
             raise HTTPException(404, f"no policy version {pid}")
-        rows = list(db.scalars(select(Throw).where(Throw.policy_version == p.name, Throw.mode == p.mode)))
-        out.append({"id": p.id, "name": p.name, "mode": p.mode, "evaluation_status": p.evaluation_status,
-                    "twin": (p.metrics or {}).get("targets", []), "logged": accuracy(rows)})
+        logged = accuracy(db, ThrowFilter(mode=p.mode, policy_sha256=p.sha256))
+        out.append({"id": p.id, "name": p.name, "mode": p.mode, "sha256": p.sha256,
+                    "evaluation_status": p.evaluation_status,
+                    "twin": (p.metrics or {}).get("targets", []), "logged": logged})
     return out
 
 
 @router.get("/{policy_id}", response_model=PolicyOut)
-def get_policy(policy_id: int, db: SessionDep, _user: ViewerDep) -> PolicyOut:
+def get_policy(db: SessionDep, _user: ViewerDep, policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> PolicyOut:
     p = db.get(PolicyVersion, policy_id)
     if p is None:
         raise HTTPException(404, f"no policy version {policy_id}")
@@ -139,7 +142,8 @@ def get_policy(policy_id: int, db: SessionDep, _user: ViewerDep) -> PolicyOut:
 
 
 @router.post("/{policy_id}/promote", response_model=list[DeploymentOut])
-def promote(policy_id: int, body: PromoteIn, request: Request, user: AdminDep) -> list[DeploymentOut]:
+def promote(body: PromoteIn, request: Request, user: AdminDep,
+            policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> list[DeploymentOut]:
     """Offer the version to the machines; each runtime fetches it, checks it, loads it between
     throws and confirms (the deployment turns ``active``; GET /api/machines shows it)."""
     try:

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException, Request
+from fastapi.concurrency import run_in_threadpool
 
-from server.api.deps import OperatorDep, SceneDep, ViewerDep
+from server.api.deps import OperatorDep, ViewerDep
 from server.api.preview_schemas import PreviewCreate, PreviewOut
 from server.api.schemas import Problem
 from server.throws import ThrowRefused
@@ -17,25 +18,29 @@ router = APIRouter(prefix="/api/previews", tags=["previews"])
     response_model=PreviewOut,
     responses={
         404: {"model": Problem, "description": "unknown machine"},
-        409: {"model": Problem, "description": "the server has no file of the machine's policy"},
+        409: {"model": Problem, "description": "the server has no file of the machine's policy, or it does not load"},
         422: {"model": Problem, "description": "a target the mode cannot serve (the reason)"},
-        503: {"model": Problem, "description": "runtime offline or no machine state"},
+        503: {"model": Problem, "description": "runtime offline, no machine state, or no worker answered in 3 s"},
     },
 )
-def create_preview(body: PreviewCreate, request: Request, scene: SceneDep, _user: OperatorDep) -> PreviewOut:
+async def create_preview(body: PreviewCreate, request: Request, user: OperatorDep) -> PreviewOut:
     """Preview a throw of ``machine_id`` at ``target`` in ``mode`` from its current joint state.
 
     ``rollouts`` <= 1 gives the nominal rollout only (fast); more adds the Monte Carlo 1 sigma
-    impact ellipse over the release-delay jitter. The 3D view draws the preview.
+    impact ellipse over the release-delay jitter. The twin runs in a worker (a ``preview`` job;
+    its id is the preview id); this route awaits it without holding a request thread. The console
+    draws it in its own 3D view (POST /api/consoles/{id}/preview).
     """
     service = request.app.state.previews
     rollouts = body.rollouts if body.rollouts is not None else request.app.state.settings.preview_rollouts
     try:
-        summary = service.preview(body.machine_id, body.mode, body.target, rollouts)
+        job_id = await run_in_threadpool(service.submit, body.machine_id, body.mode, body.target, rollouts,
+                                         user.username)
+        timeout_s = request.app.state.settings.preview_timeout_s
+        job = await service.jobs.wait_async(job_id, timeout_s)
+        summary = await run_in_threadpool(service.outcome, job, timeout_s)
     except ThrowRefused as e:
         raise HTTPException(e.status_code, e.detail) from e
-    if scene is not None and scene.machine_id in (None, body.machine_id):
-        scene.show_preview(summary)
     return PreviewOut(**summary)
 
 

@@ -1,37 +1,79 @@
-"""The console's 3D view: its viser port, and the machine, mode and target picked in it."""
+"""The console's 3D view and each console page's own state (machine, mode, target, preview).
+
+``POST /api/consoles`` opens a console for the page (one per page load); the page embeds the 3D
+view bound to it and changes it with ``PUT /api/consoles/{id}``. A click in the view changes only
+that console; the page hears it over live push (``GET /api/live?console=<id>``). A console belongs
+to the user who opened it (403 for anyone else).
+"""
 
 from __future__ import annotations
 
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter, HTTPException, Request
 
-from server.api.deps import OperatorDep, SceneDep, ViewerDep
-from server.api.schemas import SceneState, SceneUpdate
+from server.api.console_schemas import ConsoleOut, ConsoleShowPreview, ConsoleUpdate, SceneInfo
+from server.api.deps import CurrentUser, OperatorDep, SceneDep, ViewerDep
+from server.api.schemas import Problem
 
-router = APIRouter(prefix="/api/scene", tags=["scene"])
-
-
-def _state(scene) -> SceneState:
-    if scene is None:
-        return SceneState(viser_port=None, machine_id=None, mode="2d", target=None)
-    return SceneState(viser_port=scene.port, machine_id=scene.machine_id, mode=scene.mode,
-                      target=scene.target, preview=list(scene.preview_names))
+router = APIRouter(tags=["scene"])
 
 
-@router.get("", response_model=SceneState)
-def get_scene(scene: SceneDep, _user: ViewerDep) -> SceneState:
-    """Where the 3D view is served, and the target clicked in it (None until a click)."""
-    return _state(scene)
+@router.get("/api/scene", response_model=SceneInfo)
+def get_scene(scene: SceneDep, _user: ViewerDep) -> SceneInfo:
+    """Where the 3D view is served."""
+    return SceneInfo(viser_port=scene.port if scene else None, consoles=len(scene.consoles) if scene else 0)
 
 
-@router.put("", response_model=SceneState)
-def update_scene(update: SceneUpdate, scene: SceneDep, _user: OperatorDep) -> SceneState:
-    """Pick the machine shown, the mode (draws the 2D plane) or type a target."""
+def _out(scene, con) -> ConsoleOut:
+    return ConsoleOut(**con.public(), viser_port=scene.port, viser_path=f"/c/{con.console_id}")
+
+
+def _console(scene, console_id: str, user):
     if scene is None:
         raise HTTPException(409, "the 3D view is disabled")
-    if update.machine_id is not None:
-        scene.machine_id = update.machine_id
-    if update.mode is not None:
-        scene.mode = update.mode
-    if update.target is not None:
-        scene.set_target(update.target)
-    return _state(scene)
+    con = scene.get_console(console_id)
+    if con is None:
+        raise HTTPException(404, f"no console {console_id} (reload the page)")
+    if con.username != user.username:
+        raise HTTPException(403, "this console belongs to another user")
+    return con
+
+
+@router.post("/api/consoles", response_model=ConsoleOut, status_code=201,
+             responses={409: {"model": Problem, "description": "the 3D view is disabled"}})
+def open_console(scene: SceneDep, user: ViewerDep) -> ConsoleOut:
+    """Open a console (one per page load): its own machine, mode, target and 3D view."""
+    if scene is None:
+        raise HTTPException(409, "the 3D view is disabled")
+    return _out(scene, scene.open_console(user.username))
+
+
+@router.get("/api/consoles/{console_id}", response_model=ConsoleOut, responses={404: {"model": Problem}})
+def get_console(console_id: str, scene: SceneDep, user: CurrentUser) -> ConsoleOut:
+    return _out(scene, _console(scene, console_id, user))
+
+
+@router.put("/api/consoles/{console_id}", response_model=ConsoleOut,
+            responses={403: {"model": Problem}, 404: {"model": Problem}})
+def update_console(console_id: str, update: ConsoleUpdate, scene: SceneDep, user: ViewerDep) -> ConsoleOut:
+    """Pick the machine or mode shown (viewers too), or type a target (operators). A target in 2D
+    snaps to the throwing line; ``target_reason`` says why it cannot be served."""
+    con = _console(scene, console_id, user)
+    if update.target is not None and user.role == "viewer":
+        raise HTTPException(403, "needs the operator role to set a target (you are viewer)")
+    scene.update_console(con, update.machine_id, update.mode, update.target)
+    return _out(scene, con)
+
+
+@router.post("/api/consoles/{console_id}/preview", response_model=ConsoleOut,
+             responses={404: {"model": Problem}, 422: {"model": Problem}})
+def show_preview(console_id: str, body: ConsoleShowPreview, request: Request, scene: SceneDep,
+                 user: OperatorDep) -> ConsoleOut:
+    """Draw a preview (POST /api/previews) in this console's 3D view."""
+    con = _console(scene, console_id, user)
+    summary = request.app.state.previews.get(body.preview_id)
+    if summary is None:
+        raise HTTPException(404, f"no preview {body.preview_id} (previews are kept for a while only)")
+    if summary["machine_id"] != con.machine_id:
+        raise HTTPException(422, f"the preview is of {summary['machine_id']}, this console shows {con.machine_id}")
+    scene.show_preview(con, summary)
+    return _out(scene, con)

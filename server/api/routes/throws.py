@@ -4,15 +4,15 @@
 
 from __future__ import annotations
 
-from datetime import datetime
 from typing import Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
-from fastapi.responses import FileResponse, PlainTextResponse
+from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 
 from server.api.deps import OperatorDep, SceneDep, SessionDep, ThrowServiceDep, ViewerDep
-from server.api.schemas import Problem, ThrowCreate, ThrowCreated, ThrowOut
+from server.api.schemas import (DISTANCE_LIMIT_M, Problem, ThrowCreate, ThrowCreated, ThrowOut, ThrowStatusName,
+                                UtcTime)
 from server.db.models import Throw
 from server.history import SORTS, ThrowFilter, accuracy, page, to_csv
 from server.throws import ThrowRefused
@@ -25,14 +25,18 @@ def throw_filter(
     machine_id: str | None = None,
     policy_version: str | None = None,
     mode: Literal["2d", "3d"] | None = None,
-    status: str | None = None,
-    min_distance_m: float | None = Query(None, ge=0),
-    max_distance_m: float | None = Query(None, ge=0),
-    since: datetime | None = None,
-    until: datetime | None = None,
+    status: ThrowStatusName | None = None,
+    min_distance_m: float | None = Query(None, ge=0, le=DISTANCE_LIMIT_M, allow_inf_nan=False),
+    max_distance_m: float | None = Query(None, ge=0, le=DISTANCE_LIMIT_M, allow_inf_nan=False),
+    since: UtcTime | None = None,
+    until: UtcTime | None = None,
+    policy_sha256: str | None = Query(None, pattern=r"^[0-9a-f]{64}$"),
 ) -> ThrowFilter:
-    """History filters as query parameters (times ISO 8601 with a zone)."""
-    return ThrowFilter(machine_id, policy_version, mode, status, min_distance_m, max_distance_m, since, until)
+    """History filters as query parameters (times ISO 8601 with a zone; distances finite, m, at
+    most DISTANCE_LIMIT_M: else 422). ``policy_sha256`` names a policy version exactly;
+    ``policy_version`` (a name) may match several files."""
+    return ThrowFilter(machine_id, policy_version, mode, status, min_distance_m, max_distance_m, since, until,
+                       policy_sha256)
 
 
 @router.post(
@@ -41,22 +45,29 @@ def throw_filter(
     response_model=ThrowCreated,
     responses={
         404: {"model": Problem, "description": "unknown machine"},
-        422: {"description": "malformed request, target the mode cannot serve, unconfirmed 3D throw, or the runtime refused"},
-        503: {"model": Problem, "description": "runtime offline or not answering"},
+        409: {"model": Problem, "description": "the preview is stale, the policy changed or the machine moved since "
+                                               "(condition in the X-Refused-Condition header)"},
+        422: {"description": "malformed request, target the mode cannot serve, no/failed/other preview "
+                             "(X-Refused-Condition), unconfirmed 3D throw, or the runtime refused"},
+        503: {"model": Problem, "description": "runtime offline or not answering, or no command key"},
     },
 )
 def create_throw(body: ThrowCreate, service: ThrowServiceDep, user: OperatorDep) -> ThrowCreated:
     """Throw at ``target`` ([x, y, z], machine frame, m) with ``machine_id`` in ``mode``, as
-    previewed (``preview_id``). 3D throws need ``confirm_clearance: true``.
+    previewed (``preview_id``: a fresh OK preview of the same machine, mode, target and policy
+    from about the machine's current state; see server.throw_gate). 3D throws need
+    ``confirm_clearance: true``.
 
-    202 means the runtime accepted the throw; follow it with GET /api/throws/{id}.
-    On any error no throw is recorded.
+    202 means the runtime accepted the throw; follow it with GET /api/throws/{id}. On a refusal
+    no throw is recorded; on 503 after the request was sent the throw stays until its runtime
+    reports it or the reconciliation marks it ``lost``.
     """
     try:
         row, ack = service.create(body, user.username)
     except ThrowRefused as e:
-        raise HTTPException(e.status_code, e.detail) from e
-    return ThrowCreated(id=row.id, status=row.status, policy_version=ack.policy_version)
+        headers = {"X-Refused-Condition": e.condition} if e.condition else None
+        raise HTTPException(e.status_code, e.detail, headers=headers) from e
+    return ThrowCreated(id=row.id, status=row.status, policy_version=ack.policy_version, policy_sha256=row.policy_sha256)
 
 
 @router.get("", response_model=list[ThrowOut])
@@ -68,7 +79,7 @@ def list_throws(
     sort: Literal[tuple(SORTS)] = "requested_at",  # type: ignore[valid-type]
     order: Literal["asc", "desc"] = "desc",
     limit: int = Query(50, ge=1, le=500),
-    offset: int = Query(0, ge=0),
+    offset: int = Query(0, ge=0, le=1_000_000_000),
 ) -> list[ThrowOut]:
     """Throws matching the filters, sorted (default newest first), one page; the number of all
     matching throws is in the ``X-Total-Count`` header."""
@@ -85,12 +96,13 @@ def export_csv(db: SessionDep, _user: ViewerDep, flt: ThrowFilter = Depends(thro
                     headers={"Content-Disposition": 'attachment; filename="throws.csv"'})
 
 
-@router.get("/accuracy")
-def get_accuracy(db: SessionDep, _user: ViewerDep, flt: ThrowFilter = Depends(throw_filter)) -> list[dict]:
-    """Accuracy of the landed throws matching the filters, per mode, policy version and target
-    distance (0.5 m bins): mean impact distance, bias, 1 sigma downrange/crossrange, error ellipse."""
-    rows, _ = page(db, flt, limit=EXPORT_LIMIT)
-    return accuracy(rows)
+@router.get("/accuracy", response_model=list[dict])
+def get_accuracy(db: SessionDep, _user: ViewerDep, flt: ThrowFilter = Depends(throw_filter)) -> JSONResponse:
+    """Accuracy of the landed throws matching the filters, per mode, policy version (SHA-256) and
+    target distance (0.5 m bins): mean impact distance, bias, 1 sigma downrange/crossrange, error
+    ellipse, and the newest 200 errors per group for the scatter plot. Plain JSON (floats and
+    lists only), so the response skips FastAPI's encoder."""
+    return JSONResponse(accuracy(db, flt))
 
 
 def _row(db, throw_id: str) -> Throw:
@@ -122,7 +134,9 @@ def get_telemetry(throw_id: str, db: SessionDep, request: Request, _user: Viewer
 @router.get("/{throw_id}/trajectory", responses={404: {"model": Problem}})
 def get_trajectory(throw_id: str, db: SessionDep, request: Request, _user: ViewerDep) -> dict:
     """The recorded trajectory (from the MCAP telemetry, at most 300 points): time, gripper-centre
-    path (forward kinematics of the joints), payload path, phase events; with the preview."""
+    path (forward kinematics of the joints), joint velocities ``qd`` (N, 6) and their references
+    ``qd_ref`` (N, 4), valve commands ``valve_u`` (N, 4), passive angles (``q`` columns 4-5),
+    payload path with its own times ``payload_t_s``, phase events; with the preview."""
     from runtime.machine import forward_kinematics
     from runtime.telemetry import read_telemetry
 
@@ -135,19 +149,29 @@ def get_trajectory(throw_id: str, db: SessionDep, request: Request, _user: Viewe
     idx = np.unique(np.linspace(0, n - 1, min(n, 300)).astype(int)) if n else np.array([], dtype=int)
     gripper = [forward_kinematics(np, tel["q"][i], tel["qd"][i]).gripper_centre.round(4).tolist() for i in idx]
     payload = np.asarray(tel["payload_pos_m"])
+    pidx = np.unique(np.linspace(0, len(payload) - 1, min(len(payload), 300)).astype(int)) if len(payload) else idx[:0]
+
+    def cols(key: str) -> list:
+        a = np.asarray(tel[key])
+        return np.round(a[idx], 4).tolist() if len(a) == n else []
+
     return {
         "throw_id": throw_id, "t_s": np.round(np.asarray(tel["t_s"])[idx], 4).tolist(),
-        "gripper_path_m": gripper, "payload_path_m": np.round(payload, 4).tolist() if payload.size else [],
+        "q": cols("q"), "qd": cols("qd"), "qd_ref": cols("qd_ref"), "valve_u": cols("valve_u"),
+        "payload_t_s": np.round(np.asarray(tel["payload_t_s"])[pidx], 4).tolist(),
+        "gripper_path_m": gripper, "payload_path_m": np.round(payload[pidx], 4).tolist() if payload.size else [],
         "events": [{"t_s": float(t), "phase": str(p)} for t, p in zip(tel.get("event_t_s", []), tel.get("event_phase", []))],
         "target_m": row.target_m, "impact_m": row.impact_m, "preview": row.preview,
     }
 
 
-@router.post("/{throw_id}/replay", status_code=204, responses={404: {"model": Problem}, 409: {"model": Problem}})
-def replay(throw_id: str, db: SessionDep, request: Request, scene: SceneDep, _user: ViewerDep) -> Response:
-    """Draw the throw's recorded trajectory and impact in the 3D view."""
+@router.post("/{throw_id}/replay", status_code=204,
+             responses={403: {"model": Problem}, 404: {"model": Problem}, 409: {"model": Problem}})
+def replay(throw_id: str, db: SessionDep, request: Request, scene: SceneDep, _user: OperatorDep) -> Response:
+    """Draw the throw's recorded trajectory and impact in the 3D view (operators: the view is
+    shared by every console, a viewer may not change it)."""
     row = _row(db, throw_id)
     if scene is None:
         raise HTTPException(409, "the 3D view is disabled")
-    scene.show_throw(request.app.state.store.telemetry_file(row), row.impact_m, row.target_m)
+    scene.show_throw(row.machine_id, request.app.state.store.telemetry_file(row), row.impact_m, row.target_m)
     return Response(status_code=204)

@@ -8,7 +8,7 @@ from sqlalchemy import delete, select
 from server.api.account_schemas import AuditOut, UserCreate, UserOut, UserUpdate
 from server.api.deps import AdminDep, SessionDep
 from server.api.routes.auth import user_out
-from server.auth import AuthError, audit, create_user, hash_password
+from server.auth import AuthError, audit, check_password, create_user, hash_password
 from server.db.models import AuditEntry, AuthSession, User
 
 router = APIRouter(prefix="/api", tags=["users"])
@@ -44,7 +44,10 @@ def update_user(username: str, body: UserUpdate, db: SessionDep, admin: AdminDep
     if body.active is not None:
         user.active = changes["active"] = body.active
     if body.password is not None:
-        user.password_hash = hash_password(body.password)
+        try:
+            user.password_hash = hash_password(check_password(body.password))
+        except AuthError as e:
+            raise HTTPException(422, str(e)) from e
         changes["password"] = "changed"
     if body.active is False or body.password is not None:
         db.execute(delete(AuthSession).where(AuthSession.user_id == user.id))

@@ -1,0 +1,62 @@
+"""Adaptation of a policy version to a diagnosed site: POST starts one on a finished diagnosis
+run (server.adaptation; the new version then appears under Policies with its twin evaluation on
+the site's fitted profile, ready to promote); GET lists and reads runs."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Depends, HTTPException, Request
+from pydantic import BaseModel, Field
+
+from server.adaptation import AdaptationRuns
+from server.api.deps import AdminDep, ViewerDep
+from server.api.routes.diagnosis import get_runs
+from server.throws import ThrowRefused
+
+router = APIRouter(tags=["adaptation"])
+
+
+def get_adaptations(request: Request) -> AdaptationRuns:
+    runs = getattr(request.app.state, "adaptation_runs", None)
+    if runs is None:
+        st = request.app.state
+        runs = AdaptationRuns(get_runs(request), st.policies, st.previews, st.settings.data_dir, jobs=st.jobs)
+        st.adaptation_runs = runs
+    return runs
+
+
+AdaptDep = Annotated[AdaptationRuns, Depends(get_adaptations)]
+
+
+class AdaptCreate(BaseModel):
+    mode: Literal["2d", "3d"]
+    base_version: str | None = Field(None, max_length=128, description="default: the version the diagnosed machine runs")
+    throws: int = Field(20, ge=2, le=200, description="twin throws per target distance and round")
+    rounds: int = Field(2, ge=1, le=4)
+
+
+@router.post("/api/diagnosis/runs/{run_id}/adapt", status_code=202,
+             responses={404: {"description": "no such diagnosis"}, 409: {"description": "not done, busy or no base file"}})
+def create_adaptation(run_id: str, body: AdaptCreate, runs: AdaptDep, user: AdminDep) -> dict:
+    """Adapt the machine's policy to the diagnosis' fitted profile (aim correction in the CPU
+    twin, in the background); poll GET /api/adaptations/{id}."""
+    try:
+        return runs.start(run_id, body.mode, user.username, body.base_version, body.throws, body.rounds)
+    except ThrowRefused as e:
+        raise HTTPException(e.status_code, e.detail) from e
+
+
+@router.get("/api/adaptations")
+def list_adaptations(runs: AdaptDep, _user: ViewerDep) -> list[dict]:
+    """Adaptation runs, newest first."""
+    return runs.list()
+
+
+@router.get("/api/adaptations/{adapt_id}", responses={404: {"description": "no such run"}})
+def get_adaptation(adapt_id: str, runs: AdaptDep, _user: ViewerDep) -> dict:
+    """Status, progress lines and (when done) the new policy version's id and name."""
+    st = runs.get(adapt_id)
+    if st is None:
+        raise HTTPException(404, f"no adaptation run {adapt_id}")
+    return st

@@ -1,0 +1,44 @@
+"""Live push: ``GET /api/live`` is a Server-Sent Events stream of machine states, throw progress,
+live throw samples, stored results, heartbeats and (with ``?console=<id>``) that console's own
+changes. Event names and data: see server.live.LiveHub. The stream ends when the server stops
+(sse-starlette ends open streams on uvicorn's shutdown); browsers reconnect by themselves.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+from fastapi import APIRouter, HTTPException, Request
+from sse_starlette.sse import EventSourceResponse
+
+from server.api.deps import ViewerDep
+
+router = APIRouter(tags=["live"])
+
+
+@router.get("/api/live", response_class=EventSourceResponse)
+async def live(request: Request, user: ViewerDep, console: str | None = None) -> EventSourceResponse:
+    """The event stream (text/event-stream); starts with every machine's state."""
+    hub = getattr(request.app.state, "live", None)
+    if hub is None:
+        raise HTTPException(503, "live push is not running")
+    scene = request.app.state.scene
+    if console is not None and scene is not None:
+        con = scene.get_console(console)
+        if con is None or con.username != user.username:
+            raise HTTPException(404, f"no console {console} of yours (reload the page)")
+    sub = hub.subscribe(console)
+
+    async def events():
+        try:
+            while True:
+                try:
+                    name, data = await asyncio.wait_for(sub.queue.get(), timeout=5.0)
+                except TimeoutError:
+                    continue
+                yield {"event": name, "data": json.dumps(data, separators=(",", ":"))}
+        finally:
+            hub.unsubscribe(sub)
+
+    return EventSourceResponse(events(), ping=15, headers={"Cache-Control": "no-store"})

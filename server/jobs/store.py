@@ -1,0 +1,140 @@
+"""The ``jobs`` table (server.db.models.Job): what a job is, how far it got, what came of it.
+
+Both sides use it: the API creates rows and reads them (list, get, the progress stream), the
+worker moves them ``queued -> running -> done | failed | cancelled`` and writes progress.
+Cancellation is cooperative: :meth:`JobStore.cancel` sets ``cancel_requested``; a queued job is
+cancelled at once, a running one at its next :meth:`JobStore.progress` call.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from datetime import datetime
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.db.models import FINAL_JOB_STATUSES, JOB_KINDS, Job
+from server.db.types import utcnow
+
+log = logging.getLogger(__name__)
+
+PROGRESS_MIN_INTERVAL_S = 0.2
+"""Progress is written at most this often per job (the last call of a burst is kept in memory)."""
+
+
+class JobCancelled(Exception):
+    """Raised inside a running job when someone asked to cancel it."""
+
+
+class JobStore:
+    """Rows of the ``jobs`` table.
+
+    Args:
+        sessions: database session factory (the API's or the worker's).
+    """
+
+    def __init__(self, sessions: sessionmaker[Session]):
+        self.sessions = sessions
+        self._last_write: dict[str, float] = {}
+
+    # --- API side --------------------------------------------------------------------------
+    def create(self, kind: str, params: dict, subject: str | None = None, requested_by: str | None = None) -> str:
+        """A new ``queued`` job; returns its id.
+
+        Raises:
+            ValueError: unknown kind.
+        """
+        if kind not in JOB_KINDS:
+            raise ValueError(f"unknown job kind {kind!r}; one of {', '.join(JOB_KINDS)}")
+        with self.sessions.begin() as db:
+            row = Job(kind=kind, status="queued", params=params, subject=subject, requested_by=requested_by,
+                      progress=0.0, cancel_requested=False)
+            db.add(row)
+            db.flush()
+            return row.id
+
+    def get(self, job_id: str) -> dict | None:
+        """The job as a dict (see :func:`as_dict`), or None."""
+        with self.sessions() as db:
+            row = db.get(Job, job_id)
+            return as_dict(row) if row is not None else None
+
+    def list(self, kind: str | None = None, subject: str | None = None, status: str | None = None,
+             limit: int = 50) -> list[dict]:
+        """Jobs newest first, without their results (they can be large)."""
+        stmt = select(Job).order_by(Job.created_at.desc()).limit(limit)
+        for col, value in ((Job.kind, kind), (Job.subject, subject), (Job.status, status)):
+            if value:
+                stmt = stmt.where(col == value)
+        with self.sessions() as db:
+            return [as_dict(r, with_result=False) for r in db.scalars(stmt)]
+
+    def cancel(self, job_id: str) -> dict | None:
+        """Ask a job to stop: a queued job is cancelled now, a running one at its next progress
+        report; finished jobs are left as they are. Returns the job, None if unknown."""
+        with self.sessions.begin() as db:
+            row = db.get(Job, job_id)
+            if row is None:
+                return None
+            if row.status not in FINAL_JOB_STATUSES:
+                row.cancel_requested = True
+                if row.status == "queued":
+                    row.status, row.finished_at, row.message = "cancelled", utcnow(), "cancelled before it started"
+            return as_dict(row)
+
+    # --- worker side -----------------------------------------------------------------------
+    def start(self, job_id: str, worker: str) -> dict | None:
+        """Mark the job running on ``worker``; None if it is unknown, cancelled or finished
+        (the worker then skips it). A job found ``running`` (its worker died) starts over."""
+        with self.sessions.begin() as db:
+            row = db.get(Job, job_id, with_for_update=True)
+            if row is None or row.status in FINAL_JOB_STATUSES or row.cancel_requested:
+                return None
+            row.status, row.worker, row.started_at, row.progress = "running", worker, utcnow(), 0.0
+            return as_dict(row)
+
+    def progress(self, job_id: str, fraction: float, message: str | None = None, force: bool = False) -> None:
+        """Record progress (``fraction`` in [0, 1]) and check for cancellation.
+
+        Raises:
+            JobCancelled: the job was asked to stop.
+        """
+        now = time.monotonic()
+        if not force and now - self._last_write.get(job_id, 0.0) < PROGRESS_MIN_INTERVAL_S:
+            return
+        self._last_write[job_id] = now
+        fraction = min(1.0, max(0.0, float(fraction)))
+        with self.sessions.begin() as db:
+            db.execute(update(Job).where(Job.id == job_id).values(progress=fraction, message=message))
+            cancel = db.scalar(select(Job.cancel_requested).where(Job.id == job_id))
+        if cancel:
+            raise JobCancelled(job_id)
+
+    def finish(self, job_id: str, status: str, result: dict | None = None, error: str | None = None) -> None:
+        """Final status ``done`` (with ``result``), ``failed`` (with ``error``) or ``cancelled``."""
+        if status not in FINAL_JOB_STATUSES:
+            raise ValueError(f"not a final job status: {status!r}")
+        self._last_write.pop(job_id, None)
+        with self.sessions.begin() as db:
+            row = db.get(Job, job_id)
+            if row is None:
+                return
+            row.status, row.result, row.error, row.finished_at = status, result, error, utcnow()
+            if status == "done":
+                row.progress = 1.0
+            if status == "cancelled":
+                row.message = "cancelled"
+
+
+def as_dict(row: Job, with_result: bool = True) -> dict:
+    """JSON-ready view of a job row (timestamps ISO 8601 UTC)."""
+    out = {c: getattr(row, c) for c in ("id", "kind", "status", "subject", "params", "progress", "message",
+                                        "error", "cancel_requested", "worker", "requested_by")}
+    for c in ("created_at", "started_at", "finished_at"):
+        v: datetime | None = getattr(row, c)
+        out[c] = v.isoformat() if v is not None else None
+    if with_result:
+        out["result"] = row.result
+    return out

@@ -1,0 +1,125 @@
+"""``slinger worker``: a worker process of the job queue (server.jobs).
+
+It consumes both lanes by default, each with its own Huey consumer (thread workers): ``fast``
+(previews, the effects catalogue; polled every <= 0.1 s on SQLite) and ``heavy`` (evaluations,
+diagnoses, adaptations, probes). Start as many as you like, on this host (SQLite queue) or on
+any host that reaches the queue and the database (PostgreSQL or Redis queue; the data dir, where
+policy files and telemetry live, shared)::
+
+    slinger worker --data-dir var                       # embedded: SQLite queue var/jobs.db
+    slinger worker --database-url postgresql+psycopg://slinger@db/slinger \\
+                   --queue-url postgresql://slinger@db/slinger --data-dir /srv/slinger
+
+SIGINT finishes the running jobs first; SIGTERM stops at once. Jobs this process was running
+when it stopped, and jobs of dead worker processes of this host found at start-up, are marked
+failed with the reason (a queue message is consumed when its job starts; it is not re-run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import socket
+from pathlib import Path
+
+from sqlalchemy import select
+
+from server.db.models import Job
+from server.db.types import utcnow
+from server.jobs import tasks
+from server.jobs.queue import LANES, JobQueue, queue_url
+
+log = logging.getLogger(__name__)
+
+
+def build_parser(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--database-url", default=None, help="SQLAlchemy URL (default sqlite:///<data-dir>/slinger.db)")
+    p.add_argument("--data-dir", type=Path, default=None, help="policy files, telemetry, reports (default ./var)")
+    p.add_argument("--queue-url", default=None, help="job queue: sqlite:///FILE, postgresql://..., redis://... "
+                                                     "(default sqlite:///<data-dir>/jobs.db)")
+    p.add_argument("--lanes", default=",".join(LANES), help="lanes to consume, comma-separated (default fast,heavy)")
+    p.add_argument("--heavy-workers", type=int, default=1, help="concurrent heavy jobs (default 1)")
+    p.add_argument("--fast-workers", type=int, default=1, help="concurrent previews (default 1)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from server.config import Settings
+    from server.db.session import make_engine, make_sessionmaker
+
+    overrides = {k: v for k, v in {"database_url": args.database_url, "data_dir": args.data_dir,
+                                   "job_queue_url": args.queue_url}.items() if v is not None}
+    settings = Settings(**overrides)
+    lanes = [x.strip() for x in args.lanes.split(",") if x.strip()]
+    bad = [x for x in lanes if x not in LANES]
+    if bad or not lanes:
+        raise SystemExit(f"slinger worker: unknown lane(s) {bad or lanes}; use {','.join(LANES)}")
+    url = queue_url(settings)
+    if url == "immediate":
+        raise SystemExit("slinger worker: 'immediate' is not a queue a worker can consume")
+    engine = make_engine(settings.database_url)
+    ctx = tasks.WorkerContext(make_sessionmaker(engine), settings.data_dir, settings)
+    tasks.bind(ctx)
+    fail_orphans(ctx)
+    queue = ctx.jobs = JobQueue(url, ctx.store, tasks.execute)
+    if "fast" in lanes:
+        import sim_twin.preview  # noqa: F401  warm: the first preview must not pay MuJoCo's import
+    consumers = []
+    for lane in lanes:
+        workers = args.fast_workers if lane == "fast" else args.heavy_workers
+        consumers.append(queue.hueys[lane].create_consumer(
+            workers=workers, worker_type="thread", periodic=False, initial_delay=0.02, backoff=1.5,
+            max_delay=0.1 if lane == "fast" else 1.0, check_worker_health=True))
+    log.info("worker %s consuming %s on %s", ctx.name, ",".join(lanes), _redact(url))
+    try:
+        for c in consumers[:-1]:
+            c.start()
+        consumers[-1].run()  # until SIGINT (graceful) or SIGTERM
+        for c in consumers[:-1]:
+            c.stop(graceful=True)
+    finally:
+        fail_orphans(ctx, only_self=True)
+        engine.dispose()
+    return 0
+
+
+def worker_argv(settings) -> list[str]:
+    """``slinger worker`` for the database, data dir and queue of ``settings`` (``slinger up``)."""
+    from server.stack import slinger_command
+
+    return slinger_command("worker", "--database-url", settings.database_url, "--data-dir", str(settings.data_dir),
+                           "--queue-url", queue_url(settings))
+
+
+def fail_orphans(ctx: tasks.WorkerContext, only_self: bool = False) -> int:
+    """Mark ``running`` jobs of this host whose worker process is gone (or, with ``only_self``,
+    of this process, at its exit) failed with the reason. Returns how many."""
+    host = socket.gethostname()
+    n = 0
+    with ctx.sessions.begin() as db:
+        for job in db.scalars(select(Job).where(Job.status == "running", Job.worker.like(f"{host}:%"))):
+            pid = int(job.worker.rsplit(":", 1)[1])
+            if (only_self and pid == os.getpid()) or (not only_self and not _alive(pid)):
+                job.status, job.finished_at = "failed", utcnow()
+                job.error = f"worker {job.worker} stopped while running it; submit it again"
+                n += 1
+    if n:
+        log.warning("%d job(s) of stopped workers marked failed", n)
+    return n
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _redact(url: str) -> str:
+    if "@" in url and "://" in url:
+        scheme, rest = url.split("://", 1)
+        return f"{scheme}://***@{rest.split('@', 1)[1]}"
+    return url

@@ -1,0 +1,232 @@
+"""One operator's 3D view (a viser client): the machine drawn from the twin's MJCF geometry and
+the targeting overlay (range rings every metre, the mode's valid band, the 2D throwing line,
+keep-out zones, the target with its reason when it cannot be served).
+
+Everything here is client-scoped (``client.scene``): what one operator picks or sees is never
+drawn for another. Frames: machine frame, z up, metres. Shapes are re-created per client on
+connect (viser client state is ephemeral, see viser.ClientHandle).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import viser
+
+from runtime.throw_geometry import ARM_PLANE_OFFSET_M, PLANE_TOLERANCE_M
+
+RING_MAX_M = 14
+"""Range rings at 1, 2, ... RING_MAX_M metres from the turn axis."""
+BAND_GREEN, BAD_RED, KEEP_OUT_RED, TARGET_GREEN, RING_GREY = (30, 150, 70), (200, 30, 30), (220, 60, 60), (20, 120, 50), (90, 90, 90)
+PAYLOAD_RED = (200, 40, 40)
+REDRAW_TOL = 2e-3
+"""Joint change (rad, m) below which the machine is not redrawn."""
+
+
+def wxyz_of(xmat) -> tuple[float, float, float, float]:
+    """(9,) row-major rotation matrix -> quaternion (w, x, y, z)."""
+    return tuple(float(v) for v in viser.transforms.SO3.from_matrix(np.asarray(xmat).reshape(3, 3)).wxyz)
+
+
+class MachineGeometry:
+    """Poses of the twin's geoms for a joint vector (mujoco forward kinematics of the MJCF).
+
+    Args:
+        model: the twin's MjModel (sim_twin.model.load_model); the ground plane is skipped.
+    """
+
+    def __init__(self, model):
+        import mujoco  # only with the 3D view on: importing the app must not load MuJoCo (server.jobs)
+
+        self._mj = mujoco
+        self.model, self.data = model, mujoco.MjData(model)
+        self.geoms = [i for i in range(model.ngeom) if model.geom_type[i] != mujoco.mjtGeom.mjGEOM_PLANE]
+
+    def shapes(self) -> list[tuple[str, int, np.ndarray, tuple[int, int, int]]]:
+        """(name, mjtGeom type, size (3,), rgb 0-255) of every drawn geom."""
+        m = self.model
+        return [(m.geom(i).name or f"geom{i}", int(m.geom_type[i]), m.geom_size[i].copy(),
+                 tuple(int(255 * c) for c in m.geom_rgba[i][:3])) for i in self.geoms]
+
+    def poses(self, q) -> list[tuple[np.ndarray, tuple]]:
+        """World (position (3,), wxyz) of every drawn geom at joint positions ``q`` (6,)."""
+        self.data.qpos[:6] = np.asarray(q, dtype=float)[:6]
+        self._mj.mj_kinematics(self.model, self.data)
+        return [(self.data.geom_xpos[i].copy(), wxyz_of(self.data.geom_xmat[i])) for i in self.geoms]
+
+
+def ring_segments(radii_m, n: int = 96) -> np.ndarray:
+    """(len(radii) * n, 2, 3) line segments of ground circles around the turn axis, z = 0.02."""
+    ang = np.linspace(0.0, 2 * math.pi, n + 1)
+    out = []
+    for r in radii_m:
+        pts = np.stack([r * np.cos(ang), r * np.sin(ang), np.full(n + 1, 0.02)], axis=1)
+        out.append(np.stack([pts[:-1], pts[1:]], axis=1))
+    return np.concatenate(out).astype(np.float32)
+
+
+def annulus_mesh(lo_m: float, hi_m: float, n: int = 96) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (2n, 3) and faces of the ground ring lo_m..hi_m (the 3D mode's valid band)."""
+    ang = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
+    inner = np.stack([lo_m * np.cos(ang), lo_m * np.sin(ang), np.full(n, 0.015)], axis=1)
+    outer = np.stack([hi_m * np.cos(ang), hi_m * np.sin(ang), np.full(n, 0.015)], axis=1)
+    faces = []
+    for i in range(n):
+        j = (i + 1) % n
+        faces += [[i, n + i, n + j], [i, n + j, j]]
+    return np.concatenate([inner, outer]).astype(np.float32), np.array(faces, dtype=np.uint32)
+
+
+def strip_mesh(cabin_turn_rad: float, lo_m: float, hi_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (4, 3) and faces of the 2D mode's valid band: the throwing line from lo_m to
+    hi_m (distance from the turn axis), PLANE_TOLERANCE_M either side."""
+    c, s = math.cos(cabin_turn_rad), math.sin(cabin_turn_rad)
+    u, n = np.array([c, s]), np.array([-s, c])
+    y0 = ARM_PLANE_OFFSET_M
+    pts = []
+    for r, lat in ((lo_m, -1), (lo_m, 1), (hi_m, 1), (hi_m, -1)):
+        x = math.sqrt(max(r * r - y0 * y0, 0.0))
+        p = x * u + (y0 + lat * PLANE_TOLERANCE_M) * n
+        pts.append([p[0], p[1], 0.02])
+    return np.array(pts, dtype=np.float32), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32)
+
+
+def line_point(cabin_turn_rad: float, along_m: float) -> np.ndarray:
+    """(2,) point of the 2D throwing line ``along_m`` metres out along the cabin's heading."""
+    c, s = math.cos(cabin_turn_rad), math.sin(cabin_turn_rad)
+    return np.array([along_m * c - ARM_PLANE_OFFSET_M * s, along_m * s + ARM_PLANE_OFFSET_M * c])
+
+
+def snap_to_line(xy, cabin_turn_rad: float) -> np.ndarray | None:
+    """Project a ground point onto the 2D throwing line (None when it lies behind the machine)."""
+    c, s = math.cos(cabin_turn_rad), math.sin(cabin_turn_rad)
+    along = xy[0] * c + xy[1] * s
+    if along <= 0.0:
+        return None
+    return line_point(cabin_turn_rad, along)
+
+
+def camera_framing(cabin_turn_rad: float, lo_m: float, hi_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Camera (position, look_at) that frames the throwing area: from behind and above the
+    machine, looking at the middle of the valid band along the cabin's heading."""
+    u = np.array([math.cos(cabin_turn_rad), math.sin(cabin_turn_rad), 0.0])
+    left = np.array([-u[1], u[0], 0.0])
+    look = 0.5 * (lo_m + hi_m) * u
+    pos = look - 1.2 * hi_m * u - 0.3 * hi_m * left + np.array([0.0, 0.0, 1.15 * hi_m])
+    return pos, look
+
+
+class ClientView:
+    """The client-scoped shapes of one viser client. Call :meth:`build` once after connecting.
+
+    Args:
+        client: viser ClientHandle.
+        geometry: the twin's geometry (shared, used under the scene's lock).
+    """
+
+    def __init__(self, client, geometry: MachineGeometry):
+        self.client, self.geometry = client, geometry
+        self.handles: list = []
+        self.payload = None
+        self.label = None
+        self.last_q: np.ndarray | None = None
+        self.framed_for: tuple | None = None
+        """(machine, mode, ...) the camera was last framed for."""
+        self.drawn_for: tuple | None = None
+        """(machine, mode, band, cabin angle) the band was last drawn for."""
+
+    def build(self, zones) -> None:
+        """Machine shapes, range rings with labels at 5 m and 10 m, keep-out zones."""
+        s = self.client.scene
+        mujoco = self.geometry._mj
+        with self.client.atomic():
+            for name, typ, size, rgb in self.geometry.shapes():
+                path = f"/machine/{name}"
+                if typ == mujoco.mjtGeom.mjGEOM_BOX:
+                    h = s.add_box(path, color=rgb, dimensions=tuple(2 * size))
+                elif typ in (mujoco.mjtGeom.mjGEOM_CAPSULE, mujoco.mjtGeom.mjGEOM_CYLINDER):
+                    h = s.add_cylinder(path, radius=float(size[0]), height=float(2 * size[1]), color=rgb)
+                else:
+                    h = s.add_icosphere(path, radius=float(size[0]), color=rgb)
+                self.handles.append(h)
+            self.payload = s.add_icosphere("/machine/payload", radius=0.3, color=PAYLOAD_RED, visible=False)
+            self.label = s.add_label("/machine/label", "no machine", position=(0.0, 0.0, 6.5), anchor="bottom-center")
+            s.add_line_segments("/rings", ring_segments(range(1, RING_MAX_M + 1)), RING_GREY, thickness=0.03)
+            for r in (5, 10):
+                s.add_label(f"/rings/label_{r}", f"{r} m", position=(0.0, -r - 0.1, 0.05), anchor="top-center")
+            for i, z in enumerate(zones):
+                cx, cy = z.center_m
+                s.add_cylinder(f"/keep_out/{i}", radius=z.radius_m, height=0.04, color=KEEP_OUT_RED,
+                               opacity=0.45, position=(cx, cy, 0.02))
+                s.add_label(f"/keep_out/{i}/label", f"keep out: {z.name}", position=(0.0, 0.0, 0.3),
+                            anchor="bottom-center")
+
+    def draw_machine(self, label: str, q, payload_pos=None) -> None:
+        """Pose the machine from joint positions ``q`` (6,); the payload where it flies. A pose
+        within REDRAW_TOL of the last one drawn is skipped: viser renders on demand, so a still
+        machine costs the browser nothing."""
+        q = np.asarray(q, dtype=float)
+        same = (self.last_q is not None and np.max(np.abs(q - self.last_q)) < REDRAW_TOL
+                and label == self.label.text and payload_pos is None and not self.payload.visible)
+        if same:
+            return
+        self.last_q = q
+        poses = self.geometry.poses(q)
+        with self.client.atomic():
+            for h, (p, wxyz) in zip(self.handles, poses):
+                h.position, h.wxyz = tuple(p), wxyz
+            self.label.text = label
+            if payload_pos is not None:
+                self.payload.position, self.payload.visible = tuple(payload_pos), True
+            else:
+                self.payload.visible = False
+
+    def draw_band(self, mode: str, cabin_turn_rad: float, band_m: tuple[float, float]) -> None:
+        """The valid band of ``mode`` (ring in 3D, strip along the throwing line in 2D) and the line."""
+        s = self.client.scene
+        lo, hi = band_m
+        with self.client.atomic():
+            s.remove_by_name("/band")
+            if mode == "3d":
+                verts, faces = annulus_mesh(lo, hi)
+            else:
+                verts, faces = strip_mesh(cabin_turn_rad, lo, hi)
+                a, b = line_point(cabin_turn_rad, 0.5), line_point(cabin_turn_rad, RING_MAX_M)
+                s.add_line_segments("/band/line", np.array([[[*a, 0.03], [*b, 0.03]]]), (40, 90, 220), thickness=0.05)
+            s.add_mesh_simple("/band/area", verts, faces, color=BAND_GREEN, opacity=0.5, side="double")
+
+    def frame_camera(self, cabin_turn_rad: float, band_m: tuple[float, float], key: tuple) -> None:
+        """Point the camera at the throwing area once per ``key`` (machine, mode): the operator
+        may orbit freely afterwards."""
+        if self.framed_for == key:
+            return
+        cam = self.client.camera
+        try:
+            cam.position  # noqa: B018 (viser asserts until the browser reported its camera)
+        except AssertionError:
+            return  # not ready yet: the next frame tries again
+        self.framed_for = key
+        pos, look = camera_framing(cabin_turn_rad, *band_m)
+        cam.up_direction = (0.0, 0.0, 1.0)
+        cam.position = tuple(pos)
+        cam.look_at = tuple(look)
+
+    def draw_target(self, target_m, reason: str | None) -> None:
+        """The target: green with its distance when it can be served, red with the reason when not."""
+        s = self.client.scene
+        with self.client.atomic():
+            s.remove_by_name("/target")
+            if target_m is None:
+                return
+            x, y = target_m[0], target_m[1]
+            ok = reason is None
+            s.add_cylinder("/target", radius=0.35, height=0.06, color=TARGET_GREEN if ok else BAD_RED,
+                           position=(x, y, 0.04))
+            text = f"target {math.hypot(x, y):.1f} m" if ok else f"cannot throw here: {reason}"
+            s.add_label("/target/label", text, position=(0.0, 0.0, 0.1), anchor="top-left")
+
+    def clear(self, *names: str) -> None:
+        with self.client.atomic():
+            for n in names:
+                self.client.scene.remove_by_name(n)

@@ -1,0 +1,229 @@
+"""Forward selection of effects with bootstrap evidence (see :mod:`select` for the method).
+
+:func:`select_effects` runs the rounds and returns the verdict's raw material: per round the
+candidates with their fits, flags and win frequencies, the named effects, and why it stopped.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from sim_twin.diagnosis import noise as nz
+from sim_twin.diagnosis import select as sel
+from sim_twin.effects import Effect
+
+log = logging.getLogger(__name__)
+
+SWING_Z = 3.0  # excess z-score in the swing phase that lets a dynamics candidate in
+
+
+@dataclass
+class Candidate:
+    """One candidate in one round (parameters in physical units)."""
+
+    effect: str
+    params: dict[str, float]
+    sigma: dict[str, float]
+    k: int
+    at_bound: list[str]
+    worse: dict[str, float]
+    not_identifiable: list[str]
+    params_train: dict[str, float]
+    chi2_before: float
+    chi2_after: float
+    test_excess_before: float
+    test_excess_after: float
+    wins: float = 0.0
+    beats_none: float = 0.0
+    admissible: bool = False
+    reason: str = ""
+    wall_s: float = 0.0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class Round:
+    gaps: list[str]
+    candidates: list[Candidate] = field(default_factory=list)
+    gated_out: dict[str, str] = field(default_factory=dict)
+    wins_none: float = 0.0
+    decision: str = ""
+    named: str | None = None
+    runner_up: str | None = None
+
+    def to_dict(self) -> dict:
+        return {"gaps": self.gaps, "candidates": [c.to_dict() for c in self.candidates], "gated_out": self.gated_out,
+                "wins_none": self.wins_none, "decision": self.decision, "named": self.named, "runner_up": self.runner_up}
+
+
+def channel_gaps(S: np.ndarray, D: np.ndarray, S_ref: np.ndarray | None = None) -> dict[str, dict]:
+    """Channels (summed over throws and phases) with a gap: name -> {S, D, z, z_phase, phases:
+    [phases with a gap of their own]}. With ``S_ref`` (the nominal twin's), a channel whose
+    excess is below RESIDUAL_SHARE of its nominal excess counts as explained."""
+    Sc, Dc = S.sum(axis=0), D.sum(axis=0)
+    ref = None if S_ref is None else S_ref.sum(axis=(0, 2))
+    out = {}
+    for c, name in enumerate(nz.CHANNELS):
+        gap, z = nz.gap_test(Sc[c].sum(), Dc[c].sum())
+        if gap and ref is not None and Sc[c].sum() - Dc[c].sum() < sel.RESIDUAL_SHARE * (ref[c] - Dc[c].sum()):
+            gap = False
+        if gap:
+            zp = {nz.PHASES[p]: nz.gap_test(Sc[c, p], Dc[c, p])[1] for p in range(len(nz.PHASES)) if Dc[c, p] > 0}
+            out[name] = {"S": float(Sc[c].sum()), "D": float(Dc[c].sum()), "z": z, "z_phase": zp,
+                         "phases": [nz.PHASES[p] for p in range(len(nz.PHASES)) if nz.gap_test(Sc[c, p], Dc[c, p])[0]]}
+    return out
+
+
+def gated(cls: type[Effect], gaps: dict[str, dict]) -> str | None:
+    """None if the candidate can act where the gap is, else why not (its stage and footprint
+    against the where): it must act on a channel group with a gap, and a dynamics effect, which
+    changes the swing first, needs a gap in the swing phase of its trajectory channels."""
+    groups = set(cls.groups())
+    hit = [c for c in gaps if nz.group_of(c) in groups]
+    if not hit:
+        return f"acts on {sorted(groups)}; the gap is in {sorted({nz.group_of(c) for c in gaps})}"
+    traj = [c for c in hit if nz.group_of(c) in ("active", "passive")]
+    if cls.stage == "dynamics" and traj and not any(gaps[c]["z_phase"].get("swing", 0.0) > SWING_Z for c in traj):
+        return "a dynamics effect changes the swing first; its channels match in the swing"
+    return None
+
+
+def _bootstrap_weights(N: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.stack([np.bincount(rng.integers(0, N, N), minlength=N) for _ in range(sel.BOOTSTRAP)]).astype(float)
+
+
+def evaluate_candidate(ev: sel.Evaluator, sw: sel.Sweep, D: np.ndarray, train: np.ndarray, W: np.ndarray) -> tuple[Candidate, np.ndarray, np.ndarray]:
+    """Fits, flags, the bootstrap out-of-bag losses (B,) and S (N, C, P) at the all-throw fit of one sweep."""
+    t0 = time.time()
+    N = D.shape[0]
+    params, S_all = ev.fit(sw, np.ones(N))
+    params_train, S_train = ev.fit(sw, train.astype(float))
+    per_joint = sw.joints is not None
+    not_ident = [n for (n, _), ok in zip(sw.joints or [], sw.identifiable) if not ok] if per_joint else []
+    fitted = [n for n in params if n not in not_ident]
+    # bootstrap: parameter spread and out-of-bag losses
+    thetas, oob = [], np.zeros(len(W))
+    for b, w in enumerate(W):
+        pb, Sb = ev.fit(sw, w)
+        thetas.append([pb[n] for n in fitted])
+        oob[b] = np.sum((w == 0) * Sb.sum(axis=(1, 2)))
+    thetas = np.array(thetas).reshape(len(W), -1)
+    span = {p.name: p.hi - p.lo for p in sw.cls.params}
+    sigma = {n: float(np.hypot(np.std(thetas[:, i], ddof=1), sw.resolution * span[n] / np.sqrt(12.0))) for i, n in enumerate(fitted)}
+    k = len(fitted)
+    oob += sel.PENALTY_PER_PARAM * k * (W == 0).mean(axis=1)
+    # flags
+    base_c, fit_c, Dc = ev.S_base.sum(axis=(0, 2)), S_all.sum(axis=(0, 2)), D.sum(axis=(0, 2))
+    tol = nz.worse_tolerance(Dc)
+    worse = {nz.CHANNELS[c]: float(fit_c[c] - base_c[c]) for c in range(len(nz.CHANNELS)) if Dc[c] > 0 and fit_c[c] - base_c[c] > tol[c]}
+    at_bound = []
+    for p in sw.cls.params:
+        if p.name in fitted:
+            x = (params[p.name] - p.lo) / (p.hi - p.lo)
+            x_nom = (p.nominal - p.lo) / (p.hi - p.lo)
+            # a lower bound of 0 on a magnitude is physics (no negative friction), not a prior cut
+            if (x < sel.BOUND_MARGIN and x_nom > sel.BOUND_MARGIN and p.lo != 0.0) or (x > 1 - sel.BOUND_MARGIN and x_nom < 1 - sel.BOUND_MARGIN):
+                at_bound.append(p.name)
+    test = ~train
+    cand = Candidate(
+        effect=sw.cls.spec(), params=params, params_train=params_train, sigma=sigma, k=k, at_bound=at_bound, worse=worse, not_identifiable=not_ident,
+        chi2_before=float(ev.S_base.sum()), chi2_after=float(S_all.sum()),
+        test_excess_before=float(ev.S_base[test].sum() - D[test].sum()), test_excess_after=float(S_train[test].sum() - D[test].sum()),
+        wall_s=time.time() - t0)
+    return cand, oob, S_all
+
+
+def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train: np.ndarray, seed: int = 0) -> tuple[list[Round], list[Effect]]:
+    """Forward selection (module doc of :mod:`select`).
+
+    Args:
+        ev_factory: base effects -> :class:`select.Evaluator`.
+        classes: candidate effect classes.
+        D: (N, C, P) degrees of freedom; train: (N,) bool training split.
+
+    Returns:
+        (rounds, named effects at their all-throw fits).
+    """
+    W = _bootstrap_weights(D.shape[0], seed)
+    named: list[Effect] = []
+    rounds: list[Round] = []
+    S_nominal = None
+    while len(named) < sel.MAX_EFFECTS:
+        ev = ev_factory(named)
+        S_nominal = ev.S_base if S_nominal is None else S_nominal
+        gaps = channel_gaps(ev.S_base, D, S_nominal if named else None)
+        rnd = Round(gaps=sorted(gaps))
+        rounds.append(rnd)
+        if not gaps:
+            rnd.decision = "no gap left"
+            break
+        oobs, cands, cand_S = [], [], {}
+        names_done = {type(e) for e in named}
+        for cls in classes:
+            if cls in names_done:
+                continue
+            why = gated(cls, gaps)
+            if why:
+                rnd.gated_out[cls.spec()] = why
+                continue
+            t0 = time.time()
+            sw = ev.sweep(cls, train)
+            cand, oob, S_fit = evaluate_candidate(ev, sw, D, train, W)
+            cand_S[cand.effect] = S_fit
+            cand.wall_s = time.time() - t0
+            cands.append((cand, sw))
+            oobs.append(oob)
+            log.info("round %d: %-22s chi2 %.0f -> %.0f, params %s, worse %s, at bound %s (%.1f s)", len(rounds), cand.effect,
+                     cand.chi2_before, cand.chi2_after, {k: round(v, 4) for k, v in cand.params.items()}, list(cand.worse), cand.at_bound, cand.wall_s)
+        if not cands:
+            rnd.decision = "no candidate acts where the gap is"
+            break
+        none_oob = np.array([np.sum((w == 0) * ev.S_base.sum(axis=(1, 2))) for w in W])
+        L = np.vstack([none_oob[None]] + [o[None] for o in oobs])  # (1 + K, B)
+        winner = np.argmin(L, axis=0)
+        rnd.wins_none = float(np.mean(winner == 0))
+        for i, (cand, _) in enumerate(cands):
+            cand.wins = float(np.mean(winner == i + 1))
+            cand.beats_none = float(np.mean(L[i + 1] < L[0]))
+            reasons = []
+            if cand.at_bound:
+                reasons.append(f"at its prior bound: {', '.join(cand.at_bound)}")
+            if cand.worse:
+                reasons.append("makes " + ", ".join(cand.worse) + " worse beyond noise")
+            if cand.k == 0:
+                reasons.append("no parameter identifiable")
+            gap_idx = [nz.CH_INDEX[g] for g in gaps]
+            excess = float(ev.S_base[:, gap_idx].sum() - D[:, gap_idx].sum())
+            removed = float(ev.S_base[:, gap_idx].sum() - cand_S[cand.effect][:, gap_idx].sum())
+            if excess > 0 and removed < sel.MIN_SHARE * excess:
+                reasons.append(f"removes only {100 * max(removed, 0) / excess:.0f}% of the gap")
+            cand.admissible = not reasons
+            cand.reason = "; ".join(reasons)
+        rnd.candidates = [c for c, _ in sorted(cands, key=lambda cs: -cs[0].wins)]
+        order = sorted(range(len(cands)), key=lambda i: -cands[i][0].wins)
+        best, best_sw = cands[order[0]]
+        runner = cands[order[1]][0] if len(order) > 1 else None
+        if rnd.wins_none >= best.wins:
+            rnd.decision = "no candidate beats the twin without it on held-out throws"
+            break
+        if not best.admissible:
+            rnd.decision = f"best candidate {best.effect} not admissible ({best.reason})"
+            break
+        if best.wins < sel.WIN_FREQ:
+            if runner is not None and runner.admissible and runner.wins >= sel.AMBIGUOUS_FREQ:
+                rnd.decision = "ambiguous"
+                rnd.named, rnd.runner_up = best.effect, runner.effect
+            else:
+                rnd.decision = f"best candidate {best.effect} wins only {100 * best.wins:.0f}% of resamples"
+            break
+        rnd.decision = "named"
+        rnd.named = best.effect
+        named.append(best_sw.cls(**best.params))
+    return rounds, named

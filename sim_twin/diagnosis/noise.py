@@ -1,0 +1,100 @@
+"""Measurement noise of a log and the noise-aware residual statistics of the diagnosis.
+
+Every residual (logged - replayed) is expressed in units of its noise, so that a channel that
+matches up to its noise contributes about one unit per degree of freedom (chi-square):
+
+* trajectory channels (joint encoders, gripper IMU; payload tracking when logged): white
+  noise sigma per sample measured from the log itself, robustly from second differences of the
+  nominal residual (white noise: E (e[t+1] - 2 e[t] + e[t-1])^2 = 6 sigma^2, pooled over the
+  throws; the smooth part of a model error differences away at 100 Hz, what is left of it only
+  makes sigma larger, i.e. the test more cautious), floored at FLOOR. The samples are averaged in blocks
+  of BLOCK_ROWS rows within each phase: one degree of freedom per block,
+  z = sum(e) / (sigma sqrt(n)).
+* impact (downrange, crossrange), one degree of freedom each per throw: variance = the impact
+  sensor's (declared ``sensors.impact_sigma_m``, else measured as the scatter of the nominal
+  impact residual about its mean) plus the release-jitter spread the replay predicts.
+* release delay (only with a logged payload-free flag): variance = jitter^2 + tick^2 / 12.
+
+A channel (or channel and phase) has a gap when its chi-square exceeds its degrees of freedom D
+by more than Z_GAP standard deviations sqrt(2 D) AND by more than R_GAP D (the second guards
+against noise that is not quite white).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from runtime.machine import JOINT_NAMES
+
+BLOCK_ROWS = 10
+Z_GAP = 5.0
+R_GAP = 0.5
+FLOOR = {"q.active": 2e-4, "qd.active": 2e-3, "q.passive": 5e-4, "qd.passive": 5e-3, "payload": 2e-3}
+"""Noise floors (rad, m, rad/s, m/s): encoder / IMU resolution of a noise-free log (CHOSEN)."""
+MIN_IMPACT_SIGMA_M = 0.01
+
+
+def trajectory_channels() -> list[tuple[str, str, int]]:
+    """(channel, kind, joint index) of the 12 joint channels: q.<joint>, qd.<joint>."""
+    out = []
+    for j, name in enumerate(JOINT_NAMES):
+        out.append((f"q.{name}", "q", j))
+        out.append((f"qd.{name}", "qd", j))
+    return out
+
+
+TRAJ = trajectory_channels()
+CHANNELS = [c for c, _, _ in TRAJ] + ["payload.held", "payload.flight", "release.delay", "impact.downrange", "impact.crossrange", "impact.spread"]
+"""``impact.spread`` is the Gaussian log-likelihood's log-variance term of the impact, log(v /
+sigma_sensor^2), for fits whose predicted release jitter changes the impact variance v; it has
+no degrees of freedom and takes no part in gap tests."""
+CH_INDEX = {c: i for i, c in enumerate(CHANNELS)}
+PHASES = ("swing", "release", "flight")
+
+
+def group_of(channel: str) -> str:
+    """Reporting group: active, passive, payload, release, impact."""
+    if channel.startswith(("q.", "qd.")):
+        return "passive" if channel.split(".", 1)[1].startswith("gripper") else "active"
+    return channel.split(".", 1)[0]
+
+
+def floor_of(channel: str) -> float:
+    g = group_of(channel)
+    if g == "payload":
+        return FLOOR["payload"]
+    return FLOOR[f"{channel.split('.', 1)[0]}.{g}"]
+
+
+@dataclass
+class NoiseModel:
+    """Noise per channel.
+
+    Attributes:
+        sigma: trajectory channel -> white noise sigma per sample (channel units).
+        impact_sigma_m: impact sensor sigma per horizontal axis, m.
+        source: channel -> "measured" | "declared" | "floor".
+    """
+
+    sigma: dict[str, float]
+    impact_sigma_m: float
+    source: dict[str, str] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"sigma": self.sigma, "impact_sigma_m": self.impact_sigma_m, "source": self.source}
+
+
+def gap_test(S: float, D: float) -> tuple[bool, float]:
+    """(gap?, excess z-score) of a chi-square S with D degrees of freedom (see module doc)."""
+    if D <= 0:
+        return False, 0.0
+    z = (S - D) / np.sqrt(2 * D)
+    return bool(z > Z_GAP and S > (1 + R_GAP) * D), float(z)
+
+
+def worse_tolerance(D: np.ndarray) -> np.ndarray:
+    """How much a channel's chi-square may grow before it counts as worse beyond its noise:
+    2 standard deviations of a chi-square with D degrees of freedom, at least 2."""
+    return np.maximum(2.0 * np.sqrt(2.0 * np.asarray(D, dtype=float)), 2.0)

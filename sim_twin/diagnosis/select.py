@@ -1,0 +1,249 @@
+"""Which effects explain the gap: grid fits, bootstrap over throws, forward selection.
+
+Per candidate (on top of the effects already named) the deterministic parameters are swept
+over their prior on a grid (normalised to [0, 1]; 1 parameter: COARSE_1D points, refined with
+3 points around the training optimum; 2 parameters: a COARSE_2D^2 grid refined by 3 x 3;
+per-joint effects: one common sweep, each joint fitted from its own channels); the refinement
+halves the spacing each time (at least 3 times, at most MAX_REFINE) until the best training
+chi-square stops improving by REFINE_STOP_CHI2. Every grid point
+replays ALL throws once, which gives the noise-scaled chi-square S (grid, throw, channel,
+phase) (:mod:`scoring`). Everything after that is arithmetic on S:
+
+* a fit on any weighting of the throws is the minimum of a local quadratic through the
+  nearest grid points (credible for objectives that are not smooth: no finite differences);
+* parameter uncertainty: the spread of that fit over BOOTSTRAP resamples of the throws, with
+  the grid's resolution added in quadrature (uniform over the last spacing: h / sqrt(12) per side);
+* win frequencies: per resample, each candidate is fitted on the resampled throws and scored
+  on the throws left out (plus PENALTY_PER_PARAM per fitted parameter, scaled to the left-out
+  share); the lowest wins. "none" (no further effect) competes too;
+* the held-out claim: fitted on the training split only, scored on the held-out throws.
+
+A candidate is **admissible** when its all-throw fit removes at least MIN_SHARE of the gap
+channels' chi-square excess, leaves no channel worse beyond its noise
+(:func:`noise.worse_tolerance`) and no parameter at a prior bound that is not its nominal value
+(a lower bound of 0 on a magnitude is a physical limit, not a prior cut, and is allowed).
+Forward selection names the candidate that wins at least WIN_FREQ of the resamples if it is
+admissible, adds it to the base and repeats while a gap remains (at most MAX_EFFECTS; once an
+effect is named, a channel whose excess is below RESIDUAL_SHARE of its nominal excess counts as
+explained: at a large signal a fit within a few percent leaves a statistically visible rest).
+Otherwise the round ends "ambiguous" (an admissible runner-up wins at least AMBIGUOUS_FREQ) or
+"unexplained".
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import product
+
+import numpy as np
+
+from sim_twin.diagnosis import noise as nz
+from sim_twin.diagnosis import replay as rp
+from sim_twin.diagnosis.scoring import Scorer
+from sim_twin.effects import Effect, EffectStack, PerJointEffect
+
+
+COARSE_1D = 7
+COARSE_2D = 4
+BOOTSTRAP = 200
+PENALTY_PER_PARAM = 1.0
+WIN_FREQ = 0.75
+AMBIGUOUS_FREQ = 0.15
+MAX_EFFECTS = 3
+BOUND_MARGIN = 0.02  # normalised distance from a prior bound that counts as "at the bound"
+MAX_REFINE = 6
+MIN_SHARE = 0.2  # a candidate must remove this share of the gap channels' chi-square excess
+RESIDUAL_SHARE = 0.05  # after naming, a channel whose excess is below this share of the nominal one is explained
+REFINE_STOP_CHI2 = 2.0  # stop refining when the best training chi-square improves by less than this
+UNSTABLE_CHI2 = 1e9  # per throw, channel and phase, for a replay whose simulation diverged
+IDENTIFIABLE_CHI2 = 9.0  # a joint's channels must change by this much over the sweep to fit its parameter
+
+
+@dataclass
+class Sweep:
+    """One candidate's grid on top of a base set of effects.
+
+    Attributes:
+        cls: the effect class; names / lo / hi: fitted (deterministic) parameters.
+        X: (G, k) normalised grid; S: (G, N, C, P) chi-square per grid point.
+        joints: per-joint effects: (joint param name, channel indices) per joint; else None.
+    """
+
+    cls: type[Effect]
+    names: list[str]
+    lo: np.ndarray
+    hi: np.ndarray
+    X: np.ndarray
+    S: np.ndarray
+    joints: list[tuple[str, list[int]]] | None = None
+    verify_S: np.ndarray | None = None
+    resolution: float = 1.0 / (COARSE_1D - 1)
+    identifiable: list[bool] = field(default_factory=list)
+
+    def theta(self, x: np.ndarray) -> dict[str, float]:
+        return {n: float(lo + np.clip(v, 0, 1) * (hi - lo)) for n, lo, hi, v in zip(self.names, self.lo, self.hi, np.atleast_1d(x))}
+
+
+def _basis(X: np.ndarray) -> np.ndarray:
+    k = X.shape[1]
+    cols = [np.ones(len(X))] + [X[:, i] for i in range(k)] + [X[:, i] ** 2 for i in range(k)]
+    cols += [X[:, i] * X[:, j] for i in range(k) for j in range(i + 1, k)]
+    return np.stack(cols, axis=1)
+
+
+_NB_CACHE: dict = {}
+
+
+def local_fit(X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Minimum of a local quadratic through the grid points nearest the best one.
+
+    Args:
+        X: (G, k) normalised grid; T: (G,) loss.
+
+    Returns:
+        (x* (k,), w (G,)): the minimiser (kept inside the neighbourhood's box) and weights such
+        that ``w @ L`` is the quadratic's value at x* for any loss L (G, ...) on the same grid.
+    """
+    G, k = X.shape
+    g = int(np.argmin(T))
+    m = min(G, 3 if k == 1 else 9)
+    key = (X.shape, X.tobytes()[:64], hash(X.tobytes()), g)
+    if key not in _NB_CACHE:
+        nb = np.argsort(np.linalg.norm(X - X[g], axis=1), kind="stable")[:m]
+        _NB_CACHE[key] = (nb, np.linalg.pinv(_basis(X[nb])))
+        if len(_NB_CACHE) > 4096:
+            _NB_CACHE.pop(next(iter(_NB_CACHE)))
+    nb, pinv = _NB_CACHE[key]
+    coef = pinv @ T[nb]
+    lo, hi = X[nb].min(axis=0), X[nb].max(axis=0)
+    x = X[g].copy()
+    if k == 1:
+        if coef[2] > 1e-12:
+            x = np.clip(np.array([-coef[1] / (2 * coef[2])]), lo, hi)
+    else:
+        H = np.diag(2 * coef[1 + k:1 + 2 * k])
+        idx = 1 + 2 * k
+        for i in range(k):
+            for j in range(i + 1, k):
+                H[i, j] = H[j, i] = coef[idx]
+                idx += 1
+        # Newton step from the best point along the directions of positive curvature only: a
+        # flat valley (parameters that trade off) moves nowhere along it instead of failing
+        lam, V = np.linalg.eigh(H)
+        grad = coef[1:1 + k] + H @ X[g]
+        pos = lam > 1e-9 * max(np.abs(lam).max(), 1e-300)
+        step = -V[:, pos] @ ((V[:, pos].T @ grad) / lam[pos]) if pos.any() else np.zeros(k)
+        x = np.clip(X[g] + step, lo, hi)
+    w = np.zeros(G)
+    w[nb] = _basis(x[None])[0] @ pinv
+    return x, w
+
+
+def _grid(k: int, nominal: np.ndarray, n1: int = COARSE_1D) -> np.ndarray:
+    pts = np.linspace(0, 1, n1 if k == 1 else COARSE_2D)
+    X = np.array(list(product(pts, repeat=k)), dtype=float)
+    return np.unique(np.vstack([X, nominal[None]]).round(9), axis=0)
+
+
+def _refine(x: np.ndarray, k: int, level: int) -> np.ndarray:
+    """Points around x at half (level 1) or a quarter (level 2) of the coarse spacing."""
+    h = (1.0 / (COARSE_1D - 1) if k == 1 else 1.0 / (COARSE_2D - 1)) / 2**level
+    return np.clip(np.array([x + np.array(d) * h for d in product((-1, 0, 1), repeat=k)]), 0, 1)
+
+
+class Evaluator:
+    """Replays and scores candidate configurations over all throws (one base per round)."""
+
+    def __init__(self, throws, scorer: Scorer, base: list[Effect], cache=None):
+        self.throws, self.scorer, self.base = throws, scorer, list(base)
+        self.cache = cache if cache is not None and not base else rp.simulate(throws, [EffectStack(self.base)], long=True)[0]
+        self.S_base = scorer.score(rp.replay(throws, [EffectStack(self.base)], dynamics_cache=self.cache)[0])
+        self.replays = 0
+
+    def score(self, effects: list[Effect]) -> np.ndarray:
+        """S (K, N, C, P) of base + each effect (a replay that went unstable scores UNSTABLE_CHI2)."""
+        stacks = [EffectStack(self.base + [e]) for e in effects]
+        self.replays += len(stacks)
+        S = np.stack([self.scorer.score(r) for r in rp.replay(self.throws, stacks, dynamics_cache=self.cache)])
+        return np.where(np.isfinite(S), S, UNSTABLE_CHI2)
+
+    def sweep(self, cls: type[Effect], train: np.ndarray) -> Sweep:
+        """Grid sweep of ``cls`` (see module doc); ``train`` (N,) bool picks the throws whose fit
+        centres the refinement."""
+        det = [p for p in cls.params if not p.stochastic]
+        per_joint = issubclass(cls, PerJointEffect)
+        if per_joint:
+            p0 = det[0]
+            names, lo, hi = [cls.joint_base], np.array([p0.lo]), np.array([p0.hi])
+            nominal = np.array([(p0.nominal - p0.lo) / (p0.hi - p0.lo)])
+        else:
+            names = [p.name for p in det]
+            lo, hi = np.array([p.lo for p in det]), np.array([p.hi for p in det])
+            nominal = np.array([(p.nominal - p.lo) / (p.hi - p.lo) for p in det])
+        k = len(names)
+        sw = Sweep(cls, names, lo, hi, np.zeros((0, k)), np.zeros((0,) + self.S_base.shape))
+        X = _grid(k, nominal)
+        self._add(sw, X)
+        if per_joint:
+            chans = {j: [nz.CH_INDEX[f"q.{j}"], nz.CH_INDEX[f"qd.{j}"]] for j in cls.joints}
+            sw.joints = [(f"{cls.joint_base}_{j}", chans[j]) for j in cls.joints]
+            w = train.astype(float)
+            for level in range(1, 4):  # refine around the most informative joint's estimate
+                x_j, _ = self.fit(sw, w)
+                ranges = [np.ptp(np.einsum("n,gn->g", w, sw.S[:, :, ch].sum(axis=(2, 3)))) for _, ch in sw.joints]
+                name = sw.joints[int(np.argmax(ranges))][0]
+                self._add(sw, _refine(np.array([(x_j[name] - lo[0]) / (hi[0] - lo[0])]), 1, level))
+                sw.resolution = 1.0 / (COARSE_1D - 1) / 2**level
+            x_j, _ = self.fit(sw, w)
+            sw.verify_S = self.score([cls(**{n: v for n, v in x_j.items()})])[0]
+        else:
+            for level in range(1, MAX_REFINE + 1):
+                T = np.einsum("n,gn->g", train.astype(float), sw.S.sum(axis=(2, 3)))
+                x, _ = local_fit(sw.X, T)
+                self._add(sw, _refine(x, k, level))
+                sw.resolution = (1.0 / (COARSE_1D - 1) if k == 1 else 1.0 / (COARSE_2D - 1)) / 2**level
+                T_new = np.einsum("n,gn->g", train.astype(float), sw.S.sum(axis=(2, 3)))
+                if level >= 3 and T.min() - T_new.min() < max(REFINE_STOP_CHI2, 1e-4 * T_new.min()):
+                    break
+        return sw
+
+    def _add(self, sw: Sweep, X: np.ndarray) -> None:
+        X = np.array([x for x in X if not np.any(np.all(np.abs(sw.X - x) < 1e-9, axis=1))]).reshape(-1, sw.X.shape[1])
+        if not len(X):
+            return
+        S = self.score([sw.cls(**sw.theta(x)) for x in X])
+        sw.X = np.vstack([sw.X, X])
+        sw.S = np.concatenate([sw.S, S])
+
+    def fit(self, sw: Sweep, w: np.ndarray) -> tuple[dict[str, float], np.ndarray]:
+        """Fit on throw weights ``w`` (N,). Returns (parameters in physical units, per-throw
+        S (N, C, P) at the fit: interpolated; per-joint effects: their own channels
+        interpolated, the rest from the verification replay when there is one)."""
+        if sw.joints is None:
+            x, g = local_fit(sw.X, np.einsum("n,gn->g", w, sw.S.sum(axis=(2, 3))))
+            return sw.theta(x), np.einsum("g,gncp->ncp", g, sw.S)
+        S = (sw.verify_S if sw.verify_S is not None else sw.S[0]).copy()
+        params = {}
+        sw.identifiable = []
+        for name, ch in sw.joints:
+            T = np.einsum("n,gn->g", w, sw.S[:, :, ch].sum(axis=(2, 3)))
+            ident = bool(T.max() - T.min() > IDENTIFIABLE_CHI2 * max(w.sum() / len(w), 1e-9))
+            sw.identifiable.append(ident)
+            p = next(p for p in sw.cls.params if p.name == name)
+            if not ident:
+                params[name] = p.nominal
+                g = np.argmin(np.abs(sw.X[:, 0] - (p.nominal - p.lo) / (p.hi - p.lo)))
+                S[:, ch] = sw.S[g][:, ch]
+                continue
+            x, g = local_fit(sw.X, T)
+            params[name] = float(p.lo + x[0] * (p.hi - p.lo))
+            S[:, ch] = np.einsum("g,gncp->ncp", g, sw.S[:, :, ch])
+        return params, S
+
+    def normalised(self, sw: Sweep, params: dict[str, float]) -> dict[str, float]:
+        """Fitted parameters on [0, 1] of their prior."""
+        out = {}
+        for p in sw.cls.params:
+            if p.name in params and not p.stochastic:
+                out[p.name] = (params[p.name] - p.lo) / (p.hi - p.lo)
+        return out

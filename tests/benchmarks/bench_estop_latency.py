@@ -1,0 +1,132 @@
+"""E-STOP latency: click (HTTP POST /api/machines/m1/estop) -> first neutral ValveCommand on Zenoh,
+with the whole stack (server, simulated machine, runtime as separate processes:
+tests/fault_stack.py) and two CPU-burning processes beside it. Goal: p99 <= 100 ms.
+
+Each click stops a throw mid-swing (the deployed 2D policy, so the swing lasts ~1.5 s): preview,
+throw, wait for ``swinging``, wait a random 0-0.4 s, click; then reset the latch, reload the
+simulated machine (SimReset: a new payload at a random pose) and wait until it is ready again.
+A click counts only if the valve command just before it was not neutral (the arm was moving). A throw the runtime refuses (e.g. the simulated machine says it is
+behind real time under the load) is counted and retried; such refusals are reported.
+
+Run: ``PYTHONPATH=. python tests/benchmarks/bench_estop_latency.py --clicks 30`` (nice it on a
+shared machine). Prints p50/p95/p99/max of click->neutral and of click->HTTP reply, in ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import random
+import signal
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+
+from tests.fault_stack import FaultStack, ValveWatch, burner, orphans, stop_proc  # noqa: E402
+
+log = logging.getLogger("bench_estop")
+
+
+def _pct(values: list[float]) -> str:
+    a = np.asarray(values) * 1e3
+    return (f"n={a.size} p50={np.percentile(a, 50):.1f} p95={np.percentile(a, 95):.1f} "
+            f"p99={np.percentile(a, 99):.1f} max={a.max():.1f} ms")
+
+
+def run(clicks: int, burners: int, policy: Path, seed: int = 0, keep: Path | None = None,
+        max_minutes: float = 8.0) -> dict:
+    rng = random.Random(seed)
+    stop_at = time.monotonic() + 60.0 * max_minutes
+    neutral_s, reply_s, refusals, not_moving = [], [], [], 0
+    with tempfile.TemporaryDirectory(prefix="bench-estop-") as tmp:
+        tmp = keep or tmp
+        stack = FaultStack(Path(tmp), policy)
+        stack.start_timeout_s = 400.0  # a loaded shared machine starts slowly
+        with stack:
+            watch = ValveWatch(stack.endpoint)
+            hogs = [burner() for _ in range(burners)]
+            try:
+                attempts = 0
+                while len(neutral_s) < clicks and attempts < clicks * 4 and time.monotonic() < stop_at:
+                    attempts += 1
+                    m = _wait_ready(stack, 60)
+                    if not m["ready"]:
+                        refusals.append(f"not ready: {m['not_ready_reason']}")
+                        continue
+                    r = stack.try_throw()
+                    if r.status_code != 202:
+                        refusals.append(r.json().get("detail"))
+                        time.sleep(1.0)
+                        continue
+                    stack.wait_phase(r.json()["id"], ("swinging",))
+                    time.sleep(rng.uniform(0.0, 0.4))
+                    log.info("click %d at wall %.3f", len(neutral_s) + 1, time.time())
+                    t0 = time.monotonic()
+                    try:
+                        e = stack.http.post("/api/machines/m1/estop", json={"reason": "latency benchmark"})
+                    except httpx.HTTPError as exc:  # counted: the stop may still have gone out
+                        refusals.append(f"E-STOP request error: {exc!r}")
+                        e = None
+                    t_reply = time.monotonic()
+                    deadline = t0 + 5.0
+                    while (t_n := watch.first_neutral_after(t0)) is None and time.monotonic() < deadline:
+                        time.sleep(0.002)
+                    moving = any(watch.last_before(t0) or [])
+                    not_moving += not moving
+                    if e is not None and e.status_code == 200 and t_n is not None and moving:
+                        neutral_s.append(t_n - t0)
+                        reply_s.append(t_reply - t0)
+                        log.info("click %d: neutral after %.1f ms, reply after %.1f ms", len(neutral_s),
+                                 (t_n - t0) * 1e3, (t_reply - t0) * 1e3)
+                    stack.wait_final(r.json()["id"], 30)
+                    assert stack.http.post("/api/machines/m1/estop/reset").status_code == 200
+                    watch.reload()  # the arm stopped mid-swing, payload in hand: start afresh
+                    time.sleep(1.5)
+            finally:
+                for h in hogs:
+                    stop_proc(h, signal.SIGKILL)
+                watch.close()
+        left = orphans(tmp)
+    return {"neutral_s": neutral_s, "reply_s": reply_s, "refusals": refusals, "orphans": left,
+            "not_moving": not_moving}
+
+
+def _wait_ready(stack, timeout_s: float) -> dict:
+    """The machine row once ready, or the last row seen after ``timeout_s``."""
+    deadline, m = time.monotonic() + timeout_s, {}
+    while time.monotonic() < deadline:
+        m = stack.machine() or {}
+        if m.get("ready"):
+            return m
+        time.sleep(0.2)
+    return {"ready": False, "not_ready_reason": m.get("not_ready_reason"), **m}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--clicks", type=int, default=30)
+    parser.add_argument("--burners", type=int, default=2, help="CPU-burning processes beside the stack")
+    parser.add_argument("--policy", type=Path, default=REPO / "policies" / "throw2d.onnx")
+    parser.add_argument("--keep", type=Path, default=None, help="run in this directory and keep the logs")
+    parser.add_argument("--max-minutes", type=float, default=8.0, help="stop clicking after this long")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.getLogger("httpx").setLevel(logging.WARNING)
+    out = run(args.clicks, args.burners, args.policy, keep=args.keep, max_minutes=args.max_minutes)
+    print(f"E-STOP click -> first neutral ValveCommand ({args.burners} CPU burners): {_pct(out['neutral_s'])}")
+    print(f"E-STOP click -> HTTP reply (stop confirmed, audited):   {_pct(out['reply_s'])}")
+    print(f"clicks discarded (valves already neutral before the click): {out['not_moving']}")
+    print(f"throws refused by the runtime meanwhile: {len(out['refusals'])} {sorted(set(out['refusals']))[:3]}")
+    print(f"orphaned processes: {len(out['orphans'])}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

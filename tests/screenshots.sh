@@ -1,0 +1,9 @@
+#!/usr/bin/env bash
+# Photograph every console page at 1440x900, 1024x768 and 390x844 into reports/screenshots/
+# (the README links the set). The same browser tests that check the layout bars take them.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+mkdir -p reports/screenshots
+export SLINGER_SCREENSHOTS="$PWD/reports/screenshots" MUJOCO_GL=egl
+python -m pytest -q tests/test_browser_pages.py tests/test_browser_console.py \
+  -k "accessible or layout or throw_from_a_click" "$@"

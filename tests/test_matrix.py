@@ -1,0 +1,50 @@
+"""Site matrix (slinger evaluate --matrix): bar verdicts per cell and a tiny end-to-end run that
+writes the table, the JSON and the figure."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from sim_twin import matrix
+
+POLICY_2D = Path(__file__).resolve().parents[1] / "policies" / "throw2d.onnx"
+
+
+def _cell(success=1.0, bias=0.0, down=0.05, cross=0.05):
+    return {"success_rate": success, "landed": 10, "bias_m": bias, "sigma_downrange_m": down, "sigma_crossrange_m": cross}
+
+
+@pytest.mark.parametrize("mode,profile,shifts,cell,ok", [
+    ("2d", "nominal", False, _cell(), True),
+    ("2d", "nominal", False, _cell(success=0.97), False),  # nominal 2D needs 98 %
+    ("2d", "nominal", False, _cell(down=0.12), False),
+    ("2d", "slow_hydraulics", False, _cell(bias=0.14, down=0.19), True),
+    ("2d", "slow_hydraulics", False, _cell(bias=-0.16), False),
+    ("2d", "heavy_load", True, _cell(bias=0.6, down=0.5), True),  # mean shifters: success only
+    ("2d", "heavy_load", True, _cell(success=0.94), False),
+    ("3d", "nominal", False, _cell(bias=0.3, cross=0.19), True),
+    ("3d", "nominal", False, _cell(cross=0.21), False),
+    ("3d", "sensor_noise", False, _cell(down=0.29, cross=0.31), False),
+])
+def test_cell_bars(mode, profile, shifts, cell, ok):
+    assert all(matrix.cell_bars(mode, profile, shifts, cell).values()) is ok
+
+
+def test_every_matrix_profile_is_committed():
+    for name, _ in matrix.MATRIX_PROFILES[1:]:
+        assert (matrix.PROFILE_DIR / f"{name}.json").is_file(), name
+    with pytest.raises(FileNotFoundError):
+        matrix.run_matrix(POLICY_2D, "2d", [8.5], 1, profiles=[("no_such_site", False)])
+
+
+def test_tiny_matrix_writes_table_json_and_figure(tmp_path):
+    rep = matrix.run_matrix(POLICY_2D, "2d", [8.5], 2, profiles=[("nominal", False), ("friction_x3", False)], workers=1)
+    assert [p["name"] for p in rep["profiles"]] == ["nominal", "friction_x3"]
+    assert all(p["targets"][0]["throws"] == 2 for p in rep["profiles"])
+    matrix.write(rep, tmp_path / "m.json")
+    assert json.loads((tmp_path / "m.json").read_text())["mode"] == "2d"
+    assert "| friction_x3 | no | 8.5 |" in (tmp_path / "m.md").read_text()
+    assert (tmp_path / "m.png").stat().st_size > 1000
