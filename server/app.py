@@ -86,7 +86,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
                                            settings.login_workers, settings.login_max_pending)
         app.state.throws = ThrowService(fleet, sessions, settings.keep_out_zones,
                                         previews=lambda pid: app.state.previews.get(pid),
-                                        gate=settings.gate_limits())
+                                        gate=settings.gate_limits(), machine_status=live_hub.status)
         scene_obj = _make_scene(app, fleet, settings) if settings.viser_enabled else None
         app.state.settings, app.state.sessions, app.state.store = settings, sessions, store
         app.state.fleet, app.state.scene = fleet, scene_obj

@@ -53,11 +53,16 @@ class ThrowService:
         previews: looks up a preview summary by id (None: unknown or expired).
         gate: bounds of the preview gate; None switches the gate off (tests of other parts
             only: Settings.require_preview).
+        machine_status: the console's machine state of a machine id (server.live.LiveHub.status:
+            a dict with "state" and "estop_reason", from the RuntimeInfo the runtime publishes);
+            a second source of the E-STOP latch beside the query at the throw request.
     """
 
     def __init__(self, fleet: Fleet, sessions: sessionmaker[Session], keep_out_zones=(),
-                 previews: Callable[[str], dict | None] | None = None, gate: GateLimits | None = GateLimits()):
+                 previews: Callable[[str], dict | None] | None = None, gate: GateLimits | None = GateLimits(),
+                 machine_status: Callable[[str], dict] | None = None):
         self.fleet = fleet
+        self.machine_status = machine_status
         self.sessions = sessions
         self.keep_out_zones = list(keep_out_zones)
         self.previews = previews or (lambda _id: None)
@@ -101,11 +106,11 @@ class ThrowService:
         """
         mid = body.machine_id
         state = self.checked_state(mid, body.mode, body.target)
-        info = self.fleet.fresh_info(mid, max_age_s=0.0, timeout_s=1.0)  # ask the runtime now (a latch is instant)
-        if info is not None and info.estop_latched:
+        latched = self.estop_reason(mid)
+        if latched is not None:
             # named before the preview gate: the operator must reset first (the runtime refuses anyway)
-            raise ThrowRefused(409, f"E-STOP latched on {mid} ({info.estop_reason or 'no reason given'}): "
-                                    "reset it before throwing", "estop_latched")
+            raise ThrowRefused(409, f"E-STOP latched on {mid} ({latched}): reset it before throwing",
+                               "estop_latched")
         preview = self._preview_of(body, state)
         if body.mode == "3d" and not body.confirm_clearance:
             raise ThrowRefused(422, "a 3D throw turns the cabin: confirm that the swept clearance zone is "
@@ -143,6 +148,18 @@ class ThrowService:
                   policy_version=ack.policy_version, epoch=epoch, preview_id=body.preview_id)
         log.info("throw %s accepted by %s (%s, target %s)", throw_id, mid, body.mode, body.target)
         return row, ack
+
+    def estop_reason(self, mid: str) -> str | None:
+        """Why the E-STOP of ``mid`` is latched, or None if neither the runtime's answer to a query
+        now nor its latest published RuntimeInfo says it is (either suffices: a slow query under load
+        falls back to a cached, older answer)."""
+        info = self.fleet.fresh_info(mid, max_age_s=0.0, timeout_s=1.0)  # ask the runtime now (a latch is instant)
+        if info is not None and info.estop_latched:
+            return info.estop_reason or "no reason given"
+        st = self.machine_status(mid) if self.machine_status is not None else None
+        if st is not None and st.get("state") == "estopped":
+            return st.get("estop_reason") or "no reason given"
+        return None
 
     def _preview_of(self, body: ThrowCreate, state: MachineState) -> dict | None:
         """The stored form of the preview the throw is sent with, after the gate
