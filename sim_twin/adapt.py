@@ -13,7 +13,11 @@ policy version. Output: a new policy version (ONNX + manifest) for that site:
   protocol (sim_twin.evaluate: the runtime's executor on the simulated machine under the
   profile): round 0 measures the bias of the unadapted policy, each further round aims at
   ``target - bias`` of the last table, with a secant step once two rounds give the local slope
-  of impact against aim. The per-distance offset table goes into the manifest and is sealed
+  of impact against aim. When the site's logged throws of the base policy are at hand (the
+  diagnosis' dataset), the table is then anchored to their measured impacts
+  (sim_twin.aim_anchor: what the fitted profile does not explain in closed loop is measured there
+  and subtracted), so that a diagnosis naming a different, replay-equivalent effect still gives
+  the right correction. The per-distance offset table goes into the manifest and is sealed
   into the ONNX metadata (runtime.aim); the runtime applies it before building the observation.
 * **fine-tuning** (``--method finetune``/``auto`` with a GPU and a base checkpoint): PPO in MJX
   resumed from the base checkpoint with the profile's effects as FIXED randomisation
@@ -227,7 +231,7 @@ def fitted_sigma(report: dict) -> dict[str, dict[str, float]]:
 def adapt(profile: RealityProfile | dict | Path, policy_path: Path, out_dir: Path, name: str | None = None, method: str = "auto",
           diagnosis_report: dict | None = None, throws: int = 30, rounds: int = 2, distances_m: list[float] | None = None,
           checkpoint: Path | None = None, config: Path | None = None, workers: int | None = None,
-          progress: Callable[[str], None] | None = None) -> dict:
+          progress: Callable[[str], None] | None = None, logged: Path | None = None) -> dict:
     """Make a site-adapted policy version (module doc). Job-friendly: everything in arguments,
     files under ``out_dir``, progress by callback.
 
@@ -240,6 +244,10 @@ def adapt(profile: RealityProfile | dict | Path, policy_path: Path, out_dir: Pat
             (fine-tune when those are there, then aim-correct).
         diagnosis_report: the diagnosis' report.json: its fitted 1 sigma becomes the
             site profile's uncertainty (previews of the new version sample it).
+        logged: the site's logged-throw dataset (sim_twin.diagnosis.dataset); default the
+            diagnosis report's ``dataset`` when that directory still exists. Its throws of
+            the base version anchor the aim table (sim_twin.aim_anchor; not after fine-tuning,
+            whose policy made no logged throws).
 
     Returns:
         {"policy": path, "manifest": {...}, "method", "history", "finetune", "wall_s"}.
@@ -270,16 +278,35 @@ def adapt(profile: RealityProfile | dict | Path, policy_path: Path, out_dir: Pat
         if progress:
             progress(f"fine-tuned in MJX ({ft['device']}); not representable there: {ft['unsupported'] or 'nothing'}")
     table, history = compute_aim_correction(source, prof, distances_m, throws, rounds, workers=workers, progress=progress)
+    table, anchor = _anchor(table, history, base, logged, diagnosis_report, ft is not None, progress)
     adaptation = {"method": "finetune+aim" if ft else "aim", "profile": prof.to_dict(), "base_version": base.version,
-                  "base_sha256": base.sha256, "history": history, "finetune": ft,
+                  "base_sha256": base.sha256, "history": history, "finetune": ft, "anchor": anchor,
                   "created_unix_s": time.time()}
     out = seal_version(source, out_dir / f"{name}.onnx", name, table, site.to_dict(), adaptation)
     manifest = json.loads(out.with_suffix(".json").read_text())
     result = {"policy": str(out), "name": name, "method": adaptation["method"], "aim_correction": table, "history": history,
-              "finetune": ft, "wall_s": time.time() - t0}
+              "finetune": ft, "anchor": anchor, "wall_s": time.time() - t0}
     (out_dir / f"{name}.adaptation.json").write_text(json.dumps(result, indent=1) + "\n")
     log.info("adapted version %s written: %s (%.0f s)", name, out, result["wall_s"])
     return {**result, "manifest": manifest}
+
+
+def _anchor(table: dict, history: list[dict], base: PolicyRunner, logged: Path | None, report: dict | None, finetuned: bool,
+            progress: Callable[[str], None] | None) -> tuple[dict, dict]:
+    """The table anchored to the logged throws when there are any (sim_twin.aim_anchor), and what was done."""
+    from sim_twin.aim_anchor import anchor_table, logged_errors
+
+    if logged is None and report and report.get("dataset") and (Path(report["dataset"]) / "index.json").is_file():
+        logged = Path(report["dataset"])
+    if logged is None:
+        return table, {"applied": False, "reason": "no logged throws given"}
+    if finetuned:
+        return table, {"applied": False, "reason": "fine-tuned policy: the logged throws are of the base version"}
+    new, info = anchor_table(table, history, logged_errors(logged, base.version, base.mode), base.mode)
+    info["dataset"] = str(logged)
+    if progress and info["applied"]:
+        progress(f"aim anchored to {info['throws']} logged throws: residual " + ", ".join(f"{v:+.3f}" for v in info["residual_down_m"]) + " m")
+    return new, info
 
 
 def _has_gpu() -> bool:
@@ -304,6 +331,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", type=Path, default=None, help="fine-tuning: the base version's checkpoint.pt")
     parser.add_argument("--config", type=Path, default=None, help="fine-tuning: its training config.json")
     parser.add_argument("--workers", type=int, default=None)
+    parser.add_argument("--logged", type=Path, default=None,
+                        help="the site's logged-throw dataset (default: the diagnosis report's dataset, when it exists): anchors the aim table")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -311,7 +340,8 @@ def run(args: argparse.Namespace) -> int:
 
     report = json.loads(args.diagnosis.read_text()) if args.diagnosis else None
     res = adapt(args.profile, args.policy, args.out, args.name, args.method, report, args.throws, args.rounds,
-                parse_targets(args.distances) if args.distances else None, args.checkpoint, args.config, args.workers)
+                parse_targets(args.distances) if args.distances else None, args.checkpoint, args.config, args.workers,
+                logged=args.logged)
     t = res["aim_correction"]
     print(f"{res['name']} ({res['method']}): {res['policy']}")
     for d, dr, cr in zip(t["distances_m"], t["downrange_offset_m"], t["crossrange_offset_m"]):

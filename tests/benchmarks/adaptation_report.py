@@ -2,6 +2,9 @@
 under the profile (``slinger diagnose generate``) -> ``slinger diagnose`` -> ``slinger adapt``
 with the FITTED profile (never the profile file) for the 2D and 3D policies -> evaluation of
 the adapted versions under the TRUE profile (the profile file), beside the unadapted ones.
+The adaptation's aim table is anchored to the logged throws' measured impacts
+(sim_twin.aim_anchor; ``--no-anchor`` for the twin-only table): the 2D policy's to the diagnosis
+dataset, the 3D policy's to 30 logged 3D throws of the same site (``dataset_3d``).
 
 Bar (issue 9): 2D |bias| <= 0.10 m at every target 7.5-10 m, 3D |bias| <= 0.20 m at 7-9.5 m.
 
@@ -40,7 +43,7 @@ def _slinger(*args: str) -> None:
 
 
 def run_profile(name: str, work: Path, modes: list[str], diag_throws: int, adapt_throws: int, rounds: int, eval_throws: int,
-                before_throws: int) -> dict:
+                before_throws: int, anchor: bool = True) -> dict:
     """All steps for one profile; returns its report entry."""
     profile = REPO / "sim_twin" / "profiles" / f"{name}.json"
     ds, dg = work / name / "dataset", work / name / "diagnosis"
@@ -55,10 +58,15 @@ def run_profile(name: str, work: Path, modes: list[str], diag_throws: int, adapt
         out = work / name / f"adapted_{mode}"
         version = f"{json.loads(POLICIES[mode].with_suffix('.json').read_text())['name']}-{name}"
         onnx = out / f"{version}.onnx"
+        logged = ds if mode == "2d" else work / name / f"dataset_{mode}"
+        if anchor and not (logged / "index.json").is_file():
+            _slinger("diagnose", "generate", "--profile", str(profile), "--throws", str(diag_throws), "--out", str(logged),
+                     "--mode", mode, "--seed", "1")
         if not onnx.is_file():
             _slinger("adapt", "--profile", str(dg / "profile_fitted.json"), "--diagnosis", str(dg / "report.json"),
                      "--policy", str(POLICIES[mode]), "--out", str(out), "--name", version, "--method", "aim",
-                     "--throws", str(adapt_throws), "--rounds", str(rounds), "--distances", TARGETS[mode])
+                     "--throws", str(adapt_throws), "--rounds", str(rounds), "--distances", TARGETS[mode],
+                     *(("--logged", str(logged)) if anchor else ()))
         evals = {}
         for tag, pol, n in (("after", onnx, eval_throws), ("before", POLICIES[mode], before_throws)):
             path = work / name / f"eval_{mode}_{tag}.json"
@@ -73,6 +81,7 @@ def run_profile(name: str, work: Path, modes: list[str], diag_throws: int, adapt
         after = evals["after"]["targets"]
         entry["modes"][mode] = {
             "version": version, "aim_correction": adaptation["aim_correction"], "adapt_wall_s": adaptation["wall_s"],
+            "anchor": adaptation.get("anchor"), "round0_bias_fitted_m": adaptation["history"][0]["bias_m"],
             "eval_throws_after": evals["after"]["throws_per_target"], "eval_throws_before": evals["before"]["throws_per_target"],
             "targets": [{"target_m": a["target_m"], "bias_before_m": b["bias_m"], "bias_after_m": a["bias_m"],
                          "sigma_after_m": a["sigma_downrange_m"], "success_after": a["success_rate"],
@@ -99,12 +108,20 @@ def markdown(report: dict) -> str:
                       f"(bar {m['bar_m']:.2f} m: {'met' if m['meets_bar'] else 'NOT met'}); aim table from "
                       f"{m['aim_correction'].get('throws_per_round')} twin throws per distance and round under the fitted profile; "
                       f"evaluated with {m['eval_throws_after']} (adapted) and {m['eval_throws_before']} (unadapted) throws per target", "",
-                      "| target [m] | bias before [m] | aim offset [m] | bias after [m] | σ after [m] | success after |", "|---|---|---|---|---|---|"]
-            offs = dict(zip(m["aim_correction"]["distances_m"], m["aim_correction"]["downrange_offset_m"]))
+                      "| target [m] | bias before [m] | fitted profile's bias [m] | twin aim offset [m] | anchored aim offset [m] | bias after [m] | σ after [m] | success after |",
+                      "|---|---|---|---|---|---|---|---|"]
+            table = m["aim_correction"]
+            offs = dict(zip(table["distances_m"], table["downrange_offset_m"]))
+            twin = dict(zip(table["distances_m"], (table.get("anchor") or {}).get("twin_downrange_offset_m", table["downrange_offset_m"])))
+            fitted = dict(zip(table["distances_m"], m.get("round0_bias_fitted_m") or [None] * len(table["distances_m"])))
             for t in m["targets"]:
                 f = lambda v: "n/a" if v is None else f"{v:+.3f}"  # noqa: E731
-                lines.append(f"| {t['target_m']:.1f} | {f(t['bias_before_m'])} | {f(offs.get(t['target_m']))} | {f(t['bias_after_m'])} | "
-                             f"{t['sigma_after_m'] or 0:.3f} | {100 * t['success_after']:.0f} % |")
+                lines.append(f"| {t['target_m']:.1f} | {f(t['bias_before_m'])} | {f(fitted.get(t['target_m']))} | {f(twin.get(t['target_m']))} | "
+                             f"{f(offs.get(t['target_m']))} | {f(t['bias_after_m'])} | {t['sigma_after_m'] or 0:.3f} | {100 * t['success_after']:.0f} % |")
+            a = m.get("anchor") or {}
+            lines += ["", f"Anchor: {'applied' if a.get('applied') else 'not applied'}"
+                      + (f" ({a['throws']} logged throws, residual {a['down_fit']['kind']}, standard error "
+                         f"{min(a['se_down_m']):.3f}-{max(a['se_down_m']):.3f} m)" if a.get("applied") else f" ({a.get('reason')})")]
             lines.append("")
     return "\n".join(lines) + "\n"
 
@@ -152,14 +169,16 @@ def main() -> int:
     ap.add_argument("--eval-throws", type=int, default=40, help="per target, adapted version")
     ap.add_argument("--before-throws", type=int, default=20, help="per target, unadapted version")
     ap.add_argument("--out", type=Path, default=REPO / "reports" / "adaptation")
+    ap.add_argument("--no-anchor", action="store_true", help="the twin-only aim table (no logged-throw anchor)")
     ap.add_argument("--report-only", action="store_true", help="only read finished steps (an unadapted evaluation may be missing)")
     args = ap.parse_args()
     global NO_RUN
     NO_RUN = args.report_only
     t0 = time.time()
-    entries = [run_profile(p, args.work, args.modes, args.diag_throws, args.adapt_throws, args.rounds, args.eval_throws, args.before_throws)
-               for p in args.profiles]
-    report = {"diag_throws": args.diag_throws, "adapt_throws": args.adapt_throws, "rounds": args.rounds, "eval_throws": args.eval_throws,
+    entries = [run_profile(p, args.work, args.modes, args.diag_throws, args.adapt_throws, args.rounds, args.eval_throws, args.before_throws,
+                           anchor=not args.no_anchor) for p in args.profiles]
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
+    report = {"commit": commit, "anchor": not args.no_anchor, "diag_throws": args.diag_throws, "adapt_throws": args.adapt_throws, "rounds": args.rounds, "eval_throws": args.eval_throws,
               "policies": {m: json.loads(POLICIES[m].with_suffix(".json").read_text())["name"] for m in args.modes},
               "wall_s": time.time() - t0, "profiles": entries}
     args.out.parent.mkdir(parents=True, exist_ok=True)
