@@ -6,7 +6,8 @@ Wiring (keys in runtime/protocol/README.md):
 * publishes keys.valve_cmd (every state tick), keys.gripper_cmd (on change), keys.status (phase
   changes), keys.runtime_state (RuntimeInfo, 2 Hz and on change);
 * queryables keys.throw (ThrowRequest -> ThrowAck), keys.abort (AbortRequest -> AbortAck,
-  latches E-STOP), keys.estop_reset (EstopReset -> EstopResetAck), keys.info (-> RuntimeInfo);
+  latches E-STOP), keys.estop_reset (EstopReset -> EstopResetAck), keys.return_to_ready
+  (ReturnToReady -> ReturnToReadyAck, runtime.recovery), keys.info (-> RuntimeInfo);
 * exclusive claim: at start it asks for keys.runtime_alive(id) liveliness; if another runtime
   holds it, it exits with code 3 ("machine m1 already has a runtime"); else it declares the
   token and picks its epoch = int(time.time() * 1000) (commands for another epoch are refused);
@@ -140,6 +141,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             session.declare_queryable(keys.throw(machine_id), reply(service.handle_throw)),
             session.declare_queryable(keys.abort(machine_id), reply(service.handle_abort)),
             session.declare_queryable(keys.estop_reset(machine_id), reply(service.handle_estop_reset)),
+            session.declare_queryable(keys.return_to_ready(machine_id), reply(service.handle_return_to_ready)),
             session.declare_queryable(keys.info(machine_id), reply(lambda _p: service.handle_info())),
             session.declare_queryable(keys.policy_offer(machine_id), reply(updater.handle_offer)),
             status_pub,

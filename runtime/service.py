@@ -18,6 +18,12 @@ is honoured even unsigned and LATCHES E-STOP: valves neutral every tick, throws 
 "E-STOP latched: <reason>" until a signed EstopReset. A MachineState with ``machine_fault``
 refuses throws and fails a running one. The runtime never asks whether the machine is simulated:
 what only the simulated machine does (reloading a payload) happens inside the plant.
+
+Recovery (:mod:`runtime.recovery`): a signed ReturnToReady drives the arm back to the ready pose
+with the same controller gains; refused while E-STOP is latched, a throw runs, the machine is
+offline or faulted; stopped by an abort (E-STOP), a machine fault or a silent machine link.
+RuntimeInfo offers it (``recovery``) when the pose is why the machine is not ready, and reports
+``returning`` / ``return_progress`` / ``return_result``.
 """
 
 from __future__ import annotations
@@ -30,9 +36,11 @@ from typing import Callable
 import numpy as np
 
 from runtime.command_auth import CommandVerifier, sign, verify_mac
+from runtime.controller import JointVelocityController
 from runtime.executor import ThrowExecutor
 from runtime.machine import JOINT_LOWER, JOINT_NAMES, JOINT_UPPER, clearance_violations, forward_kinematics
 from runtime.outcome import TickOutput
+from runtime.recovery import ReturnToReady as Recovery
 from runtime.protocol import keys
 from runtime.protocol.messages import (
     AbortAck,
@@ -44,6 +52,8 @@ from runtime.protocol.messages import (
     MachineState,
     Message,
     PolicyInfo,
+    ReturnToReady,
+    ReturnToReadyAck,
     RuntimeInfo,
     ThrowAck,
     ThrowRequest,
@@ -67,6 +77,8 @@ INFO_PERIOD_S = 0.5
 """RuntimeInfo is published on keys.runtime_state at least this often (2 Hz) and on change."""
 
 NO_KEY = "no command key configured"
+POSE_REASONS = ("joint at end", "pose outside the envelope")
+"""Not-ready reasons (of pose_refusal) that the return to the ready pose recovers from."""
 
 Send = Callable[[str, bytes], None]
 
@@ -136,6 +148,10 @@ class RuntimeService:
         self._info_sent: RuntimeInfo | None = None
         self._info_sent_s = -np.inf
         self.dropped = 0  # malformed / foreign messages dropped (for tests and diagnostics)
+        ctrl = executor.controller
+        self._recovery_ctrl = JointVelocityController(ctrl.gains, ctrl.velocity_limits, ctrl.dt_s)
+        self.recovery: Recovery | None = None
+        """The current or last return to the ready pose."""
 
     # --- command authentication ---------------------------------------------------------------
     def authorize(self, msg: Message) -> str | None:
@@ -174,7 +190,9 @@ class RuntimeService:
             if state.machine_fault and self.executor.busy:
                 log.error("machine fault during throw %s: %s", self.executor.throw_id, state.machine_fault)
                 self._publish(self.executor.fail(f"machine fault: {state.machine_fault}"), state.stamp_s)
-            self._publish(self.executor.tick(state), state.stamp_s)
+            if state.machine_fault and self.returning:
+                self._stop_return(f"machine fault: {state.machine_fault}")
+            self._publish(self._tick_return(state) if self.returning else self.executor.tick(state), state.stamp_s)
             self.publish_info()
 
     def on_impact(self, payload: bytes) -> None:
@@ -186,8 +204,14 @@ class RuntimeService:
             self._publish(self.executor.on_impact(report), report.stamp_s)
 
     def check_watchdog(self) -> bool:
-        """Fail the running throw if the machine link is silent; returns True if it did."""
+        """Fail the running throw (stop a return to the ready pose) if the machine link is
+        silent; returns True if it did."""
         with self.lock:
+            if self.returning and self.clock() - self._state_rx_s > self.link_timeout_s:
+                self._stop_return("machine link lost")
+                self._publish(TickOutput(np.zeros(4), np.zeros(4), bool(self._gripper_sent), (), None), self._stamp())
+                self.publish_info()
+                return True
             if not self.executor.busy or self.clock() - self._state_rx_s <= self.link_timeout_s:
                 return False
             log.error("no machine state for %.0f ms: throw %s failed", self.link_timeout_s * 1e3, self.executor.throw_id)
@@ -226,6 +250,8 @@ class RuntimeService:
             return f"E-STOP latched: {self.estop_reason}"
         if self.executor.busy:
             return None  # the executor says "busy"
+        if self.returning:
+            return "returning to the ready pose"
         if state is None:
             return "machine offline (no recent state)"
         if state.machine_fault:
@@ -245,6 +271,8 @@ class RuntimeService:
         with self.lock:
             throw_id = self.executor.throw_id
             self._publish(self.executor.abort(req.reason), self._stamp())
+            if self.returning:
+                self._stop_return(f"E-STOP: {req.reason}")
             self.estop_reason = req.reason
             self.publish_info()
         log.warning("E-STOP latched (%s abort by %s): %s%s", "signed" if signed else "UNSIGNED",
@@ -270,9 +298,59 @@ class RuntimeService:
         log.warning("E-STOP reset by %s (was latched: %s)", self._who(req), was)
         return encode(EstopResetAck(machine_id=self.machine_id, reset=True))
 
+    # --- recovery: return to the ready pose ------------------------------------------------------
+    @property
+    def returning(self) -> bool:
+        """A return to the ready pose is running."""
+        return self.recovery is not None and self.recovery.status.active
+
+    def handle_return_to_ready(self, payload: bytes) -> bytes:
+        """ReturnToReady (signed) -> ReturnToReadyAck; starts driving the arm to the ready pose."""
+        try:
+            req = decode(ReturnToReady, payload)
+        except ValidationError as e:
+            self.dropped += 1
+            return encode(ReturnToReadyAck(machine_id=self.machine_id, accepted=False, reason=f"malformed request: {_short(e)}"))
+        if req.machine_id != self.machine_id:
+            return encode(ReturnToReadyAck(machine_id=self.machine_id, accepted=False, reason=f"this runtime serves {self.machine_id!r}"))
+        reason = self.authorize(req)
+        with self.lock:
+            state = self.latest_state if self._online(self.link_timeout_s) else None
+            if reason is None:
+                reason = self._return_refusal(state)
+            if reason is None and not self.returning:
+                self.recovery = Recovery(state.q, state.stamp_s, self._recovery_ctrl)
+                self.publish_info()
+        log.log(logging.WARNING if reason else logging.INFO, "return to the ready pose %s for %s%s",
+                "refused" if reason else "started", self._who(req), f": {reason}" if reason else "")
+        return encode(ReturnToReadyAck(machine_id=self.machine_id, accepted=reason is None, reason=reason))
+
+    def _return_refusal(self, state: MachineState | None) -> str | None:
+        if self.estop_reason is not None:
+            return f"E-STOP latched: {self.estop_reason}"
+        if self.executor.busy:
+            return f"a throw runs: {self.executor.throw_id}"
+        if state is None:
+            return "machine offline (no recent state)"
+        if state.machine_fault:
+            return f"machine fault: {state.machine_fault}"
+        return None
+
+    def _tick_return(self, state: MachineState) -> TickOutput:
+        ctrl = self.recovery.tick(state.q, state.qd, state.stamp_s)
+        if not self.recovery.status.active:
+            log.info("return to the ready pose: %s", self.recovery.status.result)
+        return TickOutput(ctrl.valve_u.copy(), ctrl.qd_ref.copy(), bool(self._gripper_sent), (), None)
+
+    def _stop_return(self, why: str) -> None:
+        self.recovery.stop(why)
+        log.warning("return to the ready pose stopped: %s", why)
+
     def shutdown(self) -> None:
         """Abort a running throw (neutral valves, result to the outbox) before the node exits."""
         with self.lock:
+            if self.returning:
+                self._stop_return("runtime shutting down")
             if self.executor.busy:
                 self._publish(self.executor.abort("runtime shutting down"), self._stamp())
 
@@ -287,6 +365,8 @@ class RuntimeService:
                 why = NO_KEY
             elif ex.busy:
                 why = f"busy with throw {ex.throw_id}"
+            elif self.returning:
+                why = f"returning to the ready pose ({100 * self._return_progress():.0f} %)"
             elif not online:
                 why = "machine offline"
             elif not ex.policies:
@@ -306,7 +386,15 @@ class RuntimeService:
                 not_ready_reason=why,
                 phase=ex.phase,
                 throw_id=ex.throw_id,
+                recovery="return_to_ready" if why and why.startswith(POSE_REASONS) else None,
+                returning=self.returning,
+                return_progress=self._return_progress() if self.recovery is not None else None,
+                return_result=self.recovery.status.result if self.recovery is not None else None,
             )
+
+    def _return_progress(self) -> float:
+        """The recovery's progress in 5 % steps (RuntimeInfo is published on every change)."""
+        return round(20 * self.recovery.status.progress) / 20
 
     def handle_info(self) -> bytes:
         """-> RuntimeInfo (the queryable keys.info)."""

@@ -8,8 +8,8 @@ queries) are allowed. Data, queries, replies and liveliness tokens arriving are 
 
 | sender CN | may put | may query | may reply on | liveliness token |
 |---|---|---|---|---|
-| server | machine/*/sim/reset | runtime/*/{throw,abort,estop_reset,info,policy/offer} | server/throw_result, server/policy/* | - |
-| runtime-<id> | machine/<id>/{valve_cmd,gripper_cmd}, runtime/<id>/{status,runtime_state,policy/status} | server/throw_result, server/policy/* | runtime/<id>/{throw,abort,estop_reset,info,policy/offer} | runtime/<id>/alive |
+| server | machine/*/sim/reset | runtime/*/{throw,abort,estop_reset,return_to_ready,info,policy/offer} | server/throw_result, server/policy/* | - |
+| runtime-<id> | machine/<id>/{valve_cmd,gripper_cmd}, runtime/<id>/{status,runtime_state,policy/status} | server/throw_result, server/policy/* | runtime/<id>/{throw,abort,estop_reset,return_to_ready,info,policy/offer} | runtime/<id>/alive |
 | plant-<id> | machine/<id>/{state,impact} | - | - | machine/<id>/alive |
 | router | everything (it forwards; it enforces these rules itself on its own links) |
 
@@ -28,7 +28,7 @@ from runtime.protocol import keys
 
 DATA = ("put", "delete", "query", "reply", "liveliness_token")
 DECLARATIONS = ("declare_subscriber", "declare_queryable", "declare_liveliness_subscriber", "liveliness_query")
-RUNTIME_QUERYABLES = ("throw", "abort", "estop_reset", "info", "policy/offer")
+RUNTIME_QUERYABLES = ("throw", "abort", "estop_reset", "return_to_ready", "info", "policy/offer")
 
 
 def _rule(rule_id: str, messages: Sequence[str], key_exprs: Sequence[str], flows: Sequence[str] = ("ingress",)) -> dict:

@@ -15,8 +15,9 @@ What only the simulated machine does stays here, behind the machine interface:
   keeping the cabin angle, gripper closed, at rest. This stands for the operator picking up
   the next object; the machine then waits loaded, so a preview from its current state
   predicts the next throw. A loaded machine that comes to rest where no throw can start (a
-  joint at its end, the gripper at the ground: runtime.machine.clearance_violations, e.g. after
-  a failed throw or an E-STOP) is re-posed the same way once it has rested for 0.5 s.
+  joint at its end, the gripper at the ground, e.g. after a failed throw or an E-STOP) stays
+  there, as a real machine would: the operator's recovery action, the runtime's "return to the
+  ready pose" (runtime.recovery), drives it back.
 * one machine, one plant: at start it asks for keys.machine_alive(id); if another plant holds
   it, it exits with code 3 ("machine m1 already has a plant").
 * one driver: it follows only the newest ValveCommand epoch it has seen (a runtime's claim
@@ -45,7 +46,6 @@ from typing import Callable
 import numpy as np
 
 from runtime.entrypoint import module_main, stop_on_signals
-from runtime.machine import clearance_violations, forward_kinematics
 from runtime.observation import PHYSICS_PERIOD_S
 from runtime.protocol import keys
 from runtime.protocol.messages import (
@@ -340,17 +340,10 @@ REST_PUBLISH_EVERY = 5
 0.2 s link timeout and the 0.1 s valve watchdog); every period again once it moves."""
 
 
-def _outside_envelope(state: MachineState) -> bool:
-    """The runtime could not start a throw from here (runtime.machine.clearance_violations)."""
-    q = np.asarray(state.q, dtype=float)
-    return bool(np.any(clearance_violations(np, q, forward_kinematics(np, q, np.zeros_like(q)))))
-
-
 def plant_tick(twin: TwinMachine, inbox: PlantInbox, now_s: float) -> tuple[MachineState, ImpactReport | None]:
     """One 10 ms plant period at local monotonic time ``now_s``: apply pending resets, the
     latest valve command (neutral if older than VALVE_WATCHDOG_S or while ``twin.fault`` is
-    set) and the gripper command, step, reload the payload when due; a loaded machine that
-    comes to rest outside the envelope (a joint at its end, gripper at the ground) is re-posed.
+    set) and the gripper command, step, reload the payload when due.
     A machine at rest (REST_TICKS still periods with neutral valves, no reset, the same gripper
     command, loaded) is not integrated: its state is re-stamped, so that 20 idle simulated
     machines fit on two cores; any command or reset wakes it.
@@ -383,12 +376,6 @@ def plant_tick(twin: TwinMachine, inbox: PlantInbox, now_s: float) -> tuple[Mach
     state = twin.state()
     # the true joint speeds: the simulated machine knows them (the measured ones carry sensor noise)
     still = quiet and twin.loaded and float(np.max(np.abs(twin.sim.data.qvel))) < REST_QD_RADPS
-    if still and inbox.still_ticks == REST_TICKS - 1 and _outside_envelope(state):
-        # came to rest loaded where no throw can start (e.g. a joint at its end after a failed
-        # throw or an E-STOP): the operator re-poses the arm, as after a landing
-        q = twin.apply_reset(SimReset(machine_id=twin.machine_id, stamp_s=0.0))
-        log.info("at rest outside the envelope: re-posed (%d) to q_active %s", twin.reset_count, np.round(q[:4], 3).tolist())
-        state, still = twin.state(), False
     inbox.still_ticks = inbox.still_ticks + 1 if still else 0
     inbox.rest_state = state if still else None
     return state, report

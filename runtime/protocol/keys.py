@@ -13,6 +13,7 @@ Layout::
     slinger/runtime/<machine_id>/info           queryable: -> RuntimeInfo
     slinger/runtime/<machine_id>/status         ThrowStatus      runtime -> server   on change
     slinger/runtime/<machine_id>/estop_reset    queryable: EstopReset -> EstopResetAck
+    slinger/runtime/<machine_id>/return_to_ready queryable: ReturnToReady -> ReturnToReadyAck
     slinger/runtime/<machine_id>/runtime_state  RuntimeInfo      runtime -> *        2 Hz + on change
     slinger/runtime/<machine_id>/alive          liveliness token of the runtime
     slinger/server/throw_result                 queryable on the server: ThrowResult -> ResultAck
@@ -101,6 +102,11 @@ def runtime_alive(machine_id: str) -> str:
 def estop_reset(machine_id: str) -> str:
     """Queryable of the runtime: signed EstopReset -> EstopResetAck."""
     return runtime(machine_id, "estop_reset")
+
+
+def return_to_ready(machine_id: str) -> str:
+    """Queryable of the runtime: signed ReturnToReady -> ReturnToReadyAck."""
+    return runtime(machine_id, "return_to_ready")
 
 
 def runtime_state(machine_id: str) -> str:

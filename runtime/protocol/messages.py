@@ -205,6 +205,24 @@ class EstopResetAck(Message):
     reason: str | None = None
 
 
+class ReturnToReady(Message):
+    """Server -> runtime (query keys.return_to_ready): drive the arm back to the ready pose
+    (runtime.recovery); must be signed. Refused while E-STOP is latched, a throw runs, the machine
+    is offline or faulted."""
+
+    machine_id: MachineId
+    auth: CommandAuth | None = None
+
+
+class ReturnToReadyAck(Message):
+    """Runtime -> server: ``accepted`` True when the arm started moving to the ready pose, else
+    False with the ``reason`` (unsigned, E-STOP latched, throw running, ...)."""
+
+    machine_id: MachineId
+    accepted: bool
+    reason: str | None = None
+
+
 ThrowPhase = Literal["preparing", "swinging", "released", "landed", "failed", "aborted"]
 
 
@@ -236,6 +254,11 @@ class RuntimeInfo(Message):
             ``not_ready_reason`` says why ("E-STOP latched", "machine offline", the machine's
             fault such as "behind real time by 150 ms", ...).
         phase / throw_id: the running throw's phase and id, or None when idle.
+        recovery: the recovery action the runtime offers now ("return_to_ready" when it is not
+            ready because of its pose: outside the envelope or a joint at its end), else None.
+        returning: a return to the ready pose runs; ``return_progress`` 0..1 (5 % steps);
+            ``return_result`` how the last one ended ("reached the ready pose",
+            "failed: ...", "stopped: ..."), None before the first.
     """
 
     machine_id: MachineId
@@ -250,6 +273,10 @@ class RuntimeInfo(Message):
     not_ready_reason: str | None = None
     phase: ThrowPhase | None = None
     throw_id: str | None = None
+    recovery: Literal["return_to_ready"] | None = None
+    returning: bool = False
+    return_progress: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
+    return_result: Annotated[str, Field(max_length=200)] | None = None
 
 
 class ThrowResult(Stamped):
