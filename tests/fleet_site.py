@@ -196,9 +196,13 @@ class Site:
 
 
 class Worker:
-    """``slinger worker`` as a subprocess (context manager); SIGINT on exit."""
+    """``slinger worker`` as a subprocess (context manager); SIGINT on exit. ``hostname``: run
+    it in its own UTS namespace under that host name (root; ``unshare --uts``), so that it is
+    "another host" for the pid checks of server.jobs.leases (the pid stays the Popen's)."""
 
-    def __init__(self, settings, *extra: str):
+    def __init__(self, settings, *extra: str, hostname: str | None = None):
+        self.prefix = (["unshare", "--uts", "sh", "-c", f'hostname {hostname} && exec "$@"', "worker"]
+                       if hostname else [])
         self.argv = slinger_command("worker", "--database-url", settings.database_url, "--data-dir",
                                     str(settings.data_dir), *(("--queue-url", settings.job_queue_url)
                                                               if settings.job_queue_url else ()), *extra)
@@ -207,10 +211,13 @@ class Worker:
     def __enter__(self):
         self.log.parent.mkdir(parents=True, exist_ok=True)
         self._out = open(self.log, "wb")
-        self.proc = subprocess.Popen(self.argv, stdout=self._out, stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen([*self.prefix, *self.argv], stdout=self._out, stderr=subprocess.STDOUT)
         return self
 
     def __exit__(self, *exc):
+        if self.proc.poll() is not None:
+            self._out.close()
+            return
         self.proc.send_signal(2)
         try:
             self.proc.wait(timeout=20)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import uuid
 from datetime import datetime
 
-from sqlalchemy import JSON, BigInteger, Boolean, Enum, Float, ForeignKey, Index, MetaData, String, Text
+from sqlalchemy import JSON, BigInteger, Boolean, Enum, Float, ForeignKey, Index, Integer, MetaData, String, Text
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from server.db.types import UTCDateTime, utcnow
@@ -219,10 +219,14 @@ class Job(Base):
     Redis); this row is what people and the console see: status, progress, result.
     ``progress`` is a fraction in [0, 1]; ``result`` the job's JSON answer; ``worker`` the
     ``host:pid`` that ran it; ``cancel_requested`` is polled by the running job.
+    The running worker's claim (``worker_id``, ``worker_host``, ``worker_pid``) and lease
+    (``heartbeat_at``, ``lease_expires_at``, renewed by its heartbeat) let any worker re-queue
+    the job when its worker died (server.jobs.leases); ``attempts`` counts starts.
     """
 
     __tablename__ = "jobs"
-    __table_args__ = (Index("ix_jobs_kind_created", "kind", "created_at"),)
+    __table_args__ = (Index("ix_jobs_kind_created", "kind", "created_at"),
+                      Index("ix_jobs_status_lease", "status", "lease_expires_at"))
 
     id: Mapped[str] = mapped_column(String(36), primary_key=True, default=lambda: str(uuid.uuid4()))
     kind: Mapped[str] = mapped_column(db_enum(JOB_KINDS, "kind"))
@@ -237,6 +241,12 @@ class Job(Base):
     cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
     worker: Mapped[str | None] = mapped_column(String(128), nullable=True)
     requested_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    attempts: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    worker_id: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    worker_host: Mapped[str | None] = mapped_column(String(128), nullable=True)
+    worker_pid: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    heartbeat_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    lease_expires_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)

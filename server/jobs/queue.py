@@ -89,8 +89,13 @@ class JobQueue:
             ValueError: unknown kind.
         """
         job_id = self.store.create(kind, params, subject=subject, requested_by=requested_by)
-        self.tasks[lane_of(kind)](job_id)
+        self.enqueue(job_id, kind)
         return job_id
+
+    def enqueue(self, job_id: str, kind: str) -> None:
+        """Put the task of an existing ``queued`` job on its lane (submit, and the re-queue of a
+        job whose worker died: server.jobs.leases)."""
+        self.tasks[lane_of(kind)](job_id)
 
     def cancel(self, job_id: str) -> dict | None:
         """Cancel a job (server.jobs.store.JobStore.cancel); None if unknown."""

@@ -1,7 +1,8 @@
 """The ``jobs`` table (server.db.models.Job): what a job is, how far it got, what came of it.
 
 Both sides use it: the API creates rows and reads them (list, get, the progress stream), the
-worker moves them ``queued -> running -> done | failed | cancelled`` and writes progress.
+worker moves them ``queued -> running -> done | failed | cancelled`` and writes progress; a job
+whose worker died goes back ``running -> queued`` (server.jobs.leases).
 Cancellation is cooperative: :meth:`JobStore.cancel` sets ``cancel_requested``; a queued job is
 cancelled at once, a running one at its next :meth:`JobStore.progress` call.
 """
@@ -10,13 +11,14 @@ from __future__ import annotations
 
 import logging
 import time
-from datetime import datetime
+from datetime import datetime, timedelta
 
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.db.models import FINAL_JOB_STATUSES, JOB_KINDS, Job
 from server.db.types import utcnow
+from server.jobs.leases import LEASE_S, WorkerIdentity
 
 log = logging.getLogger(__name__)
 
@@ -85,54 +87,75 @@ class JobStore:
             return as_dict(row)
 
     # --- worker side -----------------------------------------------------------------------
-    def start(self, job_id: str, worker: str) -> dict | None:
-        """Mark the job running on ``worker``; None if it is unknown, cancelled or finished
-        (the worker then skips it). A job found ``running`` (its worker died) starts over."""
+    def start(self, job_id: str, worker: WorkerIdentity, lease_s: float = LEASE_S) -> dict | None:
+        """Claim a ``queued`` job for ``worker``: ``running``, progress 0, one more attempt, a
+        lease of ``lease_s`` (server.jobs.leases). None if it is unknown, cancelled, finished or
+        already running (a stale queue message): the worker then skips it. Conditional update,
+        so of two workers given the same job only one starts it."""
+        now = utcnow()
         with self.sessions.begin() as db:
-            row = db.get(Job, job_id, with_for_update=True)
-            if row is None or row.status in FINAL_JOB_STATUSES or row.cancel_requested:
+            res = db.execute(update(Job).where(Job.id == job_id, Job.status == "queued", Job.cancel_requested.is_(False))
+                             .values(status="running", worker=worker.name, worker_id=worker.id,
+                                     worker_host=worker.host, worker_pid=worker.pid, started_at=now,
+                                     heartbeat_at=now, lease_expires_at=now + timedelta(seconds=lease_s),
+                                     progress=0.0, attempts=Job.attempts + 1))
+            if not res.rowcount:
                 return None
-            row.status, row.worker, row.started_at, row.progress = "running", worker, utcnow(), 0.0
-            return as_dict(row)
+            return as_dict(db.get(Job, job_id))
 
-    def progress(self, job_id: str, fraction: float, message: str | None = None, force: bool = False) -> None:
-        """Record progress (``fraction`` in [0, 1]) and check for cancellation.
+    def progress(self, job_id: str, fraction: float, message: str | None = None, force: bool = False,
+                 worker_id: str | None = None) -> None:
+        """Record progress (``fraction`` in [0, 1]) and check for cancellation. With
+        ``worker_id``, only while that worker still holds the running job.
 
         Raises:
-            JobCancelled: the job was asked to stop.
+            JobCancelled: the job was asked to stop, or (with ``worker_id``) is no longer this
+                worker's (its lease expired and the job was re-queued).
         """
         now = time.monotonic()
         if not force and now - self._last_write.get(job_id, 0.0) < PROGRESS_MIN_INTERVAL_S:
             return
         self._last_write[job_id] = now
         fraction = min(1.0, max(0.0, float(fraction)))
+        stmt = update(Job).where(Job.id == job_id)
+        if worker_id is not None:
+            stmt = stmt.where(Job.worker_id == worker_id, Job.status == "running")
         with self.sessions.begin() as db:
-            db.execute(update(Job).where(Job.id == job_id).values(progress=fraction, message=message))
+            mine = db.execute(stmt.values(progress=fraction, message=message)).rowcount
             cancel = db.scalar(select(Job.cancel_requested).where(Job.id == job_id))
-        if cancel:
+        if cancel or not mine:
             raise JobCancelled(job_id)
 
-    def finish(self, job_id: str, status: str, result: dict | None = None, error: str | None = None) -> None:
-        """Final status ``done`` (with ``result``), ``failed`` (with ``error``) or ``cancelled``."""
+    def finish(self, job_id: str, status: str, result: dict | None = None, error: str | None = None,
+               worker_id: str | None = None) -> bool:
+        """Final status ``done`` (with ``result``), ``failed`` (with ``error``) or ``cancelled``.
+        With ``worker_id``, only while that worker still holds the running job (a worker whose
+        lease expired and whose job was re-queued does not overwrite the new run). Returns
+        whether the row was written.
+
+        Raises:
+            ValueError: not a final status.
+        """
         if status not in FINAL_JOB_STATUSES:
             raise ValueError(f"not a final job status: {status!r}")
         self._last_write.pop(job_id, None)
+        values = {"status": status, "result": result, "error": error, "finished_at": utcnow(), "lease_expires_at": None}
+        if status == "done":
+            values["progress"] = 1.0
+        if status == "cancelled":
+            values["message"] = "cancelled"
+        stmt = update(Job).where(Job.id == job_id)
+        if worker_id is not None:
+            stmt = stmt.where(Job.worker_id == worker_id, Job.status == "running")
         with self.sessions.begin() as db:
-            row = db.get(Job, job_id)
-            if row is None:
-                return
-            row.status, row.result, row.error, row.finished_at = status, result, error, utcnow()
-            if status == "done":
-                row.progress = 1.0
-            if status == "cancelled":
-                row.message = "cancelled"
+            return bool(db.execute(stmt.values(**values)).rowcount)
 
 
 def as_dict(row: Job, with_result: bool = True) -> dict:
     """JSON-ready view of a job row (timestamps ISO 8601 UTC)."""
     out = {c: getattr(row, c) for c in ("id", "kind", "status", "subject", "params", "progress", "message",
-                                        "error", "cancel_requested", "worker", "requested_by")}
-    for c in ("created_at", "started_at", "finished_at"):
+                                        "error", "cancel_requested", "worker", "requested_by", "attempts")}
+    for c in ("created_at", "started_at", "finished_at", "heartbeat_at"):
         v: datetime | None = getattr(row, c)
         out[c] = v.isoformat() if v is not None else None
     if with_result:

@@ -19,7 +19,9 @@ Kinds and parameters:
 * ``adaptation``: ``run_id`` and the inputs server.adaptation.AdaptationRuns.start checked ->
   the run's status; the adapted policy becomes a version (its evaluation is another job).
 * ``probe``: ``steps``, ``step_s``, optional ``fail`` (a message to fail with): a worker
-  health check that reports progress and can be cancelled between steps.
+  health check that reports progress and can be cancelled between steps. Fault injection for
+  tests (not accepted by the API): ``kill_worker_at_step`` makes the worker process SIGKILL
+  itself at that step (a worker dying mid-job, server.jobs.leases).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from __future__ import annotations
 import json
 import logging
 import os
-import socket
+import signal
 import threading
 import time
 from dataclasses import dataclass, field
@@ -35,6 +37,7 @@ from pathlib import Path
 
 from sqlalchemy.orm import Session, sessionmaker
 
+from server.jobs.leases import LEASE_S, WorkerIdentity
 from server.jobs.store import JobCancelled, JobStore
 
 log = logging.getLogger(__name__)
@@ -57,7 +60,9 @@ class WorkerContext:
     data_dir: Path
     settings: object = None
     jobs: object = None
-    name: str = field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")
+    identity: WorkerIdentity = field(default_factory=WorkerIdentity)
+    lease_s: float = LEASE_S
+    """Lease of a started job (server.jobs.leases), renewed by the worker's heartbeat."""
     store: JobStore = field(init=False)
     runners: dict = field(default_factory=dict)
     """Loaded policy runners by SHA-256 (previews re-use them)."""
@@ -68,6 +73,11 @@ class WorkerContext:
     def __post_init__(self):
         self.store = JobStore(self.sessions)
         self.data_dir = Path(self.data_dir)
+
+    @property
+    def name(self) -> str:
+        """``host:pid`` of this worker."""
+        return self.identity.name
 
 
 _CONTEXT: WorkerContext | None = None
@@ -84,24 +94,28 @@ def execute(job_id: str) -> None:
     ctx = _CONTEXT
     if ctx is None:
         raise RuntimeError("no worker context bound (server.jobs.tasks.bind)")
-    job = ctx.store.start(job_id, ctx.name)
+    me = ctx.identity.id
+    job = ctx.store.start(job_id, ctx.identity, ctx.lease_s)
     if job is None:
-        log.info("job %s skipped (unknown, cancelled or finished)", job_id)
+        log.info("job %s skipped (unknown, cancelled, finished or already running)", job_id)
         return
     t0 = time.monotonic()
-    log.info("job %s (%s) started", job_id, job["kind"])
+    log.info("job %s (%s) started, attempt %d", job_id, job["kind"], job["attempts"])
     try:
-        result = RUNNERS[job["kind"]](ctx, job["params"] or {}, lambda f, m=None: ctx.store.progress(job_id, f, m))
-        ctx.store.finish(job_id, "done", result=_json_safe(result))
+        result = RUNNERS[job["kind"]](ctx, job["params"] or {},
+                                      lambda f, m=None: ctx.store.progress(job_id, f, m, worker_id=me))
+        ctx.store.finish(job_id, "done", result=_json_safe(result), worker_id=me)
         log.info("job %s (%s) done in %.2f s", job_id, job["kind"], time.monotonic() - t0)
     except JobCancelled:
-        ctx.store.finish(job_id, "cancelled")
-        log.info("job %s (%s) cancelled", job_id, job["kind"])
+        if ctx.store.finish(job_id, "cancelled", worker_id=me):
+            log.info("job %s (%s) cancelled", job_id, job["kind"])
+        else:
+            log.warning("job %s (%s) was taken from this worker (lease expired); stopped", job_id, job["kind"])
     except JobRefused as e:
-        ctx.store.finish(job_id, "failed", result={"status_code": e.status_code}, error=e.detail)
+        ctx.store.finish(job_id, "failed", result={"status_code": e.status_code}, error=e.detail, worker_id=me)
     except Exception as e:  # noqa: BLE001  recorded in the row for the console
         log.exception("job %s (%s) failed", job_id, job["kind"])
-        ctx.store.finish(job_id, "failed", error=f"{type(e).__name__}: {e}")
+        ctx.store.finish(job_id, "failed", error=f"{type(e).__name__}: {e}", worker_id=me)
 
 
 def _json_safe(result) -> dict:
@@ -170,8 +184,12 @@ def run_adaptation(ctx: WorkerContext, params: dict, progress) -> dict:
 
 def run_probe(ctx: WorkerContext, params: dict, progress) -> dict:
     steps, step_s = int(params.get("steps", 1)), float(params.get("step_s", 0.0))
+    kill_at = params.get("kill_worker_at_step")
     for i in range(steps):
         progress(i / max(steps, 1), f"step {i + 1} of {steps}")
+        if kill_at is not None and i == int(kill_at):
+            log.warning("probe: killing this worker process (kill_worker_at_step=%s)", kill_at)
+            os.kill(os.getpid(), signal.SIGKILL)
         time.sleep(step_s)
     if params.get("fail"):
         raise RuntimeError(str(params["fail"]))

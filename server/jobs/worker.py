@@ -10,24 +10,19 @@ policy files and telemetry live, shared)::
     slinger worker --database-url postgresql+psycopg://slinger@db/slinger \\
                    --queue-url postgresql://slinger@db/slinger --data-dir /srv/slinger
 
-SIGINT finishes the running jobs first; SIGTERM stops at once. Jobs this process was running
-when it stopped, and jobs of dead worker processes of this host found at start-up, are marked
-failed with the reason (a queue message is consumed when its job starts; it is not re-run).
+SIGINT finishes the running jobs first; SIGTERM stops at once. A heartbeat thread renews the
+lease of the jobs this worker runs and re-queues jobs of dead workers, of this host (pid gone)
+or of any host (lease expired), up to ``--max-attempts`` starts, then fails them with the reason
+(server.jobs.leases); jobs this process was running when it stopped are re-queued the same way.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
-import os
-import socket
 from pathlib import Path
 
-from sqlalchemy import select
-
-from server.db.models import Job
-from server.db.types import utcnow
-from server.jobs import tasks
+from server.jobs import leases, tasks
 from server.jobs.queue import LANES, JobQueue, queue_url
 
 log = logging.getLogger(__name__)
@@ -41,6 +36,12 @@ def build_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lanes", default=",".join(LANES), help="lanes to consume, comma-separated (default fast,heavy)")
     p.add_argument("--heavy-workers", type=int, default=1, help="concurrent heavy jobs (default 1)")
     p.add_argument("--fast-workers", type=int, default=1, help="concurrent previews (default 1)")
+    p.add_argument("--heartbeat-s", type=float, default=leases.HEARTBEAT_S,
+                   help=f"lease renewal and dead-worker check period, s (default {leases.HEARTBEAT_S:g})")
+    p.add_argument("--lease-s", type=float, default=leases.LEASE_S,
+                   help=f"a worker silent this long is dead for other hosts, s (default {leases.LEASE_S:g})")
+    p.add_argument("--max-attempts", type=int, default=leases.MAX_ATTEMPTS,
+                   help=f"starts of a job whose workers keep dying before it fails (default {leases.MAX_ATTEMPTS})")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -58,10 +59,15 @@ def run(args: argparse.Namespace) -> int:
     if url == "immediate":
         raise SystemExit("slinger worker: 'immediate' is not a queue a worker can consume")
     engine = make_engine(settings.database_url)
-    ctx = tasks.WorkerContext(make_sessionmaker(engine), settings.data_dir, settings)
+    ctx = tasks.WorkerContext(make_sessionmaker(engine), settings.data_dir, settings, lease_s=args.lease_s)
     tasks.bind(ctx)
-    fail_orphans(ctx)
     queue = ctx.jobs = JobQueue(url, ctx.store, tasks.execute)
+    try:
+        lease = leases.Leases(ctx.sessions, ctx.identity, queue.enqueue, lease_s=args.lease_s,
+                              heartbeat_s=args.heartbeat_s, max_attempts=args.max_attempts)
+    except ValueError as e:
+        raise SystemExit(f"slinger worker: {e}") from None
+    lease.reap()  # jobs of workers that died while none ran
     if "fast" in lanes:
         import sim_twin.preview  # noqa: F401  warm: the first preview must not pay MuJoCo's import
     consumers = []
@@ -70,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
         consumers.append(queue.hueys[lane].create_consumer(
             workers=workers, worker_type="thread", periodic=False, initial_delay=0.02, backoff=1.5,
             max_delay=0.1 if lane == "fast" else 1.0, check_worker_health=True))
-    log.info("worker %s consuming %s on %s", ctx.name, ",".join(lanes), _redact(url))
+    log.info("worker %s (id %s) consuming %s on %s", ctx.name, ctx.identity.id, ",".join(lanes), _redact(url))
+    lease.start()
     try:
         for c in consumers[:-1]:
             c.start()
@@ -78,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
         for c in consumers[:-1]:
             c.stop(graceful=True)
     finally:
-        fail_orphans(ctx, only_self=True)
+        lease.stop()
+        lease.release_own("stopped while running it")
         engine.dispose()
     return 0
 
@@ -89,33 +97,6 @@ def worker_argv(settings) -> list[str]:
 
     return slinger_command("worker", "--database-url", settings.database_url, "--data-dir", str(settings.data_dir),
                            "--queue-url", queue_url(settings))
-
-
-def fail_orphans(ctx: tasks.WorkerContext, only_self: bool = False) -> int:
-    """Mark ``running`` jobs of this host whose worker process is gone (or, with ``only_self``,
-    of this process, at its exit) failed with the reason. Returns how many."""
-    host = socket.gethostname()
-    n = 0
-    with ctx.sessions.begin() as db:
-        for job in db.scalars(select(Job).where(Job.status == "running", Job.worker.like(f"{host}:%"))):
-            pid = int(job.worker.rsplit(":", 1)[1])
-            if (only_self and pid == os.getpid()) or (not only_self and not _alive(pid)):
-                job.status, job.finished_at = "failed", utcnow()
-                job.error = f"worker {job.worker} stopped while running it; submit it again"
-                n += 1
-    if n:
-        log.warning("%d job(s) of stopped workers marked failed", n)
-    return n
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def _redact(url: str) -> str:

@@ -43,6 +43,8 @@ class JobOut(BaseModel):
     created_at: str
     started_at: str | None
     finished_at: str | None
+    attempts: int = Field(0, description="how often a worker started it (a job whose worker died is re-run)")
+    heartbeat_at: str | None = Field(None, description="last lease renewal by its running worker (UTC)")
     result: dict | None = None
 
 
