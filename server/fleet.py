@@ -37,6 +37,8 @@ from runtime.protocol.messages import (
     AbortRequest,
     EstopReset,
     EstopResetAck,
+    ReturnToReady,
+    ReturnToReadyAck,
     MachineState,
     PolicyOffer,
     PolicyOfferAck,
@@ -259,6 +261,17 @@ class Fleet:
         """
         ack, _ = self._signed_query(keys.estop_reset, EstopReset(machine_id=machine_id), machine_id, user,
                                     EstopResetAck)
+        self.forget_info(machine_id)
+        return ack
+
+    def return_to_ready(self, machine_id: str, user: str) -> ReturnToReadyAck:
+        """Ask the runtime to drive its arm back to the ready pose (signed for ``user``).
+
+        Raises:
+            RuntimeUnavailable, ValueError: as :meth:`request_throw`.
+        """
+        ack, _ = self._signed_query(keys.return_to_ready, ReturnToReady(machine_id=machine_id), machine_id, user,
+                                    ReturnToReadyAck)
         self.forget_info(machine_id)
         return ack
 

@@ -61,17 +61,22 @@ def machine_status(machine_id: str, online: bool, info: RuntimeInfo | None, info
     Returns:
         {"machine_id", "state": "offline" | "estopped" | "throwing" | "not_ready" | "ready",
         "reason" (str | None, plain words), "estop_reason", "phase", "throw_id", "policies"
-        {mode: version}, "simulated"}. A runtime without the machine-state fields of RuntimeInfo
+        {mode: version}, "simulated", "recovery" (the runtime's offered recovery action, e.g.
+        "return_to_ready", else None), "returning" (a return to the ready pose runs),
+        "return_progress" (0..1 or None), "return_result" (how the last one ended or None)}. A runtime without the machine-state fields of RuntimeInfo
         (older protocol; on the wire as ready False without a reason) is judged by ``busy``,
         ``machine_online`` and its policies.
     """
     out = {"machine_id": machine_id, "state": "offline", "reason": "runtime offline", "estop_reason": None,
-           "phase": None, "throw_id": None, "policies": {}, "simulated": bool(info and info.simulated)}
+           "phase": None, "throw_id": None, "policies": {}, "simulated": bool(info and info.simulated),
+           "recovery": None, "returning": False, "return_progress": None, "return_result": None}
     if not online:
         return out
     if info is None:
         return {**out, "state": "not_ready", "reason": "waiting for the runtime's state"}
     out["policies"] = {p.mode: p.version for p in info.policies}
+    out.update(recovery=info.recovery, returning=info.returning, return_progress=info.return_progress,
+               return_result=info.return_result)
     phase = info.phase or (throw or {}).get("phase")
     out.update(phase=phase, throw_id=info.throw_id or (throw or {}).get("throw_id"), reason=None)
     if info.estop_latched:

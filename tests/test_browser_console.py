@@ -233,6 +233,40 @@ def test_estop_latches_until_reset(up, ann):
     ann.locator("#machine-state", has_text="m1 READY").wait_for()
 
 
+def _put_machine_at(up, machine_id: str, q_active) -> None:
+    """Move the simulated machine to ``q_active`` (SimReset, what a tool may send under the
+    server's certificate), standing for an arm that ended against an end stop."""
+    from runtime.protocol import keys
+    from runtime.protocol.messages import SimReset, encode
+    from runtime.zenoh_session import TlsFiles, open_session
+
+    hub = f"tls/127.0.0.1:{up.argv[up.argv.index('--zenoh-port') + 1]}"
+    with open_session(mode="peer", connect=(hub,), listen=("tls/127.0.0.1:0",),
+                      tls=TlsFiles.from_site(up.data_dir / "site", "server")) as session:
+        time.sleep(1.0)  # the peers' gossip links us to the plant
+        for _ in range(3):
+            session.put(keys.sim_reset(machine_id), encode(SimReset(machine_id=machine_id, stamp_s=time.monotonic(),
+                                                                    q_active=list(q_active))))
+            time.sleep(0.3)
+
+
+def test_return_to_ready_pose_from_a_joint_end(up, ann):
+    ann.select_option("#machine", "m1")
+    ann.locator("#machine-state", has_text="m1 READY").wait_for()
+    cabin = next(m for m in up.http.get("/api/machines").json() if m["id"] == "m1")["cabin_turn_rad"]
+    _put_machine_at(up, "m1", [cabin, -1.0, 1.2, 1.8])  # telescope at its end
+    ann.locator("#state-reason", has_text="joint at end: telescope").wait_for()
+    assert ann.locator("#preview").is_disabled()
+    ann.locator("#return-ready").wait_for(state="visible")
+    _press(ann, "#return-ready")
+    _press(ann, "#confirm-ok")  # the arm moves: the console asks first
+    ann.locator("#progress-text", has_text="returning to the ready pose").wait_for()
+    ann.locator("#machine-state", has_text="m1 READY").wait_for()
+    assert ann.locator("#return-ready").is_hidden()
+    audit = up.http.get("/api/audit").json()
+    assert any(a["action"] == "return_to_ready" and a["subject"] == "m1" for a in audit), audit[:3]
+
+
 def test_stopped_server_shows_the_banner_within_5_s(up, ann):
     _stamp_when(ann, "#server-banner", "SERVER UNREACHABLE")
     t0 = time.time() * 1000

@@ -27,7 +27,13 @@ function recoveryFor(m) {
   const r = (m.reason || "").toLowerCase();
   if (r.includes("policy")) return "Deploy a policy for this mode on the Policies page.";
   if (r.includes("real time")) return "Wait for the simulated machine to catch up; if it persists, restart its plant.";
-  if (r.includes("envelope") || r.includes("joint at end")) return "Move the machine back to its ready pose (on the simulated machine: restart its plant).";
+  if (m.returning) return "The runtime drives the arm to its ready pose; E-STOP stops it.";
+  if (m.recovery === "return_to_ready") {
+    const last = m.return_result && !m.return_result.startsWith("reached") ? ` Last attempt: ${m.return_result}.` : "";
+    return (can("operator") ? "Press Return to ready pose: the runtime drives the arm back slowly (E-STOP stops it)."
+      : "An operator can return the machine to its ready pose.") + last;
+  }
+  if (r.includes("envelope") || r.includes("joint at end")) return "Move the machine back to its ready pose.";
   if (r.includes("machine offline")) return "Start the machine (slinger plant for the simulated machine) or check its link.";
   return "";
 }
@@ -59,8 +65,15 @@ function renderState() {
   $("estop-machine").textContent = m.machine_id;
   $("estop-text").textContent = m.estop_reason ? `Reason: ${m.estop_reason}. Throws are refused until Reset.` : "Throws are refused until Reset.";
   document.body.classList.toggle("estopped", m.state === "estopped");
+  const offer = !lost && m.state === "not_ready" && m.recovery === "return_to_ready" && !m.returning;
+  $("return-ready").hidden = !(offer && can("operator"));
   const progressing = m.state === "throwing";
-  $("progress-box").hidden = !progressing;
+  const returning = !lost && m.state === "not_ready" && m.returning;
+  $("progress-box").hidden = !(progressing || returning);
+  if (returning) {
+    $("throw-progress").value = m.return_progress || 0;
+    $("progress-text").textContent = `returning to the ready pose: ${Math.round(100 * (m.return_progress || 0))} %`;
+  }
   if (progressing) {
     $("throw-progress").value = PHASE_PROGRESS[m.phase] || 0.1;
     const secs = state.throwStarted ? ` · ${((Date.now() - state.throwStarted) / 1000).toFixed(1)} s` : "";
@@ -279,6 +292,23 @@ async function doEstopReset() {
   }
 }
 
+async function doReturnToReady() {
+  const mid = state.machineId;
+  const ok = await confirmAction("Return to the ready pose?", `${mid} will move boom, dipper and telescope slowly to ` +
+    "its ready pose (the cabin keeps its angle). Only confirm if the area around the arm is clear; E-STOP stops it.",
+  "Return to ready pose");
+  if (!ok) return;
+  $("return-ready").disabled = true;
+  try {
+    await api("POST", `/api/machines/${encodeURIComponent(mid)}/return-to-ready`);
+    setStatus(`${mid} is returning to its ready pose…`);
+  } catch (e) {
+    setStatus(`Return to the ready pose refused: ${e.message}`, true);
+  } finally {
+    $("return-ready").disabled = false;
+  }
+}
+
 // --- history ----------------------------------------------------------------------------------------
 async function refreshHistory() {
   if (!state.machineId) return;
@@ -339,6 +369,7 @@ async function init() {
   $("preview").addEventListener("click", doPreview);
   $("estop").addEventListener("click", doEstop);
   $("estop-reset").addEventListener("click", doEstopReset);
+  $("return-ready").addEventListener("click", doReturnToReady);
   document.addEventListener("keydown", (e) => { if (e.key === "Escape" && can("operator")) doEstop(); });
   $("target-form").addEventListener("submit", setTypedTarget);
   $("confirm-clearance").addEventListener("change", updateButtons);

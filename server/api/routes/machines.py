@@ -1,6 +1,7 @@
 """GET /api/machines: the machines the server knows or hears, with presence, policies and the
 runtime's state (E-STOP latch, readiness, running throw). E-STOP: POST .../estop (alias .../abort)
-on the fast path; POST .../estop/reset releases the latch (operator, audited)."""
+on the fast path; POST .../estop/reset releases the latch and POST .../return-to-ready starts the
+runtime's recovery action (operator, audited)."""
 
 from __future__ import annotations
 
@@ -158,3 +159,29 @@ def estop_reset(machine_id: str, db: SessionDep, fleet: FleetDep, user: Operator
     if not ack.reset:
         raise HTTPException(409, f"the runtime of {machine_id} kept E-STOP latched: {ack.reason}")
     return EstopResetOut(machine_id=machine_id, reset=True, reason=ack.reason)
+
+
+class ReturnToReadyOut(BaseModel):
+    machine_id: str
+    accepted: bool
+    reason: str | None = None
+
+
+@router.post("/{machine_id}/return-to-ready", response_model=ReturnToReadyOut,
+             responses={409: {"description": "the runtime refused (its reason: E-STOP latched, a throw runs, ...)"},
+                        503: {"description": "the runtime did not answer, or no command key"}})
+def return_to_ready(machine_id: str, db: SessionDep, fleet: FleetDep, user: OperatorDep) -> ReturnToReadyOut:
+    """Recovery action: the runtime drives the arm back to its ready pose (a signed ReturnToReady
+    in the operator's name; runtime/recovery.py). Progress and the end follow in the machine's live
+    state (``returning``, ``return_progress``, ``return_result``). Audited."""
+    try:
+        ack = fleet.return_to_ready(machine_id, user.username)
+    except (RuntimeUnavailable, ValueError) as e:
+        audit(db, user.username, "return_to_ready", machine_id[:64], delivered=False, error=str(e))
+        db.commit()
+        raise HTTPException(503, f"return to the ready pose of {machine_id} not confirmed: {e}") from e
+    audit(db, user.username, "return_to_ready", machine_id, delivered=True, accepted=ack.accepted, reason=ack.reason)
+    db.commit()
+    if not ack.accepted:
+        raise HTTPException(409, f"the runtime of {machine_id} refused to return to the ready pose: {ack.reason}")
+    return ReturnToReadyOut(machine_id=machine_id, accepted=True)
