@@ -5,8 +5,8 @@
 
 Each package is staged in a temporary folder: its pyproject.toml from ``packaging/<name>/``,
 its source folder from the repository (``runtime/``, ``sim_twin/``, ``server/``), and for the
-server the Alembic migrations and the console pages as package data (``server/migrations``,
-``server/web``). Then setuptools' PEP 517 backend of the running interpreter builds the wheel
+server the Alembic migrations, the console pages and the machine's MJCF as package data
+(``server/migrations``, ``server/web``, ``server/assets``). Then setuptools' PEP 517 backend of the running interpreter builds the wheel
 (no build isolation, no network). The repository's own pyproject.toml stays the
 all-in-one development install.
 """
@@ -26,7 +26,8 @@ REPO = Path(__file__).resolve().parent.parent
 PACKAGES = {  # name -> (source folder, {extra copies: staged path <- repo path})
     "runtime": ("runtime", {}),
     "twin": ("sim_twin", {}),
-    "server": ("server", {"server/migrations": "migrations", "server/web": "web"}),
+    # the machine's MJCF too: the 3D view draws it with server.mjcf_chain (numpy, no MuJoCo)
+    "server": ("server", {"server/migrations": "migrations", "server/web": "web", "server/assets": "sim_twin/assets"}),
 }
 IGNORE = shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info", "build", "vendor")
 

@@ -126,9 +126,7 @@ class ConsoleScene:
 
     # --- lifecycle -----------------------------------------------------------------------------
     def start(self) -> None:
-        from sim_twin.model import load_model
-
-        self._geometry = MachineGeometry(load_model())
+        self._geometry = MachineGeometry()  # the twin's MJCF, evaluated with numpy (no MuJoCo here)
         self.server = viser.ViserServer(host=self.host, port=self.requested_port, label="Slinger", verbose=False)
         self.port = self.server.get_port()
         self.server.scene.set_up_direction("+z")

@@ -12,9 +12,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import viser
 
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M, PLANE_TOLERANCE_M
+from server.mjcf_chain import KinematicChain, mat_to_quat
 
 RING_MAX_M = 14
 """Range rings at 1, 2, ... RING_MAX_M metres from the turn axis."""
@@ -24,36 +24,26 @@ REDRAW_TOL = 2e-3
 """Joint change (rad, m) below which the machine is not redrawn."""
 
 
-def wxyz_of(xmat) -> tuple[float, float, float, float]:
-    """(9,) row-major rotation matrix -> quaternion (w, x, y, z)."""
-    return tuple(float(v) for v in viser.transforms.SO3.from_matrix(np.asarray(xmat).reshape(3, 3)).wxyz)
-
-
 class MachineGeometry:
-    """Poses of the twin's geoms for a joint vector (mujoco forward kinematics of the MJCF).
+    """Poses of the twin's geoms for a joint vector: the MJCF's kinematic chain evaluated with
+    numpy (server.mjcf_chain; the API process never imports MuJoCo).
 
     Args:
-        model: the twin's MjModel (sim_twin.model.load_model); the ground plane is skipped.
+        chain: the machine's chain (default: parsed from the twin's MJCF); the ground plane is
+            not drawn.
     """
 
-    def __init__(self, model):
-        import mujoco  # only with the 3D view on: importing the app must not load MuJoCo (server.jobs)
+    def __init__(self, chain: KinematicChain | None = None):
+        self.chain = chain or KinematicChain.from_mjcf()
+        self.geoms = [g for g in self.chain.geoms if g.kind != "plane"]
 
-        self._mj = mujoco
-        self.model, self.data = model, mujoco.MjData(model)
-        self.geoms = [i for i in range(model.ngeom) if model.geom_type[i] != mujoco.mjtGeom.mjGEOM_PLANE]
-
-    def shapes(self) -> list[tuple[str, int, np.ndarray, tuple[int, int, int]]]:
-        """(name, mjtGeom type, size (3,), rgb 0-255) of every drawn geom."""
-        m = self.model
-        return [(m.geom(i).name or f"geom{i}", int(m.geom_type[i]), m.geom_size[i].copy(),
-                 tuple(int(255 * c) for c in m.geom_rgba[i][:3])) for i in self.geoms]
+    def shapes(self) -> list[tuple[str, str, np.ndarray, tuple[int, int, int]]]:
+        """(name, kind "box" | "capsule" | "cylinder" | "sphere", size (3,), rgb 0-255) of every drawn geom."""
+        return [(g.name or f"geom{i}", g.kind, g.size.copy(), g.rgb) for i, g in enumerate(self.geoms)]
 
     def poses(self, q) -> list[tuple[np.ndarray, tuple]]:
         """World (position (3,), wxyz) of every drawn geom at joint positions ``q`` (6,)."""
-        self.data.qpos[:6] = np.asarray(q, dtype=float)[:6]
-        self._mj.mj_kinematics(self.model, self.data)
-        return [(self.data.geom_xpos[i].copy(), wxyz_of(self.data.geom_xmat[i])) for i in self.geoms]
+        return [(p, mat_to_quat(r)) for p, r in self.chain.geom_poses(np.asarray(q, dtype=float)[:6])]
 
 
 def ring_segments(radii_m, n: int = 96) -> np.ndarray:
@@ -139,13 +129,12 @@ class ClientView:
     def build(self, zones) -> None:
         """Machine shapes, range rings with labels at 5 m and 10 m, keep-out zones."""
         s = self.client.scene
-        mujoco = self.geometry._mj
         with self.client.atomic():
-            for name, typ, size, rgb in self.geometry.shapes():
+            for name, kind, size, rgb in self.geometry.shapes():
                 path = f"/machine/{name}"
-                if typ == mujoco.mjtGeom.mjGEOM_BOX:
+                if kind == "box":
                     h = s.add_box(path, color=rgb, dimensions=tuple(2 * size))
-                elif typ in (mujoco.mjtGeom.mjGEOM_CAPSULE, mujoco.mjtGeom.mjGEOM_CYLINDER):
+                elif kind in ("capsule", "cylinder"):
                     h = s.add_cylinder(path, radius=float(size[0]), height=float(2 * size[1]), color=rgb)
                 else:
                     h = s.add_icosphere(path, radius=float(size[0]), color=rgb)
