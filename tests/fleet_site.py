@@ -1,13 +1,20 @@
 """A fleet site as separate processes, without Docker (tests and benchmarks).
 
-Hosts: the *site host* (this network namespace: PostgreSQL at 127.0.0.1:5432, the Zenoh router
-``slinger router``, the server ``slinger server`` and a job worker ``slinger worker``, both on
-PostgreSQL) and one *machine host* per simulated machine: with ``netns=True`` a network
-namespace made here (``ip netns add`` + a veth pair, 10.201.<i>.2 on the machine side,
-10.201.<i>.1 on the site side; needs root), else the site host's loopback. On every machine
-host the simulated machine (``slinger plant``) and its runtime (``slinger runtime``) run as Zenoh
-*clients* of the router, so cutting a machine host's link (:meth:`Site.cut`) cuts that machine
-alone. docker/compose.yaml describes the same services (tests/test_fleet.py checks the names).
+Hosts, with ``netns=True`` (root; tests/fleet_net.py): each group on its own network namespace,
+all on one bridge in the root namespace (``10.201.<s>.0/24``):
+
+* the *router host*: the Zenoh router ``slinger router``;
+* the *site host*: the server ``slinger server`` and a job worker ``slinger worker``, both on
+  PostgreSQL, reached through a relay on the bridge address (PostgreSQL itself stays on the
+  root namespace's 127.0.0.1, see tests/fleet_net.TcpRelay);
+* one *machine host* per simulated machine: ``slinger plant`` and ``slinger runtime``.
+
+Every Zenoh link is mutual TLS with the site's certificates (``slinger certs`` layout in
+``<data_dir>/site``, the router's address in the subjectAltNames) and the site's access control;
+server, runtimes and plants are Zenoh *clients* of the router, so cutting a machine host's link
+(:meth:`Site.cut`) cuts that machine alone. Without ``netns`` everything runs on this namespace's
+loopback (the load benchmark). docker/compose.yaml describes the same services (tests/test_fleet.py
+checks the names).
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ from sqlalchemy import create_engine, text
 
 from server.stack import slinger_command
 from tests.conftest import ADMIN, free_port, login, wait_for
+from tests.fleet_net import Net, TcpRelay
 
 PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 SERVICES = ("router", "server", "worker", "plant", "runtime")
@@ -43,62 +51,57 @@ def netns_available() -> str | None:
     return None
 
 
-def _ip(*args: str, ns: str | None = None) -> None:
-    argv = ["ip", *(("netns", "exec", ns, "ip") if ns else ()), *args]
-    subprocess.run(argv, check=True, capture_output=True, text=True)
-
-
 class Site:
     """The fleet site (context manager). Attributes after entering: ``base_url``, ``http``
-    (logged in as the admin), ``database_url``, ``machines`` (ids), ``procs`` (name -> Popen).
+    (logged in as the admin), ``database_url`` (from this process), ``machines`` (ids),
+    ``procs`` (name -> Popen), ``router_endpoint`` (the router's Zenoh endpoint), ``site_dir``
+    (the site's certificates and command keys), ``net`` (tests.fleet_net.Net or None).
 
     Args:
         tmp: folder for logs, data, outboxes.
         machines: number of simulated machines (m1..mN).
         policy: the 2D policy ONNX file (manifest beside it) the runtimes run.
-        netns: one network namespace per machine host (root only).
+        netns: router, site and each machine on their own network namespace (root only).
+        tls: Zenoh links over mutual TLS with the site's access control (default), else plain TCP.
         server_env: extra ``SLINGER_*`` settings of the server.
     """
 
-    def __init__(self, tmp: Path, machines: int, policy: Path, netns: bool = False, server_env: dict | None = None):
-        self.tmp, self.n, self.policy, self.netns = Path(tmp), machines, Path(policy), netns
+    def __init__(self, tmp: Path, machines: int, policy: Path, netns: bool = False, tls: bool = True,
+                 server_env: dict | None = None):
+        self.tmp, self.n, self.policy, self.netns, self.tls = Path(tmp), machines, Path(policy), netns, tls
         self.server_env = server_env or {}
         self.tag = uuid.uuid4().hex[:5]
         self.machines = [f"m{i}" for i in range(1, machines + 1)]
         self.procs: dict[str, subprocess.Popen] = {}
         self._logs: list = []
-        self._ns: list[str] = []
         self.db_name = f"slinger_site_{self.tag}"
         self.database_url = f"postgresql+psycopg://postgres@127.0.0.1:5432/{self.db_name}"
+        self.host_db = "127.0.0.1:5432"  # PostgreSQL as the site host reaches it
         self.zport, self.port = free_port(), free_port()
         self.data_dir = self.tmp / "site"
+        self.site_dir = self.data_dir / "site"  # the server's default site dir
         self.http: httpx.Client | None = None
+        self.net: Net | None = None
+        self._relay: TcpRelay | None = None
 
     # --- hosts -------------------------------------------------------------------------------
-    def ns(self, i: int) -> str:
-        return f"slf-{self.tag}-{i}"
-
-    def router_address(self, i: int) -> str:
-        return f"10.201.{i}.1" if self.netns else "127.0.0.1"
-
-    def _make_host(self, i: int) -> None:
-        ns, site_if, host_if = self.ns(i), f"vs{self.tag}{i}", f"vh{self.tag}{i}"
-        _ip("netns", "add", ns)
-        self._ns.append(ns)
-        _ip("link", "add", site_if, "type", "veth", "peer", "name", host_if)
-        _ip("link", "set", host_if, "netns", ns)
-        _ip("addr", "add", f"10.201.{i}.1/24", "dev", site_if)
-        _ip("link", "set", site_if, "up")
-        _ip("addr", "add", f"10.201.{i}.2/24", "dev", host_if, ns=ns)
-        _ip("link", "set", host_if, "up", ns=ns)
-        _ip("link", "set", "lo", "up", ns=ns)
-
     def cut(self, machine_id: str) -> None:
-        """Take the machine host's link down (site side of its veth)."""
-        _ip("link", "set", f"vs{self.tag}{self.machines.index(machine_id) + 1}", "down")
+        """Take the machine host's link down (bridge side of its veth); needs ``netns``."""
+        self.net.cut(machine_id)
 
     def restore(self, machine_id: str) -> None:
-        _ip("link", "set", f"vs{self.tag}{self.machines.index(machine_id) + 1}", "up")
+        self.net.restore(machine_id)
+
+    def _hosts(self) -> dict[str, tuple[str | None, str]]:
+        """(namespace, address) of the router host, the site host and every machine host."""
+        names = ["router", "site", *self.machines]
+        if not self.netns:
+            return {n: (None, "127.0.0.1") for n in names}
+        self.net = Net(self.tag[:5], int(self.tag[:2], 16))
+        hosts = {n: self.net.add_host(n) for n in names}
+        self._relay = TcpRelay(self.net.gateway, ("127.0.0.1", 5432))
+        self.host_db = f"{self.net.gateway}:{self._relay.port}"
+        return hosts
 
     # --- processes ---------------------------------------------------------------------------
     def _spawn(self, name: str, argv: list[str], ns: str | None = None, env: dict | None = None) -> None:
@@ -124,6 +127,7 @@ class Site:
         return self
 
     def _start(self) -> None:
+        from server.certs import make_site
         from server.db.migrate import upgrade
         from server.stack import register_policies
 
@@ -131,26 +135,28 @@ class Site:
         register_policies(self.database_url, self.data_dir, {"2d": self.policy})
         subprocess.run(slinger_command("user", "add", "--admin", "--password", ADMIN[1], "--database-url",
                                        self.database_url), check=True, capture_output=True, timeout=120)
-        db = ["--database-url", self.database_url, "--data-dir", str(self.data_dir)]
-        self._spawn("router", slinger_command("router", "--listen", f"tcp/0.0.0.0:{self.zport}"))
-        self._spawn("server", slinger_command("server", "--port", str(self.port), "--zenoh-mode", "client",
-                                              "--connect", f"tcp/127.0.0.1:{self.zport}", *db),
-                    env={"SLINGER_VISER_ENABLED": "false", "SLINGER_JOB_QUEUE_URL": self.queue_url, **self.server_env})
-        self._spawn("worker", slinger_command("worker", *db, "--queue-url", self.queue_url))
-        from server.certs import make_site
-
-        site = make_site(self.data_dir / "site", self.machines)  # the server's default site dir: command keys
+        hosts = self._hosts()
+        router_ns, router_ip = hosts["router"]
+        site_ns, site_ip = hosts["site"]
+        make_site(self.site_dir, self.machines, ips=[router_ip])  # CA, certificates, command keys
+        scheme, tls = ("tls", ["--tls-dir", str(self.site_dir)]) if self.tls else ("tcp", [])
+        self.router_endpoint = f"{scheme}/{router_ip}:{self.zport}"
+        host_db_url = f"postgresql+psycopg://postgres@{self.host_db}/{self.db_name}"
+        db = ["--database-url", host_db_url, "--data-dir", str(self.data_dir)]
+        self._spawn("router", slinger_command("router", "--listen", f"{scheme}/0.0.0.0:{self.zport}", *tls), router_ns)
+        self._spawn("server", slinger_command("server", "--host", site_ip, "--port", str(self.port), "--zenoh-mode",
+                                              "client", "--connect", self.router_endpoint, *tls, *db),
+                    site_ns, env={"SLINGER_VISER_ENABLED": "false", "SLINGER_JOB_QUEUE_URL": self.queue_url,
+                                  **self.server_env})
+        self._spawn("worker", slinger_command("worker", *db, "--queue-url", self.queue_url), site_ns)
         for i, mid in enumerate(self.machines, start=1):
-            ns = None
-            if self.netns:
-                self._make_host(i)
-                ns = self.ns(i)
-            link = ["--mode", "client", "--connect", f"tcp/{self.router_address(i)}:{self.zport}"]
+            ns = hosts[mid][0]
+            link = ["--mode", "client", "--connect", self.router_endpoint, *tls]
             self._spawn(f"plant-{mid}", slinger_command("plant", "--machine-id", mid, "--seed", str(i), *link), ns)
-            self._spawn(f"runtime-{mid}", slinger_command("runtime", "--machine-id", mid, "--policy-2d", str(self.policy),
-                                                          *link, "--command-key", str(site.command_key(mid)),
-                                                          "--outbox-dir", str(self.tmp / "outbox" / mid)), ns)
-        self.base_url = f"http://127.0.0.1:{self.port}"
+            self._spawn(f"runtime-{mid}", slinger_command(
+                "runtime", "--machine-id", mid, "--policy-2d", str(self.policy), *link, "--command-key",
+                str(self.site_dir / "machines" / mid / "command.key"), "--outbox-dir", str(self.tmp / "outbox" / mid)), ns)
+        self.base_url = f"http://{site_ip}:{self.port}"
 
         def up():
             for name, p in self.procs.items():
@@ -167,7 +173,8 @@ class Site:
 
     @property
     def queue_url(self) -> str:
-        return "postgresql://postgres@127.0.0.1:5432/" + self.db_name
+        """The job queue (PostgreSQL) as the site host reaches it."""
+        return f"postgresql://postgres@{self.host_db}/{self.db_name}"
 
     def online(self) -> dict[str, dict]:
         """Machines the server sees online with a state, by id."""
@@ -187,8 +194,10 @@ class Site:
                 p.wait(timeout=5)
         for f in self._logs:
             f.close()
-        for ns in self._ns:
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+        if self._relay is not None:
+            self._relay.close()
+        if self.net is not None:
+            self.net.close()
         admin = create_engine(PG_ADMIN_URL, isolation_level="AUTOCOMMIT")
         with admin.connect() as c:
             c.execute(text(f'DROP DATABASE IF EXISTS "{self.db_name}" WITH (FORCE)'))
