@@ -13,7 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
 from pathlib import Path
 
-from sqlalchemy import select
+from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from runtime.protocol.messages import PolicyInfo, ThrowResult, ThrowStatus
@@ -156,14 +156,15 @@ class ResultStore:
         return out
 
     def mark_lost(self, throw_id: str, reason: str) -> bool:
-        """Close an open throw as ``lost`` with ``reason``; False if it is already final."""
+        """Close an open throw as ``lost`` with ``reason``; False if it is already final (or
+        unknown). One conditional UPDATE, so a result stored meanwhile by another thread or
+        server is never overwritten; an open throw never counts in the accuracy aggregates
+        (server.db.aggregates), so they need no change."""
         with self.sessions.begin() as db:
-            row = db.get(Throw, throw_id)
-            if row is None or row.status in FINAL_STATUSES:
-                return False
-            row.status, row.failure_reason = "lost", reason
-            row.completed_at = utcnow()
-        return True
+            done = db.execute(update(Throw).where(Throw.id == throw_id, Throw.status.not_in(FINAL_STATUSES))
+                              .values(status="lost", failure_reason=reason, completed_at=utcnow())
+                              .execution_options(synchronize_session=False))
+        return done.rowcount == 1
 
 
 def _check_issued(known: Throw | None, result: ThrowResult) -> None:

@@ -2,25 +2,23 @@
 (no drift), UTC-aware timestamps round-trip, the sha256 uniqueness holds, downgrade removes all.
 
 The PostgreSQL test (mark ``postgres``) creates a throwaway database on 127.0.0.1:5432, drops it
-afterwards, and skips when the server is unreachable.
+afterwards, and skips when the server is unreachable (fixture ``pg_url`` in tests/conftest.py).
 """
 
 from __future__ import annotations
 
-import uuid
 from datetime import datetime, timedelta, timezone
 
 import pytest
 from alembic import command
-from sqlalchemy import create_engine, inspect, text
-from sqlalchemy.exc import IntegrityError, OperationalError, StatementError
+from sqlalchemy import create_engine, inspect
+from sqlalchemy.exc import IntegrityError, StatementError
 
 from server.db.migrate import alembic_config, downgrade, upgrade
 from server.db.models import Machine, PolicyVersion, Throw
 from server.db.session import make_engine, make_sessionmaker
 
 TABLES = {"machines", "policy_versions", "throws", "alembic_version"}
-PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 
 
 def _check_schema(url: str) -> None:
@@ -76,25 +74,6 @@ def test_sqlite_foreign_keys_are_enforced(tmp_path):
         engine.dispose()
 
 
-@pytest.fixture
-def pg_database_url():
-    """A fresh PostgreSQL database, dropped afterwards; skip if PostgreSQL is unreachable."""
-    admin = create_engine(PG_ADMIN_URL, isolation_level="AUTOCOMMIT", connect_args={"connect_timeout": 3})
-    name = f"slinger_test_{uuid.uuid4().hex[:12]}"
-    try:
-        with admin.connect() as conn:
-            conn.execute(text(f'CREATE DATABASE "{name}"'))
-    except OperationalError as e:
-        admin.dispose()
-        pytest.skip(f"PostgreSQL not reachable at 127.0.0.1:5432: {e.orig}")
-    try:
-        yield f"postgresql+psycopg://postgres@127.0.0.1:5432/{name}"
-    finally:
-        with admin.connect() as conn:
-            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-        admin.dispose()
-
-
 @pytest.mark.postgres
-def test_migrations_on_postgres(pg_database_url):
-    _check_schema(pg_database_url)
+def test_migrations_on_postgres(pg_url):
+    _check_schema(pg_url)

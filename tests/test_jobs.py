@@ -9,13 +9,10 @@ import json
 import subprocess
 import sys
 import textwrap
-import uuid
 from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import create_engine, text
-from sqlalchemy.exc import OperationalError
 
 from server.app import create_app
 from server.config import Settings
@@ -29,7 +26,6 @@ from tests.conftest import ADMIN, add_user, login, wait_for
 from tests.fleet_site import Worker
 
 POLICY = Path(__file__).resolve().parent.parent / "policies" / "throw2d.onnx"
-PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 
 
 def _settings(tmp_path: Path, **kw) -> Settings:
@@ -166,24 +162,6 @@ def test_bad_queue_and_job_input_is_refused(tmp_path):
     out = subprocess.run(slinger_command("worker", "--lanes", "slow", "--data-dir", str(tmp_path)),
                          capture_output=True, text=True, timeout=60)
     assert out.returncode != 0 and "unknown lane" in out.stderr
-
-
-@pytest.fixture
-def pg_url():
-    admin = create_engine(PG_ADMIN_URL, isolation_level="AUTOCOMMIT", connect_args={"connect_timeout": 3})
-    name = f"slinger_jobs_{uuid.uuid4().hex[:10]}"
-    try:
-        with admin.connect() as conn:
-            conn.execute(text(f'CREATE DATABASE "{name}"'))
-    except OperationalError as e:
-        admin.dispose()
-        pytest.skip(f"PostgreSQL not reachable at 127.0.0.1:5432: {e.orig}")
-    try:
-        yield f"postgresql+psycopg://postgres@127.0.0.1:5432/{name}"
-    finally:
-        with admin.connect() as conn:
-            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-        admin.dispose()
 
 
 def _redis_url() -> str:

@@ -1,7 +1,7 @@
 """jobs: worker leases (heartbeats) and attempts, so that jobs of dead workers are re-run
 
 Revision ID: 0007
-Revises: 0006 (the accuracy aggregates) where that revision exists, else 0005
+Revises: 0006
 Create Date: 2026-11-21
 
 ``jobs`` gains the claim of the worker running a job (``worker_id``: a random id per worker
@@ -9,21 +9,18 @@ process, ``worker_host``, ``worker_pid``), its last ``heartbeat_at`` and ``lease
 (written by the running worker every few seconds), and ``attempts`` (how often a worker started
 it). A worker on any host that sees an expired lease (or, on the same host, a dead pid) re-queues
 the job, up to a limit of attempts, then fails it with the reason (server.jobs.leases).
-Numbered 0007: 0006 (accuracy aggregates) was written at the same time on another branch; so
-that either may land first without two Alembic heads, this revision follows 0006 when its file is
-present. Once both are on main, ``down_revision`` is to be written as the plain ``"0006"``.
+Numbered 0007: it follows 0006 (accuracy aggregates), written at the same time on another branch.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Sequence, Union
 
 import sqlalchemy as sa
 from alembic import op
 
 revision: str = "0007"
-down_revision: Union[str, None] = "0006" if any(Path(__file__).parent.glob("0006_*.py")) else "0005"
+down_revision: Union[str, None] = "0006"
 branch_labels: Union[str, Sequence[str], None] = None
 depends_on: Union[str, Sequence[str], None] = None
 

@@ -1,6 +1,7 @@
 """SQLAlchemy 2 typed models. API schemas live in :mod:`server.api.schemas`; never mix them.
 
-Tables: ``machines``, ``policy_versions``, ``throws``, ``users``, ``auth_sessions``,
+Tables: ``machines``, ``policy_versions``, ``throws``, ``throw_accuracy`` (incremental accuracy
+aggregates, maintained by :mod:`server.db.aggregates`), ``users``, ``auth_sessions``,
 ``audit_log``, ``policy_deployments``, ``jobs``. Modes and statuses are database enums
 (:func:`db_enum`: a VARCHAR with a CHECK constraint on SQLite and PostgreSQL alike, so that a new
 value is one constraint swap in a migration) and ``Literal`` types in the API (OpenAPI enums). Positions are machine-frame metres,
@@ -11,9 +12,9 @@ timestamps UTC-aware (:class:`server.db.types.UTCDateTime`). Constraint names fo
 from __future__ import annotations
 
 import uuid
-from datetime import datetime
+from datetime import date, datetime
 
-from sqlalchemy import JSON, BigInteger, Boolean, Enum, Float, ForeignKey, Index, Integer, MetaData, String, Text
+from sqlalchemy import JSON, BigInteger, Boolean, Date, Enum, Float, ForeignKey, Index, Integer, MetaData, String, Text
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from server.db.types import UTCDateTime, utcnow
@@ -89,6 +90,8 @@ class Throw(Base):
 
     Columns of note: ``target_*_m`` / ``impact_*_m`` machine frame, m; errors as defined by
     :func:`runtime.throw_geometry.impact_errors`; ``telemetry_path`` relative to the data dir.
+    The columns a landed throw's accuracy contribution depends on keep their previous value on
+    change (``active_history``), so that :mod:`server.db.aggregates` can move the contribution.
     """
 
     __tablename__ = "throws"
@@ -99,23 +102,23 @@ class Throw(Base):
     )
 
     id: Mapped[str] = mapped_column(String(36), primary_key=True, default=lambda: str(uuid.uuid4()))
-    machine_id: Mapped[str] = mapped_column(ForeignKey("machines.id"))
-    mode: Mapped[str] = mapped_column(db_enum(MODES, "mode", 2))
-    target_x_m: Mapped[float] = mapped_column(Float)
-    target_y_m: Mapped[float] = mapped_column(Float)
+    machine_id: Mapped[str] = mapped_column(ForeignKey("machines.id"), active_history=True)
+    mode: Mapped[str] = mapped_column(db_enum(MODES, "mode", 2), active_history=True)
+    target_x_m: Mapped[float] = mapped_column(Float, active_history=True)
+    target_y_m: Mapped[float] = mapped_column(Float, active_history=True)
     target_z_m: Mapped[float] = mapped_column(Float)
-    status: Mapped[str] = mapped_column(db_enum(THROW_STATUSES, "status"), default="requested")
+    status: Mapped[str] = mapped_column(db_enum(THROW_STATUSES, "status"), default="requested", active_history=True)
     failure_reason: Mapped[str | None] = mapped_column(Text, nullable=True)
     impact_x_m: Mapped[float | None] = mapped_column(Float, nullable=True)
     impact_y_m: Mapped[float | None] = mapped_column(Float, nullable=True)
     impact_z_m: Mapped[float | None] = mapped_column(Float, nullable=True)
-    downrange_error_m: Mapped[float | None] = mapped_column(Float, nullable=True)
-    crossrange_error_m: Mapped[float | None] = mapped_column(Float, nullable=True)
-    policy_version: Mapped[str | None] = mapped_column(String(128), nullable=True)
+    downrange_error_m: Mapped[float | None] = mapped_column(Float, nullable=True, active_history=True)
+    crossrange_error_m: Mapped[float | None] = mapped_column(Float, nullable=True, active_history=True)
+    policy_version: Mapped[str | None] = mapped_column(String(128), nullable=True, active_history=True)
     """The policy version's name, for people; names are not unique, ``policy_sha256`` is."""
-    policy_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    policy_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True, active_history=True)
     """SHA-256 of the ONNX file that made the throw: the policy identity comparisons and accuracy group by."""
-    requested_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    requested_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow, active_history=True)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     released_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     completed_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
@@ -137,6 +140,35 @@ class Throw(Base):
         if self.impact_x_m is None:
             return None
         return [self.impact_x_m, self.impact_y_m, self.impact_z_m]
+
+
+class ThrowAccuracy(Base):
+    """Incremental accuracy aggregates of the landed throws (server.db.aggregates maintains them
+    in the transaction that changes a throw; server.accuracy answers from them).
+
+    One row per (machine, mode, policy SHA-256, policy name, target-distance bin, UTC day of
+    ``requested_at``); a missing SHA or name is stored as ``''`` (key columns are NOT NULL).
+    ``distance_bin`` = floor(target distance / 0.5 m + 0.5) (server.db.aggregates.distance_bin).
+    Sums over the landed throws of the key (errors as in ``throws``, m; products m²):
+    ``n``, sums of downrange, crossrange, their squares, their product and of |error| =
+    sqrt(down² + cross²). A row whose ``n`` fell to 0 stays (its sums ~0) and is ignored.
+    """
+
+    __tablename__ = "throw_accuracy"
+
+    machine_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    mode: Mapped[str] = mapped_column(String(2), primary_key=True)
+    policy_sha256: Mapped[str] = mapped_column(String(64), primary_key=True)
+    policy_version: Mapped[str] = mapped_column(String(128), primary_key=True)
+    distance_bin: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    day: Mapped[date] = mapped_column(Date, primary_key=True)
+    n: Mapped[int] = mapped_column(BigInteger)
+    sum_down_m: Mapped[float] = mapped_column(Float)
+    sum_cross_m: Mapped[float] = mapped_column(Float)
+    sum_down2_m2: Mapped[float] = mapped_column(Float)
+    sum_cross2_m2: Mapped[float] = mapped_column(Float)
+    sum_down_cross_m2: Mapped[float] = mapped_column(Float)
+    sum_abs_m: Mapped[float] = mapped_column(Float)
 
 
 ROLES = ("viewer", "operator", "admin")

@@ -13,7 +13,8 @@ from sqlalchemy import select
 from server.api.deps import AdminDep, SessionDep, ViewerDep
 from server.api.schemas import COORD_LIMIT_M, MAX_DB_ID, DbId
 from server.db.models import PolicyDeployment, PolicyVersion, Throw
-from server.history import ThrowFilter, accuracy
+from server.accuracy import accuracy
+from server.history import ThrowFilter
 from server.policies import expire_stale_offers
 from server.throws import ThrowRefused
 

@@ -14,7 +14,8 @@ from server.api.deps import OperatorDep, SceneDep, SessionDep, ThrowServiceDep, 
 from server.api.schemas import (DISTANCE_LIMIT_M, Problem, ThrowCreate, ThrowCreated, ThrowOut, ThrowStatusName,
                                 UtcTime)
 from server.db.models import Throw
-from server.history import SORTS, ThrowFilter, accuracy, page, to_csv
+from server.accuracy import accuracy
+from server.history import SORTS, ThrowFilter, page, to_csv
 from server.throws import ThrowRefused
 
 router = APIRouter(prefix="/api/throws", tags=["throws"])
@@ -101,7 +102,12 @@ def get_accuracy(db: SessionDep, _user: ViewerDep, flt: ThrowFilter = Depends(th
     """Accuracy of the landed throws matching the filters, per mode, policy version (SHA-256) and
     target distance (0.5 m bins): mean impact distance, bias, 1 sigma downrange/crossrange, error
     ellipse, and the newest 200 errors per group for the scatter plot. Plain JSON (floats and
-    lists only), so the response skips FastAPI's encoder."""
+    lists only), so the response skips FastAPI's encoder.
+
+    Answered from the incremental aggregates (``throw_accuracy``, updated in the transaction
+    that stores each result) for the machine, mode, policy, status and time filters (times
+    inside a day add a row scan of that partial day); ``min_distance_m``/``max_distance_m``
+    fall back to a scan of every matching landed row (see server.accuracy)."""
     return JSONResponse(accuracy(db, flt))
 
 
