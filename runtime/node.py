@@ -8,9 +8,11 @@ Wiring (keys in runtime/protocol/README.md):
 * queryables keys.throw (ThrowRequest -> ThrowAck), keys.abort (AbortRequest -> AbortAck,
   latches E-STOP), keys.estop_reset (EstopReset -> EstopResetAck), keys.return_to_ready
   (ReturnToReady -> ReturnToReadyAck, runtime.recovery), keys.info (-> RuntimeInfo);
-* exclusive claim: at start it asks for keys.runtime_alive(id) liveliness; if another runtime
-  holds it, it exits with code 3 ("machine m1 already has a runtime"); else it declares the
-  token and picks its epoch = int(time.time() * 1000) (commands for another epoch are refused);
+* exclusive claim (runtime.zenoh_session.claim_exclusive): at start it declares a claim token
+  keys.runtime_claim(id, claim) and listens 1.5 s; if another runtime holds keys.runtime_alive(id)
+  or claimed earlier (two started at once), it exits with code 3 ("machine m1 already has a
+  runtime"); else it declares the alive token and picks its epoch = int(time.time() * 1000)
+  (commands for another epoch are refused);
 * signed commands: ``--command-key PATH`` (64 hex digits, ``slinger certs`` writes
   ``<site_dir>/machines/<id>/command.key``). Without it every throw, E-STOP reset and policy
   offer is refused "no command key configured" (aborts still work);
@@ -41,7 +43,7 @@ from runtime.policy_update import PolicyUpdater, zenoh_fetcher
 from runtime.protocol import keys
 from runtime.protocol.messages import encode
 from runtime.service import LINK_TIMEOUT_S, RuntimeService
-from runtime.zenoh_session import add_session_arguments, claimed_by_other, open_session, session_options
+from runtime.zenoh_session import Claimed, add_session_arguments, claim_exclusive, open_session, session_options
 
 EXIT_ALREADY_CLAIMED = 3
 """Exit code when another process already holds the machine id's liveliness token."""
@@ -108,10 +110,12 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     executor = ThrowExecutor(policies, JointVelocityController())
 
     with open_session(**zenoh_opts) as session:
-        if claimed_by_other(session, keys.runtime_alive(machine_id)):
-            log.error("machine %s already has a runtime: not starting a second one", machine_id)
+        try:
+            token, claim_token = claim_exclusive(session, keys.runtime_alive(machine_id),
+                                                 lambda c: keys.runtime_claim(machine_id, c))
+        except Claimed as e:
+            log.error("machine %s already has a runtime (%s): not starting a second one", machine_id, e)
             return EXIT_ALREADY_CLAIMED
-        token = session.liveliness().declare_token(keys.runtime_alive(machine_id))
         epoch = int(time.time() * 1000)
         verifier = CommandVerifier(key, epoch) if key is not None else None
         pubs = {
@@ -146,6 +150,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             session.declare_queryable(keys.policy_offer(machine_id), reply(updater.handle_offer)),
             status_pub,
             token,
+            claim_token,
             *pubs.values(),
         ]
         outbox.start()

@@ -9,8 +9,8 @@ queries) are allowed. Data, queries, replies and liveliness tokens arriving are 
 | sender CN | may put | may query | may reply on | liveliness token |
 |---|---|---|---|---|
 | server | machine/*/sim/reset | runtime/*/{throw,abort,estop_reset,return_to_ready,info,policy/offer} | server/throw_result, server/policy/* | - |
-| runtime-<id> | machine/<id>/{valve_cmd,gripper_cmd}, runtime/<id>/{status,runtime_state,policy/status} | server/throw_result, server/policy/* | runtime/<id>/{throw,abort,estop_reset,return_to_ready,info,policy/offer} | runtime/<id>/alive |
-| plant-<id> | machine/<id>/{state,impact} | - | - | machine/<id>/alive |
+| runtime-<id> | machine/<id>/{valve_cmd,gripper_cmd}, runtime/<id>/{status,runtime_state,policy/status} | server/throw_result, server/policy/* | runtime/<id>/{throw,abort,estop_reset,return_to_ready,info,policy/offer} | runtime/<id>/{alive,claim/*} |
+| plant-<id> | machine/<id>/{state,impact} | - | - | machine/<id>/{alive,claim/*} |
 | router | everything (it forwards; it enforces these rules itself on its own links) |
 
 (all keys under ``slinger/``). A peer with a certificate of another role is denied on ingress
@@ -73,9 +73,9 @@ def site_acl(machine_ids: Sequence[str]) -> dict:
                                          keys.runtime_state(mid), keys.policy_status(mid)]),
             _rule(f"{rt}-query", ["query"], server_results),
             _rule(f"{rt}-reply", ["reply"], [keys.runtime(mid, leaf) for leaf in RUNTIME_QUERYABLES]),
-            _rule(f"{rt}-token", ["liveliness_token"], [keys.runtime_alive(mid)]),
+            _rule(f"{rt}-token", ["liveliness_token"], [keys.runtime_alive(mid), keys.runtime_claim(mid, "*")]),
             _rule(f"{pl}-put", ["put"], [keys.state(mid), keys.impact(mid)]),
-            _rule(f"{pl}-token", ["liveliness_token"], [keys.machine_alive(mid)]),
+            _rule(f"{pl}-token", ["liveliness_token"], [keys.machine_alive(mid), keys.machine_claim(mid, "*")]),
         ]
         subjects += [{"id": rt, "cert_common_names": [rt]}, {"id": pl, "cert_common_names": [pl]}]
         policies += [

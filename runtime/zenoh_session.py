@@ -23,7 +23,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import secrets
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -137,29 +139,72 @@ def open_session(
 
 
 CLAIM_WAIT_S = 1.5
-"""How long a starting runtime or plant listens for another holder of its machine's token."""
+"""How long a starting runtime or plant listens for other holders and claimants of its machine."""
 
 
-def claimed_by_other(session: zenoh.Session, token_key: str, wait_s: float = CLAIM_WAIT_S) -> bool:
-    """True if some process holds the liveliness token ``token_key``.
+class Claimed(Exception):
+    """The machine already has a holder, or an earlier claimant started at the same time."""
 
-    Listens with a liveliness subscriber with history for ``wait_s``: tokens already known are
-    reported at once, and those of peers that gossip links this session to while it waits
-    (in a peer mesh a token is only seen over a direct link) arrive within the wait. Two
-    processes starting within the same window can both miss each other; the epoch fence (the
-    machine follows only the newest runtime epoch) covers that case.
+
+def new_claim(now_s: float | None = None) -> str:
+    """A start claim ``<ms since the epoch, 13 digits>-<8 random hex digits>`` (keys.CLAIM_RE):
+    claims sort by start time, ties at random."""
+    ms = int((time.time() if now_s is None else now_s) * 1000)
+    return f"{ms:013d}-{secrets.token_hex(4)}"
+
+
+def claim_exclusive(session: zenoh.Session, alive_key: str, claim_key, wait_s: float = CLAIM_WAIT_S,
+                    claim: str | None = None):
+    """Claim a machine for this process, race-free between processes that start at once.
+
+    1. Listen (liveliness subscribers with history) for the holder's token ``alive_key`` and for
+       every claim token ``claim_key("*")``.
+    2. Declare this process's claim token ``claim_key(claim)`` (``claim`` from :func:`new_claim`).
+    3. Wait ``wait_s`` (tokens already known arrive at once; those of processes that start within
+       the window arrive within it, in a peer mesh after gossip links them).
+    4. If the holder's token was seen, or a live claim that sorts before ours (earlier start; same
+       millisecond: the random part decides, the same way in every process), undeclare ours and
+       raise :class:`Claimed`. Else declare ``alive_key`` and return ``(alive_token, claim_token)``;
+       the caller keeps both for its life (later claimants see the earlier claim too, even if
+       their clock is behind, because they also see the holder's token).
+
+    Two processes that start at the same instant thus both see each other's claim after the
+    wait, and exactly one (the earlier claim) goes on. The assumption: liveliness tokens reach
+    every participant within ``wait_s``; should that fail (a partitioned network), the epoch fence
+    (the machine follows only the newest runtime epoch) still keeps one runtime driving it.
+
+    Raises:
+        Claimed: with the reason (who holds or claims the machine).
     """
-    seen = threading.Event()
+    claim = claim or new_claim()
+    claims: dict[str, bool] = {}
+    holder = threading.Event()
+    lock = threading.Lock()
+    prefix = claim_key("*")[:-1]
 
-    def on_token(sample) -> None:
+    def on_claim(sample) -> None:
+        with lock:
+            claims[str(sample.key_expr)[len(prefix):]] = sample.kind == zenoh.SampleKind.PUT
+
+    def on_alive(sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:
-            seen.set()
+            holder.set()
 
-    sub = session.liveliness().declare_subscriber(token_key, on_token, history=True)
+    subs = [session.liveliness().declare_subscriber(alive_key, on_alive, history=True),
+            session.liveliness().declare_subscriber(claim_key("*"), on_claim, history=True)]
+    mine = session.liveliness().declare_token(claim_key(claim))
     try:
-        return seen.wait(wait_s)
+        holder.wait(wait_s)
+        with lock:
+            earlier = sorted(c for c, live in claims.items() if live and c < claim)
+        if holder.is_set() or earlier:
+            mine.undeclare()
+            raise Claimed(f"claimed by another process starting at the same time (claim {earlier[0]} before ours {claim})"
+                          if earlier else "held by a running process")
+        return session.liveliness().declare_token(alive_key), mine
     finally:
-        sub.undeclare()
+        for sub in subs:
+            sub.undeclare()
 
 
 def add_session_arguments(parser: argparse.ArgumentParser) -> None:

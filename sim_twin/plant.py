@@ -18,8 +18,10 @@ What only the simulated machine does stays here, behind the machine interface:
   joint at its end, the gripper at the ground, e.g. after a failed throw or an E-STOP) stays
   there, as a real machine would: the operator's recovery action, the runtime's "return to the
   ready pose" (runtime.recovery), drives it back.
-* one machine, one plant: at start it asks for keys.machine_alive(id); if another plant holds
-  it, it exits with code 3 ("machine m1 already has a plant").
+* one machine, one plant (runtime.zenoh_session.claim_exclusive): at start it declares a claim
+  token keys.machine_claim(id, claim) and listens 1.5 s; if another plant holds
+  keys.machine_alive(id) or claimed earlier (two started at once), it exits with code 3
+  ("machine m1 already has a plant").
 * one driver: it follows only the newest ValveCommand epoch it has seen (a runtime's claim
   epoch); commands of an older epoch are dropped and logged once per epoch.
 * real time: when a period starts more than 100 ms late (sim_twin.realtime.BEHIND_FAULT_S), the
@@ -58,7 +60,7 @@ from runtime.protocol.messages import (
     decode,
     encode,
 )
-from runtime.zenoh_session import add_session_arguments, claimed_by_other, open_session, session_options
+from runtime.zenoh_session import Claimed, add_session_arguments, claim_exclusive, open_session, session_options
 from sim_twin.initial_pose import sample_pose
 from sim_twin.profile import RealityProfile
 from sim_twin.realtime import RealTimeGuard
@@ -305,8 +307,11 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     twin = TwinMachine(sim, machine_id, clock=time.monotonic)
     inbox = PlantInbox(machine_id)
     with open_session(**zenoh_opts) as session:
-        if claimed_by_other(session, keys.machine_alive(machine_id)):
-            log.error("machine %s already has a plant: not starting a second one", machine_id)
+        try:
+            token, claim_token = claim_exclusive(session, keys.machine_alive(machine_id),
+                                                 lambda c: keys.machine_claim(machine_id, c))
+        except Claimed as e:
+            log.error("machine %s already has a plant (%s): not starting a second one", machine_id, e)
             return EXIT_ALREADY_CLAIMED
         pub_state = session.declare_publisher(keys.state(machine_id))
         pub_impact = session.declare_publisher(keys.impact(machine_id))
@@ -315,12 +320,12 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             session.declare_subscriber(keys.gripper_cmd(machine_id), inbox.on_gripper),
             session.declare_subscriber(keys.sim_reset(machine_id), inbox.on_reset),
         ]
-        token = session.liveliness().declare_token(keys.machine_alive(machine_id))
         log.info("plant %s up (profile %s)", machine_id, profile.name)
         try:
             _loop(twin, inbox, pub_state, pub_impact, stop)
         finally:
             token.undeclare()
+            claim_token.undeclare()
             for sub in subs:
                 sub.undeclare()
             pub_state.undeclare()

@@ -8,6 +8,7 @@ Layout::
     slinger/machine/<machine_id>/impact         ImpactReport     machine -> *        per throw
     slinger/machine/<machine_id>/sim/reset      SimReset         runtime -> sim machine only
     slinger/machine/<machine_id>/alive          liveliness token of the machine bridge / plant
+    slinger/machine/<machine_id>/claim/<claim>  liveliness token of a plant claiming the machine at start
     slinger/runtime/<machine_id>/throw          queryable: ThrowRequest -> ThrowAck
     slinger/runtime/<machine_id>/abort          queryable: AbortRequest -> AbortAck
     slinger/runtime/<machine_id>/info           queryable: -> RuntimeInfo
@@ -16,6 +17,7 @@ Layout::
     slinger/runtime/<machine_id>/return_to_ready queryable: ReturnToReady -> ReturnToReadyAck
     slinger/runtime/<machine_id>/runtime_state  RuntimeInfo      runtime -> *        2 Hz + on change
     slinger/runtime/<machine_id>/alive          liveliness token of the runtime
+    slinger/runtime/<machine_id>/claim/<claim>  liveliness token of a runtime claiming the machine at start
     slinger/server/throw_result                 queryable on the server: ThrowResult -> ResultAck
     slinger/runtime/<machine_id>/policy/offer   queryable: PolicyOffer -> PolicyOfferAck
     slinger/runtime/<machine_id>/policy/status  PolicyUpdate     runtime -> server   on load / failure
@@ -97,6 +99,35 @@ def status(machine_id: str) -> str:
 
 def runtime_alive(machine_id: str) -> str:
     return runtime(machine_id, "alive")
+
+
+CLAIM_RE = re.compile(r"^[0-9]{13}-[0-9a-f]{8}$")
+"""A start claim: milliseconds since the epoch (13 digits) and 8 random hex digits, so that
+claims sort by time, then at random (runtime.zenoh_session.claim_exclusive)."""
+
+
+def _claim_leaf(claim: str) -> str:
+    if claim != "*" and not CLAIM_RE.match(claim):
+        raise ValueError(f"bad claim {claim!r}: expected 13 digits, '-', 8 hex digits (or '*')")
+    return f"claim/{claim}"
+
+
+def runtime_claim(machine_id: str, claim: str) -> str:
+    """Liveliness token of a starting runtime's claim (``claim="*"``: all of the machine's claims).
+
+    Raises:
+        ValueError: a bad machine id or claim.
+    """
+    return runtime(machine_id, _claim_leaf(claim))
+
+
+def machine_claim(machine_id: str, claim: str) -> str:
+    """Liveliness token of a starting plant's claim (``claim="*"``: all of the machine's claims).
+
+    Raises:
+        ValueError: a bad machine id or claim.
+    """
+    return machine(machine_id, _claim_leaf(claim))
 
 
 def estop_reset(machine_id: str) -> str:
