@@ -126,7 +126,9 @@ class ValveModel:
         steps = np.round(params.delay_s / dt, 9)
         self._delay_steps = np.floor(steps).astype(int)
         self._delay_frac = steps - self._delay_steps
-        self._buffer = np.zeros((int(self._delay_steps.max()) + 2, 4))
+        self._buffer = np.zeros((int(self._delay_steps.max()) + 2, 4))  # ring: row _head is the newest flow
+        self._head = 0
+        self._cols = np.arange(4)
         self._lagged = np.zeros(4)
 
     def reset(self) -> None:
@@ -145,13 +147,14 @@ class ValveModel:
         """
         u = np.clip(np.asarray(u, dtype=float), -1.0, 1.0)
         flow = dead_band_flow(np, u, self.params.dead_band)
-        self._buffer = np.roll(self._buffer, 1, axis=0)
-        self._buffer[0] = flow
-        cols = np.arange(4)
-        delayed = self._buffer[self._delay_steps, cols]
+        n = len(self._buffer)
+        self._head = (self._head - 1) % n
+        self._buffer[self._head] = flow
+        cols = self._cols
+        delayed = self._buffer[(self._head + self._delay_steps) % n, cols]
         if np.any(self._delay_frac > 0):
             frac = self._delay_frac
-            delayed = (1.0 - frac) * delayed + frac * self._buffer[self._delay_steps + 1, cols]
+            delayed = (1.0 - frac) * delayed + frac * self._buffer[(self._head + self._delay_steps + 1) % n, cols]
         self._lagged = lag_step(self._lagged, delayed, self.params.lag_s, self.dt)
         vmax = self.params.velocity_limit
         return np.clip(self._lagged * vmax, -vmax, vmax)
