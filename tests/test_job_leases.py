@@ -22,11 +22,6 @@ from server.jobs.tasks import execute
 from tests.conftest import wait_for
 from tests.fleet_site import Worker
 
-try:  # the throwaway PostgreSQL database fixture (moving to tests/conftest.py, which needs no import)
-    from tests.test_jobs import pg_url  # noqa: F401
-except ImportError:
-    pass
-
 FAST_LEASE = ("--lanes", "heavy", "--heartbeat-s", "0.3", "--lease-s", "2")
 FINAL = ("done", "failed", "cancelled")
 
