@@ -37,6 +37,9 @@ DARK, RED = (60, 60, 70), (200, 40, 40)
 TRAJECTORY_POINTS = 300
 DEFAULT_BAND_M = (MIN_TARGET_DISTANCE_M, 10.7)
 CONSOLE_TTL_S = 12 * 3600.0
+OPERATOR_ONLY_CANVAS = "<style>body * { visibility: hidden !important; } canvas { visibility: visible !important; }</style>"
+"""Injected into viser's page (a GUI HTML element): only the 3D canvas stays visible; hidden
+elements cannot be hit by the mouse nor focused, and clicks on the canvas still reach viser."""
 MAX_CONSOLES = 500
 
 
@@ -130,11 +133,12 @@ class ConsoleScene:
         self.server = viser.ViserServer(host=self.host, port=self.requested_port, label="Slinger", verbose=False)
         self.port = self.server.get_port()
         self.server.scene.set_up_direction("+z")
-        # operators get the view only: no logo, no share button, and a (minimised) panel with our
-        # own content so viser's developer controls stay behind its settings button
+        # operators get the view only: viser 1.1 has no API to hide its control panel (the main
+        # panel has no `visible`), so the panel's only content is a style that hides viser's whole
+        # page but the WebGL canvas (labels are drawn in it): its panel, settings button, scene
+        # tree and notifications are neither visible nor focusable nor clickable
         self.server.gui.configure_theme(control_width="small", show_share_button=False, show_logo=False)
-        self.server.gui.add_markdown("Slinger targeting view. Click the ground to set the target.")
-        self.server.gui.main_panel.minimize()
+        self.server.gui.add_html(OPERATOR_ONLY_CANVAS)
         self.server.scene.add_grid("/ground", width=40.0, height=40.0, cell_size=1.0, section_size=5.0,
                                    plane_color=(150, 165, 130), plane_opacity=0.35)
         self.server.on_client_connect(self._on_connect)
