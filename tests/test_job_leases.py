@@ -23,7 +23,11 @@ from server.jobs.tasks import execute
 from tests.conftest import wait_for
 from tests.fleet_site import Worker
 
-FAST_LEASE = ("--lanes", "heavy", "--heartbeat-s", "0.3", "--lease-s", "2")
+SAME_HOST = ("--lanes", "heavy", "--heartbeat-s", "0.3", "--lease-s", "30")
+"""Same host: the dead pid is found at once; a long lease so that a loaded CI host never expires
+a live worker's lease."""
+OTHER_HOSTS = ("--lanes", "heavy", "--heartbeat-s", "0.5", "--lease-s", "4")
+"""Other hosts: only the lease tells; short, so the test waits ~4 s for it."""
 FINAL = ("done", "failed", "cancelled")
 
 
@@ -66,7 +70,7 @@ def test_sqlite_job_of_a_killed_worker_is_rerun_then_a_crashing_job_fails(tmp_pa
     s = Settings(data_dir=var, database_url=db_url, job_queue_url=q_url)
     try:
         job_id = queue.submit("probe", {"steps": 40, "step_s": 0.1})
-        workers = [Worker(s, *FAST_LEASE), Worker(s, *FAST_LEASE)]
+        workers = [Worker(s, *SAME_HOST), Worker(s, *SAME_HOST)]
         with workers[0], workers[1]:
             done, seen, before = _kill_the_runner_and_watch(queue, job_id, workers)
             survivor = next(w for w in workers if w.proc.poll() is None)
@@ -78,7 +82,7 @@ def test_sqlite_job_of_a_killed_worker_is_rerun_then_a_crashing_job_fails(tmp_pa
         crash = queue.submit("probe", {"steps": 5, "step_s": 0.05, "kill_worker_at_step": 1})
         started = []
         while (job := queue.store.get(crash))["status"] not in FINAL and len(started) < 6:
-            w = Worker(s, *FAST_LEASE)
+            w = Worker(s, *SAME_HOST)
             started.append(w)
             with w:
                 wait_for(lambda: w.proc.poll() is not None or queue.store.get(crash)["status"] in FINAL, 60,
@@ -99,7 +103,7 @@ def test_postgres_job_of_a_killed_worker_on_another_host_is_rerun(tmp_path, pg_u
     s = Settings(data_dir=tmp_path / "var", database_url=pg_url, job_queue_url=q_url)
     try:
         job_id = queue.submit("probe", {"steps": 40, "step_s": 0.1})
-        workers = [Worker(s, *FAST_LEASE, hostname="worker-host-a"), Worker(s, *FAST_LEASE, hostname="worker-host-b")]
+        workers = [Worker(s, *OTHER_HOSTS, hostname="worker-host-a"), Worker(s, *OTHER_HOSTS, hostname="worker-host-b")]
         with workers[0], workers[1]:
             done, seen, before = _kill_the_runner_and_watch(queue, job_id, workers)
             survivor = next(w for w in workers if w.proc.poll() is None)
