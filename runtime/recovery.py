@@ -25,7 +25,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from runtime.controller import ControlOutput, JointVelocityController
-from runtime.machine import ACTIVE_VELOCITY_LIMITS, NUM_ACTIVE, clearance_violations, forward_kinematics
+from runtime.machine import (
+    ACTIVE_VELOCITY_LIMITS,
+    JOINT_LOWER,
+    JOINT_NAMES,
+    JOINT_UPPER,
+    NUM_ACTIVE,
+    clearance_violations,
+    forward_kinematics,
+)
+from runtime.protocol.messages import MachineState
 
 READY_POSE = np.array([-0.8, 1.6, 0.6])
 """boom, dipper (rad), telescope (m) of the ready pose. CHOSEN: inside the start-pose box of
@@ -44,6 +53,27 @@ SETTLED_SPEED = 0.02
 SETTLE_S = 0.3
 STALL_S = 5.0
 TIMEOUT_S = 60.0
+
+
+def pose_refusal(state: MachineState) -> str | None:
+    """Why the machine cannot start a throw from this pose, or None: "joint at end: telescope"
+    (an active joint within 1 mrad / 1 mm of its range end) or "pose outside the envelope:
+    ground" / ": cabin" (runtime.machine.clearance_violations, which would fail the swing at
+    its first tick)."""
+    q, qd = np.asarray(state.q, dtype=float), np.asarray(state.qd, dtype=float)
+    if not np.all(np.isfinite(q)) or not np.all(np.isfinite(qd)):
+        return "machine state is not finite"
+    ground, cabin, limit = clearance_violations(np, q, forward_kinematics(np, q, qd))
+    if limit:
+        at_end = [JOINT_NAMES[j] for j in range(1, 4) if q[j] <= JOINT_LOWER[j] + 1e-3 or q[j] >= JOINT_UPPER[j] - 1e-3]
+        return f"joint at end: {', '.join(at_end)}"
+    if ground or cabin:
+        return f"pose outside the envelope: {'ground' if ground else 'cabin'}"
+    return None
+
+
+POSE_REASONS = ("joint at end", "pose outside the envelope")
+"""Not-ready reasons of :func:`pose_refusal`: the return to the ready pose recovers from them."""
 
 
 @dataclass(frozen=True)

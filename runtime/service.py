@@ -38,8 +38,8 @@ import numpy as np
 from runtime.command_auth import CommandVerifier, sign, verify_mac
 from runtime.controller import JointVelocityController
 from runtime.executor import ThrowExecutor
-from runtime.machine import JOINT_LOWER, JOINT_NAMES, JOINT_UPPER, clearance_violations, forward_kinematics
 from runtime.outcome import TickOutput
+from runtime.recovery import POSE_REASONS, pose_refusal
 from runtime.recovery import ReturnToReady as Recovery
 from runtime.protocol import keys
 from runtime.protocol.messages import (
@@ -77,8 +77,6 @@ INFO_PERIOD_S = 0.5
 """RuntimeInfo is published on keys.runtime_state at least this often (2 Hz) and on change."""
 
 NO_KEY = "no command key configured"
-POSE_REASONS = ("joint at end", "pose outside the envelope")
-"""Not-ready reasons (of pose_refusal) that the return to the ready pose recovers from."""
 
 Send = Callable[[str, bytes], None]
 
@@ -86,23 +84,6 @@ Send = Callable[[str, bytes], None]
 def _short(e: ValidationError) -> str:
     errs = e.errors()
     return f"{errs[0]['loc']}: {errs[0]['msg']}" if errs else str(e)
-
-
-def pose_refusal(state: MachineState) -> str | None:
-    """Why the machine cannot start a throw from this pose, or None: "joint at end: telescope"
-    (an active joint within 1 mrad / 1 mm of its range end) or "pose outside the envelope:
-    ground" / ": cabin" (runtime.machine.clearance_violations, which would fail the swing at
-    its first tick)."""
-    q, qd = np.asarray(state.q, dtype=float), np.asarray(state.qd, dtype=float)
-    if not np.all(np.isfinite(q)) or not np.all(np.isfinite(qd)):
-        return "machine state is not finite"
-    ground, cabin, limit = clearance_violations(np, q, forward_kinematics(np, q, qd))
-    if limit:
-        at_end = [JOINT_NAMES[j] for j in range(1, 4) if q[j] <= JOINT_LOWER[j] + 1e-3 or q[j] >= JOINT_UPPER[j] - 1e-3]
-        return f"joint at end: {', '.join(at_end)}"
-    if ground or cabin:
-        return f"pose outside the envelope: {'ground' if ground else 'cabin'}"
-    return None
 
 
 class RuntimeService:

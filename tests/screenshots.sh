@@ -6,4 +6,4 @@ cd "$(dirname "$0")/.."
 mkdir -p reports/screenshots
 export SLINGER_SCREENSHOTS="$PWD/reports/screenshots" MUJOCO_GL=egl
 python -m pytest -q tests/test_browser_pages.py tests/test_browser_console.py \
-  -k "accessible or layout or throw_from_a_click" "$@"
+  -k "accessible or layout or throw_from_a_click or return_to_ready" "$@"

@@ -289,6 +289,8 @@ def test_return_to_ready_pose_from_a_joint_end(up, ann):
     ann.locator("#state-reason", has_text="joint at end: telescope").wait_for()
     assert ann.locator("#preview").is_disabled()
     ann.locator("#return-ready").wait_for(state="visible")
+    if os.environ.get("SLINGER_SCREENSHOTS"):
+        ann.screenshot(path=f"{os.environ['SLINGER_SCREENSHOTS']}/console-recovery-1440x900.png", timeout=180_000)
     _press(ann, "#return-ready")
     _press(ann, "#confirm-ok")  # the arm moves: the console asks first
     ann.locator("#progress-text", has_text="returning to the ready pose").wait_for()
