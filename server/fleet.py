@@ -16,7 +16,10 @@ of the runtime's claim (from its RuntimeInfo, which the runtime also publishes o
 
 Threads: Zenoh calls the callbacks on its own threads; everything that touches the database is
 handed to one worker thread (:class:`server.results.ResultStore` runs there) so writes are
-serialised and Zenoh threads never block on SQL.
+serialised and Zenoh threads never block on SQL. A result's telemetry file is written and
+fsynced first on a small pool of staging threads (``STAGE_THREADS``), so file I/O overlaps the
+database work; the row, the file's rename into place and the accuracy aggregates are committed
+together on the worker thread before the ack.
 """
 
 from __future__ import annotations
@@ -59,6 +62,9 @@ log = logging.getLogger(__name__)
 
 RESULT_BATCH = 200
 """At most this many throw results are stored in one commit (the DB thread drains what arrived)."""
+STAGE_THREADS = 32
+"""Threads that write and fsync the results' telemetry files before the DB thread commits them
+(file I/O overlaps the database's; the GIL is released while writing)."""
 
 class RuntimeUnavailable(RuntimeError):
     """The runtime did not answer (offline, or no reply within the timeout)."""
@@ -90,8 +96,10 @@ class Fleet:
         self._states: dict[str, MachineState] = {}
         self._infos: dict[str, tuple[float, RuntimeInfo]] = {}
         self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue()
-        self._results: list[tuple[zenoh.Query, ThrowResult]] = []
-        """Results waiting for the DB thread; one job stores all that arrived meanwhile."""
+        self._results: list[tuple[zenoh.Query, ThrowResult, object]] = []
+        """Results with their staged telemetry waiting for the DB thread; one job stores all that
+        arrived meanwhile."""
+        self._stage = ThreadPoolExecutor(max_workers=STAGE_THREADS, thread_name_prefix="telemetry")
         self._worker: threading.Thread | None = None
         self._decls: list = []
         self.result_listeners: list[Callable[[str], None]] = []
@@ -120,6 +128,7 @@ class Fleet:
                 log.debug("undeclare failed", exc_info=True)
         self._decls = []
         self._estop.shutdown(wait=False)
+        self._stage.shutdown(wait=True)  # staged results still reach the DB thread
         if self._worker is not None:
             self._jobs.put(None)
             self._worker.join(timeout=10.0)
@@ -387,9 +396,20 @@ class Fleet:
         if refusal is not None:
             self._refuse_result(query, result.throw_id, f"result of throw {result.throw_id!r} refused: {refusal}")
             return
-        # The query stays open until replied (or dropped); reply on the worker after the commit.
+        # The query stays open until replied (or dropped); its telemetry is written and fsynced
+        # on the staging threads, then the DB thread stores and acks it after the commit.
+        try:
+            self._stage.submit(self._staged, query, result)
+        except RuntimeError:  # stopping
+            query.drop()
+
+    def _staged(self, query: zenoh.Query, result: ThrowResult) -> None:
+        try:
+            staged = self.store.stage_telemetry(result)
+        except (ValueError, OSError) as e:
+            staged = e
         with self._lock:
-            self._results.append((query, result))
+            self._results.append((query, result, staged))
             first = len(self._results) == 1
         if first:
             self._jobs.put(self._store_and_ack)
@@ -434,12 +454,12 @@ class Fleet:
             return
         t0 = time.monotonic()
         try:
-            outcomes = self.store.store_results([r for _, r in batch])
+            outcomes = self.store.store_results([r for _, r, _ in batch], [s for _, _, s in batch])
             log.debug("stored %d results in %.0f ms", len(batch), (time.monotonic() - t0) * 1e3)
         except Exception:
             log.exception("storing a batch of %d results failed", len(batch))
             outcomes = [RuntimeError("commit failed")] * len(batch)
-        for (query, result), outcome in zip(batch, outcomes):
+        for (query, result, _), outcome in zip(batch, outcomes):
             self._ack(query, result, outcome)
 
     def _ack(self, query: zenoh.Query, result: ThrowResult, outcome) -> None:

@@ -1,7 +1,8 @@
 """Writes what the fleet reports into the database and the telemetry folder.
 
 :class:`ResultStore` is used from the fleet's single worker thread (and by the throws service for
-machine rows). Every method commits its own transaction.
+machine rows); only :meth:`ResultStore.stage_telemetry` runs on other threads. Every method
+commits its own transaction.
 """
 
 from __future__ import annotations
@@ -9,6 +10,7 @@ from __future__ import annotations
 import base64
 import logging
 import os
+import uuid
 from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
 from pathlib import Path
@@ -121,35 +123,75 @@ class ResultStore:
             raise outcome
         return outcome
 
-    def store_results(self, results: list[ThrowResult]) -> list[Throw | Exception]:
+    def stage_telemetry(self, result: ThrowResult) -> Path | None:
+        """Decode ``result``'s MCAP telemetry and write it, fsynced, to a temporary file of a
+        unique name beside its final place (any thread; the fleet link stages results as they
+        arrive, off the database thread). :meth:`store_results` renames it into place only if
+        the result is accepted, so a refused (forged) result never replaces a throw's file.
+
+        Returns:
+            the temporary file, or None if the result carries no telemetry.
+        Raises:
+            ValueError: the telemetry is not valid base64.
+            OSError: the file could not be written.
+        """
+        if not result.telemetry_mcap_b64:
+            return None
+        data = base64.b64decode(result.telemetry_mcap_b64, validate=True)
+        path = self.data_dir / self._telemetry_rel(result.throw_id)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex}.tmp")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view):]
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        return tmp
+
+    @staticmethod
+    def _telemetry_rel(throw_id: str) -> Path:
+        return Path("telemetry") / f"{_safe_name(throw_id)}.mcap"
+
+    def store_results(self, results: list[ThrowResult],
+                      staged: list[Path | None | Exception] | None = None) -> list[Throw | Exception]:
         """:meth:`store_result` for several results at once (the fleet link drains its queue):
-        the MCAP files are written, synced together and renamed, then every row is updated in
-        one commit. Returns per result the stored row or the exception that refused it
-        (UnknownThrow, ValueError); a failed commit raises for the whole batch."""
+        in one transaction the issued rows are read (locked on PostgreSQL), each accepted
+        result's telemetry, staged and fsynced before (``staged``: per result what
+        :meth:`stage_telemetry` returned or raised; None: staged here, concurrently), is renamed
+        into place, every row and the accuracy aggregates are updated, then one commit. Returns
+        per result the stored row or the exception that refused it (UnknownThrow, ValueError,
+        OSError); a failed commit raises for the whole batch (the telemetry files stay: a
+        re-delivery rewrites them)."""
+        if staged is None:
+            staged = _stage_all(self, results)
         out: list[Throw | Exception | None] = [None] * len(results)
-        with self.sessions() as db:
-            known = {t.id: t for t in db.scalars(select(Throw).where(Throw.id.in_({r.throw_id for r in results})))}
-        files: dict[int, tuple[Path, bytes]] = {}
-        for i, result in enumerate(results):
-            try:
-                _check_issued(known.get(result.throw_id), result)
-                if result.telemetry_mcap_b64:
-                    data = base64.b64decode(result.telemetry_mcap_b64, validate=True)
-                    files[i] = (Path("telemetry") / f"{_safe_name(result.throw_id)}.mcap", data)
-            except (UnknownThrow, ValueError) as e:
-                out[i] = e
-        _write_all_atomic({self.data_dir / rel: data for rel, data in files.values()})
-        now = utcnow()
-        with self.sessions.begin() as db:
-            todo = [i for i in range(len(results)) if out[i] is None]
-            rows = {t.id: t for t in db.scalars(select(Throw).where(Throw.id.in_({results[i].throw_id for i in todo})))}
-            for i in todo:
-                row = rows.get(results[i].throw_id)
-                if row is None:  # deleted meanwhile (its handshake failed)
-                    out[i] = UnknownThrow(f"result for throw {results[i].throw_id!r}, which the server withdrew, refused")
-                    continue
-                _apply_result(row, results[i], files[i][0] if i in files else None, now)
-                out[i] = row
+        try:
+            with self.sessions.begin() as db:
+                rows = {t.id: t for t in db.scalars(select(Throw).where(
+                    Throw.id.in_({r.throw_id for r in results})).with_for_update())}
+                now = utcnow()
+                for i, (result, tmp) in enumerate(zip(results, staged)):
+                    try:
+                        _check_issued(rows.get(result.throw_id), result)
+                    except UnknownThrow as e:
+                        out[i] = e
+                        continue
+                    if isinstance(tmp, Exception):
+                        out[i] = tmp
+                        continue
+                    rel = None
+                    if tmp is not None:
+                        rel = self._telemetry_rel(result.throw_id)
+                        os.replace(tmp, self.data_dir / rel)
+                    _apply_result(rows[result.throw_id], result, rel, now)
+                    out[i] = rows[result.throw_id]
+        finally:
+            for tmp, o in zip(staged, out):
+                if isinstance(tmp, Path) and not isinstance(o, Throw):
+                    tmp.unlink(missing_ok=True)
         for r, o in zip(results, out):
             if isinstance(o, Throw):
                 log.info("stored result of throw %s: %s", r.throw_id, r.status)
@@ -217,29 +259,18 @@ def _safe_name(throw_id: str) -> str:
     return "".join(c if c.isalnum() or c in "-_" else "_" for c in throw_id)
 
 
-def _write_all_atomic(files: dict[Path, bytes]) -> None:
-    """Write each file to a temporary name, fsync them concurrently (the file system commits
-    them together), then rename each into place."""
-    if not files:
-        return
-    tmps = {}
-    for path, data in files.items():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        tmp.write_bytes(data)
-        tmps[path] = tmp
-
-    def sync(p: Path) -> None:
-        fd = os.open(p, os.O_RDONLY)
+def _stage_all(store: ResultStore, results: list[ThrowResult]) -> list[Path | None | Exception]:
+    """:meth:`ResultStore.stage_telemetry` of each result, concurrently (the fsyncs overlap)."""
+    def stage(result: ThrowResult) -> Path | None | Exception:
         try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+            return store.stage_telemetry(result)
+        except (ValueError, OSError) as e:
+            return e
 
-    with ThreadPoolExecutor(max_workers=min(8, len(tmps))) as pool:
-        list(pool.map(sync, tmps.values()))
-    for path, tmp in tmps.items():
-        os.replace(tmp, path)
+    if sum(1 for r in results if r.telemetry_mcap_b64) < 2:
+        return [stage(r) for r in results]
+    with ThreadPoolExecutor(max_workers=min(8, len(results))) as pool:
+        return list(pool.map(stage, results))
 
 
 def _write_atomic(path: Path, data: bytes) -> None:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import base64
 import logging
+import os
 import statistics
 import sys
 import tempfile
@@ -76,10 +77,78 @@ def _sender(endpoint: str, ids: list[str], threads: int, go, out) -> None:
     out.put((len(acked), len(payloads[0])))
 
 
-def ingest(app, endpoint: str, n: int, processes: int, threads: int) -> float:
+class IngestProfile:
+    """Instrumentation of the server's result path during ingestion (``--profile``): batch sizes
+    and wall time of ``ResultStore.store_results`` on the fleet's DB thread, with a cProfile of
+    those calls, the wall time spent in the Zenoh result callback and in staging the telemetry."""
+
+    def __init__(self, app):
+        import cProfile
+
+        self.prof, self.batches, self.store_s, self.callback_s, self.callbacks = cProfile.Profile(), [], 0.0, 0.0, 0
+        store, fleet = app.state.store, app.state.fleet
+        real_store, real_cb = store.store_results, fleet._on_result
+
+        def store_results(*args):
+            t0 = time.perf_counter()
+            try:
+                return self.prof.runcall(real_store, *args)
+            finally:
+                self.store_s += time.perf_counter() - t0
+                self.batches.append(len(args[0]))
+
+        def on_result(query):
+            t0 = time.perf_counter()
+            try:
+                real_cb(query)
+            finally:
+                self.callback_s += time.perf_counter() - t0
+                self.callbacks += 1
+
+        real_stage = store.stage_telemetry
+        self.stage_s, self.staged = 0.0, 0
+
+        def stage_telemetry(result):
+            t0 = time.perf_counter()
+            try:
+                return real_stage(result)
+            finally:
+                self.stage_s += time.perf_counter() - t0
+                self.staged += 1
+
+        store.store_results, store.stage_telemetry = store_results, stage_telemetry
+        fleet._on_result = on_result  # the queryable was declared with a bound method: re-declare below
+        self._redeclare(fleet)
+
+    @staticmethod
+    def _redeclare(fleet) -> None:
+        from runtime.protocol import keys
+
+        for i, d in enumerate(fleet._decls):
+            if str(d.key_expr) == keys.THROW_RESULT:
+                d.undeclare()
+                fleet._decls[i] = fleet.session.declare_queryable(keys.THROW_RESULT, fleet._on_result, complete=True)
+
+    def report(self) -> None:
+        import io
+        import pstats
+
+        b = self.batches
+        print(f"  profile: {len(b)} store batches, mean {statistics.mean(b):.1f} results (max {max(b)}), "
+              f"{self.store_s:.2f} s storing = {1e3 * self.store_s / max(sum(b), 1):.2f} ms/result on the DB thread; "
+              f"{self.callbacks} result callbacks, {1e3 * self.callback_s / max(self.callbacks, 1):.2f} ms each; "
+              f"telemetry staged (written + fsynced) in {1e3 * self.stage_s / max(self.staged, 1):.1f} ms each")
+        out = io.StringIO()
+        pstats.Stats(self.prof, stream=out).sort_stats("cumulative").print_stats(25)
+        print("\n".join("    " + line for line in out.getvalue().splitlines()[:60]))
+
+
+def ingest(app, endpoint: str, n: int, processes: int, threads: int, profile: bool = False) -> float:
     """Issue ``n`` throws, deliver their results from ``processes`` sender processes with
-    ``threads`` concurrent deliveries each (like that many runtimes' outboxes); returns results/s."""
+    ``threads`` concurrent deliveries each (like that many runtimes' outboxes); returns results/s.
+    Also prints the server process's CPU time per result (all its threads, Zenoh's included)."""
     import multiprocessing as mp
+    import resource
 
     from server.db.models import Machine, Throw
 
@@ -94,10 +163,15 @@ def ingest(app, endpoint: str, n: int, processes: int, threads: int) -> float:
     for p in procs:
         p.start()
     time.sleep(8.0)  # the senders import, build their messages and connect
+    prof = IngestProfile(app) if profile else None
+    cpu0 = resource.getrusage(resource.RUSAGE_SELF)
+    load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     go.set()
     got = [out.get() for _ in procs]
     dt = time.perf_counter() - t0
+    cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu_s = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     for p in procs:
         p.join()
     with app.state.sessions() as db:
@@ -105,6 +179,10 @@ def ingest(app, endpoint: str, n: int, processes: int, threads: int) -> float:
     print(f"ingestion: {n} results ({got[0][1] / 1024:.0f} kB each, 2 s of 100 Hz telemetry) from {processes} processes x "
           f"{threads} concurrent deliveries in {dt:.2f} s = {n / dt:.0f} results/s; acknowledged "
           f"{sum(a for a, _ in got)}, stored {stored}  (bar >= 500/s)")
+    print(f"  server process CPU {cpu_s:.2f} s = {1e3 * cpu_s / n:.2f} ms per result; load average "
+          f"{load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end ({os.cpu_count()} CPUs)")
+    if prof is not None:
+        prof.report()
     return n / dt
 
 
@@ -171,6 +249,7 @@ def main(argv=None) -> int:
     p.add_argument("--throws", type=int, default=100_000, help="stored throws for the latency part")
     p.add_argument("--repeats", type=int, default=40)
     p.add_argument("--debug", action="store_true", help="log each stored batch")
+    p.add_argument("--profile", action="store_true", help="profile the result path during ingestion")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     if args.debug:
@@ -194,7 +273,7 @@ def main(argv=None) -> int:
             with TestClient(create_app(settings)) as client:
                 add_user(client.app.state.sessions, *ADMIN, "admin")
                 login(client, *ADMIN)
-                ingest(client.app, endpoint, args.results, args.processes, args.threads)
+                ingest(client.app, endpoint, args.results, args.processes, args.threads, args.profile)
                 t0 = time.perf_counter()
                 fill(client.app, args.throws)
                 print(f"filled to {args.throws} throws in {time.perf_counter() - t0:.0f} s")
