@@ -134,3 +134,17 @@ def test_recovery_stops_when_the_way_back_hits_new_trouble_and_rejects_bad_input
     rec.tick(q, np.zeros(6), 6.0)  # not moving at all
     assert rec.status.result == "failed: no progress for 5 s"
     assert KEY and EPOCH  # the harness' key and epoch sign the commands above
+
+
+def test_route_needs_an_operator_and_audits_an_undelivered_request(client):
+    from tests.conftest import add_user, login
+
+    r = client.post("/api/machines/m1/return-to-ready")
+    assert r.status_code == 503 and "offline" in r.json()["detail"], r.text  # no runtime of m1 here
+    entry = client.get("/api/audit", params={"action": "return_to_ready"}).json()[0]
+    assert entry["subject"] == "m1" and entry["detail"]["delivered"] is False
+    add_user(client.app.state.sessions, "vic", "viewer-pass-1", "viewer")
+    client.cookies.clear()
+    assert client.post("/api/machines/m1/return-to-ready").status_code == 401
+    login(client, "vic", "viewer-pass-1")
+    assert client.post("/api/machines/m1/return-to-ready").status_code == 403

@@ -9,6 +9,8 @@ machine online, so no generated request can move a machine. Excluded (see EXCLUD
 - POST /api/machines/{machine_id}/abort, /estop and /estop/reset: each waits the Zenoh query
   timeout for a runtime that is not there (1 s per example here; stops are the subject of the
   fault-injection suite).
+- POST /api/machines/{machine_id}/return-to-ready: would move a machine; with no runtime online it
+  answers 503 by design (as estop/reset); test_return_to_ready.py and the browser test cover it.
 - POST /api/throws: would command a machine; the throw path is covered with fake and real
   runtimes in test_api.py / test_stack.py.
 - POST /api/jobs: a probe job runs in-process here (no workers) for up to steps x step_s =
@@ -33,7 +35,7 @@ from tests.conftest import ADMIN, add_user, free_port
 MAX_EXAMPLES = 5
 SEED = 20261121
 EXCLUDED = [("POST", r"^/api/auth/logout$"), ("POST", r"^/api/machines/[^/]+/abort$"),
-            ("POST", r"estop"), ("POST", r"^/api/throws$"), ("POST", r"^/api/jobs$"),
+            ("POST", r"estop"), ("POST", r"return-to-ready$"), ("POST", r"^/api/throws$"), ("POST", r"^/api/jobs$"),
             ("GET", r"^/api/diagnosis/effects$"), ("GET", r"^/api/live$")]
 
 CONFIG = SchemathesisConfig.from_str(f"""
