@@ -58,23 +58,37 @@ def _history(dist, bias0):
              "bias_m": list(bias0), "mean_crossrange_m": [0.0] * len(dist)}]
 
 
-def test_anchor_moves_the_table_by_the_unexplained_residual():
-    """The fitted profile predicts -0.1 m where the site's throws show +0.2 + 0.1 m/m: the
-    table moves by the residual, taken where the policy is aimed."""
+def test_anchor_aims_so_that_the_site_lands_on_target():
+    """The fitted profile predicts -0.1 m where the site's throws show +0.2 + 0.1 m/m (its bias
+    grows with the throw): the anchored aims land the site's throws on target, with the bias
+    taken where the policy is aimed (not at the target: that would miss by 0.1 x offset)."""
     dist = [7.5, 8.5, 9.5, 10.0]
     table = {"format": AIM_FORMAT, "distances_m": dist, "downrange_offset_m": [0.1] * 4, "crossrange_offset_m": [0.0] * 4}
+
+    def site(aim):
+        return aim + 0.2 + 0.1 * (aim - 8.5)
+
     rng = np.random.default_rng(0)
     d = np.repeat([7.5, 8.0, 8.5, 9.0, 9.5], 6)
-    true_err = 0.2 + 0.1 * (d - 8.5)
-    logged = {"distance_m": d, "down_m": true_err + rng.normal(0, 1e-4, len(d)), "cross_m": np.zeros(len(d))}
+    logged = {"distance_m": d, "down_m": site(d) - d + rng.normal(0, 1e-4, len(d)), "cross_m": np.zeros(len(d))}
     new, info = anchor_table(table, _history(dist, [-0.1] * 4), logged, "2d")
-    resid = 0.3 + 0.1 * (np.array(dist) + 0.1 - 8.5)
-    assert info["applied"] and new["downrange_offset_m"] == pytest.approx(0.1 - resid, abs=2e-3)
+    aims = np.array(dist) + new["downrange_offset_m"]
+    assert info["applied"] and site(aims) == pytest.approx(dist, abs=1e-3)
+    assert info["down_fit"]["kind"] == "linear" and info["down_fit"]["coef"] == pytest.approx([0.3, 0.1], abs=1e-3)
     assert new["crossrange_offset_m"] == [0.0] * 4  # 2D: downrange only
     assert new["anchor"]["twin_downrange_offset_m"] == [0.1] * 4 and max(info["se_down_m"]) < 0.01
     few = {k: v[: MIN_THROWS - 1] for k, v in logged.items()}
     same, info = anchor_table(table, _history(dist, [-0.1] * 4), few, "2d")
     assert same is table and not info["applied"] and "logged throws" in info["reason"]
+
+
+def test_anchor_refuses_a_site_no_aim_reaches():
+    dist = [8.0, 9.0]
+    table = {"format": AIM_FORMAT, "distances_m": dist, "downrange_offset_m": [0.0] * 2, "crossrange_offset_m": [0.0] * 2}
+    d = np.repeat([8.0, 9.0], 6)
+    logged = {"distance_m": d, "down_m": np.full(len(d), -10.0), "cross_m": np.zeros(len(d))}  # 10 m short: beyond any aim
+    with pytest.raises(ValueError, match="no aim"):
+        anchor_table(table, _history(dist, [0.0, 0.0]), logged, "2d")
 
 
 def test_adapt_anchors_to_the_diagnosis_dataset(monkeypatch, tmp_path):
