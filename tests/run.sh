@@ -27,4 +27,4 @@ if command -v redis-cli >/dev/null && ! redis-cli -h 127.0.0.1 -p 6379 ping >/de
 fi
 
 export MUJOCO_GL=egl
-python -m pytest -q "$@"
+python -m pytest -q --durations=25 "$@"
