@@ -128,7 +128,8 @@ def _compare(truth: dict, named: list[dict]) -> list[dict]:
     for k in keys:
         fit, sig, tv = cand["params"][k], cand["sigma"][k], values[k]
         out.append({"param": k, "truth": tv, "fit": fit, "sigma": sig, "rel_error": abs(fit - tv) / abs(tv),
-                    "in_1sigma": bool(abs(fit - tv) <= sig)})
+                    "in_1sigma": bool(abs(fit - tv) <= sig), "z": (fit - tv) / sig if sig > 0 else None,
+                    "sigma_parts": {part: (v or {}).get(k) for part, v in cand.get("sigma_parts", {}).items()}})
     return out
 
 
@@ -185,13 +186,16 @@ def summarise(rows: list[dict]) -> dict:
     shrink = [r["held_out"]["gap_shrink"] for r in rows if r.get("held_out") and r["held_out"].get("gap_shrink") is not None and r["correct"]]
     ishrink = [r["held_out"]["impact_gap_shrink"] for r in rows if r.get("held_out") and r["held_out"].get("impact_gap_shrink") is not None and r["correct"]]
     return {
-        "cases": len(rows), "by_kind": {k: len(v) for k, v in by.items()},
+        "cases": len(rows), "by_kind": {k: len(v) for k, v in by.items()}, "errors": sum(r["answer"] == "error" for r in rows),
         "singles_named": _frac(r["correct"] for r in by["single"]),
         "pairs_both_named": _frac(r["correct"] for r in by["pair"]),
         "pairs_one_named": _frac(r.get("one_named") for r in by["pair"]),
         "params_within_tolerance_cases": _frac(per_case_ok), "params_within_tolerance_values": _frac(p["rel_error"] <= TOLERANCE for p in params),
         "params_compared": len(params), "tolerance": TOLERANCE,
         "one_sigma_coverage": _frac(p["in_1sigma"] for p in params),
+        "one_sigma_coverage_singles": _frac(p["in_1sigma"] for r in by["single"] if r["correct"] for p in r["params"]),
+        "one_sigma_coverage_pairs": _frac(p["in_1sigma"] for r in by["pair"] if r["correct"] for p in r["params"]),
+        "abs_z_median": float(np.median([abs(p["z"]) for p in params if p.get("z") is not None])) if params else None,
         "outside_unexplained_or_ambiguous": _frac(r["correct"] for r in outside),
         "outside_confidently_wrong": _frac(r["confidently_wrong"] for r in outside),
         "outside_visible": _frac(r["correct"] for r in by["outside"]), "outside_heldout": _frac(r["correct"] for r in by["heldout"]),
@@ -199,6 +203,8 @@ def summarise(rows: list[dict]) -> dict:
         "held_out_gap_shrink_median": float(np.median(shrink)) if shrink else None,
         "held_out_impact_shrink_median": float(np.median(ishrink)) if ishrink else None,
         "cpu_s": float(sum(r["cpu_s"] for r in rows)),
+        "cpu_s_per_case": float(np.mean([r["cpu_s"] for r in rows])) if rows else None,
+        "cpu_s_per_case_by_kind": {k: float(np.mean([r["cpu_s"] for r in v])) for k, v in by.items() if v},
     }
 
 
@@ -216,7 +222,9 @@ def format_summary(result: dict) -> str:
     lines = [f"Blind diagnosis benchmark (real-log-like: noise on every channel, no payload channel, no open flag, missing impacts): "
              f"{s['cases']} cases {s['by_kind']}, {result['throws_per_case']} throws each, seed {result['seed']}"
              + ("" if result.get("complete", True) else f"  [PARTIAL: {s['cases']} of {result.get('cases_planned')} cases finished]"),
-             f"wall {result['wall_s'] / 60:.1f} min, CPU {s['cpu_s'] / 60:.1f} min (workers {result['workers']}, machine shared)", ""]
+             f"wall {result['wall_s'] / 60:.1f} min, CPU {s['cpu_s'] / 60:.1f} min (workers {result['workers']}, machine shared); CPU per case "
+             + (f"{s['cpu_s_per_case']:.0f} s (" + ", ".join(f"{k} {v:.0f} s" for k, v in s.get('cpu_s_per_case_by_kind', {}).items()) + ")"
+                if s.get("cpu_s_per_case") is not None else "n/a"), ""]
     for key, op, bar in BARS:
         x = s[key]
         ok = x is not None and (x >= bar if op == ">=" else x <= bar if op == "<=" else bar[0] <= x <= bar[1])
@@ -224,6 +232,8 @@ def format_summary(result: dict) -> str:
     lines += [f"  outside (visible / held-out):        {pct(s['outside_visible'])} / {pct(s['outside_heldout'])}",
               f"  pairs with one effect named:         {pct(s['pairs_one_named'])}",
               f"  parameter values within ±20%:        {pct(s['params_within_tolerance_values'])} of {s['params_compared']}",
+              f"  1 sigma coverage singles / pairs:    {pct(s.get('one_sigma_coverage_singles'))} / {pct(s.get('one_sigma_coverage_pairs'))}"
+              + (f"; median |fit - truth| / sigma {s['abs_z_median']:.2f} (0.67 for calibrated Gaussian errors)" if s.get("abs_z_median") is not None else ""),
               f"  held-out (unseen throws) chi2-excess shrink, median: {pct(s['held_out_gap_shrink_median'])}; impact RMS shrink: {pct(s['held_out_impact_shrink_median'])}",
               "", "case kind mode truth -> answer"]
     for r in result["cases"]:
@@ -238,7 +248,22 @@ def _job(args):
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     for name in ("sim_twin.diagnosis.forward", "sim_twin.diagnosis.dataset"):
         logging.getLogger(name).setLevel(logging.WARNING)
-    return run_case(case, throws, Path(work), keep)
+    t0, c0 = time.time(), time.process_time()
+    try:
+        return run_case(case, throws, Path(work), keep)
+    except Exception as e:  # one broken case must not lose a long run: it is recorded as a wrong answer
+        import traceback
+
+        log.error("case %d failed: %s\n%s", case["case"], e, traceback.format_exc())
+        return error_row(case, f"{type(e).__name__}: {e}", time.time() - t0, time.process_time() - c0)
+
+
+def error_row(case: dict, error: str, wall_s: float, cpu_s: float) -> dict:
+    """The row of a case whose diagnosis raised: answer "error", scored as not correct (for an
+    outside effect: not "unexplained"; counted in the summary's ``errors``)."""
+    return {**case, "answer": "error", "effects": [], "between": None, "text": f"error: {error}", "error": error, "throws_used": None, "skipped": 0,
+            "gen_s": None, "correct": False, "one_named": False, "confidently_wrong": False, "params": [],
+            "held_out": None, "wall_s": wall_s, "cpu_s": cpu_s}
 
 
 def _write(out: Path | None, result: dict) -> str:
@@ -250,20 +275,59 @@ def _write(out: Path | None, result: dict) -> str:
     return text
 
 
+def _commit() -> str | None:
+    """The repository's HEAD commit (short) when run from a git checkout, else None."""
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=10,
+                              cwd=Path(__file__).parent).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def load_done(out: Path, seed: int, throws: int, mix: dict[str, int]) -> list[dict]:
+    """Rows of a previous run of the same benchmark in ``out`` (to resume it); [] when there is none.
+
+    Raises:
+        ValueError: ``out`` holds a run with another seed, throw count, mix or format.
+    """
+    if not out.exists():
+        return []
+    prev = json.loads(out.read_text())
+    theirs = (prev.get("format"), prev.get("seed"), prev.get("throws_per_case"), prev.get("mix"))
+    if theirs != (FORMAT, seed, throws, mix):
+        raise ValueError(f"cannot resume {out}: it holds format/seed/throws/mix {theirs}, this run is {(FORMAT, seed, throws, mix)}")
+    return list(prev.get("cases", []))
+
+
 def run(mix: dict[str, int], throws: int, seed: int, workers: int, out: Path | None, keep_data: Path | None = None,
-        only: list[int] | None = None) -> dict:
+        only: list[int] | None = None, resume: bool = False) -> dict:
     """The benchmark (cases in parallel over ``workers`` processes); writes ``out`` (JSON) and
-    ``out`` with .txt after every finished case (``complete`` says whether all cases ran)."""
+    ``out`` with .txt after every finished case (``complete`` says whether all cases ran).
+
+    Args:
+        only: case numbers to run (default all).
+        resume: keep the finished cases already in ``out`` (same seed, throws, mix) and run only
+            the others; CPU seconds of earlier runs stay in their rows.
+
+    Raises:
+        ValueError: ``resume`` with an ``out`` from another benchmark (:func:`load_done`).
+    """
     cases = draw_cases(mix, seed)
     if only is not None:
         cases = [c for c in cases if c["case"] in only]
     t0 = time.time()
-    rows: list[dict] = []
+    rows: list[dict] = load_done(out, seed, throws, mix) if resume and out is not None else []
+    done = {r["case"] for r in rows}
+    planned = len({c["case"] for c in cases} | done)
+    wall_before = float(json.loads(out.read_text()).get("wall_s", 0.0)) if rows else 0.0
+    cases = [c for c in cases if c["case"] not in done]
 
     def result(complete: bool) -> dict:
         done = sorted(rows, key=lambda r: r["case"])
-        return {"format": FORMAT, "seed": seed, "throws_per_case": throws, "workers": workers, "mix": mix, "wall_s": time.time() - t0,
-                "cpu_count": os.cpu_count(), "complete": complete, "cases_planned": len(cases), "summary": summarise(done), "cases": done}
+        return {"format": FORMAT, "seed": seed, "throws_per_case": throws, "workers": workers, "mix": mix, "wall_s": wall_before + time.time() - t0,
+                "cpu_count": os.cpu_count(), "commit": _commit(), "complete": complete, "cases_planned": planned, "summary": summarise(done), "cases": done}
 
     with tempfile.TemporaryDirectory(prefix="slinger-bench-") as tmp:
         work = keep_data or Path(tmp)
@@ -280,7 +344,7 @@ def run(mix: dict[str, int], throws: int, seed: int, workers: int, out: Path | N
             for j in jobs:
                 rows.append(_job(j))
                 _write(out, result(False))
-    res = result(True)
+    res = result(len(rows) == planned == len(draw_cases(mix, seed)))
     log.info("\n%s", _write(out, res))
     return res
 

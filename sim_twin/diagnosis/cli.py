@@ -3,7 +3,8 @@
 ::
 
     slinger diagnose DATASET [--out DIR] [--candidates a,b,pkg.mod:Class]   diagnose logged throws
-    slinger diagnose benchmark [--small] [--throws 30] [--workers 2]        blind benchmark
+    slinger diagnose benchmark [--small] [--throws 30] [--workers 2] [--cases 0,5] [--resume]
+                                                                             blind benchmark
     slinger diagnose generate --mode 2d|3d --throws 50 --out DIR [--profile P.json] [--real-log]
                                                                              make a dataset with the
                                                                              simulated machine
@@ -43,6 +44,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-plots", action="store_true")
     parser.add_argument("--small", action="store_true", help="benchmark: the small CI version (6 cases, 16 throws)")
     parser.add_argument("--cases", default=None, help="benchmark: only these case numbers (comma-separated)")
+    parser.add_argument("--resume", action="store_true", help="benchmark: keep the finished cases already in --out (same seed/throws) and run the rest")
     parser.add_argument("--throws", type=int, default=30, help="benchmark: throws per case; generate: throws")
     parser.add_argument("--profile", type=Path, default=None, help="generate: reality profile JSON (default nominal)")
     parser.add_argument("--real-log", action="store_true", help="generate: logs like a real machine's (noise, no payload channel, no open flag, missing impacts)")
@@ -77,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
             mix = benchmark.SMALL_MIX if args.small else benchmark.MIX
             throws = benchmark.SMALL_THROWS if args.small else args.throws
             only = [int(c) for c in args.cases.split(",")] if args.cases else None
-            res = benchmark.run(mix, throws, args.seed, args.workers or _cores(), out, args.keep_data, only=only)
+            res = benchmark.run(mix, throws, args.seed, args.workers or _cores(), out, args.keep_data, only=only, resume=args.resume)
             print(benchmark.format_summary(res))
             return 0 if res["cases"] else 1
         return _diagnose(args)

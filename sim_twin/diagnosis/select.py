@@ -139,6 +139,27 @@ def local_fit(X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return x, w
 
 
+def profile_sigma(X: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Likelihood-profile 1 sigma (normalised units, (k,)) of a chi-square T (G,) on the grid X
+    (G, k): the local quadratic through the grid points nearest the best one (as
+    :func:`local_fit`), covariance 2 H^-1 (chi-square rises by 1 at 1 sigma). A direction
+    without positive curvature gives inf (the data do not bound it)."""
+    G, k = X.shape
+    g = int(np.argmin(T))
+    nb = np.argsort(np.linalg.norm(X - X[g], axis=1), kind="stable")[: min(G, 3 if k == 1 else 9)]
+    coef = np.linalg.pinv(_basis(X[nb])) @ T[nb]
+    H = np.diag(2 * coef[1 + k:1 + 2 * k])
+    idx = 1 + 2 * k
+    for i in range(k):
+        for j in range(i + 1, k):
+            H[i, j] = H[j, i] = coef[idx]
+            idx += 1
+    lam, V = np.linalg.eigh(H)
+    if np.any(lam <= 1e-12 * max(np.abs(lam).max(), 1e-300)):
+        return np.full(k, np.inf)
+    return np.sqrt(np.diag(2.0 * (V / lam) @ V.T))
+
+
 def _grid(k: int, nominal: np.ndarray, n1: int = COARSE_1D) -> np.ndarray:
     pts = np.linspace(0, 1, n1 if k == 1 else COARSE_2D)
     X = np.array(list(product(pts, repeat=k)), dtype=float)
@@ -156,15 +177,20 @@ class Evaluator:
 
     def __init__(self, throws, scorer: Scorer, base: list[Effect], cache=None):
         self.throws, self.scorer, self.base = throws, scorer, list(base)
-        self.cache = cache if cache is not None and not base else rp.simulate(throws, [EffectStack(self.base)], long=True)[0]
-        self.S_base = scorer.score(rp.replay(throws, [EffectStack(self.base)], dynamics_cache=self.cache)[0])
+        # the nominal dynamics stay valid under a base that acts outside them (release, payload, flight)
+        reuse = cache is not None and not rp.needs_dynamics(EffectStack(self.base))
+        self.cache = cache if reuse else rp.simulate(throws, [EffectStack(self.base)], long=True)[0]
+        self.S_base = scorer.score(rp.replay_on(throws, EffectStack(self.base), self.cache))
         self.replays = 0
 
     def score(self, effects: list[Effect]) -> np.ndarray:
-        """S (K, N, C, P) of base + each effect (a replay that went unstable scores UNSTABLE_CHI2)."""
+        """S (K, N, C, P) of base + each effect (a replay that went unstable scores UNSTABLE_CHI2).
+        Effects acting outside the dynamics reuse the base's joint motion (no MuJoCo stepping)."""
         stacks = [EffectStack(self.base + [e]) for e in effects]
         self.replays += len(stacks)
-        S = np.stack([self.scorer.score(r) for r in rp.replay(self.throws, stacks, dynamics_cache=self.cache)])
+        dyn = [k for k, e in enumerate(effects) if rp.needs_dynamics(EffectStack([e]))]
+        reps = dict(zip(dyn, rp.replay(self.throws, [stacks[k] for k in dyn]))) if dyn else {}
+        S = np.stack([self.scorer.score(reps[k] if k in reps else rp.replay_on(self.throws, stacks[k], self.cache)) for k in range(len(stacks))])
         return np.where(np.isfinite(S), S, UNSTABLE_CHI2)
 
     def sweep(self, cls: type[Effect], train: np.ndarray) -> Sweep:

@@ -48,7 +48,7 @@ def verdict_of(where: dict, rounds: list[fw.Round], named: list[Effect]) -> dict
     last = rounds[-1]
     remaining = last.gaps if last.decision != "no gap left" else []
     evidence = {
-        "named": [{"effect": c.effect, "params": c.params, "sigma": c.sigma, "wins": c.wins, "beats_none": c.beats_none} for c in named_c],
+        "named": [{"effect": c.effect, "params": c.params, "sigma": c.sigma, "sigma_parts": c.sigma_parts, "refit": c.refit, "wins": c.wins, "beats_none": c.beats_none} for c in named_c],
         "last_round": {"decision": last.decision, "wins_none": last.wins_none,
                        "candidates": [{"effect": c.effect, "wins": c.wins, "admissible": c.admissible, "reason": c.reason,
                                        "at_bound": c.at_bound, "worse": list(c.worse)} for c in last.candidates]},

@@ -1,0 +1,92 @@
+"""The diagnosis benchmark runner without simulation: a chosen subset of cases, results written
+as cases complete, resuming a run cut short, refusing to resume another benchmark's file, and
+the 1-sigma coverage statistics."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim_twin.diagnosis import benchmark
+
+MIX = {"single": 2, "pair": 1, "outside": 0, "heldout": 0, "noise": 1}
+
+
+def _fake_case(calls: list[int]):
+    def run_case(case, throws, workdir, keep=False):
+        calls.append(case["case"])
+        params = [{"param": "p", "truth": 1.0, "fit": 1.1, "sigma": 0.2, "rel_error": 0.1, "in_1sigma": True, "z": 0.5}] if case["truth"] else []
+        return {**case, "answer": "named" if case["truth"] else "no_gap", "effects": [t["effect"] for t in case["truth"]], "between": None,
+                "text": "fake", "throws_used": throws, "skipped": 0, "gen_s": 0.0, "correct": True, "one_named": True,
+                "confidently_wrong": False, "params": params, "held_out": None, "wall_s": 1.0, "cpu_s": 2.0}
+    return run_case
+
+
+def test_subset_then_resume_runs_each_case_once(tmp_path: Path, monkeypatch):
+    calls: list[int] = []
+    monkeypatch.setattr(benchmark, "run_case", _fake_case(calls))
+    out = tmp_path / "b.json"
+    first = benchmark.run(MIX, 5, 7, 1, out, only=[0, 3])
+    assert sorted(calls) == [0, 3] and not first["complete"]  # a subset is never the complete benchmark
+    on_disk = json.loads(out.read_text())
+    assert [r["case"] for r in on_disk["cases"]] == [0, 3] and "PARTIAL" in out.with_suffix(".txt").read_text()
+    calls.clear()
+    res = benchmark.run(MIX, 5, 7, 1, out, resume=True)
+    assert sorted(calls) == [1, 2]  # only the cases not finished before
+    assert res["complete"] and [r["case"] for r in res["cases"]] == [0, 1, 2, 3]
+    assert res["summary"]["cpu_s"] == pytest.approx(8.0) and res["summary"]["cpu_s_per_case"] == pytest.approx(2.0)
+
+
+def test_resume_refuses_another_benchmarks_file(tmp_path: Path, monkeypatch):
+    monkeypatch.setattr(benchmark, "run_case", _fake_case([]))
+    out = tmp_path / "b.json"
+    benchmark.run(MIX, 5, 7, 1, out, only=[0])
+    with pytest.raises(ValueError, match="cannot resume"):
+        benchmark.run(MIX, 5, 8, 1, out, resume=True)  # other seed
+    with pytest.raises(ValueError, match="cannot resume"):
+        benchmark.run(MIX, 6, 7, 1, out, resume=True)  # other throw count
+
+
+def test_profile_sigma_of_a_chi_square_parabola():
+    from sim_twin.diagnosis.select import profile_sigma
+
+    X = np.linspace(0, 1, 7)[:, None]
+    T = ((X[:, 0] - 0.4) / 0.05) ** 2 + 100.0  # chi-square rises by 1 at 0.05 from the minimum
+    assert profile_sigma(X, T)[0] == pytest.approx(0.05, rel=1e-6)
+    X2 = np.array([[a, b] for a in np.linspace(0, 1, 4) for b in np.linspace(0, 1, 4)])
+    T2 = ((X2[:, 0] - 0.5) / 0.1) ** 2 + ((X2[:, 1] - 0.3) / 0.2) ** 2
+    np.testing.assert_allclose(profile_sigma(X2, T2), [0.1, 0.2], rtol=1e-6)
+    assert np.isinf(profile_sigma(X, -T)[0])  # no positive curvature: the data do not bound it
+
+
+def test_a_precise_fits_trajectory_rest_is_explained_but_an_impact_rest_is_not():
+    from sim_twin.diagnosis import forward, noise
+
+    C, P = len(noise.CHANNELS), len(noise.PHASES)
+    D = np.zeros((20, C, P))
+    traj, imp = noise.CH_INDEX["q.gripper_pitch"], noise.CH_INDEX["impact.downrange"]
+    D[:, traj, 0] = 20.0
+    D[:, imp, 2] = 1.0
+    nominal = D.copy()
+    nominal[:, traj, 0] += 5000.0  # large swing gap
+    nominal[:, imp, 2] += 300.0
+    after = D.copy()
+    after[:, traj, 0] += 100.0  # 2 % of the nominal excess: a precise fit's visible rest
+    after[:, imp, 2] += 6.0  # 2 % as well, but 6 sigma^2 per throw: a second effect's footprint
+    gaps = forward.channel_gaps(after, D, nominal)
+    assert "impact.downrange" in gaps and "q.gripper_pitch" not in gaps
+    assert set(forward.channel_gaps(after, D)) == {"impact.downrange", "q.gripper_pitch"}  # round 1: plain noise tests
+
+
+def test_a_case_that_raises_is_recorded_not_fatal(tmp_path: Path, monkeypatch):
+    def broken(case, throws, workdir, keep=False):
+        raise RuntimeError("replay diverged")
+
+    monkeypatch.setattr(benchmark, "run_case", broken)
+    res = benchmark.run({"single": 0, "pair": 0, "outside": 1, "heldout": 0, "noise": 1}, 5, 7, 1, tmp_path / "b.json")
+    assert [r["answer"] for r in res["cases"]] == ["error", "error"] and res["summary"]["errors"] == 2
+    assert res["summary"]["outside_unexplained_or_ambiguous"] == 0.0 and res["summary"]["noise_no_gap"] == 0.0
+    assert "replay diverged" in res["cases"][0]["text"]
