@@ -84,6 +84,8 @@ def _type_target(page, x: float, y: float) -> None:
 def test_layout_estop_and_accessibility_at_three_sizes(ann):
     shots = os.environ.get("SLINGER_SCREENSHOTS")
     problems = []
+    if shots:
+        ann.wait_for_timeout(5000)  # viser fades its canvas in after connecting: photograph it drawn
     for w, h in SIZES:
         ann.set_viewport_size({"width": w, "height": h})
         ann.wait_for_timeout(300)
@@ -290,6 +292,7 @@ def test_return_to_ready_pose_from_a_joint_end(up, ann):
     assert ann.locator("#preview").is_disabled()
     ann.locator("#return-ready").wait_for(state="visible")
     if os.environ.get("SLINGER_SCREENSHOTS"):
+        ann.evaluate("scrollTo(0, 0)")
         ann.screenshot(path=f"{os.environ['SLINGER_SCREENSHOTS']}/console-recovery-1440x900.png", timeout=180_000)
     _press(ann, "#return-ready")
     _press(ann, "#confirm-ok")  # the arm moves: the console asks first
