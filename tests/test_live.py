@@ -46,6 +46,19 @@ def test_machine_status_follows_the_runtime_fields():
     assert machine_status("m1", True, _info(ready=True), 0.1)["state"] == "ready"
 
 
+
+def test_machine_status_carries_the_recovery_action_and_its_progress():
+    st = machine_status("m1", True, _info(ready=False, not_ready_reason="joint at end: telescope",
+                                          recovery="return_to_ready"), 0.1)
+    assert (st["state"], st["recovery"], st["returning"]) == ("not_ready", "return_to_ready", False)
+    st = machine_status("m1", True, _info(ready=False, not_ready_reason="returning to the ready pose (40 %)",
+                                          returning=True, return_progress=0.4), 0.1)
+    assert (st["state"], st["returning"], st["return_progress"], st["recovery"]) == ("not_ready", True, 0.4, None)
+    st = machine_status("m1", True, _info(ready=True, return_result="reached the ready pose"), 0.1)
+    assert st["state"] == "ready" and st["return_result"] == "reached the ready pose"
+    assert machine_status("m1", False, _info(recovery="return_to_ready"), 0.1)["recovery"] is None  # offline: none
+
+
 class _Fleet:
     def __init__(self):
         self.result_listeners = []

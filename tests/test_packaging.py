@@ -123,6 +123,9 @@ def test_server_wheel_runs_db_upgrade_without_the_repository(wheels, tmp_path):
         assert "site-packages" in str(m.MIGRATIONS_DIR) and (a.WEB_DIR / "index.html").is_file(), (m.MIGRATIONS_DIR, a.WEB_DIR)
         tables = {{r[0] for r in sqlite3.connect({str(db)!r}).execute("select name from sqlite_master where type='table'")}}
         assert {{"throws", "jobs", "users", "alembic_version"}} <= tables, tables
+        from server.mjcf_chain import KinematicChain, default_mjcf_path  # the 3D view's machine, without the twin
+        assert "site-packages/server/assets" in str(default_mjcf_path()), default_mjcf_path()
+        assert len(KinematicChain.from_mjcf().geom_poses([0.0] * 6)) == 7
         print("MUJOCO", "mujoco" in sys.modules)
     """)], capture_output=True, text=True, timeout=120, cwd=tmp_path, env=_clean_env())
     assert probe.returncode == 0 and "MUJOCO False" in probe.stdout, probe.stderr[-3000:]
