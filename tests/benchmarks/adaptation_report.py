@@ -42,6 +42,10 @@ def _slinger(*args: str) -> None:
     subprocess.run(cmd, check=True, cwd=REPO)
 
 
+def _git(*args: str) -> str:
+    return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True).stdout.strip()
+
+
 def run_profile(name: str, work: Path, modes: list[str], diag_throws: int, adapt_throws: int, rounds: int, eval_throws: int,
                 before_throws: int, anchor: bool = True) -> dict:
     """All steps for one profile; returns its report entry."""
@@ -51,9 +55,13 @@ def run_profile(name: str, work: Path, modes: list[str], diag_throws: int, adapt
         _slinger("diagnose", "generate", "--profile", str(profile), "--throws", str(diag_throws), "--out", str(ds))
     if not (dg / "report.json").is_file():
         _slinger("diagnose", str(ds), "--out", str(dg), "--no-plots")
+        (dg / "code.json").write_text(json.dumps({"head": _git("rev-parse", "--short", "HEAD"),
+                                                  "diagnosis_last_change": _git("log", "-1", "--format=%h", "--", "sim_twin/diagnosis")}))
     report = json.loads((dg / "report.json").read_text())
     entry = {"profile": name, "diagnosis": {"verdict": report["verdict"], "fitted_profile": json.loads((dg / "profile_fitted.json").read_text()),
-                                            "throws": report["throws"], "wall_s": report["wall_s"]}, "modes": {}}
+                                            "throws": report["throws"], "wall_s": report["wall_s"],
+                                            "code": json.loads((dg / "code.json").read_text()) if (dg / "code.json").is_file() else None},
+             "modes": {}}
     for mode in modes:
         out = work / name / f"adapted_{mode}"
         version = f"{json.loads(POLICIES[mode].with_suffix('.json').read_text())['name']}-{name}"
@@ -101,7 +109,9 @@ def markdown(report: dict) -> str:
              "Bars: 2D |bias| <= 0.10 m (7.5-10 m), 3D |bias| <= 0.20 m (7-9.5 m).", ""]
     for e in report["profiles"]:
         fit = e["diagnosis"]["fitted_profile"]
-        lines += [f"## {e['profile']}", "", f"Diagnosis: {e['diagnosis']['verdict']['text']}; fitted profile effects: "
+        code = e["diagnosis"].get("code")
+        lines += [f"## {e['profile']}", "", f"Diagnosis{' (code of ' + code['diagnosis_last_change'] + ')' if code else ''}: "
+                  f"{e['diagnosis']['verdict']['text']}; fitted profile effects: "
                   + ", ".join(f"{x['effect']} {x['params']}" for x in fit.get("effects", [])), ""]
         for mode, m in e["modes"].items():
             lines += [f"**{mode.upper()} `{m['version']}`**: max |bias| after {m['max_abs_bias_after_m']:.3f} m "
@@ -177,7 +187,7 @@ def main() -> int:
     t0 = time.time()
     entries = [run_profile(p, args.work, args.modes, args.diag_throws, args.adapt_throws, args.rounds, args.eval_throws, args.before_throws,
                            anchor=not args.no_anchor) for p in args.profiles]
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
+    commit = _git("rev-parse", "--short", "HEAD")
     report = {"commit": commit, "anchor": not args.no_anchor, "diag_throws": args.diag_throws, "adapt_throws": args.adapt_throws, "rounds": args.rounds, "eval_throws": args.eval_throws,
               "policies": {m: json.loads(POLICIES[m].with_suffix(".json").read_text())["name"] for m in args.modes},
               "wall_s": time.time() - t0, "profiles": entries}
