@@ -62,7 +62,7 @@ log = logging.getLogger(__name__)
 
 RESULT_BATCH = 200
 """At most this many throw results are stored in one commit (the DB thread drains what arrived)."""
-STAGE_THREADS = 32
+STAGE_THREADS = 8
 """Threads that write and fsync the results' telemetry files before the DB thread commits them
 (file I/O overlaps the database's; the GIL is released while writing)."""
 

@@ -15,13 +15,13 @@ from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
 from pathlib import Path
 
-from sqlalchemy import select, update
+from sqlalchemy import case, func, literal, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from runtime.protocol.messages import PolicyInfo, ThrowResult, ThrowStatus
 from runtime.throw_geometry import impact_errors
 from server.db.models import FINAL_STATUSES, Machine, PolicyVersion, Throw
-from server.db.types import utcnow
+from server.db.types import UTCDateTime, utcnow
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +42,7 @@ class ResultStore:
     def __init__(self, sessions: sessionmaker[Session], data_dir: Path):
         self.sessions = sessions
         self.data_dir = Path(data_dir)
+
 
     def telemetry_file(self, throw: Throw) -> Path | None:
         """Absolute path of a throw's MCAP file, or None if it has none."""
@@ -89,20 +90,20 @@ class ResultStore:
 
         Final phases (landed/failed/aborted) are NOT applied here: only the stored ThrowResult
         makes a row final, so a client that sees a final status also sees the impact, errors and
-        telemetry. A final row is never changed by a late status."""
+        telemetry. A final row's status is never changed by a late status. One conditional
+        UPDATE (one round trip; a result stored meanwhile by another transaction is never
+        overwritten; the accuracy aggregates, which only final rows enter, need no change)."""
+        now = literal(utcnow(), UTCDateTime)
+        values = {"started_at": func.coalesce(Throw.started_at, now)}
+        if status.phase == "released":
+            values["released_at"] = func.coalesce(Throw.released_at, now)
+        if status.phase not in FINAL_STATUSES:
+            values["status"] = case((Throw.status.in_(FINAL_STATUSES), Throw.status), else_=literal(status.phase))
         with self.sessions.begin() as db:
-            row = db.get(Throw, status.throw_id)
-            if row is None:
-                log.debug("status for unknown throw %s dropped", status.throw_id)
-                return
-            now = utcnow()
-            if row.started_at is None:
-                row.started_at = now
-            if status.phase == "released" and row.released_at is None:
-                row.released_at = now
-            if row.status in FINAL_STATUSES or status.phase in FINAL_STATUSES:
-                return
-            row.status = status.phase
+            done = db.execute(update(Throw).where(Throw.id == status.throw_id).values(**values)
+                              .execution_options(synchronize_session=False))
+        if done.rowcount == 0:
+            log.debug("status for unknown throw %s dropped", status.throw_id)
 
     def store_result(self, result: ThrowResult) -> Throw:
         """Store a ThrowResult: MCAP file first (atomic rename), then the row, one commit.

@@ -253,3 +253,47 @@ def test_migration_backfills_the_aggregates(kind, tmp_path, request):
 def test_distance_bins_round_halves_up():
     assert distance_bin(7.25, 0.0) == 15 and distance_bin(7.24, 0.0) == 14 and distance_bin(0.0, 8.0) == 16
     assert distance_bin(3.0, 4.0) == 10 and distance_bin(3.0, 4.0, bin_m=1.0) == 5
+
+
+def test_concurrent_redeliveries_count_once(app_client, zenoh_endpoint):
+    """Every result delivered by 4 threads at once (the outbox re-sending while the first
+    delivery is still being stored) and late statuses meanwhile: each landed throw counts once,
+    the aggregates equal a rebuild from the rows, no landed row goes back to an open status."""
+    import threading
+
+    from runtime.protocol.messages import ThrowStatus, encode
+
+    sessions = app_client.app.state.sessions
+    plan = [{**_plan(k), "machine_id": "m1"} for k in range(40)]
+    with sessions.begin() as db:
+        db.add(Machine(id="m1", simulated=True))
+        db.flush()
+        db.execute(insert(Throw), plan)
+    rt = FakeRuntime(zenoh_endpoint, "m1", site_dir=app_client.site_dir)
+    results = [_result(rt, row, k) for k, row in enumerate(plan)]
+    acks: list = []
+
+    def deliver(offset: int) -> None:
+        for r in results[offset:] + results[:offset]:
+            acks.append(rt.send_result(r))
+            rt._status_pub.put(encode(ThrowStatus(machine_id="m1", stamp_s=time.monotonic(), throw_id=r.throw_id,
+                                                  phase="swinging")))
+
+    try:
+        threads = [threading.Thread(target=deliver, args=(10 * i,)) for i in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        time.sleep(0.5)  # the last statuses reach the database
+    finally:
+        rt.close()
+    assert len(acks) == 160 and all(a is not None and a.stored for a in acks)
+    with sessions() as db:
+        assert set(db.scalars(select(Throw.status))) == {"landed"}
+        assert sum(db.scalars(select(ThrowAccuracy.n))) == 40
+        live = _table(db)
+    with sessions.begin() as db:
+        rebuild(db)
+    with sessions() as db:
+        _assert_tables_equal(live, _table(db))

@@ -8,13 +8,14 @@ A throw **contributes** iff its status is ``landed`` and both errors are set. It
 
 How they stay exact: a ``before_flush`` listener on every ORM :class:`~sqlalchemy.orm.Session`
 compares, for each new, changed or deleted :class:`~server.db.models.Throw`, its contribution
-before (the loaded values; the relevant columns have ``active_history``) and after the change,
-and upserts the differences into ``throw_accuracy`` on the flush's own connection, so the
-aggregates commit or roll back with the row. A re-delivered result that stores the same values
+before (the loaded values; the relevant columns have ``active_history``) and after the change;
+an ``after_flush`` listener upserts the differences into ``throw_accuracy`` on the flush's own
+connection, so the aggregates commit or roll back with the row. A re-delivered result that stores the same values
 changes nothing. Writes that bypass the ORM unit of work are not seen; the server makes only
 these, and none changes a contribution: ``ResultStore.mark_lost`` (a conditional UPDATE of a
 NON-final throw to ``lost``: only a landed, i.e. final, throw contributes) and
-``ThrowService._delete`` (a throw whose hand-shake failed, never landed). Bulk loads with Core
+``ThrowService._delete`` (a throw whose hand-shake failed, never landed),
+``ResultStore.apply_status`` (a conditional UPDATE that never changes a final row's status). Bulk loads with Core
 statements (the benchmark's fill) must call :func:`rebuild` afterwards.
 
 Supported databases: SQLite and PostgreSQL (``INSERT ... ON CONFLICT DO UPDATE``).
@@ -124,9 +125,19 @@ def upsert(connection, deltas: dict[tuple, list]) -> None:
     connection.execute(stmt, rows)
 
 
+_PENDING = "accuracy_deltas"
+
+
 @event.listens_for(Session, "before_flush")
-def _keep_aggregates(session: Session, _flush_context, _instances) -> None:
-    upsert(session.connection(), deltas_of(session))
+def _measure(session: Session, _flush_context, _instances) -> None:
+    session.info[_PENDING] = deltas_of(session)
+
+
+@event.listens_for(Session, "after_flush")
+def _apply(session: Session, _flush_context) -> None:
+    # after the rows' own statements: the aggregate rows (shared by concurrent writers) are
+    # locked only from here to the commit, and always in key order (no deadlock)
+    upsert(session.connection(), session.info.pop(_PENDING, {}))
 
 
 def rebuild(session: Session, batch: int = 20_000) -> int:

@@ -179,7 +179,8 @@ def ingest(app, endpoint: str, n: int, processes: int, threads: int, profile: bo
     print(f"ingestion: {n} results ({got[0][1] / 1024:.0f} kB each, 2 s of 100 Hz telemetry) from {processes} processes x "
           f"{threads} concurrent deliveries in {dt:.2f} s = {n / dt:.0f} results/s; acknowledged "
           f"{sum(a for a, _ in got)}, stored {stored}  (bar >= 500/s)")
-    print(f"  server process CPU {cpu_s:.2f} s = {1e3 * cpu_s / n:.2f} ms per result; load average "
+    print(f"  server process CPU {cpu_s:.2f} s (user {cpu1.ru_utime - cpu0.ru_utime:.2f}, system "
+          f"{cpu1.ru_stime - cpu0.ru_stime:.2f}) = {1e3 * cpu_s / n:.2f} ms per result; load average "
           f"{load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end ({os.cpu_count()} CPUs)")
     if prof is not None:
         prof.report()
