@@ -1,0 +1,61 @@
+"""The load benchmark's accounting (tests/benchmarks/fleet_load_stats.py): a requested throw
+that never reaches a final status counts as stuck, final statuses are checked, reasons are
+grouped, and the /proc CPU readings are sane."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent / "benchmarks"))
+from fleet_load_stats import Tally, host_cpu_s, is_pose_refusal, percentile, proc_cpu_s, short_reason, tree_cpu_s  # noqa: E402
+
+
+def test_unfinished_throw_is_stuck_and_reasons_grouped():
+    t = Tally()
+    for tid in ("a", "b", "c", "d"):
+        t.accepted(tid, "m1")
+    t.ended("a", "landed", None)
+    t.ended("b", "failed", "machine fault: behind real time by 104 ms")
+    t.ended("c", "failed", "machine fault: behind real time by 131 ms")
+    o = t.outcome()
+    assert o["requested"] == 4 and o["stuck"] == 1 and o["lost"] == 0
+    assert o["by_status"] == {"landed": 1, "failed": 2}
+    assert o["reasons"] == {"failed: machine fault: behind real time by # ms": 2}
+    t.ended("d", "lost", "no result")
+    assert t.outcome()["stuck"] == 0 and t.outcome()["lost"] == 1
+
+
+def test_bad_accounting_is_refused():
+    t = Tally()
+    with pytest.raises(ValueError, match="never requested"):
+        t.ended("x", "landed", None)
+    t.accepted("x", "m1")
+    with pytest.raises(ValueError, match="not a final status"):
+        t.ended("x", "swinging", None)
+    with pytest.raises(ValueError, match="quantile"):
+        percentile([1.0], 1.5)
+
+
+def test_percentile_and_pose_refusal():
+    assert percentile(list(range(101)), 0.95) == 95
+    assert percentile([], 0.5) != percentile([], 0.5)  # NaN
+    assert is_pose_refusal("422 not ready: pose outside the envelope (dipper)")
+    assert not is_pose_refusal("422 machine fault: behind real time by 120 ms")
+    assert short_reason(None) == "(no reason given)"
+
+
+def test_cpu_readings_grow_with_work():
+    c0, (b0, t0) = proc_cpu_s(os.getpid()), host_cpu_s()
+    end = time.process_time() + 0.2
+    while time.process_time() < end:
+        pass
+    assert proc_cpu_s(os.getpid()) - c0 >= 0.1
+    assert tree_cpu_s(os.getpid()) >= proc_cpu_s(os.getpid())
+    b1, t1 = host_cpu_s()
+    assert b1 - b0 >= 0.1 and t1 >= b1
+    assert proc_cpu_s(2**22 + 12345) == 0.0  # no such process
