@@ -90,3 +90,12 @@ def test_a_case_that_raises_is_recorded_not_fatal(tmp_path: Path, monkeypatch):
     assert [r["answer"] for r in res["cases"]] == ["error", "error"] and res["summary"]["errors"] == 2
     assert res["summary"]["outside_unexplained_or_ambiguous"] == 0.0 and res["summary"]["noise_no_gap"] == 0.0
     assert "replay diverged" in res["cases"][0]["text"]
+
+
+def test_benchmark_figure(tmp_path: Path, monkeypatch):
+    from sim_twin.diagnosis import plots
+
+    monkeypatch.setattr(benchmark, "run_case", _fake_case([]))
+    res = benchmark.run(MIX, 5, 7, 1, tmp_path / "b.json", only=[0, 2, 3])
+    png = plots.benchmark(res, tmp_path / "b.png")
+    assert png.stat().st_size > 5000 and png.read_bytes()[:4] == b"\x89PNG"

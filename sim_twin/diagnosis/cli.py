@@ -81,6 +81,10 @@ def run(args: argparse.Namespace) -> int:
             only = [int(c) for c in args.cases.split(",")] if args.cases else None
             res = benchmark.run(mix, throws, args.seed, args.workers or _cores(), out, args.keep_data, only=only, resume=args.resume)
             print(benchmark.format_summary(res))
+            if res["cases"]:
+                from sim_twin.diagnosis import plots
+
+                print(f"figure: {plots.benchmark(res, out.with_suffix('.png'))}")
             return 0 if res["cases"] else 1
         return _diagnose(args)
     except (DatasetError, ConvertError, ValueError, OSError) as e:

@@ -101,3 +101,38 @@ def write_all(report: dict, out: Path) -> dict[str, str]:
             except Exception:  # a figure must never fail the diagnosis
                 log.exception("plot %s failed", name)
     return files
+
+
+def benchmark(result: dict, path: Path) -> Path:
+    """Benchmark figure (``slinger diagnose benchmark`` JSON): left, the share of cases answered
+    as the bar wants per kind (named / both named / unexplained-or-ambiguous / no gap) with the
+    bars' targets; right, (fit - truth) / sigma of every compared parameter against the standard
+    normal's 68 % band (calibrated 1 sigma puts ~68 % of the points inside |z| <= 1)."""
+    plt = _plt()
+    rows = result["cases"]
+    kinds = [("single", 0.9), ("pair", 0.7), ("outside", 0.9), ("heldout", 0.9), ("noise", 0.9)]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    shares, labels = [], []
+    for k, bar in kinds:
+        rs = [r for r in rows if r["kind"] == k]
+        shares.append(sum(r["correct"] for r in rs) / len(rs) if rs else 0.0)
+        labels.append(f"{k}\n({len(rs)})")
+        a.plot([len(labels) - 1.4, len(labels) - 0.6], [bar, bar], "k--", lw=0.8)
+    a.bar(labels, shares, color="tab:blue")
+    a.set_ylim(0, 1.05)
+    a.set_ylabel("share answered right (dashed: bar)")
+    z = np.array([p["z"] for r in rows if r["correct"] for p in r["params"] if p.get("z") is not None], dtype=float)
+    if len(z):
+        b.axvspan(-1, 1, color="0.9")
+        b.scatter(z, np.arange(len(z)), s=12)
+        b.set_xlim(-max(4.0, np.abs(z).max() * 1.05), max(4.0, np.abs(z).max() * 1.05))
+        b.set_xlabel(f"(fit - truth) / 1 sigma; inside |z| <= 1: {np.mean(np.abs(z) <= 1):.0%} of {len(z)}")
+        b.set_yticks([])
+    s = result["summary"]
+    fig.suptitle(f"diagnosis benchmark: {s['cases']} of {result.get('cases_planned', s['cases'])} cases, seed {result['seed']}, "
+                 f"{result['throws_per_case']} throws each" + ("" if result.get("complete") else " (PARTIAL)"))
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path

@@ -11,8 +11,9 @@ phase) (:mod:`scoring`). Everything after that is arithmetic on S:
 
 * a fit on any weighting of the throws is the minimum of a local quadratic through the
   nearest grid points (credible for objectives that are not smooth: no finite differences);
-* parameter uncertainty: the spread of that fit over BOOTSTRAP resamples of the throws, with
-  the grid's resolution added in quadrature (uniform over the last spacing: h / sqrt(12) per side);
+* parameter uncertainty: the spread of that fit over BOOTSTRAP resamples of the throws,
+  or the likelihood profile if larger (:func:`profile_sigma`, :func:`forward.evaluate_candidate`;
+  the grid's resolution h / sqrt(12) only when neither bounds the parameter);
 * win frequencies: per resample, each candidate is fitted on the resampled throws and scored
   on the throws left out (plus PENALTY_PER_PARAM per fitted parameter, scaled to the left-out
   share); the lowest wins. "none" (no further effect) competes too;
