@@ -242,6 +242,9 @@ class PlantInbox:
         self.resting = False
         self.epoch: int | None = None  # newest ValveCommand epoch seen
         self._stale_logged: set[int | None] = set()
+        self.wake = threading.Event()
+        """Set by a command that may end a rest (non-neutral valves, a gripper change, a reset):
+        a resting loop sleeps between its 20 Hz publications and wakes on it (see _loop)."""
 
     def _decode(self, cls, sample):
         try:
@@ -271,18 +274,23 @@ class PlantInbox:
                     log.warning("a second runtime (epoch %d) took over from epoch %d", msg.epoch, self.epoch)
                 self.epoch = msg.epoch
             self.valve_u, self.valve_rx_s = np.asarray(msg.u, dtype=float), time.monotonic()
+        if self.valve_u.any():
+            self.wake.set()  # (always: the loop may be deciding to rest right now)
 
     def on_gripper(self, sample) -> None:
         msg = self._decode(GripperCommand, sample)
         if msg is not None:
             with self.lock:
-                self.gripper_open = msg.open
+                changed, self.gripper_open = msg.open != self.gripper_open, msg.open
+            if changed:
+                self.wake.set()
 
     def on_reset(self, sample) -> None:
         msg = self._decode(SimReset, sample)
         if msg is not None:
             with self.lock:
                 self.resets.append(msg)
+            self.wake.set()
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
@@ -387,9 +395,17 @@ def plant_tick(twin: TwinMachine, inbox: PlantInbox, now_s: float) -> tuple[Mach
 
 
 def _loop(twin: TwinMachine, inbox: PlantInbox, pub_state, pub_impact, stop: threading.Event) -> None:
-    """Real-time 100 Hz schedule (absolute deadlines, so the period does not drift)."""
+    """Real-time 100 Hz schedule (absolute deadlines, so the period does not drift).
+
+    A resting machine (see plant_tick) has nothing to integrate between its 20 Hz publications:
+    the loop then sleeps until the next publication period instead of waking every 10 ms, and a
+    command that may end the rest (PlantInbox.wake) wakes it at once (a new schedule from then).
+    How late each scheduled period starts is measured when it starts (RealTimeGuard), resting or
+    not, so a plant that falls behind says so in the next published state.
+    """
     next_s, n, guard = time.monotonic(), 0, RealTimeGuard()
     while not stop.is_set():
+        inbox.wake.clear()
         state, report = plant_tick(twin, inbox, time.monotonic())
         n += 1
         if not inbox.resting or n % REST_PUBLISH_EVERY == 0:
@@ -397,15 +413,19 @@ def _loop(twin: TwinMachine, inbox: PlantInbox, pub_state, pub_impact, stop: thr
         if report is not None:
             pub_impact.put(encode(report))
             log.info("impact at %s", np.round(report.impact_pos_m, 2).tolist())
-        next_s += PHYSICS_PERIOD_S
+        skip = -(n + 1) % REST_PUBLISH_EVERY if inbox.resting else 0  # resting: straight to the next publication
+        n += skip
+        next_s += (1 + skip) * PHYSICS_PERIOD_S
+        delay = next_s - time.monotonic()
+        if delay > 0 and (inbox.wake.wait(delay) if inbox.resting else stop.wait(delay)):
+            if not stop.is_set():  # woken by a command: handle it now
+                next_s = time.monotonic()
+            continue
         now = time.monotonic()
-        twin.fault = guard.update(now - next_s, now)  # how late the next period starts
-        delay = next_s - now
-        if delay > 0:
-            stop.wait(delay)
-        elif delay < -0.1:
-            log.warning("plant loop %.0f ms behind real time; resynchronising", -delay * 1e3)
-            next_s = time.monotonic()
+        twin.fault = guard.update(now - next_s, now)  # how late this period starts
+        if now - next_s > 0.1:
+            log.warning("plant loop %.0f ms behind real time; resynchronising", (now - next_s) * 1e3)
+            next_s = now
 
 
 def main(argv: list[str] | None = None) -> int:
