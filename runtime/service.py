@@ -128,6 +128,7 @@ class RuntimeService:
         self.estop_reason: str | None = None
         self._info_sent: RuntimeInfo | None = None
         self._info_sent_s = -np.inf
+        self._pose_judged: tuple[tuple, str | None] | None = None  # (q, qd) -> pose_refusal, see _pose_refusal
         self.dropped = 0  # malformed / foreign messages dropped (for tests and diagnostics)
         ctrl = executor.controller
         self._recovery_ctrl = JointVelocityController(ctrl.gains, ctrl.velocity_limits, ctrl.dt_s)
@@ -237,7 +238,15 @@ class RuntimeService:
             return "machine offline (no recent state)"
         if state.machine_fault:
             return f"machine fault: {state.machine_fault}"
-        return pose_refusal(state)
+        return self._pose_refusal(state)
+
+    def _pose_refusal(self, state: MachineState) -> str | None:
+        """runtime.recovery.pose_refusal of ``state``, judged once per pose: a machine at rest
+        publishes the same q and qd at 20 Hz, and RuntimeInfo is built 20 times a second."""
+        key = (tuple(state.q), tuple(state.qd))
+        if self._pose_judged is None or self._pose_judged[0] != key:
+            self._pose_judged = (key, pose_refusal(state))
+        return self._pose_judged[1]
 
     def handle_abort(self, payload: bytes) -> bytes:
         """AbortRequest -> AbortAck; latches E-STOP. Honoured signed or not (an empty or
@@ -353,7 +362,7 @@ class RuntimeService:
             elif not ex.policies:
                 why = "no policy loaded"
             else:
-                why = f"machine fault: {state.machine_fault}" if state.machine_fault else pose_refusal(state)
+                why = f"machine fault: {state.machine_fault}" if state.machine_fault else self._pose_refusal(state)
             return RuntimeInfo(
                 machine_id=self.machine_id,
                 busy=ex.busy,
