@@ -31,7 +31,7 @@ import math
 from datetime import datetime, time, timedelta, timezone
 
 import numpy as np
-from sqlalchemy import Float, and_, case, cast, func, literal, or_, select
+from sqlalchemy import Float, String, and_, case, cast, func, literal, or_, select, type_coerce
 
 from server.db.aggregates import DISTANCE_BIN_M
 from server.db.models import Throw, ThrowAccuracy
@@ -145,11 +145,12 @@ def _scatter(db, flt: ThrowFilter, bin_m: float, errors_per_group: int) -> dict[
     throws among the newest SCATTER_SAMPLE landed throws matching ``flt``."""
     if flt.status not in (None, "landed"):
         return {}
-    recent = flt.apply(select(Throw.mode, _ROW_IDENT, _row_bin(bin_m), _DOWN, _CROSS).where(*_LANDED)).order_by(
+    mode = type_coerce(Throw.mode, String)  # plain strings: no per-row enum processing
+    recent = flt.apply(select(mode, _ROW_IDENT, _row_bin(bin_m), _DOWN, _CROSS).where(*_LANDED)).order_by(
         Throw.requested_at.desc()).limit(SCATTER_SAMPLE)
     out: dict[tuple, list] = {}
-    for mode, ident, b, d, c in db.execute(recent):
-        pts = out.setdefault((mode, ident, int(b)), [])
+    for m, ident, b, d, c in db.execute(recent):
+        pts = out.setdefault((m, ident, int(b)), [])
         if len(pts) < errors_per_group:
             pts.append([round(d, 4), round(c, 4)])
     return out
