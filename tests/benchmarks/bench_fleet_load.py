@@ -68,7 +68,7 @@ def other_processes(exclude: set[int], n: int = 6) -> list[str]:
     """The ``n`` busiest processes that are not this run's ("pid nice %cpu elapsed command")."""
     ps = subprocess.run(["ps", "-eo", "pid,ni,pcpu,etime,args", "--sort=-pcpu", "--no-headers"],
                         capture_output=True, text=True).stdout.splitlines()
-    rows = [r.strip() for r in ps if r.split() and int(r.split()[0]) not in exclude]
+    rows = [r.strip() for r in ps if r.split() and int(r.split()[0]) not in exclude and r.split()[4] != "ps"]
     return [" ".join(r.split()[:4] + [" ".join(r.split()[4:])[:90]]) for r in rows[:n]]
 
 
@@ -272,7 +272,7 @@ class Run:
             f"{g} {c['cores_total']:.2f} ({c['processes']} x {c['pct_of_core_each']:.1f} %)" for g, c in o["cpu"].items()),
             f"; host busy {o['host_busy_cores']:.2f} cores, of which others' jobs {o['others_cores']:.2f}")
         for i, snap in enumerate(o["other_processes"]):
-            print(f"busiest other processes (sample {i + 1}): pid nice %cpu elapsed command")
+            print(f"busiest other processes (sample {i + 1}; %cpu averaged since each started): pid nice %cpu elapsed command")
             for line in snap:
                 print("   ", line)
 
