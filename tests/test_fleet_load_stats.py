@@ -59,3 +59,43 @@ def test_cpu_readings_grow_with_work():
     b1, t1 = host_cpu_s()
     assert b1 - b0 >= 0.1 and t1 >= b1
     assert proc_cpu_s(2**22 + 12345) == 0.0  # no such process
+
+
+class _Resp:
+    def __init__(self, status_code: int, body):
+        self.status_code, self._body = status_code, body
+        self.text = str(body)
+
+    def json(self):
+        return self._body
+
+
+class _Http:
+    """Stand-in for the benchmark client's httpx.Client: the machine reports ready on the 2nd poll."""
+
+    def __init__(self):
+        self.calls, self.polls = [], 0
+
+    def post(self, path, **kw):
+        self.calls.append(("POST", path))
+        return _Resp(200, {"machine_id": "m1", "accepted": True})
+
+    def get(self, path, **kw):
+        self.calls.append(("GET", path))
+        self.polls += 1
+        return _Resp(200, [{"id": "m1", "ready": self.polls >= 2}])
+
+
+def test_a_pose_refusal_makes_the_client_return_the_machine_to_ready(monkeypatch):
+    import bench_fleet_load as bench
+
+    monkeypatch.setattr(bench, "RETURN_POLL_S", 0.0)
+    site = type("S", (), {"machines": ["m1"], "base_url": "http://x"})()
+    run, http = bench.Run(site, clients=1, drain_s=1.0), _Http()
+    run._refused(http, "m1", "throw", _Resp(422, {"detail": "not ready: pose outside the envelope: ground"}))
+    assert ("POST", "/api/machines/m1/return-to-ready") in http.calls
+    assert run.tally.returns == {"accepted, ready again": 1} and len(run.tally.return_s) == 1
+    assert run.tally.refusals == {"throw: # {'detail': 'not ready: pose outside the envelope: ground'}": 1}
+    http2 = _Http()
+    run._refused(http2, "m1", "throw", _Resp(422, {"detail": "machine fault: behind real time by 120 ms"}))
+    assert http2.calls == []  # not a pose refusal: no recovery

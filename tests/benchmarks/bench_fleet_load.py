@@ -47,6 +47,8 @@ COOLDOWN_S = 3.0
 while it settles would be stale)."""
 RETURN_WAIT_S = 120.0
 """How long a client waits for a machine to report ready after its return to the ready pose."""
+RETURN_POLL_S = 2.0
+"""How often it asks meanwhile (GET /api/machines)."""
 log = logging.getLogger("bench_fleet_load")
 
 
@@ -151,7 +153,7 @@ class Run:
             self.tally.returns[f"refused {r.status_code}: {r.text[:80]}"] += 1
             return
         while time.monotonic() - t0 < RETURN_WAIT_S:
-            time.sleep(2.0)
+            time.sleep(RETURN_POLL_S)
             m = next((m for m in http.get("/api/machines").json() if m["id"] == mid), None)
             if m is not None and m.get("ready"):
                 with self.tally.lock:
