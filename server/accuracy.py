@@ -39,10 +39,11 @@ from server.history import _DIST2, ThrowFilter
 
 ERRORS_PER_GROUP = 200
 """The scatter of a group carries at most this many of its newest throws' errors."""
-SCATTER_SAMPLE = 2000
+SCATTER_SAMPLE = 1000
 """The scatter is drawn from the newest this many landed throws matching the filters (an index
 scan; 5000 before the aggregates, lowered because fetching and grouping those rows had become
-most of the request's time: 2000 points still fill 10 groups with 200 each)."""
+most of the request's time: 1000 halves the CPU per request of 2000 over 100 000 throws and
+lets PostgreSQL read them backwards by index instead of sorting a machine's whole history)."""
 
 _DOWN, _CROSS = Throw.downrange_error_m, Throw.crossrange_error_m
 _LANDED = (Throw.status == "landed", _DOWN.is_not(None), _CROSS.is_not(None))

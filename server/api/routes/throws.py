@@ -101,7 +101,8 @@ def export_csv(db: SessionDep, _user: ViewerDep, flt: ThrowFilter = Depends(thro
 def get_accuracy(db: SessionDep, _user: ViewerDep, flt: ThrowFilter = Depends(throw_filter)) -> JSONResponse:
     """Accuracy of the landed throws matching the filters, per mode, policy version (SHA-256) and
     target distance (0.5 m bins): mean impact distance, bias, 1 sigma downrange/crossrange, error
-    ellipse, and the newest 200 errors per group for the scatter plot. Plain JSON (floats and
+    ellipse, and for the scatter plot up to 200 errors per group, the group's newest among the
+    newest 1000 matching landed throws (server.accuracy.SCATTER_SAMPLE). Plain JSON (floats and
     lists only), so the response skips FastAPI's encoder.
 
     Answered from the incremental aggregates (``throw_accuracy``, updated in the transaction
