@@ -269,15 +269,25 @@ class RuntimeService:
                     self._who(req) if signed else "unknown", req.reason, f"; throw {throw_id} aborted" if throw_id else "")
         return encode(AbortAck(machine_id=self.machine_id, aborted_throw_id=throw_id))
 
-    def handle_estop_reset(self, payload: bytes) -> bytes:
-        """EstopReset (signed) -> EstopResetAck; releases a latched E-STOP."""
+    def _addressed(self, payload: bytes, command_type, refusal):
+        """Decode a command query for this machine: ``(request, None)``, or ``(None, refusal(why))``
+        for a malformed request (counted in ``dropped``) or one addressed to another machine.
+        The signature is checked by the caller (:meth:`authorize`)."""
         try:
-            req = decode(EstopReset, payload)
+            req = decode(command_type, payload)
         except ValidationError as e:
             self.dropped += 1
-            return encode(EstopResetAck(machine_id=self.machine_id, reset=False, reason=f"malformed request: {_short(e)}"))
+            return None, refusal(f"malformed request: {_short(e)}")
         if req.machine_id != self.machine_id:
-            return encode(EstopResetAck(machine_id=self.machine_id, reset=False, reason=f"this runtime serves {self.machine_id!r}"))
+            return None, refusal(f"this runtime serves {self.machine_id!r}")
+        return req, None
+
+    def handle_estop_reset(self, payload: bytes) -> bytes:
+        """EstopReset (signed) -> EstopResetAck; releases a latched E-STOP."""
+        req, refused = self._addressed(payload, EstopReset, lambda why: encode(
+            EstopResetAck(machine_id=self.machine_id, reset=False, reason=why)))
+        if refused is not None:
+            return refused
         denied = self.authorize(req)
         if denied:
             log.warning("E-STOP reset refused: %s", denied)
@@ -296,13 +306,10 @@ class RuntimeService:
 
     def handle_return_to_ready(self, payload: bytes) -> bytes:
         """ReturnToReady (signed) -> ReturnToReadyAck; starts driving the arm to the ready pose."""
-        try:
-            req = decode(ReturnToReady, payload)
-        except ValidationError as e:
-            self.dropped += 1
-            return encode(ReturnToReadyAck(machine_id=self.machine_id, accepted=False, reason=f"malformed request: {_short(e)}"))
-        if req.machine_id != self.machine_id:
-            return encode(ReturnToReadyAck(machine_id=self.machine_id, accepted=False, reason=f"this runtime serves {self.machine_id!r}"))
+        req, refused = self._addressed(payload, ReturnToReady, lambda why: encode(
+            ReturnToReadyAck(machine_id=self.machine_id, accepted=False, reason=why)))
+        if refused is not None:
+            return refused
         reason = self.authorize(req)
         with self.lock:
             state = self.latest_state if self._online(self.link_timeout_s) else None

@@ -268,10 +268,7 @@ class Fleet:
         Raises:
             RuntimeUnavailable, ValueError: as :meth:`request_throw`.
         """
-        ack, _ = self._signed_query(keys.estop_reset, EstopReset(machine_id=machine_id), machine_id, user,
-                                    EstopResetAck)
-        self.forget_info(machine_id)
-        return ack
+        return self._state_command(keys.estop_reset, EstopReset(machine_id=machine_id), user, EstopResetAck)
 
     def return_to_ready(self, machine_id: str, user: str) -> ReturnToReadyAck:
         """Ask the runtime to drive its arm back to the ready pose (signed for ``user``).
@@ -279,9 +276,18 @@ class Fleet:
         Raises:
             RuntimeUnavailable, ValueError: as :meth:`request_throw`.
         """
-        ack, _ = self._signed_query(keys.return_to_ready, ReturnToReady(machine_id=machine_id), machine_id, user,
-                                    ReturnToReadyAck)
-        self.forget_info(machine_id)
+        return self._state_command(keys.return_to_ready, ReturnToReady(machine_id=machine_id), user, ReturnToReadyAck)
+
+    def _state_command(self, key_of, command, user: str, ack_type):
+        """Send a signed command that changes the runtime's state (``key_of(machine_id)`` the
+        query key, ``command`` its message with ``machine_id``) and drop the cached RuntimeInfo,
+        so the next read asks the runtime. Returns the decoded ``ack_type``.
+
+        Raises:
+            RuntimeUnavailable, ValueError: as :meth:`request_throw`.
+        """
+        ack, _ = self._signed_query(key_of, command, command.machine_id, user, ack_type)
+        self.forget_info(command.machine_id)
         return ack
 
     def offer_policy(self, offer: PolicyOffer, user: str) -> PolicyOfferAck:

@@ -25,8 +25,8 @@ def _launch(p):
     return p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, timeout=60_000)
 
 
-@pytest.fixture
-def browser():
+def _chromium():
+    """Headless Chromium for the length of a fixture (generator: yields the browser, closes it)."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
@@ -35,19 +35,17 @@ def browser():
             yield b
         finally:
             b.close()
+
+
+@pytest.fixture
+def browser():
+    yield from _chromium()
 
 
 @pytest.fixture(scope="module")
 def module_browser():
     """One Chromium for a whole test module (the browser start is slow on 2 cores)."""
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = _launch(p)
-        try:
-            yield b
-        finally:
-            b.close()
+    yield from _chromium()
 
 
 def log_in(page, base_url: str, user: tuple[str, str] = ADMIN, start: str = "/") -> None:

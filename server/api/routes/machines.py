@@ -143,17 +143,24 @@ async def _audited(fleet: Fleet, write, timeout_s: float = 5.0) -> None:
         log.exception("E-STOP audit entry not written")
 
 
+def _delivered(db, username: str, action: str, machine_id: str, what: str, send):
+    """The runtime's ack of a signed command ``send()``; if it was not confirmed, the attempt is
+    audited as undelivered (action ``action``) and HTTPException 503 names ``what``."""
+    try:
+        return send()
+    except (RuntimeUnavailable, ValueError) as e:
+        audit(db, username, action, machine_id[:64], delivered=False, error=str(e))
+        db.commit()
+        raise HTTPException(503, f"{what} of {machine_id} not confirmed: {e}") from e
+
+
 @router.post("/{machine_id}/estop/reset", response_model=EstopResetOut,
              responses={409: {"description": "the runtime refused the reset (its reason)"},
                         503: {"description": "the runtime did not answer, or no command key"}})
 def estop_reset(machine_id: str, db: SessionDep, fleet: FleetDep, user: OperatorDep) -> EstopResetOut:
     """Release the runtime's latched E-STOP (a signed EstopReset in the operator's name); audited."""
-    try:
-        ack = fleet.estop_reset(machine_id, user.username)
-    except (RuntimeUnavailable, ValueError) as e:
-        audit(db, user.username, "estop_reset", machine_id[:64], delivered=False, error=str(e))
-        db.commit()
-        raise HTTPException(503, f"E-STOP reset of {machine_id} not confirmed: {e}") from e
+    ack = _delivered(db, user.username, "estop_reset", machine_id, "E-STOP reset",
+                     lambda: fleet.estop_reset(machine_id, user.username))
     audit(db, user.username, "estop_reset", machine_id, delivered=True, reset=ack.reset, reason=ack.reason)
     db.commit()
     if not ack.reset:
@@ -174,12 +181,8 @@ def return_to_ready(machine_id: str, db: SessionDep, fleet: FleetDep, user: Oper
     """Recovery action: the runtime drives the arm back to its ready pose (a signed ReturnToReady
     in the operator's name; runtime/recovery.py). Progress and the end follow in the machine's live
     state (``returning``, ``return_progress``, ``return_result``). Audited."""
-    try:
-        ack = fleet.return_to_ready(machine_id, user.username)
-    except (RuntimeUnavailable, ValueError) as e:
-        audit(db, user.username, "return_to_ready", machine_id[:64], delivered=False, error=str(e))
-        db.commit()
-        raise HTTPException(503, f"return to the ready pose of {machine_id} not confirmed: {e}") from e
+    ack = _delivered(db, user.username, "return_to_ready", machine_id, "return to the ready pose",
+                     lambda: fleet.return_to_ready(machine_id, user.username))
     audit(db, user.username, "return_to_ready", machine_id, delivered=True, accepted=ack.accepted, reason=ack.reason)
     db.commit()
     if not ack.accepted:
