@@ -44,6 +44,7 @@ class Candidate:
     wall_s: float = 0.0
     refit: bool = False
     sigma_parts: dict = field(default_factory=dict)
+    pair_with: str = ""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -58,10 +59,12 @@ class Round:
     decision: str = ""
     named: str | None = None
     runner_up: str | None = None
+    pair_tried: list[Candidate] = field(default_factory=list)  # second effects tried by the pair step (none named)
 
     def to_dict(self) -> dict:
         return {"gaps": self.gaps, "candidates": [c.to_dict() for c in self.candidates], "gated_out": self.gated_out,
-                "wins_none": self.wins_none, "decision": self.decision, "named": self.named, "runner_up": self.runner_up}
+                "wins_none": self.wins_none, "decision": self.decision, "named": self.named, "runner_up": self.runner_up,
+                "pair_tried": [c.to_dict() for c in self.pair_tried]}
 
 
 def channel_gaps(S: np.ndarray, D: np.ndarray, S_ref: np.ndarray | None = None) -> dict[str, dict]:
@@ -247,8 +250,17 @@ def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train
             rnd.decision = "no candidate beats the twin without it on held-out throws"
             break
         if not best.admissible:
-            rnd.decision = f"best candidate {best.effect} not admissible ({best.reason})"
-            break
+            pair, rnd2 = pair_step(ev_factory, classes, named, ev, best, best_sw, L, D, train, W, S_nominal)
+            if pair is None:
+                rnd.decision = f"best candidate {best.effect} not admissible ({best.reason})"
+                rnd.pair_tried = rnd2.candidates if rnd2 is not None else []
+                break
+            second, second_sw = pair
+            rnd.decision, rnd.named, best.pair_with = "named", best.effect, second.effect
+            named.append(best_sw.cls(**best.params))
+            rounds.append(rnd2)
+            named.append(second_sw.cls(**second.params))
+            continue
         if best.wins < sel.WIN_FREQ:
             if runner is not None and runner.admissible and runner.wins >= sel.AMBIGUOUS_FREQ:
                 rnd.decision = "ambiguous"
@@ -262,6 +274,84 @@ def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train
     if len(named) >= 2:
         backfit(ev_factory, rounds, named, D, train, W)
     return rounds, named
+
+
+def pair_step(ev_factory, classes, named: list[Effect], ev: sel.Evaluator, first: Candidate, first_sw: sel.Sweep, L: np.ndarray,
+              D: np.ndarray, train: np.ndarray, W: np.ndarray, S_nominal: np.ndarray) -> tuple[tuple[Candidate, sel.Sweep] | None, Round | None]:
+    """Forward selection's pair step: two effects whose joint fit explains the gap when no single one is admissible.
+
+    Tried only when the round's best candidate ``first`` wins at least WIN_FREQ of the resamples
+    and its sole flaw is a channel it makes worse beyond noise (e.g. a hanging mass fitted to the
+    gripper swing pushes the impact further off while a grasp offset is what moves the impact).
+    Every candidate that can act on the channels ``first`` made worse is fitted on top of ``first``
+    (at its all-throw fit). A second effect completes the pair only if (a) the pair leaves no
+    channel worse than the round's base beyond its noise, (b) no gap is left anywhere, (c) its
+    parameters are identifiable and inside the prior, and (d) the pair, penalised
+    PENALTY_PER_PARAM per parameter of both effects, beats "none" and every single candidate of
+    the round on the left-out throws of at least WIN_FREQ of the resamples. Exactly one second
+    effect must pass: two that pass are not told apart and nothing is named.
+
+    Args:
+        L: (1 + K, B) the round's out-of-bag losses ("none" first, then the single candidates).
+        S_nominal: (N, C, P) chi-square of the nominal twin (for the "no gap left" test).
+
+    Returns:
+        ((second candidate, its sweep) or None, the round of second effects tried or None when
+        the step was not tried).
+    """
+    reasons = first.reason.split("; ")
+    if first.wins < sel.WIN_FREQ or not first.worse or first.at_bound or first.k == 0 or not all(r.startswith("makes ") for r in reasons):
+        return None, None
+    ev2 = ev_factory(named + [first_sw.cls(**first.params)])
+    gaps2 = channel_gaps(ev2.S_base, D, S_nominal)
+    worse_gaps = {c: gaps2[c] for c in first.worse if c in gaps2}
+    if not worse_gaps:
+        return None, None
+    rnd = Round(gaps=sorted(gaps2))
+    base_c, tol = ev.S_base.sum(axis=(0, 2)), nz.worse_tolerance(D.sum(axis=(0, 2)))
+    has_dof = D.sum(axis=(0, 2)) > 0
+    passed = []
+    done = {type(e) for e in named} | {first_sw.cls}
+    for cls in classes:
+        if cls in done:
+            continue
+        why = gated(cls, worse_gaps) or gated(cls, gaps2)
+        if why:
+            rnd.gated_out[cls.spec()] = why
+            continue
+        sw = ev2.sweep(cls, train)
+        cand, oob, S_fit = evaluate_candidate(ev2, sw, D, train, W)
+        pair_oob = oob + sel.PENALTY_PER_PARAM * first.k * (W == 0).mean(axis=1)
+        cand.wins = float(np.mean(pair_oob < L.min(axis=0)))
+        cand.beats_none = float(np.mean(pair_oob < L[0]))
+        fit_c = S_fit.sum(axis=(0, 2))
+        worse = [nz.CHANNELS[c] for c in range(len(nz.CHANNELS)) if has_dof[c] and fit_c[c] - base_c[c] > tol[c]]
+        left = channel_gaps(S_fit, D, S_nominal)
+        reasons = []
+        if worse:
+            reasons.append(f"the pair with {first.effect} makes " + ", ".join(worse) + " worse beyond noise")
+        if left:
+            reasons.append(f"the pair with {first.effect} leaves a gap in " + ", ".join(sorted(left)))
+        if cand.at_bound:
+            reasons.append(f"at its prior bound: {', '.join(cand.at_bound)}")
+        if cand.k == 0:
+            reasons.append("no parameter identifiable")
+        if cand.wins < sel.WIN_FREQ:
+            reasons.append(f"the pair wins only {100 * cand.wins:.0f}% of resamples")
+        cand.admissible, cand.reason, cand.pair_with = not reasons, "; ".join(reasons), first.effect
+        rnd.candidates.append(cand)
+        log.info("pair step on %s: %-22s params %s, pair wins %.2f, %s", first.effect, cand.effect,
+                 {k: round(v, 4) for k, v in cand.params.items()}, cand.wins, cand.reason or "admissible")
+        if cand.admissible:
+            passed.append((cand, sw))
+    rnd.candidates.sort(key=lambda c: -c.wins)
+    if len(passed) != 1:
+        rnd.decision = f"pair step on {first.effect}: " + ("no second effect completes it" if not passed else "two second effects complete it")
+        return None, rnd
+    second, sw = passed[0]
+    rnd.decision, rnd.named = "named", second.effect
+    rnd.wins_none = float(1.0 - second.beats_none)
+    return (second, sw), rnd
 
 
 def backfit(ev_factory, rounds: list[Round], named: list[Effect], D: np.ndarray, train: np.ndarray, W: np.ndarray) -> None:
