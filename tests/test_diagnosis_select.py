@@ -47,6 +47,14 @@ class ImpactKnob(Effect):
     params = (Param("k", "-", 0.0, -1.0, 1.0, "synthetic", "test"),)
 
 
+class ImpactShiftAlike(Effect):
+    """Synthetic flight effect that mimics ImpactShift up to a 5 % per-throw wobble."""
+
+    name = "test_impact_shift_alike"
+    stage = "flight"
+    params = (Param("g", "-", 0.0, -1.0, 1.0, "synthetic", "test"),)
+
+
 class World:
     """The synthetic machine: per-throw signatures, the truth and fixed noise (units of sigma)."""
 
@@ -56,6 +64,7 @@ class World:
         self.v = rng.uniform(0.8, 1.2, N)  # impact sensitivity of the swing effect
         self.w = rng.uniform(0.2, 1.8, N)  # the knob's signature
         self.r = rng.uniform(-1.0, 1.0, N)  # an effect outside the candidates (impact only)
+        self.s = rng.choice([-1.0, 1.0], N)  # ImpactShiftAlike's wobble
         self.pitch = 5.0 * self.u[:, None] * m + rng.normal(size=(N, BLOCKS))
         # the outside effect pushes the impact the other way than the swing effect, but with its own spread
         self.impact = self.impact_of(m, f, 0.0) + outside * (1.0 + 0.8 * self.r) + rng.normal(size=N)
@@ -71,9 +80,10 @@ class World:
         for e in effects:
             vals.update(e.values)
         m, f, k = vals.get("m", 0.0), vals.get("f", 0.0), vals.get("k", 0.0)
+        alike = 10.0 * vals.get("g", 0.0) * (1.0 + 0.05 * self.s)
         S = np.zeros(self.D.shape)
         S[:, PITCH, 0] = ((self.pitch - 5.0 * self.u[:, None] * m) ** 2).sum(axis=1)
-        S[:, IMPACT, 2] = (self.impact - self.impact_of(m, f, k)) ** 2
+        S[:, IMPACT, 2] = (self.impact - self.impact_of(m, f, k) - alike) ** 2
         return S
 
 
@@ -89,10 +99,10 @@ class FakeEvaluator(sel.Evaluator):
         return np.stack([self.world.S(self.base + [e]) for e in effects])
 
 
-def _select(world: World):
+def _select(world: World, classes=(SwingMass, ImpactShift, ImpactKnob)):
     train = np.zeros(N, bool)
     train[: int(0.7 * N)] = True
-    return fw.select_effects(lambda base: FakeEvaluator(world, base), [SwingMass, ImpactShift, ImpactKnob], world.D, train, seed=0)
+    return fw.select_effects(lambda base: FakeEvaluator(world, base), list(classes), world.D, train, seed=0)
 
 
 def test_alone_the_swing_effect_is_refused_because_it_makes_the_impact_worse():
@@ -126,6 +136,15 @@ def test_pair_step_refuses_when_no_candidate_completes_the_pair():
     tried = {c.effect: c for c in rounds[-1].pair_tried}
     assert set(tried) == {ImpactShift.spec(), ImpactKnob.spec()}
     assert all(not c.admissible and "leaves a gap" in c.reason for c in tried.values())
+
+
+def test_pair_step_with_two_second_effects_that_fit_alike_names_the_first_and_says_ambiguous():
+    rounds, named = _select(World(m=0.6, f=0.5), (SwingMass, ImpactShift, ImpactKnob, ImpactShiftAlike))
+    assert [type(e) for e in named] == [SwingMass]
+    assert rounds[-1].decision == "ambiguous"
+    assert {rounds[-1].named, rounds[-1].runner_up} == {ImpactShift.spec(), ImpactShiftAlike.spec()}
+    between = [c for c in rounds[-1].candidates if c.effect in (rounds[-1].named, rounds[-1].runner_up)]
+    assert all(c.admissible and c.wins < sel.WIN_FREQ for c in between)
 
 
 class OffsetWorld:

@@ -256,9 +256,11 @@ def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train
                 rnd.pair_tried = rnd2.candidates if rnd2 is not None else []
                 break
             second, second_sw = pair
-            rnd.decision, rnd.named, best.pair_with = "named", best.effect, second.effect
+            rnd.decision, rnd.named, best.pair_with = "named", best.effect, rnd2.named
             named.append(best_sw.cls(**best.params))
             rounds.append(rnd2)
+            if second is None:  # the first is named, the second ambiguous between two that complete it
+                break
             named.append(second_sw.cls(**second.params))
             continue
         if best.wins < sel.WIN_FREQ:
@@ -288,16 +290,19 @@ def pair_step(ev_factory, classes, named: list[Effect], ev: sel.Evaluator, first
     channel worse than the round's base beyond its noise, (b) no gap is left anywhere, (c) its
     parameters are identifiable and inside the prior, and (d) the pair, penalised
     PENALTY_PER_PARAM per parameter of both effects, beats "none" and every single candidate of
-    the round on the left-out throws of at least WIN_FREQ of the resamples. Exactly one second
-    effect must pass: two that pass are not told apart and nothing is named.
+    the round on the left-out throws of at least WIN_FREQ of the resamples. When several second
+    effects pass, they compete as in a round: one that wins WIN_FREQ of the resamples against the
+    others completes the pair; otherwise ``first`` is named (every passing pair contains it) and
+    the second is "ambiguous" between the two best.
 
     Args:
         L: (1 + K, B) the round's out-of-bag losses ("none" first, then the single candidates).
         S_nominal: (N, C, P) chi-square of the nominal twin (for the "no gap left" test).
 
     Returns:
-        ((second candidate, its sweep) or None, the round of second effects tried or None when
-        the step was not tried).
+        ((second candidate, its sweep), the round that names it); ((None, None), the round)
+        when the second is ambiguous; (None, the round of second effects tried) when none
+        completes the pair; (None, None) when the step is not tried.
     """
     reasons = first.reason.split("; ")
     if first.wins < sel.WIN_FREQ or not first.worse or first.at_bound or first.k == 0 or not all(r.startswith("makes ") for r in reasons):
@@ -343,14 +348,24 @@ def pair_step(ev_factory, classes, named: list[Effect], ev: sel.Evaluator, first
         log.info("pair step on %s: %-22s params %s, pair wins %.2f, %s", first.effect, cand.effect,
                  {k: round(v, 4) for k, v in cand.params.items()}, cand.wins, cand.reason or "admissible")
         if cand.admissible:
-            passed.append((cand, sw))
+            passed.append((cand, sw, pair_oob))
     rnd.candidates.sort(key=lambda c: -c.wins)
-    if len(passed) != 1:
-        rnd.decision = f"pair step on {first.effect}: " + ("no second effect completes it" if not passed else "two second effects complete it")
+    if not passed:
+        rnd.decision = f"pair step on {first.effect}: no second effect completes it"
         return None, rnd
-    second, sw = passed[0]
-    rnd.decision, rnd.named = "named", second.effect
+    # several complete it: they compete on the left-out throws as in a round (WIN_FREQ names one)
+    # (its wins: the share of resamples where it beats "none", every single and the other pairs)
+    won = np.argmin(np.vstack([L.min(axis=0)[None]] + [o[None] for _, _, o in passed]), axis=0)
+    for i, (c, _, _) in enumerate(passed):
+        c.wins = float(np.mean(won == i + 1))
+    passed.sort(key=lambda p: -p[0].wins)
+    rnd.candidates.sort(key=lambda c: (not c.admissible, -c.wins))
+    second, sw, _ = passed[0]
     rnd.wins_none = float(1.0 - second.beats_none)
+    if second.wins < sel.WIN_FREQ:
+        rnd.decision, rnd.named, rnd.runner_up = "ambiguous", second.effect, passed[1][0].effect
+        return (None, None), rnd
+    rnd.decision, rnd.named = "named", second.effect
     return (second, sw), rnd
 
 
