@@ -282,8 +282,8 @@ def pair_step(ev_factory, classes, named: list[Effect], ev: sel.Evaluator, first
               D: np.ndarray, train: np.ndarray, W: np.ndarray, S_nominal: np.ndarray) -> tuple[tuple[Candidate, sel.Sweep] | None, Round | None]:
     """Forward selection's pair step: two effects whose joint fit explains the gap when no single one is admissible.
 
-    Tried only when the round's best candidate ``first`` wins at least WIN_FREQ of the resamples
-    and its sole flaw is a channel it makes worse beyond noise (e.g. a hanging mass fitted to the
+    Tried only when the pair fits within MAX_EFFECTS, the round's best candidate ``first`` wins
+    at least WIN_FREQ of the resamples and its sole flaw is a channel it makes worse beyond noise (e.g. a hanging mass fitted to the
     gripper swing pushes the impact further off while a grasp offset is what moves the impact).
     Every candidate that can act on the channels ``first`` made worse is fitted on top of ``first``
     (at its all-throw fit). A second effect completes the pair only if (a) the pair leaves no
@@ -305,7 +305,7 @@ def pair_step(ev_factory, classes, named: list[Effect], ev: sel.Evaluator, first
         completes the pair; (None, None) when the step is not tried.
     """
     reasons = first.reason.split("; ")
-    if first.wins < sel.WIN_FREQ or not first.worse or first.at_bound or first.k == 0 or not all(r.startswith("makes ") for r in reasons):
+    if len(named) + 2 > sel.MAX_EFFECTS or first.wins < sel.WIN_FREQ or not first.worse or first.at_bound or first.k == 0 or not all(r.startswith("makes ") for r in reasons):
         return None, None
     ev2 = ev_factory(named + [first_sw.cls(**first.params)])
     gaps2 = channel_gaps(ev2.S_base, D, S_nominal)
