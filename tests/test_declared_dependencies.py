@@ -1,0 +1,58 @@
+"""Every third-party module the code imports, also inside a function (a lazy import runs only
+when its path is taken: the preview's ``scipy`` once failed every preview of a plain
+``pip install -e .``), comes from a distribution the base install declares, transitively;
+only the training extra's own packages (torch, jax, rsl_rl, ...) may be imported beyond it,
+and only by the training and fine-tuning paths that need the extra anyway.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib.metadata as md
+import re
+import sys
+import tomllib
+from pathlib import Path
+
+from tests.test_packaging import closure
+
+REPO = Path(__file__).resolve().parent.parent
+OURS = {"runtime", "server", "sim_twin", "migrations", "tests", "packaging"}
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Top-level names of the absolute imports anywhere in the file at ``path``."""
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.add(node.module.split(".")[0])
+    return names
+
+
+def _norm(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def test_every_imported_distribution_is_declared():
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    base = closure(project["dependencies"])
+    train_direct = {_norm(r.split(";")[0].split("[")[0].split(">")[0].split("=")[0].split("<")[0].strip())
+                    for r in project["optional-dependencies"]["train"]}
+    owners = md.packages_distributions()
+    missing: dict[str, set[str]] = {}
+    for pkg in ("runtime", "server", "sim_twin"):
+        for path in sorted((REPO / pkg).rglob("*.py")):
+            for mod in imported_modules(path) - OURS - set(sys.stdlib_module_names):
+                dists = {_norm(d) for d in owners.get(mod, [])}
+                assert dists, f"{path.relative_to(REPO)} imports {mod!r}, which no installed distribution provides"
+                if not dists & (base | train_direct):
+                    missing.setdefault(mod, set()).add(str(path.relative_to(REPO)))
+    assert not missing, f"imported but not declared in pyproject.toml's dependencies: {missing}"
+
+
+def test_the_check_sees_lazy_imports(tmp_path):
+    f = tmp_path / "m.py"
+    f.write_text("import os\n\ndef f():\n    from scipy.stats import qmc\n    import numpy.linalg\n    from . import x\n")
+    assert imported_modules(f) == {"os", "scipy", "numpy"}
