@@ -96,6 +96,18 @@ def _basis(X: np.ndarray) -> np.ndarray:
 _NB_CACHE: dict = {}
 
 
+def _hessian(coef: np.ndarray, k: int) -> np.ndarray:
+    """Hessian (k, k) of the quadratic whose coefficients ``coef`` are in :func:`_basis` order
+    (constant, k linear, k squares, then the k(k-1)/2 cross terms i < j)."""
+    H = np.diag(2 * coef[1 + k:1 + 2 * k])
+    idx = 1 + 2 * k
+    for i in range(k):
+        for j in range(i + 1, k):
+            H[i, j] = H[j, i] = coef[idx]
+            idx += 1
+    return H
+
+
 def local_fit(X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Minimum of a local quadratic through the grid points nearest the best one.
 
@@ -123,12 +135,7 @@ def local_fit(X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if coef[2] > 1e-12:
             x = np.clip(np.array([-coef[1] / (2 * coef[2])]), lo, hi)
     else:
-        H = np.diag(2 * coef[1 + k:1 + 2 * k])
-        idx = 1 + 2 * k
-        for i in range(k):
-            for j in range(i + 1, k):
-                H[i, j] = H[j, i] = coef[idx]
-                idx += 1
+        H = _hessian(coef, k)
         # Newton step from the best point along the directions of positive curvature only: a
         # flat valley (parameters that trade off) moves nowhere along it instead of failing
         lam, V = np.linalg.eigh(H)
@@ -150,12 +157,7 @@ def profile_sigma(X: np.ndarray, T: np.ndarray) -> np.ndarray:
     g = int(np.argmin(T))
     nb = np.argsort(np.linalg.norm(X - X[g], axis=1), kind="stable")[: min(G, 3 if k == 1 else 9)]
     coef = np.linalg.pinv(_basis(X[nb])) @ T[nb]
-    H = np.diag(2 * coef[1 + k:1 + 2 * k])
-    idx = 1 + 2 * k
-    for i in range(k):
-        for j in range(i + 1, k):
-            H[i, j] = H[j, i] = coef[idx]
-            idx += 1
+    H = _hessian(coef, k)
     lam, V = np.linalg.eigh(H)
     if np.any(lam <= 1e-12 * max(np.abs(lam).max(), 1e-300)):
         return np.full(k, np.inf)
