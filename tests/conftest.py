@@ -284,6 +284,16 @@ def add_user(sessions, username: str, password: str, role: str) -> None:
         create_user(db, username, password, role)
 
 
+def serving(base_url: str) -> bool:
+    """The server at ``base_url`` answers GET /api/health with 200 (False while it does not)."""
+    import httpx
+
+    try:
+        return httpx.get(f"{base_url}/api/health", timeout=2).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
 def login(client, username: str, password: str) -> None:
     """Log ``client`` (TestClient or httpx.Client) in; the session cookie stays in the client."""
     r = client.post("/api/auth/login", json={"username": username, "password": password})
@@ -408,13 +418,7 @@ class SlingerUp:
         import httpx
 
         if self._http is None:
-            def up():
-                try:
-                    return httpx.get(f"{self.base_url}/api/health", timeout=2).status_code == 200
-                except httpx.HTTPError:
-                    return False
-
-            wait_for(up, 60, "slinger up serving HTTP")
+            wait_for(lambda: serving(self.base_url), 60, "slinger up serving HTTP")
             self._http = httpx.Client(base_url=self.base_url, timeout=10)
             login(self._http, *ADMIN)
         return self._http

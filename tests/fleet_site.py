@@ -29,7 +29,7 @@ import httpx
 from sqlalchemy import create_engine, text
 
 from server.stack import slinger_command
-from tests.conftest import ADMIN, free_port, login, wait_for
+from tests.conftest import ADMIN, free_port, login, serving, wait_for
 from tests.fleet_net import Net, TcpRelay
 
 PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
@@ -162,10 +162,7 @@ class Site:
             for name, p in self.procs.items():
                 if p.poll() is not None:
                     raise RuntimeError(f"{name} exited: {self.log(name)[-2000:]}")
-            try:
-                return httpx.get(f"{self.base_url}/api/health", timeout=2).status_code == 200
-            except httpx.HTTPError:
-                return False
+            return serving(self.base_url)
 
         wait_for(up, 120, "fleet server serving")
         self.http = httpx.Client(base_url=self.base_url, timeout=30)
