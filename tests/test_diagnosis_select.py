@@ -176,3 +176,66 @@ def test_per_joint_fit_of_a_less_informative_joint_is_between_grid_points():
     params, _ = ev.fit(sw, np.ones(N))
     assert abs(params["offset_gripper_pitch"] + 0.0213) < 2e-4  # was -0.0167: a grid point, clipped one-sided box
     assert abs(params["offset_gripper_roll"]) < 1e-3
+
+
+class SharedOffsetWorld:
+    """Encoder offsets (a non-separable per-joint effect): every joint's offset moves the same
+    shared channels, the gripper pitch and the impact, each joint with its own per-throw
+    signature (the boom's half like the dipper's); truth: dipper offset only."""
+
+    def __init__(self, dipper: float = 0.03, seed: int = 4):
+        rng = np.random.default_rng(seed)
+        self.a = {j: rng.uniform(-1.0, 1.0, N) for j in ("cabin_turn", "boom", "dipper", "telescope")}  # pitch per rad
+        self.b = {j: rng.uniform(-1.0, 1.0, N) for j in self.a}  # impact per rad
+        self.a["boom"], self.b["boom"] = 0.5 * (self.a["boom"] + self.a["dipper"]), 0.5 * (self.b["boom"] + self.b["dipper"])
+        self.truth = {"offset_dipper": dipper}
+        self.pitch = 2000.0 * self.a["dipper"][:, None] * dipper + rng.normal(size=(N, BLOCKS))
+        self.impact = 800.0 * self.b["dipper"] * dipper + rng.normal(size=N)
+        self.D = np.zeros((N, len(nz.CHANNELS), len(nz.PHASES)))
+        self.D[:, PITCH, 0] = BLOCKS
+        self.D[:, IMPACT, 2] = 1
+
+    def S(self, effects: list[Effect]) -> np.ndarray:
+        vals = {}
+        for e in effects:
+            vals.update(e.values)
+        o = {j: vals.get(f"offset_{j}", 0.0) for j in self.a}
+        S = np.zeros(self.D.shape)
+        S[:, PITCH, 0] = ((self.pitch - 2000.0 * sum(self.a[j] * o[j] for j in o)[:, None]) ** 2).sum(axis=1)
+        S[:, IMPACT, 2] = (self.impact - 800.0 * sum(self.b[j] * o[j] for j in o)) ** 2
+        return S
+
+
+def test_non_separable_sweep_fits_the_joint_that_explains_the_shared_channels():
+    cls = effect_class("encoder_offset")
+    assert not cls.separable and {"passive", "impact"} <= set(cls.groups())
+    world = SharedOffsetWorld(dipper=0.03)
+    ev = FakeEvaluator(world, [])
+    gaps = fw.channel_gaps(ev.S_base, world.D)
+    assert fw.gated(cls, gaps) is None  # the gap is in the swing and the impact, not in the encoders
+    sw = ev.sweep(cls, np.ones(N, bool))
+    assert sw.names == ["offset_dipper"] and max(sw.joint_gain, key=sw.joint_gain.get) == "offset_dipper"
+    assert sorted(sw.held_nominal) == ["offset_boom", "offset_cabin_turn", "offset_telescope"]
+    assert sw.joint_gain["offset_boom"] > 0.2 * sw.joint_gain["offset_dipper"]  # the boom alone would explain part of it
+    train = np.zeros(N, bool)
+    train[: int(0.7 * N)] = True
+    cand, _, _ = fw.evaluate_candidate(ev, sw, world.D, train, fw._bootstrap_weights(N, 0)[:40])
+    assert abs(cand.params["offset_dipper"] - 0.03) < 0.03 * 0.02 and set(cand.sigma) == {"offset_dipper"}
+    assert 0 < cand.sigma["offset_dipper"] < 1e-3 and cand.k == 1
+    assert {cand.params[n] for n in sw.held_nominal} == {0.0} and sorted(cand.not_identifiable) == sorted(sw.held_nominal)
+    rounds, named = fw.select_effects(lambda base: FakeEvaluator(world, base), [cls, effect_class("imu_offset")], world.D, train, seed=0)
+    assert [type(e) for e in named] == [cls] and rounds[0].decision == "named"
+    assert abs(named[0].offset_dipper - 0.03) < 6e-4 and named[0].offset_boom == 0.0
+
+
+def test_local_fit_never_predicts_a_negative_chi_square():
+    """A sharp minimum at a grid point (passive friction's neighbourhood on a seed-1 tuning case,
+    chi-square / 1000): the 2-D quadratic through the neighbours dips to -0.9 at (0.029, 0.034);
+    the best grid point is the fit, not that impossible negative chi-square."""
+    X = np.array([[0.015, 0.0333], [0.0, 0.0337], [0.0394, 0.0337], [0.0, 0.0], [0.0394, 0.0], [0.0, 0.0743], [0.0, 0.0754], [0.0394, 0.0754]])
+    T = np.array([229.0, 676.0, 374.0, 3836.0, 488.0, 589.0, 624.0, 2403.0])
+    x, w = sel.local_fit(X, T)
+    assert np.allclose(x, X[0]) and w @ T == T[0]
+    g = np.linspace(0, 1, 5)[:, None]  # a parabola: its vertex, between the grid points, as before
+    x1, w1 = sel.local_fit(g, 100.0 * (g[:, 0] - 0.4) ** 2)
+    assert abs(x1[0] - 0.4) < 1e-9 and abs(w1 @ (100.0 * (g[:, 0] - 0.4) ** 2)) < 1e-9

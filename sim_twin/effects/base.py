@@ -187,7 +187,12 @@ class PerJointEffect(Effect):
     """An effect with one parameter per joint of ``joints`` (default the four active ones);
     the keyword ``joint_base`` alone sets all of them alike (``ValveLag(lag_s=0.3)``).
 
-    The diagnosis fits such an effect joint by joint from each joint's own channels.
+    The diagnosis fits such an effect joint by joint from each joint's own channels when it
+    is ``separable`` (a valve parameter of one joint shows in that joint's motion). An effect
+    whose every joint acts on the same shared channels (an encoder offset moves the true arm
+    pose: gripper swing, impact) says ``separable = False``: the diagnosis sweeps each joint
+    over all its footprint channels and fits the joint that explains most
+    (:meth:`sim_twin.diagnosis.select.Evaluator.sweep`).
 
     Raises:
         ValueError: as Effect, or the all-joint keyword given together with a per-joint one.
@@ -195,6 +200,7 @@ class PerJointEffect(Effect):
 
     joint_base: ClassVar[str] = ""
     joints: ClassVar[tuple[str, ...]] = ACTIVE_JOINTS
+    separable: ClassVar[bool] = True
 
     def __init__(self, **values: float):
         if self.joint_base in values:

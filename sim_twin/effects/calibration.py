@@ -3,6 +3,13 @@
 The measured angle is the true one plus the offset; the runtime's controller and the logs see
 the measured one. Replays start from the true state behind the logged one (``initial_state``),
 so an IMU offset does not make the replayed gripper swing at the start.
+
+An encoder offset does not show in the encoder channels themselves: the replay starts from the
+true pose behind the logged reading and the arm is velocity-commanded, so the replayed encoder
+readings follow the log by construction. It shows where gravity and geometry act on the true
+pose: the gripper swing (passive), the payload track and the impact. Every joint's offset acts
+on those same channels, so the diagnosis fits it as a non-separable per-joint effect (one joint
+at a time over all footprint channels, :meth:`sim_twin.diagnosis.select.Evaluator.sweep`).
 """
 
 from __future__ import annotations
@@ -32,7 +39,8 @@ class EncoderOffset(_Offset):
     """Zero offsets of the active joints' encoders (rad; m for the telescope)."""
 
     name = "encoder_offset"
-    footprint = ("active",)
+    footprint = ("passive", "payload", "impact")
+    separable = False
     summary = "calibration offset of the active-joint encoders, per joint"
     joint_base = "offset"
     params = joint_params("offset", "rad (m for telescope)", 0.0, -0.08, 0.08, "encoder zero offset (measured - true)",
