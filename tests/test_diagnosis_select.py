@@ -223,6 +223,7 @@ def test_non_separable_sweep_fits_the_joint_that_explains_the_shared_channels():
     assert abs(cand.params["offset_dipper"] - 0.03) < 0.03 * 0.02 and set(cand.sigma) == {"offset_dipper"}
     assert 0 < cand.sigma["offset_dipper"] < 1e-3 and cand.k == 1
     assert {cand.params[n] for n in sw.held_nominal} == {0.0} and sorted(cand.not_identifiable) == sorted(sw.held_nominal)
+    assert cand.joint_gain == sw.joint_gain
     rounds, named = fw.select_effects(lambda base: FakeEvaluator(world, base), [cls, effect_class("imu_offset")], world.D, train, seed=0)
     assert [type(e) for e in named] == [cls] and rounds[0].decision == "named"
     assert abs(named[0].offset_dipper - 0.03) < 6e-4 and named[0].offset_boom == 0.0

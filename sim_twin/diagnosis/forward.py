@@ -45,6 +45,7 @@ class Candidate:
     refit: bool = False
     sigma_parts: dict = field(default_factory=dict)
     pair_with: str = ""
+    joint_gain: dict = field(default_factory=dict)  # non-separable per-joint effects: training chi-square each joint's coarse fit removed
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -177,7 +178,7 @@ def evaluate_candidate(ev: sel.Evaluator, sw: sel.Sweep, D: np.ndarray, train: n
         sigma_parts={"bootstrap": boot, "profile": {n: (v if np.isfinite(v) else None) for n, v in prof.items()}},
         chi2_before=float(ev.S_base.sum()), chi2_after=float(S_all.sum()),
         test_excess_before=float(ev.S_base[test].sum() - D[test].sum()), test_excess_after=float(S_train[test].sum() - D[test].sum()),
-        wall_s=time.time() - t0)
+        joint_gain=dict(sw.joint_gain), wall_s=time.time() - t0)
     return cand, oob, S_all
 
 
