@@ -138,10 +138,10 @@ def evaluate_candidate(ev: sel.Evaluator, sw: sel.Sweep, D: np.ndarray, train: n
     per_joint = sw.joints is not None
     not_ident = [n for (n, _), ok in zip(sw.joints or [], sw.identifiable) if not ok] if per_joint else []
     if sw.held_nominal:  # non-separable per-joint effect: the joints not fitted stay nominal
-        nominal = {p.name: p.nominal for p in sw.cls.params if p.name in sw.held_nominal}
-        order = [p.name for p in sw.cls.params]
-        params, params_train = ({n: {**nominal, **d}[n] for n in order if n in {**nominal, **d}} for d in (params, params_train))
-        not_ident = list(sw.held_nominal)
+        def with_held(fit: dict[str, float]) -> dict[str, float]:  # every joint, in the class's order
+            return {p.name: fit.get(p.name, p.nominal) for p in sw.cls.params if p.name in fit or p.name in sw.held_nominal}
+
+        params, params_train, not_ident = with_held(params), with_held(params_train), list(sw.held_nominal)
     fitted = [n for n in params if n not in not_ident]
     # bootstrap: parameter spread and out-of-bag losses
     thetas, oob = [], np.zeros(len(W))

@@ -266,8 +266,11 @@ class Evaluator:
         be fitted from channels of its own. Each joint gets a coarse 1-D sweep over its prior
         with the other joints nominal, scored on ALL channels; the joint whose local fit lowers
         the training chi-square most is refined as a 1-D effect (:meth:`_refine_all`) and is the
-        only one fitted (``Sweep.names``); the others stay nominal (``Sweep.held_nominal``). A
-        second joint is a matter for the held-out evidence of a further round, not of this fit.
+        only one fitted (``Sweep.names``); the others stay nominal (``Sweep.held_nominal``). The
+        choice is made once, on the training throws (not again per bootstrap resample). A second
+        joint is not fitted: forward selection does not offer a named effect again, so what one
+        joint cannot absorb of an offset on two joints stays a gap unless it falls below
+        RESIDUAL_SHARE of the nominal excess.
 
         Returns:
             the chosen joint's Sweep (``joints`` None: fitted like a 1-parameter effect).
