@@ -23,7 +23,8 @@ Recovery (:mod:`runtime.recovery`): a signed ReturnToReady drives the arm back t
 with the same controller gains; refused while E-STOP is latched, a throw runs, the machine is
 offline or faulted; stopped by an abort (E-STOP), a machine fault or a silent machine link.
 RuntimeInfo offers it (``recovery``) when the pose is why the machine is not ready, and reports
-``returning`` / ``return_progress`` / ``return_result``.
+``returning`` / ``return_progress`` / ``return_result``. The ReturnToReady handling lives in
+:mod:`runtime.service_recovery` (a base of :class:`RuntimeService`).
 """
 
 from __future__ import annotations
@@ -52,8 +53,6 @@ from runtime.protocol.messages import (
     MachineState,
     Message,
     PolicyInfo,
-    ReturnToReady,
-    ReturnToReadyAck,
     RuntimeInfo,
     ThrowAck,
     ThrowRequest,
@@ -64,6 +63,7 @@ from runtime.protocol.messages import (
     decode,
     encode,
 )
+from runtime.service_recovery import RecoveryHandling
 
 log = logging.getLogger(__name__)
 
@@ -86,8 +86,9 @@ def _short(e: ValidationError) -> str:
     return f"{errs[0]['loc']}: {errs[0]['msg']}" if errs else str(e)
 
 
-class RuntimeService:
-    """Thread-safe message handling of one runtime.
+class RuntimeService(RecoveryHandling):
+    """Thread-safe message handling of one runtime (the return to the ready pose:
+    :class:`runtime.service_recovery.RecoveryHandling`).
 
     Args:
         machine_id: this runtime's machine.
@@ -298,51 +299,7 @@ class RuntimeService:
         log.warning("E-STOP reset by %s (was latched: %s)", self._who(req), was)
         return encode(EstopResetAck(machine_id=self.machine_id, reset=True))
 
-    # --- recovery: return to the ready pose ------------------------------------------------------
-    @property
-    def returning(self) -> bool:
-        """A return to the ready pose is running."""
-        return self.recovery is not None and self.recovery.status.active
-
-    def handle_return_to_ready(self, payload: bytes) -> bytes:
-        """ReturnToReady (signed) -> ReturnToReadyAck; starts driving the arm to the ready pose."""
-        req, refused = self._addressed(payload, ReturnToReady, lambda why: encode(
-            ReturnToReadyAck(machine_id=self.machine_id, accepted=False, reason=why)))
-        if refused is not None:
-            return refused
-        reason = self.authorize(req)
-        with self.lock:
-            state = self.latest_state if self._online(self.link_timeout_s) else None
-            if reason is None:
-                reason = self._return_refusal(state)
-            if reason is None and not self.returning:
-                self.recovery = Recovery(state.q, state.stamp_s, self._recovery_ctrl)
-                self.publish_info()
-        log.log(logging.WARNING if reason else logging.INFO, "return to the ready pose %s for %s%s",
-                "refused" if reason else "started", self._who(req), f": {reason}" if reason else "")
-        return encode(ReturnToReadyAck(machine_id=self.machine_id, accepted=reason is None, reason=reason))
-
-    def _return_refusal(self, state: MachineState | None) -> str | None:
-        if self.estop_reason is not None:
-            return f"E-STOP latched: {self.estop_reason}"
-        if self.executor.busy:
-            return f"a throw runs: {self.executor.throw_id}"
-        if state is None:
-            return "machine offline (no recent state)"
-        if state.machine_fault:
-            return f"machine fault: {state.machine_fault}"
-        return None
-
-    def _tick_return(self, state: MachineState) -> TickOutput:
-        ctrl = self.recovery.tick(state.q, state.qd, state.stamp_s)
-        if not self.recovery.status.active:
-            log.info("return to the ready pose: %s", self.recovery.status.result)
-        return TickOutput(ctrl.valve_u.copy(), ctrl.qd_ref.copy(), bool(self._gripper_sent), (), None)
-
-    def _stop_return(self, why: str) -> None:
-        self.recovery.stop(why)
-        log.warning("return to the ready pose stopped: %s", why)
-
+    # --- shutdown and RuntimeInfo ---------------------------------------------------------------
     def shutdown(self) -> None:
         """Abort a running throw (neutral valves, result to the outbox) before the node exits."""
         with self.lock:
@@ -388,10 +345,6 @@ class RuntimeService:
                 return_progress=self._return_progress() if self.recovery is not None else None,
                 return_result=self.recovery.status.result if self.recovery is not None else None,
             )
-
-    def _return_progress(self) -> float:
-        """The recovery's progress in 5 % steps (RuntimeInfo is published on every change)."""
-        return round(20 * self.recovery.status.progress) / 20
 
     def handle_info(self) -> bytes:
         """-> RuntimeInfo (the queryable keys.info)."""

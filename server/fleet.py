@@ -12,7 +12,9 @@ Commands (ThrowRequest, AbortRequest, EstopReset, PolicyOffer) are signed with t
 command key (:class:`server.command_signer.CommandSigner`) for the requesting user and the epoch
 of the runtime's claim (from its RuntimeInfo, which the runtime also publishes on
 ``keys.ALL_RUNTIME_STATES``; the cache follows it). Aborts (E-STOP) run on their own threads
-(:meth:`Fleet.abort_async`) so they never queue behind other queries or database work.
+(:meth:`Fleet.abort_async`) so they never queue behind other queries or database work. The
+queries and commands live in :mod:`server.fleet_commands` (re-exported here: ``Fleet`` has them,
+``RuntimeUnavailable`` is importable from this module as before).
 
 Threads: Zenoh calls the callbacks on its own threads; everything that touches the database is
 handed to one worker thread (:class:`server.results.ResultStore` runs there) so writes are
@@ -36,25 +38,16 @@ from pydantic import ValidationError
 
 from runtime.protocol import keys
 from runtime.protocol.messages import (
-    AbortAck,
-    AbortRequest,
-    EstopReset,
-    EstopResetAck,
-    ReturnToReady,
-    ReturnToReadyAck,
     MachineState,
-    PolicyOffer,
-    PolicyOfferAck,
     ResultAck,
     RuntimeInfo,
-    ThrowAck,
-    ThrowRequest,
     ThrowResult,
     ThrowStatus,
     decode,
     encode,
 )
 from server.command_signer import CommandSigner
+from server.fleet_commands import FleetCommands, RuntimeUnavailable
 from server.results import ResultStore, UnknownThrow
 
 log = logging.getLogger(__name__)
@@ -66,12 +59,11 @@ STAGE_THREADS = 8
 """Threads that write and fsync the results' telemetry files before the DB thread commits them
 (file I/O overlaps the database's; the GIL is released while writing)."""
 
-class RuntimeUnavailable(RuntimeError):
-    """The runtime did not answer (offline, or no reply within the timeout)."""
 
-
-class Fleet:
-    """Zenoh side of the server. Call :meth:`start` once, :meth:`stop` at shutdown.
+class Fleet(FleetCommands):
+    """Zenoh side of the server. Call :meth:`start` once, :meth:`stop` at shutdown. The queries
+    and signed commands to runtimes (:meth:`query_info`, :meth:`request_throw`, :meth:`abort`, ...)
+    come from :class:`server.fleet_commands.FleetCommands`.
 
     Args:
         session: an open Zenoh session (the caller closes it).
@@ -200,145 +192,6 @@ class Fleet:
 
         self._jobs.put(run)
         return done
-
-    # --- queries -------------------------------------------------------------------------------
-    def query_info(self, machine_id: str, timeout_s: float | None = None) -> RuntimeInfo:
-        """Ask the runtime for its RuntimeInfo (and cache it).
-
-        Raises:
-            RuntimeUnavailable: no valid reply within the timeout.
-        """
-        info = decode(RuntimeInfo, self._query_one(keys.info(machine_id), None, timeout_s))
-        with self._lock:
-            self._infos[machine_id] = (time.monotonic(), info)
-        return info
-
-    def epoch_of(self, machine_id: str, fresh: bool = False) -> int:
-        """The claim epoch of the machine's runtime (RuntimeInfo.epoch): cached, or asked when
-        ``fresh`` or unknown.
-
-        Raises:
-            RuntimeUnavailable: the runtime is offline or does not answer.
-        """
-        info = None if fresh else self.cached_info(machine_id)
-        if info is None:
-            if not self.is_online(machine_id):
-                raise RuntimeUnavailable(f"the runtime of {machine_id} is offline")
-            info = self.query_info(machine_id)
-        return info.epoch
-
-    def _signed_query(self, key_of, msg, machine_id: str, user: str, ack_type, timeout_s: float | None = None):
-        """Sign ``msg`` for the runtime's current epoch, query ``key_of(machine_id)``, decode the
-        ack; once more with a fresh epoch when the runtime says the epoch is wrong (it restarted).
-
-        Raises:
-            RuntimeUnavailable: offline, no reply, an error reply or a malformed ack.
-            ValueError: a malformed command key file.
-        """
-        for attempt in (0, 1):
-            epoch = self.epoch_of(machine_id, fresh=attempt > 0)
-            signed = self.signer.sign(msg, machine_id, user, epoch)
-            payload = self._query_one(key_of(machine_id), encode(signed), timeout_s)
-            try:
-                ack = decode(ack_type, payload)
-            except ValidationError as e:
-                raise RuntimeUnavailable(f"malformed {ack_type.__name__} from {machine_id}: {e}") from e
-            if attempt == 0 and "wrong epoch" in (getattr(ack, "reason", None) or ""):
-                log.info("%s: %s; asking its epoch again", machine_id, ack.reason)
-                self.forget_info(machine_id)
-                continue
-            return ack, epoch
-        return ack, epoch
-
-    def request_throw(self, request: ThrowRequest, user: str = "system") -> tuple[ThrowAck, int]:
-        """Sign a ThrowRequest for ``user``, send it and wait for the runtime's ThrowAck.
-
-        Returns:
-            (ack, epoch of the runtime it was addressed to).
-
-        Raises:
-            RuntimeUnavailable: offline, no reply within the timeout, an error reply or a malformed ack.
-            ValueError: a malformed command key file.
-        """
-        return self._signed_query(keys.throw, request, request.machine_id, user, ThrowAck)
-
-    def estop_reset(self, machine_id: str, user: str) -> EstopResetAck:
-        """Ask the runtime to release its latched E-STOP (signed for ``user``).
-
-        Raises:
-            RuntimeUnavailable, ValueError: as :meth:`request_throw`.
-        """
-        return self._state_command(keys.estop_reset, EstopReset(machine_id=machine_id), user, EstopResetAck)
-
-    def return_to_ready(self, machine_id: str, user: str) -> ReturnToReadyAck:
-        """Ask the runtime to drive its arm back to the ready pose (signed for ``user``).
-
-        Raises:
-            RuntimeUnavailable, ValueError: as :meth:`request_throw`.
-        """
-        return self._state_command(keys.return_to_ready, ReturnToReady(machine_id=machine_id), user, ReturnToReadyAck)
-
-    def _state_command(self, key_of, command, user: str, ack_type):
-        """Send a signed command that changes the runtime's state (``key_of(machine_id)`` the
-        query key, ``command`` its message with ``machine_id``) and drop the cached RuntimeInfo,
-        so the next read asks the runtime. Returns the decoded ``ack_type``.
-
-        Raises:
-            RuntimeUnavailable, ValueError: as :meth:`request_throw`.
-        """
-        ack, _ = self._signed_query(key_of, command, command.machine_id, user, ack_type)
-        self.forget_info(command.machine_id)
-        return ack
-
-    def offer_policy(self, offer: PolicyOffer, user: str) -> PolicyOfferAck:
-        """Offer a policy version to the runtime (signed for ``user``); returns its ack.
-
-        Raises:
-            RuntimeUnavailable, ValueError: as :meth:`request_throw`.
-        """
-        ack, _ = self._signed_query(keys.policy_offer, offer, offer.machine_id, user, PolicyOfferAck)
-        return ack
-
-    def abort(self, machine_id: str, reason: str = "operator abort", user: str = "system",
-              timeout_s: float | None = None) -> AbortAck:
-        """Ask the runtime to stop now (valves neutral; the runtime latches E-STOP); returns its
-        AbortAck. Signed when the server has the key and knows the epoch (from the cache only:
-        no query before the stop), else sent unsigned (the runtime honours unsigned stops).
-
-        Raises:
-            RuntimeUnavailable: no valid reply within the timeout.
-            ValueError: a malformed machine id.
-        """
-        request = AbortRequest(machine_id=machine_id, reason=reason[:200])
-        info = self.cached_info(machine_id)
-        if info is not None:
-            try:
-                request = self.signer.sign(request, machine_id, user, info.epoch)
-            except ValueError as e:
-                log.warning("abort of %s sent unsigned: %s", machine_id, e)
-        payload = self._query_one(keys.abort(machine_id), encode(request), timeout_s)
-        try:
-            return decode(AbortAck, payload)
-        except ValidationError as e:
-            raise RuntimeUnavailable(f"malformed AbortAck from {machine_id}: {e}") from e
-
-    def abort_async(self, machine_id: str, reason: str, user: str, timeout_s: float | None = None) -> Future:
-        """:meth:`abort` on the dedicated E-STOP threads; returns its Future (AbortAck)."""
-        return self._estop.submit(self.abort, machine_id, reason, user, timeout_s)
-
-    def _query_one(self, key: str, payload: bytes | None, timeout_s: float | None = None) -> bytes:
-        timeout_s = timeout_s or self.query_timeout_s
-        kwargs = {"timeout": timeout_s}
-        if payload is not None:
-            kwargs["payload"] = payload
-        errors = []
-        for reply in self.session.get(key, **kwargs):
-            if reply.ok is not None:
-                return reply.ok.payload.to_bytes()
-            errors.append(reply.err.payload.to_string() if reply.err is not None else "?")
-        if errors:
-            raise RuntimeUnavailable(f"{key}: error reply: {'; '.join(errors)}")
-        raise RuntimeUnavailable(f"no reply on {key} within {timeout_s:.1f} s")
 
     # --- callbacks (Zenoh threads) -------------------------------------------------------------
     def _on_alive(self, sample: zenoh.Sample) -> None:

@@ -1,0 +1,78 @@
+"""Return to the ready pose, the runtime's recovery command (split out of :mod:`runtime.service`).
+
+:class:`RecoveryHandling` is the recovery half of :class:`runtime.service.RuntimeService`: a
+signed ReturnToReady starts a :class:`runtime.recovery.ReturnToReady` (the arm driven back to the
+ready pose with the throw controller's gains); it is refused while E-STOP is latched, a throw
+runs, the machine is offline or faulted. While it runs each MachineState ticks it instead of the
+executor; it is stopped with a reason (abort, machine fault, silent link, shutdown) and reports
+its progress in 5 % steps for RuntimeInfo.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from runtime.outcome import TickOutput
+from runtime.recovery import ReturnToReady as Recovery
+from runtime.protocol.messages import MachineState, ReturnToReady, ReturnToReadyAck, encode
+
+log = logging.getLogger("runtime.service")  # the logger of runtime.service, as before the split
+
+
+class RecoveryHandling:
+    """The return to the ready pose; a base of :class:`runtime.service.RuntimeService`, which
+    provides what these methods use: ``machine_id``, ``executor``, ``lock``, ``latest_state``,
+    ``link_timeout_s`` (s), ``estop_reason``, ``recovery`` (the current or last
+    :class:`runtime.recovery.ReturnToReady`), ``_recovery_ctrl``, ``_gripper_sent``,
+    :meth:`~runtime.service.RuntimeService.authorize`, ``_addressed``, ``_who``, ``_online``
+    and :meth:`~runtime.service.RuntimeService.publish_info`.
+    """
+
+
+    @property
+    def returning(self) -> bool:
+        """A return to the ready pose is running."""
+        return self.recovery is not None and self.recovery.status.active
+
+    def handle_return_to_ready(self, payload: bytes) -> bytes:
+        """ReturnToReady (signed) -> ReturnToReadyAck; starts driving the arm to the ready pose."""
+        req, refused = self._addressed(payload, ReturnToReady, lambda why: encode(
+            ReturnToReadyAck(machine_id=self.machine_id, accepted=False, reason=why)))
+        if refused is not None:
+            return refused
+        reason = self.authorize(req)
+        with self.lock:
+            state = self.latest_state if self._online(self.link_timeout_s) else None
+            if reason is None:
+                reason = self._return_refusal(state)
+            if reason is None and not self.returning:
+                self.recovery = Recovery(state.q, state.stamp_s, self._recovery_ctrl)
+                self.publish_info()
+        log.log(logging.WARNING if reason else logging.INFO, "return to the ready pose %s for %s%s",
+                "refused" if reason else "started", self._who(req), f": {reason}" if reason else "")
+        return encode(ReturnToReadyAck(machine_id=self.machine_id, accepted=reason is None, reason=reason))
+
+    def _return_refusal(self, state: MachineState | None) -> str | None:
+        if self.estop_reason is not None:
+            return f"E-STOP latched: {self.estop_reason}"
+        if self.executor.busy:
+            return f"a throw runs: {self.executor.throw_id}"
+        if state is None:
+            return "machine offline (no recent state)"
+        if state.machine_fault:
+            return f"machine fault: {state.machine_fault}"
+        return None
+
+    def _tick_return(self, state: MachineState) -> TickOutput:
+        ctrl = self.recovery.tick(state.q, state.qd, state.stamp_s)
+        if not self.recovery.status.active:
+            log.info("return to the ready pose: %s", self.recovery.status.result)
+        return TickOutput(ctrl.valve_u.copy(), ctrl.qd_ref.copy(), bool(self._gripper_sent), (), None)
+
+    def _stop_return(self, why: str) -> None:
+        self.recovery.stop(why)
+        log.warning("return to the ready pose stopped: %s", why)
+
+    def _return_progress(self) -> float:
+        """The recovery's progress in 5 % steps (RuntimeInfo is published on every change)."""
+        return round(20 * self.recovery.status.progress) / 20
