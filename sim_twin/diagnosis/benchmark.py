@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sim_twin import default_policy
 from sim_twin.diagnosis import dataset as ds
 from sim_twin.diagnosis.reallog import RealLogSpec
 
@@ -38,7 +39,7 @@ log = logging.getLogger(__name__)
 
 FORMAT = "slinger-diagnosis-benchmark/2"
 TOLERANCE = 0.2
-POLICIES = {"2d": Path("policies/throw2d.onnx"), "3d": Path("policies/throw3d.onnx")}
+POLICIES = {"2d": default_policy("2d"), "3d": default_policy("3d")}
 # (effect, parameter, range, random sign)
 SINGLES = [
     ("release_delay", "mean_s", (0.36, 0.6), False),

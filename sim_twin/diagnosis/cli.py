@@ -26,6 +26,7 @@ import sys
 from pathlib import Path
 
 from runtime.entrypoint import module_main
+from sim_twin import default_policy
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +107,7 @@ def _generate(args) -> int:
     if args.out is None:
         raise ValueError("generate needs --out DIR")
     prof = RealityProfile.load(args.profile).to_dict() if args.profile else {"name": "nominal"}
-    policy = args.policy or Path("policies") / f"throw{args.mode}.onnx"
+    policy = args.policy or default_policy(args.mode)
     path = dataset.generate(args.out, prof, args.throws, policy, seed=args.seed, mode=args.mode, workers=args.workers or _cores(),
                             real_log=RealLogSpec() if args.real_log else None)
     log.info("dataset written: %s", path)
