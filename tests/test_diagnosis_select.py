@@ -240,3 +240,19 @@ def test_local_fit_never_predicts_a_negative_chi_square():
     g = np.linspace(0, 1, 5)[:, None]  # a parabola: its vertex, between the grid points, as before
     x1, w1 = sel.local_fit(g, 100.0 * (g[:, 0] - 0.4) ** 2)
     assert abs(x1[0] - 0.4) < 1e-9 and abs(w1 @ (100.0 * (g[:, 0] - 0.4) ** 2)) < 1e-9
+
+
+def test_scatter_sigma_covers_per_throw_start_errors():
+    """Per-throw minima scattered well beyond each throw's chi-square curvature (a noisy replay
+    start state, select.scatter_sigma): the between-throw sigma is the scatter's error of the
+    mean, not the profile's (9e-5 here); consistent throws give the profile's error of the mean.
+    The grid is refined into a one-sided cluster right of the optimum, as in seed-1 case 9."""
+    rng = np.random.default_rng(3)
+    X = np.sort(np.concatenate([np.linspace(0, 1, 7), [0.63, 0.6302, 0.6305, 0.61]]))[:, None]
+    a = 4e6  # per-throw curvature: profile sigma of one throw 5e-4, of the mean 5e-4 / sqrt(N)
+    for spread, want in ((0.01, 0.01 / np.sqrt(N)), (0.0, 1 / np.sqrt(a * N))):
+        m = 0.62 + spread * rng.standard_normal(N)
+        Tn = a * (X - m[None]) ** 2
+        got = sel.scatter_sigma(X, Tn)
+        assert 0.6 * want <= got <= 1.5 * want + 1e-9, (spread, got, want)
+    assert sel.scatter_sigma(np.zeros((5, 2)), np.zeros((5, N))) == 0.0

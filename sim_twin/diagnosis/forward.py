@@ -129,6 +129,21 @@ def _profile_sigmas(sw: sel.Sweep, S_fit: np.ndarray, D: np.ndarray, fitted: lis
     return {n: out.get(n, np.inf) for n in fitted}
 
 
+def _scatter_sigmas(sw: sel.Sweep, fitted: list[str], span: dict[str, float]) -> dict[str, float]:
+    """Between-throw 1 sigma (physical units) of each fitted parameter of a 1-D sweep
+    (:func:`select.scatter_sigma`; per-joint effects: each joint's own channels). 0 for sweeps of
+    more than one parameter (not estimated there)."""
+    out = {n: 0.0 for n in fitted}
+    if sw.joints is None:
+        if len(sw.names) == 1 and sw.names[0] in fitted:
+            out[sw.names[0]] = sel.scatter_sigma(sw.X, sw.S.sum(axis=(2, 3))) * span[sw.names[0]]
+    else:
+        for name, ch in sw.joints:
+            if name in fitted:
+                out[name] = sel.scatter_sigma(sw.X, sw.S[:, :, ch].sum(axis=(2, 3))) * span[name]
+    return out
+
+
 def evaluate_candidate(ev: sel.Evaluator, sw: sel.Sweep, D: np.ndarray, train: np.ndarray, W: np.ndarray) -> tuple[Candidate, np.ndarray, np.ndarray]:
     """Fits, flags, the bootstrap out-of-bag losses (B,) and S (N, C, P) at the all-throw fit of one sweep."""
     t0 = time.time()
@@ -157,7 +172,8 @@ def evaluate_candidate(ev: sel.Evaluator, sw: sel.Sweep, D: np.ndarray, train: n
     boot = {n: float(spread[i]) for i, n in enumerate(fitted)}
     prof = _profile_sigmas(sw, S_all, D, fitted, span)
     grid = {n: sw.resolution * span[n] / np.sqrt(12.0) for n in fitted}  # only when nothing else bounds it
-    sigma = {n: max(boot[n], prof[n] if np.isfinite(prof[n]) else 0.0) or float(grid[n]) for n in fitted}
+    scat = _scatter_sigmas(sw, fitted, span)
+    sigma = {n: max(boot[n], prof[n] if np.isfinite(prof[n]) else 0.0, scat[n]) or float(grid[n]) for n in fitted}
     k = len(fitted)
     oob += sel.PENALTY_PER_PARAM * k * (W == 0).mean(axis=1)
     # flags
@@ -175,7 +191,7 @@ def evaluate_candidate(ev: sel.Evaluator, sw: sel.Sweep, D: np.ndarray, train: n
     test = ~train
     cand = Candidate(
         effect=sw.cls.spec(), params=params, params_train=params_train, sigma=sigma, k=k, at_bound=at_bound, worse=worse, not_identifiable=not_ident,
-        sigma_parts={"bootstrap": boot, "profile": {n: (v if np.isfinite(v) else None) for n, v in prof.items()}},
+        sigma_parts={"bootstrap": boot, "profile": {n: (v if np.isfinite(v) else None) for n, v in prof.items()}, "scatter": scat},
         chi2_before=float(ev.S_base.sum()), chi2_after=float(S_all.sum()),
         test_excess_before=float(ev.S_base[test].sum() - D[test].sum()), test_excess_after=float(S_train[test].sum() - D[test].sum()),
         joint_gain=dict(sw.joint_gain), wall_s=time.time() - t0)
