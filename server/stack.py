@@ -15,12 +15,12 @@ import sys
 from pathlib import Path
 
 from server.supervise import Child, Children  # noqa: F401 (the stack's process supervision)
+from sim_twin import default_policy
 
 log = logging.getLogger(__name__)
 
-REPO_DIR = Path(__file__).resolve().parent.parent
-DEFAULT_POLICY_2D = REPO_DIR / "policies" / "throw2d.onnx"
-DEFAULT_POLICY_3D = REPO_DIR / "policies" / "throw3d.onnx"
+DEFAULT_POLICY_2D = default_policy("2d")
+DEFAULT_POLICY_3D = default_policy("3d")
 
 
 def slinger_command(*args: str) -> list[str]:

@@ -116,17 +116,18 @@ def _profile_sigmas(sw: sel.Sweep, S_fit: np.ndarray, D: np.ndarray, fitted: lis
     explain widens the interval instead of being ignored)."""
     has_dof = D.sum(axis=(0, 2)) > 0
     birge = float(np.sqrt(max(1.0, S_fit[:, has_dof].sum() / D.sum())))
-    out = {}
     if sw.joints is None:
         ps = sel.profile_sigma(sw.X, sw.S.sum(axis=(1, 2, 3)))
-        for i, n in enumerate(sw.names):
-            if n in fitted:
-                out[n] = float(ps[i] * span[n] * birge)
+        out = {n: float(ps[i] * span[n] * birge) for i, n in enumerate(sw.names) if n in fitted}
     else:
-        for name, ch in sw.joints:
-            if name in fitted:
-                out[name] = float(sel.profile_sigma(sw.X, sw.S[:, :, ch].sum(axis=(1, 2, 3)))[0] * span[name] * birge)
+        out = {n: float(v * birge) for n, v in _per_joint(sw, fitted, span, lambda S: sel.profile_sigma(sw.X, S.sum(axis=(1, 2, 3)))[0]).items()}
     return {n: out.get(n, np.inf) for n in fitted}
+
+
+def _per_joint(sw: sel.Sweep, fitted: list[str], span: dict[str, float], sigma_of) -> dict[str, float]:
+    """Per-joint sweeps: ``sigma_of(S_joint)`` (normalised units) of each fitted joint from its
+    own channels, S_joint = sw.S[:, :, channels] (G, N, c, P), times the joint's prior span."""
+    return {name: float(sigma_of(sw.S[:, :, ch]) * span[name]) for name, ch in sw.joints if name in fitted}
 
 
 def _scatter_sigmas(sw: sel.Sweep, fitted: list[str], span: dict[str, float]) -> dict[str, float]:
@@ -135,12 +136,10 @@ def _scatter_sigmas(sw: sel.Sweep, fitted: list[str], span: dict[str, float]) ->
     more than one parameter (not estimated there)."""
     out = {n: 0.0 for n in fitted}
     if sw.joints is None:
-        if len(sw.names) == 1 and sw.names[0] in fitted:
+        if sw.names[0] in fitted:  # scatter_sigma is 0 for a grid of more than one parameter
             out[sw.names[0]] = sel.scatter_sigma(sw.X, sw.S.sum(axis=(2, 3))) * span[sw.names[0]]
     else:
-        for name, ch in sw.joints:
-            if name in fitted:
-                out[name] = sel.scatter_sigma(sw.X, sw.S[:, :, ch].sum(axis=(2, 3))) * span[name]
+        out.update(_per_joint(sw, fitted, span, lambda S: sel.scatter_sigma(sw.X, S.sum(axis=(2, 3)))))
     return out
 
 

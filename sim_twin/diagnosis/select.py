@@ -330,11 +330,11 @@ class Evaluator:
         sweeps = []
         for name in cls.joint_param_names():
             p = next(q for q in cls.params if q.name == name)
+            x_nom = (p.nominal - p.lo) / (p.hi - p.lo)
             sw = Sweep(cls, [name], np.array([p.lo]), np.array([p.hi]), np.zeros((0, 1)), np.zeros((0,) + self.S_base.shape))
-            self._add(sw, _grid(1, np.array([(p.nominal - p.lo) / (p.hi - p.lo)])))
+            self._add(sw, _grid(1, np.array([x_nom])))
             T = np.einsum("n,gn->g", w, sw.S.sum(axis=(2, 3)))
             _, g = local_fit(sw.X, T)
-            x_nom = (p.nominal - p.lo) / (p.hi - p.lo)
             T_nom = T[int(np.argmin(np.abs(sw.X[:, 0] - x_nom)))]
             sweeps.append((float(T_nom - g @ T), sw))
         gains = {sw.names[0]: gain for gain, sw in sweeps}

@@ -25,8 +25,11 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+from sim_twin import default_policy  # noqa: E402
+
 log = logging.getLogger("adaptation_report")
-POLICIES = {"2d": REPO / "policies" / "throw2d.onnx", "3d": REPO / "policies" / "throw3d.onnx"}
+POLICIES = {"2d": default_policy("2d"), "3d": default_policy("3d")}
 TARGETS = {"2d": "7.5:10:0.5", "3d": "7:9.5:0.5"}
 BAR_M = {"2d": 0.10, "3d": 0.20}
 
