@@ -10,9 +10,15 @@ layer (ARCHITECTURE.md: "safety clipping lives in runtime's controller, never in
   the limit is never restricted). The distance is taken from where the joint will be once the
   valves have answered (predictive limit handling): hydraulic valves keep a joint moving for
   their transport delay plus about one lag time constant after the command changes, so the
-  ramp uses q + qd * ``stop_horizon_s`` when the joint moves towards the limit. With the nominal
-  valves (0.10 s delay, 0.16 s lag) and up to slow ones (0.2 s, 0.25 s) the joints stop before
-  their ends (tests/test_controller.py);
+  ramp uses q + v * ``stop_horizon_s`` when the joint moves towards the limit, where v is the
+  larger (towards that limit) of the measured velocity and the velocity the controller has
+  recently COMMANDED (valve command x full speed, held as a peak that decays with
+  ``command_hold_s``): with a long transport delay a joint can still stand or even move away
+  while the valves already carry a full command towards the end, and judged from its measured
+  velocity alone it then accelerates into the end (3D throws with a 0.2 s valve delay: 7 % of
+  them ended on the telescope's end stop before this term). With the nominal valves (0.10 s
+  delay, 0.16 s lag) and up to slow ones (0.2 s, 0.3 s) the joints stop before their ends
+  (tests/test_controller.py);
 * any non-finite input gives neutral valves (all zeros) and clears the controller's state.
 
 Per active joint i (ACTIVE_JOINTS order: cabin_turn, boom, dipper, telescope), with
@@ -75,6 +81,10 @@ class ControllerGains:
         stop_horizon_s: how far ahead (s) the joint's motion is extrapolated for the limit ramp:
             the valves' transport delay plus lag time constant (nominal simulated machine 0.26 s;
             0.45 s CHOSEN to also cover slow valves up to 0.2 s + 0.25 s).
+        command_hold_s: decay time constant (s) of the commanded-velocity peak the limit ramp
+            also extrapolates with (see :func:`commanded_peaks`); CHOSEN 0.25 s, about the
+            longest valve transport delay the runtime is expected to meet (HEAP-like 0.2 s) plus
+            margin. 0 disables the term.
     """
 
     kp: np.ndarray = field(default_factory=lambda: _per_joint(0.6))
@@ -86,6 +96,7 @@ class ControllerGains:
     limit_margin: np.ndarray = field(default_factory=lambda: _per_joint(0.03))
     limit_ramp: np.ndarray = field(default_factory=lambda: _per_joint(0.15))
     stop_horizon_s: np.ndarray = field(default_factory=lambda: _per_joint(0.45))
+    command_hold_s: np.ndarray = field(default_factory=lambda: _per_joint(0.25))
 
     def __post_init__(self) -> None:
         for name in self.__dataclass_fields__:
@@ -112,7 +123,7 @@ class ControlOutput:
     neutral: bool = False
 
 
-def limit_ramp_scale(q_active, qd_ref, gains: ControllerGains, xp: ModuleType = np, qd_active=None) -> np.ndarray:
+def limit_ramp_scale(q_active, qd_ref, gains: ControllerGains, xp: ModuleType = np, qd_active=None, peaks=None) -> np.ndarray:
     """(4,) factors in [0, 1] scaling each reference that points towards a nearby joint limit.
 
     Args:
@@ -123,6 +134,9 @@ def limit_ramp_scale(q_active, qd_ref, gains: ControllerGains, xp: ModuleType = 
         qd_active: (4,) measured joint velocities; when given, a joint moving towards a limit is
             judged from where it will be ``stop_horizon_s`` later (never from further back than
             where it is now).
+        peaks: (2, 4) recently commanded velocities, [towards upper (>= 0), towards lower
+            (<= 0)] (:func:`commanded_peaks`); when given, the extrapolation towards each limit
+            uses the larger of the measured and the commanded velocity.
 
     Unlimited joints (cabin_turn) always get 1.
     """
@@ -130,14 +144,34 @@ def limit_ramp_scale(q_active, qd_ref, gains: ControllerGains, xp: ModuleType = 
     if qd_active is None:
         q_up = q_lo = q_active
     else:
-        ahead = q_active + qd_active * gains.stop_horizon_s
-        q_up, q_lo = xp.maximum(q_active, ahead), xp.minimum(q_active, ahead)
+        v_up, v_lo = qd_active, qd_active
+        if peaks is not None:
+            v_up, v_lo = xp.maximum(qd_active, peaks[0]), xp.minimum(qd_active, peaks[1])
+        q_up = xp.maximum(q_active, q_active + v_up * gains.stop_horizon_s)
+        q_lo = xp.minimum(q_active, q_active + v_lo * gains.stop_horizon_s)
     dist = xp.where(qd_ref > 0, upper - q_up, xp.where(qd_ref < 0, q_lo - lower, xp.inf))
     scale = xp.clip((dist - gains.limit_margin) / xp.maximum(gains.limit_ramp, 1e-9), 0.0, 1.0)
     return xp.where(xp.isfinite(dist), scale, 1.0)
 
 
-def pid_ff_law(xp: ModuleType, gains: ControllerGains, vmax, dt_s: float, r, q_a, qd_a, integral, prev_err):
+def commanded_peaks(xp: ModuleType, gains: ControllerGains, vmax, dt_s: float, peaks, u):
+    """Update the (2, 4) commanded-velocity peaks with this step's valve command.
+
+    The velocity a valve command asks for is ``u * vmax`` (an upper bound: the dead band only
+    lowers it). Each peak decays as exp(-dt / command_hold_s) and is raised to the new command
+    in its direction: row 0 holds the largest recent velocity towards the upper limits (>= 0),
+    row 1 the most negative towards the lower ones (<= 0). A command sent now reaches the joint
+    only after the valve's transport delay and lag; the peak carries it over that time.
+    """
+    hold = gains.command_hold_s
+    decay = xp.where(hold > 0, xp.exp(-dt_s / xp.maximum(hold, 1e-9)), 0.0)
+    v = u * vmax
+    up = xp.where(hold > 0, xp.maximum(peaks[0] * decay, v), 0.0)
+    lo = xp.where(hold > 0, xp.minimum(peaks[1] * decay, v), 0.0)
+    return xp.stack([xp.maximum(up, 0.0), xp.minimum(lo, 0.0)])
+
+
+def pid_ff_law(xp: ModuleType, gains: ControllerGains, vmax, dt_s: float, r, q_a, qd_a, integral, prev_err, peaks=None):
     """The controller's arithmetic for one step, shared with the MJX training environment.
 
     Args:
@@ -148,14 +182,17 @@ def pid_ff_law(xp: ModuleType, gains: ControllerGains, vmax, dt_s: float, r, q_a
         r: (4,) references; q_a, qd_a: (4,) active joint positions and velocities.
         integral: (4,) integrator state (its contribution to u); prev_err: (4,) previous
             normalised error (pass the current error on the first step).
+        peaks: (2, 4) commanded-velocity peaks (:func:`commanded_peaks`; zeros at the start),
+            or None to judge the limits from the measured velocity alone.
 
     Returns:
         (u (4,) valve commands in [-1, 1], r (4,) reference after clipping and limit ramps,
-        integral (4,) new integrator state, err (4,) normalised error).
+        integral (4,) new integrator state, err (4,) normalised error, peaks (2, 4) updated
+        with u (None if None was given)).
     """
     g = gains
     r = xp.clip(r, -vmax, vmax)
-    r = r * limit_ramp_scale(q_a, r, g, xp, qd_active=qd_a)
+    r = r * limit_ramp_scale(q_a, r, g, xp, qd_active=qd_a, peaks=peaks)
     r_n = r / vmax
     active = xp.abs(r_n) > _NEGLIGIBLE_REF
     u_ff = xp.where(active, r_n * (1.0 - g.dead_band_comp) + xp.sign(r_n) * g.dead_band_comp, 0.0)
@@ -168,7 +205,9 @@ def pid_ff_law(xp: ModuleType, gains: ControllerGains, vmax, dt_s: float, r, q_a
     integral = xp.where(hold, integral, integral + g.ki * err * dt_s)
     integral = xp.clip(integral, -g.integral_limit, g.integral_limit)
     u = xp.clip(u_ff + g.kp * err + integral + g.kd * d_err, -1.0, 1.0)
-    return u, r, integral, err
+    if peaks is not None:
+        peaks = commanded_peaks(xp, g, vmax, dt_s, peaks, u)
+    return u, r, integral, err, peaks
 
 
 class JointVelocityController:
@@ -199,6 +238,7 @@ class JointVelocityController:
         """Clear the integrator and derivative memory (call at the start of every throw)."""
         self._integral = np.zeros(NUM_ACTIVE)
         self._prev_err: np.ndarray | None = None
+        self._peaks = np.zeros((2, NUM_ACTIVE))
 
     def neutral(self) -> ControlOutput:
         """Neutral valves, state cleared; returns (and records as sent) the neutral output."""
@@ -231,8 +271,8 @@ class JointVelocityController:
 
         with np.errstate(invalid="ignore"):
             prev = self._prev_err if self._prev_err is not None else (r - qd_a) / self.velocity_limits
-            u, r, self._integral, self._prev_err = pid_ff_law(
-                np, self.gains, self.velocity_limits, self.dt_s, r, q_a, qd_a, self._integral, prev
+            u, r, self._integral, self._prev_err, self._peaks = pid_ff_law(
+                np, self.gains, self.velocity_limits, self.dt_s, r, q_a, qd_a, self._integral, prev, self._peaks
             )
         self.last = ControlOutput(u, r, False)
         return self.last

@@ -225,6 +225,7 @@ class ThrowEnvCore:
             key=kh[0],
             integral=jnp.zeros(4),
             prev_err=jnp.zeros(4),
+            peaks=jnp.zeros((2, 4)),
             valve_buf=jnp.zeros((MAX_VALVE_DELAY_STEPS + 1, 4)),
             valve_delay=jnp.clip(valve_delay, 0, MAX_VALVE_DELAY_STEPS).astype(jnp.int32),
             dead_band=jax.random.uniform(kh[2], (4,), minval=db[0], maxval=db[1]),
@@ -243,15 +244,15 @@ class ThrowEnvCore:
             lag_v = jnp.clip(lag_step(s["lag_v"], target_v, s["tau"], dt), -self.vmax, self.vmax)
             return EnvState(s, lag_v=lag_v), lag_v
         data = s["data"]
-        u, _, integral, err = pid_ff_law(
-            jnp, self.gains, self.vmax, dt, target_v, data.qpos[:4], data.qvel[:4], s["integral"], s["prev_err"]
+        u, _, integral, err, peaks = pid_ff_law(
+            jnp, self.gains, self.vmax, dt, target_v, data.qpos[:4], data.qvel[:4], s["integral"], s["prev_err"], s["peaks"]
         )
         buf = jnp.concatenate([dead_band_flow(jnp, u, s["dead_band"])[None], s["valve_buf"][:-1]])
         delayed = buf[s["valve_delay"], jnp.arange(4)]
         lag_v = lag_step(s["lag_v"], delayed, s["tau"], dt)
         vmax = self.vmax * s["vscale"]
         setpoint = jnp.clip(lag_v * vmax, -vmax, vmax)
-        return EnvState(s, lag_v=lag_v, integral=integral, prev_err=err, valve_buf=buf), setpoint
+        return EnvState(s, lag_v=lag_v, integral=integral, prev_err=err, peaks=peaks, valve_buf=buf), setpoint
 
     def _substep(self, s: EnvState, target_v) -> EnvState:
         dt = PHYSICS_PERIOD_S
