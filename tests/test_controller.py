@@ -205,3 +205,19 @@ def test_starting_near_an_end_with_delayed_valves_stops_short_of_it(profile, joi
     q, _, _ = _closed_loop(lambda t: ref, 4.0, q_active=start, profile=profile)
     gap = sign * (end - q[:, joint])
     assert gap.min() > 1e-3, f"{gap.min():.4f}"
+
+
+def test_robust_3d_throws_with_a_slow_valve_delay_stay_off_the_end_stops(tmp_path):
+    """The deployed 3D policy on a simulated machine whose valves answer 0.2 s late (twice the
+    nominal delay; HEAP-like): seeds 400005 and 400014 of the site matrix's 9 m draw ran the
+    telescope into its end (failed: joint limit) while the ramp judged from the measured
+    velocity alone; with the commanded speed counted they are released and land."""
+    import json
+
+    from sim_twin.evaluate import _throw_batch
+
+    prof = tmp_path / "delay.json"
+    prof.write_text(json.dumps({"name": "delay_0.2s", "effects": [{"effect": "valve_delay", "params": {"delay_s": 0.20}}]}))
+    policy = Path(__file__).resolve().parents[1] / "policies" / "throw3d.onnx"
+    rows = _throw_batch(str(policy), "3d", 9.0, [400005, 400014], str(prof))
+    assert [r["status"] for r in rows] == ["landed", "landed"], rows
