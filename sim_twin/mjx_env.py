@@ -22,7 +22,8 @@ old (whole 10 ms steps, active joints / passive joints) plus white noise of the 
 ``obs_noise`` (q_active, qd_active, q_passive, qd_passive); rewards and terminations use the true
 state. Per episode the gripper's mass and inertia are scaled by ``gripper_mass_scale``
 (sim_twin.effects.machine.HangingMass does the same on the CPU twin); the valve parameters are
-drawn per joint.
+drawn per joint. ``privileged(state)`` gives the critic those per-episode parameters and the true
+passive joint state (asymmetric actor-critic; layout in sim_twin.privileged).
 
 Payload (paper Sec. III-B): held at the gripper centre; the release command opens the gripper
 after the release delay (sampled per episode around the identified 258 ms); the payload then
@@ -63,6 +64,7 @@ from sim_twin.hydraulics import cylinder_step, dead_band_flow, lag_step
 from sim_twin.initial_pose import pose_from_uniform, pose_is_valid
 from sim_twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
 from sim_twin.physics import ballistic_impact_time, ballistic_position, passive_friction_force
+from sim_twin.privileged import GAIN_ERROR_DEFAULT, RELEASE_DELAY_DEFAULTS, configured_range, privileged_observation
 
 MAX_VALVE_DELAY_STEPS = 30  # longest valve transport delay the training env can model (0.30 s)
 MAX_SENSOR_LAG_STEPS = 5  # longest sensor latency the training env can model (0.05 s)
@@ -166,17 +168,19 @@ class ThrowEnvCore:
         q = self._sample_pose(ks[0])
         target = self._sample_target(ks[1], q[0])
         rd = self.rand
-        delay_s = rd.get("release_delay_mean_s", 0.258) + rd.get("release_delay_std_s", 0.015) * jax.random.normal(ks[2])
+        delay_s = rd.get("release_delay_mean_s", RELEASE_DELAY_DEFAULTS["release_delay_mean_s"]) + rd.get(
+            "release_delay_std_s", RELEASE_DELAY_DEFAULTS["release_delay_std_s"]
+        ) * jax.random.normal(ks[2])
         delay_s = delay_s + jax.random.uniform(ks[7], (), minval=-1.0, maxval=1.0) * rd.get("release_delay_shift_s", 0.0)
-        lg = rd.get("lag_s", [0.03, 0.2])
-        g = rd.get("gain_error", 0.1)
+        lg = configured_range(rd, "lag_s")
+        g = rd.get("gain_error", GAIN_ERROR_DEFAULT)
         gain = 1.0 + jax.random.uniform(ks[4], (4,), minval=-g, maxval=g)
-        fr = rd.get("friction_scale", [0.7, 1.3])
+        fr = configured_range(rd, "friction_scale")
         fric = jax.random.uniform(ks[5], (), minval=fr[0], maxval=fr[1])
         kh = jax.random.split(ks[6], 8)
-        db = rd.get("dead_band", [0.05, 0.05])
-        dl = rd.get("valve_delay_s", [0.04, 0.04])
-        vs = rd.get("velocity_scale", [1.0, 1.0])
+        db = configured_range(rd, "dead_band")
+        dl = configured_range(rd, "valve_delay_s")
+        vs = configured_range(rd, "velocity_scale")
         # valve speed: independent per joint, or (valve_spread < 1) one machine-wide slowness
         # g ~ U(0, 1) (one pump and pilot circuit) with per-joint spread around it, for delay and lag alike
         spread = rd.get("valve_spread", 1.0)
@@ -187,10 +191,10 @@ class ThrowEnvCore:
             frac_d, frac_l = jax.random.uniform(kh[1], (4,)), jax.random.uniform(ks[3], (4,))
         tau = lg[0] + frac_l * (lg[1] - lg[0])
         valve_delay = jnp.round((dl[0] + frac_d * (dl[1] - dl[0])) / PHYSICS_PERIOD_S)
-        lat = [rd.get("encoder_latency_s", [0.0, 0.0]), rd.get("imu_latency_s", [0.0, 0.0])]
+        lat = [configured_range(rd, "encoder_latency_s"), configured_range(rd, "imu_latency_s")]
         sensor_lag = jnp.stack([jax.random.uniform(k, (), minval=lo, maxval=hi) for k, (lo, hi) in zip(kh[4:6], lat)])
         sensor_lag = jnp.clip(jnp.round(sensor_lag / PHYSICS_PERIOD_S), 0, MAX_SENSOR_LAG_STEPS).astype(jnp.int32)
-        gm = rd.get("gripper_mass_scale", [1.0, 1.0])
+        gm = configured_range(rd, "gripper_mass_scale")
         zeros6 = jnp.zeros(6)
         data = self.data0.replace(qpos=q, qvel=zeros6, ctrl=jnp.zeros(4), qfrc_applied=zeros6, time=jnp.zeros(()))
         pts = forward_kinematics(jnp, q, zeros6)
@@ -235,6 +239,10 @@ class ThrowEnvCore:
 
     def observe(self, s: EnvState) -> jnp.ndarray:
         return build_observation(jnp, self.mode, s["q_hist"], s["qd_hist"], s["prev_action"], s["target"], s["opened"])
+
+    def privileged(self, s: EnvState) -> jnp.ndarray:
+        """The critic's privileged observation (PRIVILEGED_SIZE,), layout in sim_twin.privileged."""
+        return privileged_observation(self.rand, self.hydraulic, s)
 
     # --- step -------------------------------------------------------------------------------
     def _actuate(self, s: EnvState, target_v) -> tuple[EnvState, jnp.ndarray]:

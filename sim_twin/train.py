@@ -6,6 +6,11 @@ checkpoint (policy, critic, optimiser state, iteration) is written to ``<log-dir
 together with the resolved config and the training curve, so a run stopped at any moment resumes
 exactly with ``--resume <log-dir>/checkpoint.pt``. ``--max-minutes`` stops cleanly before a
 time limit. Progress is printed by rsl_rl every iteration; TensorBoard logs go to the log dir.
+
+The actor sees the ``policy`` group only (config ``runner.obs_groups.actor``, checked); the
+critic the groups in ``runner.obs_groups.critic``: ["policy"] or, for the asymmetric
+actor-critic, ["policy", "privileged"] (sim_twin.privileged). Resuming a checkpoint whose critic
+had fewer inputs widens it without changing its values (sim_twin.critic_surgery).
 """
 
 from __future__ import annotations
@@ -53,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
     from rsl_rl.runners import OnPolicyRunner
 
+    from sim_twin import critic_surgery
     from sim_twin.mjx_env import EnvConfig
     from sim_twin.training_curve import TrainingCurve
     from sim_twin.vec_env import MjxThrowVecEnv
@@ -63,6 +69,9 @@ def run(args: argparse.Namespace) -> int:
     env_cfg = EnvConfig.from_dict(cfg["env"])
     if env_cfg.mode != args.mode:
         raise ValueError(f"config is for mode {env_cfg.mode}, asked for {args.mode}")
+    actor_groups = cfg["runner"].get("obs_groups", {}).get("actor", ["policy"])
+    if actor_groups != ["policy"]:
+        raise ValueError(f"runner.obs_groups.actor must be ['policy'] (the exported policy's input), not {actor_groups}")
     device = "cuda" if torch.cuda.is_available() else "cpu"
     log.info("training %s on %s with %d envs", args.mode, device, cfg["num_envs"])
     args.log_dir.mkdir(parents=True, exist_ok=True)
@@ -74,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     curve = TrainingCurve.load_or_new(args.log_dir / "curve.csv")
     wall_offset = curve.last_wall_s()
     if args.resume:
-        runner.load(str(args.resume))
+        critic_surgery.resume(runner, args.resume, device)  # widens an older critic (privileged inputs)
         runner.current_learning_iteration += 1
         log.info("resumed from %s at iteration %d", args.resume, runner.current_learning_iteration)
 

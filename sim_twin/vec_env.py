@@ -1,7 +1,10 @@
 """rsl_rl VecEnv adapter around the batched MJX throwing environment.
 
 Arrays cross between JAX and PyTorch by DLPack (no copy on the same device). Observations are
-returned as a TensorDict with one group, ``policy``, used by actor and critic.
+returned as a TensorDict with two groups: ``policy`` (runtime.observation, what the machine
+measures) and ``privileged`` (sim_twin.privileged: the episode's randomised parameters and the
+true passive joint state, for an asymmetric critic). rsl_rl picks the groups of actor and critic
+by the config's ``runner.obs_groups``; the actor must keep ["policy"] (it is what is exported).
 """
 
 from __future__ import annotations
@@ -33,7 +36,8 @@ class MjxThrowVecEnv(VecEnv):
         seed: PRNG seed.
         device: torch device of the returned tensors ("cuda" or "cpu"); must be where JAX runs.
 
-    Shapes: observations (num_envs, observation_size(mode)); actions (num_envs, num_actions(mode));
+    Shapes: observations ``policy`` (num_envs, observation_size(mode)), ``privileged``
+    (num_envs, PRIVILEGED_SIZE); actions (num_envs, num_actions(mode));
     rewards and dones (num_envs,).
     """
 
@@ -47,8 +51,10 @@ class MjxThrowVecEnv(VecEnv):
         keys = jax.random.split(jax.random.PRNGKey(seed), num_envs)
         self._reset = jax.jit(jax.vmap(self.core.reset))
         self._step = jax.jit(jax.vmap(self.core.step_autoreset))
+        self._privileged = jax.jit(jax.vmap(self.core.privileged))
         self.state, obs = self._reset(keys)
         self._obs = obs
+        self._priv = self._privileged(self.state)
         self.episode_length_buf = torch.zeros(num_envs, dtype=torch.long, device=device)
         self.reset_stats()
 
@@ -68,11 +74,13 @@ class MjxThrowVecEnv(VecEnv):
         }
 
     def get_observations(self) -> TensorDict:
-        return TensorDict({"policy": _to_torch(self._obs)}, batch_size=[self.num_envs], device=self.device)
+        obs = {"policy": _to_torch(self._obs), "privileged": _to_torch(self._priv)}
+        return TensorDict(obs, batch_size=[self.num_envs], device=self.device)
 
     def step(self, actions: torch.Tensor):
         a = _to_jax(actions.detach().to(torch.float32))
         self.state, self._obs, rew, done, tout, info = self._step(self.state, a)
+        self._priv = self._privileged(self.state)  # after the auto-reset: the new episode's
         dones = _to_torch(done).to(torch.long)
         self.episode_length_buf = _to_torch(self.state["step"]).to(torch.long)
         landed = info["landed"]

@@ -1,0 +1,134 @@
+"""Privileged observations for the asymmetric actor-critic (critic only; the actor never sees them).
+
+Asymmetric actor-critic (Pinto et al. 2018, "Asymmetric Actor Critic for Image-Based Robot
+Learning"; Rudin et al. 2022 for legged robots): the critic is only needed in training, so it may
+see what the machine never measures -- here the episode's randomised dynamics parameters and the
+true (latency- and noise-free) passive joint state. The actor, the exported ONNX policy and the
+runtime keep the ``policy`` observation of runtime.observation unchanged.
+
+Layout of the ``privileged`` group (float32, per environment; ``PRIVILEGED_SIZE`` = 29 in both
+modes; ``PRIVILEGED_LAYOUT`` lists (name, size)):
+
+    ==================  ====  ===============================================================
+    name                size  value
+    ==================  ====  ===============================================================
+    valve_delay         4     valve transport delay per active joint (whole 10 ms steps, s),
+                              normalised over ``valve_delay_s``; 0 unless hydraulic
+    valve_lag           4     valve / velocity lag time constant tau per active joint, s,
+                              normalised over ``lag_s`` (used by both actuation models)
+    dead_band           4     valve dead band per active joint, over ``dead_band``; 0 unless
+                              hydraulic
+    velocity_scale      4     full-open speed factor per active joint, over
+                              ``velocity_scale``; 0 unless hydraulic
+    gain                4     velocity gain factor per active joint, over 1 +- ``gain_error``;
+                              0 when hydraulic (the lag model's only)
+    friction_scale      1     passive friction factor, over ``friction_scale``
+    gripper_mass_scale  1     gripper mass / inertia factor, over ``gripper_mass_scale``
+    release_delay       1     the episode's release delay (whole steps, s): (x - mean) /
+                              (shift + 2 std) of ``release_delay_*``
+    sensor_latency      2     encoder, IMU latency (whole steps, s), over
+                              ``encoder_latency_s``, ``imu_latency_s``
+    passive_q           2     true passive joint angles now, rad / pi
+    passive_qd          2     true passive joint rates now, (rad/s) / 4
+    ==================  ====  ===============================================================
+
+Active joints in ACTIVE_JOINTS order (cabin turn, boom, stick, tilt). "Normalised over [lo, hi]"
+is (x - (lo + hi) / 2) / ((hi - lo) / 2), in [-1, 1] for values drawn in the range (a little
+beyond after rounding to whole steps, at most ~1.25 for the committed configs); a parameter whose
+range is empty (not randomised in the config, or unused by the actuation model) reads 0. The
+scaling is fixed rather than learned because rsl_rl's empirical normaliser, resumed with a sample
+count of ~1e9, barely moves for newly added inputs (sim_twin.critic_surgery starts them at mean 0,
+std 1).
+
+Ranges not given in the config take the defaults of ``RANDOMIZATION_DEFAULTS``, which the
+environment's reset draws from as well (one table for both).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+
+from runtime.observation import PHYSICS_PERIOD_S
+
+RANDOMIZATION_DEFAULTS: dict[str, tuple[float, float]] = {
+    "lag_s": (0.03, 0.2),
+    "friction_scale": (0.7, 1.3),
+    "dead_band": (0.05, 0.05),
+    "valve_delay_s": (0.04, 0.04),
+    "velocity_scale": (1.0, 1.0),
+    "encoder_latency_s": (0.0, 0.0),
+    "imu_latency_s": (0.0, 0.0),
+    "gripper_mass_scale": (1.0, 1.0),
+}
+"""Ranges [lo, hi] the environment draws from when the config's ``randomization`` lacks them."""
+
+RELEASE_DELAY_DEFAULTS = {"release_delay_mean_s": 0.258, "release_delay_std_s": 0.015, "release_delay_shift_s": 0.0}
+GAIN_ERROR_DEFAULT = 0.1
+PASSIVE_ANGLE_SCALE_RAD = math.pi
+PASSIVE_RATE_SCALE_RADPS = 4.0
+
+PRIVILEGED_LAYOUT: tuple[tuple[str, int], ...] = (
+    ("valve_delay", 4),
+    ("valve_lag", 4),
+    ("dead_band", 4),
+    ("velocity_scale", 4),
+    ("gain", 4),
+    ("friction_scale", 1),
+    ("gripper_mass_scale", 1),
+    ("release_delay", 1),
+    ("sensor_latency", 2),
+    ("passive_q", 2),
+    ("passive_qd", 2),
+)
+PRIVILEGED_SIZE = sum(n for _, n in PRIVILEGED_LAYOUT)
+
+
+def configured_range(rand: dict, name: str) -> tuple[float, float]:
+    """The [lo, hi] range of randomisation ``name`` from the config dict, else its default."""
+    lo, hi = rand.get(name, RANDOMIZATION_DEFAULTS[name])
+    return float(lo), float(hi)
+
+
+def _normalise(x, lo: float, hi: float, used: bool = True):
+    """(x - mid) / half_range; zeros where the range is empty or the parameter unused."""
+    if not used or hi <= lo:
+        return jnp.zeros_like(jnp.asarray(x, dtype=jnp.float32))
+    return (x - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
+
+
+def privileged_observation(rand: dict, hydraulic: bool, s) -> jnp.ndarray:
+    """The privileged vector of one environment (layout in the module docstring).
+
+    Args:
+        rand: the config's ``randomization`` dict.
+        hydraulic: the actuation model is "hydraulic" (else the first-order lag model).
+        s: sim_twin.mjx_env.EnvState of one environment.
+
+    Returns:
+        (PRIVILEGED_SIZE,) float32.
+    """
+    dt = PHYSICS_PERIOD_S
+    g = float(rand.get("gain_error", GAIN_ERROR_DEFAULT))
+    mean = float(rand.get("release_delay_mean_s", RELEASE_DELAY_DEFAULTS["release_delay_mean_s"]))
+    half = 2.0 * float(rand.get("release_delay_std_s", RELEASE_DELAY_DEFAULTS["release_delay_std_s"])) + float(
+        rand.get("release_delay_shift_s", RELEASE_DELAY_DEFAULTS["release_delay_shift_s"])
+    )
+    rng = lambda name: configured_range(rand, name)  # noqa: E731
+    lat = s["sensor_lag"] * dt
+    parts = [
+        _normalise(s["valve_delay"] * dt, *rng("valve_delay_s"), used=hydraulic),
+        _normalise(s["tau"], *rng("lag_s")),
+        _normalise(s["dead_band"], *rng("dead_band"), used=hydraulic),
+        _normalise(s["vscale"], *rng("velocity_scale"), used=hydraulic),
+        _normalise(s["gain"], 1.0 - g, 1.0 + g, used=not hydraulic),
+        _normalise(s["fric"], *rng("friction_scale"))[None],
+        _normalise(s["gripper_scale"], *rng("gripper_mass_scale"))[None],
+        _normalise(s["delay_steps"] * dt, mean - half, mean + half)[None],
+        _normalise(lat[0], *rng("encoder_latency_s"))[None],
+        _normalise(lat[1], *rng("imu_latency_s"))[None],
+        s["data"].qpos[4:6] / PASSIVE_ANGLE_SCALE_RAD,
+        s["data"].qvel[4:6] / PASSIVE_RATE_SCALE_RADPS,
+    ]
+    return jnp.concatenate([jnp.reshape(jnp.asarray(p, dtype=jnp.float32), (-1,)) for p in parts])

@@ -1,0 +1,143 @@
+"""Asymmetric actor-critic: the privileged observation group (sim_twin.privileged) and resuming a
+policy-only-critic checkpoint with the widened critic (sim_twin.critic_surgery). CPU, tiny."""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+jax = pytest.importorskip("jax")
+
+from runtime.observation import build_observation, observation_size  # noqa: E402
+from sim_twin import critic_surgery  # noqa: E402
+from sim_twin.mjx_env import EnvConfig, ThrowEnvCore  # noqa: E402
+from sim_twin.privileged import PRIVILEGED_LAYOUT, PRIVILEGED_SIZE  # noqa: E402
+from sim_twin.train import CONFIG_DIR  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+CKPT_2D = REPO / "policies/training/throw2d-robust-f/checkpoint.pt"
+
+
+def _cfg(mode: str) -> dict:
+    return json.loads((CONFIG_DIR / f"throw_{mode}.json").read_text())
+
+
+def _slices() -> dict[str, slice]:
+    out, i = {}, 0
+    for name, n in PRIVILEGED_LAYOUT:
+        out[name] = slice(i, i + n)
+        i += n
+    return out
+
+
+@pytest.mark.parametrize("mode", ["2d", "3d"])
+def test_privileged_group_layout_and_range(mode):
+    cfg = _cfg(mode)
+    assert cfg["runner"]["obs_groups"] == {"actor": ["policy"], "critic": ["policy", "privileged"]}
+    core = ThrowEnvCore(EnvConfig.from_dict(cfg["env"]))
+    state, obs = jax.jit(jax.vmap(core.reset))(jax.random.split(jax.random.PRNGKey(11), 256))
+    priv = np.asarray(jax.jit(jax.vmap(core.privileged))(state))
+    assert priv.shape == (256, PRIVILEGED_SIZE) == (256, 29) and priv.dtype == np.float32
+    assert np.all(np.abs(priv) <= 1.5)
+    sl = _slices()
+    # hydraulic actuation: the lag model's gain is unused -> 0; the randomised ones spread out
+    assert np.all(priv[:, sl["gain"]] == 0.0)
+    for name in ("valve_delay", "valve_lag", "dead_band", "velocity_scale", "friction_scale", "gripper_mass_scale",
+                 "release_delay", "sensor_latency"):
+        assert priv[:, sl[name]].std(axis=0).min() > 0.2, name
+    assert np.all(priv[:, sl["passive_qd"]] == 0.0)  # episodes start at rest
+    # the policy observation is still runtime.observation's, from the measured history
+    s0 = jax.tree_util.tree_map(lambda x: np.asarray(x[0], dtype=np.float64), state)
+    ref = build_observation(np, mode, s0["q_hist"], s0["qd_hist"], s0["prev_action"], s0["target"], float(s0["opened"]))
+    assert np.asarray(obs).shape == (256, observation_size(mode))
+    np.testing.assert_allclose(np.asarray(obs[0]), ref, rtol=1e-5, atol=1e-5)
+
+
+def test_unrandomised_parameters_read_zero():
+    env = _cfg("2d")["env"]
+    env["randomization"] = {"actuation": "lag"}  # defaults: only lag, gain, friction randomised
+    core = ThrowEnvCore(EnvConfig.from_dict(env))
+    state, _ = jax.jit(jax.vmap(core.reset))(jax.random.split(jax.random.PRNGKey(2), 32))
+    priv = np.asarray(jax.vmap(core.privileged)(state))
+    sl = _slices()
+    for name in ("valve_delay", "dead_band", "velocity_scale", "gripper_mass_scale", "sensor_latency"):
+        assert np.all(priv[:, sl[name]] == 0.0), name
+    for name in ("gain", "valve_lag", "friction_scale", "release_delay"):
+        assert priv[:, sl[name]].std() > 0.1, name
+
+
+def _critic_value(critic_state: dict, obs, groups: list[str], runner_cfg: dict) -> torch.Tensor:
+    from rsl_rl.models import MLPModel
+
+    kw = copy.deepcopy(runner_cfg["critic"])
+    kw.pop("class_name")
+    model = MLPModel(obs, {"critic": groups}, "critic", 1, **kw)
+    model.load_state_dict(critic_state)
+    model.eval()
+    with torch.no_grad():
+        return model(obs)
+
+
+@pytest.mark.skipif(not CKPT_2D.exists(), reason="committed 2D checkpoint missing")
+def test_resume_old_checkpoint_widens_critic_then_trains_and_exports(tmp_path):
+    from rsl_rl.runners import OnPolicyRunner
+
+    from sim_twin.export import export_checkpoint
+    from sim_twin.vec_env import MjxThrowVecEnv
+
+    cfg = _cfg("2d")
+    cfg["num_envs"] = 8
+    old = torch.load(CKPT_2D, map_location="cpu", weights_only=False)
+    env = MjxThrowVecEnv(EnvConfig.from_dict(cfg["env"]), 8, seed=3)
+    runner = OnPolicyRunner(env, copy.deepcopy(cfg["runner"]), log_dir=None, device="cpu")
+    notes = critic_surgery.resume(runner, CKPT_2D, "cpu")
+    assert runner.current_learning_iteration == old["iter"]
+    assert any("critic input 56 -> 85" in n for n in notes)
+    saved = runner.alg.save()
+    for k, v in old["actor_state_dict"].items():  # the actor is untouched
+        assert torch.equal(saved["actor_state_dict"][k], v), k
+    crit = saved["critic_state_dict"]
+    assert torch.equal(crit["mlp.0.weight"][:, :56], old["critic_state_dict"]["mlp.0.weight"])
+    assert torch.all(crit["mlp.0.weight"][:, 56:] == 0)
+    assert torch.equal(crit["obs_normalizer.count"], old["critic_state_dict"]["obs_normalizer.count"])
+    adam = saved["optimizer_state_dict"]["state"]
+    first = [i for i, st in adam.items() if st["exp_avg"].shape == (256, 85)]
+    assert len(first) == 1 and torch.all(adam[first[0]]["exp_avg_sq"][:, 56:] == 0)
+    assert torch.equal(adam[first[0]]["exp_avg"][:, :56], old["optimizer_state_dict"]["state"][first[0]]["exp_avg"])
+
+    obs = env.get_observations()
+    v_old = _critic_value(old["critic_state_dict"], obs, ["policy"], cfg["runner"])
+    v_new = _critic_value(crit, obs, ["policy", "privileged"], cfg["runner"])
+    torch.testing.assert_close(v_new, v_old, rtol=1e-6, atol=1e-5)
+
+    # the exported actor is the same ONNX policy as the original checkpoint's
+    widened = tmp_path / "widened.pt"
+    runner.save(str(widened))
+    a = export_checkpoint(CKPT_2D, cfg, tmp_path / "old.onnx", "old")
+    b = export_checkpoint(widened, cfg, tmp_path / "new.onnx", "new")
+    import onnxruntime as ort
+
+    probe = np.random.default_rng(0).normal(size=(16, observation_size("2d"))).astype(np.float32)
+    out = [ort.InferenceSession(str(p)).run(None, {"obs": probe})[0] for p in (a, b)]
+    np.testing.assert_array_equal(out[0], out[1])
+
+    runner.learn(num_learning_iterations=1)  # training continues on the widened critic
+    assert all(torch.isfinite(p).all() for p in runner.alg.critic.parameters())
+
+
+def test_surgery_refuses_to_narrow_and_is_a_no_op_when_shapes_match():
+    old = torch.load(CKPT_2D, map_location="cpu", weights_only=False) if CKPT_2D.exists() else None
+    if old is None:
+        pytest.skip("committed 2D checkpoint missing")
+    shapes = [v["exp_avg"].shape for _, v in sorted(old["optimizer_state_dict"]["state"].items())]
+    same, notes = critic_surgery.widen_critic(old, old["critic_state_dict"], shapes)
+    assert notes == [] and same["critic_state_dict"] is old["critic_state_dict"]
+    narrow = {k: (v[:, :40] if k == "mlp.0.weight" or k.endswith(("_mean", "_var", "_std")) else v)
+              for k, v in old["critic_state_dict"].items()}
+    with pytest.raises(ValueError, match="cannot narrow"):
+        critic_surgery.widen_critic(old, narrow, shapes)
