@@ -16,6 +16,9 @@ Wiring (keys in runtime/protocol/README.md):
 * signed commands: ``--command-key PATH`` (64 hex digits, ``slinger certs`` writes
   ``<site_dir>/machines/<id>/command.key``). Without it every throw, E-STOP reset and policy
   offer is refused "no command key configured" (aborts still work);
+* release check (runtime.release_check, runtime.executor): ``--release-check-radius M`` (default
+  3.0 m, or the environment's ``SLINGER_RELEASE_CHECK_RADIUS_M``; ``off`` switches it off). If it
+  is on and MuJoCo or the machine's model cannot be loaded, every throw is refused with the reason;
 * a watchdog thread (every 50 ms): no valid state for 0.2 s during a throw -> failed;
 * the outbox delivers finished ThrowResults to keys.THROW_RESULT until the server acks;
 * queryable keys.policy_offer (PolicyOffer -> PolicyOfferAck): runtime.policy_update fetches,
@@ -29,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import threading
 import time
 from pathlib import Path
@@ -36,12 +40,13 @@ from pathlib import Path
 from runtime.command_auth import CommandVerifier, load_key
 from runtime.controller import JointVelocityController
 from runtime.entrypoint import module_main, stop_on_signals
-from runtime.executor import ThrowExecutor
+from runtime.executor import ExecutorConfig, ThrowExecutor
 from runtime.outbox import Outbox, zenoh_deliverer
 from runtime.policy import PolicyError, PolicyRunner
 from runtime.policy_update import PolicyUpdater, zenoh_fetcher
 from runtime.protocol import keys
 from runtime.protocol.messages import encode
+from runtime.release_check import DEFAULT_RADIUS_M, RADIUS_ENV, parse_radius
 from runtime.service import LINK_TIMEOUT_S, RuntimeService
 from runtime.zenoh_session import Claimed, add_session_arguments, claim_exclusive, open_session, session_options
 
@@ -70,6 +75,21 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--outbox-dir", type=Path, default=None, help="durable outbox directory (default ~/.slinger/outbox/<machine-id>)")
     parser.add_argument("--policy-dir", type=Path, default=None, help="where promoted policy files are kept (default: <outbox-dir>-policies)")
     parser.add_argument("--link-timeout", type=float, default=LINK_TIMEOUT_S, help="seconds without machine state that fail a throw")
+    parser.add_argument("--release-check-radius", type=release_check_radius, default=os.environ.get(RADIUS_ENV, DEFAULT_RADIUS_M),
+                        help="hold a release whose predicted impact is farther than this from the target, m, or 'off' "
+                             f"(default ${RADIUS_ENV}, else {DEFAULT_RADIUS_M} m)")
+
+
+def release_check_radius(text) -> float | None:
+    """--release-check-radius: runtime.release_check.parse_radius for argparse.
+
+    Raises:
+        argparse.ArgumentTypeError: what parse_radius refuses.
+    """
+    try:
+        return parse_radius(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def load_policies(args: argparse.Namespace) -> dict[str, PolicyRunner]:
@@ -100,14 +120,17 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         policies = load_policies(args)
         key = load_key(args.command_key) if args.command_key else None
         zenoh_opts = session_options(args, f"runtime-{machine_id}")
-    except (ValueError, OSError, PolicyError) as e:
+        radius = release_check_radius(getattr(args, "release_check_radius", DEFAULT_RADIUS_M))
+    except (ValueError, OSError, PolicyError, argparse.ArgumentTypeError) as e:
         log.error("cannot start runtime: %s", e)
         return 2
     if key is None:
         log.warning("no command key configured (--command-key): every throw, E-STOP reset and policy offer will be refused")
     stop = stop_on_signals(stop)
     outbox_dir = args.outbox_dir or default_outbox_dir(machine_id)
-    executor = ThrowExecutor(policies, JointVelocityController())
+    if radius is None:
+        log.warning("release check off (--release-check-radius off): releases are not checked")
+    executor = ThrowExecutor(policies, JointVelocityController(), ExecutorConfig(release_check_radius_m=radius))
 
     with open_session(**zenoh_opts) as session:
         try:

@@ -40,9 +40,12 @@ def target_on_axis(mode: str, distance_m: float) -> list[float]:
     return [distance_m, 0.0, 0.0]
 
 
-def _throw_batch(policy_path: str, mode: str, distance_m: float, seeds: list[int], profile_path: str | None) -> list[dict]:
-    """Worker: throws at one target distance, one per seed. Returns one dict per throw."""
-    from runtime.executor import ThrowExecutor
+def _throw_batch(policy_path: str, mode: str, distance_m: float, seeds: list[int], profile_path: str | None,
+                 executor_config: dict | None = None) -> list[dict]:
+    """Worker: throws at one target distance, one per seed. Returns one dict per throw (with
+    ``held_releases``: release flags the release check held). ``executor_config``: keyword
+    arguments of runtime.executor.ExecutorConfig (default its defaults)."""
+    from runtime.executor import ExecutorConfig, ThrowExecutor
     from runtime.policy import PolicyRunner
     from runtime.protocol.messages import ThrowRequest
     from sim_twin.plant import TwinMachine, run_throw
@@ -56,14 +59,15 @@ def _throw_batch(policy_path: str, mode: str, distance_m: float, seeds: list[int
         sim = SimulatedMachine(profile, seed=seed)
         sim.reset(cabin_turn=0.0 if mode == "2d" else None)
         twin = TwinMachine(sim, "eval")
-        executor = ThrowExecutor({mode: policy})
+        executor = ThrowExecutor({mode: policy}, config=ExecutorConfig(**(executor_config or {})))
         req = ThrowRequest(throw_id=f"eval-{seed}", machine_id="eval", mode=mode, target_m=target_on_axis(mode, distance_m))
         outcome, events = run_throw(twin, executor, req)
         if outcome is None:
             rows.append({"seed": seed, "status": "refused", "reason": events})
             continue
         swing = next((e.stamp_s for e in events if e.phase == "swinging"), None)
-        row = {"seed": seed, "status": outcome.status, "reason": outcome.failure_reason}
+        held = sum(1 for e in events if (e.detail or "").startswith("release held"))
+        row = {"seed": seed, "status": outcome.status, "reason": outcome.failure_reason, "held_releases": held}
         if outcome.status == "landed":
             row.update(
                 impact_m=outcome.impact_m.tolist(),
@@ -79,7 +83,8 @@ def _throw_batch(policy_path: str, mode: str, distance_m: float, seeds: list[int
 def summarise(distance_m: float, rows: list[dict]) -> dict:
     """Per-target statistics: success rate (released, landed, no collision), mean impact
     distance, bias (mean downrange error), sigma downrange / crossrange, mean crossrange,
-    mean throw duration (swing start to impact) and the failure reasons."""
+    mean throw duration (swing start to impact), the failure reasons and how many throws had a
+    release held by the release check (runtime.executor)."""
     landed = [r for r in rows if r["status"] == "landed"]
     dr = np.array([r["downrange_error_m"] for r in landed])
     cr = np.array([r["crossrange_error_m"] for r in landed])
@@ -105,6 +110,7 @@ def summarise(distance_m: float, rows: list[dict]) -> dict:
         "mean_abs_error_m": stat(np.mean, np.hypot(dr, cr)) if dr.size else None,
         "mean_duration_s": stat(np.mean, dur),
         "failures": reasons,
+        "held_throws": sum(1 for r in rows if r.get("held_releases")),
     }
 
 

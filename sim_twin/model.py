@@ -11,11 +11,11 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from runtime.ballistics import PAYLOAD_RADIUS_M  # noqa: F401 (re-exported; size 7 basketball, machine-spec.md)
 from runtime.machine import ACTIVE_JOINTS, JOINT_NAMES, hanging_pitch
 
 MJCF_PATH = Path(__file__).parent / "assets" / "material_handler.xml"
 GRIPPER_CENTRE_SITE = "gripper_centre"
-PAYLOAD_RADIUS_M = 0.12  # size 7 basketball, 0.24 m diameter (machine-spec.md)
 PAYLOAD_MASS_KG = 0.6  # not added to the model: 0.05 % of the hanging mass
 
 

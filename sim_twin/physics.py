@@ -6,16 +6,20 @@ The paper gives it as an acceleration opposing the motion; MuJoCo needs a genera
 multiply by the joint's effective inertia (diagonal of the mass matrix at the plumb pose, computed
 once per model by :func:`sim_twin.model.passive_inertia`). sign() is smoothed with tanh(v / 0.01)
 so that the explicit force stays stable at 100 Hz.
+
+The drag-free flight (GRAVITY_MPS2, ballistic_impact_time, ballistic_position) lives in
+runtime.ballistics, which the runtime's release check needs too; it is re-exported here.
 """
 
 from __future__ import annotations
 
 from types import ModuleType
 
+from runtime.ballistics import GRAVITY_MPS2, ballistic_impact_time, ballistic_position  # noqa: F401 (re-exported)
+
 PAPER_VISCOUS_PER_S = 0.03
 PAPER_COULOMB_RAD_PER_S2 = 0.1
 SIGN_SMOOTHING_RAD_PER_S = 0.01
-GRAVITY_MPS2 = 9.81
 
 
 def passive_friction_force(xp: ModuleType, qd_passive, inertia, viscous=PAPER_VISCOUS_PER_S, coulomb=PAPER_COULOMB_RAD_PER_S2):
@@ -32,20 +36,3 @@ def passive_friction_force(xp: ModuleType, qd_passive, inertia, viscous=PAPER_VI
     """
     acc = viscous * qd_passive + coulomb * xp.tanh(qd_passive / SIGN_SMOOTHING_RAD_PER_S)
     return -inertia * acc
-
-
-def ballistic_impact_time(xp: ModuleType, p0, v0, ground_z):
-    """Time (s) until a drag-free projectile from p0 (3,) with v0 (3,) reaches height ground_z.
-
-    Solves z0 + vz t - g t^2 / 2 = ground_z for the later root; if p0 is already below
-    ground_z it returns 0.
-    """
-    dz = p0[2] - ground_z
-    disc = v0[2] ** 2 + 2.0 * GRAVITY_MPS2 * xp.maximum(dz, 0.0)
-    return (v0[2] + xp.sqrt(disc)) / GRAVITY_MPS2
-
-
-def ballistic_position(xp: ModuleType, p0, v0, t):
-    """Drag-free projectile position (3,) at time t after leaving p0 with v0."""
-    g = xp.asarray([0.0, 0.0, -GRAVITY_MPS2], dtype=p0.dtype)
-    return p0 + v0 * t + 0.5 * g * t * t

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from runtime.executor import ExecutorConfig, ThrowExecutor
+from runtime.release_check import configured_radius
 from runtime.machine import ACTIVE_JOINTS, clearance_violations, forward_kinematics
 from runtime.observation import PHYSICS_PERIOD_S
 from runtime.protocol.messages import MachineState, ThrowRequest
@@ -207,7 +208,8 @@ def _run_swing(policy, req: PreviewRequest, profile: RealityProfile, q, qd, seed
     sim = SimulatedMachine(dataclasses.replace(profile, effects=effects), seed=seed)
     sim.set_state(q, qd)
     twin = TwinMachine(sim, "preview")
-    executor = ThrowExecutor({req.mode: policy}, config=ExecutorConfig(prepare_timeout_s=10.0))
+    # the release check as the runtime runs it ($SLINGER_RELEASE_CHECK_RADIUS_M, runtime.node)
+    executor = ThrowExecutor({req.mode: policy}, config=ExecutorConfig(prepare_timeout_s=10.0, release_check_radius_m=configured_radius()))
     request = ThrowRequest(throw_id="preview", machine_id="preview", mode=req.mode, target_m=list(req.target_m))
 
     def hardware_state():

@@ -8,6 +8,7 @@ closed by its fixture (sessions with Python callbacks left open hang the interpr
 from __future__ import annotations
 
 import base64
+import os
 import socket
 import threading
 import time
@@ -46,6 +47,10 @@ def pytest_configure(config) -> None:
     # Starlette's TestClient warns that it wants httpx2; not our concern here.
     config.addinivalue_line("filterwarnings", "ignore:Using `httpx` with `starlette.testclient`")
     config.addinivalue_line("filterwarnings", "ignore:No path_separator found")
+    # Runtimes and previews started by tests (slinger runtime / up) run the test policies of tests/fixtures.py,
+    # which are not throwers: the release check (runtime.release_check) would hold their releases.
+    # In-process executors keep ExecutorConfig's default; tests that need it off say so.
+    os.environ.setdefault("SLINGER_RELEASE_CHECK_RADIUS_M", "off")  # runtime.release_check.RADIUS_ENV
 
 
 def free_port() -> int:

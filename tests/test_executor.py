@@ -21,6 +21,8 @@ from sim_twin.simulated_machine import SimulatedMachine
 from tests.fixtures import write_test_policy
 
 TARGET_2D = [8.0, ARM_PLANE_OFFSET_M, 0.0]  # cabin_turn 0: the arm's plane is y = -0.292 m
+NO_CHECK = ExecutorConfig(release_check_radius_m=None)
+"""The test policies are not throwers: the release check (tests/test_release_check.py) would hold them."""
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +65,7 @@ class RecordingPolicy:
 
 def test_full_2d_throw_lands_with_impact_and_telemetry(releasing_2d):
     twin = _twin()
-    ex = ThrowExecutor({"2d": releasing_2d}, JointVelocityController())
+    ex = ThrowExecutor({"2d": releasing_2d}, JointVelocityController(), NO_CHECK)
     outcome, events = run_throw(twin, ex, _request())
     assert [e.phase for e in events] == ["preparing", "swinging", "released", "landed"]
     assert outcome.status == "landed" and outcome.failure_reason is None
@@ -92,7 +94,7 @@ def test_full_2d_throw_lands_with_impact_and_telemetry(releasing_2d):
 
 
 def test_3d_throw_off_the_arm_plane_lands(releasing_3d):
-    ex = ThrowExecutor({"3d": releasing_3d})
+    ex = ThrowExecutor({"3d": releasing_3d}, config=NO_CHECK)
     outcome, events = run_throw(_twin(2), ex, _request("3d", [6.0, 5.0, 0.0]))
     assert outcome.status == "landed", outcome.failure_reason
     assert outcome.impact_m is not None
@@ -100,7 +102,7 @@ def test_3d_throw_off_the_arm_plane_lands(releasing_3d):
 
 def test_swinging_runs_the_policy_at_12_5_hz_from_a_filled_history(releasing_2d):
     policy = RecordingPolicy(releasing_2d)
-    ex = ThrowExecutor({"2d": policy})
+    ex = ThrowExecutor({"2d": policy}, config=NO_CHECK)
     outcome, _ = run_throw(_twin(), ex, _request())
     swing_ticks = sum(1 for r in outcome.telemetry.rows if r["phase"] in ("swinging", "released"))
     assert len(policy.observations) == -(-swing_ticks // SUBSTEPS)  # every 8th tick, incl. after release
@@ -121,7 +123,7 @@ def test_no_release_fails_after_the_timeout(holding_2d):
 
 
 def test_no_impact_fails_after_the_timeout(releasing_2d):
-    twin, ex = _twin(), ThrowExecutor({"2d": releasing_2d}, config=ExecutorConfig(impact_timeout_s=0.5))
+    twin, ex = _twin(), ThrowExecutor({"2d": releasing_2d}, config=ExecutorConfig(impact_timeout_s=0.5, release_check_radius_m=None))
     assert ex.start(_request(), twin.state()) is None
     for _ in range(200):  # never report the impact
         out = ex.tick(twin.state())
@@ -137,14 +139,14 @@ def test_no_impact_fails_after_the_timeout(releasing_2d):
     [([20.0, -0.3, 0.0], "beyond"), ([2.0, -0.3, 0.0], "too close"), ([0.0, 8.0, 0.0], "2D throwing plane"), ([8.0, -0.3, 3.0], "ground")],
 )
 def test_unservable_targets_are_refused(releasing_2d, target, why):
-    ex = ThrowExecutor({"2d": releasing_2d})
+    ex = ThrowExecutor({"2d": releasing_2d}, config=NO_CHECK)
     reason = ex.start(_request(target=target), _twin().state())
     assert reason is not None and why in reason
     assert not ex.busy
 
 
 def test_refusals_busy_missing_policy_and_no_state(releasing_2d):
-    twin, ex = _twin(), ThrowExecutor({"2d": releasing_2d})
+    twin, ex = _twin(), ThrowExecutor({"2d": releasing_2d}, config=NO_CHECK)
     assert "no 3d policy" in ex.start(_request("3d", [6.0, 5.0, 0.0]), twin.state())
     assert "no machine state" in ex.start(_request(), None)
     assert ex.start(_request(), twin.state()) is None
@@ -154,7 +156,7 @@ def test_refusals_busy_missing_policy_and_no_state(releasing_2d):
 
 def test_second_throw_reloads_the_simulated_machine_once(releasing_2d):
     twin = _twin()
-    ex = ThrowExecutor({"2d": releasing_2d}, JointVelocityController())
+    ex = ThrowExecutor({"2d": releasing_2d}, JointVelocityController(), NO_CHECK)
     first, _ = run_throw(twin, ex, _request())
     assert first.status == "landed" and not twin.state().payload_attached
     second, events = run_throw(twin, ex, _request(throw_id="t2"))
@@ -177,7 +179,7 @@ def _unload(twin):
 
 
 def test_preparing_waits_for_a_loaded_machine_then_times_out(releasing_2d):
-    twin, ex = _twin(), ThrowExecutor({"2d": releasing_2d}, config=ExecutorConfig(prepare_timeout_s=0.5))
+    twin, ex = _twin(), ThrowExecutor({"2d": releasing_2d}, config=ExecutorConfig(prepare_timeout_s=0.5, release_check_radius_m=None))
     _unload(twin)
     assert ex.start(_request(), twin.state()) is None
     out = ex.tick(twin.state())
@@ -192,7 +194,7 @@ def test_preparing_waits_for_a_loaded_machine_then_times_out(releasing_2d):
 
 
 def test_preparing_swings_once_the_machine_is_loaded(releasing_2d):
-    twin, ex = _twin(), ThrowExecutor({"2d": releasing_2d})
+    twin, ex = _twin(), ThrowExecutor({"2d": releasing_2d}, config=NO_CHECK)
     _unload(twin)
     assert ex.start(_request(), twin.state()) is None
     for _ in range(20):
@@ -258,7 +260,7 @@ def test_abort_mid_swing(holding_2d):
 
 
 def test_impact_ignored_unless_released(holding_2d, releasing_2d):
-    twin, ex = _twin(), ThrowExecutor({"2d": releasing_2d})
+    twin, ex = _twin(), ThrowExecutor({"2d": releasing_2d}, config=NO_CHECK)
     outcome, _ = run_throw(twin, ex, _request())
     assert ex.on_impact(outcome.impact).finished is None  # idle
     ex2 = ThrowExecutor({"2d": holding_2d})
