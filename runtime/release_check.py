@@ -13,9 +13,10 @@ The gripper swings on meanwhile, so a ballistic impact from the state AT the com
    controller's, after its safety clipping; the policy keeps running after the release flag)
    through the nominal valve lag
    (sim_twin.hydraulics.lag_step, NOMINAL_LAG_S 0.16 s, no transport delay: the commands of the
-   last 0.1 s already in the valves are much like it; CHOSEN by measurement: with the delay added
-   or without the references (joints continuing at their measured velocities) the error is 2-4
-   times larger, table below), then through the same cylinder + velocity-servo mechanism the twin
+   last 0.1 s already in the valves are much like it. CHOSEN by measurement: a 0.05-0.1 s delay
+   added made it worse (30-throw probe, 2D 10 m: median 0.13 -> 0.15-0.25 m); without the
+   references, joints continuing at their measured velocities, the error is up to 4 times
+   larger, table below), then through the same cylinder + velocity-servo mechanism the twin
    uses (sim_twin.hydraulics.cylinder_step: stroke ends are hard stops); the passive gripper
    joints swing freely with the paper's friction (sim_twin.physics.passive_friction_force);
 2. flies the gripper centre (runtime.machine.forward_kinematics) drag-free to the ground, the

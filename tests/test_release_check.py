@@ -137,8 +137,6 @@ def test_bad_input_does_not_crash_the_check():
 
 
 def test_unavailable_predictor_refuses_throws_unless_switched_off(monkeypatch):
-    from sim_twin.plant import SimReset  # noqa: F401  (the twin stays importable)
-
     monkeypatch.setattr(executor_module, "shared_predictor", lambda: (None, "ImportError: No module named 'mujoco'"))
     policy = PolicyRunner.load(POLICY["2d"])
     twin = TwinMachine(SimulatedMachine(seed=1), "m1")

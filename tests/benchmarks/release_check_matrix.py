@@ -1,6 +1,7 @@
 """Effect of the release check on site-matrix cells (sim_twin.matrix seeds and protocol).
 
     nice -n 10 python tests/benchmarks/release_check_matrix.py --out reports/release_check_matrix.json
+    nice -n 10 python tests/benchmarks/release_check_matrix.py --only 3d:nominal --out reports/release_check_matrix_3d_nominal.json
 
 Each cell runs its 100 throws twice, release check off (``release_check_radius_m=None``) and on
 (runtime.executor.ExecutorConfig's default), on the same seeds (``i * 100_000 + k``, i the
@@ -25,6 +26,7 @@ PROFILES = Path(__file__).resolve().parents[2] / "sim_twin" / "profiles"
 CELLS = (  # (policy, mode, profile or None, [(target m, index)])
     [("policies/throw3d.onnx", "3d", p, [(8.0, 2), (8.5, 3), (9.0, 4), (9.5, 5)]) for p in ("slow_hydraulics", "slow_latent_noisy")]
     + [("policies/throw2d.onnx", "2d", None, [(7.5 + 0.5 * i, i) for i in range(6)])]
+    + [("policies/throw3d.onnx", "3d", None, [(7.0 + 0.5 * i, i) for i in range(6)])]
 )
 WILD_M = 5.0
 
@@ -38,10 +40,13 @@ def main() -> None:
     ap.add_argument("--throws", type=int, default=100)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--only", default=None, help="MODE:PROFILE, e.g. 3d:nominal (default every cell)")
     args = ap.parse_args()
     t0, jobs = time.time(), []
     with ProcessPoolExecutor(args.workers) as pool:
         for pol, mode, prof, targets in CELLS:
+            if args.only and args.only != f"{mode}:{prof or 'nominal'}":
+                continue
             path = str(PROFILES / f"{prof}.json") if prof else None
             for d, i in targets:
                 seeds = [i * 100_000 + k for k in range(args.throws)]
