@@ -377,22 +377,29 @@ class SlingerUp:
     are set afterwards. Attributes: base_url, viser_port, data_dir.
     """
 
-    def __init__(self, tmp_path: Path, machines: int = 1, create_admin: bool = True, with_3d: bool = False):
+    def __init__(self, tmp_path: Path, machines: int = 1, create_admin: bool = True, with_3d: bool = False,
+                 real_policies: bool = False):
+        """real_policies: run the repository's deployed policies (both modes) with the runtime's release
+        check ON, as the main job does, instead of the non-throwing test policy."""
         from server.stack import slinger_command
         from tests.fixtures import write_test_policy
 
-        policy = write_test_policy(tmp_path / "policies", "2d", release_after_bias=2.0)
-        # no 3D runtime policy unless asked (a missing file keeps the repo's throw3d.onnx out)
-        extra = ["--policy-3d", str(tmp_path / "no-3d-policy.onnx")]
-        if with_3d:
-            extra = ["--policy-3d", str(write_test_policy(tmp_path / "policies", "3d", name="test-linear-3d",
-                                                          release_after_bias=2.0))]
+        self.env = None
+        if real_policies:
+            extra = []
+            self.env = {k: v for k, v in os.environ.items() if k != "SLINGER_RELEASE_CHECK_RADIUS_M"}
+        else:
+            policy = write_test_policy(tmp_path / "policies", "2d", release_after_bias=2.0)
+            # no 3D runtime policy unless asked (a missing file keeps the repo's throw3d.onnx out)
+            extra = ["--policy-2d", str(policy), "--policy-3d", str(tmp_path / "no-3d-policy.onnx")]
+        if with_3d and not real_policies:
+            extra[-1] = str(write_test_policy(tmp_path / "policies", "3d", name="test-linear-3d", release_after_bias=2.0))
         self.port, self.viser_port, zport = free_port(), free_port(), free_port()
         self.data_dir = tmp_path / "var"
         self.base_url = f"http://127.0.0.1:{self.port}"
         self._log_path = tmp_path / "up.log"
         self.argv = slinger_command(
-            "up", "--policy-2d", str(policy), "--data-dir", str(self.data_dir), "--machines", str(machines),
+            "up", "--data-dir", str(self.data_dir), "--machines", str(machines),
             "--port", str(self.port), "--zenoh-port", str(zport), "--viser-port", str(self.viser_port), *extra)
         self.cwd = tmp_path
         self.create_admin = create_admin
@@ -411,7 +418,7 @@ class SlingerUp:
                            cwd=self.cwd)
         self._log = open(self._log_path, "wb")
         self.proc = subprocess.Popen(self.argv, stdout=self._log, stderr=subprocess.STDOUT,
-                                     start_new_session=True, cwd=self.cwd)
+                                     start_new_session=True, cwd=self.cwd, env=self.env)
         return self
 
     def log_text(self) -> str:

@@ -8,6 +8,7 @@ a throw is short: swing start -> release -> flight -> impact.
 from __future__ import annotations
 
 import subprocess
+from pathlib import Path
 import time
 
 import httpx
@@ -19,6 +20,8 @@ from runtime.throw_geometry import impact_errors
 from server.stack import Children, resolve_policy, slinger_command
 from tests.conftest import SlingerUp, login, wait_for, wait_online
 from tests.fixtures import write_test_policy
+
+REPO = Path(__file__).resolve().parents[1]
 
 TARGET_2D = [8.0, -0.292, 0.0]
 
@@ -141,6 +144,37 @@ def test_slinger_up_end_to_end_and_ctrl_c(tmp_path):
     # the children are gone too (they run in their own sessions; up must have stopped them)
     ps = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
     assert str(up.data_dir / "outbox") not in ps
+
+
+def test_slinger_up_throws_with_the_deployed_policies_and_the_release_check_on(tmp_path):
+    """The main job as an operator runs it: the repository's deployed policies (2D and 3D) on the
+    simulated machine, the runtime's release check ON. A previewed throw per mode lands near its
+    target (2D sigma ~0.1 m, 3D ~0.2 m in the site matrix: bounds at several sigma)."""
+    import json
+
+    with SlingerUp(tmp_path, real_policies=True) as up:
+        up.wait_machine_online()
+        deployed = {mode: json.loads((REPO / "policies" / f"throw{mode}.json").read_text())["name"] for mode in ("2d", "3d")}
+        http = up.http
+        wait_for(lambda: [m["policies"] for m in http.get("/api/machines").json()] == [deployed], 30, "deployed policies reported")
+        for mode, target, bound_m in (("2d", TARGET_2D, 0.5), ("3d", [6.0, 5.0, 0.0], 1.2)):
+            def previewed_throw():
+                for _ in range(20):  # after a throw the gripper swings on: preview again until it has settled
+                    p = http.post("/api/previews", json={"machine_id": "m1", "mode": mode, "target": target, "rollouts": 1})
+                    assert p.status_code == 200 and p.json()["status"] == "ok", p.text
+                    r = http.post("/api/throws", json={"machine_id": "m1", "mode": mode, "target": target,
+                                                       "preview_id": p.json()["id"], "confirm_clearance": mode == "3d"})
+                    if not (r.status_code == 409 and "moved since the preview" in r.text):
+                        return r
+                    time.sleep(1.0)
+                return r
+
+            row, _ = _landed_throw(http, previewed_throw)
+            assert row["status"] == "landed", row
+            assert np.hypot(row["downrange_error_m"], row["crossrange_error_m"]) < bound_m, row
+            tel = read_telemetry(up.data_dir / "telemetry" / f"{row['id']}.mcap")
+            assert "released" in list(tel["event_phase"])
+    assert up.returncode == 0, up.output[-3000:]
 
 
 def test_slinger_up_without_policy_refuses_the_runtime(tmp_path):
