@@ -164,15 +164,22 @@ def finetune_config(cfg: dict, profile: RealityProfile) -> tuple[dict, dict, lis
     [value, value] (valve dead band / delay / lag as the mean over the four joints, release
     delay mean and std, passive friction as the viscous scale against the paper's value).
 
+    The base config's ranges read by the critic's privileged normalisation are kept as
+    ``env.privileged_ranges`` (sim_twin.privileged.trained_ranges; an existing entry, from an
+    earlier fine-tuning, wins): the resumed critic was trained on inputs scaled over those ranges,
+    and over the narrowed [v, v] every such input would read 0 instead of where v sits in them.
+
     Returns:
         (new config, {key: value fixed}, [effects or parameters MJX training cannot represent]).
     """
     import copy
 
     from sim_twin.physics import PAPER_VISCOUS_PER_S
+    from sim_twin.privileged import trained_ranges
 
     cfg = copy.deepcopy(cfg)
     rand = cfg["env"].setdefault("randomization", {})
+    cfg["env"]["privileged_ranges"] = {**trained_ranges(rand), **cfg["env"].get("privileged_ranges", {})}
     stack = profile.stack()
     hp = stack.hydraulics(profile.hydraulics)
     mean_s, std_s = stack.release_delay(profile.release_delay_mean_s, profile.release_delay_std_s)

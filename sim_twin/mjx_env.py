@@ -64,7 +64,7 @@ from sim_twin.hydraulics import cylinder_step, dead_band_flow, lag_step
 from sim_twin.initial_pose import pose_from_uniform, pose_is_valid
 from sim_twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
 from sim_twin.physics import ballistic_impact_time, ballistic_position, passive_friction_force
-from sim_twin.privileged import GAIN_ERROR_DEFAULT, RELEASE_DELAY_DEFAULTS, configured_range, privileged_observation
+from sim_twin.privileged import GAIN_ERROR_DEFAULT, RELEASE_DELAY_DEFAULTS, configured_range, normalisation_ranges, privileged_observation
 
 MAX_VALVE_DELAY_STEPS = 30  # longest valve transport delay the training env can model (0.30 s)
 MAX_SENSOR_LAG_STEPS = 5  # longest sensor latency the training env can model (0.05 s)
@@ -83,6 +83,9 @@ class EnvConfig:
     rewards: dict[str, float] = field(default_factory=dict)
     forced_release: dict[str, float] = field(default_factory=dict)
     randomization: dict[str, Any] = field(default_factory=dict)
+    privileged_ranges: dict[str, Any] = field(default_factory=dict)
+    """Ranges the critic's privileged inputs are normalised over where they differ from
+    ``randomization`` (a fine-tuning config's base ranges; see sim_twin.privileged)."""
 
     @property
     def max_steps(self) -> int:
@@ -130,6 +133,7 @@ class ThrowEnvCore:
         r = cfg.rewards
         self.w = {k: float(v) for k, v in r.items()}
         self.rand = cfg.randomization
+        self.priv_ranges = normalisation_ranges(cfg.randomization, cfg.privileged_ranges)
         self.forced = cfg.forced_release
         self.hydraulic = self.rand.get("actuation", "lag") == "hydraulic"
         self.gains = ControllerGains()
@@ -241,8 +245,9 @@ class ThrowEnvCore:
         return build_observation(jnp, self.mode, s["q_hist"], s["qd_hist"], s["prev_action"], s["target"], s["opened"])
 
     def privileged(self, s: EnvState) -> jnp.ndarray:
-        """The critic's privileged observation (PRIVILEGED_SIZE,), layout in sim_twin.privileged."""
-        return privileged_observation(self.rand, self.hydraulic, s)
+        """The critic's privileged observation (PRIVILEGED_SIZE,), layout in sim_twin.privileged,
+        normalised over ``cfg.privileged_ranges`` where given, else the randomisation ranges."""
+        return privileged_observation(self.priv_ranges, self.hydraulic, s)
 
     # --- step -------------------------------------------------------------------------------
     def _actuate(self, s: EnvState, target_v) -> tuple[EnvState, jnp.ndarray]:

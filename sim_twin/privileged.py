@@ -42,6 +42,14 @@ std 1).
 
 Ranges not given in the config take the defaults of ``RANDOMIZATION_DEFAULTS``, which the
 environment's reset draws from as well (one table for both).
+
+The normalisation ranges are those the critic was *trained* with, which are not always the ranges
+the episode is drawn from: fine-tuning on a site (sim_twin.adapt.finetune_config) narrows the
+site's parameters to [v, v], where every input would read 0 (mid of an empty range) instead of
+where v sits in the range the resumed critic learned. Such a config keeps the base ranges under
+``env.privileged_ranges`` (entries named and shaped as in ``env.randomization``, for the keys of
+``PRIVILEGED_RANGE_KEYS``); :func:`normalisation_ranges` takes each key from there when present,
+else from the randomisation. Configs without it (normal training) are unchanged.
 """
 
 from __future__ import annotations
@@ -84,6 +92,28 @@ PRIVILEGED_LAYOUT: tuple[tuple[str, int], ...] = (
 )
 PRIVILEGED_SIZE = sum(n for _, n in PRIVILEGED_LAYOUT)
 
+PRIVILEGED_RANGE_KEYS: tuple[str, ...] = (
+    *RANDOMIZATION_DEFAULTS,
+    "gain_error",
+    *RELEASE_DELAY_DEFAULTS,
+)
+"""The ``randomization`` entries :func:`privileged_observation` normalises over."""
+
+
+def trained_ranges(rand: dict) -> dict:
+    """The entries of ``rand`` (a config's ``randomization``) that the privileged normalisation
+    reads (``PRIVILEGED_RANGE_KEYS``), copied (lists as new lists): what a derived config stores
+    as ``env.privileged_ranges`` so that its critic inputs stay on the base training's scale."""
+    return {k: list(rand[k]) if isinstance(rand[k], (list, tuple)) else rand[k] for k in PRIVILEGED_RANGE_KEYS if k in rand}
+
+
+def normalisation_ranges(rand: dict, privileged_ranges: dict | None) -> dict:
+    """The dict :func:`privileged_observation` normalises over: ``rand`` (the config's
+    ``randomization``) with each entry of ``privileged_ranges`` (the config's
+    ``env.privileged_ranges``, ranges the critic was trained with) taking precedence; ``rand``
+    itself when ``privileged_ranges`` is None or empty."""
+    return {**rand, **privileged_ranges} if privileged_ranges else rand
+
 
 def configured_range(rand: dict, name: str) -> tuple[float, float]:
     """The [lo, hi] range of randomisation ``name`` from the config dict, else its default."""
@@ -102,7 +132,8 @@ def privileged_observation(rand: dict, hydraulic: bool, s) -> jnp.ndarray:
     """The privileged vector of one environment (layout in the module docstring).
 
     Args:
-        rand: the config's ``randomization`` dict.
+        rand: the ranges to normalise over: the config's ``randomization`` dict, or
+            :func:`normalisation_ranges` of it when the config has ``privileged_ranges``.
         hydraulic: the actuation model is "hydraulic" (else the first-order lag model).
         s: sim_twin.mjx_env.EnvState of one environment.
 

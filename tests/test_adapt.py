@@ -144,6 +144,11 @@ def test_finetune_config_fixes_the_profiles_effects():
     assert rand["release_delay_shift_s"] == 0.0 and rand["dead_band"] == [0.05, 0.05]
     assert fixed["lag_s"] == pytest.approx(NOMINAL_LAG_S) and unsupported == ["payload_drag"]
     assert cfg["env"]["randomization"]["valve_delay_s"] == [0.02, 0.06]  # the base config is left alone
+    # the critic's privileged inputs stay normalised over the base ranges, also after a second fine-tuning
+    kept = {"dead_band": [0.03, 0.07], "valve_delay_s": [0.02, 0.06], "lag_s": [0.07, 0.13],
+            "release_delay_mean_s": 0.258, "release_delay_std_s": 0.015, "release_delay_shift_s": 0.01}
+    assert new["env"]["privileged_ranges"] == kept
+    assert ad.finetune_config(new, prof)[0]["env"]["privileged_ranges"] == kept
 
 
 def test_console_flow_diagnosis_to_adapted_version(client, monkeypatch, tmp_path):

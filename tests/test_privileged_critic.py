@@ -141,3 +141,60 @@ def test_surgery_refuses_to_narrow_and_is_a_no_op_when_shapes_match():
               for k, v in old["critic_state_dict"].items()}
     with pytest.raises(ValueError, match="cannot narrow"):
         critic_surgery.widen_critic(old, narrow, shapes)
+
+
+def _deployed_cfg(mode: str) -> dict:
+    """The training config of the deployed policy version (policies/throw{mode}.json)."""
+    return json.loads((REPO / f"policies/throw{mode}.json").read_text())["training"]["config"]
+
+
+def _reset_priv(env_cfg: dict, n: int = 4, seed: int = 5):
+    core = ThrowEnvCore(EnvConfig.from_dict(env_cfg))
+    state, obs = jax.vmap(core.reset)(jax.random.split(jax.random.PRNGKey(seed), n))
+    return state, np.asarray(obs), np.asarray(jax.vmap(core.privileged)(state))
+
+
+@pytest.mark.parametrize("mode", ["2d", "3d"])
+def test_finetune_config_keeps_the_trained_normalisation(mode):
+    """A site fine-tuning config (ranges narrowed to [v, v]) normalises the critic's inputs over
+    the base config's ranges: v = 0.2 s valve delay reads (0.2 - mid) / half of [0.05, 0.22], not 0."""
+    from sim_twin.adapt import finetune_config
+    from sim_twin.profile import RealityProfile
+
+    base = _deployed_cfg(mode)
+    prof = RealityProfile.from_dict({"effects": [{"effect": "valve_delay", "params": {"delay_s": 0.2}}]})
+    cfg, fixed, _ = finetune_config(base, prof)
+    env, orig = cfg["env"], base["env"]["randomization"]
+    assert env["randomization"]["valve_delay_s"] == [0.2, 0.2] and fixed["valve_delay_s"] == pytest.approx(0.2)
+    assert env["privileged_ranges"]["valve_delay_s"] == orig["valve_delay_s"] == [0.05, 0.22]
+    state, obs, priv = _reset_priv(env)
+    sl = _slices()
+    lo, hi = orig["valve_delay_s"]
+    np.testing.assert_allclose(priv[:, sl["valve_delay"]], (0.2 - (lo + hi) / 2) / ((hi - lo) / 2), rtol=1e-5)
+    assert abs((0.2 - 0.135) / 0.085 - priv[0, 0]) < 1e-5
+    for name, key in (("dead_band", "dead_band"), ("valve_lag", "lag_s"), ("friction_scale", "friction_scale")):
+        lo, hi = orig[key]
+        np.testing.assert_allclose(priv[:, sl[name]], (fixed[key] - (lo + hi) / 2) / ((hi - lo) / 2), rtol=1e-5, atol=1e-6)
+    half = 2 * orig["release_delay_std_s"] + orig["release_delay_shift_s"]
+    x = np.asarray(state["delay_steps"]) * 0.01
+    np.testing.assert_allclose(priv[:, sl["release_delay"]][:, 0], (x - orig["release_delay_mean_s"]) / half, rtol=1e-5)
+    # without the kept ranges the same episodes' narrowed inputs read 0, and the policy observation is the same
+    del env["privileged_ranges"]
+    _, obs_plain, priv_plain = _reset_priv(env)
+    assert np.all(priv_plain[:, sl["valve_delay"]] == 0.0)
+    np.testing.assert_array_equal(obs_plain, obs)
+
+
+def test_normal_config_privileged_values_unchanged():
+    """No ``privileged_ranges`` (normal training), or ones equal to the randomisation: the
+    randomisation ranges, bit for bit."""
+    from sim_twin.privileged import privileged_observation, trained_ranges
+
+    env = _deployed_cfg("2d")["env"]
+    state, obs, priv = _reset_priv(env)
+    hydraulic = env["randomization"]["actuation"] == "hydraulic"
+    direct = np.asarray(jax.vmap(lambda s: privileged_observation(env["randomization"], hydraulic, s))(state))
+    np.testing.assert_array_equal(priv, direct)
+    _, obs_same, priv_same = _reset_priv({**env, "privileged_ranges": trained_ranges(env["randomization"])})
+    np.testing.assert_array_equal(priv_same, priv)
+    np.testing.assert_array_equal(obs_same, obs)
