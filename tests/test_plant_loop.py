@@ -75,12 +75,15 @@ def test_gripper_change_wakes_a_resting_plant_and_a_repeat_does_not(monkeypatch)
 def test_a_resting_plant_that_falls_behind_says_so(monkeypatch):
     twin, inbox, pub, ticks, stop, th = _running_loop(monkeypatch)
     try:
-        wait_for(lambda: inbox.resting, 20, "plant at rest")
-        assert all(s.machine_fault is None for s in pub.states[-5:])
+        # at rest and keeping time: on a loaded host the loop's first ticks may fall behind on their own
+        # (a fault it then clears, tests/test_plant.py::test_real_time_guard_faults_and_recovers); wait that out
+        wait_for(lambda: inbox.resting and len(pub.states) >= 5 and all(s.machine_fault is None for s in pub.states[-5:]),
+                 20, "plant at rest, no fault")
+        n0 = len(pub.states)
         pub.stall_s = 0.3  # the loop thread stalls 300 ms (a starved process)
-        wait_for(lambda: any((s.machine_fault or "").startswith("behind real time") for s in pub.states), 5,
+        wait_for(lambda: any((s.machine_fault or "").startswith("behind real time") for s in pub.states[n0:]), 5,
                  "real-time fault published")
-        worst = max(int(s.machine_fault.split()[-2]) for s in pub.states if s.machine_fault)
+        worst = max(int(s.machine_fault.split()[-2]) for s in pub.states[n0:] if s.machine_fault)
         assert worst >= 200, worst
     finally:
         stop.set()
