@@ -50,7 +50,7 @@ wild releases (10.0 and 5.4 m from the target, predicted 11.5 and 6.3 m); the la
 distance from the target of a throw that landed within 3 m was 1.2 m there, <= 0.9 m elsewhere.
 
 Cost: 0.5-0.9 ms per prediction (median per cell; max 1-5 ms, one 30 ms outlier on the loaded
-2-core development host; one MjData reused, the model loaded once per process); it runs only on a
+2-core development host; one MjData per thread, reused, the model loaded once per process); it runs only on a
 release flag, at most once per 80 ms control step.
 
 Availability: MuJoCo and the model come with the twin (slinger-twin), not with the light runtime
@@ -62,6 +62,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 from functools import lru_cache
 
 import numpy as np
@@ -179,14 +180,24 @@ def _machine_model():
     return load_model()
 
 
+_per_thread = threading.local()
+
+
 def shared_predictor() -> tuple[ReleasePredictor | None, str | None]:
-    """A predictor on the machine's MJCF (loaded once per process), or why there is none.
+    """A predictor on the machine's MJCF, or why there is none; built once per thread and reused
+    by every executor of that thread (a preview makes one executor per rollout, an evaluation one
+    per throw). One per thread because its MjData is scratch space that MuJoCo does not guard;
+    the model itself is loaded once per process.
 
     Returns:
         (predictor, None), or (None, reason) when MuJoCo, the twin package or the MJCF cannot be
         loaded (ImportError, OSError, ValueError of sim_twin.model.load_model).
     """
-    try:
-        return ReleasePredictor(_machine_model()), None
-    except (ImportError, OSError, ValueError) as e:
-        return None, f"{type(e).__name__}: {e}"
+    cached = getattr(_per_thread, "predictor", None)
+    if cached is None:
+        try:
+            cached = (ReleasePredictor(_machine_model()), None)
+        except (ImportError, OSError, ValueError) as e:
+            cached = (None, f"{type(e).__name__}: {e}")
+        _per_thread.predictor = cached
+    return cached
