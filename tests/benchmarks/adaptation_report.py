@@ -177,7 +177,8 @@ def main() -> int:
     ap.add_argument("--profiles", nargs="+", default=["heavy_load", "windy_site", "worn_gripper"])
     ap.add_argument("--modes", nargs="+", default=["2d", "3d"])
     ap.add_argument("--diag-throws", type=int, default=30)
-    ap.add_argument("--adapt-throws", type=int, default=20)
+    ap.add_argument("--adapt-throws", type=int, default=30,
+                    help="twin throws per distance and round (slinger adapt's own default)")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--eval-throws", type=int, default=40, help="per target, adapted version")
     ap.add_argument("--before-throws", type=int, default=20, help="per target, unadapted version")

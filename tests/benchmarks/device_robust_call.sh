@@ -9,12 +9,13 @@
 #
 # Steps: export the current checkpoints to ONNX; train 2D and 3D side by side on the GPU (MIN minutes,
 # ENVS envs each) while the site matrix of the exported policies runs on the CPU cores (W workers).
-# TRAIN=0 runs the matrices only.
+# TRAIN=0 runs the matrices only, MATRIX=0 the training only; MODES picks the modes (default "2d 3d"); SEEDS the
+# matrix seeds (default 0; seed s > 0 writes site_matrix_<mode>_seed<s>.json: start poses no other seed uses).
 set -u
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
-TAG=${TAG:-f}; MIN=${MIN:-7.0}; ENVS=${ENVS:-16384}
-for m in 2d 3d; do
+TAG=${TAG:-f}; MIN=${MIN:-7.0}; ENVS=${ENVS:-16384}; MODES=${MODES:-"2d 3d"}
+for m in $MODES; do
 python3 - <<PY || exit 1
 import json; from pathlib import Path
 from sim_twin.export import export_checkpoint
@@ -24,16 +25,18 @@ PY
 cp devwork/$m/checkpoint.pt devwork/$m/evaluated.pt
 done
 if [ "${TRAIN:-1}" = 1 ]; then
-for m in 2d 3d; do
+for m in $MODES; do
   timeout ${HARD:-540} python3 -m sim_twin.train --mode $m --config devwork/cfg_$m.json --num-envs $ENVS \
     --resume devwork/$m/checkpoint.pt --log-dir devwork/$m --max-minutes $MIN > devwork/train_$m.log 2>&1 &
 done
 fi
-for m in 2d 3d; do
-  timeout ${MHARD:-300} python3 -m sim_twin.evaluate --policy devwork/throw$m.onnx --matrix --workers ${W:-13} --out devwork/site_matrix_$m.json >> $OUT/matrix.log 2>&1
-  cp devwork/site_matrix_$m.json $OUT/ 2>/dev/null; tail -n 2 $OUT/matrix.log
-done
+for m in $MODES; do for s in ${SEEDS:-0}; do
+  [ "${MATRIX:-1}" = 1 ] || break
+  f=site_matrix_$m.json; [ "$s" = 0 ] || f=site_matrix_${m}_seed$s.json
+  timeout ${MHARD:-300} python3 -m sim_twin.evaluate --policy devwork/throw$m.onnx --matrix --seed $s --workers ${W:-13} --out devwork/$f >> $OUT/matrix.log 2>&1
+  cp devwork/$f $OUT/ 2>/dev/null; tail -n 2 $OUT/matrix.log
+done; done
 wait
-for m in 2d 3d; do cp devwork/$m/checkpoint.pt $OUT/ck$m.pt; cp devwork/$m/curve.csv $OUT/curve$m.csv; done
-tail -n 1 devwork/2d/curve.csv; tail -n 1 devwork/3d/curve.csv
+for m in $MODES; do cp devwork/$m/checkpoint.pt $OUT/ck$m.pt; cp devwork/$m/curve.csv $OUT/curve$m.csv; done
+for m in $MODES; do tail -n 1 devwork/$m/curve.csv; done
 grep -i -E "error|Traceback" devwork/train_*.log | head -5
