@@ -154,10 +154,11 @@ def local_fit(X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x = np.clip(X[g] + step, lo, hi)
     w = np.zeros(G)
     w[nb] = _basis(x[None])[0] @ pinv
-    if w @ T < 0.0:
+    if w @ T < -1e-9 * np.abs(T[nb]).max():
         # a chi-square is never negative: the quadratic does not describe this neighbourhood (a
         # sharp minimum at a grid point, e.g. passive friction's nominal on a seed-1 tuning case
-        # predicted -1591 and so "won" the resamples); the best grid point is the fit
+        # predicted -1591 and so "won" the resamples); the best grid point is the fit. The
+        # tolerance is rounding: a quadratic whose minimum is 0 evaluates to about -1e-15 there
         x, w = X[g].copy(), np.eye(G)[g]
     return x, w
 
