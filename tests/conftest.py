@@ -377,8 +377,7 @@ class SlingerUp:
     are set afterwards. Attributes: base_url, viser_port, data_dir.
     """
 
-    def __init__(self, tmp_path: Path, machines: int = 1, create_admin: bool = True, with_3d: bool = False,
-                 real_policies: bool = False):
+    def __init__(self, tmp_path: Path, machines: int = 1, create_admin: bool = True, real_policies: bool = False):
         """real_policies: run the repository's deployed policies (both modes) with the runtime's release
         check ON, as the main job does, instead of the non-throwing test policy."""
         from server.stack import slinger_command
@@ -390,10 +389,8 @@ class SlingerUp:
             self.env = {k: v for k, v in os.environ.items() if k != "SLINGER_RELEASE_CHECK_RADIUS_M"}
         else:
             policy = write_test_policy(tmp_path / "policies", "2d", release_after_bias=2.0)
-            # no 3D runtime policy unless asked (a missing file keeps the repo's throw3d.onnx out)
+            # no 3D runtime policy (a missing file keeps the repo's throw3d.onnx out)
             extra = ["--policy-2d", str(policy), "--policy-3d", str(tmp_path / "no-3d-policy.onnx")]
-        if with_3d and not real_policies:
-            extra[-1] = str(write_test_policy(tmp_path / "policies", "3d", name="test-linear-3d", release_after_bias=2.0))
         self.port, self.viser_port, zport = free_port(), free_port(), free_port()
         self.data_dir = tmp_path / "var"
         self.base_url = f"http://127.0.0.1:{self.port}"

@@ -30,13 +30,15 @@ for m in $MODES; do
     --resume devwork/$m/checkpoint.pt --log-dir devwork/$m --max-minutes $MIN > devwork/train_$m.log 2>&1 &
 done
 fi
+if [ "${MATRIX:-1}" = 1 ]; then
 for m in $MODES; do for s in ${SEEDS:-0}; do
-  [ "${MATRIX:-1}" = 1 ] || break
   f=site_matrix_$m.json; [ "$s" = 0 ] || f=site_matrix_${m}_seed$s.json
   timeout ${MHARD:-300} python3 -m sim_twin.evaluate --policy devwork/throw$m.onnx --matrix --seed $s --workers ${W:-13} --out devwork/$f >> $OUT/matrix.log 2>&1
   cp devwork/$f $OUT/ 2>/dev/null; tail -n 2 $OUT/matrix.log
 done; done
+fi
 wait
-for m in $MODES; do cp devwork/$m/checkpoint.pt $OUT/ck$m.pt; cp devwork/$m/curve.csv $OUT/curve$m.csv; done
-for m in $MODES; do tail -n 1 devwork/$m/curve.csv; done
+for m in $MODES; do
+  cp devwork/$m/checkpoint.pt $OUT/ck$m.pt; cp devwork/$m/curve.csv $OUT/curve$m.csv; tail -n 1 devwork/$m/curve.csv
+done
 grep -i -E "error|Traceback" devwork/train_*.log | head -5
