@@ -63,6 +63,10 @@ class ThrowOutcome:
         mcap_b64 = None
         if with_telemetry:
             meta = {"throw_id": self.throw_id, "mode": self.mode, "status": self.status, "policy_version": self.policy_version, "target_m": json.dumps(self.target_m.tolist())}
+            if self.impact_m is not None:  # the /impact point of the ROS 2 log (runtime.telemetry)
+                meta["impact_m"] = json.dumps(np.asarray(self.impact_m, dtype=float).tolist())
+                if self.impact is not None:
+                    meta["impact_stamp_s"] = repr(float(self.impact.impact_stamp_s))
             mcap_b64 = base64.b64encode(write_mcap(self.telemetry, meta)).decode("ascii")
         return ThrowResult(
             machine_id=machine_id,

@@ -1,4 +1,5 @@
-"""MCAP telemetry: write a recording, read it back with our reader and with plain mcap."""
+"""MCAP telemetry: write a recording, read it back with our reader and with plain mcap (the ROS 2
+decoders' checks are in tests/test_ros2_logs.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,11 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from runtime.telemetry import TelemetryRecorder, read_metadata, read_telemetry, write_mcap
+from pathlib import Path
+
+from runtime.telemetry import ROS2_TOPICS, TelemetryRecorder, read_metadata, read_telemetry, write_mcap
+
+DATA = Path(__file__).parent / "data"
 
 
 def _recording(n: int = 50) -> TelemetryRecorder:
@@ -43,17 +48,33 @@ def test_roundtrip_bytes_and_file(tmp_path):
     assert read_metadata(blob) == {"throw_id": "t9", "mode": "2d"}
 
 
-def test_file_is_standard_mcap_with_json_schemas():
+def test_file_is_standard_mcap_with_ros2_schemas():
     blob = write_mcap(_recording(5))
     reader = make_reader(io.BytesIO(blob))
     summary = reader.get_summary()
+    assert reader.get_header().profile == "ros2"
     topics = {ch.topic for ch in summary.channels.values()}
-    assert topics == {"/joint_states", "/references", "/valve_commands", "/gripper", "/payload", "/events"}
+    assert topics == set(ROS2_TOPICS)
     for ch in summary.channels.values():
-        assert ch.message_encoding == "json"
-        assert summary.schemas[ch.schema_id].encoding == "jsonschema"
-        json.loads(summary.schemas[ch.schema_id].data)
-    assert summary.statistics.message_count == 5 * 4 + 2
+        assert ch.message_encoding == "cdr"
+        assert summary.schemas[ch.schema_id].encoding == "ros2msg"
+        assert summary.schemas[ch.schema_id].name == ROS2_TOPICS[ch.topic][0]
+    counts = summary.statistics.channel_message_counts
+    by_topic = {summary.channels[cid].topic: n for cid, n in counts.items()}
+    assert by_topic["/joint_states"] == by_topic["/tf"] == 5 and by_topic["/robot_description"] == 1
+    assert by_topic["/throw/events"] == 2 and "/impact" not in by_topic  # no impact in the metadata
+
+
+def test_stored_json_layout_still_reads():
+    """A file in the JSON layout written before the ROS 2 one (tests/data, made by the old writer
+    from _recording()) reads back as it did."""
+    d = read_telemetry(DATA / "telemetry_json_v1.mcap")
+    e = read_telemetry(write_mcap(_recording()))
+    for key in ("t_s", "q", "qd", "qd_ref", "valve_u", "payload_t_s", "payload_pos_m", "payload_vel_mps", "event_t_s"):
+        np.testing.assert_allclose(d[key], e[key], atol=1e-9, err_msg=key)
+    for key in ("phase", "gripper_cmd", "gripper_open", "event_phase", "event_detail"):
+        assert list(d[key]) == list(e[key]), key
+    assert read_metadata(DATA / "telemetry_json_v1.mcap")["throw_id"] == "t9"
 
 
 def test_empty_recording_reads_back_empty():

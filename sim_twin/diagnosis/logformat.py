@@ -1,7 +1,8 @@
 """The logged-throw input format of the diagnosis, tolerant of what a real machine lacks.
 
 A throw is one MCAP file (JSON message encoding, ``jsonschema`` schemas; times ``t_s`` in
-seconds on one clock per throw). Topics and fields:
+seconds on one clock per throw), or the runtime's telemetry in ROS 2 form (CDR; read through
+``runtime.telemetry.read_messages`` into the same fields). Topics and fields:
 
 ==================  ========  ==================================================================
 topic               needed    fields
@@ -38,6 +39,8 @@ from pathlib import Path
 import numpy as np
 from mcap.reader import make_reader
 
+from runtime.telemetry import read_messages as read_telemetry_messages
+
 log = logging.getLogger(__name__)
 
 TOPICS = ("/joint_states", "/gripper_imu", "/valve_commands", "/gripper", "/references", "/payload", "/events")
@@ -50,7 +53,7 @@ class LogError(ValueError):
 
 
 def read_messages(source) -> dict[str, list[dict]]:
-    """All JSON messages of the known topics of one MCAP file (path or bytes), by topic.
+    """All messages of the known topics of one MCAP file (path or bytes), by topic, as JSON-layout dicts.
 
     Raises:
         LogError: not a readable MCAP file.
@@ -61,6 +64,8 @@ def read_messages(source) -> dict[str, list[dict]]:
     try:
         with (io.BytesIO(bytes(source)) if isinstance(source, (bytes, bytearray)) else open(source, "rb")) as f:
             for _schema, channel, message in make_reader(f).iter_messages(log_time_order=True):
+                if channel.message_encoding == "cdr":  # the runtime's telemetry in ROS 2 form
+                    return {**per, **read_telemetry_messages(source)}
                 if channel.topic in per:
                     per[channel.topic].append(json.loads(message.data))
     except FileNotFoundError:
