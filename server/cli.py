@@ -10,6 +10,7 @@ Subcommands::
     slinger router      the site's Zenoh router              (server.router)
     slinger plant       the simulated machine            (sim_twin.plant)
     slinger runtime     the runtime of one machine        (runtime.node)
+    slinger ros2-bridge a ROS 2 machine behind the machine interface (runtime.ros2.bridge)
     slinger train       train a policy                   (sim_twin.train)
     slinger evaluate    evaluate a policy                (sim_twin.evaluate)
     slinger diagnose    sim-to-real gap diagnosis        (sim_twin.diagnosis.cli)
@@ -37,6 +38,7 @@ DELEGATED = {
     "certs": ("server.certs", "a site's CA, TLS certificates and machine command keys"),
     "plant": ("sim_twin.plant", "the simulated machine"),
     "runtime": ("runtime.node", "the runtime of one machine"),
+    "ros2-bridge": ("runtime.ros2.bridge", "the ROS 2 machine bridge: a ROS 2 (rmw_zenoh) machine behind the machine interface"),
     "train": ("sim_twin.train", "train a throwing policy (needs the 'train' extra)"),
     "evaluate": ("sim_twin.evaluate", "evaluate a policy version"),
     "diagnose": ("sim_twin.diagnosis.cli", "sim-to-real gap diagnosis of logged throws (and 'diagnose benchmark')"),

@@ -298,6 +298,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--machine-id", required=True, help="machine id, [A-Za-z0-9_-]{1,64}")
     parser.add_argument("--profile", default=None, help="reality profile JSON (default: nominal machine)")
     parser.add_argument("--seed", type=int, default=None, help="seed of the start pose and release-delay jitter")
+    parser.add_argument("--ros2", nargs="?", const="", default=None, metavar="CONFIG",
+                        help="speak ROS 2 (rmw_zenoh) with the ROS 2 bridge's mapping file (default: identity mapping); "
+                             "the runtime then reaches this plant through `slinger ros2-bridge` (sim_twin.ros2_plant)")
     add_session_arguments(parser)
 
 
@@ -314,6 +317,8 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     sim = SimulatedMachine(profile, seed=args.seed)  # random collision-free pose, cabin_turn 0
     twin = TwinMachine(sim, machine_id, clock=time.monotonic)
     inbox = PlantInbox(machine_id)
+    if getattr(args, "ros2", None) is not None:
+        return _run_ros2(args, machine_id, zenoh_opts, twin, inbox, stop)
     with open_session(**zenoh_opts) as session:
         try:
             token, claim_token = claim_exclusive(session, keys.machine_alive(machine_id),
@@ -338,6 +343,29 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
                 sub.undeclare()
             pub_state.undeclare()
             pub_impact.undeclare()
+    log.info("plant %s stopped", machine_id)
+    return 0
+
+
+def _run_ros2(args, machine_id: str, zenoh_opts: dict, twin: TwinMachine, inbox: PlantInbox, stop: threading.Event) -> int:
+    """The plant loop behind ROS 2 topics (sim_twin.ros2_plant) instead of the machine interface."""
+    from runtime.ros2.config import BridgeConfig, ConfigError, load
+    from sim_twin.ros2_plant import RosPlantPorts
+
+    try:
+        config = load(args.ros2) if args.ros2 else BridgeConfig()
+    except ConfigError as e:
+        log.error("cannot start plant: %s", e)
+        return 2
+    with open_session(**zenoh_opts) as session:
+        ports = RosPlantPorts(session, config.model_copy(update={"simulated": True}), machine_id, inbox)
+        reset_sub = session.declare_subscriber(keys.sim_reset(machine_id), inbox.on_reset)
+        log.info("plant %s up as ROS 2 node /%s (ROS_DOMAIN_ID %d)", machine_id, ports.node.name, config.domain_id)
+        try:
+            _loop(twin, inbox, ports.state, ports.impact, stop)
+        finally:
+            reset_sub.undeclare()
+            ports.undeclare()
     log.info("plant %s stopped", machine_id)
     return 0
 

@@ -1,0 +1,305 @@
+"""The ROS 2 machine bridge: a machine that runs ROS 2 (rmw_zenoh) behind Slinger's machine interface.
+
+Machine side, beside the runtime (one per machine, runtime wheel)::
+
+    slinger ros2-bridge --machine-id m1 --config bridge.toml --connect tcp/127.0.0.1:7447
+    (slinger-ros2-bridge ... from the runtime wheel; python -m runtime.ros2.bridge ...)
+
+It joins the same Zenoh network as the runtime and the machine's ROS 2 nodes (run with
+``RMW_IMPLEMENTATION=rmw_zenoh_cpp``), shows itself as ROS 2 node ``slinger_bridge``
+(runtime.ros2.rmw_zenoh) and translates, with the topic, joint-name and unit mapping of its
+configuration (runtime.ros2.config):
+
+* ROS -> Slinger: each ``sensor_msgs/JointState`` on the joint-states topic becomes one
+  ``MachineState`` on keys.state(id) (stamped with this host's monotonic clock, which the runtime
+  shares), with the passive joints (same or own topic), the gripper state, the payload
+  (``nav_msgs/Odometry``, optional) and the machine's fault (``std_msgs/String``, optional); a
+  ``geometry_msgs/PointStamped`` on the impact topic becomes an ``ImpactReport`` (opening = when
+  the gripper state turned open; release position and velocity from the payload odometry then,
+  else the impact point and zero velocity);
+* Slinger -> ROS: ``ValveCommand`` -> ``std_msgs/Float64MultiArray`` (only the newest runtime
+  epoch, as the simulated machine does), ``GripperCommand`` -> ``std_msgs/Bool``.
+
+Safety stays in the runtime (watchdog, E-STOP latch, signed commands). A required ROS topic
+(joint states, passive joints, gripper state) older than ``stale_after_s`` stops the
+MachineStates: the runtime sees a machine-link loss (a running throw fails "machine link lost",
+throws are refused "machine offline"). When the runtime's valve commands stop for 0.1 s the bridge
+sends one neutral command (the machine must also hold its valves neutral on its own watchdog).
+The bridge holds the machine's liveliness token keys.machine_alive(id) (one bridge or plant per
+machine, runtime.zenoh_session.claim_exclusive); with TLS it uses the certificate ``plant-<id>``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from runtime.entrypoint import module_main, stop_on_signals
+from runtime.machine import ACTIVE_JOINTS, JOINT_NAMES, PASSIVE_JOINTS
+from runtime.protocol import keys
+from runtime.protocol.messages import GripperCommand, ImpactReport, MachineState, ValidationError, ValveCommand, decode, encode
+from runtime.ros2 import types as rt
+from runtime.ros2.config import BridgeConfig, ConfigError, load
+from runtime.zenoh_session import Claimed, add_session_arguments, claim_exclusive, open_session, session_options
+
+log = logging.getLogger(__name__)
+
+VALVE_SILENCE_S = 0.1
+"""Runtime silence (s) after which the bridge sends one neutral valve command."""
+EXIT_ALREADY_CLAIMED = 3
+
+
+class MachineBridge:
+    """The translation, without I/O (tests drive it directly; :func:`run` wires it to Zenoh).
+
+    Args:
+        machine_id: the Slinger machine id.
+        config: the mapping.
+        send_state / send_impact: called with a MachineState / ImpactReport (Slinger side).
+        send_valves / send_gripper: called with a ROS Float64MultiArray / Bool (ROS side).
+        clock: monotonic seconds (the runtime's clock); wall: Unix seconds (ROS header stamps).
+    """
+
+    def __init__(self, machine_id: str, config: BridgeConfig, send_state: Callable, send_impact: Callable,
+                 send_valves: Callable, send_gripper: Callable, clock: Callable[[], float] = time.monotonic,
+                 wall: Callable[[], float] = time.time):
+        self.machine_id = keys.validate_machine_id(machine_id)
+        self.config = config
+        self.send_state, self.send_impact, self.send_valves, self.send_gripper = send_state, send_impact, send_valves, send_gripper
+        self.clock, self.wall = clock, wall
+        self.lock = threading.Lock()
+        self.rx: dict[str, float] = {}  # topic role -> monotonic receive time
+        self.active: tuple[list[float], list[float]] | None = None
+        self.passive: tuple[list[float], list[float]] | None = None
+        self.gripper_open: bool | None = None
+        self.payload_attached: bool | None = None
+        self.payload: tuple[list[float], list[float]] | None = None
+        self.fault: str | None = None
+        self.opening: tuple[float, list[float] | None, list[float] | None] | None = None
+        self.epoch: int | None = None
+        self.valve_rx_s = -np.inf
+        self.valves_neutral = True
+        self.stale: str | None = None  # the stale topic, logged once per episode
+        self.dropped = 0
+
+    # --- ROS -> Slinger -------------------------------------------------------------------
+    def on_joint_state(self, msg) -> None:
+        """A JointState on the joint-states topic: the active joints (and the passive ones if
+        they share it); publishes one MachineState when every required topic is fresh."""
+        now = self.clock()
+        active = self.config.to_slinger(ACTIVE_JOINTS, list(msg.name), msg.position, msg.velocity)
+        if active is None:
+            self._drop(f"JointState on {self.config.topics.joint_states} lacks a mapped active joint or is not finite")
+            return
+        with self.lock:
+            self.active, self.rx["joint_states"] = active, now
+            if not self.config.topics.passive_joint_states:
+                self._take_passive(msg, now)
+            state = self._state(now)
+        if state is not None:
+            self.send_state(state)
+
+    def on_passive_joint_state(self, msg) -> None:
+        """A JointState on the separate passive-joint topic (gripper IMU angles)."""
+        with self.lock:
+            self._take_passive(msg, self.clock())
+
+    def _take_passive(self, msg, now: float) -> None:
+        passive = self.config.to_slinger(PASSIVE_JOINTS, list(msg.name), msg.position, msg.velocity)
+        if passive is None:
+            self._drop(f"JointState on {self.config.passive_topic} lacks gripper_pitch/gripper_roll or is not finite")
+            return
+        self.passive, self.rx["passive"] = passive, now
+
+    def on_gripper_state(self, msg) -> None:
+        now = self.clock()
+        with self.lock:
+            opened = bool(msg.data)
+            if opened and self.gripper_open is False:  # the opening: the payload is free
+                self.opening = (now, *(self.payload or (None, None)))
+            self.gripper_open, self.rx["gripper_state"] = opened, now
+
+    def on_payload_attached(self, msg) -> None:
+        with self.lock:
+            self.payload_attached, self.rx["payload_attached"] = bool(msg.data), self.clock()
+
+    def on_payload(self, msg) -> None:
+        p, v = msg.pose.pose.position, msg.twist.twist.linear
+        pos, vel = [p.x, p.y, p.z], [v.x, v.y, v.z]
+        if not all(np.isfinite(pos + vel)):
+            self._drop("non-finite payload odometry")
+            return
+        with self.lock:
+            self.payload, self.rx["payload"] = (pos, vel), self.clock()
+
+    def on_fault(self, msg) -> None:
+        with self.lock:
+            self.fault = (msg.data or None) and msg.data[:200]
+
+    def on_impact(self, msg) -> None:
+        """A PointStamped on the impact topic: one ImpactReport (stamps on this host's monotonic clock)."""
+        pt = [msg.point.x, msg.point.y, msg.point.z]
+        if not all(np.isfinite(pt)):
+            self._drop("non-finite impact point")
+            return
+        now = self.clock()
+        t_hit = now - max(0.0, self.wall() - rt.stamp_s(msg.header.stamp))
+        with self.lock:
+            opened_s, pos, vel = self.opening or (t_hit, None, None)
+        report = ImpactReport(machine_id=self.machine_id, stamp_s=now, impact_pos_m=pt, opening_stamp_s=opened_s,
+                              impact_stamp_s=t_hit, release_pos_m=pos or pt, release_vel_mps=vel or [0.0, 0.0, 0.0])
+        self.send_impact(report)
+
+    def _state(self, now: float) -> MachineState | None:
+        """The MachineState now, or None while a required topic is stale (logged once)."""
+        limit = self.config.stale_after_s
+        required = ["joint_states", "passive", "gripper_state"] + (["payload_attached"] if self.config.topics.payload_attached else [])
+        stale = next((r for r in required if now - self.rx.get(r, -np.inf) > limit), None)
+        if stale is not None:
+            if stale != self.stale:
+                log.warning("ROS topic for %s silent for more than %.0f ms: no machine state (machine link lost)", stale, limit * 1e3)
+            self.stale = stale
+            return None
+        if self.stale is not None:
+            log.info("ROS topics fresh again: machine states resume")
+            self.stale = None
+        q = self.active[0] + self.passive[0]
+        qd = self.active[1] + self.passive[1]
+        attached = self.payload_attached if self.config.topics.payload_attached else not self.gripper_open
+        fresh_payload = self.payload is not None and now - self.rx.get("payload", -np.inf) <= limit
+        return MachineState(machine_id=self.machine_id, stamp_s=now, q=q, qd=qd, gripper_open=bool(self.gripper_open),
+                            payload_attached=bool(attached), payload_pos_m=self.payload[0] if fresh_payload else None,
+                            payload_vel_mps=self.payload[1] if fresh_payload else None, simulated=self.config.simulated,
+                            machine_fault=self.fault)
+
+    def _drop(self, why: str) -> None:
+        self.dropped += 1
+        if self.dropped in (1, 10, 100) or self.dropped % 1000 == 0:
+            log.warning("dropping ROS message (%d so far): %s", self.dropped, why)
+
+    # --- Slinger -> ROS -------------------------------------------------------------------
+    def _decode(self, cls, payload: bytes):
+        try:
+            msg = decode(cls, payload)
+        except ValidationError as e:
+            log.warning("dropping malformed %s: %s", cls.__name__, e.errors()[0]["msg"] if e.errors() else e)
+            return None
+        if msg.machine_id != self.machine_id:
+            log.warning("dropping %s for machine %r", cls.__name__, msg.machine_id)
+            return None
+        return msg
+
+    def on_valve_command(self, payload: bytes) -> None:
+        """A ValveCommand of the runtime -> the ROS valve array (newest epoch only)."""
+        msg = self._decode(ValveCommand, payload)
+        if msg is None:
+            return
+        with self.lock:
+            if self.epoch is not None and (msg.epoch is None or msg.epoch < self.epoch):
+                return
+            if msg.epoch is not None and msg.epoch != self.epoch:
+                if self.epoch is not None:
+                    log.warning("a second runtime (epoch %d) took over from epoch %d", msg.epoch, self.epoch)
+                self.epoch = msg.epoch
+            self.valve_rx_s, self.valves_neutral = self.clock(), not any(msg.u)
+        self.send_valves(rt.float64_array(self.config.valve_array(msg.u), _valve_labels(self.config)))
+
+    def on_gripper_command(self, payload: bytes) -> None:
+        msg = self._decode(GripperCommand, payload)
+        if msg is not None:
+            self.send_gripper(rt.msg(rt.BOOL, data=bool(msg.open)))
+
+    def check(self) -> None:
+        """Periodic: one neutral valve command when the runtime fell silent; log a silent machine."""
+        now = self.clock()
+        with self.lock:
+            silent = not self.valves_neutral and now - self.valve_rx_s > VALVE_SILENCE_S
+            if silent:
+                self.valves_neutral = True
+            if now - self.rx.get("joint_states", -np.inf) > self.config.stale_after_s and self.stale != "joint_states":
+                self.stale = "joint_states"
+                log.warning("ROS topic %s silent: no machine state (machine link lost)", self.config.topics.joint_states)
+        if silent:
+            log.warning("no valve command for %.0f ms: neutral valves sent", VALVE_SILENCE_S * 1e3)
+            self.send_valves(rt.float64_array(self.config.valve_array([0.0] * 4), _valve_labels(self.config)))
+
+
+def _valve_labels(config: BridgeConfig) -> list[str]:
+    names = [""] * config.valve_array_size
+    for j in ACTIVE_JOINTS:
+        names[config.valve(j).index] = j
+    return names
+
+
+def build_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--machine-id", required=True, help="machine id, [A-Za-z0-9_-]{1,64}")
+    parser.add_argument("--config", type=Path, default=None, help="topic/joint/unit mapping (.toml, .json, .yaml); default: identity")
+    add_session_arguments(parser)
+
+
+def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
+    """Run the bridge until SIGINT/SIGTERM (or ``stop``). Returns the exit code (2: bad
+    arguments or configuration, 3: the machine already has a bridge or plant)."""
+    from runtime.ros2.rmw_zenoh import RosNode
+
+    try:
+        machine_id = keys.validate_machine_id(args.machine_id)
+        config = load(args.config) if args.config else BridgeConfig()
+        zenoh_opts = session_options(args, f"plant-{machine_id}", [machine_id])
+    except (ValueError, OSError, ConfigError) as e:
+        log.error("cannot start the ROS 2 bridge: %s", e)
+        return 2
+    stop = stop_on_signals(stop)
+    with open_session(**zenoh_opts) as session:
+        try:
+            token, claim_token = claim_exclusive(session, keys.machine_alive(machine_id), lambda c: keys.machine_claim(machine_id, c))
+        except Claimed as e:
+            log.error("machine %s already has a bridge or plant (%s): not starting a second one", machine_id, e)
+            return EXIT_ALREADY_CLAIMED
+        node = RosNode(session, config.node_name, config.namespace, config.domain_id)
+        t = config.topics
+        pub_valves = node.publisher(t.valve_command, rt.FLOAT64_MULTI_ARRAY)
+        pub_gripper = node.publisher(t.gripper_command, rt.BOOL)
+        pub_state = session.declare_publisher(keys.state(machine_id))
+        pub_impact = session.declare_publisher(keys.impact(machine_id))
+        bridge = MachineBridge(machine_id, config, lambda m: pub_state.put(encode(m)), lambda m: pub_impact.put(encode(m)),
+                               pub_valves.publish, pub_gripper.publish)
+        node.subscribe(t.joint_states, rt.JOINT_STATE, bridge.on_joint_state)
+        if t.passive_joint_states:
+            node.subscribe(t.passive_joint_states, rt.JOINT_STATE, bridge.on_passive_joint_state)
+        node.subscribe(t.gripper_state, rt.BOOL, bridge.on_gripper_state)
+        for topic, typename, handler in ((t.payload_attached, rt.BOOL, bridge.on_payload_attached), (t.payload, rt.ODOMETRY, bridge.on_payload),
+                                         (t.fault, rt.STRING, bridge.on_fault), (t.impact, rt.POINT_STAMPED, bridge.on_impact)):
+            if topic:
+                node.subscribe(topic, typename, handler)
+        subs = [session.declare_subscriber(keys.valve_cmd(machine_id), lambda s: bridge.on_valve_command(s.payload.to_bytes())),
+                session.declare_subscriber(keys.gripper_cmd(machine_id), lambda s: bridge.on_gripper_command(s.payload.to_bytes()))]
+        log.info("ROS 2 bridge %s up: node /%s on ROS_DOMAIN_ID %d, joint states from %s", machine_id, config.node_name,
+                 config.domain_id, t.joint_states)
+        try:
+            while not stop.wait(0.02):
+                bridge.check()
+        finally:
+            for s in subs:
+                s.undeclare()
+            node.close()
+            pub_state.undeclare()
+            pub_impact.undeclare()
+            token.undeclare()
+            claim_token.undeclare()
+    log.info("ROS 2 bridge %s stopped", machine_id)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return module_main("slinger ros2-bridge", __doc__, build_parser, run, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
