@@ -187,8 +187,9 @@ class ConfigError(ValueError):
     """The bridge configuration file cannot be used (the message says which and why)."""
 
 
-def load(path: str | Path) -> BridgeConfig:
-    """Read a bridge configuration (``.toml``, ``.json``, ``.yaml`` / ``.yml``).
+def load(path: str | Path, model: type[BridgeConfig] = BridgeConfig) -> BridgeConfig:
+    """Read a bridge configuration (``.toml``, ``.json``, ``.yaml`` / ``.yml``) into ``model``
+    (BridgeConfig or a subclass with more keys, e.g. the diagnosis' bag mapping).
 
     Raises:
         ConfigError: unreadable file, unknown suffix, syntax error or an invalid mapping.
@@ -206,7 +207,7 @@ def load(path: str | Path) -> BridgeConfig:
             data = YAML(typ="safe").load(text)
         else:
             raise ConfigError(f"{path}: use a .toml, .json or .yaml file")
-        return BridgeConfig.model_validate(data or {})
+        return model.model_validate(data or {})
     except ConfigError:
         raise
     except ValidationError as e:

@@ -10,6 +10,9 @@
                                                                              simulated machine
     slinger diagnose convert --mapping M.json --impacts I.csv --out DIR LOG...
                                                                              another machine's CSV/MCAP
+    slinger diagnose convert --mapping bridge.toml --impacts I.csv --out DIR BAG...
+                                                                             a ROS 2 machine's rosbag2
+                                                                             bags (sim_twin.diagnosis.rosbag)
     slinger diagnose effects                                                 list the effects library
 
 DATASET is a directory in the sim_twin.diagnosis.dataset format (index.json + throws/*.mcap,
@@ -33,7 +36,7 @@ log = logging.getLogger(__name__)
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("what", help="a dataset directory, or one of: benchmark, generate, convert, effects")
-    parser.add_argument("inputs", nargs="*", type=Path, help="convert: the throw logs (CSV or MCAP, one per throw)")
+    parser.add_argument("inputs", nargs="*", type=Path, help="convert: the throw logs (CSV or MCAP, or rosbag2 bags: one per throw)")
     parser.add_argument("--out", type=Path, default=None, help="output directory (diagnosis: default reports/diagnosis/<dataset name>; "
                         "benchmark: JSON file, default reports/diagnosis_benchmark.json; generate/convert: dataset directory)")
     parser.add_argument("--seed", type=int, default=0, help="split / case / throw seed")
@@ -50,7 +53,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", type=Path, default=None, help="generate: reality profile JSON (default nominal)")
     parser.add_argument("--real-log", action="store_true", help="generate: logs like a real machine's (noise, no payload channel, no open flag, missing impacts)")
     parser.add_argument("--keep-data", type=Path, default=None, help="benchmark: keep the generated datasets here")
-    parser.add_argument("--mapping", type=Path, default=None, help="convert: column mapping JSON (sim_twin.diagnosis.convert)")
+    parser.add_argument("--mapping", type=Path, default=None, help="convert: column mapping JSON (sim_twin.diagnosis.convert), or for rosbag2 the ROS 2 bridge mapping (sim_twin.diagnosis.rosbag)")
     parser.add_argument("--impacts", type=Path, default=None, help="convert: CSV with throw_id, target_x_m, target_y_m, impact_x_m, impact_y_m")
 
 
@@ -67,11 +70,16 @@ def run(args: argparse.Namespace) -> int:
         if args.what == "generate":
             return _generate(args)
         if args.what == "convert":
+            from sim_twin.diagnosis import rosbag
             from sim_twin.diagnosis.convert import convert
 
             if not (args.mapping and args.impacts and args.out and args.inputs):
                 raise ValueError("convert needs --mapping, --impacts, --out and the throw logs")
-            log.info("dataset written: %s", convert(args.inputs, args.mapping, args.impacts, args.out))
+            bags = [rosbag.is_rosbag(p) for p in args.inputs]
+            if any(bags) and not all(bags):
+                raise ValueError("convert takes either rosbag2 bags or CSV/MCAP logs, not both")
+            index = (rosbag.convert if all(bags) else convert)(args.inputs, args.mapping, args.impacts, args.out)
+            log.info("dataset written: %s", index)
             return 0
         if args.what == "benchmark":
             from sim_twin.diagnosis import benchmark

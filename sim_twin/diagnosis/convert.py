@@ -1,4 +1,5 @@
-"""Convert another machine's logs (generic CSV or MCAP) into a diagnosis dataset.
+"""Convert another machine's logs (generic CSV or MCAP) into a diagnosis dataset (rosbag2 bags:
+:mod:`sim_twin.diagnosis.rosbag`).
 
 A mapping (JSON) says where each needed quantity is and how to scale it::
 
@@ -109,6 +110,27 @@ def convert_throw(path: Path, mapping: dict) -> tuple[list[dict], list[dict]]:
     return rows, []
 
 
+def read_targets(impacts_csv: Path) -> dict[str, tuple[list[float], list[float] | None]]:
+    """Targets and measured impacts by throw id from ``throw_id, target_x_m, target_y_m,
+    impact_x_m, impact_y_m`` (machine frame, m; empty impact cells: None).
+
+    Raises:
+        ConvertError: unreadable file, a missing column or a value that is not a number.
+    """
+    targets = {}
+    try:
+        with open(impacts_csv, newline="") as f:
+            for row in csv.DictReader(f):
+                ix, iy = (row.get("impact_x_m") or "").strip(), (row.get("impact_y_m") or "").strip()
+                targets[row["throw_id"]] = ([float(row["target_x_m"]), float(row["target_y_m"]), 0.0],
+                                            [float(ix), float(iy), 0.0] if ix and iy else None)
+    except OSError as e:
+        raise ConvertError(f"{impacts_csv}: {e}") from e
+    except (KeyError, ValueError, TypeError) as e:
+        raise ConvertError(f"{impacts_csv}: needs throw_id, target_x_m, target_y_m, impact_x_m, impact_y_m ({e})") from e
+    return targets
+
+
 def convert(inputs: list[Path], mapping_path: Path, impacts_csv: Path, out_dir: Path) -> Path:
     """Convert throw files into a dataset directory; returns its index path.
 
@@ -119,15 +141,7 @@ def convert(inputs: list[Path], mapping_path: Path, impacts_csv: Path, out_dir: 
         mapping = json.loads(Path(mapping_path).read_text())
     except (OSError, json.JSONDecodeError) as e:
         raise ConvertError(f"mapping {mapping_path}: {e}") from e
-    targets = {}
-    with open(impacts_csv, newline="") as f:
-        for row in csv.DictReader(f):
-            try:
-                ix, iy = (row.get("impact_x_m") or "").strip(), (row.get("impact_y_m") or "").strip()
-                targets[row["throw_id"]] = ([float(row["target_x_m"]), float(row["target_y_m"]), 0.0],
-                                            [float(ix), float(iy), 0.0] if ix and iy else None)
-            except (KeyError, ValueError) as e:
-                raise ConvertError(f"{impacts_csv}: needs throw_id, target_x_m, target_y_m, impact_x_m, impact_y_m ({e})") from e
+    targets = read_targets(impacts_csv)
     spec = RealLogSpec(open_flag=bool(mapping.get("open")), payload_channel=False)
     out = []
     for path in inputs:
