@@ -128,7 +128,8 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
     )
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes,
-                       overrides={("POST", "/api/policies"): settings.max_policy_upload_bytes})
+                       overrides={("POST", "/api/policies"): settings.max_policy_upload_bytes,
+                                  ("POST", "/api/diagnosis/uploads"): settings.max_bag_upload_bytes})
     app.add_middleware(SecurityHeaders, script_hashes=inline_script_hashes(WEB_DIR) if WEB_DIR.is_dir() else [])
     for module in (health, auth, users, machines, throws, previews, policies, scene, live, diagnosis, adaptation, jobs):
         app.include_router(module.router)

@@ -44,7 +44,7 @@ class Settings(BaseSettings):
         cookie_secure: always mark the session cookie Secure (it is anyway when the request came
             over HTTPS: scheme https or ``X-Forwarded-Proto: https``).
         max_body_bytes: largest request body, bytes (413 above); policy uploads have
-            ``max_policy_upload_bytes``.
+            ``max_policy_upload_bytes``, rosbag2 uploads for a diagnosis ``max_bag_upload_bytes``.
         login_failures_per_user / login_failures_per_address: failed log-ins allowed per window
             before 429 (``limits`` notation, server.login_guard).
         login_workers / login_max_pending: threads checking passwords (default a quarter of the
@@ -96,6 +96,7 @@ class Settings(BaseSettings):
     cookie_secure: bool = False
     max_body_bytes: int = Field(1 << 20, ge=1024)
     max_policy_upload_bytes: int = Field(64 << 20, ge=1024)
+    max_bag_upload_bytes: int = Field(512 << 20, ge=1024)
     login_failures_per_user: str = "5/5minutes"
     login_failures_per_address: str = "20/5minutes"
     login_workers: int = Field(default_factory=lambda: max(1, (os.cpu_count() or 2) // 4), ge=1, le=16)

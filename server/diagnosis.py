@@ -6,6 +6,7 @@ landed throws with telemetry to a dataset directory (sim_twin.diagnosis.dataset 
 ``<data_dir>/diagnosis/<run_id>/`` (workers on other hosts share the data dir)::
 
     status.json   {"id", "job_id", "machine_id", "status": queued|running|done|failed, "error", ...}
+    upload/       an uploaded rosbag2 set (server.diagnosis_upload), converted into dataset/
     dataset/      index.json + throws/*.mcap
     report/       report.json, profile_fitted.json, where.png, which.png, how_far.png
 
@@ -114,8 +115,36 @@ class DiagnosisRuns:
             status["job_id"] = self._job_id
         return status
 
-    def run(self, run_id: str, machine_id: str, limit: int, workers: int | None, progress) -> dict:
-        """The job's body (in a worker): export, diagnose, write status.json; returns the status.
+    def start_upload(self, machine_id: str, bags: list[tuple[str, bytes]], mapping: tuple[str, bytes], impacts: bytes,
+                     requested_by: str | None = None, workers: int | None = None, max_bytes: int | None = None) -> dict:
+        """Store an uploaded set of rosbag2 bags (server.diagnosis_upload) and submit a diagnosis
+        job that converts and diagnoses them; returns the initial status.
+
+        Raises:
+            DiagnosisBusy: a run is queued or in progress.
+            server.diagnosis_upload.UploadError: the upload cannot be used (nothing is kept).
+        """
+        from server.diagnosis_upload import store_upload
+
+        if any(st.get("status") in ("queued", "running") for st in self.list()):
+            raise DiagnosisBusy("a diagnosis is already running; wait for it to finish")
+        run_id = f"{datetime.now(UTC):%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:6]}"
+        ids = store_upload(self.root / run_id / "upload", bags, mapping, impacts, max_bytes=max_bytes)
+        status = {"id": run_id, "job_id": None, "machine_id": machine_id, "throws": len(ids), "status": "queued",
+                  "error": None, "started_at": _now(), "finished_at": None, "requested_by": requested_by,
+                  "verdict": None, "source": "rosbag2 upload"}
+        self._write_status(self.root / run_id, status)
+        self._job_id = self.jobs.submit("diagnosis", {"run_id": run_id, "machine_id": machine_id, "limit": len(ids),
+                                                      "workers": workers or self.workers, "upload": True},
+                                        subject=machine_id, requested_by=requested_by)
+        status = self._read_status(self.root / run_id) or status
+        if status.get("job_id") is None:
+            status["job_id"] = self._job_id
+        return status
+
+    def run(self, run_id: str, machine_id: str, limit: int, workers: int | None, progress, upload: bool = False) -> dict:
+        """The job's body (in a worker): export (or, for an upload, convert the bags:
+        sim_twin.diagnosis.rosbag), diagnose, write status.json; returns the status.
 
         Raises:
             server.jobs.JobCancelled: from ``progress`` (status.json says failed: cancelled).
@@ -128,8 +157,15 @@ class DiagnosisRuns:
         status.update(status="running", error=None)
         self._write_status(run_dir, status)
         try:
-            progress(0.0, "exporting throws")
-            status["throws"] = self.export(machine_id, limit, run_dir / "dataset")
+            if upload:
+                from server.diagnosis_upload import uploaded
+                from sim_twin.diagnosis import rosbag
+
+                progress(0.0, "converting the uploaded bags")
+                rosbag.convert(*uploaded(run_dir / "upload"), run_dir / "dataset")
+            else:
+                progress(0.0, "exporting throws")
+                status["throws"] = self.export(machine_id, limit, run_dir / "dataset")
             progress(0.1, f"diagnosing {status['throws']} throws")
             report = diagnose(run_dir / "dataset", run_dir / "report", workers=workers)
             status.update(status="done", verdict=report["verdict"])

@@ -128,3 +128,60 @@ def test_bad_bags_and_mappings_are_clear_errors(nominal: Path, tmp_path: Path):
     with pytest.raises(ConvertError, match="has no row"):
         rosbag.convert([tmp_path / "t1"], tmp_path / "site.json", tmp_path / "impacts.csv", tmp_path / "ds")
     assert not (tmp_path / "ds").exists()
+
+
+def _zip_dir(d: Path) -> bytes:
+    import io
+    import zipfile
+
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for p in sorted(d.iterdir()):
+            zf.write(p, f"{d.name}/{p.name}")
+    return buf.getvalue()
+
+
+def test_bags_uploaded_through_the_api_are_diagnosed(client, nominal: Path, tmp_path: Path):
+    """POST /api/diagnosis/uploads: single MCAP files and zipped rosbag2 directories (sqlite3),
+    the mapping and the impacts CSV; converted and diagnosed by the worker."""
+    from server.diagnosis import DiagnosisRuns
+
+    runs = DiagnosisRuns(client.app.state.sessions, client.app.state.settings.data_dir, workers=1, jobs=client.app.state.jobs)
+    client.app.state.diagnosis_runs = runs
+    throws, _ = dataset.load(nominal)
+    files = []
+    for k, th in enumerate(throws):
+        d = tmp_path / "bags" / th.throw_id
+        write_bag(d, th, StoragePlugin.MCAP if k % 2 == 0 else StoragePlugin.SQLITE3)
+        if k % 2 == 0:
+            (mcap,) = d.glob("*.mcap")
+            files.append(("bags", (f"{th.throw_id}.mcap", mcap.read_bytes(), "application/octet-stream")))
+        else:
+            files.append(("bags", (f"{th.throw_id}.zip", _zip_dir(d), "application/zip")))
+    impacts = "throw_id,target_x_m,target_y_m,impact_x_m,impact_y_m\n" + "".join(
+        f"{th.throw_id},{th.target_m[0]},{th.target_m[1]},{th.impact_m[0]},{th.impact_m[1]}\n" for th in throws)
+    mapping = ("mapping", ("site.json", json.dumps(MAPPING).encode(), "application/json"))
+
+    def post(bag_files, impacts_text=impacts, mapping_part=mapping):
+        return client.post("/api/diagnosis/uploads", data={"machine_id": "ros-site"},
+                           files=[*bag_files, mapping_part, ("impacts", ("impacts.csv", impacts_text.encode(), "text/csv"))])
+
+    # refused before any work, with the reason; nothing is kept
+    assert "no row for throws" in post(files, impacts.splitlines()[0] + "\n" + "".join(impacts.splitlines(True)[2:])).json()["detail"]
+    assert "a bag is a" in post([("bags", ("t.txt", b"x", "text/plain"))]).json()["detail"]
+    assert "not a zip" in post([("bags", (f"{throws[1].throw_id}.zip", b"PK-not", "application/zip"))]).json()["detail"]
+    assert post(files, mapping_part=("mapping", ("site.ini", b"", "text/plain"))).status_code == 422
+    assert "two bags" in post(files + files[:1]).json()["detail"]
+    assert runs.list() == []
+    client.cookies.clear()
+    assert post(files).status_code == 401
+    from tests.conftest import ADMIN, login
+
+    login(client, *ADMIN)
+    r = post(files)
+    assert r.status_code == 202, r.text
+    run_id = r.json()["id"]
+    runs.wait(600)
+    st = client.get(f"/api/diagnosis/runs/{run_id}").json()
+    assert st["status"] == "done", st.get("error")
+    assert st["source"] == "rosbag2 upload" and st["machine_id"] == "ros-site" and st["report"]["throws"] == len(throws)

@@ -14,7 +14,8 @@ Kinds and parameters:
 * ``catalog``: none -> ``{"effects": {name: description}}`` (sim_twin.effects).
 * ``evaluation``: ``version_id``, ``distances_m``, ``throws`` -> the evaluation report; also
   written to the policy version's row (``evaluation_status``, ``metrics``).
-* ``diagnosis``: ``run_id``, ``machine_id``, ``limit``, ``workers`` -> the run's status
+* ``diagnosis``: ``run_id``, ``machine_id``, ``limit``, ``workers``, ``upload`` (convert the run's
+  uploaded rosbag2 set instead of exporting stored throws) -> the run's status
   (server.diagnosis: files under ``<data_dir>/diagnosis/<run_id>``).
 * ``adaptation``: ``run_id`` and the inputs server.adaptation.AdaptationRuns.start checked ->
   the run's status; the adapted policy becomes a version (its evaluation is another job).
@@ -170,7 +171,7 @@ def run_diagnosis(ctx: WorkerContext, params: dict, progress) -> dict:
     from server.diagnosis import DiagnosisRuns
 
     return DiagnosisRuns(ctx.sessions, ctx.data_dir).run(params["run_id"], params["machine_id"], params["limit"],
-                                                         params.get("workers"), progress)
+                                                         params.get("workers"), progress, upload=bool(params.get("upload")))
 
 
 def run_adaptation(ctx: WorkerContext, params: dict, progress) -> dict:

@@ -1,11 +1,12 @@
-"""Sim-to-real gap diagnosis: run one on a machine's stored throws, list runs, read a report and
-its plots (server.diagnosis keeps everything as files under the data dir)."""
+"""Sim-to-real gap diagnosis: run one on a machine's stored throws or on uploaded rosbag2 bags of a
+ROS 2 machine, list runs, read a report and its plots (server.diagnosis keeps everything as files
+under the data dir)."""
 
 from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
@@ -63,6 +64,46 @@ def create_run(body: DiagnosisCreate, runs: RunsDep, user: OperatorDep) -> dict:
     except DiagnosisBusy as e:
         raise HTTPException(409, str(e)) from e
     except ValueError as e:
+        raise HTTPException(422, str(e)) from e
+
+
+@router.post("/uploads", status_code=202, responses={409: {"description": "a diagnosis is running"},
+                                                     413: {"description": "upload too large"},
+                                                     422: {"description": "unusable upload (the detail says why)"}})
+async def upload_bags(
+    request: Request,
+    runs: RunsDep,
+    user: OperatorDep,
+    bags: list[UploadFile] = File(..., description="one bag per throw: .mcap, .db3, or a .zip of a rosbag2 directory; "
+                                                   "the file's stem is the throw id"),
+    mapping: UploadFile = File(..., description="the ROS 2 mapping (.toml, .json, .yaml; sim_twin.diagnosis.rosbag)"),
+    impacts: UploadFile = File(..., description="CSV: throw_id, target_x_m, target_y_m, impact_x_m, impact_y_m"),
+    machine_id: str = Form("external", min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$",
+                           description="whose throws (a label of the run; need not be a machine of this fleet)"),
+) -> dict:
+    """Diagnose a ROS 2 machine's rosbag2 recordings: store them, then convert and diagnose in a
+    worker (GET /runs/{id} follows it; a conversion problem fails the run with its reason)."""
+    from server.diagnosis_upload import UploadError
+
+    limit, total = request.app.state.settings.max_bag_upload_bytes, 0
+
+    async def read(f: UploadFile) -> bytes:
+        nonlocal total
+        data = await f.read(limit + 1 - total)
+        total += len(data)
+        if total > limit:
+            raise HTTPException(413, f"upload larger than {limit} bytes")
+        return data
+
+    files = [(b.filename or "", await read(b)) for b in bags]
+    mapping_file = (mapping.filename or "", await read(mapping))
+    impacts_data = await read(impacts)
+    try:
+        return await run_in_threadpool(runs.start_upload, machine_id, files, mapping_file, impacts_data, user.username,
+                                       max_bytes=limit)
+    except DiagnosisBusy as e:
+        raise HTTPException(409, str(e)) from e
+    except UploadError as e:
         raise HTTPException(422, str(e)) from e
 
 
