@@ -110,7 +110,7 @@ class TelemetryRecorder:
 
 
 def _ns(t_s: float) -> int:
-    return max(0, int(round(t_s * 1e9)))
+    return max(0, round(t_s * 1e9))
 
 
 def _vec3(text: str | None) -> list[float] | None:
@@ -232,7 +232,7 @@ def _from_ros2(per: dict[str, list]) -> dict[str, list[dict]]:
         return [(t, rt.deserialize(data, name)) for t, name, data in per.get(topic, [])]
 
     def by_time(topic: str) -> dict[int, object]:
-        return {int(round(t * 1e9)): m for t, m in decoded(topic)}
+        return {round(t * 1e9): m for t, m in decoded(topic)}
 
     out: dict[str, list[dict]] = {t: [] for t in _JSON_TOPICS}
     refs, valves = by_time("/references"), by_time("/valve_commands")
@@ -240,7 +240,7 @@ def _from_ros2(per: dict[str, list]) -> dict[str, list[dict]]:
     current: dict[str, object] = {topic: None for topic in latched}
     for t, js in decoded("/joint_states"):
         t_s = rt.stamp_s(js.header.stamp)
-        k = int(round(t * 1e9))
+        k = round(t * 1e9)
         for topic, changes in latched.items():  # the newest change at or before this tick
             while changes and changes[0][0] <= k:
                 current[topic] = changes.pop(0)[1].data

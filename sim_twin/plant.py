@@ -48,6 +48,7 @@ from typing import Callable
 import numpy as np
 
 from runtime.entrypoint import module_main, stop_on_signals
+from runtime.epoch_fence import EpochFence, decode_for
 from runtime.observation import PHYSICS_PERIOD_S
 from runtime.protocol import keys
 from runtime.protocol.messages import (
@@ -55,9 +56,7 @@ from runtime.protocol.messages import (
     ImpactReport,
     MachineState,
     SimReset,
-    ValidationError,
     ValveCommand,
-    decode,
     encode,
 )
 from runtime.zenoh_session import Claimed, add_session_arguments, claim_exclusive, open_session, session_options
@@ -240,22 +239,18 @@ class PlantInbox:
         self.last_gripper = False
         self.rest_state: MachineState | None = None
         self.resting = False
-        self.epoch: int | None = None  # newest ValveCommand epoch seen
-        self._stale_logged: set[int | None] = set()
+        self.fence = EpochFence()  # follows the newest ValveCommand epoch seen
         self.wake = threading.Event()
         """Set by a command that may end a rest (non-neutral valves, a gripper change, a reset):
         a resting loop sleeps between its 20 Hz publications and wakes on it (see _loop)."""
 
+    @property
+    def epoch(self) -> int | None:
+        """The newest ValveCommand epoch seen (None before the first with one)."""
+        return self.fence.epoch
+
     def _decode(self, cls, sample):
-        try:
-            msg = decode(cls, sample.payload.to_bytes())
-        except ValidationError as e:
-            log.warning("dropping malformed %s: %s", cls.__name__, e.errors()[0]["msg"] if e.errors() else e)
-            return None
-        if msg.machine_id != self.machine_id:
-            log.warning("dropping %s for machine %r", cls.__name__, msg.machine_id)
-            return None
-        return msg
+        return decode_for(cls, sample.payload.to_bytes(), self.machine_id)
 
     def on_valve(self, sample) -> None:
         """Follow only the newest epoch: a newer one takes over (logged), older ones (and
@@ -264,15 +259,8 @@ class PlantInbox:
         if msg is None:
             return
         with self.lock:
-            if self.epoch is not None and (msg.epoch is None or msg.epoch < self.epoch):
-                if msg.epoch not in self._stale_logged:
-                    self._stale_logged.add(msg.epoch)
-                    log.warning("ignoring valve commands of runtime epoch %s: following the newer epoch %d", msg.epoch, self.epoch)
+            if not self.fence.admit(msg):
                 return
-            if msg.epoch is not None and msg.epoch != self.epoch:
-                if self.epoch is not None:
-                    log.warning("a second runtime (epoch %d) took over from epoch %d", msg.epoch, self.epoch)
-                self.epoch = msg.epoch
             self.valve_u, self.valve_rx_s = np.asarray(msg.u, dtype=float), time.monotonic()
         if self.valve_u.any():
             self.wake.set()  # (always: the loop may be deciding to rest right now)

@@ -18,7 +18,14 @@ from __future__ import annotations
 import time
 
 from runtime.machine import ACTIVE_JOINTS, PASSIVE_JOINTS
-from runtime.protocol.messages import GripperCommand, ImpactReport, MachineState, ValveCommand, decode, encode
+from runtime.protocol.messages import (
+    GripperCommand,
+    ImpactReport,
+    MachineState,
+    ValveCommand,
+    decode,
+    encode,
+)
 from runtime.ros2 import types as rt
 from runtime.ros2.config import BridgeConfig
 from runtime.ros2.rmw_zenoh import RosNode

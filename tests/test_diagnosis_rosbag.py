@@ -55,7 +55,7 @@ def write_bag(path: Path, th: dataset.LoggedThrow, storage: StoragePlugin) -> No
             w.write(conns[topic], t_ns, JAZZY.serialize_cdr(msg, msg.__msgtype__))
 
         for i, t in enumerate(th.t_s):
-            ns = t0_ns + int(round(t * 1e9))
+            ns = t0_ns + round(t * 1e9)
             q, qd = th.q[i], th.qd[i]
             put("/arm/joint_states", ns, rt.joint_state(ns * 1e-9, ["cabin_turn", "boom_joint", "stick_joint", "telescope_joint"],
                                                          [q[0], q[1] / DEG, q[2] / DEG, q[3] * 1000], [qd[0], qd[1] / DEG, qd[2] / DEG, qd[3] * 1000]))
@@ -73,7 +73,7 @@ def write_bag(path: Path, th: dataset.LoggedThrow, storage: StoragePlugin) -> No
 
 
 def test_rosbag2_of_another_library_converts_and_diagnoses(nominal: Path, tmp_path: Path):
-    throws, index = dataset.load(nominal)
+    throws, _ = dataset.load(nominal)
     bags = []
     for k, th in enumerate(throws):
         storage = StoragePlugin.MCAP if k % 2 == 0 else StoragePlugin.SQLITE3

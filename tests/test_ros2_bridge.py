@@ -8,16 +8,20 @@ from __future__ import annotations
 import json
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
 from rosbags.typesys import Stores, get_typestore
 
-from runtime.machine import ACTIVE_JOINTS, JOINT_NAMES, PASSIVE_JOINTS
+from runtime.machine import JOINT_NAMES
 from runtime.protocol import keys
-from runtime.protocol.messages import GripperCommand, MachineState, ValveCommand, decode, encode
+from runtime.protocol.messages import (
+    GripperCommand,
+    MachineState,
+    ValveCommand,
+    decode,
+    encode,
+)
 from runtime.ros2 import rmw_zenoh
 from runtime.ros2 import types as rt
 from runtime.ros2.bridge import MachineBridge
@@ -179,8 +183,9 @@ def _session(endpoint: str, listen: bool = False):
 
 
 def test_bridge_process_reads_ros_topics_and_loses_the_link_when_they_stop(tmp_path):
-    from runtime.ros2.bridge import build_parser, run
     import argparse
+
+    from runtime.ros2.bridge import build_parser, run
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     states: list[MachineState] = []

@@ -4,15 +4,19 @@ decoders' checks are in tests/test_ros2_logs.py)."""
 from __future__ import annotations
 
 import io
-import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from pathlib import Path
-
-from runtime.telemetry import ROS2_TOPICS, TelemetryRecorder, read_metadata, read_telemetry, write_mcap
+from runtime.telemetry import (
+    ROS2_TOPICS,
+    TelemetryRecorder,
+    read_metadata,
+    read_telemetry,
+    write_mcap,
+)
 
 DATA = Path(__file__).parent / "data"
 

@@ -35,18 +35,31 @@ import argparse
 import logging
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from runtime.entrypoint import module_main, stop_on_signals
-from runtime.machine import ACTIVE_JOINTS, JOINT_NAMES, PASSIVE_JOINTS
+from runtime.epoch_fence import EpochFence, decode_for
+from runtime.machine import ACTIVE_JOINTS, PASSIVE_JOINTS
 from runtime.protocol import keys
-from runtime.protocol.messages import GripperCommand, ImpactReport, MachineState, ValidationError, ValveCommand, decode, encode
+from runtime.protocol.messages import (
+    GripperCommand,
+    ImpactReport,
+    MachineState,
+    ValveCommand,
+    encode,
+)
 from runtime.ros2 import types as rt
 from runtime.ros2.config import BridgeConfig, ConfigError, load
-from runtime.zenoh_session import Claimed, add_session_arguments, claim_exclusive, open_session, session_options
+from runtime.zenoh_session import (
+    Claimed,
+    add_session_arguments,
+    claim_exclusive,
+    open_session,
+    session_options,
+)
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +95,7 @@ class MachineBridge:
         self.payload: tuple[list[float], list[float]] | None = None
         self.fault: str | None = None
         self.opening: tuple[float, list[float] | None, list[float] | None] | None = None
-        self.epoch: int | None = None
+        self.fence = EpochFence()
         self.valve_rx_s = -np.inf
         self.valves_neutral = True
         self.stale: str | None = None  # the stale topic, logged once per episode
@@ -184,34 +197,19 @@ class MachineBridge:
             log.warning("dropping ROS message (%d so far): %s", self.dropped, why)
 
     # --- Slinger -> ROS -------------------------------------------------------------------
-    def _decode(self, cls, payload: bytes):
-        try:
-            msg = decode(cls, payload)
-        except ValidationError as e:
-            log.warning("dropping malformed %s: %s", cls.__name__, e.errors()[0]["msg"] if e.errors() else e)
-            return None
-        if msg.machine_id != self.machine_id:
-            log.warning("dropping %s for machine %r", cls.__name__, msg.machine_id)
-            return None
-        return msg
-
     def on_valve_command(self, payload: bytes) -> None:
         """A ValveCommand of the runtime -> the ROS valve array (newest epoch only)."""
-        msg = self._decode(ValveCommand, payload)
+        msg = decode_for(ValveCommand, payload, self.machine_id)
         if msg is None:
             return
         with self.lock:
-            if self.epoch is not None and (msg.epoch is None or msg.epoch < self.epoch):
+            if not self.fence.admit(msg):
                 return
-            if msg.epoch is not None and msg.epoch != self.epoch:
-                if self.epoch is not None:
-                    log.warning("a second runtime (epoch %d) took over from epoch %d", msg.epoch, self.epoch)
-                self.epoch = msg.epoch
             self.valve_rx_s, self.valves_neutral = self.clock(), not any(msg.u)
         self.send_valves(rt.float64_array(self.config.valve_array(msg.u), _valve_labels(self.config)))
 
     def on_gripper_command(self, payload: bytes) -> None:
-        msg = self._decode(GripperCommand, payload)
+        msg = decode_for(GripperCommand, payload, self.machine_id)
         if msg is not None:
             self.send_gripper(rt.msg(rt.BOOL, data=bool(msg.open)))
 
@@ -280,8 +278,8 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
                 node.subscribe(topic, typename, handler)
         subs = [session.declare_subscriber(keys.valve_cmd(machine_id), lambda s: bridge.on_valve_command(s.payload.to_bytes())),
                 session.declare_subscriber(keys.gripper_cmd(machine_id), lambda s: bridge.on_gripper_command(s.payload.to_bytes()))]
-        log.info("ROS 2 bridge %s up: node /%s on ROS_DOMAIN_ID %d, joint states from %s", machine_id, config.node_name,
-                 config.domain_id, t.joint_states)
+        log.info("ROS 2 bridge %s up: node /%s on ROS_DOMAIN_ID %d, Zenoh keys %s", machine_id, config.node_name,
+                 config.domain_id, node.keys)
         try:
             while not stop.wait(0.02):
                 bridge.check()

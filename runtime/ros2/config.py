@@ -40,7 +40,14 @@ import tomllib
 from pathlib import Path
 from typing import Annotated
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    model_validator,
+)
 
 from runtime.machine import ACTIVE_JOINTS, JOINT_NAMES, PASSIVE_JOINTS
 from runtime.ros2.rmw_zenoh import qualified_name
@@ -217,4 +224,4 @@ def load(path: str | Path, model: type[BridgeConfig] = BridgeConfig) -> BridgeCo
         raise ConfigError(f"{path}: {e}") from e
 
 
-__all__ = ["BridgeConfig", "ConfigError", "JointMap", "ValveMap", "Topics", "load", "PASSIVE_JOINTS"]
+__all__ = ["PASSIVE_JOINTS", "BridgeConfig", "ConfigError", "JointMap", "Topics", "ValveMap", "load"]

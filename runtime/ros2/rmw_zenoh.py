@@ -28,7 +28,7 @@ import secrets
 import struct
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import zenoh
 
@@ -203,6 +203,11 @@ class RosNode:
         sub = RosSubscription(self.session, *self._entity("MS", topic, typename), typename, callback)
         self._entities.append(sub)
         return sub
+
+    @property
+    def keys(self) -> list[str]:
+        """The Zenoh keys of the node's publishers and subscriptions."""
+        return [e.key for e in self._entities]
 
     def close(self) -> None:
         """Undeclare every entity and the node's token."""

@@ -82,7 +82,7 @@ def dds_type_name(typename: str) -> str:
 
 def stamp(t_s: float):
     """builtin_interfaces/msg/Time of ``t_s`` seconds (>= 0; negative times clamp to 0)."""
-    ns = max(0, int(round(t_s * 1e9)))
+    ns = max(0, round(t_s * 1e9))
     return msg("builtin_interfaces/msg/Time", sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
@@ -98,7 +98,7 @@ def header(t_s: float, frame_id: str = ""):
 
 def joint_state(t_s: float, names, position=(), velocity=(), effort=()):
     """sensor_msgs/msg/JointState; arrays are float64, empty where not given."""
-    arr = lambda v: np.asarray(v, dtype=np.float64).reshape(-1)  # noqa: E731
+    arr = lambda v: np.asarray(v, dtype=np.float64).reshape(-1)
     return msg(JOINT_STATE, header=header(t_s), name=list(names), position=arr(position), velocity=arr(velocity), effort=arr(effort))
 
 

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+
 from runtime.machine import ACTIVE_JOINTS, PASSIVE_JOINTS
 from runtime.ros2 import types as rt
 from runtime.ros2.config import BridgeConfig, ConfigError, Topic
