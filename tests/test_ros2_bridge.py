@@ -5,12 +5,15 @@ machine), the bridge's traffic decoded from raw Zenoh samples by the rosbags CDR
 
 from __future__ import annotations
 
+import io
 import json
 import threading
 import time
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
 from rosbags.typesys import Stores, get_typestore
 
 from runtime.machine import JOINT_NAMES
@@ -26,6 +29,7 @@ from runtime.ros2 import rmw_zenoh
 from runtime.ros2 import types as rt
 from runtime.ros2.bridge import MachineBridge
 from runtime.ros2.config import BridgeConfig, ConfigError, load
+from runtime.telemetry import read_telemetry
 from runtime.zenoh_session import open_session
 from server.stack import Children, slinger_command
 from tests.conftest import free_port, wait_for, wait_online
@@ -255,7 +259,7 @@ def _typename(dds: str) -> str:
     return f"{pkg}/{kind}/{name[:-1]}"
 
 
-def test_throw_lands_through_the_ros2_bridge(client, ros2_machine, zenoh_endpoint):
+def test_throw_lands_through_the_ros2_bridge(client, ros2_machine, zenoh_endpoint, settings):
     raw: list[tuple[str, bytes, bytes | None]] = []
     lock = threading.Lock()
 
@@ -272,6 +276,13 @@ def test_throw_lands_through_the_ros2_bridge(client, ros2_machine, zenoh_endpoin
             row, _ = _landed_throw(client, lambda: client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D}))
             assert row["status"] == "landed", (row, (ros2_machine / "bridge.log").read_text()[-3000:] if (ros2_machine / "bridge.log").exists() else "")
             assert row["impact"] is not None and np.hypot(*row["impact"][:2]) > 2.0
+            # its telemetry is in ROS 2 form, with the measured impact as /impact
+            blob = (settings.data_dir / "telemetry" / f"{row['id']}.mcap").read_bytes()
+            assert client.get(row["telemetry_url"]).content == blob
+            assert read_telemetry(blob)["gripper_cmd"].any()
+            impacts = [m for _s, ch, _m, m in make_reader(io.BytesIO(blob), decoder_factories=[DecoderFactory()])
+                       .iter_decoded_messages(topics=["/impact"])]
+            assert [(p.point.x, p.point.y) for p in impacts] == [pytest.approx(tuple(row["impact"][:2]))]
             tokens = [str(r.ok.key_expr) for r in spy.liveliness().get("@ros2_lv/**", timeout=2.0) if r.ok]
         finally:
             sub.undeclare()
