@@ -91,8 +91,9 @@ def test_runtime_installs_alone_and_stays_light(wheels, tmp_path):
     code = textwrap.dedent(f"""
         import importlib.util, sys
         import runtime, runtime.node, runtime.executor, runtime.controller, runtime.policy, runtime.outbox
-        import runtime.protocol.messages, runtime.telemetry
+        import runtime.protocol.messages, runtime.telemetry, runtime.ros2.bridge
         assert "site-packages" in runtime.__file__, runtime.__file__
+        runtime.telemetry.write_mcap(runtime.telemetry.TelemetryRecorder())  # ROS 2 form: rosbags + the shipped URDF
         loaded = sorted(m for m in sys.modules if m.split(".")[0] in {HEAVY!r})
         missing = [m for m in {HEAVY!r} if importlib.util.find_spec(m) is None]
         print("LOADED", loaded, "MISSING", missing)
@@ -104,6 +105,9 @@ def test_runtime_installs_alone_and_stays_light(wheels, tmp_path):
     helped = subprocess.run([str(python.parent / "slinger-runtime"), "--help"], capture_output=True, text=True,
                             timeout=120, cwd=tmp_path, env=_clean_env())
     assert helped.returncode == 0 and "--machine-id" in helped.stdout, helped.stderr[-2000:]
+    bridge = subprocess.run([str(python.parent / "slinger-ros2-bridge"), "--help"], capture_output=True, text=True,
+                            timeout=120, cwd=tmp_path, env=_clean_env())
+    assert bridge.returncode == 0 and "--config" in bridge.stdout, bridge.stderr[-2000:]
 
 
 def test_server_wheel_runs_db_upgrade_without_the_repository(wheels, tmp_path):
