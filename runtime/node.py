@@ -46,6 +46,7 @@ from runtime.policy import PolicyError, PolicyRunner
 from runtime.policy_update import PolicyUpdater, zenoh_fetcher
 from runtime.protocol import keys
 from runtime.protocol.messages import encode
+from runtime import telemetry
 from runtime.release_check import DEFAULT_RADIUS_M, RADIUS_ENV, parse_radius
 from runtime.service import LINK_TIMEOUT_S, RuntimeService
 from runtime.zenoh_session import Claimed, add_session_arguments, claim_exclusive, open_session, session_options
@@ -177,6 +178,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             *pubs.values(),
         ]
         outbox.start()
+        telemetry.warm()  # ROS 2 message types and URDF loaded before the first throw ends
         log.info("runtime %s up: epoch %d, policies %s, outbox %s", machine_id, epoch, sorted(policies), outbox_dir)
         try:
             while not stop.wait(WATCHDOG_PERIOD_S):

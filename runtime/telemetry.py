@@ -193,6 +193,12 @@ def write_mcap(recorder: TelemetryRecorder, metadata: dict[str, str] | None = No
     return buf.getvalue()
 
 
+def warm() -> None:
+    """Load the ROS 2 typestore, message definitions and URDF now, so that the first throw's
+    telemetry does not pay for them when it is written at the throw's end (under the runtime's lock)."""
+    write_mcap(TelemetryRecorder())
+
+
 def _open(source: bytes | bytearray | str | Path) -> io.BufferedIOBase:
     if isinstance(source, (bytes, bytearray)):
         return io.BytesIO(bytes(source))
