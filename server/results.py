@@ -52,6 +52,13 @@ def sha256_file(path: Path) -> str:
     return h.hexdigest()
 
 
+def config_sha256(config: dict) -> str:
+    """SHA-256 of a training config as the model cards state it: canonical JSON (sorted keys, no
+    spaces, UTF-8) of the config without its free-text ``notes``, so that wording edits keep it."""
+    body = {k: v for k, v in config.items() if k != "notes"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
 def load_reports(root: Path = REPO) -> list[tuple[str, dict]]:
     """Every ``reports/**/*.json`` with a provenance block, as ``(path relative to root, report)``,
     sorted by path. JSON files without a ``provenance`` key (data, not reports) are skipped.

@@ -106,3 +106,13 @@ def test_slinger_results_check_passes_on_this_checkout():
     from server.cli import main
 
     assert main(["results", "--check"]) == 0
+
+
+@pytest.mark.parametrize("mode", ["2d", "3d"])
+def test_model_card_names_the_deployed_file_and_config(mode):
+    """policies/throw<mode>.md states the deployed version, its SHA-256 and its config hash."""
+    manifest = json.loads((ROOT / "policies" / f"throw{mode}.json").read_text())
+    card = (ROOT / "policies" / f"throw{mode}.md").read_text()
+    assert manifest["name"] in card.splitlines()[0]
+    assert results.sha256_file(ROOT / "policies" / f"throw{mode}.onnx") in card
+    assert results.config_sha256(manifest["training"]["config"]) in card
