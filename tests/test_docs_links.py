@@ -67,3 +67,13 @@ def test_readme_is_short_and_names_the_two_set_up_commands():
     assert len(text.splitlines()) <= 150
     assert "pip install -e . && slinger up" in text and "bash tests/run.sh" in text
     assert "tests/run.sh" in (ROOT / ".ci" / "run").read_text()
+
+
+def test_architecture_lists_every_module():
+    """docs/architecture.md names every Python module of runtime/, sim_twin/ and server/ (add a row
+    to its "Modules" tables when you add or move a module)."""
+    text = (ROOT / "docs" / "architecture.md").read_text()
+    modules = [p.relative_to(ROOT).as_posix() for pkg in ("runtime", "sim_twin", "server") for p in (ROOT / pkg).rglob("*.py")
+               if not (p.name == "__init__.py" and p.stat().st_size < 50) and "__pycache__" not in p.parts]
+    missing = [m for m in sorted(modules) if f"`{m}`" not in text]
+    assert not missing, "modules missing from docs/architecture.md: " + ", ".join(missing)
