@@ -22,6 +22,9 @@ Usage::
 
     slinger results            # rewrite docs/results.md
     slinger results --check    # exit 1 when docs/results.md is stale or a report names a wrong SHA-256
+    slinger results --stamp reports/X.json --title "…" --command "…" --policy policies/throw2d.onnx
+                               # right after a run: write X.json's provenance block (date, commit,
+                               # policy SHA-256 and name, host's CPU/GPU and load)
 """
 
 from __future__ import annotations
@@ -30,7 +33,10 @@ import argparse
 import hashlib
 import json
 import math
+import os
+import subprocess
 import sys
+from datetime import datetime, timezone
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -279,17 +285,115 @@ def _anchor(title: str) -> str:
     return keep.replace(" ", "-")
 
 
+def host_description() -> str:
+    """This host as a report records it: CPU model and count, load average, GPU names (nvidia-smi)."""
+    cpu = "CPU model unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    parts = [f"{cpu}, {os.cpu_count()} CPUs"]
+    try:
+        parts.append("load average %.1f / %.1f / %.1f" % os.getloadavg())
+    except OSError:
+        pass
+    try:
+        gpus = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                              text=True, timeout=10, check=True).stdout.split("\n")
+        if any(g.strip() for g in gpus):
+            parts.append("GPU " + ", ".join(g.strip() for g in gpus if g.strip()))
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return "; ".join(parts)
+
+
+def git_commit(root: Path = REPO) -> str:
+    """Short hash of HEAD, with "+uncommitted changes" when the work tree differs; "not recorded" outside git."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
+                              check=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root, capture_output=True,
+                               text=True, check=True, timeout=30).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "not recorded"
+    return head + (" +uncommitted changes" if dirty else "")
+
+
+def policy_entry(onnx: Path, root: Path = REPO) -> dict:
+    """``{"name", "sha256"[, "deployed_as"]}`` of an ONNX policy file; the name from the manifest beside
+    it (else the file stem); ``deployed_as`` when the file is one of ``<root>/policies/*.onnx``.
+
+    Raises:
+        ReportError: the file does not exist.
+    """
+    onnx = Path(onnx)
+    if not onnx.is_file():
+        raise ReportError(f"policy file {onnx} does not exist")
+    manifest = onnx.with_suffix(".json")
+    name = json.loads(manifest.read_text()).get("name", onnx.stem) if manifest.is_file() else onnx.stem
+    entry = {"name": name, "sha256": sha256_file(onnx)}
+    if onnx.resolve().parent == (root / "policies").resolve():
+        entry["deployed_as"] = onnx.resolve().relative_to(root.resolve()).as_posix()
+    return entry
+
+
+def stamp(report: Path, title: str, command: str, policies: list[Path], root: Path = REPO,
+          host: str | None = None, note: str | None = None) -> dict:
+    """Write the provenance block of ``report`` (a JSON object; other keys kept) from this host and
+    checkout, now; returns the block. Run it right after the run that wrote the report.
+
+    Raises:
+        ReportError: the report is not a JSON object, or a policy file is missing.
+    """
+    try:
+        body = json.loads(Path(report).read_text())
+    except (OSError, ValueError) as e:
+        raise ReportError(f"{report}: not readable JSON: {e}") from e
+    if not isinstance(body, dict):
+        raise ReportError(f"{report}: a report is a JSON object")
+    block = {"title": title, "date": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+             "commit": git_commit(root), "policies": [policy_entry(p, root) for p in policies],
+             "host": host or host_description(), "command": command,
+             "recorded": "at run time, by slinger results --stamp"}
+    if note:
+        block["note"] = note
+    body = {"provenance": block, **{k: v for k, v in body.items() if k != "provenance"}}
+    Path(report).write_text(json.dumps(body, indent=1) + "\n")
+    return block
+
+
 def build_parser(parser: argparse.ArgumentParser) -> None:
     """Options of ``slinger results``."""
     parser.add_argument("--root", type=Path, default=REPO, help="repository root (default: this checkout)")
     parser.add_argument("--out", type=Path, default=None, help="output (default <root>/docs/results.md)")
     parser.add_argument("--check", action="store_true",
                         help="write nothing; exit 1 when the output is stale or a report names a deployed policy's wrong SHA-256")
+    parser.add_argument("--stamp", type=Path, default=None, metavar="REPORT",
+                        help="write REPORT's provenance block (with --title, --command, --policy) instead of results.md")
+    parser.add_argument("--title", default=None, help="--stamp: the report's title in results.md")
+    parser.add_argument("--command", default=None, help="--stamp: the command that reproduces the report")
+    parser.add_argument("--policy", type=Path, action="append", default=[], help="--stamp: an ONNX policy the report describes (repeatable)")
+    parser.add_argument("--host", default=None, help="--stamp: host description (default: this host's CPU, load and GPU)")
+    parser.add_argument("--note", default=None, help="--stamp: an optional note")
 
 
 def run(args: argparse.Namespace) -> int:
     """Write or check docs/results.md; returns the exit code (0 fine, 1 stale or wrong SHA-256, 2 bad report)."""
     out = args.out or args.root / "docs" / "results.md"
+    if args.stamp is not None:
+        if not args.title or not args.command:
+            print("slinger results: --stamp needs --title and --command", file=sys.stderr)
+            return 2
+        try:
+            block = stamp(args.stamp, args.title, args.command, args.policy, args.root, args.host, args.note)
+        except ReportError as e:
+            print(f"slinger results: {e}", file=sys.stderr)
+            return 2
+        print(f"stamped {args.stamp}: {block['date']}, commit {block['commit']}; now run `slinger results`")
+        return 0
     try:
         reports = load_reports(args.root)
     except ReportError as e:

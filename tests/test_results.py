@@ -116,3 +116,28 @@ def test_model_card_names_the_deployed_file_and_config(mode):
     assert manifest["name"] in card.splitlines()[0]
     assert results.sha256_file(ROOT / "policies" / f"throw{mode}.onnx") in card
     assert results.config_sha256(manifest["training"]["config"]) in card
+
+
+def test_stamp_writes_a_complete_provenance_block_that_the_check_accepts(tmp_path):
+    root = _fake_repo(tmp_path, "0" * 64)
+    report = root / "reports" / "new.json"
+    report.write_text(json.dumps({"figures": [{"what": "w", "value": 2.0, "unit": "s"}]}))
+    rc = results.main(["--root", str(root), "--stamp", str(report), "--title", "New", "--command", "do it",
+                       "--policy", str(root / "policies" / "throw2d.onnx")])
+    assert rc == 0
+    prov = json.loads(report.read_text())["provenance"]
+    assert all(k in prov for k in results.REQUIRED) and prov["recorded"].startswith("at run time")
+    assert prov["policies"] == [{"name": "throw2d-x", "sha256": results.sha256_file(root / "policies" / "throw2d.onnx"),
+                                 "deployed_as": "policies/throw2d.onnx"}]
+    assert "CPUs" in prov["host"]
+    problems = results.check_deployed(results.load_reports(root), root)
+    assert problems and all("reports/r.json" in p for p in problems)  # the stamped report itself is consistent
+
+
+def test_stamp_refuses_a_missing_policy_or_title(tmp_path):
+    root = _fake_repo(tmp_path, "0" * 64)
+    report = root / "reports" / "r.json"
+    assert results.main(["--root", str(root), "--stamp", str(report), "--command", "c"]) == 2
+    assert results.main(["--root", str(root), "--stamp", str(report), "--title", "t", "--command", "c",
+                         "--policy", str(root / "policies" / "nope.onnx")]) == 2
+    assert json.loads(report.read_text())["provenance"]["title"] == "T"  # unchanged
