@@ -186,11 +186,13 @@ def _diagnosis(report: dict) -> list[str]:
 
 
 def _preview_calibration(report: dict) -> list[str]:
+    def pct(s: dict, k: str) -> str:
+        return f"{100 * s[k]:.1f} %" if k in s else ""
+
     rows = []
     for name, s in report["summary"].items():
-        pct = lambda k: f"{100 * s[k]:.1f} %" if k in s else ""  # noqa: E731
         se = f" ± {100 * s['inside_1sigma_se']:.1f} %" if "inside_1sigma_se" in s else ""
-        rows.append([name, s.get("n", ""), pct("inside_1sigma") + se, pct("inside_2sigma"), pct("measured_inside_1sigma"),
+        rows.append([name, s.get("n", ""), pct(s, "inside_1sigma") + se, pct(s, "inside_2sigma"), pct(s, "measured_inside_1sigma"),
                      s.get("median_semi_major_m", "")])
     return _table(["preview", "throws", "true impacts inside 1σ", "inside 2σ", "measured impacts inside 1σ",
                    "median semi-major axis [m]"], rows) + [
