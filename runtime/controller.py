@@ -3,7 +3,7 @@
 On HEAP "a PID joint velocity controller with feed-forward commands the valves" (Jud et al.
 2021, via shared/reference/machine-spec.md); the throwing paper's policy outputs joint-velocity
 references at 12.5 Hz and this controller tracks them at 100 Hz. It is also the runtime's safety
-layer (ARCHITECTURE.md: "safety clipping lives in runtime's controller, never in the policy"):
+layer (docs/architecture.md: "safety clipping lives in runtime's controller, never in the policy"):
 
 * references are clipped to :data:`runtime.machine.ACTIVE_VELOCITY_LIMITS`;
 * near a joint limit the reference *towards* that limit ramps linearly to zero (motion away from

@@ -88,7 +88,7 @@ class ExecutorConfig:
             CHOSEN 3.0 m: well above the predictor's error on normal throws of the deployed
             policies (p99 <= 0.55 m nominal, <= 0.8 m on slow_hydraulics but 2.3 m in its 3D
             9.5 m cell; the largest predicted distance of a throw that landed within 3 m was 1.2 m;
-            runtime.release_check, README), far below the 5-21 m of the wild releases.
+            runtime.release_check, reports/release_check_accuracy.json), far below the 5-21 m of the wild releases.
     """
 
     prepare_timeout_s: float = 20.0

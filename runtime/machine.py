@@ -5,7 +5,7 @@ Everything here is written against an array module ``xp`` (``numpy`` on the mach
 places. Functions take one machine's state (no batch axis); the training environment maps them
 over its environments with ``jax.vmap``.
 
-Frames and units follow ../shared/ARCHITECTURE.md: machine frame with its origin on the
+Frames and units follow docs/architecture.md: machine frame with its origin on the
 cabin-turn axis at ground level, x forward when ``cabin_turn = 0``, z up; metres, radians.
 
 Sources: joint offsets, ranges and masses from the HEAP URDF parameters quoted in

@@ -1,6 +1,6 @@
 """Throw geometry shared by runtime, twin and server: impact errors and which targets a mode serves.
 
-Definitions (ARCHITECTURE.md): downrange is the horizontal distance along the line from the
+Definitions (docs/architecture.md): downrange is the horizontal distance along the line from the
 cabin-turn axis towards the target; crossrange is the signed horizontal offset perpendicular to
 it, left positive (z x downrange).
 """

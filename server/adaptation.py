@@ -1,30 +1,43 @@
-"""Adaptation runs: a diagnosis result -> ``sim_twin.adapt.adapt`` -> a new policy version.
+"""Adaptation runs: a diagnosis result -> ``sim_twin.adapt.adapt`` -> a new policy version (API side).
 
 The console's flow is diagnose -> adapt -> twin-evaluate -> promote: an operator starts an
 adaptation on a finished diagnosis run (its fitted profile and 1 sigma, never a profile file)
 for one mode; the base policy is the version the diagnosed machine runs in that mode (or a named
 version). The aim correction is computed in the CPU twin by an ``adaptation`` job in a worker
-process (server.jobs; the heavy part), the result is registered through
+(server.jobs.adaptation_job); the result is registered through
 :meth:`server.policies.PolicyService.add_version`, which starts its twin evaluation on the site's
-fitted profile; promotion is the Policies page's. Files live under
-``<data_dir>/adaptation/<run_id>/`` (status.json, the version, its adaptation.json).
+fitted profile; promotion is the Policies page's. A run is its job: the row is its only state,
+its files live under the job's folder.
 """
 
 from __future__ import annotations
 
 import json
-import logging
-import uuid
-from datetime import UTC, datetime
-from pathlib import Path
 
 from sqlalchemy import select
 
 from server.db.models import PolicyVersion
-from server.diagnosis import RUN_ID, DiagnosisRuns
+from server.diagnosis import ACTIVE, RUN_ID, DiagnosisRuns
 from server.throws import ThrowRefused
 
-log = logging.getLogger(__name__)
+
+def adaptation_view(job: dict) -> dict:
+    """The run as the console shows it, from its job row.
+
+    Returns:
+        {"id", "job_id", "diagnosis_id", "machine_id", "mode", "base_version", "status":
+        queued|running|done|failed, "error", "progress" (the adaptation's log lines so far),
+        "policy_version_id", "policy_version", "started_at", "finished_at", "requested_by"}.
+    """
+    p, r = job.get("params") or {}, job.get("result") or {}
+    status, error = job["status"], job.get("error")
+    if status == "cancelled":
+        status, error = "failed", "cancelled"
+    lines = r.get("lines") or ([job["message"]] if job.get("message") else [])
+    return {"id": job["id"], "job_id": job["id"], "diagnosis_id": p.get("diagnosis_id"), "machine_id": p.get("machine_id"),
+            "mode": p.get("mode"), "base_version": p.get("base_version"), "status": status, "error": error,
+            "progress": lines, "policy_version_id": r.get("policy_version_id"), "policy_version": r.get("policy_version"),
+            "started_at": job["created_at"], "finished_at": job.get("finished_at"), "requested_by": job.get("requested_by")}
 
 
 class AdaptationRuns:
@@ -32,24 +45,20 @@ class AdaptationRuns:
 
     Args:
         diagnosis: the diagnosis runs (fitted profiles and reports).
-        policies: server.policies.PolicyService (base files, new versions).
+        policies: server.policies.PolicyService (base files).
         previews: server.previews.PreviewService (which version a machine runs).
-        data_dir: the server's data folder.
+        jobs: the job queue (server.jobs.JobQueue): runs are its ``adaptation`` jobs.
         workers: processes per twin evaluation (default: all cores).
-        jobs: the job queue (server.jobs.JobQueue) runs are submitted to.
     """
 
-    def __init__(self, diagnosis: DiagnosisRuns, policies, previews, data_dir: Path, workers: int | None = None,
-                 jobs=None):
+    def __init__(self, diagnosis: DiagnosisRuns, policies, previews, jobs, workers: int | None = None):
         self.diagnosis, self.policies, self.previews, self.jobs = diagnosis, policies, previews, jobs
-        self.data_dir = Path(data_dir)
-        self.root = self.data_dir / "adaptation"
         self.workers = workers
         self._job_id: str | None = None
 
     def start(self, diagnosis_id: str, mode: str, username: str, base_version: str | None = None, throws: int = 20,
               rounds: int = 2) -> dict:
-        """Check the inputs and submit the adaptation job; returns the initial status.
+        """Check the inputs and submit the adaptation job; returns the run.
 
         Raises:
             ThrowRefused: 404 no such diagnosis, 409 diagnosis not done / adaptation running /
@@ -64,18 +73,13 @@ class AdaptationRuns:
         if st.get("status") != "done" or profile is None:
             raise ThrowRefused(409, f"diagnosis {diagnosis_id} is {st.get('status')}; adapt a finished one")
         base = self._base(st["machine_id"], mode, base_version)
-        if any(s.get("status") in ("queued", "running") for s in self.list()):
+        if any(j["status"] in ACTIVE for j in self.jobs.store.list(kind="adaptation", limit=20)):
             raise ThrowRefused(409, "an adaptation is already running; wait for it to finish")
-        run_id = f"{datetime.now(UTC):%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:6]}"
-        status = {"id": run_id, "diagnosis_id": diagnosis_id, "machine_id": st["machine_id"], "mode": mode,
-                  "base_version": base.name, "status": "queued", "error": None, "progress": [],
-                  "policy_version_id": None, "policy_version": None, "started_at": _now(), "finished_at": None,
-                  "requested_by": username}
-        self._write(run_id, status)
-        params = {"run_id": run_id, "profile": json.loads(profile.read_text()), "report": st.get("report"),
-                  "base_path": base.onnx_path, "throws": throws, "rounds": rounds, "workers": self.workers}
-        self._job_id = self.jobs.submit("adaptation", params, subject=st["machine_id"], requested_by=username)
-        return {**(self.get(run_id) or status), "job_id": self._job_id}
+        spec = {"diagnosis_id": diagnosis_id, "machine_id": st["machine_id"], "mode": mode, "base_version": base.name,
+                "base_path": base.onnx_path, "profile": json.loads(profile.read_text()), "report": st.get("report"),
+                "throws": throws, "rounds": rounds, "workers": self.workers}
+        self._job_id = self.jobs.submit("adaptation", spec, subject=st["machine_id"], requested_by=username)
+        return self.get(self._job_id)
 
     def _base(self, machine_id: str, mode: str, name: str | None) -> PolicyVersion:
         with self.policies.sessions() as db:
@@ -87,71 +91,18 @@ class AdaptationRuns:
             raise ThrowRefused(409, f"the server has no file of {mode} policy {name!r} to adapt")
         return row
 
-    def run(self, params: dict, progress) -> dict:
-        """The job's body (in a worker): adapt, register the version (its evaluation is another
-        job), write status.json; returns the status. ``progress(fraction, message)`` per line.
-
-        Raises:
-            server.jobs.JobCancelled: from ``progress`` (status.json says failed: cancelled).
-        """
-        from server.jobs.store import JobCancelled
-        from sim_twin.adapt import adapt
-
-        status = self.get(params["run_id"])
-        status.update(status="running")
-        self._write(status["id"], status)
-
-        def line(text: str) -> None:
-            status["progress"].append(text)
-            self._write(status["id"], status)
-            progress(min(0.95, 0.05 * len(status["progress"])), text)
-
-        try:
-            name = f"{status['base_version']}-{status['machine_id']}-{status['id'][-6:]}"
-            res = adapt(params["profile"], self.data_dir / params["base_path"], self.root / status["id"], name=name,
-                        method="aim", diagnosis_report=params["report"], throws=params["throws"],
-                        rounds=params["rounds"], workers=params["workers"], progress=line)
-            row = self.policies.add_version(res["manifest"], Path(res["policy"]), status["requested_by"],
-                                            notes=f"adapted to diagnosis {status['diagnosis_id']} of {status['machine_id']}",
-                                            action="policy_adapt")
-            status.update(status="done", policy_version_id=row.id, policy_version=row.name)
-        except JobCancelled:
-            status.update(status="failed", error="cancelled")
-            raise
-        except Exception as e:  # reported in status.json for the page
-            log.exception("adaptation %s failed", status["id"])
-            status.update(status="failed", error=f"{type(e).__name__}: {e}")
-        finally:
-            status["finished_at"] = _now()
-            self._write(status["id"], status)
-        return status
-
     def wait(self, timeout_s: float | None = None) -> None:
         """Block until the last run started here finishes (tests)."""
         if self._job_id is not None:
             self.jobs.wait(self._job_id, timeout_s if timeout_s is not None else 3600.0)
 
-    def list(self) -> list[dict]:
-        """Statuses of all runs, newest first."""
-        if not self.root.is_dir():
-            return []
-        return [s for d in sorted(self.root.iterdir(), reverse=True) if (s := self.get(d.name))]
+    def list(self, limit: int = 100) -> list[dict]:
+        """Runs newest first."""
+        return [adaptation_view(j) for j in self.jobs.store.list(kind="adaptation", limit=limit, with_result=True)]
 
     def get(self, run_id: str) -> dict | None:
+        """The run, or None for an unknown or malformed id."""
         if not RUN_ID.match(run_id or ""):
             return None
-        try:
-            return json.loads((self.root / run_id / "status.json").read_text())
-        except (OSError, json.JSONDecodeError):
-            return None
-
-    def _write(self, run_id: str, status: dict) -> None:
-        d = self.root / run_id
-        d.mkdir(parents=True, exist_ok=True)
-        tmp = d / "status.json.tmp"
-        tmp.write_text(json.dumps(status, indent=1))
-        tmp.replace(d / "status.json")
-
-
-def _now() -> str:
-    return datetime.now(UTC).isoformat()
+        job = self.jobs.store.get(run_id)
+        return adaptation_view(job) if job is not None and job["kind"] == "adaptation" else None

@@ -29,8 +29,11 @@ from server.fleet import Fleet
 from server.reconcile import Reconciler
 from server.jobs import JobQueue, JobStore, queue_url
 from server.jobs import tasks as job_tasks
+from server.jobs.watch import JobWatcher
 from server.login_guard import LoginGuard
 from server.live import LiveHub
+from server.adaptation import AdaptationRuns
+from server.diagnosis import DiagnosisRuns
 from server.results import ResultStore
 from server.scene import ConsoleScene
 from server.policies import PolicyService
@@ -99,10 +102,15 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         app.state.policies = PolicyService(fleet, sessions, store, settings, app.state.jobs)
         app.state.previews = PreviewService(fleet, sessions, app.state.throws, app.state.jobs, settings.data_dir,
                                             settings.clearance_radius_m, settings.preview_profile)
+        app.state.job_watcher = job_watcher = JobWatcher(app.state.jobs.store, live_hub.publish)
+        app.state.diagnosis_runs = DiagnosisRuns(sessions, app.state.jobs, settings.data_dir)
+        app.state.adaptation_runs = AdaptationRuns(app.state.diagnosis_runs, app.state.policies, app.state.previews,
+                                                   app.state.jobs)
         try:
             fleet.start()
             app.state.reconciler.start()
             live_hub.start()
+            job_watcher.start()
             app.state.policies.start()
             if scene_obj is not None:
                 scene_obj.start()
@@ -112,6 +120,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
             if scene_obj is not None:
                 scene_obj.stop()
             app.state.policies.stop()
+            job_watcher.stop()
             app.state.reconciler.stop()
             live_hub.stop()
             fleet.stop()

@@ -15,6 +15,7 @@ Subcommands::
     slinger evaluate    evaluate a policy                (sim_twin.evaluate)
     slinger diagnose    sim-to-real gap diagnosis        (sim_twin.diagnosis.cli)
     slinger adapt       adapt a policy to a diagnosed site (sim_twin.adapt)
+    slinger results     docs/results.md from the committed reports (server.results_page)
 
 Settings not given as options come from ``SLINGER_*`` environment variables (server.config).
 Modules behind subcommands are imported only when that subcommand runs.
@@ -43,6 +44,7 @@ DELEGATED = {
     "evaluate": ("sim_twin.evaluate", "evaluate a policy version"),
     "diagnose": ("sim_twin.diagnosis.cli", "sim-to-real gap diagnosis of logged throws (and 'diagnose benchmark')"),
     "adapt": ("sim_twin.adapt", "a policy version adapted to a site's (fitted) reality profile"),
+    "results": ("server.results_page", "docs/results.md from the committed reports (--check: fail when stale)"),
 }
 
 

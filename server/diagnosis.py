@@ -1,41 +1,52 @@
-"""Sim-to-real gap diagnosis runs on a machine's stored throws (files only, no database tables).
+"""Sim-to-real gap diagnosis runs on a machine's stored throws or on uploaded rosbag2 bags (API side).
 
-A run is a ``diagnosis`` job in a worker process (server.jobs): it exports the machine's latest
-landed throws with telemetry to a dataset directory (sim_twin.diagnosis.dataset format), runs
-:func:`sim_twin.diagnosis.diagnose.diagnose` and keeps everything under
-``<data_dir>/diagnosis/<run_id>/`` (workers on other hosts share the data dir)::
-
-    status.json   {"id", "job_id", "machine_id", "status": queued|running|done|failed, "error", ...}
-    upload/       an uploaded rosbag2 set (server.diagnosis_upload), converted into dataset/
-    dataset/      index.json + throws/*.mcap
-    report/       report.json, profile_fitted.json, where.png, which.png, how_far.png
-
-One run at a time (the diagnosis uses every core of its worker).
+A run is a ``diagnosis`` job (server.jobs): its row is the run's only state (status, progress,
+error, result), its id is the run id, and its files (dataset, report and plots) live under the
+job's folder ``<data_dir>/jobs/<job_id>/`` (server.jobs.diagnosis_job, in a worker; workers on
+other hosts share the data dir). One run at a time (the diagnosis uses every core of its worker).
 """
 
 from __future__ import annotations
 
 import json
-import logging
 import re
-import uuid
-from datetime import UTC, datetime
 from pathlib import Path
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from runtime.telemetry import read_telemetry
 from server.db.models import Throw
+from server.jobs.diagnosis_job import landed_with_telemetry
+from server.jobs.specs import job_dir
 
-log = logging.getLogger(__name__)
-
-RUN_ID = re.compile(r"^[0-9]{8}T[0-9]{6}-[0-9a-f]{6}$")
+RUN_ID = re.compile(r"^[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}$")
+"""A run id is its job's id (a UUID): nothing else reaches the file system."""
 REPORT_FILES = ("report.json", "profile_fitted.json", "where.png", "which.png", "how_far.png")
+ACTIVE = ("queued", "running")
 
 
 class DiagnosisBusy(RuntimeError):
-    """A diagnosis is already running."""
+    """A diagnosis is already queued or running."""
+
+
+def run_view(job: dict) -> dict:
+    """The run as the console shows it, from its job row (server.jobs.store.as_dict).
+
+    Returns:
+        {"id", "job_id", "machine_id", "throws", "status": queued|running|done|failed, "error",
+        "progress" (0..1), "message", "started_at", "finished_at", "requested_by", "verdict", "source"
+        ("stored throws" or "rosbag2 upload")}; a
+        cancelled job reads as failed with error "cancelled".
+    """
+    result, params = job.get("result") or {}, job.get("params") or {}
+    status, error = job["status"], job.get("error")
+    if status == "cancelled":
+        status, error = "failed", "cancelled"
+    return {"id": job["id"], "job_id": job["id"], "machine_id": params.get("machine_id"),
+            "throws": result.get("throws", params.get("limit")), "status": status, "error": error,
+            "progress": job.get("progress"), "message": job.get("message"), "started_at": job["created_at"],
+            "finished_at": job.get("finished_at"), "requested_by": job.get("requested_by"),
+            "verdict": result.get("verdict"), "source": "rosbag2 upload" if params.get("upload") else "stored throws"}
 
 
 class DiagnosisRuns:
@@ -43,196 +54,84 @@ class DiagnosisRuns:
 
     Args:
         sessions: database session factory (stored throws).
-        data_dir: the server's data folder (telemetry paths are relative to it).
-        workers: processes per diagnosis (default: all cores).
-        jobs: the job queue (server.jobs.JobQueue) runs are submitted to; needed by :meth:`start`.
+        jobs: the job queue (server.jobs.JobQueue): runs are its ``diagnosis`` jobs.
+        data_dir: the server's data folder.
+        workers: processes per diagnosis (default: all cores of the worker).
     """
 
-    def __init__(self, sessions: sessionmaker[Session], data_dir: Path, workers: int | None = None, jobs=None):
-        self.sessions = sessions
-        self.workers = workers
-        self.jobs = jobs
+    def __init__(self, sessions: sessionmaker[Session], jobs, data_dir: Path, workers: int | None = None):
+        self.sessions, self.jobs, self.workers = sessions, jobs, workers
         self.data_dir = Path(data_dir)
-        self.root = self.data_dir / "diagnosis"
         self._job_id: str | None = None
 
-    # --- export -----------------------------------------------------------------------------
-    def export(self, machine_id: str, limit: int, directory: Path) -> int:
-        """Write the machine's newest ``limit`` landed throws with telemetry as a dataset.
-
-        The impact time is the telemetry's "landed" event (the executor stamps it at the
-        impact report, within one 10 ms tick). Returns the number of throws written.
-        """
-        from sim_twin.diagnosis.dataset import write
-
-        with self.sessions() as db:
-            rows = list(db.scalars(select(Throw).where(*self._landed_with_telemetry(machine_id))
-                                   .order_by(Throw.requested_at.desc()).limit(limit)))
-        out = []
-        for t in rows:
-            path = self.data_dir / t.telemetry_path
-            try:
-                data = path.read_bytes()
-                tel = read_telemetry(data)
-            except Exception as e:  # noqa: BLE001  a missing or corrupt file drops that throw, not the run
-                log.warning("throw %s: telemetry %s unusable (%s), skipped", t.id, path, e)
-                continue
-            landed = [s for s, p in zip(tel["event_t_s"], tel["event_phase"]) if p == "landed"]
-            out.append(({"throw_id": t.id, "mode": t.mode, "target_m": t.target_m, "impact_m": t.impact_m,
-                         "impact_stamp_s": float(landed[0]) if landed else None, "status": t.status,
-                         "policy_version": t.policy_version}, data))
-        write(directory, out, machine_id=machine_id, source={"exported_from": "slinger server", "limit": limit})
-        return len(out)
-
-    # --- runs -------------------------------------------------------------------------------
-    def _landed_with_telemetry(self, machine_id: str):
-        return (Throw.machine_id == machine_id, Throw.status == "landed", Throw.telemetry_path.is_not(None))
-
     def start(self, machine_id: str, limit: int = 50, requested_by: str | None = None, workers: int | None = None) -> dict:
-        """Submit a diagnosis job (export + diagnose in a worker); returns the initial status.
+        """Submit a diagnosis job (export + diagnose in a worker); returns the run.
 
         Raises:
             DiagnosisBusy: a run is queued or in progress.
             ValueError: the machine has fewer than 4 landed throws with telemetry.
         """
-        if any(st.get("status") in ("queued", "running") for st in self.list()):
+        if any(j["status"] in ACTIVE for j in self.jobs.store.list(kind="diagnosis", limit=20)):
             raise DiagnosisBusy("a diagnosis is already running; wait for it to finish")
         with self.sessions() as db:
-            n = db.scalar(select(func.count()).select_from(Throw).where(*self._landed_with_telemetry(machine_id)))
+            n = db.scalar(select(func.count()).select_from(Throw).where(*landed_with_telemetry(machine_id)))
         n = min(int(n or 0), limit)
         if n < 4:
             raise ValueError(f"machine {machine_id!r} has {n} landed throws with telemetry; a diagnosis needs at least 4")
-        run_id = f"{datetime.now(UTC):%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:6]}"
-        status = {"id": run_id, "job_id": None, "machine_id": machine_id, "throws": n, "status": "queued",
-                  "error": None, "started_at": _now(), "finished_at": None, "requested_by": requested_by,
-                  "verdict": None}
-        self._write_status(self.root / run_id, status)
-        self._job_id = self.jobs.submit("diagnosis", {"run_id": run_id, "machine_id": machine_id, "limit": limit,
+        self._job_id = self.jobs.submit("diagnosis", {"machine_id": machine_id, "limit": limit,
                                                       "workers": workers or self.workers},
                                         subject=machine_id, requested_by=requested_by)
-        status = self._read_status(self.root / run_id) or status
-        if status.get("job_id") is None:
-            status["job_id"] = self._job_id
-        return status
+        return self.get(self._job_id, with_report=False)
 
     def start_upload(self, machine_id: str, bags: list[tuple[str, bytes]], mapping: tuple[str, bytes], impacts: bytes,
                      requested_by: str | None = None, workers: int | None = None, max_bytes: int | None = None) -> dict:
         """Store an uploaded set of rosbag2 bags (server.diagnosis_upload) and submit a diagnosis
-        job that converts and diagnoses them; returns the initial status.
+        job that converts and diagnoses them; returns the run.
 
         Raises:
             DiagnosisBusy: a run is queued or in progress.
             server.diagnosis_upload.UploadError: the upload cannot be used (nothing is kept).
         """
-        from server.diagnosis_upload import store_upload
+        from server.diagnosis_upload import new_upload_id, store_upload, upload_dir
 
-        if any(st.get("status") in ("queued", "running") for st in self.list()):
+        if any(j["status"] in ACTIVE for j in self.jobs.store.list(kind="diagnosis", limit=20)):
             raise DiagnosisBusy("a diagnosis is already running; wait for it to finish")
-        run_id = f"{datetime.now(UTC):%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:6]}"
-        ids = store_upload(self.root / run_id / "upload", bags, mapping, impacts, max_bytes=max_bytes)
-        status = {"id": run_id, "job_id": None, "machine_id": machine_id, "throws": len(ids), "status": "queued",
-                  "error": None, "started_at": _now(), "finished_at": None, "requested_by": requested_by,
-                  "verdict": None, "source": "rosbag2 upload"}
-        self._write_status(self.root / run_id, status)
-        self._job_id = self.jobs.submit("diagnosis", {"run_id": run_id, "machine_id": machine_id, "limit": len(ids),
-                                                      "workers": workers or self.workers, "upload": True},
+        upload = new_upload_id()
+        ids = store_upload(upload_dir(self.data_dir, upload), bags, mapping, impacts, max_bytes=max_bytes)
+        self._job_id = self.jobs.submit("diagnosis", {"machine_id": machine_id, "limit": len(ids), "upload": upload,
+                                                      "workers": workers or self.workers},
                                         subject=machine_id, requested_by=requested_by)
-        status = self._read_status(self.root / run_id) or status
-        if status.get("job_id") is None:
-            status["job_id"] = self._job_id
-        return status
-
-    def run(self, run_id: str, machine_id: str, limit: int, workers: int | None, progress, upload: bool = False) -> dict:
-        """The job's body (in a worker): export (or, for an upload, convert the bags:
-        sim_twin.diagnosis.rosbag), diagnose, write status.json; returns the status.
-
-        Raises:
-            server.jobs.JobCancelled: from ``progress`` (status.json says failed: cancelled).
-        """
-        from server.jobs.store import JobCancelled
-        from sim_twin.diagnosis.diagnose import diagnose
-
-        run_dir = self.root / run_id
-        status = self._read_status(run_dir) or {"id": run_id, "machine_id": machine_id, "requested_by": None}
-        status.update(status="running", error=None)
-        self._write_status(run_dir, status)
-        try:
-            if upload:
-                from server.diagnosis_upload import uploaded
-                from sim_twin.diagnosis import rosbag
-
-                progress(0.0, "converting the uploaded bags")
-                rosbag.convert(*uploaded(run_dir / "upload"), run_dir / "dataset")
-            else:
-                progress(0.0, "exporting throws")
-                status["throws"] = self.export(machine_id, limit, run_dir / "dataset")
-            progress(0.1, f"diagnosing {status['throws']} throws")
-            report = diagnose(run_dir / "dataset", run_dir / "report", workers=workers)
-            status.update(status="done", verdict=report["verdict"])
-        except JobCancelled:
-            status.update(status="failed", error="cancelled")
-            raise
-        except Exception as e:  # reported in status.json for the page
-            log.exception("diagnosis %s failed", run_id)
-            status.update(status="failed", error=f"{type(e).__name__}: {e}")
-        finally:
-            status["finished_at"] = _now()
-            self._write_status(run_dir, status)
-        return status
+        return self.get(self._job_id, with_report=False)
 
     def wait(self, timeout_s: float | None = None) -> None:
         """Block until the last run started here finishes (tests)."""
         if self._job_id is not None:
             self.jobs.wait(self._job_id, timeout_s if timeout_s is not None else 3600.0)
 
-    def list(self, machine_id: str | None = None) -> list[dict]:
-        """Statuses of all runs, newest first."""
-        if not self.root.is_dir():
-            return []
-        out = []
-        for d in sorted(self.root.iterdir(), reverse=True):
-            st = self._read_status(d)
-            if st and (machine_id is None or st.get("machine_id") == machine_id):
-                out.append(st)
-        return out
+    def list(self, machine_id: str | None = None, limit: int = 100) -> list[dict]:
+        """Runs newest first (without reports)."""
+        return [run_view(j) for j in self.jobs.store.list(kind="diagnosis", subject=machine_id, limit=limit,
+                                                                      with_result=True)]
 
-    def get(self, run_id: str) -> dict | None:
-        """Status plus the report (when done) of one run, or None."""
-        d = self.run_dir(run_id)
-        st = self._read_status(d) if d else None
-        if st is None:
+    def get(self, run_id: str, with_report: bool = True) -> dict | None:
+        """The run, plus its report once it is done; None for an unknown or malformed id."""
+        if not RUN_ID.match(run_id or ""):
             return None
-        report = d / "report" / "report.json"
-        if st.get("status") == "done" and report.is_file():
-            st = {**st, "report": json.loads(report.read_text())}
-        return st
-
-    def run_dir(self, run_id: str) -> Path | None:
-        """The run's folder, None for a malformed id (no path tricks)."""
-        return self.root / run_id if RUN_ID.match(run_id or "") else None
+        job = self.jobs.store.get(run_id)
+        if job is None or job["kind"] != "diagnosis":
+            return None
+        view = run_view(job)
+        report = job_dir(self.data_dir, run_id) / "report" / "report.json"
+        if with_report and view["status"] == "done" and report.is_file():
+            view["report"] = json.loads(report.read_text())
+        return view
 
     def file(self, run_id: str, name: str) -> Path | None:
-        """A report file of a run, or None."""
-        d = self.run_dir(run_id)
-        if d is None or name not in REPORT_FILES:
+        """A report file of a run (a regular file inside the run's report folder), or None."""
+        if not RUN_ID.match(run_id or "") or name not in REPORT_FILES:
             return None
-        p = d / "report" / name
-        return p if p.is_file() else None
-
-    @staticmethod
-    def _write_status(run_dir: Path, status: dict) -> None:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        tmp = run_dir / "status.json.tmp"
-        tmp.write_text(json.dumps(status, indent=1))
-        tmp.replace(run_dir / "status.json")
-
-    @staticmethod
-    def _read_status(run_dir: Path) -> dict | None:
-        try:
-            return json.loads((run_dir / "status.json").read_text())
-        except (OSError, json.JSONDecodeError):
+        folder = job_dir(self.data_dir, run_id) / "report"
+        p = folder / name
+        if p.is_symlink() or not p.is_file() or p.resolve().parent != folder.resolve():
             return None
-
-
-def _now() -> str:
-    return datetime.now(UTC).isoformat()
+        return p

@@ -5,8 +5,9 @@ An upload is one or more bags, one per throw, each a single ``.mcap`` or ``.db3`
 ``.zip`` of a rosbag2 directory (``metadata.yaml`` and its storage files), plus the mapping file
 (``.toml``, ``.json``, ``.yaml``: sim_twin.diagnosis.rosbag) and the impacts CSV (``throw_id,
 target_x_m, target_y_m, impact_x_m, impact_y_m``). A throw's id is the file's or zip's stem. They
-are kept under ``<run>/upload/``: ``bags/<id>.mcap|.db3`` or ``bags/<id>/`` (the unzipped
-directory), ``mapping.<ext>``, ``impacts.csv``. Nothing here imports the twin (the API process
+are kept under ``<data_dir>/uploads/<upload id>/`` (:func:`upload_dir`; the diagnosis job's spec
+names the id): ``bags/<id>.mcap|.db3`` or ``bags/<id>/`` (the unzipped directory),
+``mapping.<ext>``, ``impacts.csv``. Nothing here imports the twin (the API process
 stays free of MuJoCo); what only conversion can tell (topics, joints, types) fails the run with
 its reason.
 """
@@ -17,6 +18,7 @@ import csv
 import io
 import re
 import shutil
+import uuid
 import zipfile
 from pathlib import Path, PurePosixPath
 
@@ -27,6 +29,22 @@ MAX_BAGS = 500
 BAG_SUFFIXES = (".mcap", ".db3", ".zip")
 MAPPING_SUFFIXES = (".toml", ".json", ".yaml", ".yml")
 _ID = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+
+
+def new_upload_id() -> str:
+    """A fresh upload id: 32 hex digits."""
+    return uuid.uuid4().hex
+
+
+def upload_dir(data_dir: Path, upload: str) -> Path:
+    """``<data_dir>/uploads/<upload>/`` of an upload id (32 hex digits).
+
+    Raises:
+        ValueError: a malformed id (no path tricks).
+    """
+    if not re.fullmatch(r"[0-9a-f]{32}", upload or ""):
+        raise ValueError(f"malformed upload id {upload!r}")
+    return Path(data_dir) / "uploads" / upload
 
 
 class UploadError(ValueError):

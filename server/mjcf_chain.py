@@ -1,7 +1,7 @@
 """The machine's drawing geometry without MuJoCo: the MJCF parsed once with xml.etree into a small
 kinematic chain (bodies with their pose in the parent, joints, geoms) evaluated with numpy.
 
-The API process never imports MuJoCo (README, "Fleet deployment"); the 3D view still draws the
+The API process never imports MuJoCo (docs/deployment.md, "Workers and queue URLs"); the 3D view still draws the
 twin's own geometry from the same file the twin simulates (``sim_twin/assets/material_handler.xml``;
 a server wheel carries a copy as ``server/assets``, see :func:`default_mjcf_path`).
 tests/test_mjcf_chain.py checks the body and geom poses against MuJoCo's forward kinematics.

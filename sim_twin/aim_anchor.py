@@ -7,7 +7,7 @@ policy sees (and answers) one of them through its observation and not the other:
 latency changes what the policy observes, a cross wind or a grasp offset does not. So a fit
 that names a different but replay-equivalent effect can give the aim correction (computed in
 CLOSED loop under the fitted profile, sim_twin.adapt) the wrong size or even the wrong sign.
-Measured on heavy_load (session 2): the fitted cabin drift predicted a bias of -0.06 to
+Measured on heavy_load (earlier policy version, 2026-11-21): the fitted cabin drift predicted a bias of -0.06 to
 -0.14 m in closed loop where the site's throws showed +0.21 to +0.37 m.
 
 The logged throws themselves are closed-loop throws of the base policy on the site. For each

@@ -182,7 +182,7 @@ def plot_reports(reports: list[dict], out: Path) -> None:
 
 
 def markdown_table(report: dict) -> str:
-    """The per-target statistics of a report as a Markdown table (for the README)."""
+    """The per-target statistics of a report as a Markdown table (for docs and reports)."""
     head = (f"**{report['mode'].upper()} `{report.get('policy_version', report['policy'])}`**, "
             f"{report['throws_per_target']} throws per target, {report['profile']} profile\n\n"
             "| target [m] | success | mean impact [m] | bias [m] | σ downrange [m] | mean crossrange [m] | σ crossrange [m] | duration [s] |\n"

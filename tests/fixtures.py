@@ -51,3 +51,21 @@ def write_test_policy(
     onnx.save(model, path)
     write_manifest(path, build_manifest(path, mode, name, target_range_m, {"kind": "test fixture"}))
     return path
+
+
+def finished_diagnosis_run(state, machine_id: str, report: dict, profile: dict | None = None, throws: int = 30) -> str:
+    """A finished ``diagnosis`` job (its row and report files) as a worker would leave it, without
+    running the diagnosis; returns the run id (= job id). ``state`` is the app's ``app.state``."""
+    import json
+
+    from server.jobs.specs import job_dir
+
+    store = state.jobs.store
+    run_id = store.create("diagnosis", {"machine_id": machine_id, "limit": throws}, subject=machine_id)
+    folder = job_dir(state.settings.data_dir, run_id) / "report"
+    folder.mkdir(parents=True)
+    (folder / "report.json").write_text(json.dumps(report))
+    if profile is not None:
+        (folder / "profile_fitted.json").write_text(json.dumps(profile))
+    store.finish(run_id, "done", result={"throws": throws, "verdict": report.get("verdict")})
+    return run_id

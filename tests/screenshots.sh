@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Photograph every console page at 1440x900, 1024x768 and 390x844 into reports/screenshots/
-# (the README links the set). The same browser tests that check the layout bars take them.
+# (docs/operator-guide.md links the set). The same browser tests that check the layout bars take them.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 mkdir -p reports/screenshots

@@ -21,7 +21,7 @@ from sim_twin.hydraulics import NOMINAL_LAG_S
 from sim_twin.profile import RealityProfile
 from sim_twin.simulated_machine import SimulatedMachine
 from sim_twin.plant import TwinMachine
-from tests.fixtures import write_test_policy
+from tests.fixtures import finished_diagnosis_run, write_test_policy
 
 TABLE = {"format": AIM_FORMAT, "distances_m": [7.0, 9.0], "downrange_offset_m": [-0.2, -0.4], "crossrange_offset_m": [0.1, 0.3]}
 
@@ -157,18 +157,12 @@ def test_console_flow_diagnosis_to_adapted_version(client, monkeypatch, tmp_path
     monkeypatch.setattr(ad, "_measure", lambda policy, mode, pp, distances, *a: {float(d): (0.25, 0.0, 5, 0.1) for d in distances})
     from server.jobs import tasks as job_tasks
 
-    monkeypatch.setitem(job_tasks.RUNNERS, "evaluation", lambda ctx, params, progress: {})  # the version's own
+    monkeypatch.setitem(job_tasks.RUNNERS, "evaluation", lambda ctx, job, progress: {})  # the version's own
     base = write_test_policy(tmp_path, "2d", name="base-2d")
     client.app.state.store.register_policy(json.loads(base.with_suffix(".json").read_text()), onnx_path=base)
-    data_dir = client.app.state.settings.data_dir
-    run_id = "20261121T190000-abcdef"
-    rd = data_dir / "diagnosis" / run_id
-    (rd / "report").mkdir(parents=True)
-    (rd / "status.json").write_text(json.dumps({"id": run_id, "machine_id": "m1", "status": "done"}))
-    (rd / "report" / "report.json").write_text(json.dumps({"which": [{"effect": "release_delay", "sigma": {"mean_s": 0.01}}]}))
-    (rd / "report" / "profile_fitted.json").write_text(json.dumps(
-        {"name": "fitted-release_delay", "effects": [{"effect": "release_delay", "params": {"mean_s": 0.34}}]}))
-    assert client.post("/api/diagnosis/runs/20261121T190000-000000/adapt", json={"mode": "2d"}).status_code == 404
+    run_id = finished_diagnosis_run(client.app.state, "m1", {"which": [{"effect": "release_delay", "sigma": {"mean_s": 0.01}}]},
+                                    {"name": "fitted-release_delay", "effects": [{"effect": "release_delay", "params": {"mean_s": 0.34}}]})
+    assert client.post("/api/diagnosis/runs/00000000-0000-0000-0000-000000000000/adapt", json={"mode": "2d"}).status_code == 404
     assert client.post(f"/api/diagnosis/runs/{run_id}/adapt", json={"mode": "2d", "base_version": "nope"}).status_code == 409
     r = client.post(f"/api/diagnosis/runs/{run_id}/adapt", json={"mode": "2d", "base_version": "base-2d", "throws": 2, "rounds": 1})
     assert r.status_code == 202, r.text

@@ -10,6 +10,7 @@ import pytest
 
 from server.db.models import Machine, Throw
 from tests.conftest import ADMIN, add_user, free_port, wait_for
+from tests.fixtures import finished_diagnosis_run
 from tests.browser import SIZES, axe_serious, browser, log_in  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.browser
@@ -161,12 +162,9 @@ def test_every_page_is_accessible_and_fits_three_sizes(live, browser):  # noqa: 
     assert problems == []
 
 
-def _fake_run(data_dir, run_id: str) -> None:
-    """A finished diagnosis run on disk: two rounds (one named, one ambiguous with an at-bound candidate)."""
-    import json
-
-    d = data_dir / "diagnosis" / run_id
-    (d / "report").mkdir(parents=True)
+def _fake_run(state) -> str:
+    """A finished diagnosis run (its job row and report): two rounds (one named, one ambiguous
+    with an at-bound candidate); returns its id."""
     cand = lambda e, wins, adm, reason="", at=(), p=None: {  # noqa: E731
         "effect": e, "params": p or {"x": 1.0}, "sigma": {"x": 0.1}, "at_bound": list(at), "worse": {}, "wins": wins, "beats_none": wins,
         "admissible": adm, "reason": reason, "k": 1}
@@ -186,14 +184,12 @@ def _fake_run(data_dir, run_id: str) -> None:
                     "accuracy": {"observed": {}, "replayed_nominal": {}, "replayed_fitted": {}}},
         "plots": {},
     }
-    (d / "report" / "report.json").write_text(json.dumps(report))
-    (d / "status.json").write_text(json.dumps({"id": run_id, "machine_id": "m1", "throws": 30, "status": "done", "verdict": report["verdict"]}))
+    return finished_diagnosis_run(state, "m1", report)
 
 
 def test_diagnosis_page_shows_where_verdict_evidence_and_shrink(live, browser):  # noqa: F811
     base, app = live
-    run_id = "20260501T120000-abcdef"
-    _fake_run(app.state.settings.data_dir, run_id)
+    run_id = _fake_run(app.state)
     page = browser.new_page(viewport={"width": 1400, "height": 900})
     log_in(page, base)
     page.goto(f"{base}/console/diagnosis.html#{run_id}")

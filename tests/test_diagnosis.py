@@ -214,8 +214,7 @@ def test_server_runs_a_diagnosis_on_stored_throws(client, nominal_dir: Path):
     from runtime.telemetry import read_metadata
     from server.diagnosis import DiagnosisRuns
 
-    runs = DiagnosisRuns(client.app.state.sessions, client.app.state.settings.data_dir, workers=1,
-                         jobs=client.app.state.jobs)
+    runs = DiagnosisRuns(client.app.state.sessions, client.app.state.jobs, client.app.state.settings.data_dir, workers=1)
     client.app.state.diagnosis_runs = runs
     assert client.post("/api/diagnosis/runs", json={"machine_id": "m9"}).status_code == 422  # no throws yet
     store = client.app.state.store

@@ -146,7 +146,7 @@ def test_bags_uploaded_through_the_api_are_diagnosed(client, nominal: Path, tmp_
     the mapping and the impacts CSV; converted and diagnosed by the worker."""
     from server.diagnosis import DiagnosisRuns
 
-    runs = DiagnosisRuns(client.app.state.sessions, client.app.state.settings.data_dir, workers=1, jobs=client.app.state.jobs)
+    runs = DiagnosisRuns(client.app.state.sessions, client.app.state.jobs, client.app.state.settings.data_dir, workers=1)
     client.app.state.diagnosis_runs = runs
     throws, _ = dataset.load(nominal)
     files = []

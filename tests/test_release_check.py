@@ -35,7 +35,7 @@ OFF = {"release_check_radius_m": None}
 
 @pytest.mark.parametrize("mode, distance, index, bound_m", [("2d", 10.0, 5, 0.7), ("3d", 9.5, 5, 0.5)])
 def test_predicted_impact_matches_the_twin_on_nominal_throws(mode, distance, index, bound_m):
-    """Bounds from the measurement (README): nominal 2D 10 m max 0.61 m, 3D 9.5 m max 0.40 m over
+    """Bounds from the measurement (reports/release_check_accuracy.json): nominal 2D 10 m max 0.61 m, 3D 9.5 m max 0.40 m over
     100 throws; here 8 of them. The naive prediction (no opening delay) is far worse."""
     rows = release_errors(POLICY[mode], mode, distance, [index * 100_000 + k for k in range(8)], None)
     assert len(rows) == 8
@@ -48,8 +48,8 @@ def test_predicted_impact_matches_the_twin_on_nominal_throws(mode, distance, ind
 class EarlyRelease:
     """The deployed policy with its release flag forced on at control step ``step`` of the swing
     (a glitching policy or a corrupted action): a release at a wild moment, made on purpose so
-    that the test does not hinge on a policy version's rare wild throws (the `-e` policies threw
-    seed 400052 of a 0.2 s valve-delay site 19 m off on their own; `-h` does not)."""
+    that the test does not hinge on a policy version's rare wild throws (throw3d-robust-e threw
+    seed 400052 of a 0.2 s valve-delay site 19 m off on its own; throw3d-robust-h does not)."""
 
     def __init__(self, runner: PolicyRunner, step: int):
         self.runner, self.step, self.calls, self.actions = runner, step, 0, []

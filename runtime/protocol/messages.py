@@ -3,7 +3,7 @@ messages also carry the ``machine_id`` and a monotonic timestamp ``stamp_s`` (se
 sender's monotonic clock, :func:`time.monotonic`).
 
 Vectors of joint values follow ``runtime.machine.JOINT_NAMES`` (6 joints) or
-``ACTIVE_JOINTS`` (4 joints); positions are in the machine frame (ARCHITECTURE.md), metres.
+``ACTIVE_JOINTS`` (4 joints); positions are in the machine frame (docs/architecture.md), metres.
 
 Non-finite numbers (NaN, inf) are rejected at validation: a malformed or NaN message raises
 :class:`pydantic.ValidationError` in :func:`decode`, which callers log and drop.

@@ -19,6 +19,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from server.db.models import FINAL_JOB_STATUSES, JOB_KINDS, Job
 from server.db.types import utcnow
 from server.jobs.leases import LEASE_S, WorkerIdentity
+from server.jobs.specs import JobSpecError, parse_spec
 
 log = logging.getLogger(__name__)
 
@@ -45,11 +46,15 @@ class JobStore:
     def create(self, kind: str, params: dict, subject: str | None = None, requested_by: str | None = None) -> str:
         """A new ``queued`` job; returns its id.
 
+        ``params`` are checked against the kind's spec (server.jobs.specs) and stored as the
+        spec's JSON (defaults filled in).
+
         Raises:
-            ValueError: unknown kind.
+            server.jobs.specs.JobSpecError (a ValueError): unknown kind or bad parameters.
         """
         if kind not in JOB_KINDS:
-            raise ValueError(f"unknown job kind {kind!r}; one of {', '.join(JOB_KINDS)}")
+            raise JobSpecError(f"unknown job kind {kind!r}; one of {', '.join(JOB_KINDS)}")
+        params = parse_spec(kind, params).model_dump(mode="json")
         with self.sessions.begin() as db:
             row = Job(kind=kind, status="queued", params=params, subject=subject, requested_by=requested_by,
                       progress=0.0, cancel_requested=False)
@@ -64,12 +69,19 @@ class JobStore:
             return as_dict(row) if row is not None else None
 
     def list(self, kind: str | None = None, subject: str | None = None, status: str | None = None,
-             limit: int = 50) -> list[dict]:
-        """Jobs newest first, without their results (they can be large)."""
+             limit: int = 50, with_result: bool = False) -> list[dict]:
+        """Jobs newest first, without their results unless asked (they can be large)."""
         stmt = select(Job).order_by(Job.created_at.desc()).limit(limit)
         for col, value in ((Job.kind, kind), (Job.subject, subject), (Job.status, status)):
             if value:
                 stmt = stmt.where(col == value)
+        with self.sessions() as db:
+            return [as_dict(r, with_result=with_result) for r in db.scalars(stmt)]
+
+    def changed_since(self, since: datetime) -> list[dict]:
+        """Jobs that can still change (queued, running) or finished at or after ``since`` (UTC),
+        without results: what server.jobs.watch.JobWatcher looks at."""
+        stmt = select(Job).where((Job.status.in_(("queued", "running"))) | (Job.finished_at >= since))
         with self.sessions() as db:
             return [as_dict(r, with_result=False) for r in db.scalars(stmt)]
 

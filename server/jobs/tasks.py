@@ -1,28 +1,23 @@
 """What each job kind does, run by :func:`execute` in a worker process.
 
-Every runner is ``runner(ctx, params, progress) -> dict`` (the JSON result): ``ctx`` is the
-:class:`WorkerContext`, ``params`` the job row's parameters, ``progress(fraction, message)``
+Every runner is ``runner(ctx, job, progress) -> dict`` (the JSON result): ``ctx`` is the
+:class:`WorkerContext`, ``job`` the :class:`JobRun` (id and typed spec), ``progress(fraction, message)``
 records progress and raises :class:`~server.jobs.store.JobCancelled` when the job was
 cancelled. MuJoCo and sim_twin are imported inside the runners only: this module is imported by
 the API process too (to register the queue's task).
 
-Kinds and parameters:
+Kinds and their typed parameters (server.jobs.specs, checked at submit and again here):
 
-* ``preview``: ``onnx_path`` (relative to the data dir), ``sha256``, ``request`` (the keyword
-  arguments of sim_twin.preview.PreviewRequest), ``profile_path`` (the site profile or None)
-  -> sim_twin.preview.preview_throw's summary.
-* ``catalog``: none -> ``{"effects": {name: description}}`` (sim_twin.effects).
-* ``evaluation``: ``version_id``, ``distances_m``, ``throws`` -> the evaluation report; also
-  written to the policy version's row (``evaluation_status``, ``metrics``).
-* ``diagnosis``: ``run_id``, ``machine_id``, ``limit``, ``workers``, ``upload`` (convert the run's
-  uploaded rosbag2 set instead of exporting stored throws) -> the run's status
-  (server.diagnosis: files under ``<data_dir>/diagnosis/<run_id>``).
-* ``adaptation``: ``run_id`` and the inputs server.adaptation.AdaptationRuns.start checked ->
-  the run's status; the adapted policy becomes a version (its evaluation is another job).
-* ``probe``: ``steps``, ``step_s``, optional ``fail`` (a message to fail with): a worker
-  health check that reports progress and can be cancelled between steps. Fault injection for
-  tests (not accepted by the API): ``kill_worker_at_step`` makes the worker process SIGKILL
-  itself at that step (a worker dying mid-job, server.jobs.leases).
+* ``preview`` (PreviewSpec) -> sim_twin.preview.preview_throw's summary.
+* ``catalog`` (CatalogSpec) -> ``{"effects": {name: description}}`` (sim_twin.effects).
+* ``evaluation`` (EvaluationSpec) -> the evaluation report; also written to the policy
+  version's row (``evaluation_status``, ``metrics``).
+* ``diagnosis`` (DiagnosisSpec) -> ``{"throws", "verdict"}``; the dataset and report files under
+  the job's folder (server.jobs.diagnosis_job).
+* ``adaptation`` (AdaptationSpec) -> the new policy version (server.jobs.adaptation_job).
+* ``probe`` (ProbeSpec): a worker health check that reports progress and can be cancelled
+  between steps. Fault injection for tests (not accepted by the API): ``kill_worker_at_step``
+  makes the worker process SIGKILL itself at that step (a worker dying mid-job, server.jobs.leases).
 """
 
 from __future__ import annotations
@@ -39,6 +34,7 @@ from pathlib import Path
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.jobs.leases import LEASE_S, WorkerIdentity
+from server.jobs.specs import JobSpecError, parse_spec
 from server.jobs.store import JobCancelled, JobStore
 
 log = logging.getLogger(__name__)
@@ -81,6 +77,16 @@ class WorkerContext:
         return self.identity.name
 
 
+@dataclass(frozen=True)
+class JobRun:
+    """What a runner is given about its job: ``id`` (its files go under
+    ``server.jobs.specs.job_dir(data_dir, id)``), the parsed ``spec`` and ``requested_by``."""
+
+    id: str
+    spec: object
+    requested_by: str | None = None
+
+
 _CONTEXT: WorkerContext | None = None
 
 
@@ -103,7 +109,12 @@ def execute(job_id: str) -> None:
     t0 = time.monotonic()
     log.info("job %s (%s) started, attempt %d", job_id, job["kind"], job["attempts"])
     try:
-        result = RUNNERS[job["kind"]](ctx, job["params"] or {},
+        spec = parse_spec(job["kind"], job["params"])
+    except JobSpecError as e:
+        ctx.store.finish(job_id, "failed", error=str(e), worker_id=me)
+        return
+    try:
+        result = RUNNERS[job["kind"]](ctx, JobRun(job_id, spec, job["requested_by"]),
                                       lambda f, m=None: ctx.store.progress(job_id, f, m, worker_id=me))
         ctx.store.finish(job_id, "done", result=_json_safe(result), worker_id=me)
         log.info("job %s (%s) done in %.2f s", job_id, job["kind"], time.monotonic() - t0)
@@ -125,21 +136,22 @@ def _json_safe(result) -> dict:
 
 
 # --- runners ----------------------------------------------------------------------------------
-def run_preview(ctx: WorkerContext, params: dict, progress) -> dict:
+def run_preview(ctx: WorkerContext, job: JobRun, progress) -> dict:
     from runtime.policy import PolicyError, PolicyRunner
     from sim_twin.preview import PreviewRequest, preview_throw
 
-    sha = params["sha256"]
+    spec = job.spec
+    sha = spec.sha256
     with ctx.lock:
         runner = ctx.runners.get(sha)
     if runner is None:
         try:
-            runner = PolicyRunner.load(ctx.data_dir / params["onnx_path"])
+            runner = PolicyRunner.load(ctx.data_dir / spec.onnx_path)
         except (PolicyError, OSError) as e:
             raise JobRefused(409, f"policy {sha[:12]}… does not load on the worker: {e}") from e
         with ctx.lock:
             ctx.runners[sha] = runner
-    return preview_throw(runner, PreviewRequest(**params["request"]), _site_profile(ctx, runner, params.get("profile_path")))
+    return preview_throw(runner, PreviewRequest(**spec.request), _site_profile(ctx, runner, spec.profile_path))
 
 
 def _site_profile(ctx: WorkerContext, runner, profile_path: str | None):
@@ -154,46 +166,45 @@ def _site_profile(ctx: WorkerContext, runner, profile_path: str | None):
         return ctx.profiles[key]
 
 
-def run_catalog(ctx: WorkerContext, params: dict, progress) -> dict:
+def run_catalog(ctx: WorkerContext, job: JobRun, progress) -> dict:
     from sim_twin.effects import EFFECTS
 
     return {"effects": {name: cls.describe() for name, cls in EFFECTS.items()}}
 
 
-def run_evaluation(ctx: WorkerContext, params: dict, progress) -> dict:
+def run_evaluation(ctx: WorkerContext, job: JobRun, progress) -> dict:
     from server.policies import evaluate_version
 
-    return evaluate_version(ctx.sessions, ctx.data_dir, params["version_id"], params["distances_m"],
-                            params["throws"], progress)
+    return evaluate_version(ctx.sessions, ctx.data_dir, job.spec.version_id, job.spec.distances_m,
+                            job.spec.throws, progress)
 
 
-def run_diagnosis(ctx: WorkerContext, params: dict, progress) -> dict:
-    from server.diagnosis import DiagnosisRuns
+def run_diagnosis(ctx: WorkerContext, job: JobRun, progress) -> dict:
+    from server.jobs.diagnosis_job import run
 
-    return DiagnosisRuns(ctx.sessions, ctx.data_dir).run(params["run_id"], params["machine_id"], params["limit"],
-                                                         params.get("workers"), progress, upload=bool(params.get("upload")))
+    return run(ctx.sessions, ctx.data_dir, job.id, job.spec, progress)
 
 
-def run_adaptation(ctx: WorkerContext, params: dict, progress) -> dict:
-    from server.adaptation import AdaptationRuns
+def run_adaptation(ctx: WorkerContext, job: JobRun, progress) -> dict:
+    from server.jobs.adaptation_job import run
     from server.policies import PolicyService
     from server.results import ResultStore
 
     policies = PolicyService(None, ctx.sessions, ResultStore(ctx.sessions, ctx.data_dir), ctx.settings, ctx.jobs)
-    return AdaptationRuns(None, policies, None, ctx.data_dir).run(params, progress)
+    return run(policies, ctx.data_dir, job, progress)
 
 
-def run_probe(ctx: WorkerContext, params: dict, progress) -> dict:
-    steps, step_s = int(params.get("steps", 1)), float(params.get("step_s", 0.0))
-    kill_at = params.get("kill_worker_at_step")
+def run_probe(ctx: WorkerContext, job: JobRun, progress) -> dict:
+    spec = job.spec
+    steps, step_s, kill_at = spec.steps, spec.step_s, spec.kill_worker_at_step
     for i in range(steps):
         progress(i / max(steps, 1), f"step {i + 1} of {steps}")
-        if kill_at is not None and i == int(kill_at):
+        if kill_at is not None and i == kill_at:
             log.warning("probe: killing this worker process (kill_worker_at_step=%s)", kill_at)
             os.kill(os.getpid(), signal.SIGKILL)
         time.sleep(step_s)
-    if params.get("fail"):
-        raise RuntimeError(str(params["fail"]))
+    if spec.fail:
+        raise RuntimeError(spec.fail)
     progress(1.0, "done")
     return {"worker": ctx.name, "steps": steps}
 

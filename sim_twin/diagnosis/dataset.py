@@ -238,7 +238,7 @@ _policy_cache: dict = {}
 
 
 DISTANCES_M = {"2d": (7.5, 8.0, 8.5, 9.0, 9.5), "3d": (7.0, 7.5, 8.0, 8.5, 9.0)}
-"""Target distances per mode (the policies' evaluated range, README)."""
+"""Target distances per mode (the policies' evaluated range, docs/training.md)."""
 
 
 def generate(directory, profile_dict: dict, throws: int, policy_path: str | Path, distances_m=None, seed: int = 0, mode: str = "2d",

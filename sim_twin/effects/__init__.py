@@ -1,4 +1,4 @@
-"""The library of named physical effects the twin can switch on (ARCHITECTURE.md: "Effect").
+"""The library of named physical effects the twin can switch on (docs/architecture.md: "Effect").
 
 ::
 

@@ -1,5 +1,5 @@
 #!/bin/bash
-# One GPU call of robust fine-tuning, as run in session 4 (README, "More training, tried in session 4").
+# One GPU call of robust fine-tuning (export, train 2D and 3D side by side, site matrix on the CPU cores); docs/training.md.
 #
 # Layout (copy in before the call, bring back after it): devwork/cfg_{2d,3d}.json (training configs),
 # devwork/{2d,3d}/checkpoint.pt and curve.csv (resumed and overwritten), .whl/ (cp312 wheels of what the

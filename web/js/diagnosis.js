@@ -5,7 +5,8 @@
 
 const pct = (x) => (x === null || x === undefined ? "–" : `${(100 * x).toFixed(0)}%`);
 const esc = (s) => String(s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]));
-let polling = null;
+let adaptationId = null;
+const runStatus = {};
 
 async function loadRuns() {
   const runs = await api("GET", "/api/diagnosis/runs");
@@ -17,7 +18,6 @@ async function loadRuns() {
       `<td class="status-${r.status === "done" ? "landed" : esc(r.status)}">${esc(r.status)}</td><td>${esc(r.verdict ? r.verdict.text : (r.error || ""))}</td>`;
     body.appendChild(tr);
   }
-  if (runs.some((r) => r.status === "running") && !polling) polling = setTimeout(() => { polling = null; loadRuns(); }, 3000);
   const want = location.hash.slice(1) || (runs.find((r) => r.status === "done") || {}).id;
   if (want) showRun(want);
 }
@@ -100,16 +100,29 @@ async function showRun(id) {
   showHowFar(rep.how_far);
 }
 
-async function pollAdaptation(id) {
+async function showAdaptation(id) {
   const st = await api("GET", `/api/adaptations/${id}`);
   const last = st.progress.length ? st.progress[st.progress.length - 1] : "";
   $("adapt-msg").textContent = st.status === "done" ? `version ${st.policy_version} made: evaluate and promote it under Policies`
     : st.status === "failed" ? `failed: ${st.error}` : `adapting ${st.base_version}… ${last}`;
-  if (st.status === "running") setTimeout(() => pollAdaptation(id), 3000);
+}
+
+// Runs and adaptations are jobs: their progress and completion arrive as "job" events on
+// /api/live (no polling). A diagnosis event refreshes the run list (and the shown report when
+// it finished); an adaptation event refreshes the adaptation line.
+function onJob(job) {
+  if (job.kind === "diagnosis") {
+    if (runStatus[job.id] !== job.status) { runStatus[job.id] = job.status; loadRuns(); }
+  } else if (job.kind === "adaptation" && job.id === adaptationId) {
+    showAdaptation(job.id);
+  }
 }
 
 document.addEventListener("DOMContentLoaded", async () => {
   await whoAmI();
+  Live.on("job", onJob);
+  Live.on("connected", loadRuns);
+  Live.start();
   $("start").addEventListener("submit", async (ev) => {
     ev.preventDefault();
     $("start-msg").textContent = "exporting throws…";
@@ -127,7 +140,8 @@ document.addEventListener("DOMContentLoaded", async () => {
     $("adapt-msg").textContent = "starting…";
     try {
       const st = await api("POST", `/api/diagnosis/runs/${id}/adapt`, { mode: $("adapt-mode").value });
-      pollAdaptation(st.id);
+      adaptationId = st.id;
+      showAdaptation(st.id);
     } catch (e) {
       $("adapt-msg").textContent = e.message;
     }

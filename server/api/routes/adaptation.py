@@ -11,19 +11,14 @@ from pydantic import BaseModel, Field
 
 from server.adaptation import AdaptationRuns
 from server.api.deps import AdminDep, ViewerDep
-from server.api.routes.diagnosis import get_runs
 from server.throws import ThrowRefused
 
 router = APIRouter(tags=["adaptation"])
 
 
 def get_adaptations(request: Request) -> AdaptationRuns:
-    runs = getattr(request.app.state, "adaptation_runs", None)
-    if runs is None:
-        st = request.app.state
-        runs = AdaptationRuns(get_runs(request), st.policies, st.previews, st.settings.data_dir, jobs=st.jobs)
-        st.adaptation_runs = runs
-    return runs
+    """The app's adaptation runs (built once at start-up, server.app)."""
+    return request.app.state.adaptation_runs
 
 
 AdaptDep = Annotated[AdaptationRuns, Depends(get_adaptations)]
@@ -40,7 +35,7 @@ class AdaptCreate(BaseModel):
              responses={404: {"description": "no such diagnosis"}, 409: {"description": "not done, busy or no base file"}})
 def create_adaptation(run_id: str, body: AdaptCreate, runs: AdaptDep, user: AdminDep) -> dict:
     """Adapt the machine's policy to the diagnosis' fitted profile (aim correction in the CPU
-    twin, in the background); poll GET /api/adaptations/{id}."""
+    twin, in the background); its progress comes as ``job`` events on /api/live."""
     try:
         return runs.start(run_id, body.mode, user.username, body.base_version, body.throws, body.rounds)
     except ThrowRefused as e:

@@ -1,6 +1,6 @@
 """Sim-to-real gap diagnosis: run one on a machine's stored throws or on uploaded rosbag2 bags of a
-ROS 2 machine, list runs, read a report and its plots (server.diagnosis keeps everything as files
-under the data dir)."""
+ROS 2 machine (POST /uploads), list runs, read a report and its plots (a run is a ``diagnosis`` job: server.diagnosis; progress and completion are ``job``
+events on /api/live)."""
 
 from __future__ import annotations
 
@@ -18,11 +18,8 @@ router = APIRouter(prefix="/api/diagnosis", tags=["diagnosis"])
 
 
 def get_runs(request: Request) -> DiagnosisRuns:
-    runs = getattr(request.app.state, "diagnosis_runs", None)
-    if runs is None:
-        runs = DiagnosisRuns(request.app.state.sessions, request.app.state.settings.data_dir, jobs=request.app.state.jobs)
-        request.app.state.diagnosis_runs = runs
-    return runs
+    """The app's diagnosis runs (built once at start-up, server.app)."""
+    return request.app.state.diagnosis_runs
 
 
 RunsDep = Annotated[DiagnosisRuns, Depends(get_runs)]
@@ -41,7 +38,7 @@ async def effects(request: Request, _user: ViewerDep) -> dict:
     if cached is None:
         jobs = request.app.state.jobs
         job_id = await run_in_threadpool(jobs.submit, "catalog", {})
-        job = await jobs.wait_async(job_id, 10.0)
+        job = await request.app.state.job_watcher.wait(job_id, 10.0)
         if job is None or job["status"] != "done":
             if job is not None and job["status"] in ("queued", "running"):
                 await run_in_threadpool(jobs.cancel, job_id)

@@ -37,7 +37,7 @@ async def create_preview(body: PreviewCreate, request: Request, user: OperatorDe
         job_id = await run_in_threadpool(service.submit, body.machine_id, body.mode, body.target, rollouts,
                                          user.username)
         timeout_s = request.app.state.settings.preview_timeout_s
-        job = await service.jobs.wait_async(job_id, timeout_s)
+        job = await request.app.state.job_watcher.wait(job_id, timeout_s)
         summary = await run_in_threadpool(service.outcome, job, timeout_s)
     except ThrowRefused as e:
         raise HTTPException(e.status_code, e.detail) from e

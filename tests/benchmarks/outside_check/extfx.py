@@ -1,5 +1,5 @@
-"""Effects written outside the diagnosis library for a one-off check (session 4, README "A check with effects
-written outside the repo"): geometry errors no library effect models, a boom link longer than the MJCF says
+"""Effects written outside the diagnosis library for a one-off check (2026-11-22; docs/diagnosis.md, "Effects
+written outside the library"): geometry errors no library effect models, a boom link longer than the MJCF says
 and a gripper hanger further out along the telescope. Do not tune the diagnosis on them.
 
 Reproduce (from this folder, 2D and 3D alike)::

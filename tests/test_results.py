@@ -1,0 +1,143 @@
+"""docs/results.md is generated from reports/ (server.results_page) and stays true to them.
+
+Fails when docs/results.md is stale, when a report that claims to describe a deployed policy
+(``provenance.policies[].deployed_as``) names another SHA-256 or version than policies/*.onnx, when a
+report lacks provenance, or when reports/safety_bounds.json disagrees with the constants in the code.
+Reads JSON and source text only (no MuJoCo, no database).
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+from pathlib import Path
+
+import pytest
+
+from server import results_page as results
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_docs_results_md_is_generated_from_the_current_reports():
+    reports = results.load_reports(ROOT)
+    want = results.render(reports)
+    have = (ROOT / "docs" / "results.md").read_text()
+    assert have == want, "docs/results.md is stale: run `slinger results` and commit it"
+
+
+def test_reports_of_deployed_policies_name_the_deployed_files_sha256():
+    reports = results.load_reports(ROOT)
+    assert any(p.get("deployed_as") for _, r in reports for p in r["provenance"]["policies"]), "no report names a deployed policy"
+    assert results.check_deployed(reports, ROOT) == []
+
+
+def test_every_json_report_has_provenance():
+    """Every JSON file directly under reports/ (and reports/fleet_load/) is a report with provenance."""
+    have = {rel for rel, _ in results.load_reports(ROOT)}
+    files = {p.relative_to(ROOT).as_posix() for d in ("reports", "reports/fleet_load") for p in (ROOT / d).glob("*.json")}
+    assert files - have == set()
+
+
+def _fake_repo(tmp_path: Path, sha: str) -> Path:
+    (tmp_path / "policies").mkdir()
+    (tmp_path / "reports").mkdir()
+    (tmp_path / "policies" / "throw2d.onnx").write_bytes(b"not really onnx")
+    (tmp_path / "policies" / "throw2d.json").write_text(json.dumps({"name": "throw2d-x"}))
+    prov = {"title": "T", "date": "2026-01-01T00:00:00Z", "commit": "abc1234", "host": "h", "command": "c", "recorded": "r",
+            "policies": [{"name": "throw2d-x", "sha256": sha, "deployed_as": "policies/throw2d.onnx"}]}
+    report = {"provenance": prov, "figures": [{"what": "a figure", "value": 1.5, "unit": "m"}]}
+    (tmp_path / "reports" / "r.json").write_text(json.dumps(report))
+    return tmp_path
+
+
+def test_a_report_naming_another_sha256_than_the_deployed_file_fails(tmp_path):
+    root = _fake_repo(tmp_path, "0" * 64)
+    problems = results.check_deployed(results.load_reports(root), root)
+    assert len(problems) == 1 and "reports/r.json" in problems[0] and "SHA-256" in problems[0]
+    good = results.sha256_file(root / "policies" / "throw2d.onnx")
+    (tmp_path / "ok").mkdir()
+    root2 = _fake_repo(tmp_path / "ok", good)
+    assert results.check_deployed(results.load_reports(root2), root2) == []
+
+
+def test_check_fails_on_a_stale_results_md_and_passes_after_regenerating(tmp_path, capsys):
+    root = _fake_repo(tmp_path, "0" * 64)
+    sha = results.sha256_file(root / "policies" / "throw2d.onnx")
+    (root / "reports" / "r.json").write_text((root / "reports" / "r.json").read_text().replace("0" * 64, sha))
+    assert results.main(["--root", str(root), "--check"]) == 1  # no docs/results.md yet
+    assert "stale" in capsys.readouterr().err
+    assert results.main(["--root", str(root)]) == 0
+    assert "a figure" in (root / "docs" / "results.md").read_text()
+    assert results.main(["--root", str(root), "--check"]) == 0
+    report = json.loads((root / "reports" / "r.json").read_text())
+    report["figures"][0]["value"] = 2.5
+    (root / "reports" / "r.json").write_text(json.dumps(report))
+    assert results.main(["--root", str(root), "--check"]) == 1
+
+
+def test_a_report_without_complete_provenance_is_refused(tmp_path):
+    root = _fake_repo(tmp_path, "0" * 64)
+    report = json.loads((root / "reports" / "r.json").read_text())
+    del report["provenance"]["command"]
+    (root / "reports" / "r.json").write_text(json.dumps(report))
+    with pytest.raises(results.ReportError, match="command"):
+        results.load_reports(root)
+    assert results.main(["--root", str(root), "--check"]) == 2
+
+
+def _constant(module_path: str, name: str) -> float:
+    tree = ast.parse((ROOT / module_path).read_text())
+    for node in tree.body:
+        targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+        if any(isinstance(t, ast.Name) and t.id == name for t in targets):
+            return ast.literal_eval(node.value)
+    raise AssertionError(f"{name} not found in {module_path}")
+
+
+def test_safety_bounds_report_matches_the_code():
+    bounds = json.loads((ROOT / "reports" / "safety_bounds.json").read_text())["bounds"]
+    for dotted, value in bounds.items():
+        module, name = dotted.rsplit(".", 1)
+        assert _constant(module.replace(".", "/") + ".py", name) == value, f"{dotted} changed: update reports/safety_bounds.json"
+
+
+def test_slinger_results_check_passes_on_this_checkout():
+    from server.cli import main
+
+    assert main(["results", "--check"]) == 0
+
+
+@pytest.mark.parametrize("mode", ["2d", "3d"])
+def test_model_card_names_the_deployed_file_and_config(mode):
+    """policies/throw<mode>.md states the deployed version, its SHA-256 and its config hash."""
+    manifest = json.loads((ROOT / "policies" / f"throw{mode}.json").read_text())
+    card = (ROOT / "policies" / f"throw{mode}.md").read_text()
+    assert manifest["name"] in card.splitlines()[0]
+    assert results.sha256_file(ROOT / "policies" / f"throw{mode}.onnx") in card
+    assert results.config_sha256(manifest["training"]["config"]) in card
+
+
+def test_stamp_writes_a_complete_provenance_block_that_the_check_accepts(tmp_path):
+    root = _fake_repo(tmp_path, "0" * 64)
+    report = root / "reports" / "new.json"
+    report.write_text(json.dumps({"figures": [{"what": "w", "value": 2.0, "unit": "s"}]}))
+    rc = results.main(["--root", str(root), "--stamp", str(report), "--title", "New", "--command", "do it",
+                       "--policy", str(root / "policies" / "throw2d.onnx")])
+    assert rc == 0
+    prov = json.loads(report.read_text())["provenance"]
+    assert all(k in prov for k in results.REQUIRED) and prov["recorded"].startswith("at run time")
+    assert prov["policies"] == [{"name": "throw2d-x", "sha256": results.sha256_file(root / "policies" / "throw2d.onnx"),
+                                 "deployed_as": "policies/throw2d.onnx"}]
+    assert "CPUs" in prov["host"]
+    problems = results.check_deployed(results.load_reports(root), root)
+    assert problems and all("reports/r.json" in p for p in problems)  # the stamped report itself is consistent
+
+
+def test_stamp_refuses_a_missing_policy_or_title(tmp_path):
+    root = _fake_repo(tmp_path, "0" * 64)
+    report = root / "reports" / "r.json"
+    assert results.main(["--root", str(root), "--stamp", str(report), "--command", "c"]) == 2
+    assert results.main(["--root", str(root), "--stamp", str(report), "--title", "t", "--command", "c",
+                         "--policy", str(root / "policies" / "nope.onnx")]) == 2
+    assert json.loads(report.read_text())["provenance"]["title"] == "T"  # unchanged
