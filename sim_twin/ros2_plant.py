@@ -4,7 +4,9 @@ controllers are ROS nodes would; the runtime reaches it through the ROS 2 bridge
 (runtime.ros2.bridge) with the same mapping file.
 
 It publishes, per plant period (20 Hz at rest, as the plant does): ``sensor_msgs/JointState`` of
-the active joints (and the passive ones, on their own topic if the mapping names one), the
+the active joints (and the passive ones, on their own topic if the mapping names one, or as a
+gripper ``sensor_msgs/Imu``: runtime.ros2.imu.imu_from_joints; its linear acceleration is not
+simulated and reads zero), the
 gripper state (``std_msgs/Bool``, true = open), the payload (``nav_msgs/Odometry``) and the fault
 (``std_msgs/String``) where the mapping names topics for them, and one ``geometry_msgs/PointStamped``
 per landing on the impact topic (header stamp: the landing's wall-clock time). It subscribes the
@@ -17,6 +19,8 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
+
 from runtime.machine import ACTIVE_JOINTS, PASSIVE_JOINTS
 from runtime.protocol.messages import (
     GripperCommand,
@@ -28,6 +32,7 @@ from runtime.protocol.messages import (
 )
 from runtime.ros2 import types as rt
 from runtime.ros2.config import BridgeConfig
+from runtime.ros2.imu import imu_from_joints
 from runtime.ros2.rmw_zenoh import RosNode
 
 NODE_NAME = "simulated_machine"
@@ -62,7 +67,8 @@ class RosPlantPorts:
         self.node = RosNode(session, NODE_NAME, config.namespace, config.domain_id)
         t = config.topics
         self._joints = self.node.publisher(t.joint_states, rt.JOINT_STATE)
-        self._passive = self.node.publisher(t.passive_joint_states, rt.JOINT_STATE) if t.passive_joint_states else None
+        self._imu = self.node.publisher(t.imu, rt.IMU) if t.imu else None
+        self._passive = self.node.publisher(t.passive_joint_states, rt.JOINT_STATE) if t.passive_joint_states and not t.imu else None
         self._gripper = self.node.publisher(t.gripper_state, rt.BOOL)
         self._payload = self.node.publisher(t.payload, rt.ODOMETRY) if t.payload else None
         self._fault = self.node.publisher(t.fault, rt.STRING) if t.fault else None
@@ -77,12 +83,18 @@ class RosPlantPorts:
     def _put_state(self, data: bytes) -> None:
         s = decode(MachineState, data)
         t = self._wall(s.stamp_s)
-        both = not self.config.topics.passive_joint_states
+        both = not (self.config.topics.passive_joint_states or self.config.topics.imu)
         joints = ACTIVE_JOINTS + PASSIVE_JOINTS if both else ACTIVE_JOINTS
         names, q, qd = self.config.to_ros(joints, s.q[:len(joints)], s.qd[:len(joints)])
         if self._passive is not None:
             pn, pq, pqd = self.config.to_ros(PASSIVE_JOINTS, s.q[4:], s.qd[4:])
             self._passive.publish(rt.joint_state(t, pn, pq, pqd))
+        if self._imu is not None:
+            quat, omega = imu_from_joints(s.q, s.qd)
+            zeros = np.zeros(9)
+            self._imu.publish(rt.msg(rt.IMU, header=rt.header(t, "gripper"), orientation=rt.quaternion(quat), orientation_covariance=zeros,
+                                     angular_velocity=rt.vector3(omega), angular_velocity_covariance=zeros,
+                                     linear_acceleration=rt.vector3((0.0, 0.0, 0.0)), linear_acceleration_covariance=zeros))
         self._gripper.publish(rt.msg(rt.BOOL, data=s.gripper_open))
         if self._payload is not None and s.payload_pos_m is not None and s.payload_vel_mps is not None:
             self._payload.publish(rt.odometry(t, "machine", "payload", s.payload_pos_m, s.payload_vel_mps))

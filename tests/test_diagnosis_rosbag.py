@@ -12,7 +12,10 @@ import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from scipy.spatial.transform import Rotation
+
 from runtime.ros2 import types as rt
+from runtime.ros2.imu import imu_from_joints
 from runtime.ros2.robot_description import UrdfChain
 from sim_twin.diagnosis import dataset, rosbag
 from sim_twin.diagnosis.cli import main as diagnose_main
@@ -23,11 +26,12 @@ POLICY = Path(__file__).parent.parent / "policies" / "throw2d.onnx"
 IDEAL = {k: 0.0 for k in SensorParams.__dataclass_fields__}
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
 DEG = np.pi / 180
+YAW = Rotation.from_euler("z", 0.7)
 
 MAPPING = {
-    "machine_id": "rosbag-site", "mode": "2d", "imu": "/gripper/imu",
+    "machine_id": "rosbag-site", "mode": "2d",
     "topics": {"joint_states": "/arm/joint_states", "gripper_state": "/gripper/state", "valve_command": "/arm/valve_commands",
-               "gripper_command": "/gripper/command"},
+               "gripper_command": "/gripper/command", "imu": "/gripper/imu"},
     "joints": {"boom": {"name": "boom_joint", "scale": DEG}, "dipper": {"name": "stick_joint", "scale": DEG},
                "telescope": {"name": "telescope_joint", "scale": 0.001}},
     "valves": {j: {"index": i, "scale": 100.0} for i, j in enumerate(["telescope", "dipper", "boom", "cabin_turn"])},
@@ -60,8 +64,10 @@ def write_bag(path: Path, th: dataset.LoggedThrow, storage: StoragePlugin) -> No
             put("/arm/joint_states", ns, rt.joint_state(ns * 1e-9, ["cabin_turn", "boom_joint", "stick_joint", "telescope_joint"],
                                                          [q[0], q[1] / DEG, q[2] / DEG, q[3] * 1000], [qd[0], qd[1] / DEG, qd[2] / DEG, qd[3] * 1000]))
             _p, quat = chain.link_pose("gripper", dict(zip(["cabin_turn", "boom", "dipper", "telescope", "gripper_pitch", "gripper_roll"], q)))
+            _q, omega = imu_from_joints(q, qd)  # the angular velocity in the IMU's frame
+            quat = (YAW * Rotation.from_quat(quat)).as_quat()  # an AHRS whose north is not the cabin's x axis
             imu = rt.msg(rt.IMU, header=rt.header(ns * 1e-9, "gripper"), orientation=rt.quaternion(quat), orientation_covariance=np.zeros(9),
-                         angular_velocity=rt.vector3((0, 0, 0)), angular_velocity_covariance=np.zeros(9),
+                         angular_velocity=rt.vector3(omega), angular_velocity_covariance=np.zeros(9),
                          linear_acceleration=rt.vector3((0, 0, 9.81)), linear_acceleration_covariance=np.zeros(9))
             put("/gripper/imu", ns - 1000, imu)  # received just before the joint states (newest earlier is matched)
             u = th.valve_u[i]
@@ -97,6 +103,7 @@ def test_rosbag2_of_another_library_converts_and_diagnoses(nominal: Path, tmp_pa
         assert g.cmd_row == th.cmd_row and g.open_row == th.open_row
         np.testing.assert_allclose(g.q[-n:, :4], th.q[:, :4], atol=1e-9)
         np.testing.assert_allclose(g.q[-n:, 4:], th.q[:, 4:], atol=1e-9)  # passive angles back from the IMU orientation
+        np.testing.assert_allclose(g.qd[-n:], th.qd, atol=1e-9)  # rates: the JointState's and the IMU's angular velocity
         np.testing.assert_allclose(g.valve_u[-n:], th.valve_u, atol=1e-12)
         np.testing.assert_allclose(g.impact_m, th.impact_m)
     assert diagnose_main([str(out), "--out", str(tmp_path / "report"), "--no-plots", "--workers", "1"]) == 0

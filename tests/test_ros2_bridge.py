@@ -181,6 +181,31 @@ def test_bridge_maps_units_and_stops_states_when_a_topic_goes_silent(tmp_path):
     assert r.release_pos_m == [5.0, 0.0, 4.0] and r.release_vel_mps == [3.0, 0.0, 2.0]
 
 
+def test_bridge_takes_the_passive_joints_from_a_gripper_imu_whatever_its_yaw():
+    from scipy.spatial.transform import Rotation
+
+    from runtime.ros2.imu import imu_from_joints
+
+    b, out, _clock = _bridge(BridgeConfig(topics={"imu": "/gripper/imu"}))
+    q = [0.4, -0.5, 1.9, 0.7, -1.2, 0.15]
+    qd = [0.3, -0.2, 0.5, 0.1, 0.8, -0.6]
+    quat, omega = imu_from_joints(q, qd)
+    quat = (Rotation.from_euler("z", -2.0) * Rotation.from_quat(quat)).as_quat()  # the AHRS's north is elsewhere
+    imu = rt.msg(rt.IMU, header=rt.header(0, "gripper"), orientation=rt.quaternion(quat), orientation_covariance=np.zeros(9),
+                 angular_velocity=rt.vector3(omega), angular_velocity_covariance=np.zeros(9),
+                 linear_acceleration=rt.vector3((0, 0, 9.8)), linear_acceleration_covariance=np.zeros(9))
+    b.on_imu(imu)
+    b.on_gripper_state(rt.msg(rt.BOOL, data=False))
+    b.on_joint_state(rt.joint_state(0, JOINT_NAMES[:4], q[:4], qd[:4]))
+    (s,) = out["state"]
+    np.testing.assert_allclose(s.q, q, atol=1e-9)
+    np.testing.assert_allclose(s.qd, qd, atol=1e-9)
+    b.on_imu(rt.msg(rt.IMU, header=rt.header(0, "gripper"), orientation=rt.quaternion((0, 0, 0, 0)), orientation_covariance=np.zeros(9),
+                    angular_velocity=rt.vector3((0, 0, 0)), angular_velocity_covariance=np.zeros(9),
+                    linear_acceleration=rt.vector3((0, 0, 0)), linear_acceleration_covariance=np.zeros(9)))
+    assert b.dropped == 1
+
+
 # --- the bridge process against a ROS 2 machine written here ------------------------------------
 def _session(endpoint: str, listen: bool = False):
     return open_session("peer", listen=[endpoint] if listen else [], connect=[] if listen else [endpoint])
@@ -233,13 +258,13 @@ def test_bridge_process_reads_ros_topics_and_loses_the_link_when_they_stop(tmp_p
 def ros2_machine(tmp_path, zenoh_endpoint, settings):
     """The simulated machine speaking ROS 2 (`slinger plant --ros2`), the ROS 2 bridge and the
     runtime, all connecting to the server's endpoint with one mapping file (degrees, millimetres,
-    per-cent valves in another order, passive joints on their own topic)."""
+    per-cent valves in another order, the passive joints from a gripper IMU)."""
     from server.certs import make_site
 
     site = make_site(settings.resolved_site_dir, ["m1"])
     policy = write_test_policy(tmp_path / "policies", "2d", release_after_bias=2.0)
     mapping = tmp_path / "bridge.toml"
-    mapping.write_text(MAPPING_TOML)
+    mapping.write_text(MAPPING_TOML.replace('payload = "/payload/odom"', 'payload = "/payload/odom"\nimu = "/gripper/imu"'))
     children = Children()
     link = ["--connect", zenoh_endpoint, "--listen", "tcp/127.0.0.1:0"]
     logs = tmp_path / "logs"
@@ -296,7 +321,7 @@ def test_throw_lands_through_the_ros2_bridge(client, ros2_machine, zenoh_endpoin
         msg = JAZZY.deserialize_cdr(payload, typename)
         assert att is not None and rmw_zenoh.parse_attachment(att)[0] >= 1
         seen.setdefault("/" + "/".join(topic), []).append(msg)
-    assert set(seen) >= {"/arm/joint_states", "/gripper/imu_joint_states", "/gripper/state", "/payload/odom", "/arm/valve_commands",
+    assert set(seen) >= {"/arm/joint_states", "/gripper/imu", "/gripper/state", "/payload/odom", "/arm/valve_commands",
                          "/gripper/command", "/payload/impact"}, sorted(seen)
     js = seen["/arm/joint_states"][-1]
     assert list(js.name) == ["cabin_turn", "boom_joint", "stick_joint", "telescope_joint"]

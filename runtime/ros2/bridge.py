@@ -12,7 +12,8 @@ configuration (runtime.ros2.config):
 
 * ROS -> Slinger: each ``sensor_msgs/JointState`` on the joint-states topic becomes one
   ``MachineState`` on keys.state(id) (stamped with this host's monotonic clock, which the runtime
-  shares), with the passive joints (same or own topic), the gripper state, the payload
+  shares), with the passive joints (same or own JointState topic, or from a gripper
+  ``sensor_msgs/Imu``: runtime.ros2.imu), the gripper state, the payload
   (``nav_msgs/Odometry``, optional) and the machine's fault (``std_msgs/String``, optional); a
   ``geometry_msgs/PointStamped`` on the impact topic becomes an ``ImpactReport`` (opening = when
   the gripper state turned open; release position and velocity from the payload odometry then,
@@ -53,6 +54,7 @@ from runtime.protocol.messages import (
 )
 from runtime.ros2 import types as rt
 from runtime.ros2.config import BridgeConfig, ConfigError, load
+from runtime.ros2.imu import passive_from_imu
 from runtime.zenoh_session import (
     Claimed,
     add_session_arguments,
@@ -90,6 +92,7 @@ class MachineBridge:
         self.rx: dict[str, float] = {}  # topic role -> monotonic receive time
         self.active: tuple[list[float], list[float]] | None = None
         self.passive: tuple[list[float], list[float]] | None = None
+        self.imu: tuple[tuple, tuple] | None = None  # orientation (x, y, z, w), angular velocity (IMU frame)
         self.gripper_open: bool | None = None
         self.payload_attached: bool | None = None
         self.payload: tuple[list[float], list[float]] | None = None
@@ -112,7 +115,7 @@ class MachineBridge:
             return
         with self.lock:
             self.active, self.rx["joint_states"] = active, now
-            if not self.config.topics.passive_joint_states:
+            if not (self.config.topics.passive_joint_states or self.config.topics.imu):
                 self._take_passive(msg, now)
             state = self._state(now)
         if state is not None:
@@ -122,6 +125,17 @@ class MachineBridge:
         """A JointState on the separate passive-joint topic (gripper IMU angles)."""
         with self.lock:
             self._take_passive(msg, self.clock())
+
+    def on_imu(self, msg) -> None:
+        """A sensor_msgs/Imu of the gripper: the passive joints, computed with the active joints
+        current when a machine state is made (runtime.ros2.imu)."""
+        o, w = msg.orientation, msg.angular_velocity
+        quat, omega = (o.x, o.y, o.z, o.w), (w.x, w.y, w.z)
+        if not (all(np.isfinite(quat + omega)) and any(quat)):
+            self._drop("non-finite or zero IMU orientation")
+            return
+        with self.lock:
+            self.imu, self.rx["passive"] = (quat, omega), self.clock()
 
     def _take_passive(self, msg, now: float) -> None:
         passive = self.config.to_slinger(PASSIVE_JOINTS, list(msg.name), msg.position, msg.velocity)
@@ -182,6 +196,9 @@ class MachineBridge:
         if self.stale is not None:
             log.info("ROS topics fresh again: machine states resume")
             self.stale = None
+        if self.config.topics.imu:
+            angles, rates = passive_from_imu(self.active[0], self.active[1], *self.imu)
+            self.passive = (angles, rates)
         q = self.active[0] + self.passive[0]
         qd = self.active[1] + self.passive[1]
         attached = self.payload_attached if self.config.topics.payload_attached else not self.gripper_open
@@ -269,7 +286,9 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         bridge = MachineBridge(machine_id, config, lambda m: pub_state.put(encode(m)), lambda m: pub_impact.put(encode(m)),
                                pub_valves.publish, pub_gripper.publish)
         node.subscribe(t.joint_states, rt.JOINT_STATE, bridge.on_joint_state)
-        if t.passive_joint_states:
+        if t.imu:
+            node.subscribe(t.imu, rt.IMU, bridge.on_imu)
+        elif t.passive_joint_states:
             node.subscribe(t.passive_joint_states, rt.JOINT_STATE, bridge.on_passive_joint_state)
         node.subscribe(t.gripper_state, rt.BOOL, bridge.on_gripper_state)
         for topic, typename, handler in ((t.payload_attached, rt.BOOL, bridge.on_payload_attached), (t.payload, rt.ODOMETRY, bridge.on_payload),

@@ -11,6 +11,8 @@ Example (TOML; every key has the default shown unless marked)::
     [topics]
     joint_states = "/joint_states"              # sensor_msgs/JointState: the active joints (encoders)
     passive_joint_states = ""                   # sensor_msgs/JointState of gripper_pitch/roll; "" = in joint_states
+    imu = ""                                    # sensor_msgs/Imu on the gripper: the passive joints from it
+                                                # (runtime.ros2.imu; wins over passive_joint_states)
     gripper_state = "/gripper/state"            # std_msgs/Bool, true = open (payload free)
     payload_attached = ""                       # std_msgs/Bool; "" = attached while the gripper is closed
     payload = ""                                # nav_msgs/Odometry of the payload (tracker); "" = none
@@ -93,6 +95,7 @@ class Topics(_Strict):
 
     joint_states: Topic = "/joint_states"
     passive_joint_states: Topic = ""
+    imu: Topic = ""
     gripper_state: Topic = "/gripper/state"
     payload_attached: Topic = ""
     payload: Topic = ""
@@ -150,7 +153,8 @@ class BridgeConfig(_Strict):
 
     @property
     def passive_topic(self) -> str:
-        """The topic the passive joints come on (the joint_states topic unless configured)."""
+        """The JointState topic the passive joints come on (the joint_states topic unless
+        configured; unused when ``topics.imu`` is set)."""
         return self.topics.passive_joint_states or self.topics.joint_states
 
     def to_slinger(self, joints: tuple[str, ...], names: list[str], position, velocity) -> tuple[list[float], list[float]] | None:

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from runtime.ros2.types import quat_axis_angle
+
 URDF_PATH = Path(__file__).with_name("material_handler.urdf")
 ROOT_FRAME = "machine"
 
@@ -27,7 +29,7 @@ def robot_description() -> str:
     return URDF_PATH.read_text()
 
 
-def _quat_mul(a, b) -> np.ndarray:
+def quat_mul(a, b) -> np.ndarray:
     """Hamilton product of quaternions (x, y, z, w)."""
     ax, ay, az, aw = a
     bx, by, bz, bw = b
@@ -37,12 +39,7 @@ def _quat_mul(a, b) -> np.ndarray:
 
 def _quat_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """Quaternion (x, y, z, w) of URDF rpy (fixed axes x, y, z: R = Rz(yaw) Ry(pitch) Rx(roll))."""
-    def axis(i, a):
-        q = np.zeros(4)
-        q[i], q[3] = math.sin(a / 2), math.cos(a / 2)
-        return q
-
-    return _quat_mul(axis(2, yaw), _quat_mul(axis(1, pitch), axis(0, roll)))
+    return quat_mul(quat_axis_angle("z", yaw), quat_mul(quat_axis_angle("y", pitch), quat_axis_angle("x", roll)))
 
 
 def _rotate(q, v) -> np.ndarray:
@@ -71,7 +68,7 @@ class UrdfJoint:
         t, q = np.array(self.xyz), np.array(self.quat)
         if self.kind in ("revolute", "continuous"):
             s = math.sin(value / 2)
-            q = _quat_mul(q, np.array([*(np.array(self.axis) * s), math.cos(value / 2)]))
+            q = quat_mul(q, np.array([*(np.array(self.axis) * s), math.cos(value / 2)]))
         elif self.kind == "prismatic":
             t = t + _rotate(q, np.array(self.axis) * value)
         return t, q
@@ -129,5 +126,5 @@ class UrdfChain:
         p, q = np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0])
         for j in reversed(chain):
             t, r = j.transform(float(values.get(j.name, 0.0)))
-            p, q = p + _rotate(q, t), _quat_mul(q, r)
+            p, q = p + _rotate(q, t), quat_mul(q, r)
         return p, q

@@ -11,18 +11,16 @@ names, units, valve layout) with these extra keys::
 
     machine_id = "excavator-7"     # the dataset's machine id (default "external")
     mode = "3d"                    # "2d" or "3d" (default "3d")
-    imu = "/gripper/imu"           # sensor_msgs/Imu of the gripper (orientation in the machine frame):
-                                   # passive angles from it and the arm's joints (optional)
     [sensors]                      # the declared sensor spec (dataset.py), optional
     impact_sigma_m = 0.05
 
 Topics used: joint states (``sensor_msgs/JointState``; the passive joints from the same message, the
-passive-joint topic or the IMU), valve commands (``std_msgs/Float64MultiArray``), the gripper
+passive-joint topic or the gripper IMU ``topics.imu``, runtime.ros2.imu), valve commands (``std_msgs/Float64MultiArray``), the gripper
 command (``std_msgs/Bool``, true = open: the release command), the gripper state (``std_msgs/Bool``,
 optional: the payload-free flag) and the payload (``nav_msgs/Odometry``, optional). Rows are the
 joint-state messages; other topics are matched by the bag's receive time (newest earlier message).
-Joint velocities come from the JointState (central differences where it has none; always for
-IMU angles). Targets and measured impacts: the same CSV as ``convert`` (convert.read_targets).
+Joint velocities come from the JointState or the IMU's angular velocity (central differences where
+a JointState has none). Targets and measured impacts: the same CSV as ``convert`` (convert.read_targets).
 """
 
 from __future__ import annotations
@@ -35,8 +33,9 @@ import numpy as np
 
 from runtime.machine import ACTIVE_JOINTS, PASSIVE_JOINTS
 from runtime.ros2 import types as rt
-from runtime.ros2.config import BridgeConfig, ConfigError, Topic
+from runtime.ros2.config import BridgeConfig, ConfigError
 from runtime.ros2.config import load as load_config
+from runtime.ros2.imu import passive_from_imu
 from sim_twin.diagnosis import dataset as ds
 from sim_twin.diagnosis.convert import ConvertError, read_targets
 from sim_twin.diagnosis.reallog import RealLogSpec, write_log
@@ -49,7 +48,6 @@ class BagMapping(BridgeConfig):
 
     machine_id: str = "external"
     mode: Literal["2d", "3d"] = "3d"
-    imu: Topic = ""
     sensors: dict[str, float] | None = None
 
 
@@ -117,22 +115,6 @@ def _before(times: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.searchsorted(times, t + 1e-9, side="right") - 1
 
 
-def _passive_from_imu(q_active: np.ndarray, quats: np.ndarray) -> np.ndarray:
-    """(N, 2) gripper_pitch, gripper_roll (rad) from (N, 4) gripper orientations (x, y, z, w) in the
-    machine frame and (N, >=3) cabin_turn, boom, dipper (rad).
-
-    The chain (runtime.machine): R_gripper = Rz(cabin) Ry(boom + dipper) Ry(pitch) Rx(roll), so
-    M = Ry(-(boom + dipper)) Rz(-cabin) R_gripper = Ry(pitch) Rx(roll): roll = atan2(-M12, M11),
-    pitch = atan2(-M20, M00).
-    """
-    from scipy.spatial.transform import Rotation
-
-    q_active = np.asarray(q_active, dtype=float)
-    undo = Rotation.from_euler("y", -(q_active[:, 1:2] + q_active[:, 2:3])) * Rotation.from_euler("z", -q_active[:, 0:1])
-    m = (undo * Rotation.from_quat(quats)).as_matrix()
-    return np.stack([np.arctan2(-m[:, 2, 0], m[:, 0, 0]), np.arctan2(-m[:, 1, 2], m[:, 1, 1])], axis=1)
-
-
 def convert_bag(path: Path, mapping: BagMapping) -> list[dict]:
     """Recorder-style rows (runtime.telemetry.TelemetryRecorder fields) of one bag.
 
@@ -143,11 +125,11 @@ def convert_bag(path: Path, mapping: BagMapping) -> list[dict]:
     wanted: dict[str, str] = {}
     for topic, typename in ((t.joint_states, rt.JOINT_STATE), (t.valve_command, rt.FLOAT64_MULTI_ARRAY), (t.gripper_command, rt.BOOL),
                             (t.passive_joint_states, rt.JOINT_STATE), (t.gripper_state, rt.BOOL), (t.payload, rt.ODOMETRY),
-                            (mapping.imu, rt.IMU)):
+                            (t.imu, rt.IMU)):
         if topic and wanted.setdefault(topic, typename) != typename:
             raise ConvertError(f"mapping: topic {topic} is named for both {wanted[topic]} and {typename}")
     msgs = _messages(Path(path), wanted)
-    for topic in (t.joint_states, t.valve_command, t.gripper_command) + ((mapping.imu,) if mapping.imu else ()):
+    for topic in (t.joint_states, t.valve_command, t.gripper_command) + ((t.imu,) if t.imu else ()):
         if not msgs[topic]:
             raise ConvertError(f"{path}: no messages on {topic} ({wanted[topic]})")
     rows_t = np.array([tm for tm, _m in msgs[t.joint_states]])
@@ -178,11 +160,16 @@ def convert_bag(path: Path, mapping: BagMapping) -> list[dict]:
     q = np.zeros((len(rows_t), 6))
     qd = np.full((len(rows_t), 6), np.nan)
     q[:, :4], qd[:, :4] = q_act, qd_act
-    if mapping.imu:
-        quats = np.array([[m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w] for _t, m in msgs[mapping.imu]])
-        imu_t = np.array([tm for tm, _m in msgs[mapping.imu]])
-        idx = np.clip(_before(imu_t, rows_t), 0, None)
-        q[:, 4:] = _passive_from_imu(q_act, quats[idx])
+    if t.imu:
+        imu = [m for _t, m in msgs[t.imu]]
+        idx = np.clip(_before(np.array([tm for tm, _m in msgs[t.imu]]), rows_t), 0, None)
+        qd_known = np.nan_to_num(qd_act)
+        for i, k in enumerate(idx):
+            o, w = imu[k].orientation, imu[k].angular_velocity
+            try:
+                q[i, 4:], qd[i, 4:] = passive_from_imu(q_act[i], qd_known[i], (o.x, o.y, o.z, o.w), (w.x, w.y, w.z))
+            except ValueError as e:
+                raise ConvertError(f"{path}: {t.imu}: {e}") from e
     else:
         ts, q_pas, qd_pas = joints(t.passive_topic, PASSIVE_JOINTS)
         if t.passive_joint_states:
