@@ -120,21 +120,29 @@ def create_session(db: Session, user: User, ttl_s: float) -> tuple[str, AuthSess
     now = utcnow()
     db.execute(delete(AuthSession).where(AuthSession.expires_at < now))
     token = secrets.token_urlsafe(32)
-    row = AuthSession(token_sha256=_digest(token), user_id=user.id, created_at=now,
+    row = AuthSession(token_sha256=_digest(token), user_id=user.id, user_key=user.session_key, created_at=now,
                       expires_at=now + timedelta(seconds=ttl_s))
     db.add(row)
     return token, row
 
 
 def user_for_token(db: Session, token: str | None) -> User | None:
-    """The active user of an unexpired session token, else None."""
+    """The active user of an unexpired session token, else None.
+
+    The session must carry the account's current ``session_key`` (server.db.models.User): a
+    session whose account was deleted, even by a tool that bypasses foreign keys, never
+    authenticates a later account that got the same ``id``.
+    """
     if not token:
         return None
     row = db.get(AuthSession, _digest(token))
     if row is None or row.expires_at <= utcnow():
         return None
     user = db.get(User, row.user_id)
-    return user if user is not None and user.active else None
+    if user is None or not secrets.compare_digest(user.session_key, row.user_key):
+        log.warning("session of user id %s refused: its account was deleted or replaced", row.user_id)
+        return None
+    return user if user.active else None
 
 
 def end_session(db: Session, token: str | None) -> None:
