@@ -18,6 +18,7 @@ from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
+from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
 from server.api.routes import adaptation, auth, diagnosis, health, jobs, live, machines, policies, previews, scene, throws, users
 from server.config import Settings, get_settings
@@ -83,7 +84,8 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         fleet = Fleet(zsession, store, settings.query_timeout_s, signer=CommandSigner(settings.resolved_site_dir))
         app.state.live = live_hub = LiveHub(zsession, fleet)
         app.state.login_guard = LoginGuard(settings.login_failures_per_user, settings.login_failures_per_address,
-                                           settings.login_workers, settings.login_max_pending)
+                                           settings.login_workers, settings.login_max_pending,
+                                           per_user_address=settings.login_failures_per_user_address)
         app.state.throws = ThrowService(fleet, sessions, settings.keep_out_zones,
                                         previews=lambda pid: app.state.previews.get(pid),
                                         gate=settings.gate_limits(), machine_status=live_hub.status)
@@ -130,6 +132,8 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes,
                        overrides={("POST", "/api/policies"): settings.max_policy_upload_bytes})
     app.add_middleware(SecurityHeaders, script_hashes=inline_script_hashes(WEB_DIR) if WEB_DIR.is_dir() else [])
+    if settings.trusted_proxies:  # outermost: the client address is settled before anything reads it
+        app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=list(settings.trusted_proxies))
     for module in (health, auth, users, machines, throws, previews, policies, scene, live, diagnosis, adaptation, jobs):
         app.include_router(module.router)
     if WEB_DIR.is_dir():

@@ -45,8 +45,13 @@ class Settings(BaseSettings):
             over HTTPS: scheme https or ``X-Forwarded-Proto: https``).
         max_body_bytes: largest request body, bytes (413 above); policy uploads have
             ``max_policy_upload_bytes``.
-        login_failures_per_user / login_failures_per_address: failed log-ins allowed per window
-            before 429 (``limits`` notation, server.login_guard).
+        login_failures_per_user_address / login_failures_per_address / login_failures_per_user:
+            failed log-ins allowed per window before 429, per (user name, client address), per
+            address and per user name from all addresses (``limits`` notation; the per-user lock
+            spares addresses the user logged in from: server.login_guard).
+        trusted_proxies: addresses or networks (e.g. ``["10.0.0.5", "10.1.0.0/16"]``) of reverse
+            proxies whose ``X-Forwarded-For``/``X-Forwarded-Proto`` name the client; the header
+            of anyone else is ignored. Empty (default): no proxy is trusted, loopback included.
         login_workers / login_max_pending: threads checking passwords (default a quarter of the
             cores, at least 1: argon2 takes a core each), and checks queued or running at most
             (more: 429 at once).
@@ -96,8 +101,10 @@ class Settings(BaseSettings):
     cookie_secure: bool = False
     max_body_bytes: int = Field(1 << 20, ge=1024)
     max_policy_upload_bytes: int = Field(64 << 20, ge=1024)
-    login_failures_per_user: str = "5/5minutes"
+    login_failures_per_user_address: str = "5/5minutes"
     login_failures_per_address: str = "20/5minutes"
+    login_failures_per_user: str = "100/5minutes"
+    trusted_proxies: list[str] = Field(default_factory=list)
     login_workers: int = Field(default_factory=lambda: max(1, (os.cpu_count() or 2) // 4), ge=1, le=16)
     login_max_pending: int = Field(8, ge=1, le=256)
     keep_out_zones: list[KeepOutZone] = Field(default_factory=list)
