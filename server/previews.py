@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from server.db.models import PolicyVersion
 from server.fleet import Fleet
-from server.jobs import JobQueue
+from server.jobs import JobLimit, JobQueue
 from server.throws import ThrowRefused, ThrowService
 
 log = logging.getLogger(__name__)
@@ -78,7 +78,8 @@ class PreviewService:
         its id (= the preview id).
 
         Raises:
-            ThrowRefused: as ThrowService.checked_state and :meth:`active_policy`.
+            ThrowRefused: as ThrowService.checked_state and :meth:`active_policy`; 429 the user
+                has their limit of previews queued or running (server.jobs.store.JobLimit).
         """
         state = self.throws.checked_state(machine_id, mode, target)
         onnx_path, sha, version = self.active_policy(machine_id, mode)
@@ -87,8 +88,12 @@ class PreviewService:
         meta = dict(machine_id=machine_id, mode=mode, target_m=list(target), policy_version=version,
                     policy_sha256=sha, start_q=list(state.q))
         profile = str(self.profile_path) if self.profile_path else None
-        return self.jobs.submit("preview", {"onnx_path": onnx_path, "sha256": sha, "request": request, "meta": meta,
-                                            "profile_path": profile}, subject=machine_id, requested_by=requested_by)
+        try:
+            return self.jobs.submit("preview", {"onnx_path": onnx_path, "sha256": sha, "request": request, "meta": meta,
+                                                "profile_path": profile}, subject=machine_id,
+                                    requested_by=requested_by)
+        except JobLimit as e:
+            raise ThrowRefused(429, str(e)) from e
 
     def outcome(self, job: dict | None, timeout_s: float) -> dict:
         """The summary of a finished preview job.

@@ -20,6 +20,7 @@ router = APIRouter(prefix="/api/previews", tags=["previews"])
         404: {"model": Problem, "description": "unknown machine"},
         409: {"model": Problem, "description": "the server has no file of the machine's policy, or it does not load"},
         422: {"model": Problem, "description": "a target the mode cannot serve (the reason)"},
+        429: {"model": Problem, "description": "the user has their limit of previews queued or running"},
         503: {"model": Problem, "description": "runtime offline, no machine state, or no worker answered in 3 s"},
     },
 )

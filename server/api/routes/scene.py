@@ -13,6 +13,7 @@ from fastapi import APIRouter, HTTPException, Request
 from server.api.console_schemas import ConsoleOut, ConsoleShowPreview, ConsoleUpdate, SceneInfo
 from server.api.deps import CurrentUser, OperatorDep, SceneDep, ViewerDep
 from server.api.schemas import Problem
+from server.scene import ConsoleLimit
 
 router = APIRouter(tags=["scene"])
 
@@ -39,12 +40,17 @@ def _console(scene, console_id: str, user):
 
 
 @router.post("/api/consoles", response_model=ConsoleOut, status_code=201,
-             responses={409: {"model": Problem, "description": "the 3D view is disabled"}})
+             responses={409: {"model": Problem, "description": "the 3D view is disabled"},
+                        429: {"model": Problem, "description": "the server holds its limit of consoles"}})
 def open_console(scene: SceneDep, user: ViewerDep) -> ConsoleOut:
-    """Open a console (one per page load): its own machine, mode, target and 3D view."""
+    """Open a console (one per page load): its own machine, mode, target and 3D view. A user who
+    holds server.scene.MAX_CONSOLES_PER_USER consoles loses their own least recently used one."""
     if scene is None:
         raise HTTPException(409, "the 3D view is disabled")
-    return _out(scene, scene.open_console(user.username))
+    try:
+        return _out(scene, scene.open_console(user.username))
+    except ConsoleLimit as e:
+        raise HTTPException(429, str(e)) from e
 
 
 @router.get("/api/consoles/{console_id}", response_model=ConsoleOut, responses={404: {"model": Problem}})
