@@ -18,6 +18,7 @@ from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
+from sqlalchemy.exc import SQLAlchemyError
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
 from server.api.routes import adaptation, auth, diagnosis, health, jobs, live, machines, policies, previews, scene, throws, users
@@ -31,6 +32,7 @@ from server.reconcile import Reconciler
 from server.jobs import JobQueue, JobStore, queue_url
 from server.jobs import tasks as job_tasks
 from server.login_guard import LoginGuard
+from server.storage import StorageFault, StorageMonitor, classify, storage_response
 from server.live import LiveHub
 from server.results import ResultStore
 from server.scene import ConsoleScene
@@ -74,10 +76,12 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        app.state.storage = storage = StorageMonitor(settings.database_url, settings.storage_min_free_bytes)
         if settings.auto_migrate:
-            upgrade(settings.database_url)
-        engine = make_engine(settings.database_url)
-        sessions = make_sessionmaker(engine)
+            _migrate(settings.database_url, storage)
+        engine = make_engine(settings.database_url, settings.database_busy_timeout_s)
+        storage.guard(engine)
+        sessions = make_sessionmaker(engine, before_use=storage.before_use)
         store = ResultStore(sessions, settings.data_dir)
         own_session = zenoh_session is None
         zsession = open_zenoh(settings) if own_session else zenoh_session
@@ -119,7 +123,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
             fleet.stop()
             if own_session:
                 zsession.close()
-            engine.dispose()
+            storage.release(engine)  # disposes it, unless its files are unwritable (server.storage)
             app.state.login_guard.close()
 
     app = FastAPI(
@@ -129,6 +133,8 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         lifespan=lifespan,
     )
     app.add_exception_handler(RequestValidationError, _validation_error)
+    for exc_type in (StorageFault, SQLAlchemyError, OSError):
+        app.add_exception_handler(exc_type, _storage_error)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes,
                        overrides={("POST", "/api/policies"): settings.max_policy_upload_bytes})
     app.add_middleware(SecurityHeaders, script_hashes=inline_script_hashes(WEB_DIR) if WEB_DIR.is_dir() else [])
@@ -174,6 +180,34 @@ def _show_result(app: FastAPI, throw_id: str) -> None:
         if row is None:
             return
         scene_obj.show_throw(row.machine_id, app.state.store.telemetry_file(row), row.impact_m, row.target_m)
+
+
+def _migrate(database_url: str, storage: StorageMonitor) -> None:
+    """``alembic upgrade head`` unless the storage has a fault (then the server starts in the
+    fault state, /api/health names it, and the migration runs at the next start)."""
+    fault = storage.check_files()
+    if fault is not None:
+        log.error("database not migrated: %s", fault.reason)
+        return
+    try:
+        upgrade(database_url)
+    except Exception as e:  # noqa: BLE001  only storage faults are survived; others stop the start
+        fault = classify(e)
+        if fault is None:
+            raise
+        storage.report(fault)
+        log.error("database not migrated: %s", fault.reason)
+
+
+async def _storage_error(request: Request, exc: Exception) -> JSONResponse:
+    """503 with the reason for a storage fault (server.storage); anything else stays a 500."""
+    fault = classify(exc)
+    if fault is None:
+        raise exc
+    storage = getattr(request.app.state, "storage", None)
+    if storage is not None:
+        storage.report(fault)
+    return storage_response(fault.condition, fault.reason)
 
 
 async def _validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -39,7 +39,12 @@ class Settings(BaseSettings):
             mutual TLS with its certificate (CN "server") and the site's access control for the
             machines of the site (``tls/`` endpoints); None: plain TCP.
         query_timeout_s: how long a Zenoh query to a runtime may take, s.
-        auto_migrate: run ``alembic upgrade head`` when the app starts.
+        auto_migrate: run ``alembic upgrade head`` when the app starts (skipped, with the reason
+            logged and shown by /api/health, while the database's storage has a fault).
+        database_busy_timeout_s: how long a request waits for SQLite's write lock before it
+            answers 503 "database locked", s.
+        storage_min_free_bytes: less free space than this beside a SQLite database is reported
+            as ``disk_full`` (server.storage).
         session_ttl_s: how long a log-in stays valid, s.
         cookie_secure: always mark the session cookie Secure (it is anyway when the request came
             over HTTPS: scheme https or ``X-Forwarded-Proto: https``).
@@ -97,6 +102,8 @@ class Settings(BaseSettings):
     zenoh_tls_dir: Path | None = None
     query_timeout_s: float = 5.0
     auto_migrate: bool = False
+    database_busy_timeout_s: float = Field(10.0, gt=0)
+    storage_min_free_bytes: int = Field(8 << 20, ge=0)
     session_ttl_s: float = 12 * 3600.0
     cookie_secure: bool = False
     max_body_bytes: int = Field(1 << 20, ge=1024)
