@@ -71,6 +71,13 @@ class Settings(BaseSettings):
             (``slinger adapt``) carries its own fitted profile, which then takes precedence.
         eval_distances_m / eval_throws: the small twin evaluation of an uploaded policy version
             (throws per distance); empty distances: the policy's trained range in 3 steps.
+        require_validation: a policy version is promoted only after it passed its validation
+            (server.policy_validation; a rollback is not checked).
+        validation_observations / validation_distances / validation_throws_per_distance: the
+            validation's observation sweep, and its twin throws over the declared target range
+            (distances spanning it, random start poses each).
+        validation_memory_mb / validation_time_s: limits of one validation's child process
+            (exceeded: the version fails validation with that reason).
         site_dir: the site directory of ``slinger certs`` (command keys in
             ``machines/<id>/command.key``); default ``<data_dir>/site``.
         require_preview: a throw needs a fresh OK preview of the same request (server.throw_gate);
@@ -120,6 +127,12 @@ class Settings(BaseSettings):
     preview_profile: Path | None = None
     eval_distances_m: list[float] = Field(default_factory=list)
     eval_throws: int = 4
+    require_validation: bool = True
+    validation_observations: int = Field(4096, ge=1)
+    validation_distances: int = Field(5, ge=0)
+    validation_throws_per_distance: int = Field(2, ge=0)
+    validation_memory_mb: int = Field(1024, ge=64)
+    validation_time_s: float = Field(600.0, gt=0)
     site_dir: Path | None = None
     require_preview: bool = True
     preview_max_age_s: float = Field(60.0, gt=0)
@@ -151,6 +164,18 @@ class Settings(BaseSettings):
             return None
         return GateLimits(self.preview_max_age_s, self.preview_target_tolerance_m,
                           self.preview_max_active_joint_delta, self.preview_max_passive_joint_delta)
+
+    def validation_limits(self, upload: bool = False):
+        """server.policy_validation.ValidationLimits from these settings; ``upload``: the quick
+        check of an upload (64 observations, no twin throws, at most 60 s)."""
+        from server.policy_validation import ValidationLimits
+
+        memory = self.validation_memory_mb << 20
+        if upload:
+            return ValidationLimits(observations=64, distances=0, throws_per_distance=0, memory_bytes=memory,
+                                    time_s=min(60.0, self.validation_time_s))
+        return ValidationLimits(self.validation_observations, self.validation_distances,
+                                self.validation_throws_per_distance, memory, self.validation_time_s)
 
     @property
     def telemetry_dir(self) -> Path:

@@ -162,8 +162,9 @@ def run_catalog(ctx: WorkerContext, params: dict, progress) -> dict:
 def run_evaluation(ctx: WorkerContext, params: dict, progress) -> dict:
     from server.policies import evaluate_version
 
+    limits = ctx.settings.validation_limits() if ctx.settings is not None else None
     return evaluate_version(ctx.sessions, ctx.data_dir, params["version_id"], params["distances_m"],
-                            params["throws"], progress)
+                            params["throws"], progress, limits)
 
 
 def run_diagnosis(ctx: WorkerContext, params: dict, progress) -> dict:
