@@ -8,13 +8,11 @@ The lifespan: optional ``alembic upgrade head``, open the Zenoh session, start t
 from __future__ import annotations
 
 import logging
-import math
 from contextlib import asynccontextmanager
 from pathlib import Path
 
 import zenoh
 from fastapi import FastAPI, Request
-from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
@@ -133,6 +131,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         lifespan=lifespan,
     )
     app.add_exception_handler(RequestValidationError, _validation_error)
+    _document_validation_errors(app)
     for exc_type in (StorageFault, SQLAlchemyError, OSError):
         app.add_exception_handler(exc_type, _storage_error)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes,
@@ -211,16 +210,41 @@ async def _storage_error(request: Request, exc: Exception) -> JSONResponse:
 
 
 async def _validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
-    """422 with FastAPI's usual body, but JSON-safe: a NaN/inf in the request (which JSON cannot
-    carry back) is echoed as a string instead of crashing the error response with a 500."""
-    return JSONResponse(status_code=422, content={"detail": _json_safe(jsonable_encoder(exc.errors()))})
+    """422 with a sentence naming each bad field (at most three) and ``fields``, the names alone;
+    never pydantic's error dump nor the input echoed back (it may be huge, hostile or not JSON)."""
+    errors = exc.errors()
+    parts, fields = [], []
+    for err in errors:
+        loc = [str(x) for x in err.get("loc", ()) if x not in ("body", "query", "path", "header", "cookie")]
+        field = ".".join(loc) or "request body"
+        fields.append(field)
+        if len(parts) < 3:
+            parts.append(f"{field}: {_control_free(str(err.get('msg', 'invalid value')))}")
+    more = f" (and {len(errors) - 3} more)" if len(errors) > 3 else ""
+    return JSONResponse(status_code=422, content={"detail": f"invalid request: {'; '.join(parts)}{more}",
+                                                  "fields": fields})
 
 
-def _json_safe(value):
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
+VALIDATION_ERROR_SCHEMA = {
+    "title": "HTTPValidationError", "type": "object", "required": ["detail", "fields"],
+    "properties": {"detail": {"type": "string", "title": "Detail"},
+                   "fields": {"type": "array", "items": {"type": "string"}, "title": "Fields"}},
+}
+
+
+def _document_validation_errors(app: FastAPI) -> None:
+    """Make the OpenAPI document describe the 422 body :func:`_validation_error` writes."""
+    build = app.openapi
+
+    def openapi() -> dict:
+        if app.openapi_schema is None:
+            schema = build()
+            schema.get("components", {}).get("schemas", {})["HTTPValidationError"] = VALIDATION_ERROR_SCHEMA
+            app.openapi_schema = schema
+        return app.openapi_schema
+
+    app.openapi = openapi
+
+
+def _control_free(text: str) -> str:
+    return "".join(c if c.isprintable() else " " for c in text)[:200]

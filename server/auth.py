@@ -151,8 +151,32 @@ def end_session(db: Session, token: str | None) -> None:
         db.execute(delete(AuthSession).where(AuthSession.token_sha256 == _digest(token)))
 
 
+def clean_text(value: str, limit: int | None = None) -> str:
+    """``value`` with control and other non-printable characters escaped (``\\x1b``,
+    ``\\u2028``), cut to ``limit`` characters: safe for a log line, a terminal and a table cell."""
+    out = "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in str(value))
+    return out if limit is None or len(out) <= limit else out[: limit - 1] + "…"
+
+
+def _clean_detail(value, depth: int = 0):
+    if isinstance(value, str):
+        return clean_text(value, 1000)
+    if isinstance(value, dict) and depth < 4:
+        return {clean_text(str(k), 64): _clean_detail(v, depth + 1) for k, v in list(value.items())[:50]}
+    if isinstance(value, (list, tuple)) and depth < 4:
+        return [_clean_detail(v, depth + 1) for v in list(value)[:50]]
+    if value is None or isinstance(value, (bool, int, float)):
+        return value
+    return clean_text(repr(value), 1000)
+
+
 def audit(db: Session, username: str, action: str, subject: str | None = None, **detail) -> None:
-    """Write one audit-log entry inside ``db``'s transaction (and log it)."""
+    """Write one audit-log entry inside ``db``'s transaction (and log it). Every text is
+    cleaned (:func:`clean_text`: control characters escaped, cut to the column's length), so
+    that a hostile machine id or reason cannot forge log lines or break the audit table."""
+    username, action = clean_text(username, 64), clean_text(action, 32)
+    subject = clean_text(subject, 128) if subject is not None else None
+    detail = _clean_detail(detail)
     db.add(AuditEntry(username=username, action=action, subject=subject, detail=detail))
     log.info("audit: %s %s %s %s", username, action, subject or "", detail or "")
 

@@ -11,6 +11,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 
 from server.api.deps import OperatorDep, SceneDep, SessionDep, ThrowServiceDep, ViewerDep
+from server.web_guard import contained_file
 from server.api.schemas import (DISTANCE_LIMIT_M, Problem, ThrowCreate, ThrowCreated, ThrowOut, ThrowStatusName,
                                 UtcTime)
 from server.db.models import Throw
@@ -132,8 +133,9 @@ def get_throw(throw_id: str, db: SessionDep, _user: ViewerDep) -> ThrowOut:
 def get_telemetry(throw_id: str, db: SessionDep, request: Request, _user: ViewerDep) -> FileResponse:
     """The throw's 100 Hz telemetry as an MCAP file."""
     row = _row(db, throw_id)
-    path = request.app.state.store.telemetry_file(row)
-    if path is None or not path.is_file():
+    store = request.app.state.store
+    path = contained_file(store.data_dir / "telemetry", store.telemetry_file(row))
+    if path is None:
         raise HTTPException(404, f"throw {throw_id} has no telemetry")
     return FileResponse(path, media_type="application/x-mcap", filename=f"throw-{throw_id}.mcap")
 
@@ -148,8 +150,9 @@ def get_trajectory(throw_id: str, db: SessionDep, request: Request, _user: Viewe
     from runtime.telemetry import read_telemetry
 
     row = _row(db, throw_id)
-    path = request.app.state.store.telemetry_file(row)
-    if path is None or not path.is_file():
+    store = request.app.state.store
+    path = contained_file(store.data_dir / "telemetry", store.telemetry_file(row))
+    if path is None:
         raise HTTPException(404, f"throw {throw_id} has no telemetry")
     tel = read_telemetry(path)
     n = len(tel["t_s"])
