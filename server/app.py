@@ -19,6 +19,8 @@ from fastapi.staticfiles import StaticFiles
 from sqlalchemy.exc import SQLAlchemyError
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
+from server.api.errors import domain_error
+from server.errors import DomainError
 from server.api.routes import adaptation, auth, diagnosis, health, jobs, live, machines, policies, previews, scene, throws, users
 from server.config import Settings, get_settings
 from server.db.migrate import upgrade
@@ -131,6 +133,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         lifespan=lifespan,
     )
     app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(DomainError, domain_error)  # the one mapping of domain errors to HTTP
     _document_validation_errors(app)
     for exc_type in (StorageFault, SQLAlchemyError, OSError):
         app.add_exception_handler(exc_type, _storage_error)

@@ -19,7 +19,6 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from runtime.observation import observation_size
 from runtime.policy import build_manifest
 from runtime.protocol import keys
 from runtime.protocol.messages import (
@@ -34,7 +33,7 @@ from server.db.types import utcnow
 from server.policy_validation import ValidationLimits, validate
 from server.fleet import Fleet, RuntimeUnavailable
 from server.results import ResultStore, ensure_machine
-from server.throws import ThrowRefused
+from server.errors import Conflict, NotFound, Refused
 
 log = logging.getLogger(__name__)
 MAX_POLICY_BYTES = 50 * 1024 * 1024
@@ -67,17 +66,17 @@ class PolicyService:
         """Validate and store a policy version; start its twin evaluation.
 
         Raises:
-            ThrowRefused: 422 with the reason (not ONNX, wrong shapes for the mode, non-finite
+            Refused: with the reason (not ONNX, wrong shapes for the mode, non-finite
                 actions on a small observation sweep, over the memory or time limit of the
-                check, bad range), 409 if this file is already a version.
+                check, bad range). Conflict: this file is already a version.
         """
         if not data:
-            raise ThrowRefused(422, "empty file")
+            raise Refused("empty file")
         if len(data) > MAX_POLICY_BYTES:
-            raise ThrowRefused(422, f"file larger than {MAX_POLICY_BYTES // 2**20} MiB")
+            raise Refused(f"file larger than {MAX_POLICY_BYTES // 2**20} MiB")
         lo, hi = target_range_m
         if not (0 < lo < hi):
-            raise ThrowRefused(422, "target range must satisfy 0 < min < max")
+            raise Refused("target range must satisfy 0 < min < max")
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "upload.onnx"
             path.write_bytes(data)
@@ -90,7 +89,7 @@ class PolicyService:
                 reason = verdict["reason"].removeprefix("the policy does not load: ")
                 if "onnxruntime cannot load" in reason:
                     reason = f"not a loadable ONNX model: {reason.split(': ', 1)[-1][:300]}"
-                raise ThrowRefused(422, reason)
+                raise Refused(reason)
             return self.add_version(manifest, path, username, notes, evaluate)
 
     def add_version(self, manifest: dict, path: Path, username: str, notes: str | None = None, evaluate: bool = True,
@@ -100,11 +99,11 @@ class PolicyService:
         (server.adaptation) come in here.
 
         Raises:
-            ThrowRefused: 409 if this file is already a version.
+            Conflict: this file is already a version.
         """
         with self.sessions() as db:
             if db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == manifest["onnx_sha256"])) is not None:
-                raise ThrowRefused(409, "this ONNX file is already a policy version")
+                raise Conflict("this ONNX file is already a policy version")
         rel = self.store.store_policy_file(manifest, path)
         name, mode = manifest["name"], manifest["mode"]
         with self.sessions.begin() as db:
@@ -129,20 +128,20 @@ class PolicyService:
         ``offered`` when the runtime accepted the offer, ``failed`` with the reason otherwise).
 
         Raises:
-            ThrowRefused: 404 unknown version; 409 no file, or (``Settings.require_validation``,
+            NotFound: unknown version. Conflict: no file, or (``Settings.require_validation``,
                 not for a rollback: the machine ran that version before) the version has not
                 passed its validation (:func:`validation_refusal`; condition ``validation``).
         """
         with self.sessions() as db:
             version = db.get(PolicyVersion, version_id)
         if version is None:
-            raise ThrowRefused(404, f"no policy version {version_id}")
+            raise NotFound(f"no policy version {version_id}")
         if not version.onnx_path or not (self.store.data_dir / version.onnx_path).is_file():
-            raise ThrowRefused(409, f"the server has no file of {version.name}; upload it")
+            raise Conflict(f"the server has no file of {version.name}; upload it")
         if action == "promote" and getattr(self.settings, "require_validation", False):
             refusal = validation_refusal(version)
             if refusal is not None:
-                raise ThrowRefused(409, refusal, condition="validation")
+                raise Conflict(refusal, condition="validation")
         out = []
         for mid in machine_ids:
             info = self.fleet.fresh_info(mid, max_age_s=0.0, timeout_s=2.0)
@@ -178,7 +177,7 @@ class PolicyService:
         """Promote the version the machine ran before its last active deployment for ``mode``.
 
         Raises:
-            ThrowRefused: 409 when there is no earlier version to go back to.
+            Conflict: there is no earlier version to go back to.
         """
         with self.sessions() as db:
             last = db.scalar(select(PolicyDeployment).where(
@@ -188,7 +187,7 @@ class PolicyService:
             if last is not None and last.previous_sha256:
                 prev = db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == last.previous_sha256))
         if prev is None:
-            raise ThrowRefused(409, f"no previous {mode} policy version of {machine_id} to roll back to")
+            raise Conflict(f"no previous {mode} policy version of {machine_id} to roll back to")
         return self.promote(prev.id, [machine_id], username, action="rollback")[0]
 
     # --- Zenoh callbacks ---------------------------------------------------------------------

@@ -12,7 +12,6 @@ from pydantic import BaseModel, Field
 from server.adaptation import AdaptationRuns
 from server.api.deps import AdminDep, ViewerDep
 from server.api.routes.diagnosis import get_runs
-from server.throws import ThrowRefused
 
 router = APIRouter(tags=["adaptation"])
 
@@ -41,10 +40,7 @@ class AdaptCreate(BaseModel):
 def create_adaptation(run_id: str, body: AdaptCreate, runs: AdaptDep, user: AdminDep) -> dict:
     """Adapt the machine's policy to the diagnosis' fitted profile (aim correction in the CPU
     twin, in the background); poll GET /api/adaptations/{id}."""
-    try:
-        return runs.start(run_id, body.mode, user.username, body.base_version, body.throws, body.rounds)
-    except ThrowRefused as e:
-        raise HTTPException(e.status_code, e.detail) from e
+    return runs.start(run_id, body.mode, user.username, body.base_version, body.throws, body.rounds)
 
 
 @router.get("/api/adaptations")

@@ -17,7 +17,6 @@ from server.api.schemas import (DISTANCE_LIMIT_M, Problem, ThrowCreate, ThrowCre
 from server.db.models import Throw
 from server.accuracy import accuracy
 from server.history import SORTS, ThrowFilter, page, to_csv
-from server.throws import ThrowRefused
 
 router = APIRouter(prefix="/api/throws", tags=["throws"])
 EXPORT_LIMIT = 100_000
@@ -64,11 +63,7 @@ def create_throw(body: ThrowCreate, service: ThrowServiceDep, user: OperatorDep)
     no throw is recorded; on 503 after the request was sent the throw stays until its runtime
     reports it or the reconciliation marks it ``lost``.
     """
-    try:
-        row, ack = service.create(body, user.username)
-    except ThrowRefused as e:
-        headers = {"X-Refused-Condition": e.condition} if e.condition else None
-        raise HTTPException(e.status_code, e.detail, headers=headers) from e
+    row, ack = service.create(body, user.username)  # domain errors: server.api.errors
     return ThrowCreated(id=row.id, status=row.status, policy_version=ack.policy_version, policy_sha256=row.policy_sha256)
 
 
