@@ -15,9 +15,9 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.db.models import PolicyVersion
+from server.errors import KINDS, Conflict, Failed, Refused, Unavailable
 from server.fleet import Fleet
-from server.jobs import JobLimit, JobQueue
-from server.errors import KINDS, Conflict, Failed, Limited, Refused, Unavailable
+from server.jobs import JobQueue
 from server.throws import ThrowService
 
 log = logging.getLogger(__name__)
@@ -80,7 +80,7 @@ class PreviewService:
 
         Raises:
             DomainError: as ThrowService.checked_state and :meth:`active_policy`; Limited: the user
-                has their limit of previews queued or running (server.jobs.store.JobLimit).
+                has their limit of previews queued or running (server.jobs.store.JobLimit, a Limited).
         """
         state = self.throws.checked_state(machine_id, mode, target)
         onnx_path, sha, version = self.active_policy(machine_id, mode)
@@ -89,12 +89,8 @@ class PreviewService:
         meta = dict(machine_id=machine_id, mode=mode, target_m=list(target), policy_version=version,
                     policy_sha256=sha, start_q=list(state.q))
         profile = str(self.profile_path) if self.profile_path else None
-        try:
-            return self.jobs.submit("preview", {"onnx_path": onnx_path, "sha256": sha, "request": request, "meta": meta,
-                                                "profile_path": profile}, subject=machine_id,
-                                    requested_by=requested_by)
-        except JobLimit as e:
-            raise Limited(str(e)) from e
+        return self.jobs.submit("preview", {"onnx_path": onnx_path, "sha256": sha, "request": request, "meta": meta,
+                                            "profile_path": profile}, subject=machine_id, requested_by=requested_by)
 
     def outcome(self, job: dict | None, timeout_s: float) -> dict:
         """The summary of a finished preview job.

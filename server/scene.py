@@ -29,6 +29,7 @@ import viser
 
 from runtime.machine import forward_kinematics
 from runtime.throw_geometry import MIN_TARGET_DISTANCE_M
+from server.errors import Limited
 from server.scene_view import ClientView, MachineGeometry, snap_to_line
 
 log = logging.getLogger(__name__)
@@ -48,7 +49,7 @@ MAX_CONSOLES_PER_USER = 16
 console (an old tab), never another user's."""
 
 
-class ConsoleLimit(RuntimeError):
+class ConsoleLimit(Limited):
     """The server holds :data:`MAX_CONSOLES` consoles of other users; the message says so."""
 
 

@@ -42,6 +42,8 @@ from sqlalchemy import Engine, event
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import DBAPIError, SQLAlchemyError
 
+from server.errors import Unavailable
+
 log = logging.getLogger(__name__)
 
 SQLITE_HEADER = b"SQLite format 3\x00"
@@ -51,12 +53,12 @@ RECENT_FAULT_S = 30.0
 """A fault met by a request is reported by /api/health for this long unless a check clears it."""
 
 
-class StorageFault(RuntimeError):
+class StorageFault(Unavailable):
     """A storage fault; ``condition`` names it (module docstring), the message says what and why."""
 
     def __init__(self, condition: str, reason: str):
-        super().__init__(reason)
-        self.condition, self.reason = condition, reason
+        super().__init__(reason, condition)
+        self.reason = reason
 
 
 @dataclass

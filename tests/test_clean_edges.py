@@ -71,3 +71,15 @@ def test_served_files_never_follow_links_out_of_their_folder(client, settings, t
     r = client.get(f"{base}/report.json")
     assert r.status_code == 404 and "not for the console" not in r.text
     assert client.get(f"{base}/profile_fitted.json").status_code == 200
+
+
+def test_domain_errors_map_to_one_answer_each(client):
+    """One handler (server.api.errors): a Limited is 429 with Retry-After, a NotFound is 404, as
+    {"detail": sentence} (a Refused's X-Refused-Condition: tests/test_control_chain.py)."""
+    client.app.state.jobs.store.max_active_per_user = 0  # as if the admin had their limit of jobs queued
+    r = client.post("/api/jobs", json={"kind": "probe"})
+    assert r.status_code == 429 and r.headers["retry-after"] == "1" and "limit per user" in r.json()["detail"]
+    r = client.post("/api/policies/999/promote", json={"machine_ids": ["m1"]})
+    assert r.status_code == 404 and r.json() == {"detail": "no policy version 999"}
+    r = client.post("/api/throws", json={"machine_id": "ghost", "mode": "2d", "target": [8.0, -0.292, 0.0]})
+    assert r.status_code == 404 and r.json()["detail"] == "unknown machine 'ghost'"

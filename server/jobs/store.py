@@ -18,6 +18,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from server.db.models import FINAL_JOB_STATUSES, JOB_KINDS, Job
 from server.db.types import utcnow
+from server.errors import Limited
 from server.jobs.leases import LEASE_S, WorkerIdentity
 
 log = logging.getLogger(__name__)
@@ -37,7 +38,7 @@ class JobCancelled(Exception):
     """Raised inside a running job when someone asked to cancel it."""
 
 
-class JobLimit(RuntimeError):
+class JobLimit(Limited):
     """The user already has their limit of queued or running jobs; the message says so."""
 
 

@@ -18,7 +18,6 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from server.api.deps import AdminDep, OperatorDep, ViewerDep
 from server.db.models import FINAL_JOB_STATUSES, JOB_KINDS, JOB_STATUSES
-from server.jobs import JobLimit
 
 router = APIRouter(prefix="/api/jobs", tags=["jobs"])
 STREAM_POLL_S = 0.25
@@ -80,11 +79,8 @@ def list_jobs(request: Request, _user: ViewerDep, kind: JobKind | None = None, s
 def create_job(body: JobCreate, request: Request, user: AdminDep) -> dict:
     """Queue a probe (a worker health check that reports progress and can be cancelled)."""
     jobs = request.app.state.jobs
-    try:
-        job_id = jobs.submit(body.kind, body.params.model_dump(exclude_none=True), subject=body.params.machine_id,
-                             requested_by=user.username)
-    except JobLimit as e:
-        raise HTTPException(429, str(e)) from e
+    job_id = jobs.submit(body.kind, body.params.model_dump(exclude_none=True), subject=body.params.machine_id,
+                         requested_by=user.username)  # JobLimit is a Limited: 429 (server.api.errors)
     return jobs.store.get(job_id)
 
 

@@ -13,7 +13,6 @@ from fastapi import APIRouter, HTTPException, Request
 from server.api.console_schemas import ConsoleOut, ConsoleShowPreview, ConsoleUpdate, SceneInfo
 from server.api.deps import CurrentUser, OperatorDep, SceneDep, ViewerDep
 from server.api.schemas import Problem
-from server.scene import ConsoleLimit
 
 router = APIRouter(tags=["scene"])
 
@@ -47,10 +46,7 @@ def open_console(scene: SceneDep, user: ViewerDep) -> ConsoleOut:
     holds server.scene.MAX_CONSOLES_PER_USER consoles loses their own least recently used one."""
     if scene is None:
         raise HTTPException(409, "the 3D view is disabled")
-    try:
-        return _out(scene, scene.open_console(user.username))
-    except ConsoleLimit as e:
-        raise HTTPException(429, str(e)) from e
+    return _out(scene, scene.open_console(user.username))  # ConsoleLimit is a Limited: 429
 
 
 @router.get("/api/consoles/{console_id}", response_model=ConsoleOut, responses={404: {"model": Problem}})
