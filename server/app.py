@@ -43,6 +43,8 @@ from server.web_guard import BodySizeLimit, SecurityHeaders, inline_script_hashe
 
 log = logging.getLogger(__name__)
 
+ROUTE_MODULES = (health, auth, users, machines, throws, previews, policies, scene, live, diagnosis, adaptation, jobs)
+
 WEB_DIR = next((d for d in (Path(__file__).resolve().parent / "web", Path(__file__).resolve().parent.parent / "web")
                 if d.is_dir()), Path(__file__).resolve().parent.parent / "web")
 """The console pages: ``server/web`` in an installed slinger-server wheel, else the repo's web/."""
@@ -134,7 +136,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
     )
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(DomainError, domain_error)  # the one mapping of domain errors to HTTP
-    _document_validation_errors(app)
+    _document_validation_errors(app, [m.router for m in ROUTE_MODULES])
     for exc_type in (StorageFault, SQLAlchemyError, OSError):
         app.add_exception_handler(exc_type, _storage_error)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes,
@@ -142,7 +144,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
     app.add_middleware(SecurityHeaders, script_hashes=inline_script_hashes(WEB_DIR) if WEB_DIR.is_dir() else [])
     if settings.trusted_proxies:  # outermost: the client address is settled before anything reads it
         app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=list(settings.trusted_proxies))
-    for module in (health, auth, users, machines, throws, previews, policies, scene, live, diagnosis, adaptation, jobs):
+    for module in ROUTE_MODULES:
         app.include_router(module.router)
     if WEB_DIR.is_dir():
         app.mount("/console", StaticFiles(directory=WEB_DIR, html=True), name="console")
@@ -229,24 +231,74 @@ async def _validation_error(_request: Request, exc: RequestValidationError) -> J
 
 
 VALIDATION_ERROR_SCHEMA = {
-    "title": "HTTPValidationError", "type": "object", "required": ["detail", "fields"],
+    "title": "HTTPValidationError", "type": "object", "required": ["detail"],
     "properties": {"detail": {"type": "string", "title": "Detail"},
                    "fields": {"type": "array", "items": {"type": "string"}, "title": "Fields"}},
 }
 
 
-def _document_validation_errors(app: FastAPI) -> None:
-    """Make the OpenAPI document describe the 422 body :func:`_validation_error` writes."""
+BODY_NOT_PARSED = {"description": "the body could not be parsed (not JSON, or not in its declared encoding)",
+                   "content": {"application/json": {"schema": {"$ref": "#/components/schemas/HTTPValidationError"}}}}
+
+
+def _document_validation_errors(app: FastAPI, routers: list) -> None:
+    """Make the OpenAPI document describe the 422 body :func:`_validation_error` writes (and the
+    answers that carry only ``detail``), and the 400 FastAPI gives a body it cannot parse."""
     build = app.openapi
 
     def openapi() -> dict:
         if app.openapi_schema is None:
             schema = build()
             schema.get("components", {}).get("schemas", {})["HTTPValidationError"] = VALIDATION_ERROR_SCHEMA
+            for path in schema.get("paths", {}).values():
+                for operation in path.values():
+                    if isinstance(operation, dict) and "requestBody" in operation:
+                        operation.setdefault("responses", {}).setdefault("400", BODY_NOT_PARSED)
+            _document_auth_errors(routers, schema)
             app.openapi_schema = schema
         return app.openapi_schema
 
     app.openapi = openapi
+
+
+def _auth_needs(dependant) -> tuple[bool, bool]:
+    """(needs a session, needs more than the viewer role) of a route, from its dependencies
+    (server.api.deps.get_current_user and require_role)."""
+    from server.api.deps import get_current_user
+
+    session, role = False, False
+    for dep in dependant.dependencies:
+        if dep.call is get_current_user:
+            session = True
+        closure = getattr(dep.call, "__closure__", None) or ()
+        if getattr(dep.call, "__qualname__", "").startswith("require_role."):
+            session = True
+            role = role or any(c.cell_contents in ("operator", "admin") for c in closure
+                               if isinstance(c.cell_contents, str))
+        s, r = _auth_needs(dep)
+        session, role = session or s, role or r
+    return session, role
+
+
+def _document_auth_errors(routers: list, schema: dict) -> None:
+    """Document 401 on every route that needs a session and 403 on those that need the operator
+    or admin role (what server.api.deps answers)."""
+    from fastapi.routing import APIRoute
+
+    problem = {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/Problem"}}}}
+    for route in (r for router in routers for r in router.routes):
+        if not isinstance(route, APIRoute) or route.path not in schema.get("paths", {}):
+            continue
+        session, role = _auth_needs(route.dependant)
+        for method in route.methods:
+            operation = schema["paths"][route.path].get(method.lower())
+            if operation is None:
+                continue
+            responses = operation.setdefault("responses", {})
+            if session:
+                responses.setdefault("401", {"description": "log in first (session missing or expired)", **problem})
+            if role:
+                responses.setdefault("403", {"description": "needs a higher role", **problem})
 
 
 def _control_free(text: str) -> str:

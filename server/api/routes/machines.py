@@ -106,10 +106,12 @@ def _operator_or_raise(request: Request):
     return user
 
 
-@router.post("/{machine_id}/estop", response_model=AbortOut, responses={404: {"description": "unknown machine"},
-                                                                     503: {"description": "the runtime did not answer"}})
-@router.post("/{machine_id}/abort", response_model=AbortOut, responses={404: {"description": "unknown machine"},
-                                                                     503: {"description": "the runtime did not answer"}})
+STOP_RESPONSES = {401: {"description": "log in first"}, 403: {"description": "needs the operator role"},
+                  404: {"description": "unknown machine"}, 503: {"description": "the runtime did not answer"}}
+
+
+@router.post("/{machine_id}/estop", response_model=AbortOut, responses=STOP_RESPONSES)
+@router.post("/{machine_id}/abort", response_model=AbortOut, responses=STOP_RESPONSES)
 async def estop(machine_id: str, request: Request, body: AbortIn | None = None) -> AbortOut:
     """E-STOP: the runtime ends any throw as aborted, puts the valves to neutral and LATCHES
     (throws refused until POST .../estop/reset). Fast path: an async route that sends the abort

@@ -11,7 +11,7 @@ from pydantic import BaseModel, Field
 from sqlalchemy import select
 
 from server.api.deps import AdminDep, SessionDep, ViewerDep
-from server.api.schemas import COORD_LIMIT_M, MAX_DB_ID, DbId
+from server.api.schemas import COORD_LIMIT_M, MAX_DB_ID, DbId, Problem
 from server.db.models import PolicyDeployment, PolicyVersion
 from server.accuracy import accuracy
 from server.history import ThrowFilter
@@ -111,7 +111,7 @@ def deployments(db: SessionDep, _user: ViewerDep, machine_id: str | None = None,
     return [deployment_out(d, n) for d, n in db.execute(stmt)]
 
 
-@router.get("/compare")
+@router.get("/compare", responses={404: {"model": Problem, "description": "no such policy version"}})
 def compare(db: SessionDep, _user: ViewerDep, ids: list[DbId] = Query(..., min_length=1, max_length=10)) -> list[dict]:
     """Per version: the twin evaluation per target distance and the logged throws' accuracy."""
     out = []
@@ -126,7 +126,7 @@ def compare(db: SessionDep, _user: ViewerDep, ids: list[DbId] = Query(..., min_l
     return out
 
 
-@router.get("/{policy_id}", response_model=PolicyOut)
+@router.get("/{policy_id}", response_model=PolicyOut, responses={404: {"model": Problem}})
 def get_policy(db: SessionDep, _user: ViewerDep, policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> PolicyOut:
     p = db.get(PolicyVersion, policy_id)
     if p is None:
@@ -134,7 +134,9 @@ def get_policy(db: SessionDep, _user: ViewerDep, policy_id: int = Path(ge=1, le=
     return policy_out(p)
 
 
-@router.post("/{policy_id}/promote", response_model=list[DeploymentOut])
+@router.post("/{policy_id}/promote", response_model=list[DeploymentOut], responses={
+    404: {"model": Problem, "description": "no such policy version"},
+    409: {"model": Problem, "description": "no file of the version, or it has not passed its validation"}})
 def promote(body: PromoteIn, request: Request, user: AdminDep,
             policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> list[DeploymentOut]:
     """Offer the version to the machines; each runtime fetches it, checks it, loads it between

@@ -49,13 +49,14 @@ def open_console(scene: SceneDep, user: ViewerDep) -> ConsoleOut:
     return _out(scene, scene.open_console(user.username))  # ConsoleLimit is a Limited: 429
 
 
-@router.get("/api/consoles/{console_id}", response_model=ConsoleOut, responses={404: {"model": Problem}})
+@router.get("/api/consoles/{console_id}", response_model=ConsoleOut, responses={404: {"model": Problem},
+                                                                                 409: {"model": Problem, "description": "the 3D view is disabled"}})
 def get_console(console_id: str, scene: SceneDep, user: CurrentUser) -> ConsoleOut:
     return _out(scene, _console(scene, console_id, user))
 
 
 @router.put("/api/consoles/{console_id}", response_model=ConsoleOut,
-            responses={403: {"model": Problem}, 404: {"model": Problem}})
+            responses={403: {"model": Problem}, 404: {"model": Problem}, 409: {"model": Problem, "description": "the 3D view is disabled"}})
 def update_console(console_id: str, update: ConsoleUpdate, scene: SceneDep, user: ViewerDep) -> ConsoleOut:
     """Pick the machine or mode shown (viewers too), or type a target (operators). A target in 2D
     snaps to the throwing line; ``target_reason`` says why it cannot be served."""
@@ -67,7 +68,7 @@ def update_console(console_id: str, update: ConsoleUpdate, scene: SceneDep, user
 
 
 @router.post("/api/consoles/{console_id}/preview", response_model=ConsoleOut,
-             responses={404: {"model": Problem}, 422: {"model": Problem}})
+             responses={404: {"model": Problem}, 409: {"model": Problem, "description": "the 3D view is disabled"}, 422: {"model": Problem}})
 def show_preview(console_id: str, body: ConsoleShowPreview, request: Request, scene: SceneDep,
                  user: OperatorDep) -> ConsoleOut:
     """Draw a preview (POST /api/previews) in this console's 3D view."""
