@@ -145,6 +145,9 @@ class ThrowExecutor:
         self._events: list[PhaseEvent] = []
         self._finished: ThrowOutcome | None = None
         self._last_stamp_s: float | None = None
+        self.unhealthy: dict[str, str] = {}
+        """Policy SHA-256 -> why that version is unhealthy on this machine (it emitted a
+        non-finite or misshaped action); throws with it are refused until another file is loaded."""
         self._predictor, self._check_unavailable = None, None
         if self.config.release_check_radius_m is not None:
             self._predictor, self._check_unavailable = shared_predictor()
@@ -172,7 +175,8 @@ class ThrowExecutor:
             request: the validated ThrowRequest.
             state: the latest machine state (None if none has arrived yet).
 
-        Refused when: busy, no policy for the mode, no or non-finite machine state, or the
+        Refused when: busy, no policy for the mode, the mode's policy version is marked unhealthy
+        (:attr:`unhealthy`), no or non-finite machine state, or the
         target is not servable (runtime.throw_geometry.target_refusal with the policy's
         ``target_range_m`` and the current cabin angle).
         """
@@ -181,6 +185,8 @@ class ThrowExecutor:
         policy = self.policies.get(request.mode)
         if policy is None:
             return f"no {request.mode} policy loaded on this runtime"
+        if policy.sha256 in self.unhealthy:
+            return f"policy {policy.version} is marked unhealthy on this machine: {self.unhealthy[policy.sha256]}"
         if state is None:
             return "no machine state received yet"
         if not _state_finite(state):
@@ -304,6 +310,9 @@ class ThrowExecutor:
         except PolicyError as e:
             return f"policy error: {e}", False
         if action.shape != (num_actions(mode),) or not np.all(np.isfinite(action)):
+            reason = f"it returned a non-finite or misshaped action in throw {th.request.throw_id}"
+            self.unhealthy[th.policy.sha256] = reason
+            log.error("policy %s marked unhealthy: %s", th.policy.version, reason)
             return "policy returned a non-finite or misshaped action", False
         th.prev_action = action
         qd_ref, release = decode_action(np, mode, action)

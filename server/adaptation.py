@@ -18,7 +18,7 @@ from sqlalchemy import select
 
 from server.db.models import PolicyVersion
 from server.diagnosis import ACTIVE, RUN_ID, DiagnosisRuns
-from server.throws import ThrowRefused
+from server.errors import Conflict, NotFound, Refused
 
 
 def adaptation_view(job: dict) -> dict:
@@ -61,20 +61,20 @@ class AdaptationRuns:
         """Check the inputs and submit the adaptation job; returns the run.
 
         Raises:
-            ThrowRefused: 404 no such diagnosis, 409 diagnosis not done / adaptation running /
+            NotFound: no such diagnosis. Refused: a bad mode. Conflict: diagnosis not done / adaptation running /
                 no base policy file, 422 bad mode.
         """
         if mode not in ("2d", "3d"):
-            raise ThrowRefused(422, f"mode must be '2d' or '3d', got {mode!r}")
+            raise Refused(f"mode must be '2d' or '3d', got {mode!r}")
         st = self.diagnosis.get(diagnosis_id)
         if st is None:
-            raise ThrowRefused(404, f"no diagnosis run {diagnosis_id}")
+            raise NotFound(f"no diagnosis run {diagnosis_id}")
         profile = self.diagnosis.file(diagnosis_id, "profile_fitted.json")
         if st.get("status") != "done" or profile is None:
-            raise ThrowRefused(409, f"diagnosis {diagnosis_id} is {st.get('status')}; adapt a finished one")
+            raise Conflict(f"diagnosis {diagnosis_id} is {st.get('status')}; adapt a finished one")
         base = self._base(st["machine_id"], mode, base_version)
         if any(j["status"] in ACTIVE for j in self.jobs.store.list(kind="adaptation", limit=20)):
-            raise ThrowRefused(409, "an adaptation is already running; wait for it to finish")
+            raise Conflict("an adaptation is already running; wait for it to finish")
         spec = {"diagnosis_id": diagnosis_id, "machine_id": st["machine_id"], "mode": mode, "base_version": base.name,
                 "base_path": base.onnx_path, "profile": json.loads(profile.read_text()), "report": st.get("report"),
                 "throws": throws, "rounds": rounds, "workers": self.workers}
@@ -88,7 +88,7 @@ class AdaptationRuns:
             row = db.scalar(select(PolicyVersion).where(PolicyVersion.name == name, PolicyVersion.mode == mode)
                             .order_by(PolicyVersion.id.desc()))
         if row is None or not row.onnx_path or not (self.policies.store.data_dir / row.onnx_path).is_file():
-            raise ThrowRefused(409, f"the server has no file of {mode} policy {name!r} to adapt")
+            raise Conflict(f"the server has no file of {mode} policy {name!r} to adapt")
         return row
 
     def wait(self, timeout_s: float | None = None) -> None:

@@ -8,17 +8,19 @@ The lifespan: optional ``alembic upgrade head``, open the Zenoh session, start t
 from __future__ import annotations
 
 import logging
-import math
 from contextlib import asynccontextmanager
 from pathlib import Path
 
 import zenoh
 from fastapi import FastAPI, Request
-from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
+from sqlalchemy.exc import SQLAlchemyError
+from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
+from server.api.errors import domain_error
+from server.errors import DomainError
 from server.api.routes import adaptation, auth, diagnosis, health, jobs, live, machines, policies, previews, scene, throws, users
 from server.config import Settings, get_settings
 from server.db.migrate import upgrade
@@ -31,6 +33,7 @@ from server.jobs import JobQueue, JobStore, queue_url
 from server.jobs import tasks as job_tasks
 from server.jobs.watch import JobWatcher
 from server.login_guard import LoginGuard
+from server.storage import StorageFault, StorageMonitor, classify, storage_response
 from server.live import LiveHub
 from server.adaptation import AdaptationRuns
 from server.diagnosis import DiagnosisRuns
@@ -42,6 +45,8 @@ from server.throws import ThrowService
 from server.web_guard import BodySizeLimit, SecurityHeaders, inline_script_hashes
 
 log = logging.getLogger(__name__)
+
+ROUTE_MODULES = (health, auth, users, machines, throws, previews, policies, scene, live, diagnosis, adaptation, jobs)
 
 WEB_DIR = next((d for d in (Path(__file__).resolve().parent / "web", Path(__file__).resolve().parent.parent / "web")
                 if d.is_dir()), Path(__file__).resolve().parent.parent / "web")
@@ -76,17 +81,20 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        app.state.storage = storage = StorageMonitor(settings.database_url, settings.storage_min_free_bytes)
         if settings.auto_migrate:
-            upgrade(settings.database_url)
-        engine = make_engine(settings.database_url)
-        sessions = make_sessionmaker(engine)
+            _migrate(settings.database_url, storage)
+        engine = make_engine(settings.database_url, settings.database_busy_timeout_s)
+        storage.guard(engine)
+        sessions = make_sessionmaker(engine, before_use=storage.before_use)
         store = ResultStore(sessions, settings.data_dir)
         own_session = zenoh_session is None
         zsession = open_zenoh(settings) if own_session else zenoh_session
         fleet = Fleet(zsession, store, settings.query_timeout_s, signer=CommandSigner(settings.resolved_site_dir))
         app.state.live = live_hub = LiveHub(zsession, fleet)
         app.state.login_guard = LoginGuard(settings.login_failures_per_user, settings.login_failures_per_address,
-                                           settings.login_workers, settings.login_max_pending)
+                                           settings.login_workers, settings.login_max_pending,
+                                           per_user_address=settings.login_failures_per_user_address)
         app.state.throws = ThrowService(fleet, sessions, settings.keep_out_zones,
                                         previews=lambda pid: app.state.previews.get(pid),
                                         gate=settings.gate_limits(), machine_status=live_hub.status)
@@ -126,7 +134,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
             fleet.stop()
             if own_session:
                 zsession.close()
-            engine.dispose()
+            storage.release(engine)  # disposes it, unless its files are unwritable (server.storage)
             app.state.login_guard.close()
 
     app = FastAPI(
@@ -136,11 +144,17 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         lifespan=lifespan,
     )
     app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(DomainError, domain_error)  # the one mapping of domain errors to HTTP
+    _document_validation_errors(app, [m.router for m in ROUTE_MODULES])
+    for exc_type in (StorageFault, SQLAlchemyError, OSError):
+        app.add_exception_handler(exc_type, _storage_error)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes,
                        overrides={("POST", "/api/policies"): settings.max_policy_upload_bytes,
                                   ("POST", "/api/diagnosis/uploads"): settings.max_bag_upload_bytes})
     app.add_middleware(SecurityHeaders, script_hashes=inline_script_hashes(WEB_DIR) if WEB_DIR.is_dir() else [])
-    for module in (health, auth, users, machines, throws, previews, policies, scene, live, diagnosis, adaptation, jobs):
+    if settings.trusted_proxies:  # outermost: the client address is settled before anything reads it
+        app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=list(settings.trusted_proxies))
+    for module in ROUTE_MODULES:
         app.include_router(module.router)
     if WEB_DIR.is_dir():
         app.mount("/console", StaticFiles(directory=WEB_DIR, html=True), name="console")
@@ -182,17 +196,120 @@ def _show_result(app: FastAPI, throw_id: str) -> None:
         scene_obj.show_throw(row.machine_id, app.state.store.telemetry_file(row), row.impact_m, row.target_m)
 
 
+def _migrate(database_url: str, storage: StorageMonitor) -> None:
+    """``alembic upgrade head`` unless the storage has a fault (then the server starts in the
+    fault state, /api/health names it, and the migration runs at the next start)."""
+    fault = storage.check_files()
+    if fault is not None:
+        log.error("database not migrated: %s", fault.reason)
+        return
+    try:
+        upgrade(database_url)
+    except Exception as e:  # noqa: BLE001  only storage faults are survived; others stop the start
+        fault = classify(e)
+        if fault is None:
+            raise
+        storage.report(fault)
+        log.error("database not migrated: %s", fault.reason)
+
+
+async def _storage_error(request: Request, exc: Exception) -> JSONResponse:
+    """503 with the reason for a storage fault (server.storage); anything else stays a 500."""
+    fault = classify(exc)
+    if fault is None:
+        raise exc
+    storage = getattr(request.app.state, "storage", None)
+    if storage is not None:
+        storage.report(fault)
+    return storage_response(fault.condition, fault.reason)
+
+
 async def _validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
-    """422 with FastAPI's usual body, but JSON-safe: a NaN/inf in the request (which JSON cannot
-    carry back) is echoed as a string instead of crashing the error response with a 500."""
-    return JSONResponse(status_code=422, content={"detail": _json_safe(jsonable_encoder(exc.errors()))})
+    """422 with a sentence naming each bad field (at most three) and ``fields``, the names alone;
+    never pydantic's error dump nor the input echoed back (it may be huge, hostile or not JSON)."""
+    errors = exc.errors()
+    parts, fields = [], []
+    for err in errors:
+        loc = [str(x) for x in err.get("loc", ()) if x not in ("body", "query", "path", "header", "cookie")]
+        field = ".".join(loc) or "request body"
+        fields.append(field)
+        if len(parts) < 3:
+            parts.append(f"{field}: {_control_free(str(err.get('msg', 'invalid value')))}")
+    more = f" (and {len(errors) - 3} more)" if len(errors) > 3 else ""
+    return JSONResponse(status_code=422, content={"detail": f"invalid request: {'; '.join(parts)}{more}",
+                                                  "fields": fields})
 
 
-def _json_safe(value):
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
+VALIDATION_ERROR_SCHEMA = {
+    "title": "HTTPValidationError", "type": "object", "required": ["detail"],
+    "properties": {"detail": {"type": "string", "title": "Detail"},
+                   "fields": {"type": "array", "items": {"type": "string"}, "title": "Fields"}},
+}
+
+
+BODY_NOT_PARSED = {"description": "the body could not be parsed (not JSON, or not in its declared encoding)",
+                   "content": {"application/json": {"schema": {"$ref": "#/components/schemas/HTTPValidationError"}}}}
+
+
+def _document_validation_errors(app: FastAPI, routers: list) -> None:
+    """Make the OpenAPI document describe the 422 body :func:`_validation_error` writes (and the
+    answers that carry only ``detail``), and the 400 FastAPI gives a body it cannot parse."""
+    build = app.openapi
+
+    def openapi() -> dict:
+        if app.openapi_schema is None:
+            schema = build()
+            schema.get("components", {}).get("schemas", {})["HTTPValidationError"] = VALIDATION_ERROR_SCHEMA
+            for path in schema.get("paths", {}).values():
+                for operation in path.values():
+                    if isinstance(operation, dict) and "requestBody" in operation:
+                        operation.setdefault("responses", {}).setdefault("400", BODY_NOT_PARSED)
+            _document_auth_errors(routers, schema)
+            app.openapi_schema = schema
+        return app.openapi_schema
+
+    app.openapi = openapi
+
+
+def _auth_needs(dependant) -> tuple[bool, bool]:
+    """(needs a session, needs more than the viewer role) of a route, from its dependencies
+    (server.api.deps.get_current_user and require_role)."""
+    from server.api.deps import get_current_user
+
+    session, role = False, False
+    for dep in dependant.dependencies:
+        if dep.call is get_current_user:
+            session = True
+        closure = getattr(dep.call, "__closure__", None) or ()
+        if getattr(dep.call, "__qualname__", "").startswith("require_role."):
+            session = True
+            role = role or any(c.cell_contents in ("operator", "admin") for c in closure
+                               if isinstance(c.cell_contents, str))
+        s, r = _auth_needs(dep)
+        session, role = session or s, role or r
+    return session, role
+
+
+def _document_auth_errors(routers: list, schema: dict) -> None:
+    """Document 401 on every route that needs a session and 403 on those that need the operator
+    or admin role (what server.api.deps answers)."""
+    from fastapi.routing import APIRoute
+
+    problem = {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/Problem"}}}}
+    for route in (r for router in routers for r in router.routes):
+        if not isinstance(route, APIRoute) or route.path not in schema.get("paths", {}):
+            continue
+        session, role = _auth_needs(route.dependant)
+        for method in route.methods:
+            operation = schema["paths"][route.path].get(method.lower())
+            if operation is None:
+                continue
+            responses = operation.setdefault("responses", {})
+            if session:
+                responses.setdefault("401", {"description": "log in first (session missing or expired)", **problem})
+            if role:
+                responses.setdefault("403", {"description": "needs a higher role", **problem})
+
+
+def _control_free(text: str) -> str:
+    return "".join(c if c.isprintable() else " " for c in text)[:200]

@@ -120,21 +120,29 @@ def create_session(db: Session, user: User, ttl_s: float) -> tuple[str, AuthSess
     now = utcnow()
     db.execute(delete(AuthSession).where(AuthSession.expires_at < now))
     token = secrets.token_urlsafe(32)
-    row = AuthSession(token_sha256=_digest(token), user_id=user.id, created_at=now,
+    row = AuthSession(token_sha256=_digest(token), user_id=user.id, user_key=user.session_key, created_at=now,
                       expires_at=now + timedelta(seconds=ttl_s))
     db.add(row)
     return token, row
 
 
 def user_for_token(db: Session, token: str | None) -> User | None:
-    """The active user of an unexpired session token, else None."""
+    """The active user of an unexpired session token, else None.
+
+    The session must carry the account's current ``session_key`` (server.db.models.User): a
+    session whose account was deleted, even by a tool that bypasses foreign keys, never
+    authenticates a later account that got the same ``id``.
+    """
     if not token:
         return None
     row = db.get(AuthSession, _digest(token))
     if row is None or row.expires_at <= utcnow():
         return None
     user = db.get(User, row.user_id)
-    return user if user is not None and user.active else None
+    if user is None or not secrets.compare_digest(user.session_key, row.user_key):
+        log.warning("session of user id %s refused: its account was deleted or replaced", row.user_id)
+        return None
+    return user if user.active else None
 
 
 def end_session(db: Session, token: str | None) -> None:
@@ -143,8 +151,32 @@ def end_session(db: Session, token: str | None) -> None:
         db.execute(delete(AuthSession).where(AuthSession.token_sha256 == _digest(token)))
 
 
+def clean_text(value: str, limit: int | None = None) -> str:
+    """``value`` with control and other non-printable characters escaped (``\\x1b``,
+    ``\\u2028``), cut to ``limit`` characters: safe for a log line, a terminal and a table cell."""
+    out = "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in str(value))
+    return out if limit is None or len(out) <= limit else out[: limit - 1] + "…"
+
+
+def _clean_detail(value, depth: int = 0):
+    if isinstance(value, str):
+        return clean_text(value, 1000)
+    if isinstance(value, dict) and depth < 4:
+        return {clean_text(str(k), 64): _clean_detail(v, depth + 1) for k, v in list(value.items())[:50]}
+    if isinstance(value, (list, tuple)) and depth < 4:
+        return [_clean_detail(v, depth + 1) for v in list(value)[:50]]
+    if value is None or isinstance(value, (bool, int, float)):
+        return value
+    return clean_text(repr(value), 1000)
+
+
 def audit(db: Session, username: str, action: str, subject: str | None = None, **detail) -> None:
-    """Write one audit-log entry inside ``db``'s transaction (and log it)."""
+    """Write one audit-log entry inside ``db``'s transaction (and log it). Every text is
+    cleaned (:func:`clean_text`: control characters escaped, cut to the column's length), so
+    that a hostile machine id or reason cannot forge log lines or break the audit table."""
+    username, action = clean_text(username, 64), clean_text(action, 32)
+    subject = clean_text(subject, 128) if subject is not None else None
+    detail = _clean_detail(detail)
     db.add(AuditEntry(username=username, action=action, subject=subject, detail=detail))
     log.info("audit: %s %s %s %s", username, action, subject or "", detail or "")
 

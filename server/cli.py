@@ -67,6 +67,16 @@ def _add_server_options(p: argparse.ArgumentParser, default_port: int = 8000) ->
     p.add_argument("--data-dir", type=Path, default=None, help="database, telemetry and logs (default ./var)")
 
 
+def uvicorn_config(app, settings, log_level: str = "info"):
+    """uvicorn's configuration for the app: its own proxy-header handling off (it trusts loopback
+    by default, so any local client could pick its address through ``X-Forwarded-For``); the app
+    applies ``Settings.trusted_proxies`` itself (server.app)."""
+    import uvicorn
+
+    return uvicorn.Config(app, host=settings.host, port=settings.port, log_level=log_level, proxy_headers=False,
+                          forwarded_allow_ips=[])
+
+
 def _serve(settings, zenoh_session=None, on_started=None) -> int:
     """Run uvicorn in this thread until Ctrl-C/SIGTERM (uvicorn handles both gracefully)."""
     import uvicorn
@@ -74,7 +84,7 @@ def _serve(settings, zenoh_session=None, on_started=None) -> int:
     from server.app import create_app
 
     app = create_app(settings, zenoh_session=zenoh_session)
-    server = uvicorn.Server(uvicorn.Config(app, host=settings.host, port=settings.port, log_level="info"))
+    server = uvicorn.Server(uvicorn_config(app, settings))
     if on_started is not None:
         def wait_started() -> None:
             while not server.started and not server.should_exit:

@@ -39,14 +39,24 @@ class Settings(BaseSettings):
             mutual TLS with its certificate (CN "server") and the site's access control for the
             machines of the site (``tls/`` endpoints); None: plain TCP.
         query_timeout_s: how long a Zenoh query to a runtime may take, s.
-        auto_migrate: run ``alembic upgrade head`` when the app starts.
+        auto_migrate: run ``alembic upgrade head`` when the app starts (skipped, with the reason
+            logged and shown by /api/health, while the database's storage has a fault).
+        database_busy_timeout_s: how long a request waits for SQLite's write lock before it
+            answers 503 "database locked", s.
+        storage_min_free_bytes: less free space than this beside a SQLite database is reported
+            as ``disk_full`` (server.storage).
         session_ttl_s: how long a log-in stays valid, s.
         cookie_secure: always mark the session cookie Secure (it is anyway when the request came
             over HTTPS: scheme https or ``X-Forwarded-Proto: https``).
         max_body_bytes: largest request body, bytes (413 above); policy uploads have
             ``max_policy_upload_bytes``, rosbag2 uploads for a diagnosis ``max_bag_upload_bytes``.
-        login_failures_per_user / login_failures_per_address: failed log-ins allowed per window
-            before 429 (``limits`` notation, server.login_guard).
+        login_failures_per_user_address / login_failures_per_address / login_failures_per_user:
+            failed log-ins allowed per window before 429, per (user name, client address), per
+            address and per user name from all addresses (``limits`` notation; the per-user lock
+            spares addresses the user logged in from: server.login_guard).
+        trusted_proxies: addresses or networks (e.g. ``["10.0.0.5", "10.1.0.0/16"]``) of reverse
+            proxies whose ``X-Forwarded-For``/``X-Forwarded-Proto`` name the client; the header
+            of anyone else is ignored. Empty (default): no proxy is trusted, loopback included.
         login_workers / login_max_pending: threads checking passwords (default a quarter of the
             cores, at least 1: argon2 takes a core each), and checks queued or running at most
             (more: 429 at once).
@@ -61,6 +71,13 @@ class Settings(BaseSettings):
             (``slinger adapt``) carries its own fitted profile, which then takes precedence.
         eval_distances_m / eval_throws: the small twin evaluation of an uploaded policy version
             (throws per distance); empty distances: the policy's trained range in 3 steps.
+        require_validation: a policy version is promoted only after it passed its validation
+            (server.policy_validation; a rollback is not checked).
+        validation_observations / validation_distances / validation_throws_per_distance: the
+            validation's observation sweep, and its twin throws over the declared target range
+            (distances spanning it, random start poses each).
+        validation_memory_mb / validation_time_s: limits of one validation's child process
+            (exceeded: the version fails validation with that reason).
         site_dir: the site directory of ``slinger certs`` (command keys in
             ``machines/<id>/command.key``); default ``<data_dir>/site``.
         require_preview: a throw needs a fresh OK preview of the same request (server.throw_gate);
@@ -92,13 +109,17 @@ class Settings(BaseSettings):
     zenoh_tls_dir: Path | None = None
     query_timeout_s: float = 5.0
     auto_migrate: bool = False
+    database_busy_timeout_s: float = Field(10.0, gt=0)
+    storage_min_free_bytes: int = Field(8 << 20, ge=0)
     session_ttl_s: float = 12 * 3600.0
     cookie_secure: bool = False
     max_body_bytes: int = Field(1 << 20, ge=1024)
     max_policy_upload_bytes: int = Field(64 << 20, ge=1024)
     max_bag_upload_bytes: int = Field(512 << 20, ge=1024)
-    login_failures_per_user: str = "5/5minutes"
+    login_failures_per_user_address: str = "5/5minutes"
     login_failures_per_address: str = "20/5minutes"
+    login_failures_per_user: str = "100/5minutes"
+    trusted_proxies: list[str] = Field(default_factory=list)
     login_workers: int = Field(default_factory=lambda: max(1, (os.cpu_count() or 2) // 4), ge=1, le=16)
     login_max_pending: int = Field(8, ge=1, le=256)
     keep_out_zones: list[KeepOutZone] = Field(default_factory=list)
@@ -107,6 +128,12 @@ class Settings(BaseSettings):
     preview_profile: Path | None = None
     eval_distances_m: list[float] = Field(default_factory=list)
     eval_throws: int = 4
+    require_validation: bool = True
+    validation_observations: int = Field(4096, ge=1)
+    validation_distances: int = Field(5, ge=0)
+    validation_throws_per_distance: int = Field(2, ge=0)
+    validation_memory_mb: int = Field(1024, ge=64)
+    validation_time_s: float = Field(600.0, gt=0)
     site_dir: Path | None = None
     require_preview: bool = True
     preview_max_age_s: float = Field(60.0, gt=0)
@@ -138,6 +165,18 @@ class Settings(BaseSettings):
             return None
         return GateLimits(self.preview_max_age_s, self.preview_target_tolerance_m,
                           self.preview_max_active_joint_delta, self.preview_max_passive_joint_delta)
+
+    def validation_limits(self, upload: bool = False):
+        """server.policy_validation.ValidationLimits from these settings; ``upload``: the quick
+        check of an upload (64 observations, no twin throws, at most 60 s)."""
+        from server.policy_validation import ValidationLimits
+
+        memory = self.validation_memory_mb << 20
+        if upload:
+            return ValidationLimits(observations=64, distances=0, throws_per_distance=0, memory_bytes=memory,
+                                    time_s=min(60.0, self.validation_time_s))
+        return ValidationLimits(self.validation_observations, self.validation_distances,
+                                self.validation_throws_per_distance, memory, self.validation_time_s)
 
     @property
     def telemetry_dir(self) -> Path:

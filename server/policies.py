@@ -19,8 +19,7 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from runtime.observation import observation_size
-from runtime.policy import PolicyError, PolicyRunner, build_manifest
+from runtime.policy import build_manifest
 from runtime.protocol import keys
 from runtime.protocol.messages import (
     PolicyOffer,
@@ -31,9 +30,10 @@ from runtime.protocol.messages import (
 from server.auth import audit
 from server.db.models import PolicyDeployment, PolicyVersion
 from server.db.types import utcnow
+from server.policy_validation import ValidationLimits, validate
 from server.fleet import Fleet, RuntimeUnavailable
 from server.results import ResultStore, ensure_machine
-from server.throws import ThrowRefused
+from server.errors import Conflict, NotFound, Refused
 
 log = logging.getLogger(__name__)
 MAX_POLICY_BYTES = 50 * 1024 * 1024
@@ -66,29 +66,30 @@ class PolicyService:
         """Validate and store a policy version; start its twin evaluation.
 
         Raises:
-            ThrowRefused: 422 with the reason (not ONNX, wrong shapes for the mode, non-finite
-                actions, bad range), 409 if this file is already a version.
+            Refused: with the reason (not ONNX, wrong shapes for the mode, non-finite
+                actions on a small observation sweep, over the memory or time limit of the
+                check, bad range). Conflict: this file is already a version.
         """
         if not data:
-            raise ThrowRefused(422, "empty file")
+            raise Refused("empty file")
         if len(data) > MAX_POLICY_BYTES:
-            raise ThrowRefused(422, f"file larger than {MAX_POLICY_BYTES // 2**20} MiB")
+            raise Refused(f"file larger than {MAX_POLICY_BYTES // 2**20} MiB")
         lo, hi = target_range_m
         if not (0 < lo < hi):
-            raise ThrowRefused(422, "target range must satisfy 0 < min < max")
+            raise Refused("target range must satisfy 0 < min < max")
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "upload.onnx"
             path.write_bytes(data)
             manifest = build_manifest(path, mode, name, (lo, hi), {"notes": notes or "", "uploaded_by": username})
             path.with_suffix(".json").write_text(json.dumps(manifest))
-            try:
-                runner = PolicyRunner.load(path)
-                _probe_finite(runner)
-            except PolicyError as e:
-                reason = str(e)
+            # loaded and probed in a limited child process, never in the API (a tiny file can ask
+            # onnxruntime for gigabytes): server.policy_validation
+            verdict = validate(path, self.settings.validation_limits(upload=True))
+            if not verdict["passed"]:
+                reason = verdict["reason"].removeprefix("the policy does not load: ")
                 if "onnxruntime cannot load" in reason:
                     reason = f"not a loadable ONNX model: {reason.split(': ', 1)[-1][:300]}"
-                raise ThrowRefused(422, reason) from e
+                raise Refused(reason)
             return self.add_version(manifest, path, username, notes, evaluate)
 
     def add_version(self, manifest: dict, path: Path, username: str, notes: str | None = None, evaluate: bool = True,
@@ -98,11 +99,11 @@ class PolicyService:
         (server.adaptation) come in here.
 
         Raises:
-            ThrowRefused: 409 if this file is already a version.
+            Conflict: this file is already a version.
         """
         with self.sessions() as db:
             if db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == manifest["onnx_sha256"])) is not None:
-                raise ThrowRefused(409, "this ONNX file is already a policy version")
+                raise Conflict("this ONNX file is already a policy version")
         rel = self.store.store_policy_file(manifest, path)
         name, mode = manifest["name"], manifest["mode"]
         with self.sessions.begin() as db:
@@ -124,13 +125,23 @@ class PolicyService:
     # --- promotion ---------------------------------------------------------------------------
     def promote(self, version_id: int, machine_ids: list[str], username: str, action: str = "promote") -> list[PolicyDeployment]:
         """Offer the version to each machine; returns one deployment row per machine (status
-        ``offered`` when the runtime accepted the offer, ``failed`` with the reason otherwise)."""
+        ``offered`` when the runtime accepted the offer, ``failed`` with the reason otherwise).
+
+        Raises:
+            NotFound: unknown version. Conflict: no file, or (``Settings.require_validation``,
+                not for a rollback: the machine ran that version before) the version has not
+                passed its validation (:func:`validation_refusal`; condition ``validation``).
+        """
         with self.sessions() as db:
             version = db.get(PolicyVersion, version_id)
         if version is None:
-            raise ThrowRefused(404, f"no policy version {version_id}")
+            raise NotFound(f"no policy version {version_id}")
         if not version.onnx_path or not (self.store.data_dir / version.onnx_path).is_file():
-            raise ThrowRefused(409, f"the server has no file of {version.name}; upload it")
+            raise Conflict(f"the server has no file of {version.name}; upload it")
+        if action == "promote" and getattr(self.settings, "require_validation", False):
+            refusal = validation_refusal(version)
+            if refusal is not None:
+                raise Conflict(refusal, condition="validation")
         out = []
         for mid in machine_ids:
             info = self.fleet.fresh_info(mid, max_age_s=0.0, timeout_s=2.0)
@@ -166,7 +177,7 @@ class PolicyService:
         """Promote the version the machine ran before its last active deployment for ``mode``.
 
         Raises:
-            ThrowRefused: 409 when there is no earlier version to go back to.
+            Conflict: there is no earlier version to go back to.
         """
         with self.sessions() as db:
             last = db.scalar(select(PolicyDeployment).where(
@@ -176,7 +187,7 @@ class PolicyService:
             if last is not None and last.previous_sha256:
                 prev = db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == last.previous_sha256))
         if prev is None:
-            raise ThrowRefused(409, f"no previous {mode} policy version of {machine_id} to roll back to")
+            raise Conflict(f"no previous {mode} policy version of {machine_id} to roll back to")
         return self.promote(prev.id, [machine_id], username, action="rollback")[0]
 
     # --- Zenoh callbacks ---------------------------------------------------------------------
@@ -208,10 +219,14 @@ class PolicyService:
 
 
 def evaluate_version(sessions: sessionmaker[Session], data_dir: Path, version_id: int, distances_m: list[float],
-                     throws: int, progress) -> dict:
-    """The paper's protocol on a small sample (``throws`` per distance) of policy version
-    ``version_id``, in a worker (job kind ``evaluation``); the report and the status go to the
-    version's row as well. ``progress(fraction, message)`` after every distance.
+                     throws: int, progress, limits: ValidationLimits | None = None) -> dict:
+    """Validate policy version ``version_id`` (server.policy_validation, in a limited child
+    process: observation sweep and twin throws over its whole target range; ``limits``), then
+    run the paper's protocol on a small sample (``throws`` per distance), in a worker (job kind
+    ``evaluation``); the report (with the validation verdict under ``validation``) and the status
+    go to the version's row as well: ``failed`` with the reason when the validation failed.
+    ``progress(fraction, message)`` after every distance; a cancel stops the validation's child
+    within one poll (50 ms).
 
     Raises:
         server.jobs.JobCancelled: from ``progress`` (the row is left ``failed``: cancelled).
@@ -231,13 +246,20 @@ def evaluate_version(sessions: sessionmaker[Session], data_dir: Path, version_id
         profile_name = site.get("name", "site")
     metrics, status = {"error": "cancelled"}, "failed"
     try:
+        progress(0.0, "validation: observation sweep and twin throws over the target range")
+        verdict = validate(path, limits or ValidationLimits(), check_cancel=lambda: progress(0.0, None),
+                           seed=version_id)
+        if not verdict["passed"]:
+            metrics = {"validation": verdict, "error": f"validation failed: {verdict['reason']}"}
+            log.warning("policy version %d failed validation: %s", version_id, verdict["reason"])
+            return metrics
         targets = []
         for i, d in enumerate(distances_m):
             progress(i / len(distances_m), f"{throws} throws at {d:.1f} m")
             seeds = [version_id * 1000 + i * 100 + k for k in range(throws)]
             targets.append(summarise(d, _throw_batch(path, mode, d, seeds, profile_path)))
         metrics = {"protocol": "paper Sec. IV-A (small sample)", "throws_per_target": throws,
-                   "profile": profile_name, "targets": targets}
+                   "profile": profile_name, "targets": targets, "validation": verdict}
         status = "done"
     except JobCancelled:
         raise
@@ -272,10 +294,13 @@ def expire_stale_offers(db: Session, now: datetime | None = None, timeout_s: flo
     return len(rows)
 
 
-def _probe_finite(runner: PolicyRunner, n: int = 8) -> None:
-    """Non-finite actions on random observations are refused (PolicyRunner checks zeros only)."""
-    rng = np.random.default_rng(0)
-    for _ in range(n):
-        a = runner.act(rng.normal(size=observation_size(runner.mode)).astype(np.float32))
-        if not np.all(np.isfinite(a)):
-            raise PolicyError("policy produces non-finite actions")
+def validation_refusal(version: PolicyVersion) -> str | None:
+    """Why ``version`` may not be promoted yet (its validation has not passed), or None."""
+    verdict = (version.metrics or {}).get("validation") or {}
+    if version.evaluation_status == "done" and verdict.get("passed"):
+        return None
+    if version.evaluation_status in (None, "pending", "running"):
+        return (f"policy version {version.name} has not been validated yet (evaluation "
+                f"{version.evaluation_status or 'not started'}): wait for its evaluation to finish")
+    why = verdict.get("reason") or (version.metrics or {}).get("error") or version.evaluation_status
+    return f"policy version {version.name} failed its validation: {why}"

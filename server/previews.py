@@ -15,9 +15,10 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.db.models import PolicyVersion
+from server.errors import KINDS, Conflict, Failed, Refused, Unavailable
 from server.fleet import Fleet
 from server.jobs import JobQueue
-from server.throws import ThrowRefused, ThrowService
+from server.throws import ThrowService
 
 log = logging.getLogger(__name__)
 
@@ -59,16 +60,16 @@ class PreviewService:
         ``machine_id`` runs for ``mode``.
 
         Raises:
-            ThrowRefused: 422 no policy for the mode; 409 the server has no file of it.
+            Refused: no policy for the mode. Conflict: the server has no file of it.
         """
         info = self.fleet.fresh_info(machine_id, max_age_s=2.0, timeout_s=1.0)
         pol = next((p for p in (info.policies if info else []) if p.mode == mode), None)
         if pol is None:
-            raise ThrowRefused(422, f"machine {machine_id} runs no {mode} policy")
+            raise Refused(f"machine {machine_id} runs no {mode} policy")
         with self.sessions() as db:
             row = db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == pol.sha256))
         if row is None or not row.onnx_path or not (self.data_dir / row.onnx_path).is_file():
-            raise ThrowRefused(409, f"the server has no file of policy {pol.version} ({pol.sha256[:12]}…): "
+            raise Conflict(f"the server has no file of policy {pol.version} ({pol.sha256[:12]}…): "
                                     "upload that version to preview it")
         return row.onnx_path, pol.sha256, pol.version
 
@@ -78,7 +79,8 @@ class PreviewService:
         its id (= the preview id).
 
         Raises:
-            ThrowRefused: as ThrowService.checked_state and :meth:`active_policy`.
+            DomainError: as ThrowService.checked_state and :meth:`active_policy`; Limited: the user
+                has their limit of previews queued or running (server.jobs.store.JobLimit, a Limited).
         """
         state = self.throws.checked_state(machine_id, mode, target)
         onnx_path, sha, version = self.active_policy(machine_id, mode)
@@ -94,17 +96,18 @@ class PreviewService:
         """The summary of a finished preview job.
 
         Raises:
-            ThrowRefused: 503 no worker answered within ``timeout_s`` (the job is cancelled),
-                the job's own status code (409: the policy does not load) or 500 when it failed.
+            Unavailable: no worker answered within ``timeout_s`` (the job is cancelled);
+                the job's own refusal (Conflict: the policy does not load on the worker), or
+                Failed when the job failed.
         """
         if job is None or job["status"] in ("queued", "running"):
             if job is not None:
                 self.jobs.cancel(job["id"])
-            raise ThrowRefused(503, f"no worker finished the preview within {timeout_s:.0f} s: is a worker running "
+            raise Unavailable(f"no worker finished the preview within {timeout_s:.0f} s: is a worker running "
                                     "(slinger worker)?")
         if job["status"] != "done":
-            code = (job.get("result") or {}).get("status_code", 500)
-            raise ThrowRefused(code, f"preview failed: {job['error'] or job['status']}")
+            error = KINDS.get((job.get("result") or {}).get("refused"), Failed)
+            raise error(f"preview failed: {job['error'] or job['status']}")
         summary = self.get(job["id"])
         log.info("preview %s for %s %s at %s: %s", job["id"][:8], summary["machine_id"], summary["mode"],
                  summary["target_m"], summary["status"])

@@ -29,6 +29,7 @@ import viser
 
 from runtime.machine import forward_kinematics
 from runtime.throw_geometry import MIN_TARGET_DISTANCE_M
+from server.errors import Limited
 from server.scene_view import ClientView, MachineGeometry, snap_to_line
 
 log = logging.getLogger(__name__)
@@ -41,6 +42,15 @@ OPERATOR_ONLY_CANVAS = "<style>body * { visibility: hidden !important; } canvas 
 """Injected into viser's page (a GUI HTML element): only the 3D canvas stays visible; hidden
 elements cannot be hit by the mouse nor focused, and clicks on the canvas still reach viser."""
 MAX_CONSOLES = 500
+"""Consoles open on one server at most; past it a new one is refused (:class:`ConsoleLimit`),
+never made by evicting another user's."""
+MAX_CONSOLES_PER_USER = 16
+"""Consoles one user keeps at most: a further page load closes that user's least recently used
+console (an old tab), never another user's."""
+
+
+class ConsoleLimit(Limited):
+    """The server holds :data:`MAX_CONSOLES` consoles of other users; the message says so."""
 
 
 def ground_point(ray_origin, ray_direction, max_range_m: float = 200.0) -> np.ndarray | None:
@@ -121,6 +131,7 @@ class ConsoleScene:
         self.server: viser.ViserServer | None = None
         self.port: int | None = None
         self.consoles: dict[str, Console] = {}
+        self.max_consoles, self.max_per_user = MAX_CONSOLES, MAX_CONSOLES_PER_USER
         self._views: dict[int, tuple[str, ClientView]] = {}
         self._geometry: MachineGeometry | None = None
         self._stop = threading.Event()
@@ -157,13 +168,25 @@ class ConsoleScene:
 
     # --- consoles ------------------------------------------------------------------------------
     def open_console(self, username: str) -> Console:
-        """A new console (one per page load) for ``username``."""
+        """A new console (one per page load) for ``username``.
+
+        Consoles unused for CONSOLE_TTL_S are dropped first. A user who holds
+        ``max_per_user`` consoles loses their own least recently used one; no user's page load
+        ever closes another user's console.
+
+        Raises:
+            ConsoleLimit: ``max_consoles`` consoles are open and none is this user's.
+        """
         now = time.monotonic()
         with self._lock:
             for cid in [c for c, v in self.consoles.items() if now - v.touched > CONSOLE_TTL_S]:
                 del self.consoles[cid]
-            if len(self.consoles) >= MAX_CONSOLES:
-                del self.consoles[min(self.consoles, key=lambda c: self.consoles[c].touched)]
+            own = [c for c, v in self.consoles.items() if v.username == username]
+            if own and (len(own) >= self.max_per_user or len(self.consoles) >= self.max_consoles):
+                del self.consoles[min(own, key=lambda c: self.consoles[c].touched)]
+            elif len(self.consoles) >= self.max_consoles:
+                raise ConsoleLimit(f"the server has {len(self.consoles)} consoles open, its limit: "
+                                   "close a console page or wait for unused ones to expire")
             con = Console(secrets.token_hex(12), username)
             self.consoles[con.console_id] = con
         return con

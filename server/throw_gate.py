@@ -27,6 +27,7 @@ import math
 from dataclasses import dataclass
 from datetime import datetime
 
+from server.errors import Conflict, DomainError, Refused
 from runtime.machine import JOINT_NAMES
 
 
@@ -54,7 +55,10 @@ class GateLimits:
 
 @dataclass(frozen=True)
 class Refusal:
-    status_code: int
+    """A failed gate condition: ``error`` is the domain error to raise (server.errors.Refused for
+    a preview that does not match the request, Conflict for one the state has outrun)."""
+
+    error: type[DomainError]
     condition: str
     message: str
 
@@ -75,28 +79,28 @@ def preview_refusal(preview: dict | None, preview_id: str | None, machine_id: st
     """
     again = "preview again"
     if preview_id is None:
-        return Refusal(422, "preview_missing", "a throw needs an OK preview of the same request: send its preview_id")
+        return Refusal(Refused, "preview_missing", "a throw needs an OK preview of the same request: send its preview_id")
     if preview is None:
-        return Refusal(422, "preview_unknown", f"unknown or expired preview {preview_id!r}: {again}")
+        return Refusal(Refused, "preview_unknown", f"unknown or expired preview {preview_id!r}: {again}")
     if preview.get("status") != "ok":
-        return Refusal(422, "preview_failed", f"the preview failed ({preview.get('reason') or 'no reason'}): "
+        return Refusal(Refused, "preview_failed", f"the preview failed ({preview.get('reason') or 'no reason'}): "
                                               "this throw would fail too")
     if preview["machine_id"] != machine_id or preview["mode"] != mode:
-        return Refusal(422, "preview_other", f"the preview was made for another machine or mode "
+        return Refusal(Refused, "preview_other", f"the preview was made for another machine or mode "
                                              f"({preview['machine_id']} {preview['mode']}): {again}")
     off_m = math.dist(preview["target_m"], target_m)
     if off_m > limits.target_tolerance_m:
-        return Refusal(422, "preview_target", f"the preview was made for another target ({off_m:.2f} m away, "
+        return Refusal(Refused, "preview_target", f"the preview was made for another target ({off_m:.2f} m away, "
                                               f"tolerance {limits.target_tolerance_m:.2f} m): {again}")
     age_s = (now - datetime.fromisoformat(preview["created_at"])).total_seconds()
     if age_s > limits.max_age_s:
-        return Refusal(409, "preview_stale", f"the preview is {age_s:.0f} s old (at most {limits.max_age_s:.0f} s): {again}")
+        return Refusal(Conflict, "preview_stale", f"the preview is {age_s:.0f} s old (at most {limits.max_age_s:.0f} s): {again}")
     if policy_sha256 is None or preview.get("policy_sha256") != policy_sha256:
-        return Refusal(409, "policy_changed", f"the machine's {mode} policy changed since the preview: {again}")
+        return Refusal(Conflict, "policy_changed", f"the machine's {mode} policy changed since the preview: {again}")
     for i, name in enumerate(JOINT_NAMES):
         bound = limits.max_active_joint_delta if i < 4 else limits.max_passive_joint_delta
         delta = abs(current_q[i] - preview["start_q"][i])
         if delta > bound:
-            return Refusal(409, "machine_moved", f"the machine moved since the preview ({name} by {delta:.3f}, "
+            return Refusal(Conflict, "machine_moved", f"the machine moved since the preview ({name} by {delta:.3f}, "
                                                  f"at most {bound:.3f}): {again}")
     return None

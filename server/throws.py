@@ -20,6 +20,7 @@ from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from runtime.protocol.messages import MachineState, ThrowAck, ThrowRequest
+from server.errors import Conflict, NotFound, Refused, Unavailable
 from server.targets import serve_refusal
 from server.api.schemas import ThrowCreate
 from server.auth import audit
@@ -30,17 +31,6 @@ from server.results import ensure_machine
 from server.throw_gate import GateLimits, preview_refusal
 
 log = logging.getLogger(__name__)
-
-
-class ThrowRefused(Exception):
-    """A throw request the server or the runtime refused; ``status_code`` is the HTTP status."""
-
-    def __init__(self, status_code: int, detail: str, condition: str | None = None):
-        super().__init__(detail)
-        self.status_code = status_code
-        self.detail = detail
-        self.condition = condition
-        """The failed gate condition (server.throw_gate), if that was the reason."""
 
 
 class ThrowService:
@@ -72,7 +62,7 @@ class ThrowService:
         """The machine's latest state if it can serve ``target`` in ``mode`` now.
 
         Raises:
-            ThrowRefused: 404 unknown machine; 503 runtime offline or no state; 422 a target
+            NotFound: unknown machine. Unavailable: runtime offline or no state. Refused: a target
                 the mode cannot serve (with the reason).
         """
         with self.sessions() as db:
@@ -80,14 +70,14 @@ class ThrowService:
         state = self.fleet.latest_state(mid)
         online = self.fleet.is_online(mid)
         if not (known or online or state is not None):
-            raise ThrowRefused(404, f"unknown machine {mid!r}")
+            raise NotFound(f"unknown machine {mid!r}")
         if not online:
-            raise ThrowRefused(503, f"the runtime of machine {mid} is offline")
+            raise Unavailable(f"the runtime of machine {mid} is offline")
         if state is None:
-            raise ThrowRefused(503, f"no state from machine {mid} yet: is the machine connected?")
+            raise Unavailable(f"no state from machine {mid} yet: is the machine connected?")
         reason = serve_refusal(mode, target, state.q[0], self._target_range(mid, mode), self.keep_out_zones)
         if reason is not None:
-            raise ThrowRefused(422, reason)
+            raise Refused(reason)
         return state
 
     def create(self, body: ThrowCreate, username: str = "system") -> tuple[Throw, ThrowAck]:
@@ -98,22 +88,22 @@ class ThrowService:
             (or a later phase if the runtime already reported one).
 
         Raises:
-            ThrowRefused: 404 unknown machine; 503 runtime offline, no machine state, no
-                answer (the row then stays until reconciled), or no command key; 409 E-STOP latched
-                (as the runtime last reported it); 422 target the
-                mode cannot serve, preview missing/failed/for another request, or the runtime
-                refused (its reason); 409 preview stale, policy changed or machine moved.
+            NotFound: unknown machine. Unavailable: runtime offline, no machine state, no
+                answer (the row then stays until reconciled), or no command key. Conflict: E-STOP
+                latched (as the runtime last reported it), preview stale, policy changed or machine
+                moved. Refused: a target the mode cannot serve, preview missing/failed/for another
+                request, or the runtime refused (its reason).
         """
         mid = body.machine_id
         state = self.checked_state(mid, body.mode, body.target)
         latched = self.estop_reason(mid)
         if latched is not None:
             # named before the preview gate: the operator must reset first (the runtime refuses anyway)
-            raise ThrowRefused(409, f"E-STOP latched on {mid} ({latched}): reset it before throwing",
+            raise Conflict(f"E-STOP latched on {mid} ({latched}): reset it before throwing",
                                "estop_latched")
         preview = self._preview_of(body, state)
         if body.mode == "3d" and not body.confirm_clearance:
-            raise ThrowRefused(422, "a 3D throw turns the cabin: confirm that the swept clearance zone is "
+            raise Refused("a 3D throw turns the cabin: confirm that the swept clearance zone is "
                                     "clear (confirm_clearance: true)")
 
         throw_id = str(uuid.uuid4())
@@ -130,15 +120,15 @@ class ThrowService:
         except RuntimeUnavailable as e:
             # the request may have reached the runtime: keep the row for the reconciliation
             log.warning("throw %s: no confirmation from %s (%s); left to reconciliation", throw_id, mid, e)
-            raise ThrowRefused(503, f"runtime of {mid} did not confirm the throw: {e}") from e
+            raise Unavailable(f"runtime of {mid} did not confirm the throw: {e}") from e
         except BaseException as e:
             self._delete(throw_id)
             if isinstance(e, ValueError):
-                raise ThrowRefused(503, f"cannot sign the throw for {mid}: {e}") from e
+                raise Unavailable(f"cannot sign the throw for {mid}: {e}") from e
             raise
         if not ack.accepted:
             self._delete(throw_id)
-            raise ThrowRefused(422, ack.reason or "the runtime refused the throw")
+            raise Refused(ack.reason or "the runtime refused the throw")
         self.fleet.forget_info(mid)  # busy now: the next read asks the runtime
         with self.sessions.begin() as db:
             row = db.get(Throw, throw_id)
@@ -166,7 +156,7 @@ class ThrowService:
         (server.throw_gate) passed; None without a preview when the gate is off.
 
         Raises:
-            ThrowRefused: the failed gate condition (409/422 with ``condition``).
+            Refused / Conflict: the failed gate condition (with ``condition``).
         """
         p = self.previews(body.preview_id) if body.preview_id is not None else None
         if self.gate is not None:
@@ -175,12 +165,12 @@ class ThrowService:
             refusal = preview_refusal(p, body.preview_id, body.machine_id, body.mode, body.target, state.q, sha,
                                       utcnow(), self.gate)
             if refusal is not None:
-                raise ThrowRefused(refusal.status_code, refusal.message, refusal.condition)
+                raise refusal.error(refusal.message, refusal.condition)
         elif body.preview_id is not None:
             if p is None:
-                raise ThrowRefused(422, f"unknown or expired preview {body.preview_id!r}: preview again", "preview_unknown")
+                raise Refused(f"unknown or expired preview {body.preview_id!r}: preview again", "preview_unknown")
             if p["machine_id"] != body.machine_id or p["mode"] != body.mode or math.dist(p["target_m"], body.target) > 1e-6:
-                raise ThrowRefused(422, "the preview was made for another machine, mode or target: preview again",
+                raise Refused("the preview was made for another machine, mode or target: preview again",
                                    "preview_other")
         if p is None:
             return None

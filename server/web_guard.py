@@ -9,6 +9,7 @@
   ``X-Frame-Options: DENY``, ``X-Content-Type-Options: nosniff``, ``Referrer-Policy:
   same-origin``. FastAPI's /docs and /redoc load their UI from a CDN and run inline code: they get
   the other headers but no CSP.
+- :func:`contained_file`: a served file, its links resolved, only if it stays inside its folder.
 """
 
 from __future__ import annotations
@@ -133,3 +134,16 @@ async def _too_large(send: Send, limit: int) -> None:
                 "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
                             (b"connection", b"close")]})
     await send({"type": "http.response.body", "body": body})
+
+
+def contained_file(folder: Path, path: Path | None) -> Path | None:
+    """``path`` with every symbolic link resolved, if that is a regular file inside ``folder``
+    (itself resolved); None otherwise. Serve the returned path, so that a link placed in a served
+    folder (a diagnosis report, the telemetry folder) never hands out a file from elsewhere."""
+    if path is None:
+        return None
+    try:
+        real, root = Path(path).resolve(strict=True), Path(folder).resolve(strict=True)
+    except (OSError, RuntimeError):  # missing, or a link loop
+        return None
+    return real if real.is_relative_to(root) and real.is_file() else None

@@ -270,11 +270,14 @@ def zenoh_endpoint() -> str:
 def settings(tmp_path: Path, zenoh_endpoint: str):
     """Server settings: SQLite in tmp (migrated by the app), no 3D view, short query timeout;
     the preview gate off (tests of other parts; tests/test_control_chain.py switches it on); jobs
-    run inside the test process (``immediate``; tests/test_jobs.py runs real workers)."""
+    run inside the test process (``immediate``; tests/test_jobs.py runs real workers); a policy
+    validation of 256 observations without twin throws (tests/test_policy_validation.py runs
+    the full one)."""
     from server.config import Settings
 
     return Settings(data_dir=tmp_path / "var", zenoh_listen=[zenoh_endpoint], viser_enabled=False,
-                    query_timeout_s=2.0, auto_migrate=True, require_preview=False, job_queue_url="immediate")
+                    query_timeout_s=2.0, auto_migrate=True, require_preview=False, job_queue_url="immediate",
+                    validation_observations=256, validation_distances=0)
 
 
 ADMIN = ("admin", "admin-pass-1")

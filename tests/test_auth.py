@@ -119,3 +119,51 @@ def test_cli_user_add(tmp_path, argv_extra, capsys):
     assert main(["user", "add", "someone", "--data-dir", data, "--password", "abcdefgh1234"]) == 1  # exists
     main(["user", "list", "--data-dir", data])
     assert "someone" in capsys.readouterr().out
+
+
+def _sqlite_cli(db_file, sql: str) -> None:
+    """Run ``sql`` with the sqlite3 command-line shell (foreign keys off, its default)."""
+    import shutil
+    import sqlite3
+    import subprocess
+
+    if shutil.which("sqlite3"):
+        subprocess.run(["sqlite3", str(db_file), "PRAGMA foreign_keys=OFF; " + sql], check=True, timeout=30)
+    else:  # the same semantics from Python's sqlite3 (foreign keys are off by default there too)
+        con = sqlite3.connect(db_file)
+        con.executescript("PRAGMA foreign_keys=OFF; " + sql)
+        con.close()
+
+
+@pytest.mark.parametrize("drop_trigger", [False, True], ids=["as-migrated", "without-cascade-trigger"])
+def test_deleted_users_session_never_authenticates_a_new_user_with_the_same_id(client, settings, drop_trigger):
+    """An admin's row deleted by raw SQL with foreign keys off; SQLite gives the next account the
+    same id; the deleted admin's token must not answer as the new account (issue 24 finding 3).
+    Without the cascade trigger (a tool that drops it, or a restore) the per-user key still holds."""
+    from sqlalchemy import select
+
+    from server.db.models import User
+
+    sessions = client.app.state.sessions
+    add_user(sessions, "dora", "dora-admin-pass", "admin")
+    r = client.post("/api/auth/login", json={"username": "dora", "password": "dora-admin-pass"})
+    token = r.json()["token"]
+    client.cookies.clear()
+    bearer = {"Authorization": f"Bearer {token}"}
+    assert client.get("/api/auth/me", headers=bearer).json()["username"] == "dora"
+    with sessions() as db:
+        dora_id = db.scalar(select(User.id).where(User.username == "dora"))
+    db_file = settings.data_dir / "slinger.db"
+    if drop_trigger:
+        _sqlite_cli(db_file, "DROP TRIGGER trg_users_delete_auth_sessions;")
+    _sqlite_cli(db_file, "DELETE FROM users WHERE username = 'dora';")
+    add_user(sessions, "eve", "eve-viewer-pass", "viewer")
+    with sessions() as db:
+        assert db.scalar(select(User.id).where(User.username == "eve")) == dora_id  # the id was reused
+        left = db.query(AuthSession).filter(AuthSession.user_id == dora_id).count()
+    assert left == (1 if drop_trigger else 0)  # the trigger cascades what foreign keys did not
+    r = client.get("/api/auth/me", headers=bearer)
+    assert r.status_code == 401, r.text
+    login(client, "eve", "eve-viewer-pass")
+    assert client.get("/api/auth/me").json() == {**client.get("/api/auth/me").json(), "username": "eve",
+                                                 "role": "viewer"}

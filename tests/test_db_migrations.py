@@ -77,3 +77,31 @@ def test_sqlite_foreign_keys_are_enforced(tmp_path):
 @pytest.mark.postgres
 def test_migrations_on_postgres(pg_url):
     _check_schema(pg_url)
+
+
+def test_session_user_key_migration_keeps_live_sessions(tmp_path):
+    """0008 gives every account a random key and copies it into the account's sessions (they stay
+    valid); a session whose account is already gone is deleted."""
+    from sqlalchemy import text
+
+    url = f"sqlite:///{tmp_path / 's.db'}"
+    upgrade(url, "0007")
+    engine = create_engine(url)
+    with engine.begin() as conn:
+        conn.execute(text("INSERT INTO users (id, username, password_hash, role, active, created_at) "
+                          "VALUES (1, 'ann', 'x', 'admin', 1, '2026-01-01 00:00:00'), "
+                          "(2, 'bob', 'x', 'viewer', 1, '2026-01-01 00:00:00')"))
+        conn.execute(text("INSERT INTO auth_sessions (token_sha256, user_id, created_at, expires_at) VALUES "
+                          "('a', 1, '2026-01-01', '2099-01-01'), ('b', 2, '2026-01-01', '2099-01-01'), "
+                          "('c', 9, '2026-01-01', '2099-01-01')"))
+    engine.dispose()
+    upgrade(url)
+    engine = create_engine(url)
+    try:
+        with engine.connect() as conn:
+            keys = dict(conn.execute(text("SELECT id, session_key FROM users")).all())
+            rows = dict(conn.execute(text("SELECT token_sha256, user_key FROM auth_sessions")).all())
+    finally:
+        engine.dispose()
+    assert len(keys[1]) == 64 and keys[1] != keys[2]
+    assert rows == {"a": keys[1], "b": keys[2]}

@@ -233,15 +233,42 @@ def test_nan_state_fails_the_throw(holding_2d):
     np.testing.assert_array_equal(out.valve_u, 0.0)
 
 
-def test_policy_error_mid_throw_fails(holding_2d):
-    twin, ex = _twin(), ThrowExecutor({"2d": RecordingPolicy(holding_2d, fail_at=1)})
-    _swinging(ex, twin)
-    for _ in range(20):
+def _until_finished(ex, twin, ticks: int = 20):
+    """Tick the executor against the twin until the throw ends (at most ``ticks``); the last output."""
+    for _ in range(ticks):
         out = ex.tick(twin.state())
         if out.finished:
             break
         twin.step(out.valve_u, out.gripper_open)
+    return out
+
+
+def test_policy_error_mid_throw_fails(holding_2d):
+    twin, ex = _twin(), ThrowExecutor({"2d": RecordingPolicy(holding_2d, fail_at=1)})
+    _swinging(ex, twin)
+    out = _until_finished(ex, twin)
     assert out.finished.status == "failed" and "policy error" in out.finished.failure_reason
+
+
+def test_non_finite_action_marks_the_version_unhealthy_on_this_machine(holding_2d):
+    """A NaN action fails the throw and marks the version unhealthy: the next throw with it is
+    refused with the reason."""
+
+    class NanAfter(RecordingPolicy):
+        def act(self, obs):
+            self.observations.append(np.array(obs))
+            return np.full(4, np.nan, np.float32) if len(self.observations) > 1 else self.runner.act(obs)
+
+    twin = _twin()
+    bad = NanAfter(holding_2d)
+    ex = ThrowExecutor({"2d": bad})
+    _swinging(ex, twin)
+    out = _until_finished(ex, twin)
+    assert out.finished.status == "failed" and "non-finite" in out.finished.failure_reason
+    np.testing.assert_array_equal(out.valve_u, 0.0)
+    refusal = ex.start(_request(throw_id="t2"), twin.state())
+    assert refusal and "marked unhealthy on this machine" in refusal and "t1" in refusal
+    assert set(ex.unhealthy) == {holding_2d.sha256}
 
 
 def test_abort_mid_swing(holding_2d):

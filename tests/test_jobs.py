@@ -208,3 +208,27 @@ def test_every_job_runner_is_an_allowed_kind():
     from server.jobs.tasks import RUNNERS
 
     assert set(RUNNERS) <= set(JOB_KINDS)
+
+
+def test_one_users_job_flood_is_bounded_per_user(tmp_path):
+    """A user past their limit of queued previews is refused; other users' previews and the
+    system's own jobs (no user, or an upload's evaluation) still queue; a finished job frees a slot."""
+    from server.jobs import JobLimit
+    from server.jobs.store import MAX_ACTIVE_PER_USER
+
+    url = f"sqlite:///{tmp_path / 'db.sqlite'}"
+    upgrade(url)
+    engine = make_engine(url)
+    try:
+        store = JobStore(make_sessionmaker(engine))
+        ids = [store.create("preview", {}, requested_by="vera") for _ in range(MAX_ACTIVE_PER_USER)]
+        with pytest.raises(JobLimit, match="vera has 4 previews or probes queued or running"):
+            store.create("preview", {}, requested_by="vera")
+        with pytest.raises(JobLimit):
+            store.create("probe", {}, requested_by="vera")
+        assert store.create("preview", {}, requested_by="otto")
+        assert store.create("evaluation", {}, requested_by="vera") and store.create("catalog", {})
+        store.cancel(ids[0])
+        assert store.create("preview", {}, requested_by="vera")
+    finally:
+        engine.dispose()

@@ -1,4 +1,6 @@
-"""schemathesis over the OpenAPI with an admin token: no operation answers a server error (5xx).
+"""schemathesis over the OpenAPI as an admin and as a viewer: no operation answers a server error
+(5xx), and every answer's status is documented and its body matches the documented schema
+(schemathesis' status-code and response-schema conformance checks).
 
 Bounded for CI: a fixed seed, deterministic generation, a few fuzzed examples per operation
 (``MAX_EXAMPLES``) plus schemathesis's coverage phase (boundary and invalid values of every
@@ -28,7 +30,7 @@ from __future__ import annotations
 import pytest
 import schemathesis
 from schemathesis.config import SchemathesisConfig
-from schemathesis.checks import not_a_server_error
+from schemathesis.checks import not_a_server_error, response_schema_conformance, status_code_conformance
 
 from tests.conftest import ADMIN, add_user, free_port
 
@@ -87,7 +89,7 @@ schema = _load_schema()
 
 @pytest.fixture(scope="module")
 def running(tmp_path_factory):
-    """(the app, started once for all operations, an admin's token)."""
+    """(the app, started once for all operations, {user name: token} of an admin and a viewer)."""
     from argon2 import PasswordHasher
     from fastapi.testclient import TestClient
 
@@ -100,11 +102,22 @@ def running(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp, TestClient(create_app(settings)) as c:
         mp.setattr("server.auth._hasher", cheap)
         add_user(c.app.state.sessions, *ADMIN, "admin")
-        r = c.post("/api/auth/login", json={"username": ADMIN[0], "password": ADMIN[1]})
-        yield StartedApp(c.app), r.json()["token"]
+        add_user(c.app.state.sessions, "vera", "viewer-pass-1", "viewer")
+        tokens = {name: c.post("/api/auth/login", json={"username": name, "password": pw}).json()["token"]
+                  for name, pw in (ADMIN, ("vera", "viewer-pass-1"))}
+        yield StartedApp(c.app), tokens
+
+
+CHECKS = [not_a_server_error, status_code_conformance, response_schema_conformance]
 
 
 @schema.parametrize()
-def test_no_server_errors(case, running):
-    app, token = running
-    case.call_and_validate(app=app, headers={"Authorization": f"Bearer {token}"}, checks=[not_a_server_error])
+def test_no_server_errors_and_conformance_as_admin(case, running):
+    app, tokens = running
+    case.call_and_validate(app=app, headers={"Authorization": f"Bearer {tokens[ADMIN[0]]}"}, checks=CHECKS)
+
+
+@schema.parametrize()
+def test_no_server_errors_and_conformance_as_viewer(case, running):
+    app, tokens = running
+    case.call_and_validate(app=app, headers={"Authorization": f"Bearer {tokens['vera']}"}, checks=CHECKS)

@@ -212,3 +212,27 @@ def test_console_api_keeps_each_console_to_its_user(settings):
         assert c.put(f"/api/consoles/{mine}", json={"mode": "3d"}).status_code == 200
         r = c.put(f"/api/consoles/{mine}", json={"target": [8.0, 0.0, 0.0]})
         assert r.status_code == 403 and "operator" in r.json()["detail"]
+
+
+def test_a_console_flood_never_evicts_another_users_console():
+    """520 console openings by one viewer (issue 24 finding 6: they pushed the operator's console
+    out of a global 500-entry LRU) leave the operator's console open; the viewer keeps its limit."""
+    from server.scene import MAX_CONSOLES_PER_USER, ConsoleLimit
+
+    s = ConsoleScene(_Fleet())  # not started: consoles are plain state
+    mine = s.open_console("otto")
+    for _ in range(520):
+        s.open_console("vera")
+    assert s.get_console(mine.console_id) is mine
+    assert sum(c.username == "vera" for c in s.consoles.values()) == MAX_CONSOLES_PER_USER
+
+    s = ConsoleScene(_Fleet())
+    s.max_consoles, s.max_per_user = 4, 100
+    mine = s.open_console("otto")
+    for name in ("vera", "ann", "bob"):
+        s.open_console(name)
+    with pytest.raises(ConsoleLimit, match="consoles open"):
+        s.open_console("newcomer")  # refused, not made by closing someone else's
+    again = s.open_console("otto")  # at the limit, a user replaces their own oldest
+    assert s.get_console(mine.console_id) is None and s.get_console(again.console_id) is again
+    assert {c.username for c in s.consoles.values()} == {"otto", "vera", "ann", "bob"}

@@ -47,7 +47,7 @@ def _login(c, user, password, **kw):
 
 
 def test_failed_log_ins_lock_the_user_with_retry_after(app_client):
-    c = app_client(login_failures_per_user="2/minute")
+    c = app_client(login_failures_per_user_address="2/minute")
     add_user(c.app.state.sessions, "vera", "viewer-pass-1", "viewer")
     assert _login(c, ADMIN[0], "wrong-password").status_code == 401
     assert _login(c, ADMIN[0], ADMIN[1]).status_code == 200  # a success clears the count
@@ -65,6 +65,57 @@ def test_failed_log_ins_lock_the_address(app_client):
         assert _login(c, name, "wrong-password").status_code == 401
     r = _login(c, ADMIN[0], ADMIN[1])
     assert r.status_code == 429 and int(r.headers["retry-after"]) >= 1
+
+
+ATTACKER, VICTIM = "203.0.113.9", "198.51.100.7"
+
+
+def test_a_guesser_cannot_lock_the_real_user_out_from_their_address(app_client):
+    """Behind a configured proxy: wrong passwords for admin from the attacker's address hold admin
+    *there* only; the real admin at their own address logs in (issue 24 finding 7)."""
+    c = app_client(trusted_proxies=["testclient"])  # the TestClient's peer plays the proxy
+    for _ in range(5):
+        assert _login(c, ADMIN[0], "wrong-password", headers={"X-Forwarded-For": ATTACKER}).status_code == 401
+    r = _login(c, ADMIN[0], ADMIN[1], headers={"X-Forwarded-For": ATTACKER})
+    assert r.status_code == 429 and int(r.headers["retry-after"]) >= 1
+    assert _login(c, ADMIN[0], ADMIN[1], headers={"X-Forwarded-For": VICTIM}).status_code == 200
+
+
+def test_a_distributed_guesser_holds_the_user_name_except_where_the_user_logged_in(app_client):
+    c = app_client(trusted_proxies=["testclient"], login_failures_per_user="3/minute")
+    assert _login(c, ADMIN[0], ADMIN[1], headers={"X-Forwarded-For": VICTIM}).status_code == 200
+    for i in range(3):  # three addresses, one failure each: no address is held, the user name is
+        assert _login(c, ADMIN[0], "wrong-password", headers={"X-Forwarded-For": f"203.0.113.{i}"}).status_code == 401
+    assert _login(c, ADMIN[0], ADMIN[1], headers={"X-Forwarded-For": "203.0.113.50"}).status_code == 429
+    assert _login(c, ADMIN[0], ADMIN[1], headers={"X-Forwarded-For": VICTIM}).status_code == 200  # known address
+
+
+def test_untrusted_clients_cannot_pick_their_address_with_x_forwarded_for(settings):
+    """Served by uvicorn as ``slinger server`` serves it, with no trusted proxy configured: a
+    loopback client's X-Forwarded-For is ignored, so a new header value per try does not escape
+    the (user, address) lock (before, uvicorn trusted loopback and every value was a new address)."""
+    import httpx
+    import uvicorn
+
+    from server.app import create_app
+    from server.cli import uvicorn_config
+    from tests.conftest import free_port, wait_for
+
+    settings = settings.model_copy(update={"port": free_port(), "login_failures_per_user_address": "2/minute"})
+    app = create_app(settings)
+    server = uvicorn.Server(uvicorn_config(app, settings, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        wait_for(lambda: server.started, 30, "uvicorn started")
+        add_user(app.state.sessions, *ADMIN, "admin")
+        url = f"http://127.0.0.1:{settings.port}/api/auth/login"
+        codes = [httpx.post(url, json={"username": ADMIN[0], "password": "wrong-password"},
+                            headers={"X-Forwarded-For": f"203.0.113.{i}"}, timeout=30).status_code for i in range(3)]
+        assert codes == [401, 401, 429]
+    finally:
+        server.should_exit = True
+        thread.join(timeout=15)
 
 
 def test_password_checks_beyond_the_bound_are_refused_at_once():

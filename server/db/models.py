@@ -11,6 +11,7 @@ timestamps UTC-aware (:class:`server.db.types.UTCDateTime`). Constraint names fo
 
 from __future__ import annotations
 
+import secrets
 import uuid
 from datetime import date, datetime
 
@@ -176,8 +177,19 @@ ROLES = ("viewer", "operator", "admin")
 policy versions, machines and users."""
 
 
+def new_session_key() -> str:
+    """A random 256-bit key, hex (64 characters): :attr:`User.session_key`."""
+    return secrets.token_hex(32)
+
+
 class User(Base):
-    """An account. ``password_hash`` is an argon2id hash (server.auth)."""
+    """An account. ``password_hash`` is an argon2id hash (server.auth).
+
+    ``session_key`` is random per account and copied into each of its sessions
+    (:attr:`AuthSession.user_key`); a session counts only while the two agree, so a session
+    never passes to a later account that reuses a deleted account's ``id`` (SQLite reuses the
+    largest rowid) and rotating the key ends every session of the account.
+    """
 
     __tablename__ = "users"
 
@@ -187,15 +199,18 @@ class User(Base):
     role: Mapped[str] = mapped_column(String(16))
     active: Mapped[bool] = mapped_column(Boolean, default=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    session_key: Mapped[str] = mapped_column(String(64), default=new_session_key)
 
 
 class AuthSession(Base):
-    """A log-in: the SHA-256 of its random token (never the token itself) and its expiry."""
+    """A log-in: the SHA-256 of its random token (never the token itself), its expiry, and the
+    ``session_key`` of the account it was made for (``user_key``, see :class:`User`)."""
 
     __tablename__ = "auth_sessions"
 
     token_sha256: Mapped[str] = mapped_column(String(64), primary_key=True)
     user_id: Mapped[int] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"))
+    user_key: Mapped[str] = mapped_column(String(64))
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     expires_at: Mapped[datetime] = mapped_column(UTCDateTime)
 

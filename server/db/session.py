@@ -10,17 +10,18 @@ from sqlalchemy.orm import Session, sessionmaker
 import server.db.aggregates  # noqa: F401  (registers the listener that keeps the accuracy aggregates)
 
 
-def make_engine(database_url: str) -> Engine:
+def make_engine(database_url: str, busy_timeout_s: float = 10.0) -> Engine:
     """An engine for ``database_url``.
 
     SQLite: allow use from Zenoh callback threads and FastAPI's threadpool, enable foreign keys
-    and WAL, wait up to 10 s on a locked database instead of failing at once, and provide
+    and WAL, wait up to ``busy_timeout_s`` on a locked database instead of failing at once (then
+    "database is locked": server.storage answers 503), and provide
     ``sqrt`` and ``floor`` where the SQLite build lacks its math functions (server.accuracy
     uses them).
     """
     if database_url.startswith("sqlite"):
         engine = create_engine(
-            database_url, connect_args={"check_same_thread": False, "timeout": 10.0}
+            database_url, connect_args={"check_same_thread": False, "timeout": busy_timeout_s}
         )
 
         @event.listens_for(engine, "connect")
@@ -40,6 +41,26 @@ def make_engine(database_url: str) -> Engine:
     return create_engine(database_url, pool_pre_ping=True)
 
 
-def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:
-    """Sessions that keep loaded attributes after commit (rows are read after commit)."""
-    return sessionmaker(engine, expire_on_commit=False)
+class CheckedSession(Session):
+    """A session that calls ``info["before_use"]()`` (if set) each time it is about to use a
+    connection (SQLAlchemy asks :meth:`get_bind` before every statement and flush), i.e. before a
+    pooled connection is checked out: server.storage refuses there while the database's files
+    are unusable, so no connection is touched (a pool checkout that fails closes its connection,
+    which is what must not happen with an unwritable ``-shm``)."""
+
+    def get_bind(self, *args, **kwargs):
+        before_use = self.info.get("before_use")
+        if before_use is not None:
+            before_use()
+        return super().get_bind(*args, **kwargs)
+
+
+def make_sessionmaker(engine: Engine, before_use=None) -> sessionmaker[Session]:
+    """Sessions that keep loaded attributes after commit (rows are read after commit).
+
+    Args:
+        before_use: called before each use of a connection; may raise to refuse it
+            (:class:`CheckedSession`).
+    """
+    return sessionmaker(engine, class_=CheckedSession, expire_on_commit=False,
+                        info={"before_use": before_use} if before_use is not None else None)

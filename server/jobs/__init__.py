@@ -15,6 +15,6 @@ effects catalogue) and ``heavy`` (evaluations, diagnoses, adaptations, probes).
 """
 
 from server.jobs.queue import LANES, JobQueue, lane_of, queue_url
-from server.jobs.store import JobCancelled, JobStore
+from server.jobs.store import JobCancelled, JobLimit, JobStore
 
-__all__ = ["LANES", "JobCancelled", "JobQueue", "JobStore", "lane_of", "queue_url"]
+__all__ = ["LANES", "JobCancelled", "JobLimit", "JobQueue", "JobStore", "lane_of", "queue_url"]

@@ -13,11 +13,12 @@ import logging
 import time
 from datetime import datetime, timedelta
 
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.db.models import FINAL_JOB_STATUSES, JOB_KINDS, Job
 from server.db.types import utcnow
+from server.errors import Limited
 from server.jobs.leases import LEASE_S, WorkerIdentity
 from server.jobs.specs import JobSpecError, parse_spec
 
@@ -27,8 +28,19 @@ PROGRESS_MIN_INTERVAL_S = 0.2
 """Progress is written at most this often per job (the last call of a burst is kept in memory)."""
 
 
+USER_STARTED_KINDS = ("preview", "probe")
+"""Job kinds a user starts at will, counted against :attr:`JobStore.max_active_per_user`
+(diagnoses and adaptations run one at a time anyway; an evaluation follows each upload)."""
+MAX_ACTIVE_PER_USER = 4
+"""Default: queued or running jobs of :data:`USER_STARTED_KINDS` one user may have."""
+
+
 class JobCancelled(Exception):
     """Raised inside a running job when someone asked to cancel it."""
+
+
+class JobLimit(Limited):
+    """The user already has their limit of queued or running jobs; the message says so."""
 
 
 class JobStore:
@@ -38,8 +50,9 @@ class JobStore:
         sessions: database session factory (the API's or the worker's).
     """
 
-    def __init__(self, sessions: sessionmaker[Session]):
+    def __init__(self, sessions: sessionmaker[Session], max_active_per_user: int = MAX_ACTIVE_PER_USER):
         self.sessions = sessions
+        self.max_active_per_user = max_active_per_user
         self._last_write: dict[str, float] = {}
 
     # --- API side --------------------------------------------------------------------------
@@ -51,11 +64,21 @@ class JobStore:
 
         Raises:
             server.jobs.specs.JobSpecError (a ValueError): unknown kind or bad parameters.
+            JobLimit: a job of :data:`USER_STARTED_KINDS` for a user who already has
+                ``max_active_per_user`` of them queued or running (so that one user's flood
+                never starves another user's previews).
         """
         if kind not in JOB_KINDS:
             raise JobSpecError(f"unknown job kind {kind!r}; one of {', '.join(JOB_KINDS)}")
         params = parse_spec(kind, params).model_dump(mode="json")
         with self.sessions.begin() as db:
+            if requested_by is not None and kind in USER_STARTED_KINDS:
+                active = db.scalar(select(func.count()).select_from(Job).where(
+                    Job.requested_by == requested_by, Job.kind.in_(USER_STARTED_KINDS),
+                    Job.status.in_(("queued", "running"))))
+                if active >= self.max_active_per_user:
+                    raise JobLimit(f"{requested_by} has {active} previews or probes queued or running, the limit "
+                                   "per user: wait for one to finish")
             row = Job(kind=kind, status="queued", params=params, subject=subject, requested_by=requested_by,
                       progress=0.0, cancel_requested=False)
             db.add(row)

@@ -41,11 +41,12 @@ log = logging.getLogger(__name__)
 
 
 class JobRefused(Exception):
-    """A job that cannot be done as asked; ``status_code`` is the HTTP status the API answers."""
+    """A job that cannot be done as asked; ``kind`` names the domain error the API raises for it
+    (a key of server.errors.KINDS, e.g. ``"conflict"``), kept in the job's result as ``refused``."""
 
-    def __init__(self, status_code: int, detail: str):
+    def __init__(self, kind: str, detail: str):
         super().__init__(detail)
-        self.status_code, self.detail = status_code, detail
+        self.kind, self.detail = kind, detail
 
 
 @dataclass
@@ -124,7 +125,7 @@ def execute(job_id: str) -> None:
         else:
             log.warning("job %s (%s) was taken from this worker (lease expired); stopped", job_id, job["kind"])
     except JobRefused as e:
-        ctx.store.finish(job_id, "failed", result={"status_code": e.status_code}, error=e.detail, worker_id=me)
+        ctx.store.finish(job_id, "failed", result={"refused": e.kind}, error=e.detail, worker_id=me)
     except Exception as e:  # noqa: BLE001  recorded in the row for the console
         log.exception("job %s (%s) failed", job_id, job["kind"])
         ctx.store.finish(job_id, "failed", error=f"{type(e).__name__}: {e}", worker_id=me)
@@ -148,7 +149,7 @@ def run_preview(ctx: WorkerContext, job: JobRun, progress) -> dict:
         try:
             runner = PolicyRunner.load(ctx.data_dir / spec.onnx_path)
         except (PolicyError, OSError) as e:
-            raise JobRefused(409, f"policy {sha[:12]}… does not load on the worker: {e}") from e
+            raise JobRefused("conflict", f"policy {sha[:12]}… does not load on the worker: {e}") from e
         with ctx.lock:
             ctx.runners[sha] = runner
     return preview_throw(runner, PreviewRequest(**spec.request), _site_profile(ctx, runner, spec.profile_path))
@@ -175,8 +176,9 @@ def run_catalog(ctx: WorkerContext, job: JobRun, progress) -> dict:
 def run_evaluation(ctx: WorkerContext, job: JobRun, progress) -> dict:
     from server.policies import evaluate_version
 
+    limits = ctx.settings.validation_limits() if ctx.settings is not None else None
     return evaluate_version(ctx.sessions, ctx.data_dir, job.spec.version_id, job.spec.distances_m,
-                            job.spec.throws, progress)
+                            job.spec.throws, progress, limits)
 
 
 def run_diagnosis(ctx: WorkerContext, job: JobRun, progress) -> dict:

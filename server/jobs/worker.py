@@ -22,6 +22,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from server.storage import StorageMonitor
 from server.jobs import leases, tasks
 from server.jobs.queue import LANES, JobQueue, queue_url
 
@@ -58,8 +59,11 @@ def run(args: argparse.Namespace) -> int:
     url = queue_url(settings)
     if url == "immediate":
         raise SystemExit("slinger worker: 'immediate' is not a queue a worker can consume")
-    engine = make_engine(settings.database_url)
-    ctx = tasks.WorkerContext(make_sessionmaker(engine), settings.data_dir, settings, lease_s=args.lease_s)
+    engine = make_engine(settings.database_url, settings.database_busy_timeout_s)
+    storage = StorageMonitor(settings.database_url, settings.storage_min_free_bytes)
+    storage.guard(engine)  # an unwritable SQLite -shm: jobs fail with the reason, no SIGBUS (server.storage)
+    ctx = tasks.WorkerContext(make_sessionmaker(engine, before_use=storage.before_use), settings.data_dir, settings,
+                              lease_s=args.lease_s)
     tasks.bind(ctx)
     queue = ctx.jobs = JobQueue(url, ctx.store, tasks.execute)
     try:
@@ -86,8 +90,10 @@ def run(args: argparse.Namespace) -> int:
             c.stop(graceful=True)
     finally:
         lease.stop()
-        lease.release_own("stopped while running it")
-        engine.dispose()
+        try:
+            lease.release_own("stopped while running it")
+        finally:
+            storage.release(engine)
     return 0
 
 

@@ -9,8 +9,9 @@ the flood, and what the log-ins got back (401 checked, 429 refused).
 
 Two kinds of flood:
   same      one address, one user name (the lockout stops it after a few attempts);
-  spread    a new user name and ``X-Forwarded-For`` address per attempt (uvicorn trusts that
-            header from loopback), so only the bounded password-check pool stands in the way.
+  spread    a new user name and ``X-Forwarded-For`` address per attempt, the server started with
+            loopback as a trusted proxy (``SLINGER_TRUSTED_PROXIES``; no proxy is trusted by
+            default), so only the bounded password-check pool stands in the way.
 
 Run from the repository root, e.g.::
 
@@ -53,7 +54,8 @@ PASSWORD = "bench-admin-password"
 
 
 def start_server(data_dir: Path, port: int) -> subprocess.Popen:
-    env = dict(os.environ, SLINGER_DATA_DIR=str(data_dir), SLINGER_VISER_ENABLED="false")
+    env = dict(os.environ, SLINGER_DATA_DIR=str(data_dir), SLINGER_VISER_ENABLED="false",
+               SLINGER_TRUSTED_PROXIES='["127.0.0.1"]')  # the spread flood plays a proxy's many clients
     cli = [sys.executable, "-m", "server.cli"]
     subprocess.run([*cli, "user", "add", "admin", "--admin", "--password", PASSWORD], env=env, check=True,
                    capture_output=True, timeout=120)

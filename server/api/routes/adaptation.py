@@ -11,7 +11,6 @@ from pydantic import BaseModel, Field
 
 from server.adaptation import AdaptationRuns
 from server.api.deps import AdminDep, ViewerDep
-from server.throws import ThrowRefused
 
 router = APIRouter(tags=["adaptation"])
 
@@ -36,10 +35,7 @@ class AdaptCreate(BaseModel):
 def create_adaptation(run_id: str, body: AdaptCreate, runs: AdaptDep, user: AdminDep) -> dict:
     """Adapt the machine's policy to the diagnosis' fitted profile (aim correction in the CPU
     twin, in the background); its progress comes as ``job`` events on /api/live."""
-    try:
-        return runs.start(run_id, body.mode, user.username, body.base_version, body.throws, body.rounds)
-    except ThrowRefused as e:
-        raise HTTPException(e.status_code, e.detail) from e
+    return runs.start(run_id, body.mode, user.username, body.base_version, body.throws, body.rounds)
 
 
 @router.get("/api/adaptations")

@@ -44,8 +44,10 @@ async def login(body: LoginIn, request: Request, response: Response, settings: S
     """Check the credentials, start a session: cookie ``slinger_session`` (Secure when served over
     HTTPS) and the token in the body (send it as ``Authorization: Bearer <token>`` from scripts).
 
-    Repeated failures lock the user name and the client address for a while (429 with
-    Retry-After); the password check runs in a small bounded pool (server.login_guard)."""
+    Repeated failures hold the user name at the client address, the address, and (much later,
+    sparing addresses the user logged in from) the user name for a while (429 with Retry-After);
+    the password check runs in a small bounded pool (server.login_guard). The client address is
+    the peer's unless the peer is a configured trusted proxy (``Settings.trusted_proxies``)."""
     guard = request.app.state.login_guard
     address = request.client.host if request.client else "unknown"
     wait_s = guard.retry_after_s(body.username, address)
@@ -59,7 +61,7 @@ async def login(body: LoginIn, request: Request, response: Response, settings: S
     except AuthError as e:
         guard.failed(body.username, address)
         raise HTTPException(401, str(e)) from e
-    guard.succeeded(body.username)
+    guard.succeeded(body.username, address)
     response.set_cookie(COOKIE_NAME, token, max_age=int(settings.session_ttl_s), httponly=True, samesite="lax",
                         secure=settings.cookie_secure or served_over_https(request), path="/")
     return LoginOut(token=token, expires_at=row.expires_at, user=user_out(user))

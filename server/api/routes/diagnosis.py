@@ -11,6 +11,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
+from server.web_guard import contained_file
 from server.api.deps import OperatorDep, ViewerDep
 from server.diagnosis import DiagnosisBusy, DiagnosisRuns
 
@@ -117,6 +118,7 @@ def get_run(run_id: str, runs: RunsDep, _user: ViewerDep) -> dict:
 def get_file(run_id: str, name: str, runs: RunsDep, _user: ViewerDep) -> FileResponse:
     """A report file: report.json, profile_fitted.json or a plot (where, traces, which, how_far .png)."""
     path = runs.file(run_id, name)
+    path = contained_file(path.parent, path) if path is not None else None  # no link out of the report folder
     if path is None:
         raise HTTPException(404, f"no file {name} in diagnosis run {run_id}")
     return FileResponse(path, media_type="image/png" if name.endswith(".png") else "application/json")

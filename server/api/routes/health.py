@@ -1,21 +1,37 @@
-"""GET /api/health: is the server up, does it reach the database, is Zenoh open."""
+"""GET /api/health: is the server up, can it use its database (storage faults named), is Zenoh open."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter, Request
 from sqlalchemy import text
-from sqlalchemy.exc import SQLAlchemyError
 
-from server.api.deps import FleetDep, SessionDep
-from server.api.schemas import Health
+from server.api.deps import FleetDep
+from server.api.schemas import Health, Problem
+from server.storage import classify, storage_response
 
 router = APIRouter(prefix="/api/health", tags=["health"])
 
 
-@router.get("", response_model=Health, responses={503: {"description": "database unreachable"}})
-def health(db: SessionDep, fleet: FleetDep) -> Health:
-    try:
-        db.execute(text("SELECT 1"))
-    except SQLAlchemyError as e:
-        raise HTTPException(503, f"database unreachable: {e.__class__.__name__}") from e
-    return Health(zenoh=not fleet.session.is_closed(), database=True)
+@router.get("", response_model=Health, responses={503: {"model": Problem, "description": (
+        "a storage fault: ``condition`` is disk_full, database_locked, database_read_only, "
+        "database_unreadable or database_unavailable, ``detail`` says what (server.storage)")}})
+def health(request: Request, fleet: FleetDep):
+    """200 when the database answers and its storage has no fault; else 503 naming the fault.
+    The server stays up through storage faults: everything not needing the database still works."""
+    zenoh_open = not fleet.session.is_closed()
+    storage = request.app.state.storage
+    fault = storage.check()
+    if fault is None:
+        try:
+            with request.app.state.sessions() as db:
+                db.execute(text("SELECT 1"))
+        except Exception as e:  # noqa: BLE001  any failure here is the answer
+            fault = classify(e)
+            if fault is None:
+                return storage_response("database_unavailable", f"the database does not answer: {e.__class__.__name__}",
+                                        zenoh=zenoh_open)
+            storage.report(fault)
+    current = storage.fault() if fault is None else fault
+    if current is not None:
+        return storage_response(current.condition, current.reason, zenoh=zenoh_open)
+    return Health(zenoh=zenoh_open, database=True)

@@ -74,12 +74,13 @@ def list_jobs(request: Request, _user: ViewerDep, kind: JobKind | None = None, s
     return request.app.state.jobs.store.list(kind, subject, status, limit)
 
 
-@router.post("", response_model=JobOut, status_code=202)
+@router.post("", response_model=JobOut, status_code=202,
+             responses={429: {"description": "the user has their limit of jobs queued or running"}})
 def create_job(body: JobCreate, request: Request, user: AdminDep) -> dict:
     """Queue a probe (a worker health check that reports progress and can be cancelled)."""
     jobs = request.app.state.jobs
     job_id = jobs.submit(body.kind, body.params.model_dump(exclude_none=True), subject=body.params.machine_id,
-                         requested_by=user.username)
+                         requested_by=user.username)  # JobLimit is a Limited: 429 (server.api.errors)
     return jobs.store.get(job_id)
 
 

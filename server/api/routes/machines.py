@@ -106,8 +106,12 @@ def _operator_or_raise(request: Request):
     return user
 
 
-@router.post("/{machine_id}/estop", response_model=AbortOut, responses={503: {"description": "the runtime did not answer"}})
-@router.post("/{machine_id}/abort", response_model=AbortOut, responses={503: {"description": "the runtime did not answer"}})
+STOP_RESPONSES = {401: {"description": "log in first"}, 403: {"description": "needs the operator role"},
+                  404: {"description": "unknown machine"}, 503: {"description": "the runtime did not answer"}}
+
+
+@router.post("/{machine_id}/estop", response_model=AbortOut, responses=STOP_RESPONSES)
+@router.post("/{machine_id}/abort", response_model=AbortOut, responses=STOP_RESPONSES)
 async def estop(machine_id: str, request: Request, body: AbortIn | None = None) -> AbortOut:
     """E-STOP: the runtime ends any throw as aborted, puts the valves to neutral and LATCHES
     (throws refused until POST .../estop/reset). Fast path: an async route that sends the abort
@@ -124,10 +128,11 @@ async def estop(machine_id: str, request: Request, body: AbortIn | None = None) 
         log.info("E-STOP %s: authenticated in %.1f ms, runtime confirmed after %.1f ms more", machine_id,
                  (t_auth - t0) * 1e3, (time.perf_counter() - t_auth) * 1e3)
     except (RuntimeUnavailable, ValueError) as e:
-        error = str(e)
+        error = _sentence(e)
         await _audited(fleet, lambda: record_audit(request.app.state.sessions, user.username, "abort", machine_id[:64],
                                                    reason=reason, delivered=False, error=error))
-        raise HTTPException(503, f"abort of {machine_id} not confirmed: {e}") from e
+        await asyncio.to_thread(_404_if_unknown, request, machine_id)
+        raise HTTPException(503, f"abort of {machine_id} not confirmed: {error}") from e
     fleet.forget_info(machine_id)
     await _audited(fleet, lambda: record_audit(request.app.state.sessions, user.username, "abort", machine_id,
                                                reason=reason, delivered=True, throw_id=ack.aborted_throw_id))
@@ -143,24 +148,45 @@ async def _audited(fleet: Fleet, write, timeout_s: float = 5.0) -> None:
         log.exception("E-STOP audit entry not written")
 
 
-def _delivered(db, username: str, action: str, machine_id: str, what: str, send):
+def _sentence(e: Exception) -> str:
+    """The first line of an error's text (a pydantic ValidationError's first line names the
+    model; its field dump is left out)."""
+    return (str(e).strip().splitlines() or [type(e).__name__])[0]
+
+
+def _404_if_unknown(request: Request, machine_id: str) -> None:
+    """HTTPException 404 if no machine ``machine_id`` was ever registered nor is online (checked
+    only after a command failed, so the E-STOP path never waits for the database)."""
+    fleet = request.app.state.fleet
+    if fleet.is_online(machine_id) or fleet.latest_state(machine_id) is not None:
+        return
+    with request.app.state.sessions() as db:
+        if db.get(Machine, machine_id) is None:
+            raise HTTPException(404, f"unknown machine {machine_id!r}")
+
+
+def _delivered(db, username: str, action: str, machine_id: str, what: str, send, request: Request | None = None):
     """The runtime's ack of a signed command ``send()``; if it was not confirmed, the attempt is
-    audited as undelivered (action ``action``) and HTTPException 503 names ``what``."""
+    audited as undelivered (action ``action``) and HTTPException 404 (unknown machine) or 503
+    names ``what``."""
     try:
         return send()
     except (RuntimeUnavailable, ValueError) as e:
-        audit(db, username, action, machine_id[:64], delivered=False, error=str(e))
+        audit(db, username, action, machine_id[:64], delivered=False, error=_sentence(e))
         db.commit()
-        raise HTTPException(503, f"{what} of {machine_id} not confirmed: {e}") from e
+        if request is not None:
+            _404_if_unknown(request, machine_id)
+        raise HTTPException(503, f"{what} of {machine_id} not confirmed: {_sentence(e)}") from e
 
 
 @router.post("/{machine_id}/estop/reset", response_model=EstopResetOut,
-             responses={409: {"description": "the runtime refused the reset (its reason)"},
+             responses={404: {"description": "unknown machine"},
+                        409: {"description": "the runtime refused the reset (its reason)"},
                         503: {"description": "the runtime did not answer, or no command key"}})
-def estop_reset(machine_id: str, db: SessionDep, fleet: FleetDep, user: OperatorDep) -> EstopResetOut:
+def estop_reset(machine_id: str, request: Request, db: SessionDep, fleet: FleetDep, user: OperatorDep) -> EstopResetOut:
     """Release the runtime's latched E-STOP (a signed EstopReset in the operator's name); audited."""
     ack = _delivered(db, user.username, "estop_reset", machine_id, "E-STOP reset",
-                     lambda: fleet.estop_reset(machine_id, user.username))
+                     lambda: fleet.estop_reset(machine_id, user.username), request)
     audit(db, user.username, "estop_reset", machine_id, delivered=True, reset=ack.reset, reason=ack.reason)
     db.commit()
     if not ack.reset:
@@ -175,14 +201,16 @@ class ReturnToReadyOut(BaseModel):
 
 
 @router.post("/{machine_id}/return-to-ready", response_model=ReturnToReadyOut,
-             responses={409: {"description": "the runtime refused (its reason: E-STOP latched, a throw runs, ...)"},
+             responses={404: {"description": "unknown machine"},
+                        409: {"description": "the runtime refused (its reason: E-STOP latched, a throw runs, ...)"},
                         503: {"description": "the runtime did not answer, or no command key"}})
-def return_to_ready(machine_id: str, db: SessionDep, fleet: FleetDep, user: OperatorDep) -> ReturnToReadyOut:
+def return_to_ready(machine_id: str, request: Request, db: SessionDep, fleet: FleetDep,
+                    user: OperatorDep) -> ReturnToReadyOut:
     """Recovery action: the runtime drives the arm back to its ready pose (a signed ReturnToReady
     in the operator's name; runtime/recovery.py). Progress and the end follow in the machine's live
     state (``returning``, ``return_progress``, ``return_result``). Audited."""
     ack = _delivered(db, user.username, "return_to_ready", machine_id, "return to the ready pose",
-                     lambda: fleet.return_to_ready(machine_id, user.username))
+                     lambda: fleet.return_to_ready(machine_id, user.username), request)
     audit(db, user.username, "return_to_ready", machine_id, delivered=True, accepted=ack.accepted, reason=ack.reason)
     db.commit()
     if not ack.accepted:

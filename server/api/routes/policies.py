@@ -11,12 +11,11 @@ from pydantic import BaseModel, Field
 from sqlalchemy import select
 
 from server.api.deps import AdminDep, SessionDep, ViewerDep
-from server.api.schemas import COORD_LIMIT_M, MAX_DB_ID, DbId
-from server.db.models import PolicyDeployment, PolicyVersion, Throw
+from server.api.schemas import COORD_LIMIT_M, MAX_DB_ID, DbId, Problem
+from server.db.models import PolicyDeployment, PolicyVersion
 from server.accuracy import accuracy
 from server.history import ThrowFilter
 from server.policies import expire_stale_offers
-from server.throws import ThrowRefused
 
 router = APIRouter(prefix="/api/policies", tags=["policies"])
 
@@ -70,10 +69,6 @@ def deployment_out(d: PolicyDeployment, name: str) -> DeploymentOut:
                          requested_at=d.requested_at, confirmed_at=d.confirmed_at)
 
 
-def _refused(e: ThrowRefused) -> HTTPException:
-    return HTTPException(e.status_code, e.detail)
-
-
 @router.get("", response_model=list[PolicyOut])
 def list_policies(db: SessionDep, _user: ViewerDep) -> list[PolicyOut]:
     return [policy_out(p) for p in db.scalars(select(PolicyVersion).order_by(PolicyVersion.id.desc()))]
@@ -97,11 +92,8 @@ async def upload_policy(
     data = await file.read()
     from starlette.concurrency import run_in_threadpool
 
-    try:
-        row = await run_in_threadpool(request.app.state.policies.upload, data, mode, name,
-                                      (target_min_m, target_max_m), notes, user.username)
-    except ThrowRefused as e:
-        raise _refused(e) from e
+    row = await run_in_threadpool(request.app.state.policies.upload, data, mode, name,
+                                  (target_min_m, target_max_m), notes, user.username)
     return policy_out(row)
 
 
@@ -119,7 +111,7 @@ def deployments(db: SessionDep, _user: ViewerDep, machine_id: str | None = None,
     return [deployment_out(d, n) for d, n in db.execute(stmt)]
 
 
-@router.get("/compare")
+@router.get("/compare", responses={404: {"model": Problem, "description": "no such policy version"}})
 def compare(db: SessionDep, _user: ViewerDep, ids: list[DbId] = Query(..., min_length=1, max_length=10)) -> list[dict]:
     """Per version: the twin evaluation per target distance and the logged throws' accuracy."""
     out = []
@@ -134,7 +126,7 @@ def compare(db: SessionDep, _user: ViewerDep, ids: list[DbId] = Query(..., min_l
     return out
 
 
-@router.get("/{policy_id}", response_model=PolicyOut)
+@router.get("/{policy_id}", response_model=PolicyOut, responses={404: {"model": Problem}})
 def get_policy(db: SessionDep, _user: ViewerDep, policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> PolicyOut:
     p = db.get(PolicyVersion, policy_id)
     if p is None:
@@ -142,15 +134,14 @@ def get_policy(db: SessionDep, _user: ViewerDep, policy_id: int = Path(ge=1, le=
     return policy_out(p)
 
 
-@router.post("/{policy_id}/promote", response_model=list[DeploymentOut])
+@router.post("/{policy_id}/promote", response_model=list[DeploymentOut], responses={
+    404: {"model": Problem, "description": "no such policy version"},
+    409: {"model": Problem, "description": "no file of the version, or it has not passed its validation"}})
 def promote(body: PromoteIn, request: Request, user: AdminDep,
             policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> list[DeploymentOut]:
     """Offer the version to the machines; each runtime fetches it, checks it, loads it between
     throws and confirms (the deployment turns ``active``; GET /api/machines shows it)."""
-    try:
-        deps = request.app.state.policies.promote(policy_id, body.machine_ids, user.username)
-    except ThrowRefused as e:
-        raise _refused(e) from e
+    deps = request.app.state.policies.promote(policy_id, body.machine_ids, user.username)
     with request.app.state.sessions() as db:
         name = db.get(PolicyVersion, policy_id).name
     return [deployment_out(d, name) for d in deps]
@@ -159,10 +150,7 @@ def promote(body: PromoteIn, request: Request, user: AdminDep,
 @router.post("/rollback", response_model=DeploymentOut, responses={409: {"description": "nothing to roll back to"}})
 def rollback(body: RollbackIn, request: Request, user: AdminDep) -> DeploymentOut:
     """Go back to the version the machine ran before its last promotion for that mode."""
-    try:
-        d = request.app.state.policies.rollback(body.machine_id, body.mode, user.username)
-    except ThrowRefused as e:
-        raise _refused(e) from e
+    d = request.app.state.policies.rollback(body.machine_id, body.mode, user.username)
     with request.app.state.sessions() as db:
         name = db.get(PolicyVersion, d.policy_version_id).name
     return deployment_out(d, name)

@@ -8,7 +8,6 @@ from fastapi.concurrency import run_in_threadpool
 from server.api.deps import OperatorDep, ViewerDep
 from server.api.preview_schemas import PreviewCreate, PreviewOut
 from server.api.schemas import Problem
-from server.throws import ThrowRefused
 
 router = APIRouter(prefix="/api/previews", tags=["previews"])
 
@@ -20,6 +19,7 @@ router = APIRouter(prefix="/api/previews", tags=["previews"])
         404: {"model": Problem, "description": "unknown machine"},
         409: {"model": Problem, "description": "the server has no file of the machine's policy, or it does not load"},
         422: {"model": Problem, "description": "a target the mode cannot serve (the reason)"},
+        429: {"model": Problem, "description": "the user has their limit of previews queued or running"},
         503: {"model": Problem, "description": "runtime offline, no machine state, or no worker answered in 3 s"},
     },
 )
@@ -33,14 +33,11 @@ async def create_preview(body: PreviewCreate, request: Request, user: OperatorDe
     """
     service = request.app.state.previews
     rollouts = body.rollouts if body.rollouts is not None else request.app.state.settings.preview_rollouts
-    try:
-        job_id = await run_in_threadpool(service.submit, body.machine_id, body.mode, body.target, rollouts,
-                                         user.username)
-        timeout_s = request.app.state.settings.preview_timeout_s
-        job = await request.app.state.job_watcher.wait(job_id, timeout_s)
-        summary = await run_in_threadpool(service.outcome, job, timeout_s)
-    except ThrowRefused as e:
-        raise HTTPException(e.status_code, e.detail) from e
+    job_id = await run_in_threadpool(service.submit, body.machine_id, body.mode, body.target, rollouts,
+                                     user.username)
+    timeout_s = request.app.state.settings.preview_timeout_s
+    job = await request.app.state.job_watcher.wait(job_id, timeout_s)
+    summary = await run_in_threadpool(service.outcome, job, timeout_s)  # domain errors: server.api.errors
     return PreviewOut(**summary)
 
 

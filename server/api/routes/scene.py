@@ -39,21 +39,24 @@ def _console(scene, console_id: str, user):
 
 
 @router.post("/api/consoles", response_model=ConsoleOut, status_code=201,
-             responses={409: {"model": Problem, "description": "the 3D view is disabled"}})
+             responses={409: {"model": Problem, "description": "the 3D view is disabled"},
+                        429: {"model": Problem, "description": "the server holds its limit of consoles"}})
 def open_console(scene: SceneDep, user: ViewerDep) -> ConsoleOut:
-    """Open a console (one per page load): its own machine, mode, target and 3D view."""
+    """Open a console (one per page load): its own machine, mode, target and 3D view. A user who
+    holds server.scene.MAX_CONSOLES_PER_USER consoles loses their own least recently used one."""
     if scene is None:
         raise HTTPException(409, "the 3D view is disabled")
-    return _out(scene, scene.open_console(user.username))
+    return _out(scene, scene.open_console(user.username))  # ConsoleLimit is a Limited: 429
 
 
-@router.get("/api/consoles/{console_id}", response_model=ConsoleOut, responses={404: {"model": Problem}})
+@router.get("/api/consoles/{console_id}", response_model=ConsoleOut, responses={404: {"model": Problem},
+                                                                                 409: {"model": Problem, "description": "the 3D view is disabled"}})
 def get_console(console_id: str, scene: SceneDep, user: CurrentUser) -> ConsoleOut:
     return _out(scene, _console(scene, console_id, user))
 
 
 @router.put("/api/consoles/{console_id}", response_model=ConsoleOut,
-            responses={403: {"model": Problem}, 404: {"model": Problem}})
+            responses={403: {"model": Problem}, 404: {"model": Problem}, 409: {"model": Problem, "description": "the 3D view is disabled"}})
 def update_console(console_id: str, update: ConsoleUpdate, scene: SceneDep, user: ViewerDep) -> ConsoleOut:
     """Pick the machine or mode shown (viewers too), or type a target (operators). A target in 2D
     snaps to the throwing line; ``target_reason`` says why it cannot be served."""
@@ -65,7 +68,7 @@ def update_console(console_id: str, update: ConsoleUpdate, scene: SceneDep, user
 
 
 @router.post("/api/consoles/{console_id}/preview", response_model=ConsoleOut,
-             responses={404: {"model": Problem}, 422: {"model": Problem}})
+             responses={404: {"model": Problem}, 409: {"model": Problem, "description": "the 3D view is disabled"}, 422: {"model": Problem}})
 def show_preview(console_id: str, body: ConsoleShowPreview, request: Request, scene: SceneDep,
                  user: OperatorDep) -> ConsoleOut:
     """Draw a preview (POST /api/previews) in this console's 3D view."""

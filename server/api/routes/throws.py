@@ -11,12 +11,12 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 
 from server.api.deps import OperatorDep, SceneDep, SessionDep, ThrowServiceDep, ViewerDep
+from server.web_guard import contained_file
 from server.api.schemas import (DISTANCE_LIMIT_M, Problem, ThrowCreate, ThrowCreated, ThrowOut, ThrowStatusName,
                                 UtcTime)
 from server.db.models import Throw
 from server.accuracy import accuracy
 from server.history import SORTS, ThrowFilter, page, to_csv
-from server.throws import ThrowRefused
 
 router = APIRouter(prefix="/api/throws", tags=["throws"])
 EXPORT_LIMIT = 100_000
@@ -63,11 +63,7 @@ def create_throw(body: ThrowCreate, service: ThrowServiceDep, user: OperatorDep)
     no throw is recorded; on 503 after the request was sent the throw stays until its runtime
     reports it or the reconciliation marks it ``lost``.
     """
-    try:
-        row, ack = service.create(body, user.username)
-    except ThrowRefused as e:
-        headers = {"X-Refused-Condition": e.condition} if e.condition else None
-        raise HTTPException(e.status_code, e.detail, headers=headers) from e
+    row, ack = service.create(body, user.username)  # domain errors: server.api.errors
     return ThrowCreated(id=row.id, status=row.status, policy_version=ack.policy_version, policy_sha256=row.policy_sha256)
 
 
@@ -132,8 +128,9 @@ def get_throw(throw_id: str, db: SessionDep, _user: ViewerDep) -> ThrowOut:
 def get_telemetry(throw_id: str, db: SessionDep, request: Request, _user: ViewerDep) -> FileResponse:
     """The throw's 100 Hz telemetry as an MCAP file."""
     row = _row(db, throw_id)
-    path = request.app.state.store.telemetry_file(row)
-    if path is None or not path.is_file():
+    store = request.app.state.store
+    path = contained_file(store.data_dir / "telemetry", store.telemetry_file(row))
+    if path is None:
         raise HTTPException(404, f"throw {throw_id} has no telemetry")
     return FileResponse(path, media_type="application/x-mcap", filename=f"throw-{throw_id}.mcap")
 
@@ -148,8 +145,9 @@ def get_trajectory(throw_id: str, db: SessionDep, request: Request, _user: Viewe
     from runtime.telemetry import read_telemetry
 
     row = _row(db, throw_id)
-    path = request.app.state.store.telemetry_file(row)
-    if path is None or not path.is_file():
+    store = request.app.state.store
+    path = contained_file(store.data_dir / "telemetry", store.telemetry_file(row))
+    if path is None:
         raise HTTPException(404, f"throw {throw_id} has no telemetry")
     tel = read_telemetry(path)
     n = len(tel["t_s"])
