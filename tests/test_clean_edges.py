@@ -7,6 +7,8 @@ from __future__ import annotations
 import pytest
 
 from server.db.models import AuditEntry, Machine, Throw
+from server.jobs.specs import job_dir
+from tests.fixtures import finished_diagnosis_run
 
 
 @pytest.mark.parametrize("path", ["estop", "abort", "estop/reset", "return-to-ready"])
@@ -63,11 +65,11 @@ def test_served_files_never_follow_links_out_of_their_folder(client, settings, t
     assert client.get("/api/throws/tl/telemetry").status_code == 404
     assert client.get("/api/throws/tr/telemetry").status_code == 200
 
-    report = settings.data_dir / "diagnosis" / "20260101T000000-abcdef" / "report"
-    report.mkdir(parents=True)
+    run_id = finished_diagnosis_run(client.app.state, "m1", {}, profile={})
+    report = job_dir(settings.data_dir, run_id) / "report"
+    (report / "report.json").unlink()
     (report / "report.json").symlink_to(secret)
-    (report / "profile_fitted.json").write_text("{}")
-    base = "/api/diagnosis/runs/20260101T000000-abcdef/files"
+    base = f"/api/diagnosis/runs/{run_id}/files"
     r = client.get(f"{base}/report.json")
     assert r.status_code == 404 and "not for the console" not in r.text
     assert client.get(f"{base}/profile_fitted.json").status_code == 200

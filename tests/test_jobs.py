@@ -221,14 +221,16 @@ def test_one_users_job_flood_is_bounded_per_user(tmp_path):
     engine = make_engine(url)
     try:
         store = JobStore(make_sessionmaker(engine))
-        ids = [store.create("preview", {}, requested_by="vera") for _ in range(MAX_ACTIVE_PER_USER)]
+        preview = {"onnx_path": "policies/p.onnx", "sha256": "0" * 64, "request": {}}
+        ids = [store.create("preview", preview, requested_by="vera") for _ in range(MAX_ACTIVE_PER_USER)]
         with pytest.raises(JobLimit, match="vera has 4 previews or probes queued or running"):
-            store.create("preview", {}, requested_by="vera")
+            store.create("preview", preview, requested_by="vera")
         with pytest.raises(JobLimit):
             store.create("probe", {}, requested_by="vera")
-        assert store.create("preview", {}, requested_by="otto")
-        assert store.create("evaluation", {}, requested_by="vera") and store.create("catalog", {})
+        assert store.create("preview", preview, requested_by="otto")
+        assert store.create("evaluation", {"version_id": 1, "distances_m": [8.0], "throws": 2}, requested_by="vera")
+        assert store.create("catalog", {})
         store.cancel(ids[0])
-        assert store.create("preview", {}, requested_by="vera")
+        assert store.create("preview", preview, requested_by="vera")
     finally:
         engine.dispose()
