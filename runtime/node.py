@@ -5,6 +5,9 @@ Wiring (keys in runtime/protocol/README.md):
 * subscribes keys.state(id) and keys.impact(id) -> runtime.service.RuntimeService;
 * publishes keys.valve_cmd (every state tick), keys.gripper_cmd (on change), keys.status (phase
   changes), keys.runtime_state (RuntimeInfo, 2 Hz and on change);
+* subscribes keys.estop (the server's E-STOP put: AbortRequest, latches E-STOP) and publishes
+  its AbortAck on keys.estop_ack once the latch is on disk (``--state-dir``, default
+  ``<outbox-dir>-state``: runtime.estop_latch; a latch there at start starts the runtime latched);
 * queryables keys.throw (ThrowRequest -> ThrowAck), keys.abort (AbortRequest -> AbortAck,
   latches E-STOP), keys.estop_reset (EstopReset -> EstopResetAck), keys.return_to_ready
   (ReturnToReady -> ReturnToReadyAck, runtime.recovery), keys.info (-> RuntimeInfo);
@@ -39,6 +42,7 @@ from pathlib import Path
 
 from runtime.command_auth import CommandVerifier, load_key
 from runtime.controller import JointVelocityController
+from runtime.estop_latch import EstopLatchFile
 from runtime.entrypoint import module_main, stop_on_signals
 from runtime.executor import ExecutorConfig, ThrowExecutor
 from runtime.outbox import Outbox, zenoh_deliverer
@@ -73,6 +77,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="this machine's command key file (64 hex digits); without it every throw, E-STOP reset "
                              "and policy offer is refused")
     parser.add_argument("--outbox-dir", type=Path, default=None, help="durable outbox directory (default ~/.slinger/outbox/<machine-id>)")
+    parser.add_argument("--state-dir", type=Path, default=None,
+                        help="where the E-STOP latch is kept across restarts (default: <outbox-dir>-state)")
     parser.add_argument("--policy-dir", type=Path, default=None, help="where promoted policy files are kept (default: <outbox-dir>-policies)")
     parser.add_argument("--link-timeout", type=float, default=LINK_TIMEOUT_S, help="seconds without machine state that fail a throw")
     parser.add_argument("--release-check-radius", type=release_check_radius, default=os.environ.get(RADIUS_ENV, DEFAULT_RADIUS_M),
@@ -128,6 +134,11 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         log.warning("no command key configured (--command-key): every throw, E-STOP reset and policy offer will be refused")
     stop = stop_on_signals(stop)
     outbox_dir = args.outbox_dir or default_outbox_dir(machine_id)
+    try:
+        latch = EstopLatchFile(getattr(args, "state_dir", None) or Path(f"{outbox_dir}-state"), machine_id)
+    except OSError as e:
+        log.error("cannot start runtime: state directory: %s", e)
+        return 2
     if radius is None:
         log.warning("release check off (--release-check-radius off): releases are not checked")
     executor = ThrowExecutor(policies, JointVelocityController(), ExecutorConfig(release_check_radius_m=radius))
@@ -143,12 +154,13 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         verifier = CommandVerifier(key, epoch) if key is not None else None
         pubs = {
             k: session.declare_publisher(k)
-            for k in (keys.valve_cmd(machine_id), keys.gripper_cmd(machine_id), keys.status(machine_id), keys.runtime_state(machine_id))
+            for k in (keys.valve_cmd(machine_id), keys.gripper_cmd(machine_id), keys.status(machine_id),
+                      keys.runtime_state(machine_id), keys.estop_ack(machine_id))
         }
         outbox = Outbox(outbox_dir, zenoh_deliverer(session))
         status_pub = session.declare_publisher(keys.policy_status(machine_id))
         service = RuntimeService(machine_id, executor, lambda k, data: pubs[k].put(data), outbox.put,
-                                 verifier=verifier, link_timeout_s=args.link_timeout, epoch=epoch)
+                                 verifier=verifier, link_timeout_s=args.link_timeout, epoch=epoch, latch=latch)
         updater = PolicyUpdater(machine_id, getattr(args, "policy_dir", None) or Path(f"{outbox_dir}-policies"),
                                 zenoh_fetcher(session), lambda msg: status_pub.put(encode(msg)), authorize=service.authorize)
 
@@ -165,6 +177,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         entities = [
             session.declare_subscriber(keys.state(machine_id), lambda s: service.on_state(s.payload.to_bytes())),
             session.declare_subscriber(keys.impact(machine_id), lambda s: service.on_impact(s.payload.to_bytes())),
+            session.declare_subscriber(keys.estop(machine_id), lambda s: service.on_estop(s.payload.to_bytes())),
             session.declare_queryable(keys.throw(machine_id), reply(service.handle_throw)),
             session.declare_queryable(keys.abort(machine_id), reply(service.handle_abort)),
             session.declare_queryable(keys.estop_reset(machine_id), reply(service.handle_estop_reset)),

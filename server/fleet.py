@@ -11,8 +11,9 @@ anything else is refused with the reason, logged and never shown in the history.
 Commands (ThrowRequest, AbortRequest, EstopReset, PolicyOffer) are signed with the machine's
 command key (:class:`server.command_signer.CommandSigner`) for the requesting user and the epoch
 of the runtime's claim (from its RuntimeInfo, which the runtime also publishes on
-``keys.ALL_RUNTIME_STATES``; the cache follows it). Aborts (E-STOP) run on their own threads
-(:meth:`Fleet.abort_async`) so they never queue behind other queries or database work. The
+``keys.ALL_RUNTIME_STATES``; the cache follows it). E-STOPs are per-machine fire-and-forget
+puts confirmed by the runtime's AbortAck on ``keys.ALL_ESTOP_ACKS`` (:mod:`server.estop`,
+:meth:`Fleet.estop`), so one machine's stop never waits for another's, a query or a pool. The
 queries and commands live in :mod:`server.fleet_commands` (re-exported here: ``Fleet`` has them,
 ``RuntimeUnavailable`` is importable from this module as before).
 
@@ -47,6 +48,7 @@ from runtime.protocol.messages import (
     encode,
 )
 from server.command_signer import CommandSigner
+from server.estop import EstopLine
 from server.fleet_commands import FleetCommands, RuntimeUnavailable
 from server.results import ResultStore, UnknownThrow
 
@@ -82,7 +84,7 @@ class Fleet(FleetCommands):
         self._alive: set[str] = set()
         self._started_s = time.monotonic()
         self._offline_since: dict[str, float] = {}
-        self._estop = ThreadPoolExecutor(max_workers=4, thread_name_prefix="estop")
+        self._estop = EstopLine(session, self._sign_abort)
         self.refused_results: list[tuple[str, str]] = []
         """(throw id, reason) of the last refused results (bounded), for tests and diagnostics."""
         self._states: dict[str, MachineState] = {}
@@ -108,6 +110,7 @@ class Fleet(FleetCommands):
             s.declare_subscriber(keys.ALL_STATES, self._on_state),
             s.declare_subscriber(keys.ALL_STATUS, self._on_status),
             s.declare_subscriber(keys.ALL_RUNTIME_STATES, self._on_runtime_state),
+            s.declare_subscriber(keys.ALL_ESTOP_ACKS, self._estop.on_ack),
             s.declare_queryable(keys.THROW_RESULT, self._on_result, complete=True),
         ]
 
@@ -119,7 +122,7 @@ class Fleet(FleetCommands):
             except Exception:  # already closed with the session
                 log.debug("undeclare failed", exc_info=True)
         self._decls = []
-        self._estop.shutdown(wait=False)
+        self._estop.close()
         self._stage.shutdown(wait=True)  # staged results still reach the DB thread
         if self._worker is not None:
             self._jobs.put(None)

@@ -3,7 +3,8 @@
 :class:`FleetCommands` is the query half of :class:`server.fleet.Fleet`: it asks runtimes for
 their RuntimeInfo (cached per machine), signs commands (ThrowRequest, EstopReset, ReturnToReady,
 PolicyOffer) with the machine's command key for the runtime's claim epoch and decodes their acks,
-and sends aborts (E-STOP; signed when it can be, else unsigned) on the dedicated E-STOP threads.
+and hands E-STOPs (signed when it can be, else unsigned) to the per-machine fire-and-forget path
+of :mod:`server.estop`.
 :class:`RuntimeUnavailable` is what every query raises when no valid reply comes back. Both are
 re-exported by :mod:`server.fleet`; callers import them from there.
 """
@@ -18,7 +19,6 @@ from pydantic import ValidationError
 
 from runtime.protocol import keys
 from runtime.protocol.messages import (
-    AbortAck,
     AbortRequest,
     EstopReset,
     EstopResetAck,
@@ -44,7 +44,8 @@ class FleetCommands:
     """Queries and signed commands to runtimes; a base of :class:`server.fleet.Fleet`, which
     provides what these methods use: ``session`` (open Zenoh session), ``signer``
     (:class:`server.command_signer.CommandSigner`), ``query_timeout_s`` (s), ``_lock``,
-    ``_infos`` (machine id -> (monotonic s, RuntimeInfo)), ``_estop`` (the E-STOP thread pool),
+    ``_infos`` (machine id -> (monotonic s, RuntimeInfo)), ``_estop`` (the
+    :class:`server.estop.EstopLine`),
     :meth:`~server.fleet.Fleet.is_online`, :meth:`~server.fleet.Fleet.cached_info` and
     :meth:`~server.fleet.Fleet.forget_info`.
     """
@@ -147,32 +148,27 @@ class FleetCommands:
         ack, _ = self._signed_query(keys.policy_offer, offer, offer.machine_id, user, PolicyOfferAck)
         return ack
 
-    def abort(self, machine_id: str, reason: str = "operator abort", user: str = "system",
-              timeout_s: float | None = None) -> AbortAck:
-        """Ask the runtime to stop now (valves neutral; the runtime latches E-STOP); returns its
-        AbortAck. Signed when the server has the key and knows the epoch (from the cache only:
-        no query before the stop), else sent unsigned (the runtime honours unsigned stops).
+    def estop(self, machine_id: str, reason: str = "operator abort", user: str = "system") -> Future:
+        """E-STOP ``machine_id``: the AbortRequest is put at once (per machine, fire-and-forget,
+        repeated until confirmed; presses while one is unconfirmed join it) and the returned
+        Future gets the runtime's AbortAck, or fails with :class:`server.estop.EstopUnconfirmed`
+        (a RuntimeUnavailable) after the press's deadline. Never waits for another machine, a
+        query or a thread pool.
 
         Raises:
-            RuntimeUnavailable: no valid reply within the timeout.
             ValueError: a malformed machine id.
         """
-        request = AbortRequest(machine_id=machine_id, reason=reason[:200])
-        info = self.cached_info(machine_id)
-        if info is not None:
-            try:
-                request = self.signer.sign(request, machine_id, user, info.epoch)
-            except ValueError as e:
-                log.warning("abort of %s sent unsigned: %s", machine_id, e)
-        payload = self._query_one(keys.abort(machine_id), encode(request), timeout_s)
-        try:
-            return decode(AbortAck, payload)
-        except ValidationError as e:
-            raise RuntimeUnavailable(f"malformed AbortAck from {machine_id}: {e}") from e
+        return self._estop.press(machine_id, reason, user)
 
-    def abort_async(self, machine_id: str, reason: str, user: str, timeout_s: float | None = None) -> Future:
-        """:meth:`abort` on the dedicated E-STOP threads; returns its Future (AbortAck)."""
-        return self._estop.submit(self.abort, machine_id, reason, user, timeout_s)
+    def _sign_abort(self, request: AbortRequest, machine_id: str, user: str) -> AbortRequest:
+        """``request`` signed for the runtime's cached epoch (no query before a stop), or
+        unchanged when the epoch is unknown or the site has no key (stops are honoured unsigned).
+
+        Raises:
+            ValueError: a malformed command key file.
+        """
+        info = self.cached_info(machine_id)
+        return request if info is None else self.signer.sign(request, machine_id, user, info.epoch)
 
     def _query_one(self, key: str, payload: bytes | None, timeout_s: float | None = None) -> bytes:
         timeout_s = timeout_s or self.query_timeout_s

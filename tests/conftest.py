@@ -121,6 +121,7 @@ class FakeRuntime:
             s.declare_queryable(keys.abort(machine_id), self._on_abort),
             s.declare_queryable(keys.estop_reset(machine_id), self._on_estop_reset),
         ]
+        self._estop_sub = s.declare_subscriber(keys.estop(machine_id), self._on_estop)
         self._state_pub = s.declare_publisher(keys.state(machine_id))
         self._status_pub = s.declare_publisher(keys.status(machine_id))
         self._token = s.liveliness().declare_token(keys.runtime_alive(machine_id))
@@ -148,12 +149,20 @@ class FakeRuntime:
     def _on_info(self, query) -> None:
         query.reply(keys.info(self.machine_id), encode(self.info()))
 
+    def _abort(self, raw: bytes) -> bytes:
+        self.aborts.append(raw)
+        req = decode(AbortRequest, raw) if raw else AbortRequest(machine_id=self.machine_id, reason="abort")
+        self.estop_reason = req.reason
+        aborted = self.current[0] if self.current else None
+        return encode(AbortAck(machine_id=self.machine_id, aborted_throw_id=aborted, request_id=req.request_id))
+
     def _on_abort(self, query) -> None:
         raw = query.payload.to_bytes() if query.payload is not None else b""
-        self.aborts.append(raw)
-        self.estop_reason = decode(AbortRequest, raw).reason if raw else "abort"
-        aborted = self.current[0] if self.current else None
-        query.reply(keys.abort(self.machine_id), encode(AbortAck(machine_id=self.machine_id, aborted_throw_id=aborted)))
+        query.reply(keys.abort(self.machine_id), self._abort(raw))
+
+    def _on_estop(self, sample) -> None:
+        """The server's E-STOP put: latch, then the AbortAck on keys.estop_ack (as the runtime)."""
+        self.session.put(keys.estop_ack(self.machine_id), self._abort(sample.payload.to_bytes()))
 
     def _check(self, msg) -> str | None:
         return self.verifier.check(msg) if self.verifier is not None else None
@@ -232,6 +241,7 @@ class FakeRuntime:
         for t in self._threads:
             t.join(timeout=12.0)
         self._token.undeclare()
+        self._estop_sub.undeclare()
         for d in self._decls:
             d.undeclare()
         self.session.close()

@@ -177,16 +177,34 @@ class ThrowAck(Message):
 
 class AbortRequest(Message):
     """Server -> runtime: stop now (valves to neutral) and latch E-STOP until a signed
-    EstopReset. Honoured even unsigned (stopping is always safe); ``auth`` names who asked."""
+    EstopReset. Honoured even unsigned (stopping is always safe); ``auth`` names who asked.
+    Sent as a put on keys.estop (the server's E-STOP path) or a query on keys.abort.
+
+    Attributes:
+        request_id: the sender's id of this stop (repeated puts of one stop carry the same id);
+            echoed in the AbortAck on keys.estop_ack. None on the query path.
+    """
 
     machine_id: MachineId
     reason: Annotated[str, Field(max_length=200)] = "operator abort"
+    request_id: Annotated[str, Field(pattern=r"^[0-9a-f]{1,64}$")] | None = None
     auth: CommandAuth | None = None
 
 
 class AbortAck(Message):
+    """Runtime -> server: the stop is done (valves neutral) and the latch is on disk.
+
+    Attributes:
+        aborted_throw_id: the throw it ended, or None when none ran.
+        request_id: the AbortRequest's ``request_id`` (None on the query path).
+        latch_persisted: the latch was written to the runtime's state directory (False: it
+            could not be, the latch holds in memory only; the runtime logs why).
+    """
+
     machine_id: MachineId
     aborted_throw_id: str | None = None
+    request_id: str | None = None
+    latch_persisted: bool = True
 
 
 class EstopReset(Message):

@@ -106,41 +106,45 @@ def _operator_or_raise(request: Request):
     return user
 
 
-@router.post("/{machine_id}/estop", response_model=AbortOut, responses={503: {"description": "the runtime did not answer"}})
-@router.post("/{machine_id}/abort", response_model=AbortOut, responses={503: {"description": "the runtime did not answer"}})
+@router.post("/{machine_id}/estop", response_model=AbortOut, responses={503: {"description": "the runtime did not confirm the stop"}})
+@router.post("/{machine_id}/abort", response_model=AbortOut, responses={503: {"description": "the runtime did not confirm the stop"}})
 async def estop(machine_id: str, request: Request, body: AbortIn | None = None) -> AbortOut:
     """E-STOP: the runtime ends any throw as aborted, puts the valves to neutral and LATCHES
-    (throws refused until POST .../estop/reset). Fast path: an async route that sends the abort
-    on the fleet's dedicated E-STOP threads before any database write, so it never queues behind
-    previews, evaluations, diagnoses or log-ins on the request threads. Audited (after the stop)
-    also when the runtime does not answer."""
+    (throws refused until POST .../estop/reset; the latch survives a runtime restart). Fast path:
+    an async route that puts the stop for this machine at once (server.estop: fire-and-forget,
+    repeated until the runtime confirms; presses of a machine whose stop is unconfirmed join it)
+    and replies on the runtime's confirmation (AbortAck, sent after the latch is on disk), or 503
+    after the stop's deadline. No other machine, query, thread pool or database write is waited
+    for: the audit entry is written afterwards on the fleet's database thread, also when the
+    runtime does not confirm."""
     t0 = time.perf_counter()
     user = _operator_or_raise(request)
     fleet: Fleet = request.app.state.fleet
     reason = f"{(body or AbortIn()).reason} ({user.username})"
     try:
         t_auth = time.perf_counter()
-        ack = await asyncio.wrap_future(fleet.abort_async(machine_id, reason, user.username))
+        ack = await asyncio.wrap_future(fleet.estop(machine_id, reason, user.username))
         log.info("E-STOP %s: authenticated in %.1f ms, runtime confirmed after %.1f ms more", machine_id,
                  (t_auth - t0) * 1e3, (time.perf_counter() - t_auth) * 1e3)
     except (RuntimeUnavailable, ValueError) as e:
         error = str(e)
-        await _audited(fleet, lambda: record_audit(request.app.state.sessions, user.username, "abort", machine_id[:64],
-                                                   reason=reason, delivered=False, error=error))
+        _audit_later(fleet, lambda: record_audit(request.app.state.sessions, user.username, "abort", machine_id[:64],
+                                                 reason=reason, delivered=False, error=error))
         raise HTTPException(503, f"abort of {machine_id} not confirmed: {e}") from e
     fleet.forget_info(machine_id)
-    await _audited(fleet, lambda: record_audit(request.app.state.sessions, user.username, "abort", machine_id,
-                                               reason=reason, delivered=True, throw_id=ack.aborted_throw_id))
+    _audit_later(fleet, lambda: record_audit(request.app.state.sessions, user.username, "abort", machine_id,
+                                             reason=reason, delivered=True, throw_id=ack.aborted_throw_id))
     return AbortOut(machine_id=machine_id, aborted_throw_id=ack.aborted_throw_id)
 
 
-async def _audited(fleet: Fleet, write, timeout_s: float = 5.0) -> None:
-    """Write an audit entry on the fleet's database thread (after the stop went out) and wait
-    for it, bounded: a slow database delays the reply, never the stop."""
-    try:
-        await asyncio.wait_for(asyncio.wrap_future(fleet.submit_db_job(write)), timeout_s)
-    except Exception:
-        log.exception("E-STOP audit entry not written")
+def _audit_later(fleet: Fleet, write) -> None:
+    """Queue an audit entry on the fleet's database thread (after the stop went out); a failure
+    is logged. The E-STOP reply never waits for the database."""
+    def logged(done) -> None:
+        if done.exception() is not None:
+            log.error("E-STOP audit entry not written: %s", done.exception())
+
+    fleet.submit_db_job(write).add_done_callback(logged)
 
 
 def _delivered(db, username: str, action: str, machine_id: str, what: str, send):
