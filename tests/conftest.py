@@ -94,6 +94,9 @@ class FakeRuntime:
         cabin_turn_rad: the cabin angle it reports.
         site_dir: the site directory holding (or receiving) the machine's command key.
         hold: accept throws but never finish them (the throw stays running).
+
+    Set ``frozen = True`` to stand for a stopped (SIGSTOP) runtime's command handling: aborts
+    and E-STOP puts are neither executed nor answered.
     """
 
     def __init__(self, endpoint: str, machine_id: str = "m1", refuse: str | None = None,
@@ -101,6 +104,8 @@ class FakeRuntime:
                  policies: list[PolicyInfo] | None = None, site_dir: Path | None = None, hold: bool = False):
         self.machine_id, self.refuse, self.silent, self.deliver = machine_id, refuse, silent, deliver
         self.hold = hold
+        self.frozen = False
+        self.unanswered: list = []
         self.epoch = int(time.time() * 1000)
         self.key = machine_key(site_dir, machine_id) if site_dir is not None else None
         self.verifier = CommandVerifier(self.key, self.epoch) if self.key is not None else None
@@ -157,11 +162,16 @@ class FakeRuntime:
         return encode(AbortAck(machine_id=self.machine_id, aborted_throw_id=aborted, request_id=req.request_id))
 
     def _on_abort(self, query) -> None:
+        if self.frozen:
+            self.unanswered.append(query)  # kept open, unanswered, as by a stopped process
+            return
         raw = query.payload.to_bytes() if query.payload is not None else b""
         query.reply(keys.abort(self.machine_id), self._abort(raw))
 
     def _on_estop(self, sample) -> None:
         """The server's E-STOP put: latch, then the AbortAck on keys.estop_ack (as the runtime)."""
+        if self.frozen:
+            return
         self.session.put(keys.estop_ack(self.machine_id), self._abort(sample.payload.to_bytes()))
 
     def _check(self, msg) -> str | None:
