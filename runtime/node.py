@@ -62,6 +62,28 @@ log = logging.getLogger(__name__)
 WATCHDOG_PERIOD_S = 0.05
 
 
+CLOCK_OFFSET_ENV = "SLINGER_CLOCK_OFFSET_S"
+"""Fault injection for tests only: this runtime's wall clock runs this many seconds off the
+host's (a host whose time sync failed), without touching the system clock."""
+
+
+def offset_clock(offset_text: str | None):
+    """The runtime's wall clock: time.time, shifted by ``offset_text`` seconds when given
+    (CLOCK_OFFSET_ENV; logged as a warning).
+
+    Raises:
+        ValueError: ``offset_text`` is not a finite number.
+    """
+    if not offset_text:
+        return time.time
+    offset_s = float(offset_text)
+    if offset_s != offset_s or abs(offset_s) == float("inf"):
+        raise ValueError(f"{CLOCK_OFFSET_ENV} must be a finite number of seconds, got {offset_text!r}")
+    log.warning("%s=%s: this runtime's wall clock runs %+.1f s off the host's (fault injection)",
+                CLOCK_OFFSET_ENV, offset_text, offset_s)
+    return lambda: time.time() + offset_s
+
+
 def default_outbox_dir(machine_id: str) -> Path:
     """~/.slinger/outbox/<machine_id>"""
     return Path.home() / ".slinger" / "outbox" / machine_id
@@ -127,6 +149,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         key = load_key(args.command_key) if args.command_key else None
         zenoh_opts = session_options(args, f"runtime-{machine_id}")
         radius = release_check_radius(getattr(args, "release_check_radius", DEFAULT_RADIUS_M))
+        wall_clock = offset_clock(os.environ.get(CLOCK_OFFSET_ENV))
     except (ValueError, OSError, PolicyError, argparse.ArgumentTypeError) as e:
         log.error("cannot start runtime: %s", e)
         return 2
@@ -151,7 +174,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             log.error("machine %s already has a runtime (%s): not starting a second one", machine_id, e)
             return EXIT_ALREADY_CLAIMED
         epoch = int(time.time() * 1000)
-        verifier = CommandVerifier(key, epoch) if key is not None else None
+        verifier = CommandVerifier(key, epoch, wall_clock=wall_clock) if key is not None else None
         pubs = {
             k: session.declare_publisher(k)
             for k in (keys.valve_cmd(machine_id), keys.gripper_cmd(machine_id), keys.status(machine_id),
@@ -160,7 +183,8 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         outbox = Outbox(outbox_dir, zenoh_deliverer(session))
         status_pub = session.declare_publisher(keys.policy_status(machine_id))
         service = RuntimeService(machine_id, executor, lambda k, data: pubs[k].put(data), outbox.put,
-                                 verifier=verifier, link_timeout_s=args.link_timeout, epoch=epoch, latch=latch)
+                                 verifier=verifier, link_timeout_s=args.link_timeout, epoch=epoch, latch=latch,
+                                 wall_clock=wall_clock)
         updater = PolicyUpdater(machine_id, getattr(args, "policy_dir", None) or Path(f"{outbox_dir}-policies"),
                                 zenoh_fetcher(session), lambda msg: status_pub.put(encode(msg)), authorize=service.authorize)
 

@@ -113,6 +113,8 @@ class RuntimeService(RecoveryHandling):
             default: the verifier's, else 0.
         latch: the durable E-STOP latch (None: the latch lives in memory only, e.g. in tests);
             a latch on disk at construction starts this runtime latched.
+        wall_clock: this host's wall clock, Unix s, reported as RuntimeInfo.clock_unix_s
+            (default: the verifier's, else time.time).
     """
 
     def __init__(
@@ -126,6 +128,7 @@ class RuntimeService(RecoveryHandling):
         link_timeout_s: float = LINK_TIMEOUT_S,
         epoch: int | None = None,
         latch: EstopLatchFile | None = None,
+        wall_clock: Callable[[], float] | None = None,
     ):
         self.machine_id = keys.validate_machine_id(machine_id)
         self.executor = executor
@@ -134,6 +137,7 @@ class RuntimeService(RecoveryHandling):
         self.verifier = verifier
         self.epoch = int(epoch if epoch is not None else (verifier.epoch if verifier else 0))
         self.clock = clock
+        self.wall_clock = wall_clock or (verifier.wall_clock if verifier is not None else time.time)
         self.link_timeout_s = link_timeout_s
         self.lock = threading.RLock()
         self.latest_state: MachineState | None = None
@@ -411,18 +415,19 @@ class RuntimeService(RecoveryHandling):
             )
 
     def handle_info(self) -> bytes:
-        """-> RuntimeInfo (the queryable keys.info)."""
-        return encode(self.info())
+        """-> RuntimeInfo (the queryable keys.info), stamped with this host's wall clock."""
+        return encode(self.info().model_copy(update={"clock_unix_s": self.wall_clock()}))
 
     def publish_info(self, now_s: float | None = None) -> bool:
         """Publish RuntimeInfo on keys.runtime_state if it changed or INFO_PERIOD_S passed since
-        the last one; returns True if it published."""
+        the last one (stamped with this host's wall clock, which is not a change); returns True
+        if it published."""
         with self.lock:
             info, now = self.info(), self.clock() if now_s is None else now_s
             if info == self._info_sent and now - self._info_sent_s < INFO_PERIOD_S:
                 return False
             self._info_sent, self._info_sent_s = info, now
-            self.send(keys.runtime_state(self.machine_id), encode(info))
+            self.send(keys.runtime_state(self.machine_id), encode(info.model_copy(update={"clock_unix_s": self.wall_clock()})))
             return True
 
     # --- outgoing -----------------------------------------------------------------------------

@@ -57,6 +57,9 @@ log = logging.getLogger(__name__)
 
 RESULT_BATCH = 200
 """At most this many throw results are stored in one commit (the DB thread drains what arrived)."""
+RUNTIME_SILENT_S = 3.0
+"""A runtime that published its RuntimeInfo (>= 2 Hz) and is silent this long is shown offline
+("runtime not answering"): frozen or cut off, well within the Zenoh link lease (10 s)."""
 STAGE_THREADS = 8
 """Threads that write and fsync the results' telemetry files before the DB thread commits them
 (file I/O overlaps the database's; the GIL is released while writing)."""
@@ -89,6 +92,10 @@ class Fleet(FleetCommands):
         """(throw id, reason) of the last refused results (bounded), for tests and diagnostics."""
         self._states: dict[str, MachineState] = {}
         self._infos: dict[str, tuple[float, RuntimeInfo]] = {}
+        self._published_s: dict[str, float] = {}
+        """machine id -> monotonic s of its runtime's last RuntimeInfo on keys.runtime_state."""
+        self._clock_offsets: dict[str, float] = {}
+        """machine id -> its runtime's wall clock minus the server's, s (latest RuntimeInfo)."""
         self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue()
         self._results: list[tuple[zenoh.Query, ThrowResult, object]] = []
         """Results with their staged telemetry waiting for the DB thread; one job stores all that
@@ -164,18 +171,53 @@ class Fleet(FleetCommands):
 
     def fresh_info(self, machine_id: str, max_age_s: float = 2.0, timeout_s: float = 1.0) -> RuntimeInfo | None:
         """RuntimeInfo at most ``max_age_s`` old: the cache, else a query (``timeout_s``);
-        the stale cached one if the runtime does not answer; None for an offline runtime."""
+        the stale cached one if the runtime does not answer or has gone silent (no query then);
+        None for an offline runtime."""
         if not self.is_online(machine_id):
             return None
         with self._lock:
             entry = self._infos.get(machine_id)
         if entry is not None and time.monotonic() - entry[0] <= max_age_s:
             return entry[1]
+        if not self.is_answering(machine_id):  # silent: a query would only wait for its timeout
+            return entry[1] if entry else None
         try:
             return self.query_info(machine_id, timeout_s=timeout_s)
         except (RuntimeUnavailable, ValidationError) as e:
             log.debug("RuntimeInfo of %s: %s", machine_id, e)
             return entry[1] if entry else None
+
+    def silent_for_s(self, machine_id: str) -> float:
+        """Seconds since the runtime of ``machine_id`` last published its RuntimeInfo (it does
+        at >= 2 Hz); 0 while it is offline or has never published (an older runtime)."""
+        with self._lock:
+            if machine_id not in self._alive or machine_id not in self._published_s:
+                return 0.0
+            return time.monotonic() - self._published_s[machine_id]
+
+    def is_answering(self, machine_id: str) -> bool:
+        """Online (liveliness) and not silent for more than RUNTIME_SILENT_S: a frozen runtime
+        keeps its liveliness token until the Zenoh link's lease expires, but stops publishing."""
+        return self.is_online(machine_id) and self.silent_for_s(machine_id) <= RUNTIME_SILENT_S
+
+    def clock_offset_s(self, machine_id: str) -> float | None:
+        """The runtime's wall clock minus the server's, s, from its latest RuntimeInfo (transit
+        time, milliseconds, neglected); None if it never reported its clock."""
+        with self._lock:
+            return self._clock_offsets.get(machine_id)
+
+    def _note_info(self, info: RuntimeInfo, published: bool) -> None:
+        """Cache ``info`` (received now; ``published`` on keys.runtime_state, else a query reply)
+        and measure the runtime's clock offset from it."""
+        now = time.monotonic()
+        with self._lock:
+            if info.machine_id not in self._alive and published:
+                return
+            self._infos[info.machine_id] = (now, info)
+            if published:
+                self._published_s[info.machine_id] = now
+            if info.clock_unix_s is not None:
+                self._clock_offsets[info.machine_id] = info.clock_unix_s - time.time()
 
     def forget_info(self, machine_id: str) -> None:
         """Drop the cached RuntimeInfo (e.g. after its policies changed) so the next read asks."""
@@ -208,6 +250,7 @@ class Fleet(FleetCommands):
                 self._alive.add(machine_id)
                 self._offline_since.pop(machine_id, None)
                 self._infos.pop(machine_id, None)  # a new claim: its epoch is asked again
+                self._published_s.pop(machine_id, None)
             self._jobs.put(lambda: self._register(machine_id))
         else:
             log.info("runtime %s offline", machine_id)
@@ -215,6 +258,7 @@ class Fleet(FleetCommands):
                 self._alive.discard(machine_id)
                 self._offline_since[machine_id] = time.monotonic()
                 self._infos.pop(machine_id, None)
+                self._published_s.pop(machine_id, None)
 
     def _on_runtime_state(self, sample: zenoh.Sample) -> None:
         """A runtime's published RuntimeInfo (2 Hz and on change) refreshes the cache."""
@@ -225,9 +269,7 @@ class Fleet(FleetCommands):
         except (ValidationError, ValueError) as e:
             log.debug("dropped RuntimeInfo on %s: %s", sample.key_expr, e)
             return
-        with self._lock:
-            if info.machine_id in self._alive:
-                self._infos[info.machine_id] = (time.monotonic(), info)
+        self._note_info(info, published=True)
 
     def _on_state(self, sample: zenoh.Sample) -> None:
         try:

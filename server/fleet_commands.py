@@ -36,6 +36,11 @@ from runtime.protocol.messages import (
 log = logging.getLogger("server.fleet")  # the logger of server.fleet, as before the split
 
 
+RETRY_REASONS = ("wrong epoch", "stale (", "in the future")
+"""A signed command refused for one of these is signed again once with the runtime's epoch and
+clock asked afresh (it restarted, or its clock moved)."""
+
+
 class RuntimeUnavailable(RuntimeError):
     """The runtime did not answer (offline, or no reply within the timeout)."""
 
@@ -46,8 +51,9 @@ class FleetCommands:
     (:class:`server.command_signer.CommandSigner`), ``query_timeout_s`` (s), ``_lock``,
     ``_infos`` (machine id -> (monotonic s, RuntimeInfo)), ``_estop`` (the
     :class:`server.estop.EstopLine`),
-    :meth:`~server.fleet.Fleet.is_online`, :meth:`~server.fleet.Fleet.cached_info` and
-    :meth:`~server.fleet.Fleet.forget_info`.
+    :meth:`~server.fleet.Fleet.is_online`, :meth:`~server.fleet.Fleet.cached_info`,
+    :meth:`~server.fleet.Fleet.forget_info`, :meth:`~server.fleet.Fleet.clock_offset_s` and
+    :meth:`~server.fleet.Fleet._note_info`.
     """
 
     # --- queries -------------------------------------------------------------------------------
@@ -58,8 +64,7 @@ class FleetCommands:
             RuntimeUnavailable: no valid reply within the timeout.
         """
         info = decode(RuntimeInfo, self._query_one(keys.info(machine_id), None, timeout_s))
-        with self._lock:
-            self._infos[machine_id] = (time.monotonic(), info)
+        self._note_info(info, published=False)
         return info
 
     def epoch_of(self, machine_id: str, fresh: bool = False) -> int:
@@ -86,14 +91,15 @@ class FleetCommands:
         """
         for attempt in (0, 1):
             epoch = self.epoch_of(machine_id, fresh=attempt > 0)
-            signed = self.signer.sign(msg, machine_id, user, epoch)
+            signed = self.signer.sign(msg, machine_id, user, epoch, now_unix_s=self.runtime_now(machine_id))
             payload = self._query_one(key_of(machine_id), encode(signed), timeout_s)
             try:
                 ack = decode(ack_type, payload)
             except ValidationError as e:
                 raise RuntimeUnavailable(f"malformed {ack_type.__name__} from {machine_id}: {e}") from e
-            if attempt == 0 and "wrong epoch" in (getattr(ack, "reason", None) or ""):
-                log.info("%s: %s; asking its epoch again", machine_id, ack.reason)
+            reason = getattr(ack, "reason", None) or ""
+            if attempt == 0 and any(why in reason for why in RETRY_REASONS):
+                log.info("%s: %s; asking its epoch and clock again", machine_id, reason)
                 self.forget_info(machine_id)
                 continue
             return ack, epoch
@@ -168,7 +174,14 @@ class FleetCommands:
             ValueError: a malformed command key file.
         """
         info = self.cached_info(machine_id)
-        return request if info is None else self.signer.sign(request, machine_id, user, info.epoch)
+        if info is None:
+            return request
+        return self.signer.sign(request, machine_id, user, info.epoch, now_unix_s=self.runtime_now(machine_id))
+
+    def runtime_now(self, machine_id: str) -> float:
+        """The runtime's wall clock now as the server estimates it, Unix s: time.time() plus
+        the clock offset measured from its RuntimeInfo (:meth:`clock_offset_s`; 0 if unknown)."""
+        return time.time() + (self.clock_offset_s(machine_id) or 0.0)
 
     def _query_one(self, key: str, payload: bytes | None, timeout_s: float | None = None) -> bytes:
         timeout_s = timeout_s or self.query_timeout_s

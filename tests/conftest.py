@@ -94,6 +94,8 @@ class FakeRuntime:
         cabin_turn_rad: the cabin angle it reports.
         site_dir: the site directory holding (or receiving) the machine's command key.
         hold: accept throws but never finish them (the throw stays running).
+        clock_offset_s: its wall clock runs this far off the host's (checks freshness with it and
+            reports it as RuntimeInfo.clock_unix_s).
 
     Set ``frozen = True`` to stand for a stopped (SIGSTOP) runtime's command handling: aborts
     and E-STOP puts are neither executed nor answered.
@@ -101,14 +103,16 @@ class FakeRuntime:
 
     def __init__(self, endpoint: str, machine_id: str = "m1", refuse: str | None = None,
                  silent: bool = False, deliver: bool = True, cabin_turn_rad: float = 0.0,
-                 policies: list[PolicyInfo] | None = None, site_dir: Path | None = None, hold: bool = False):
+                 policies: list[PolicyInfo] | None = None, site_dir: Path | None = None, hold: bool = False,
+                 clock_offset_s: float = 0.0):
         self.machine_id, self.refuse, self.silent, self.deliver = machine_id, refuse, silent, deliver
         self.hold = hold
         self.frozen = False
         self.unanswered: list = []
         self.epoch = int(time.time() * 1000)
         self.key = machine_key(site_dir, machine_id) if site_dir is not None else None
-        self.verifier = CommandVerifier(self.key, self.epoch) if self.key is not None else None
+        self.wall_clock = lambda: time.time() + clock_offset_s
+        self.verifier = CommandVerifier(self.key, self.epoch, wall_clock=self.wall_clock) if self.key is not None else None
         self.estop_reason: str | None = None
         self.current: tuple[str, str] | None = None  # (throw id, phase) of the running throw
         self.policies = policies or [PolicyInfo(mode="2d", version="fake-2d", sha256="ab" * 32)]
@@ -149,7 +153,8 @@ class FakeRuntime:
                            policies=self.policies, epoch=self.epoch, estop_latched=latched,
                            estop_reason=self.estop_reason, ready=not latched and current is None,
                            not_ready_reason="E-STOP latched" if latched else None,
-                           throw_id=current[0] if current else None, phase=current[1] if current else None)
+                           throw_id=current[0] if current else None, phase=current[1] if current else None,
+                           clock_unix_s=self.wall_clock())
 
     def _on_info(self, query) -> None:
         query.reply(keys.info(self.machine_id), encode(self.info()))

@@ -44,3 +44,22 @@ def test_a_frozen_machines_estops_do_not_delay_another_machines(client, fake_run
     m2.frozen = False
     assert client.post("/api/machines/m2/estop").status_code == 200  # thawed: confirmed
     assert m2.estop_reason is not None
+
+
+def test_a_runtime_clock_8_s_off_still_takes_signed_commands_and_the_row_says_so(client, fake_runtime_factory):
+    """The runtime's clock runs 8 s ahead (its host lost time sync; injected, the system clock
+    is untouched): the server measures the offset from its RuntimeInfo and signs in its time, so
+    E-STOP, reset and throw work; the machine row names the difference. Replay protection holds."""
+    rt = fake_runtime_factory(machine_id="m1", clock_offset_s=8.0, hold=True)
+    wait_online(client, "m1")
+    m = wait_for(lambda: (m := client.get("/api/machines").json()[0])["clock_offset_s"] is not None and m, 10, "offset")
+    assert abs(m["clock_offset_s"] - 8.0) < 0.5
+    assert "clock differs from the server by +8.0 s" in m["clock_warning"]
+    assert client.post("/api/machines/m1/estop").status_code == 200
+    r = client.post("/api/machines/m1/estop/reset")
+    assert r.status_code == 200, r.text
+    assert rt.estop_reason is None
+    r = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": [8.0, -0.292, 0.0]})
+    assert r.status_code == 202, r.text
+    replayed = rt.verifier.check(rt.requests[-1])
+    assert replayed == "replayed nonce"

@@ -277,6 +277,9 @@ class RuntimeInfo(Message):
         returning: a return to the ready pose runs; ``return_progress`` 0..1 (5 % steps);
             ``return_result`` how the last one ended ("reached the ready pose",
             "failed: ...", "stopped: ..."), None before the first.
+        clock_unix_s: the runtime host's wall clock (Unix s) when this was sent; the server
+            measures the clock offset from it and signs commands in the runtime's time
+            (freshness checks then hold under clock drift between hosts). None: not reported.
     """
 
     machine_id: MachineId
@@ -295,6 +298,7 @@ class RuntimeInfo(Message):
     returning: bool = False
     return_progress: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
     return_result: Annotated[str, Field(max_length=200)] | None = None
+    clock_unix_s: float | None = Field(default=None, allow_inf_nan=False)
 
 
 class ThrowResult(Stamped):
