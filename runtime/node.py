@@ -22,6 +22,8 @@ Wiring (keys in runtime/protocol/README.md):
 * release check (runtime.release_check, runtime.executor): ``--release-check-radius M`` (default
   3.0 m, or the environment's ``SLINGER_RELEASE_CHECK_RADIUS_M``; ``off`` switches it off). If it
   is on and MuJoCo or the machine's model cannot be loaded, every throw is refused with the reason;
+* fault injection for tests only: ``SLINGER_CLOCK_OFFSET_S`` runs this runtime's wall clock
+  (command freshness, RuntimeInfo.clock_unix_s) that many seconds off the host's;
 * a watchdog thread (every 50 ms): no valid state for 0.2 s during a throw -> failed;
 * the outbox delivers finished ThrowResults to keys.THROW_RESULT until the server acks;
 * queryable keys.policy_offer (PolicyOffer -> PolicyOfferAck): runtime.policy_update fetches,

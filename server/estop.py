@@ -28,7 +28,7 @@ import zenoh
 from pydantic import ValidationError
 
 from runtime.protocol import keys
-from runtime.protocol.messages import AbortAck, AbortRequest, decode, encode
+from runtime.protocol.messages import AbortAck, AbortRequest, decode_on_key, encode
 from server.fleet_commands import RuntimeUnavailable
 
 log = logging.getLogger(__name__)
@@ -116,9 +116,7 @@ class EstopLine:
     def on_ack(self, sample: zenoh.Sample) -> None:
         """An AbortAck on keys.estop_ack: resolve the press it confirms (Zenoh callback)."""
         try:
-            ack = decode(AbortAck, sample.payload.to_bytes())
-            if keys.machine_id_of(str(sample.key_expr)) != ack.machine_id:
-                raise ValueError(f"AbortAck of {ack.machine_id} on {sample.key_expr}")
+            ack = decode_on_key(AbortAck, sample.key_expr, sample.payload.to_bytes())
         except (ValidationError, ValueError) as e:
             log.warning("dropped AbortAck on %s: %s", sample.key_expr, e)
             return

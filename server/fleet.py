@@ -45,6 +45,7 @@ from runtime.protocol.messages import (
     ThrowResult,
     ThrowStatus,
     decode,
+    decode_on_key,
     encode,
 )
 from server.command_signer import CommandSigner
@@ -263,9 +264,7 @@ class Fleet(FleetCommands):
     def _on_runtime_state(self, sample: zenoh.Sample) -> None:
         """A runtime's published RuntimeInfo (2 Hz and on change) refreshes the cache."""
         try:
-            info = decode(RuntimeInfo, sample.payload.to_bytes())
-            if keys.machine_id_of(str(sample.key_expr)) != info.machine_id:
-                raise ValueError(f"RuntimeInfo of {info.machine_id} on {sample.key_expr}")
+            info = decode_on_key(RuntimeInfo, sample.key_expr, sample.payload.to_bytes())
         except (ValidationError, ValueError) as e:
             log.debug("dropped RuntimeInfo on %s: %s", sample.key_expr, e)
             return

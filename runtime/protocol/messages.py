@@ -16,7 +16,7 @@ from typing import Annotated, Literal, TypeVar
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
 
-from runtime.protocol.keys import validate_machine_id
+from runtime.protocol.keys import machine_id_of, validate_machine_id
 
 SCHEMA_VERSION = 1
 
@@ -383,4 +383,18 @@ def decode(cls: type[M], payload: bytes | bytearray | memoryview | str) -> M:
     return cls.model_validate_json(payload)
 
 
-__all__ = [name for name in dir() if name[0].isupper()] + ["encode", "decode", "ValidationError"]
+def decode_on_key(cls: type[M], key_expr: str, payload: bytes | bytearray | memoryview | str) -> M:
+    """:func:`decode` a message that arrived on ``key_expr`` and check that it is the key's
+    machine's (a runtime may publish only under its own machine id).
+
+    Raises:
+        pydantic.ValidationError: as :func:`decode`.
+        ValueError: the key is not a machine/runtime key, or names another machine.
+    """
+    msg = decode(cls, payload)
+    if machine_id_of(str(key_expr)) != msg.machine_id:
+        raise ValueError(f"{cls.__name__} of {msg.machine_id} on {key_expr}")
+    return msg
+
+
+__all__ = [name for name in dir() if name[0].isupper()] + ["encode", "decode", "decode_on_key", "ValidationError"]

@@ -42,7 +42,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from tests.benchmarks.bench_estop_latency import _wait_ready  # noqa: E402
+from tests.benchmarks.bench_estop_latency import click_cycle  # noqa: E402
 from tests.fault_stack import FaultStack, ValveWatch, orphans, stop_proc  # noqa: E402
 
 log = logging.getLogger("bench_estop_isolation")
@@ -137,40 +137,14 @@ def run(clicks: int, frozen: int, clients: int, policy: Path, freeze_s: float, s
                 attempts = 0
                 while len(neutral_s) < clicks and attempts < clicks * 4 and time.monotonic() < stop_at:
                     attempts += 1
-                    m = _wait_ready(stack, 60)
-                    if not m["ready"]:
-                        refusals.append(f"not ready: {m['not_ready_reason']}")
-                        continue
-                    r = stack.try_throw()
-                    if r.status_code != 202:
-                        refusals.append(r.json().get("detail"))
-                        time.sleep(1.0)
-                        continue
-                    stack.wait_phase(r.json()["id"], ("swinging",))
-                    time.sleep(rng.uniform(0.0, 0.4))
-                    t0 = time.monotonic()
-                    try:
-                        e = stack.http.post("/api/machines/m1/estop", json={"reason": "isolation benchmark"})
-                    except httpx.HTTPError as exc:
-                        refusals.append(f"E-STOP request error: {exc!r}")
-                        e = None
-                    t_reply = time.monotonic()
-                    deadline = t0 + 5.0
-                    while (t_n := watch.first_neutral_after(t0)) is None and time.monotonic() < deadline:
-                        time.sleep(0.002)
-                    moving = any(watch.last_before(t0) or [])
-                    not_moving += not moving
-                    if e is not None and e.status_code == 200 and t_n is not None and moving:
-                        neutral_s.append(t_n - t0)
-                        reply_s.append(t_reply - t0)
+                    c = click_cycle(stack, watch, rng, "isolation benchmark")
+                    refusals += c["refusals"]
+                    not_moving += c["moving"] is False
+                    if c["neutral_s"] is not None:
+                        neutral_s.append(c["neutral_s"])
+                        reply_s.append(c["reply_s"])
                         log.info("click %d: neutral after %.1f ms, reply after %.1f ms (%d presses of frozen machines so far)",
-                                 len(neutral_s), (t_n - t0) * 1e3, (t_reply - t0) * 1e3, len(presses))
-                    elif e is not None and e.status_code != 200:
-                        refusals.append(f"m1 E-STOP answered {e.status_code}: {e.text[:200]}")
-                    stack.wait_final(r.json()["id"], 30)
-                    assert stack.http.post("/api/machines/m1/estop/reset").status_code == 200
-                    watch.reload()
-                    time.sleep(1.5)
+                                 len(neutral_s), c["neutral_s"] * 1e3, c["reply_s"] * 1e3, len(presses))
             finally:
                 stop.set()
                 for t in pressers:
