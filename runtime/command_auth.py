@@ -28,7 +28,7 @@ import threading
 import time
 from collections import OrderedDict
 from pathlib import Path
-from typing import TypeVar
+from typing import Callable, TypeVar
 
 from runtime.protocol.messages import CommandAuth, Message
 
@@ -36,8 +36,10 @@ log = logging.getLogger(__name__)
 
 KEY_BYTES = 32
 DEFAULT_WINDOW_S = 5.0
-"""Accepted clock difference between signer and runtime, s (both sides of 'now'). Server and
-runtime of one site share NTP time; 5 s covers NTP error plus Zenoh queueing with margin."""
+"""Accepted difference between a command's issue time and the runtime's clock, s (both sides of
+'now'). The server signs in the runtime's time (its clock plus the offset it measured from the
+runtime's RuntimeInfo.clock_unix_s), so drift between the hosts does not count against it; 5 s
+covers transit, queueing and the measurement's age with margin."""
 MAX_NONCES = 4096
 """Replay cache bound. Nonces are kept only while their message could still be fresh
 (issued + window), so the cache holds at most the commands of one 2*window span; beyond this
@@ -150,12 +152,15 @@ class CommandVerifier:
         epoch: this runtime's claim epoch; commands addressed to another one are refused.
         window_s: accepted |now - issued_unix_s|, s (DEFAULT_WINDOW_S).
         max_nonces: replay cache bound (MAX_NONCES).
+        wall_clock: this host's wall clock, Unix s (default time.time; tests inject an offset
+            through runtime.node's SLINGER_CLOCK_OFFSET_S).
 
     Raises:
         ValueError: bad key length or a non-positive window.
     """
 
-    def __init__(self, key: bytes, epoch: int, window_s: float = DEFAULT_WINDOW_S, max_nonces: int = MAX_NONCES):
+    def __init__(self, key: bytes, epoch: int, window_s: float = DEFAULT_WINDOW_S, max_nonces: int = MAX_NONCES,
+                 wall_clock: Callable[[], float] = time.time):
         if len(key) != KEY_BYTES:
             raise ValueError(f"command key must be {KEY_BYTES} bytes, got {len(key)}")
         if not window_s > 0:
@@ -164,6 +169,7 @@ class CommandVerifier:
         self.epoch = int(epoch)
         self.window_s = float(window_s)
         self.max_nonces = int(max_nonces)
+        self.wall_clock = wall_clock
         self._seen: OrderedDict[str, float] = OrderedDict()  # nonce -> forget after (unix s)
         self._lock = threading.Lock()
 
@@ -178,7 +184,7 @@ class CommandVerifier:
         auth = msg.auth
         if auth.epoch != self.epoch:
             return f"wrong epoch: addressed {auth.epoch}, this runtime is {self.epoch}"
-        now = time.time() if now_unix_s is None else now_unix_s
+        now = self.wall_clock() if now_unix_s is None else now_unix_s
         age_s = now - auth.issued_unix_s
         if age_s > self.window_s:
             return f"stale (issued {age_s:.1f} s ago)"

@@ -5,6 +5,9 @@ Wiring (keys in runtime/protocol/README.md):
 * subscribes keys.state(id) and keys.impact(id) -> runtime.service.RuntimeService;
 * publishes keys.valve_cmd (every state tick), keys.gripper_cmd (on change), keys.status (phase
   changes), keys.runtime_state (RuntimeInfo, 2 Hz and on change);
+* subscribes keys.estop (the server's E-STOP put: AbortRequest, latches E-STOP) and publishes
+  its AbortAck on keys.estop_ack once the latch is on disk (``--state-dir``, default
+  ``<outbox-dir>-state``: runtime.estop_latch; a latch there at start starts the runtime latched);
 * queryables keys.throw (ThrowRequest -> ThrowAck), keys.abort (AbortRequest -> AbortAck,
   latches E-STOP), keys.estop_reset (EstopReset -> EstopResetAck), keys.return_to_ready
   (ReturnToReady -> ReturnToReadyAck, runtime.recovery), keys.info (-> RuntimeInfo);
@@ -19,6 +22,8 @@ Wiring (keys in runtime/protocol/README.md):
 * release check (runtime.release_check, runtime.executor): ``--release-check-radius M`` (default
   3.0 m, or the environment's ``SLINGER_RELEASE_CHECK_RADIUS_M``; ``off`` switches it off). If it
   is on and MuJoCo or the machine's model cannot be loaded, every throw is refused with the reason;
+* fault injection for tests only: ``SLINGER_CLOCK_OFFSET_S`` runs this runtime's wall clock
+  (command freshness, RuntimeInfo.clock_unix_s) that many seconds off the host's;
 * a watchdog thread (every 50 ms): no valid state for 0.2 s during a throw -> failed;
 * the outbox delivers finished ThrowResults to keys.THROW_RESULT until the server acks;
 * queryable keys.policy_offer (PolicyOffer -> PolicyOfferAck): runtime.policy_update fetches,
@@ -39,6 +44,7 @@ from pathlib import Path
 
 from runtime.command_auth import CommandVerifier, load_key
 from runtime.controller import JointVelocityController
+from runtime.estop_latch import EstopLatchFile
 from runtime.entrypoint import module_main, stop_on_signals
 from runtime.executor import ExecutorConfig, ThrowExecutor
 from runtime.outbox import Outbox, zenoh_deliverer
@@ -59,6 +65,28 @@ log = logging.getLogger(__name__)
 WATCHDOG_PERIOD_S = 0.05
 
 
+CLOCK_OFFSET_ENV = "SLINGER_CLOCK_OFFSET_S"
+"""Fault injection for tests only: this runtime's wall clock runs this many seconds off the
+host's (a host whose time sync failed), without touching the system clock."""
+
+
+def offset_clock(offset_text: str | None):
+    """The runtime's wall clock: time.time, shifted by ``offset_text`` seconds when given
+    (CLOCK_OFFSET_ENV; logged as a warning).
+
+    Raises:
+        ValueError: ``offset_text`` is not a finite number.
+    """
+    if not offset_text:
+        return time.time
+    offset_s = float(offset_text)
+    if offset_s != offset_s or abs(offset_s) == float("inf"):
+        raise ValueError(f"{CLOCK_OFFSET_ENV} must be a finite number of seconds, got {offset_text!r}")
+    log.warning("%s=%s: this runtime's wall clock runs %+.1f s off the host's (fault injection)",
+                CLOCK_OFFSET_ENV, offset_text, offset_s)
+    return lambda: time.time() + offset_s
+
+
 def default_outbox_dir(machine_id: str) -> Path:
     """~/.slinger/outbox/<machine_id>"""
     return Path.home() / ".slinger" / "outbox" / machine_id
@@ -74,6 +102,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="this machine's command key file (64 hex digits); without it every throw, E-STOP reset "
                              "and policy offer is refused")
     parser.add_argument("--outbox-dir", type=Path, default=None, help="durable outbox directory (default ~/.slinger/outbox/<machine-id>)")
+    parser.add_argument("--state-dir", type=Path, default=None,
+                        help="where the E-STOP latch is kept across restarts (default: <outbox-dir>-state)")
     parser.add_argument("--policy-dir", type=Path, default=None, help="where promoted policy files are kept (default: <outbox-dir>-policies)")
     parser.add_argument("--link-timeout", type=float, default=LINK_TIMEOUT_S, help="seconds without machine state that fail a throw")
     parser.add_argument("--release-check-radius", type=release_check_radius, default=os.environ.get(RADIUS_ENV, DEFAULT_RADIUS_M),
@@ -122,6 +152,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         key = load_key(args.command_key) if args.command_key else None
         zenoh_opts = session_options(args, f"runtime-{machine_id}")
         radius = release_check_radius(getattr(args, "release_check_radius", DEFAULT_RADIUS_M))
+        wall_clock = offset_clock(os.environ.get(CLOCK_OFFSET_ENV))
     except (ValueError, OSError, PolicyError, argparse.ArgumentTypeError) as e:
         log.error("cannot start runtime: %s", e)
         return 2
@@ -129,6 +160,11 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         log.warning("no command key configured (--command-key): every throw, E-STOP reset and policy offer will be refused")
     stop = stop_on_signals(stop)
     outbox_dir = args.outbox_dir or default_outbox_dir(machine_id)
+    try:
+        latch = EstopLatchFile(getattr(args, "state_dir", None) or Path(f"{outbox_dir}-state"), machine_id)
+    except OSError as e:
+        log.error("cannot start runtime: state directory: %s", e)
+        return 2
     if radius is None:
         log.warning("release check off (--release-check-radius off): releases are not checked")
     executor = ThrowExecutor(policies, JointVelocityController(), ExecutorConfig(release_check_radius_m=radius))
@@ -141,15 +177,17 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             log.error("machine %s already has a runtime (%s): not starting a second one", machine_id, e)
             return EXIT_ALREADY_CLAIMED
         epoch = int(time.time() * 1000)
-        verifier = CommandVerifier(key, epoch) if key is not None else None
+        verifier = CommandVerifier(key, epoch, wall_clock=wall_clock) if key is not None else None
         pubs = {
             k: session.declare_publisher(k)
-            for k in (keys.valve_cmd(machine_id), keys.gripper_cmd(machine_id), keys.status(machine_id), keys.runtime_state(machine_id))
+            for k in (keys.valve_cmd(machine_id), keys.gripper_cmd(machine_id), keys.status(machine_id),
+                      keys.runtime_state(machine_id), keys.estop_ack(machine_id))
         }
         outbox = Outbox(outbox_dir, zenoh_deliverer(session))
         status_pub = session.declare_publisher(keys.policy_status(machine_id))
         service = RuntimeService(machine_id, executor, lambda k, data: pubs[k].put(data), outbox.put,
-                                 verifier=verifier, link_timeout_s=args.link_timeout, epoch=epoch)
+                                 verifier=verifier, link_timeout_s=args.link_timeout, epoch=epoch, latch=latch,
+                                 wall_clock=wall_clock)
         updater = PolicyUpdater(machine_id, getattr(args, "policy_dir", None) or Path(f"{outbox_dir}-policies"),
                                 zenoh_fetcher(session), lambda msg: status_pub.put(encode(msg)), authorize=service.authorize)
 
@@ -166,6 +204,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         entities = [
             session.declare_subscriber(keys.state(machine_id), lambda s: service.on_state(s.payload.to_bytes())),
             session.declare_subscriber(keys.impact(machine_id), lambda s: service.on_impact(s.payload.to_bytes())),
+            session.declare_subscriber(keys.estop(machine_id), lambda s: service.on_estop(s.payload.to_bytes())),
             session.declare_queryable(keys.throw(machine_id), reply(service.handle_throw)),
             session.declare_queryable(keys.abort(machine_id), reply(service.handle_abort)),
             session.declare_queryable(keys.estop_reset(machine_id), reply(service.handle_estop_reset)),

@@ -15,7 +15,12 @@ Command checks (runtime.command_auth, issue 8): throws, E-STOP resets and policy
 signed with the machine's command key for this runtime's epoch, fresh and not replayed; without
 a key (``verifier=None``) every one is refused "no command key configured" (fail safe). An abort
 is honoured even unsigned and LATCHES E-STOP: valves neutral every tick, throws refused
-"E-STOP latched: <reason>" until a signed EstopReset. A MachineState with ``machine_fault``
+"E-STOP latched: <reason>" until a signed EstopReset. The latch is durable
+(:class:`runtime.estop_latch.EstopLatchFile`, given as ``latch``): written and fsynced before the
+stop is acknowledged, read at start (a runtime restarted after a stop comes up latched), removed
+only by a signed EstopReset. The server's E-STOP arrives as a put on keys.estop
+(:meth:`on_estop`) and is confirmed by an AbortAck on keys.estop_ack; the query keys.abort
+(:meth:`handle_abort`) does the same for other callers. A MachineState with ``machine_fault``
 refuses throws and fails a running one. The runtime never asks whether the machine is simulated:
 what only the simulated machine does (reloading a payload) happens inside the plant.
 
@@ -38,6 +43,7 @@ import numpy as np
 
 from runtime.command_auth import CommandVerifier, sign, verify_mac
 from runtime.controller import JointVelocityController
+from runtime.estop_latch import EstopLatchFile
 from runtime.executor import ThrowExecutor
 from runtime.outcome import TickOutput
 from runtime.recovery import POSE_REASONS, pose_refusal
@@ -73,6 +79,10 @@ LINK_TIMEOUT_S = 0.2
 ONLINE_TIMEOUT_S = 1.0
 """RuntimeInfo.machine_online: a valid state arrived within this time."""
 
+AT_REST_MPS_OR_RADPS = 0.05
+"""An active joint faster than this (rad/s, m/s for the telescope) is moving: no throw starts
+and the runtime is not READY (a preview made now would start from another state)."""
+
 INFO_PERIOD_S = 0.5
 """RuntimeInfo is published on keys.runtime_state at least this often (2 Hz) and on change."""
 
@@ -101,6 +111,10 @@ class RuntimeService(RecoveryHandling):
         link_timeout_s: see LINK_TIMEOUT_S.
         epoch: this runtime's claim epoch (put into every ValveCommand and RuntimeInfo);
             default: the verifier's, else 0.
+        latch: the durable E-STOP latch (None: the latch lives in memory only, e.g. in tests);
+            a latch on disk at construction starts this runtime latched.
+        wall_clock: this host's wall clock, Unix s, reported as RuntimeInfo.clock_unix_s
+            (default: the verifier's, else time.time).
     """
 
     def __init__(
@@ -113,6 +127,8 @@ class RuntimeService(RecoveryHandling):
         clock: Callable[[], float] = time.monotonic,
         link_timeout_s: float = LINK_TIMEOUT_S,
         epoch: int | None = None,
+        latch: EstopLatchFile | None = None,
+        wall_clock: Callable[[], float] | None = None,
     ):
         self.machine_id = keys.validate_machine_id(machine_id)
         self.executor = executor
@@ -121,12 +137,17 @@ class RuntimeService(RecoveryHandling):
         self.verifier = verifier
         self.epoch = int(epoch if epoch is not None else (verifier.epoch if verifier else 0))
         self.clock = clock
+        self.wall_clock = wall_clock or (verifier.wall_clock if verifier is not None else time.time)
         self.link_timeout_s = link_timeout_s
         self.lock = threading.RLock()
         self.latest_state: MachineState | None = None
         self._state_rx_s = -np.inf
         self._gripper_sent: bool | None = None
-        self.estop_reason: str | None = None
+        self.latch = latch
+        self.estop_reason: str | None = latch.load() if latch is not None else None
+        self._latch_on_disk = self.estop_reason is not None
+        if self.estop_reason is not None:
+            log.warning("E-STOP latched since before this start (%s): throws refused until a signed reset", self.estop_reason)
         self._info_sent: RuntimeInfo | None = None
         self._info_sent_s = -np.inf
         self._pose_judged: tuple[tuple, str | None] | None = None  # (q, qd) -> pose_refusal, see _pose_refusal
@@ -239,6 +260,20 @@ class RuntimeService(RecoveryHandling):
             return "machine offline (no recent state)"
         if state.machine_fault:
             return f"machine fault: {state.machine_fault}"
+        return self._start_refusal(state)
+
+    def _start_refusal(self, state: MachineState) -> str | None:
+        """Why a throw cannot really start from ``state`` (READY only when it can): no payload
+        in the gripper (e.g. the next one not loaded yet after a landing), the gripper open, an
+        active joint still moving (faster than AT_REST_MPS_OR_RADPS), or the pose
+        (:meth:`_pose_refusal`)."""
+        if not state.payload_attached:
+            return "no payload loaded"
+        if state.gripper_open:
+            return "gripper open"
+        moving = max(abs(v) for v in state.qd[:4])
+        if moving > AT_REST_MPS_OR_RADPS:
+            return f"machine moving ({moving:.2f} rad/s or m/s)"
         return self._pose_refusal(state)
 
     def _pose_refusal(self, state: MachineState) -> str | None:
@@ -251,7 +286,8 @@ class RuntimeService(RecoveryHandling):
 
     def handle_abort(self, payload: bytes) -> bytes:
         """AbortRequest -> AbortAck; latches E-STOP. Honoured signed or not (an empty or
-        malformed payload aborts with a default reason); the log says who asked, if signed."""
+        malformed payload aborts with a default reason); the log says who asked, if signed.
+        Valves go neutral first; the latch is written to disk before the ack is returned."""
         try:
             req = decode(AbortRequest, payload) if payload else AbortRequest(machine_id=self.machine_id)
         except ValidationError as e:
@@ -264,11 +300,36 @@ class RuntimeService(RecoveryHandling):
             self._publish(self.executor.abort(req.reason), self._stamp())
             if self.returning:
                 self._stop_return(f"E-STOP: {req.reason}")
-            self.estop_reason = req.reason
+            repeated = self.estop_reason is not None
+            if not repeated:
+                self.estop_reason = req.reason
+            persisted = self._persist_latch(repeated)
             self.publish_info()
-        log.warning("E-STOP latched (%s abort by %s): %s%s", "signed" if signed else "UNSIGNED",
-                    self._who(req) if signed else "unknown", req.reason, f"; throw {throw_id} aborted" if throw_id else "")
-        return encode(AbortAck(machine_id=self.machine_id, aborted_throw_id=throw_id))
+        log.warning("E-STOP %s (%s abort by %s): %s%s", "still latched" if repeated else "latched",
+                    "signed" if signed else "UNSIGNED", self._who(req) if signed else "unknown", req.reason,
+                    f"; throw {throw_id} aborted" if throw_id else "")
+        return encode(AbortAck(machine_id=self.machine_id, aborted_throw_id=throw_id, request_id=req.request_id,
+                               latch_persisted=persisted))
+
+    def _persist_latch(self, already: bool) -> bool:
+        """Write the latch (``self.estop_reason``) to disk unless ``already`` latched (then it is
+        on disk since that stop); True if it is on disk. Caller holds the lock."""
+        if self.latch is None:
+            return False
+        if already and self._latch_on_disk:
+            return True
+        try:
+            self.latch.write(self.estop_reason)
+            self._latch_on_disk = True
+        except OSError as e:
+            self._latch_on_disk = False
+            log.error("E-STOP latch NOT written to %s (%s): it holds until this runtime stops", self.latch.path, e)
+        return self._latch_on_disk
+
+    def on_estop(self, payload: bytes) -> None:
+        """An E-STOP put (keys.estop) arrived: :meth:`handle_abort`, then publish its AbortAck on
+        keys.estop_ack (the sender waits for it; repeated puts of one stop are acked each)."""
+        self.send(keys.estop_ack(self.machine_id), self.handle_abort(payload))
 
     def _addressed(self, payload: bytes, command_type, refusal):
         """Decode a command query for this machine: ``(request, None)``, or ``(None, refusal(why))``
@@ -294,7 +355,14 @@ class RuntimeService(RecoveryHandling):
             log.warning("E-STOP reset refused: %s", denied)
             return encode(EstopResetAck(machine_id=self.machine_id, reset=False, reason=denied))
         with self.lock:
-            was, self.estop_reason = self.estop_reason, None
+            if self.latch is not None:
+                try:
+                    self.latch.clear()
+                except OSError as e:
+                    why = f"E-STOP latch file could not be removed ({e.strerror}): still latched"
+                    log.error("E-STOP reset by %s refused: %s", self._who(req), why)
+                    return encode(EstopResetAck(machine_id=self.machine_id, reset=False, reason=why))
+            was, self.estop_reason, self._latch_on_disk = self.estop_reason, None, False
             self.publish_info()
         log.warning("E-STOP reset by %s (was latched: %s)", self._who(req), was)
         return encode(EstopResetAck(machine_id=self.machine_id, reset=True))
@@ -326,7 +394,7 @@ class RuntimeService(RecoveryHandling):
             elif not ex.policies:
                 why = "no policy loaded"
             else:
-                why = f"machine fault: {state.machine_fault}" if state.machine_fault else self._pose_refusal(state)
+                why = f"machine fault: {state.machine_fault}" if state.machine_fault else self._start_refusal(state)
             return RuntimeInfo(
                 machine_id=self.machine_id,
                 busy=ex.busy,
@@ -347,18 +415,19 @@ class RuntimeService(RecoveryHandling):
             )
 
     def handle_info(self) -> bytes:
-        """-> RuntimeInfo (the queryable keys.info)."""
-        return encode(self.info())
+        """-> RuntimeInfo (the queryable keys.info), stamped with this host's wall clock."""
+        return encode(self.info().model_copy(update={"clock_unix_s": self.wall_clock()}))
 
     def publish_info(self, now_s: float | None = None) -> bool:
         """Publish RuntimeInfo on keys.runtime_state if it changed or INFO_PERIOD_S passed since
-        the last one; returns True if it published."""
+        the last one (stamped with this host's wall clock, which is not a change); returns True
+        if it published."""
         with self.lock:
             info, now = self.info(), self.clock() if now_s is None else now_s
             if info == self._info_sent and now - self._info_sent_s < INFO_PERIOD_S:
                 return False
             self._info_sent, self._info_sent_s = info, now
-            self.send(keys.runtime_state(self.machine_id), encode(info))
+            self.send(keys.runtime_state(self.machine_id), encode(info.model_copy(update={"clock_unix_s": self.wall_clock()})))
             return True
 
     # --- outgoing -----------------------------------------------------------------------------

@@ -8,8 +8,8 @@ queries) are allowed. Data, queries, replies and liveliness tokens arriving are 
 
 | sender CN | may put | may query | may reply on | liveliness token |
 |---|---|---|---|---|
-| server | machine/*/sim/reset | runtime/*/{throw,abort,estop_reset,return_to_ready,info,policy/offer} | server/throw_result, server/policy/* | - |
-| runtime-<id> | machine/<id>/{valve_cmd,gripper_cmd}, runtime/<id>/{status,runtime_state,policy/status} | server/throw_result, server/policy/* | runtime/<id>/{throw,abort,estop_reset,return_to_ready,info,policy/offer} | runtime/<id>/{alive,claim/*} |
+| server | machine/*/sim/reset, runtime/*/estop | runtime/*/{throw,abort,estop_reset,return_to_ready,info,policy/offer} | server/throw_result, server/policy/* | - |
+| runtime-<id> | machine/<id>/{valve_cmd,gripper_cmd}, runtime/<id>/{status,runtime_state,policy/status,estop_ack} | server/throw_result, server/policy/* | runtime/<id>/{throw,abort,estop_reset,return_to_ready,info,policy/offer} | runtime/<id>/{alive,claim/*} |
 | plant-<id> | machine/<id>/{state,impact} | - | - | machine/<id>/{alive,claim/*} |
 | router | everything (it forwards; it enforces these rules itself on its own links) |
 
@@ -52,7 +52,7 @@ def site_acl(machine_ids: Sequence[str]) -> dict:
         _rule("egress", (*DATA, *DECLARATIONS), ["**"], ("egress",)),
         _rule("declarations", DECLARATIONS, ["**"]),
         _rule("router", DATA, ["**"]),
-        _rule("server-put", ["put"], [f"{keys.ROOT}/machine/*/sim/reset"]),
+        _rule("server-put", ["put"], [f"{keys.ROOT}/machine/*/sim/reset", f"{keys.ROOT}/runtime/*/estop"]),
         _rule("server-query", ["query"], [f"{keys.ROOT}/runtime/*/{leaf}" for leaf in RUNTIME_QUERYABLES]),
         _rule("server-reply", ["reply"], server_results),
     ]
@@ -70,7 +70,7 @@ def site_acl(machine_ids: Sequence[str]) -> dict:
         rt, pl = f"runtime-{mid}", f"plant-{mid}"
         rules += [
             _rule(f"{rt}-put", ["put"], [keys.valve_cmd(mid), keys.gripper_cmd(mid), keys.status(mid),
-                                         keys.runtime_state(mid), keys.policy_status(mid)]),
+                                         keys.runtime_state(mid), keys.policy_status(mid), keys.estop_ack(mid)]),
             _rule(f"{rt}-query", ["query"], server_results),
             _rule(f"{rt}-reply", ["reply"], [keys.runtime(mid, leaf) for leaf in RUNTIME_QUERYABLES]),
             _rule(f"{rt}-token", ["liveliness_token"], [keys.runtime_alive(mid), keys.runtime_claim(mid, "*")]),

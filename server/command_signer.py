@@ -68,9 +68,11 @@ class CommandSigner:
         log.info("command key of %s loaded from %s", machine_id, path)
         return key
 
-    def sign(self, msg: M, machine_id: str, user: str, epoch: int, required: bool = False) -> M:
+    def sign(self, msg: M, machine_id: str, user: str, epoch: int, required: bool = False,
+             now_unix_s: float | None = None) -> M:
         """``msg`` signed for ``machine_id``'s runtime of claim ``epoch`` on behalf of ``user``;
-        ``msg`` unchanged when the site has no key for the machine (logged once).
+        ``msg`` unchanged when the site has no key for the machine (logged once). ``now_unix_s``:
+        the issue time to sign (the runtime's clock as the fleet measured it; default time.time()).
 
         Raises:
             NoCommandKey: no key for the machine and ``required``.
@@ -84,7 +86,7 @@ class CommandSigner:
                 raise NoCommandKey(problem)
             self._warn_once(machine_id, f"{problem}: its commands go unsigned and its results unchecked")
             return msg
-        return sign(msg, key, user[:64], epoch)
+        return sign(msg, key, user[:64], epoch, now_unix_s)
 
     def _warn_once(self, machine_id: str, text: str) -> None:
         with self._lock:

@@ -11,8 +11,9 @@ anything else is refused with the reason, logged and never shown in the history.
 Commands (ThrowRequest, AbortRequest, EstopReset, PolicyOffer) are signed with the machine's
 command key (:class:`server.command_signer.CommandSigner`) for the requesting user and the epoch
 of the runtime's claim (from its RuntimeInfo, which the runtime also publishes on
-``keys.ALL_RUNTIME_STATES``; the cache follows it). Aborts (E-STOP) run on their own threads
-(:meth:`Fleet.abort_async`) so they never queue behind other queries or database work. The
+``keys.ALL_RUNTIME_STATES``; the cache follows it). E-STOPs are per-machine fire-and-forget
+puts confirmed by the runtime's AbortAck on ``keys.ALL_ESTOP_ACKS`` (:mod:`server.estop`,
+:meth:`Fleet.estop`), so one machine's stop never waits for another's, a query or a pool. The
 queries and commands live in :mod:`server.fleet_commands` (re-exported here: ``Fleet`` has them,
 ``RuntimeUnavailable`` is importable from this module as before).
 
@@ -44,9 +45,11 @@ from runtime.protocol.messages import (
     ThrowResult,
     ThrowStatus,
     decode,
+    decode_on_key,
     encode,
 )
 from server.command_signer import CommandSigner
+from server.estop import EstopLine
 from server.fleet_commands import FleetCommands, RuntimeUnavailable
 from server.results import ResultStore, UnknownThrow
 
@@ -55,6 +58,9 @@ log = logging.getLogger(__name__)
 
 RESULT_BATCH = 200
 """At most this many throw results are stored in one commit (the DB thread drains what arrived)."""
+RUNTIME_SILENT_S = 3.0
+"""A runtime that published its RuntimeInfo (>= 2 Hz) and is silent this long is shown offline
+("runtime not answering"): frozen or cut off, well within the Zenoh link lease (10 s)."""
 STAGE_THREADS = 8
 """Threads that write and fsync the results' telemetry files before the DB thread commits them
 (file I/O overlaps the database's; the GIL is released while writing)."""
@@ -82,11 +88,15 @@ class Fleet(FleetCommands):
         self._alive: set[str] = set()
         self._started_s = time.monotonic()
         self._offline_since: dict[str, float] = {}
-        self._estop = ThreadPoolExecutor(max_workers=4, thread_name_prefix="estop")
+        self._estop = EstopLine(session, self._sign_abort)
         self.refused_results: list[tuple[str, str]] = []
         """(throw id, reason) of the last refused results (bounded), for tests and diagnostics."""
         self._states: dict[str, MachineState] = {}
         self._infos: dict[str, tuple[float, RuntimeInfo]] = {}
+        self._published_s: dict[str, float] = {}
+        """machine id -> monotonic s of its runtime's last RuntimeInfo on keys.runtime_state."""
+        self._clock_offsets: dict[str, float] = {}
+        """machine id -> its runtime's wall clock minus the server's, s (latest RuntimeInfo)."""
         self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue()
         self._results: list[tuple[zenoh.Query, ThrowResult, object]] = []
         """Results with their staged telemetry waiting for the DB thread; one job stores all that
@@ -108,6 +118,7 @@ class Fleet(FleetCommands):
             s.declare_subscriber(keys.ALL_STATES, self._on_state),
             s.declare_subscriber(keys.ALL_STATUS, self._on_status),
             s.declare_subscriber(keys.ALL_RUNTIME_STATES, self._on_runtime_state),
+            s.declare_subscriber(keys.ALL_ESTOP_ACKS, self._estop.on_ack),
             s.declare_queryable(keys.THROW_RESULT, self._on_result, complete=True),
         ]
 
@@ -119,7 +130,7 @@ class Fleet(FleetCommands):
             except Exception:  # already closed with the session
                 log.debug("undeclare failed", exc_info=True)
         self._decls = []
-        self._estop.shutdown(wait=False)
+        self._estop.close()
         self._stage.shutdown(wait=True)  # staged results still reach the DB thread
         if self._worker is not None:
             self._jobs.put(None)
@@ -161,18 +172,53 @@ class Fleet(FleetCommands):
 
     def fresh_info(self, machine_id: str, max_age_s: float = 2.0, timeout_s: float = 1.0) -> RuntimeInfo | None:
         """RuntimeInfo at most ``max_age_s`` old: the cache, else a query (``timeout_s``);
-        the stale cached one if the runtime does not answer; None for an offline runtime."""
+        the stale cached one if the runtime does not answer or has gone silent (no query then);
+        None for an offline runtime."""
         if not self.is_online(machine_id):
             return None
         with self._lock:
             entry = self._infos.get(machine_id)
         if entry is not None and time.monotonic() - entry[0] <= max_age_s:
             return entry[1]
+        if not self.is_answering(machine_id):  # silent: a query would only wait for its timeout
+            return entry[1] if entry else None
         try:
             return self.query_info(machine_id, timeout_s=timeout_s)
         except (RuntimeUnavailable, ValidationError) as e:
             log.debug("RuntimeInfo of %s: %s", machine_id, e)
             return entry[1] if entry else None
+
+    def silent_for_s(self, machine_id: str) -> float:
+        """Seconds since the runtime of ``machine_id`` last published its RuntimeInfo (it does
+        at >= 2 Hz); 0 while it is offline or has never published (an older runtime)."""
+        with self._lock:
+            if machine_id not in self._alive or machine_id not in self._published_s:
+                return 0.0
+            return time.monotonic() - self._published_s[machine_id]
+
+    def is_answering(self, machine_id: str) -> bool:
+        """Online (liveliness) and not silent for more than RUNTIME_SILENT_S: a frozen runtime
+        keeps its liveliness token until the Zenoh link's lease expires, but stops publishing."""
+        return self.is_online(machine_id) and self.silent_for_s(machine_id) <= RUNTIME_SILENT_S
+
+    def clock_offset_s(self, machine_id: str) -> float | None:
+        """The runtime's wall clock minus the server's, s, from its latest RuntimeInfo (transit
+        time, milliseconds, neglected); None if it never reported its clock."""
+        with self._lock:
+            return self._clock_offsets.get(machine_id)
+
+    def _note_info(self, info: RuntimeInfo, published: bool) -> None:
+        """Cache ``info`` (received now; ``published`` on keys.runtime_state, else a query reply)
+        and measure the runtime's clock offset from it."""
+        now = time.monotonic()
+        with self._lock:
+            if info.machine_id not in self._alive and published:
+                return
+            self._infos[info.machine_id] = (now, info)
+            if published:
+                self._published_s[info.machine_id] = now
+            if info.clock_unix_s is not None:
+                self._clock_offsets[info.machine_id] = info.clock_unix_s - time.time()
 
     def forget_info(self, machine_id: str) -> None:
         """Drop the cached RuntimeInfo (e.g. after its policies changed) so the next read asks."""
@@ -205,6 +251,7 @@ class Fleet(FleetCommands):
                 self._alive.add(machine_id)
                 self._offline_since.pop(machine_id, None)
                 self._infos.pop(machine_id, None)  # a new claim: its epoch is asked again
+                self._published_s.pop(machine_id, None)
             self._jobs.put(lambda: self._register(machine_id))
         else:
             log.info("runtime %s offline", machine_id)
@@ -212,19 +259,16 @@ class Fleet(FleetCommands):
                 self._alive.discard(machine_id)
                 self._offline_since[machine_id] = time.monotonic()
                 self._infos.pop(machine_id, None)
+                self._published_s.pop(machine_id, None)
 
     def _on_runtime_state(self, sample: zenoh.Sample) -> None:
         """A runtime's published RuntimeInfo (2 Hz and on change) refreshes the cache."""
         try:
-            info = decode(RuntimeInfo, sample.payload.to_bytes())
-            if keys.machine_id_of(str(sample.key_expr)) != info.machine_id:
-                raise ValueError(f"RuntimeInfo of {info.machine_id} on {sample.key_expr}")
+            info = decode_on_key(RuntimeInfo, sample.key_expr, sample.payload.to_bytes())
         except (ValidationError, ValueError) as e:
             log.debug("dropped RuntimeInfo on %s: %s", sample.key_expr, e)
             return
-        with self._lock:
-            if info.machine_id in self._alive:
-                self._infos[info.machine_id] = (time.monotonic(), info)
+        self._note_info(info, published=True)
 
     def _on_state(self, sample: zenoh.Sample) -> None:
         try:

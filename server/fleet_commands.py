@@ -3,7 +3,8 @@
 :class:`FleetCommands` is the query half of :class:`server.fleet.Fleet`: it asks runtimes for
 their RuntimeInfo (cached per machine), signs commands (ThrowRequest, EstopReset, ReturnToReady,
 PolicyOffer) with the machine's command key for the runtime's claim epoch and decodes their acks,
-and sends aborts (E-STOP; signed when it can be, else unsigned) on the dedicated E-STOP threads.
+and hands E-STOPs (signed when it can be, else unsigned) to the per-machine fire-and-forget path
+of :mod:`server.estop`.
 :class:`RuntimeUnavailable` is what every query raises when no valid reply comes back. Both are
 re-exported by :mod:`server.fleet`; callers import them from there.
 """
@@ -18,7 +19,6 @@ from pydantic import ValidationError
 
 from runtime.protocol import keys
 from runtime.protocol.messages import (
-    AbortAck,
     AbortRequest,
     EstopReset,
     EstopResetAck,
@@ -36,6 +36,11 @@ from runtime.protocol.messages import (
 log = logging.getLogger("server.fleet")  # the logger of server.fleet, as before the split
 
 
+RETRY_REASONS = ("wrong epoch", "stale (", "in the future")
+"""A signed command refused for one of these is signed again once with the runtime's epoch and
+clock asked afresh (it restarted, or its clock moved)."""
+
+
 class RuntimeUnavailable(RuntimeError):
     """The runtime did not answer (offline, or no reply within the timeout)."""
 
@@ -44,9 +49,11 @@ class FleetCommands:
     """Queries and signed commands to runtimes; a base of :class:`server.fleet.Fleet`, which
     provides what these methods use: ``session`` (open Zenoh session), ``signer``
     (:class:`server.command_signer.CommandSigner`), ``query_timeout_s`` (s), ``_lock``,
-    ``_infos`` (machine id -> (monotonic s, RuntimeInfo)), ``_estop`` (the E-STOP thread pool),
-    :meth:`~server.fleet.Fleet.is_online`, :meth:`~server.fleet.Fleet.cached_info` and
-    :meth:`~server.fleet.Fleet.forget_info`.
+    ``_infos`` (machine id -> (monotonic s, RuntimeInfo)), ``_estop`` (the
+    :class:`server.estop.EstopLine`),
+    :meth:`~server.fleet.Fleet.is_online`, :meth:`~server.fleet.Fleet.cached_info`,
+    :meth:`~server.fleet.Fleet.forget_info`, :meth:`~server.fleet.Fleet.clock_offset_s` and
+    :meth:`~server.fleet.Fleet._note_info`.
     """
 
     # --- queries -------------------------------------------------------------------------------
@@ -57,8 +64,7 @@ class FleetCommands:
             RuntimeUnavailable: no valid reply within the timeout.
         """
         info = decode(RuntimeInfo, self._query_one(keys.info(machine_id), None, timeout_s))
-        with self._lock:
-            self._infos[machine_id] = (time.monotonic(), info)
+        self._note_info(info, published=False)
         return info
 
     def epoch_of(self, machine_id: str, fresh: bool = False) -> int:
@@ -85,14 +91,15 @@ class FleetCommands:
         """
         for attempt in (0, 1):
             epoch = self.epoch_of(machine_id, fresh=attempt > 0)
-            signed = self.signer.sign(msg, machine_id, user, epoch)
+            signed = self.signer.sign(msg, machine_id, user, epoch, now_unix_s=self.runtime_now(machine_id))
             payload = self._query_one(key_of(machine_id), encode(signed), timeout_s)
             try:
                 ack = decode(ack_type, payload)
             except ValidationError as e:
                 raise RuntimeUnavailable(f"malformed {ack_type.__name__} from {machine_id}: {e}") from e
-            if attempt == 0 and "wrong epoch" in (getattr(ack, "reason", None) or ""):
-                log.info("%s: %s; asking its epoch again", machine_id, ack.reason)
+            reason = getattr(ack, "reason", None) or ""
+            if attempt == 0 and any(why in reason for why in RETRY_REASONS):
+                log.info("%s: %s; asking its epoch and clock again", machine_id, reason)
                 self.forget_info(machine_id)
                 continue
             return ack, epoch
@@ -147,32 +154,34 @@ class FleetCommands:
         ack, _ = self._signed_query(keys.policy_offer, offer, offer.machine_id, user, PolicyOfferAck)
         return ack
 
-    def abort(self, machine_id: str, reason: str = "operator abort", user: str = "system",
-              timeout_s: float | None = None) -> AbortAck:
-        """Ask the runtime to stop now (valves neutral; the runtime latches E-STOP); returns its
-        AbortAck. Signed when the server has the key and knows the epoch (from the cache only:
-        no query before the stop), else sent unsigned (the runtime honours unsigned stops).
+    def estop(self, machine_id: str, reason: str = "operator abort", user: str = "system") -> Future:
+        """E-STOP ``machine_id``: the AbortRequest is put at once (per machine, fire-and-forget,
+        repeated until confirmed; presses while one is unconfirmed join it) and the returned
+        Future gets the runtime's AbortAck, or fails with :class:`server.estop.EstopUnconfirmed`
+        (a RuntimeUnavailable) after the press's deadline. Never waits for another machine, a
+        query or a thread pool.
 
         Raises:
-            RuntimeUnavailable: no valid reply within the timeout.
             ValueError: a malformed machine id.
         """
-        request = AbortRequest(machine_id=machine_id, reason=reason[:200])
-        info = self.cached_info(machine_id)
-        if info is not None:
-            try:
-                request = self.signer.sign(request, machine_id, user, info.epoch)
-            except ValueError as e:
-                log.warning("abort of %s sent unsigned: %s", machine_id, e)
-        payload = self._query_one(keys.abort(machine_id), encode(request), timeout_s)
-        try:
-            return decode(AbortAck, payload)
-        except ValidationError as e:
-            raise RuntimeUnavailable(f"malformed AbortAck from {machine_id}: {e}") from e
+        return self._estop.press(machine_id, reason, user)
 
-    def abort_async(self, machine_id: str, reason: str, user: str, timeout_s: float | None = None) -> Future:
-        """:meth:`abort` on the dedicated E-STOP threads; returns its Future (AbortAck)."""
-        return self._estop.submit(self.abort, machine_id, reason, user, timeout_s)
+    def _sign_abort(self, request: AbortRequest, machine_id: str, user: str) -> AbortRequest:
+        """``request`` signed for the runtime's cached epoch (no query before a stop), or
+        unchanged when the epoch is unknown or the site has no key (stops are honoured unsigned).
+
+        Raises:
+            ValueError: a malformed command key file.
+        """
+        info = self.cached_info(machine_id)
+        if info is None:
+            return request
+        return self.signer.sign(request, machine_id, user, info.epoch, now_unix_s=self.runtime_now(machine_id))
+
+    def runtime_now(self, machine_id: str) -> float:
+        """The runtime's wall clock now as the server estimates it, Unix s: time.time() plus
+        the clock offset measured from its RuntimeInfo (:meth:`clock_offset_s`; 0 if unknown)."""
+        return time.time() + (self.clock_offset_s(machine_id) or 0.0)
 
     def _query_one(self, key: str, payload: bytes | None, timeout_s: float | None = None) -> bytes:
         timeout_s = timeout_s or self.query_timeout_s

@@ -33,6 +33,7 @@ from pydantic import ValidationError
 from runtime.machine import forward_kinematics
 from runtime.protocol import keys
 from runtime.protocol.messages import MachineState, RuntimeInfo, ThrowStatus, ValveCommand, decode
+from server.fleet import RUNTIME_SILENT_S
 
 log = logging.getLogger(__name__)
 
@@ -43,8 +44,9 @@ SAMPLE_RATE_HZ = 25.0
 QUEUE_SIZE = 2000
 ACTIVE_PHASES = ("preparing", "swinging", "released")
 ALL_VALVE_CMDS = f"{keys.ROOT}/machine/*/valve_cmd"
-SILENT_AFTER_S = 3.0
-"""A runtime that published RuntimeInfo before and is silent this long is shown not ready."""
+SILENT_AFTER_S = RUNTIME_SILENT_S
+"""A runtime that published RuntimeInfo before and is silent this long is shown offline
+("runtime not answering": frozen or cut off), whatever it said last (busy, swinging, ...)."""
 
 
 def machine_status(machine_id: str, online: bool, info: RuntimeInfo | None, info_age_s: float | None,
@@ -79,13 +81,14 @@ def machine_status(machine_id: str, online: bool, info: RuntimeInfo | None, info
                return_result=info.return_result)
     phase = info.phase or (throw or {}).get("phase")
     out.update(phase=phase, throw_id=info.throw_id or (throw or {}).get("throw_id"), reason=None)
+    if info_age_s is not None and info_age_s > SILENT_AFTER_S:  # frozen or cut off: what it said last no longer holds
+        return {**out, "state": "offline", "reason": f"runtime not answering for {info_age_s:.0f} s",
+                "phase": None, "throw_id": None}
     if info.estop_latched:
         return {**out, "state": "estopped", "reason": info.estop_reason or "E-STOP latched",
                 "estop_reason": info.estop_reason}
     if phase in ACTIVE_PHASES:
         return {**out, "state": "throwing"}
-    if info_age_s is not None and info_age_s > SILENT_AFTER_S:
-        return {**out, "state": "not_ready", "reason": f"runtime silent for {info_age_s:.0f} s"}
     if not info.machine_online:
         return {**out, "state": "not_ready", "reason": "machine offline (no joint states)"}
     if info.ready:

@@ -94,16 +94,25 @@ class FakeRuntime:
         cabin_turn_rad: the cabin angle it reports.
         site_dir: the site directory holding (or receiving) the machine's command key.
         hold: accept throws but never finish them (the throw stays running).
+        clock_offset_s: its wall clock runs this far off the host's (checks freshness with it and
+            reports it as RuntimeInfo.clock_unix_s).
+
+    Set ``frozen = True`` to stand for a stopped (SIGSTOP) runtime's command handling: aborts
+    and E-STOP puts are neither executed nor answered.
     """
 
     def __init__(self, endpoint: str, machine_id: str = "m1", refuse: str | None = None,
                  silent: bool = False, deliver: bool = True, cabin_turn_rad: float = 0.0,
-                 policies: list[PolicyInfo] | None = None, site_dir: Path | None = None, hold: bool = False):
+                 policies: list[PolicyInfo] | None = None, site_dir: Path | None = None, hold: bool = False,
+                 clock_offset_s: float = 0.0):
         self.machine_id, self.refuse, self.silent, self.deliver = machine_id, refuse, silent, deliver
         self.hold = hold
+        self.frozen = False
+        self.unanswered: list = []
         self.epoch = int(time.time() * 1000)
         self.key = machine_key(site_dir, machine_id) if site_dir is not None else None
-        self.verifier = CommandVerifier(self.key, self.epoch) if self.key is not None else None
+        self.wall_clock = lambda: time.time() + clock_offset_s
+        self.verifier = CommandVerifier(self.key, self.epoch, wall_clock=self.wall_clock) if self.key is not None else None
         self.estop_reason: str | None = None
         self.current: tuple[str, str] | None = None  # (throw id, phase) of the running throw
         self.policies = policies or [PolicyInfo(mode="2d", version="fake-2d", sha256="ab" * 32)]
@@ -121,6 +130,7 @@ class FakeRuntime:
             s.declare_queryable(keys.abort(machine_id), self._on_abort),
             s.declare_queryable(keys.estop_reset(machine_id), self._on_estop_reset),
         ]
+        self._estop_sub = s.declare_subscriber(keys.estop(machine_id), self._on_estop)
         self._state_pub = s.declare_publisher(keys.state(machine_id))
         self._status_pub = s.declare_publisher(keys.status(machine_id))
         self._token = s.liveliness().declare_token(keys.runtime_alive(machine_id))
@@ -143,17 +153,31 @@ class FakeRuntime:
                            policies=self.policies, epoch=self.epoch, estop_latched=latched,
                            estop_reason=self.estop_reason, ready=not latched and current is None,
                            not_ready_reason="E-STOP latched" if latched else None,
-                           throw_id=current[0] if current else None, phase=current[1] if current else None)
+                           throw_id=current[0] if current else None, phase=current[1] if current else None,
+                           clock_unix_s=self.wall_clock())
 
     def _on_info(self, query) -> None:
         query.reply(keys.info(self.machine_id), encode(self.info()))
 
-    def _on_abort(self, query) -> None:
-        raw = query.payload.to_bytes() if query.payload is not None else b""
+    def _abort(self, raw: bytes) -> bytes:
         self.aborts.append(raw)
-        self.estop_reason = decode(AbortRequest, raw).reason if raw else "abort"
+        req = decode(AbortRequest, raw) if raw else AbortRequest(machine_id=self.machine_id, reason="abort")
+        self.estop_reason = req.reason
         aborted = self.current[0] if self.current else None
-        query.reply(keys.abort(self.machine_id), encode(AbortAck(machine_id=self.machine_id, aborted_throw_id=aborted)))
+        return encode(AbortAck(machine_id=self.machine_id, aborted_throw_id=aborted, request_id=req.request_id))
+
+    def _on_abort(self, query) -> None:
+        if self.frozen:
+            self.unanswered.append(query)  # kept open, unanswered, as by a stopped process
+            return
+        raw = query.payload.to_bytes() if query.payload is not None else b""
+        query.reply(keys.abort(self.machine_id), self._abort(raw))
+
+    def _on_estop(self, sample) -> None:
+        """The server's E-STOP put: latch, then the AbortAck on keys.estop_ack (as the runtime)."""
+        if self.frozen:
+            return
+        self.session.put(keys.estop_ack(self.machine_id), self._abort(sample.payload.to_bytes()))
 
     def _check(self, msg) -> str | None:
         return self.verifier.check(msg) if self.verifier is not None else None
@@ -232,6 +256,7 @@ class FakeRuntime:
         for t in self._threads:
             t.join(timeout=12.0)
         self._token.undeclare()
+        self._estop_sub.undeclare()
         for d in self._decls:
             d.undeclare()
         self.session.close()

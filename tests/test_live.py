@@ -27,7 +27,9 @@ def test_machine_status_says_one_state_with_its_reason():
     assert st["state"] == "not_ready" and "waiting" in st["reason"]
     st = machine_status("m1", True, _info(machine_online=False), 0.1)
     assert (st["state"], st["reason"]) == ("not_ready", "machine offline (no joint states)")
-    assert machine_status("m1", True, _info(), 9.0)["reason"] == "runtime silent for 9 s"
+    frozen = machine_status("m1", True, _info(busy=True, phase="swinging", throw_id="t1", estop_latched=True), 9.0,
+                            {"throw_id": "t1", "phase": "swinging"})
+    assert (frozen["state"], frozen["reason"], frozen["phase"]) == ("offline", "runtime not answering for 9 s", None)
     # a running throw (known from ThrowStatus) is shown with its phase
     st = machine_status("m1", True, _info(busy=True), 0.1, {"throw_id": "t1", "phase": "swinging"})
     assert (st["state"], st["phase"], st["throw_id"]) == ("throwing", "swinging", "t1")

@@ -207,6 +207,11 @@ def test_abort_latches_estop_until_a_signed_reset(holding_path):
     assert h.service.estop_reason == "stop!"
     assert _reset(h).reset
     assert not h.service.info().estop_latched
+    for _ in range(300):  # stopped mid-swing: READY once the arm is at rest
+        if h.service.info().ready:
+            break
+        assert h.service.info().not_ready_reason.startswith("machine moving")
+        h.tick()
     assert decode(ThrowAck, h.service.handle_throw(_throw_payload("t9"))).accepted
     # an empty abort payload (idle or not) latches too
     decode(AbortAck, h.service.handle_abort(b""))

@@ -11,6 +11,8 @@ Layout::
     slinger/machine/<machine_id>/claim/<claim>  liveliness token of a plant claiming the machine at start
     slinger/runtime/<machine_id>/throw          queryable: ThrowRequest -> ThrowAck
     slinger/runtime/<machine_id>/abort          queryable: AbortRequest -> AbortAck
+    slinger/runtime/<machine_id>/estop          AbortRequest     server -> runtime   put (the E-STOP path)
+    slinger/runtime/<machine_id>/estop_ack      AbortAck         runtime -> server   per E-STOP put, after the latch is on disk
     slinger/runtime/<machine_id>/info           queryable: -> RuntimeInfo
     slinger/runtime/<machine_id>/status         ThrowStatus      runtime -> server   on change
     slinger/runtime/<machine_id>/estop_reset    queryable: EstopReset -> EstopResetAck
@@ -87,6 +89,18 @@ def throw(machine_id: str) -> str:
 
 def abort(machine_id: str) -> str:
     return runtime(machine_id, "abort")
+
+
+def estop(machine_id: str) -> str:
+    """The E-STOP put: AbortRequest, fire-and-forget (no query, no reply awaited on the sender's
+    thread); the runtime confirms on :func:`estop_ack`."""
+    return runtime(machine_id, "estop")
+
+
+def estop_ack(machine_id: str) -> str:
+    """The runtime's AbortAck of an E-STOP put (echoing its ``request_id``), published after the
+    latch is written to disk."""
+    return runtime(machine_id, "estop_ack")
 
 
 def info(machine_id: str) -> str:
@@ -166,6 +180,7 @@ ALL_STATES = f"{ROOT}/machine/*/state"
 ALL_RUNTIME_ALIVE = f"{ROOT}/runtime/*/alive"
 ALL_STATUS = f"{ROOT}/runtime/*/status"
 ALL_RUNTIME_STATES = f"{ROOT}/runtime/*/runtime_state"
+ALL_ESTOP_ACKS = f"{ROOT}/runtime/*/estop_ack"
 THROW_RESULT = f"{ROOT}/server/throw_result"
 
 

@@ -16,7 +16,7 @@ from typing import Annotated, Literal, TypeVar
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
 
-from runtime.protocol.keys import validate_machine_id
+from runtime.protocol.keys import machine_id_of, validate_machine_id
 
 SCHEMA_VERSION = 1
 
@@ -177,16 +177,34 @@ class ThrowAck(Message):
 
 class AbortRequest(Message):
     """Server -> runtime: stop now (valves to neutral) and latch E-STOP until a signed
-    EstopReset. Honoured even unsigned (stopping is always safe); ``auth`` names who asked."""
+    EstopReset. Honoured even unsigned (stopping is always safe); ``auth`` names who asked.
+    Sent as a put on keys.estop (the server's E-STOP path) or a query on keys.abort.
+
+    Attributes:
+        request_id: the sender's id of this stop (repeated puts of one stop carry the same id);
+            echoed in the AbortAck on keys.estop_ack. None on the query path.
+    """
 
     machine_id: MachineId
     reason: Annotated[str, Field(max_length=200)] = "operator abort"
+    request_id: Annotated[str, Field(pattern=r"^[0-9a-f]{1,64}$")] | None = None
     auth: CommandAuth | None = None
 
 
 class AbortAck(Message):
+    """Runtime -> server: the stop is done (valves neutral) and the latch is on disk.
+
+    Attributes:
+        aborted_throw_id: the throw it ended, or None when none ran.
+        request_id: the AbortRequest's ``request_id`` (None on the query path).
+        latch_persisted: the latch was written to the runtime's state directory (False: it
+            could not be, the latch holds in memory only; the runtime logs why).
+    """
+
     machine_id: MachineId
     aborted_throw_id: str | None = None
+    request_id: str | None = None
+    latch_persisted: bool = True
 
 
 class EstopReset(Message):
@@ -259,6 +277,9 @@ class RuntimeInfo(Message):
         returning: a return to the ready pose runs; ``return_progress`` 0..1 (5 % steps);
             ``return_result`` how the last one ended ("reached the ready pose",
             "failed: ...", "stopped: ..."), None before the first.
+        clock_unix_s: the runtime host's wall clock (Unix s) when this was sent; the server
+            measures the clock offset from it and signs commands in the runtime's time
+            (freshness checks then hold under clock drift between hosts). None: not reported.
     """
 
     machine_id: MachineId
@@ -277,6 +298,7 @@ class RuntimeInfo(Message):
     returning: bool = False
     return_progress: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
     return_result: Annotated[str, Field(max_length=200)] | None = None
+    clock_unix_s: float | None = Field(default=None, allow_inf_nan=False)
 
 
 class ThrowResult(Stamped):
@@ -361,4 +383,18 @@ def decode(cls: type[M], payload: bytes | bytearray | memoryview | str) -> M:
     return cls.model_validate_json(payload)
 
 
-__all__ = [name for name in dir() if name[0].isupper()] + ["encode", "decode", "ValidationError"]
+def decode_on_key(cls: type[M], key_expr: str, payload: bytes | bytearray | memoryview | str) -> M:
+    """:func:`decode` a message that arrived on ``key_expr`` and check that it is the key's
+    machine's (a runtime may publish only under its own machine id).
+
+    Raises:
+        pydantic.ValidationError: as :func:`decode`.
+        ValueError: the key is not a machine/runtime key, or names another machine.
+    """
+    msg = decode(cls, payload)
+    if machine_id_of(str(key_expr)) != msg.machine_id:
+        raise ValueError(f"{cls.__name__} of {msg.machine_id} on {key_expr}")
+    return msg
+
+
+__all__ = [name for name in dir() if name[0].isupper()] + ["encode", "decode", "decode_on_key", "ValidationError"]

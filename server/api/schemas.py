@@ -60,6 +60,9 @@ class MachineOut(BaseModel):
         ready / not_ready_reason: the runtime would accept a throw now, else why not
             ("E-STOP latched", "machine offline", the machine's fault, ...); None if unknown.
         phase / throw_id: the running throw's phase and id (None when idle or unknown).
+        clock_offset_s: the runtime host's wall clock minus the server's, s (None: not
+            reported); ``clock_warning`` says so in words when it is more than
+            CLOCK_WARN_S off (signed commands are compensated; the host's time sync is broken).
     """
 
     id: str
@@ -74,6 +77,8 @@ class MachineOut(BaseModel):
     not_ready_reason: str | None = None
     phase: str | None = None
     throw_id: str | None = None
+    clock_offset_s: float | None = None
+    clock_warning: str | None = None
     last_throw_at: datetime | None = None
     last_throw_status: str | None = None
     current_mode: str | None = None

@@ -56,39 +56,14 @@ def run(clicks: int, burners: int, policy: Path, seed: int = 0, keep: Path | Non
                 attempts = 0
                 while len(neutral_s) < clicks and attempts < clicks * 4 and time.monotonic() < stop_at:
                     attempts += 1
-                    m = _wait_ready(stack, 60)
-                    if not m["ready"]:
-                        refusals.append(f"not ready: {m['not_ready_reason']}")
-                        continue
-                    r = stack.try_throw()
-                    if r.status_code != 202:
-                        refusals.append(r.json().get("detail"))
-                        time.sleep(1.0)
-                        continue
-                    stack.wait_phase(r.json()["id"], ("swinging",))
-                    time.sleep(rng.uniform(0.0, 0.4))
-                    log.info("click %d at wall %.3f", len(neutral_s) + 1, time.time())
-                    t0 = time.monotonic()
-                    try:
-                        e = stack.http.post("/api/machines/m1/estop", json={"reason": "latency benchmark"})
-                    except httpx.HTTPError as exc:  # counted: the stop may still have gone out
-                        refusals.append(f"E-STOP request error: {exc!r}")
-                        e = None
-                    t_reply = time.monotonic()
-                    deadline = t0 + 5.0
-                    while (t_n := watch.first_neutral_after(t0)) is None and time.monotonic() < deadline:
-                        time.sleep(0.002)
-                    moving = any(watch.last_before(t0) or [])
-                    not_moving += not moving
-                    if e is not None and e.status_code == 200 and t_n is not None and moving:
-                        neutral_s.append(t_n - t0)
-                        reply_s.append(t_reply - t0)
+                    c = click_cycle(stack, watch, rng, "latency benchmark")
+                    refusals += c["refusals"]
+                    not_moving += c["moving"] is False
+                    if c["neutral_s"] is not None:
+                        neutral_s.append(c["neutral_s"])
+                        reply_s.append(c["reply_s"])
                         log.info("click %d: neutral after %.1f ms, reply after %.1f ms", len(neutral_s),
-                                 (t_n - t0) * 1e3, (t_reply - t0) * 1e3)
-                    stack.wait_final(r.json()["id"], 30)
-                    assert stack.http.post("/api/machines/m1/estop/reset").status_code == 200
-                    watch.reload()  # the arm stopped mid-swing, payload in hand: start afresh
-                    time.sleep(1.5)
+                                 c["neutral_s"] * 1e3, c["reply_s"] * 1e3)
             finally:
                 for h in hogs:
                     stop_proc(h, signal.SIGKILL)
@@ -96,6 +71,51 @@ def run(clicks: int, burners: int, policy: Path, seed: int = 0, keep: Path | Non
         left = orphans(tmp)
     return {"neutral_s": neutral_s, "reply_s": reply_s, "refusals": refusals, "orphans": left,
             "not_moving": not_moving}
+
+
+def click_cycle(stack, watch, rng: random.Random, reason: str, machine_id: str = "m1") -> dict:
+    """One E-STOP click on a throw mid-swing: wait until ready, preview and throw, wait for
+    ``swinging`` and a random 0-0.4 s, POST the E-STOP, wait for the first neutral ValveCommand
+    (5 s at most); then wait for the throw's end, reset the latch, reload the simulated machine.
+
+    Returns:
+        {"neutral_s", "reply_s"}: click -> first neutral command / HTTP reply, s (None unless the
+        click counted: replied 200, a neutral command seen, the valves moving just before it);
+        "moving": the last command before the click was not neutral (None: no click made);
+        "refusals": what went wrong meanwhile (not ready, throw refused, E-STOP not 200).
+    """
+    out = {"neutral_s": None, "reply_s": None, "moving": None, "refusals": []}
+    m = _wait_ready(stack, 60)
+    if not m["ready"]:
+        out["refusals"].append(f"not ready: {m['not_ready_reason']}")
+        return out
+    r = stack.try_throw(machine_id=machine_id)
+    if r.status_code != 202:
+        out["refusals"].append(r.json().get("detail"))
+        time.sleep(1.0)
+        return out
+    stack.wait_phase(r.json()["id"], ("swinging",))
+    time.sleep(rng.uniform(0.0, 0.4))
+    t0 = time.monotonic()
+    try:
+        e = stack.http.post(f"/api/machines/{machine_id}/estop", json={"reason": reason})
+    except httpx.HTTPError as exc:  # counted: the stop may still have gone out
+        out["refusals"].append(f"E-STOP request error: {exc!r}")
+        e = None
+    t_reply = time.monotonic()
+    deadline = t0 + 5.0
+    while (t_n := watch.first_neutral_after(t0)) is None and time.monotonic() < deadline:
+        time.sleep(0.002)
+    out["moving"] = any(watch.last_before(t0) or [])
+    if e is not None and e.status_code != 200:
+        out["refusals"].append(f"E-STOP answered {e.status_code}: {e.text[:200]}")
+    elif e is not None and t_n is not None and out["moving"]:
+        out["neutral_s"], out["reply_s"] = t_n - t0, t_reply - t0
+    stack.wait_final(r.json()["id"], 30)
+    assert stack.http.post(f"/api/machines/{machine_id}/estop/reset").status_code == 200
+    watch.reload(machine_id)  # the arm stopped mid-swing, payload in hand: start afresh
+    time.sleep(1.5)
+    return out
 
 
 def _wait_ready(stack, timeout_s: float) -> dict:

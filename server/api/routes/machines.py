@@ -18,13 +18,15 @@ from server.api.deps import session_token
 from server.auth import audit, record_audit, role_at_least, user_for_token
 from server.api.schemas import MachineOut
 from server.db.models import Machine, Throw
-from server.fleet import Fleet, RuntimeUnavailable
+from server.fleet import RUNTIME_SILENT_S, Fleet, RuntimeUnavailable
 
 router = APIRouter(prefix="/api/machines", tags=["machines"])
 log = logging.getLogger(__name__)
 
 INFO_TIMEOUT_S = 1.0
 INFO_MAX_AGE_S = 2.0  # busy flag and policies are at most this old
+CLOCK_WARN_S = 1.0
+"""A runtime whose wall clock is further off the server's gets a clock warning in its row."""
 
 
 @router.get("", response_model=list[MachineOut])
@@ -58,17 +60,33 @@ def _with_throws(db, m: MachineOut) -> MachineOut:
     return m
 
 
+def clock_words(offset_s: float | None) -> str | None:
+    """The clock warning of a runtime whose wall clock is ``offset_s`` off the server's, or
+    None within CLOCK_WARN_S."""
+    if offset_s is None or abs(offset_s) <= CLOCK_WARN_S:
+        return None
+    return (f"clock differs from the server by {offset_s:+.1f} s (signed commands are compensated; "
+            "fix the time sync of the runtime's host)")
+
+
 def _machine_out(mid: str, row: Machine | None, fleet: Fleet) -> MachineOut:
     online = fleet.is_online(mid)
-    info = fleet.fresh_info(mid, max_age_s=INFO_MAX_AGE_S, timeout_s=INFO_TIMEOUT_S)
+    silent_s = fleet.silent_for_s(mid)
     state = fleet.latest_state(mid)
+    offset_s = fleet.clock_offset_s(mid)
+    clock = {"clock_offset_s": round(offset_s, 3) if offset_s is not None else None, "clock_warning": clock_words(offset_s)}
+    if silent_s > RUNTIME_SILENT_S:  # frozen or cut off: its last state is no longer true
+        return MachineOut(id=mid, online=False, simulated=bool((state and state.simulated) or (row and row.simulated)),
+                          cabin_turn_rad=state.q[0] if state is not None else None, ready=False,
+                          not_ready_reason=f"runtime not answering for {silent_s:.0f} s", **clock)
+    info = fleet.fresh_info(mid, max_age_s=INFO_MAX_AGE_S, timeout_s=INFO_TIMEOUT_S)
     simulated = bool(
         (state is not None and state.simulated)
         or (info is not None and info.simulated)
         or (row is not None and row.simulated)
     )
     return MachineOut(
-        id=mid, online=online, simulated=simulated,
+        id=mid, online=online, simulated=simulated, **clock,
         policies={p.mode: p.version for p in info.policies} if info else {},
         busy=info.busy if info else None,
         cabin_turn_rad=state.q[0] if state is not None else None,
@@ -107,45 +125,49 @@ def _operator_or_raise(request: Request):
 
 
 STOP_RESPONSES = {401: {"description": "log in first"}, 403: {"description": "needs the operator role"},
-                  404: {"description": "unknown machine"}, 503: {"description": "the runtime did not answer"}}
+                  404: {"description": "unknown machine"}, 503: {"description": "the runtime did not confirm the stop"}}
 
 
 @router.post("/{machine_id}/estop", response_model=AbortOut, responses=STOP_RESPONSES)
 @router.post("/{machine_id}/abort", response_model=AbortOut, responses=STOP_RESPONSES)
 async def estop(machine_id: str, request: Request, body: AbortIn | None = None) -> AbortOut:
     """E-STOP: the runtime ends any throw as aborted, puts the valves to neutral and LATCHES
-    (throws refused until POST .../estop/reset). Fast path: an async route that sends the abort
-    on the fleet's dedicated E-STOP threads before any database write, so it never queues behind
-    previews, evaluations, diagnoses or log-ins on the request threads. Audited (after the stop)
-    also when the runtime does not answer."""
+    (throws refused until POST .../estop/reset; the latch survives a runtime restart). Fast path:
+    an async route that puts the stop for this machine at once (server.estop: fire-and-forget,
+    repeated until the runtime confirms; presses of a machine whose stop is unconfirmed join it)
+    and replies on the runtime's confirmation (AbortAck, sent after the latch is on disk), or 503
+    after the stop's deadline. No other machine, query, thread pool or database write is waited
+    for: the audit entry is written afterwards on the fleet's database thread, also when the
+    runtime does not confirm."""
     t0 = time.perf_counter()
     user = _operator_or_raise(request)
     fleet: Fleet = request.app.state.fleet
     reason = f"{(body or AbortIn()).reason} ({user.username})"
     try:
         t_auth = time.perf_counter()
-        ack = await asyncio.wrap_future(fleet.abort_async(machine_id, reason, user.username))
+        ack = await asyncio.wrap_future(fleet.estop(machine_id, reason, user.username))
         log.info("E-STOP %s: authenticated in %.1f ms, runtime confirmed after %.1f ms more", machine_id,
                  (t_auth - t0) * 1e3, (time.perf_counter() - t_auth) * 1e3)
     except (RuntimeUnavailable, ValueError) as e:
         error = _sentence(e)
-        await _audited(fleet, lambda: record_audit(request.app.state.sessions, user.username, "abort", machine_id[:64],
-                                                   reason=reason, delivered=False, error=error))
+        _audit_later(fleet, lambda: record_audit(request.app.state.sessions, user.username, "abort", machine_id[:64],
+                                                 reason=reason, delivered=False, error=error))
         await asyncio.to_thread(_404_if_unknown, request, machine_id)
         raise HTTPException(503, f"abort of {machine_id} not confirmed: {error}") from e
     fleet.forget_info(machine_id)
-    await _audited(fleet, lambda: record_audit(request.app.state.sessions, user.username, "abort", machine_id,
-                                               reason=reason, delivered=True, throw_id=ack.aborted_throw_id))
+    _audit_later(fleet, lambda: record_audit(request.app.state.sessions, user.username, "abort", machine_id,
+                                             reason=reason, delivered=True, throw_id=ack.aborted_throw_id))
     return AbortOut(machine_id=machine_id, aborted_throw_id=ack.aborted_throw_id)
 
 
-async def _audited(fleet: Fleet, write, timeout_s: float = 5.0) -> None:
-    """Write an audit entry on the fleet's database thread (after the stop went out) and wait
-    for it, bounded: a slow database delays the reply, never the stop."""
-    try:
-        await asyncio.wait_for(asyncio.wrap_future(fleet.submit_db_job(write)), timeout_s)
-    except Exception:
-        log.exception("E-STOP audit entry not written")
+def _audit_later(fleet: Fleet, write) -> None:
+    """Queue an audit entry on the fleet's database thread (after the stop went out); a failure
+    is logged. The E-STOP reply never waits for the database."""
+    def logged(done) -> None:
+        if done.exception() is not None:
+            log.error("E-STOP audit entry not written: %s", done.exception())
+
+    fleet.submit_db_job(write).add_done_callback(logged)
 
 
 def _sentence(e: Exception) -> str:
@@ -190,7 +212,8 @@ def estop_reset(machine_id: str, request: Request, db: SessionDep, fleet: FleetD
     audit(db, user.username, "estop_reset", machine_id, delivered=True, reset=ack.reset, reason=ack.reason)
     db.commit()
     if not ack.reset:
-        raise HTTPException(409, f"the runtime of {machine_id} kept E-STOP latched: {ack.reason}")
+        clock = clock_words(fleet.clock_offset_s(machine_id))
+        raise HTTPException(409, f"the runtime of {machine_id} kept E-STOP latched: {ack.reason}" + (f"; {clock}" if clock else ""))
     return EstopResetOut(machine_id=machine_id, reset=True, reason=ack.reason)
 
 

@@ -1,0 +1,189 @@
+"""Soak: preview and throw in a loop on one machine as the console does, for ``--minutes``
+(default 60), with the whole stack as separate processes (tests/fault_stack.py: server, worker,
+simulated machine, runtime; the deployed 2D policy).
+
+Per throw, as the console: wait until the machine is READY, preview (one rollout), send the throw
+with that preview; a throw refused because the preview no longer matches the machine (409) is
+previewed again. Every minute the resident memory (VmRSS) of each process is sampled. Prints and
+writes (``--out``): throws per minute, previews needed per throw, final statuses, and memory per
+process over time (MiB; first sample after a warm-up of ``--warmup-min`` minutes, last sample,
+growth). Goal: memory flat after warm-up, one preview per throw.
+
+Run: ``PYTHONPATH=. python tests/benchmarks/bench_soak.py --minutes 60 --out reports/soak``
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import hashlib
+import json
+import logging
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+
+import httpx
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+
+from tests.benchmarks.bench_estop_isolation import host_info  # noqa: E402
+from tests.fault_stack import FINAL, TARGET_2D, FaultStack, orphans  # noqa: E402
+
+log = logging.getLogger("bench_soak")
+
+PROCESSES = ("server", "worker", "plant", "runtime")
+
+
+def rss_mib(pid: int) -> float | None:
+    """Resident memory of ``pid`` in MiB (None if it is gone)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+def _ready(stack: FaultStack, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        m = stack.machine() or {}
+        if m.get("ready"):
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def one_throw(stack: FaultStack, max_previews: int = 5) -> tuple[int, str, str | None]:
+    """(previews made, final status or "refused", last refusal) of one console-style throw."""
+    body = {"machine_id": "m1", "mode": "2d", "target": TARGET_2D}
+    reason = None
+    for n in range(1, max_previews + 1):
+        p = stack.http.post("/api/previews", json={**body, "rollouts": 1})
+        if p.status_code != 200 or p.json().get("status") != "ok":
+            reason = f"preview {p.status_code}: {p.text[:120]}"
+            time.sleep(0.5)
+            continue
+        r = stack.http.post("/api/throws", json={**body, "preview_id": p.json()["id"]})
+        if r.status_code == 202:
+            tid = r.json()["id"]
+            row, _ = stack.wait_final(tid, 60)
+            return n, row["status"], reason
+        reason = f"throw {r.status_code}: {r.json().get('detail', '')[:120]}"
+        if r.status_code != 409:
+            time.sleep(0.5)
+    return max_previews, "refused", reason
+
+
+def run(minutes: float, warmup_min: float, policy: Path) -> dict:
+    stop_at = time.monotonic() + 60.0 * minutes
+    previews, statuses, refusals, memory = [], Counter(), Counter(), []
+    t_start = time.monotonic()
+    with tempfile.TemporaryDirectory(prefix="bench-soak-") as tmp:
+        stack = FaultStack(Path(tmp), policy)
+        stack.start_timeout_s = 400.0
+        with stack:
+            next_sample = time.monotonic()
+            while time.monotonic() < stop_at:
+                if time.monotonic() >= next_sample:
+                    memory.append({"t_min": round((time.monotonic() - t_start) / 60.0, 2), "throws": sum(statuses.values()),
+                                   **{name: rss_mib(stack.procs[name].pid) for name in PROCESSES}})
+                    next_sample += 60.0
+                if not _ready(stack, 60):
+                    refusals["not ready within 60 s: " + str((stack.machine() or {}).get("not_ready_reason"))] += 1
+                    continue
+                try:
+                    n, status, reason = one_throw(stack)
+                except (httpx.HTTPError, AssertionError) as e:
+                    refusals[f"error: {e!r}"[:160]] += 1
+                    continue
+                previews.append(n)
+                statuses[status] += 1
+                if reason:
+                    refusals[reason] += 1
+                log.info("throw %d: %s after %d preview(s)%s", sum(statuses.values()), status, n,
+                         f" (refused first: {reason})" if n > 1 else "")
+            memory.append({"t_min": round((time.monotonic() - t_start) / 60.0, 2), "throws": sum(statuses.values()),
+                           **{name: rss_mib(stack.procs[name].pid) for name in PROCESSES}})
+        left = orphans(tmp)
+    elapsed_min = (time.monotonic() - t_start) / 60.0
+    return {"elapsed_min": elapsed_min, "previews": previews, "statuses": dict(statuses),
+            "refusals": dict(refusals.most_common(10)), "memory": memory, "orphans": left, "warmup_min": warmup_min}
+
+
+def summary(out: dict) -> dict:
+    """Throws per minute, previews per throw and memory growth per process after warm-up."""
+    throws = sum(out["statuses"].values())
+    mem = [m for m in out["memory"] if m["t_min"] >= out["warmup_min"]] or out["memory"]
+    growth = {}
+    for name in PROCESSES:
+        vals = [(m["t_min"], m[name]) for m in mem if m[name] is not None]
+        if len(vals) >= 2:
+            (t0, a), (t1, b) = vals[0], vals[-1]
+            growth[name] = {"after_warmup_mib": round(a, 1), "last_mib": round(b, 1), "growth_mib": round(b - a, 1),
+                            "growth_mib_per_100_throws": round(100.0 * (b - a) / max(1, mem[-1]["throws"] - mem[0]["throws"]), 2)}
+    p = out["previews"]
+    return {"throws": throws, "throws_per_min": round(throws / out["elapsed_min"], 2) if out["elapsed_min"] else None,
+            "previews_per_throw_mean": round(sum(p) / len(p), 3) if p else None,
+            "throws_needing_more_than_one_preview": sum(1 for n in p if n > 1),
+            "statuses": out["statuses"], "memory": growth}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--minutes", type=float, default=60.0)
+    parser.add_argument("--warmup-min", type=float, default=2.0, help="memory growth is measured from here on")
+    parser.add_argument("--policy", type=Path, default=REPO / "policies" / "throw2d.onnx")
+    parser.add_argument("--out", type=Path, default=None, help="write <out>.json and <out>.md")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.getLogger("httpx").setLevel(logging.WARNING)
+    started = dt.datetime.now(dt.timezone.utc)
+    host0 = host_info()
+    out = run(args.minutes, args.warmup_min, args.policy)
+    s = summary(out)
+    report = {
+        "benchmark": "soak: console-style preview and throw loop on one simulated machine",
+        "date_utc": started.isoformat(timespec="seconds"),
+        "duration_min": round(out["elapsed_min"], 2),
+        "command": "PYTHONPATH=. python tests/benchmarks/bench_soak.py " + " ".join(sys.argv[1:]),
+        "host": {**host_info(), "loadavg_before": host0["loadavg"], "commit": host0["commit"]},
+        "policy": {"path": "policies/throw2d.onnx" if args.policy == REPO / "policies" / "throw2d.onnx" else str(args.policy),
+                   "sha256": hashlib.sha256(args.policy.read_bytes()).hexdigest()},
+        **s,
+        "refusals_top": out["refusals"],
+        "memory_samples_mib": out["memory"],
+        "orphaned_processes": len(out["orphans"]),
+    }
+    print(f"{s['throws']} throws in {out['elapsed_min']:.1f} min ({s['throws_per_min']} / min), statuses {s['statuses']}")
+    print(f"previews per throw: mean {s['previews_per_throw_mean']}, {s['throws_needing_more_than_one_preview']} throws needed more than one")
+    for name, g in s["memory"].items():
+        print(f"{name:8s} RSS {g['after_warmup_mib']} -> {g['last_mib']} MiB ({g['growth_mib']:+} MiB, "
+              f"{g['growth_mib_per_100_throws']:+} MiB / 100 throws)")
+    print(f"orphaned processes: {len(out['orphans'])}")
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.with_suffix(".json").write_text(json.dumps(report, indent=2) + "\n")
+        lines = [f"# Soak: preview and throw on one simulated machine ({report['duration_min']:.0f} min)", "",
+                 f"Measured {report['date_utc']} on commit `{report['host']['commit']}`, host {report['host']['cpu_model']} "
+                 f"({report['host']['cpu_count']} CPUs), load average {report['host']['loadavg_before'][0]:.1f} before / "
+                 f"{report['host']['loadavg'][0]:.1f} after (a shared machine). Policy `{report['policy']['path']}` "
+                 f"(SHA-256 `{report['policy']['sha256'][:16]}…`). The machine is the simulated machine (sim_twin plant).", "",
+                 f"* throws: {s['throws']} ({s['throws_per_min']} per minute), statuses {s['statuses']}",
+                 f"* previews per throw: mean {s['previews_per_throw_mean']}; throws needing more than one: "
+                 f"{s['throws_needing_more_than_one_preview']}", "",
+                 "| process | RSS after warm-up MiB | last MiB | growth MiB | MiB / 100 throws |", "|---|---|---|---|---|"]
+        lines += [f"| {n} | {g['after_warmup_mib']} | {g['last_mib']} | {g['growth_mib']:+} | {g['growth_mib_per_100_throws']:+} |"
+                  for n, g in s["memory"].items()]
+        lines += ["", f"Reproduce: `{report['command']}`", ""]
+        args.out.with_suffix(".md").write_text("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
