@@ -8,6 +8,7 @@ import pytest
 
 from server.db.models import AuditEntry, Machine, Throw
 from server.jobs.specs import job_dir
+from tests.conftest import wait_for
 from tests.fixtures import finished_diagnosis_run
 
 
@@ -39,9 +40,12 @@ def test_validation_errors_are_sentences_naming_the_field(client):
 def test_audit_fields_have_no_control_characters(client):
     hostile = "stop\x1b[2J\r\nFAKE admin promote ok\x00\u2028"
     client.post("/api/machines/ghost/abort", json={"reason": hostile})
-    with client.app.state.sessions() as db:
-        rows = db.query(AuditEntry).filter(AuditEntry.action == "abort").all()
-    assert rows, "the abort attempt is audited"
+
+    def audited():
+        with client.app.state.sessions() as db:
+            return db.query(AuditEntry).filter(AuditEntry.action == "abort").all()
+
+    rows = wait_for(audited, 10, "the abort attempt audited (written after the stop, on the fleet's database thread)")
     text = repr([(r.username, r.action, r.subject, r.detail) for r in rows])
     for row in rows:
         for value in (row.username, row.action, row.subject, *map(str, row.detail.values())):
