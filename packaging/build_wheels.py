@@ -7,9 +7,9 @@ Each package is staged in a temporary folder: its pyproject.toml from ``packagin
 its requirement files from ``packaging/requirements/`` (each dependency of the project is written
 once there; the root pyproject.toml reads the same files), a ``VERSION`` file and the pins on
 the sibling wheels (``requirements/slinger-*.txt``) from the root pyproject.toml's version, its
-source folder from the repository (``runtime/``, ``sim_twin/``, ``server/``), and for the server
-the ``migrations`` package, the console pages (``server/web``, vendored scripts included) and the
-machine's MJCF (``server/assets``). Then setuptools' PEP 517 backend of the running interpreter
+source folder from the repository (``runtime/``, ``sim_twin/``, ``server/``; the machine's MJCF
+is the runtime's package data, runtime/dynamics/assets), and for the server the ``migrations``
+package and the console pages (``server/web``, vendored scripts included). Then setuptools' PEP 517 backend of the running interpreter
 builds the wheel (no build isolation, no network). The repository's own pyproject.toml stays the
 all-in-one install.
 """
@@ -30,8 +30,7 @@ REPO = Path(__file__).resolve().parent.parent
 PACKAGES = {  # name -> (source folder, {extra copies: staged path <- repo path})
     "runtime": ("runtime", {}),
     "twin": ("sim_twin", {}),
-    # the machine's MJCF too: the 3D view draws it with server.mjcf_chain (numpy, no MuJoCo)
-    "server": ("server", {"migrations": "migrations", "server/web": "web", "server/assets": "sim_twin/assets"}),
+    "server": ("server", {"migrations": "migrations", "server/web": "web"}),
 }
 IGNORE = shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info")
 """Build leftovers only: a pattern matches a name at every depth (``vendor`` once dropped the

@@ -17,8 +17,9 @@ Wiring (keys in runtime/protocol/README.md):
   ``<site_dir>/machines/<id>/command.key``). Without it every throw, E-STOP reset and policy
   offer is refused "no command key configured" (aborts still work);
 * release check (runtime.release_check, runtime.executor): ``--release-check-radius M`` (default
-  3.0 m, or the environment's ``SLINGER_RELEASE_CHECK_RADIUS_M``; ``off`` switches it off). If it
-  is on and MuJoCo or the machine's model cannot be loaded, every throw is refused with the reason;
+  3.0 m; ``off`` switches it off). If it is on and MuJoCo (the ``release-check`` extra) or the
+  machine's model cannot be loaded, the runtime says so at start-up and refuses every throw with
+  the reason;
 * a watchdog thread (every 50 ms): no valid state for 0.2 s during a throw -> failed;
 * the outbox delivers finished ThrowResults to keys.THROW_RESULT until the server acks;
 * queryable keys.policy_offer (PolicyOffer -> PolicyOfferAck): runtime.policy_update fetches,
@@ -32,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import threading
 import time
 from pathlib import Path
@@ -46,7 +46,7 @@ from runtime.policy import PolicyError, PolicyRunner
 from runtime.policy_update import PolicyUpdater, zenoh_fetcher
 from runtime.protocol import keys
 from runtime.protocol.messages import encode
-from runtime.release_check import DEFAULT_RADIUS_M, RADIUS_ENV, parse_radius
+from runtime.release_check import DEFAULT_RADIUS_M, ReleaseCheck, parse_radius
 from runtime.service import LINK_TIMEOUT_S, RuntimeService
 from runtime.zenoh_session import Claimed, add_session_arguments, claim_exclusive, open_session, session_options
 
@@ -75,9 +75,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--outbox-dir", type=Path, default=None, help="durable outbox directory (default ~/.slinger/outbox/<machine-id>)")
     parser.add_argument("--policy-dir", type=Path, default=None, help="where promoted policy files are kept (default: <outbox-dir>-policies)")
     parser.add_argument("--link-timeout", type=float, default=LINK_TIMEOUT_S, help="seconds without machine state that fail a throw")
-    parser.add_argument("--release-check-radius", type=release_check_radius, default=os.environ.get(RADIUS_ENV, DEFAULT_RADIUS_M),
+    parser.add_argument("--release-check-radius", type=release_check_radius, default=DEFAULT_RADIUS_M,
                         help="hold a release whose predicted impact is farther than this from the target, m, or 'off' "
-                             f"(default ${RADIUS_ENV}, else {DEFAULT_RADIUS_M} m)")
+                             f"(default {DEFAULT_RADIUS_M} m; needs MuJoCo: the 'release-check' extra)")
 
 
 def release_check_radius(text) -> float | None:
@@ -130,7 +130,9 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     outbox_dir = args.outbox_dir or default_outbox_dir(machine_id)
     if radius is None:
         log.warning("release check off (--release-check-radius off): releases are not checked")
-    executor = ThrowExecutor(policies, JointVelocityController(), ExecutorConfig(release_check_radius_m=radius))
+    check = ReleaseCheck.load() if radius is not None else None  # the executor logs why if it cannot
+    executor = ThrowExecutor(policies, JointVelocityController(), ExecutorConfig(release_check_radius_m=radius),
+                             release_check=check)
 
     with open_session(**zenoh_opts) as session:
         try:

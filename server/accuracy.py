@@ -184,15 +184,6 @@ def accuracy(db, flt: ThrowFilter, bin_m: float = DISTANCE_BIN_M, errors_per_gro
     return sorted(out, key=lambda g: (g["mode"], g["policy_version"], g["policy_sha256"] or "", g["target_distance_m"]))
 
 
-def error_ellipse(down: np.ndarray, cross: np.ndarray, n: int = 48) -> dict | None:
-    """1 sigma ellipse of the (downrange, crossrange) errors (each (N,), m): semi-axes, angle,
-    outline; None below 3 points."""
-    if len(down) < 3:
-        return None
-    pts = np.column_stack([down, cross])
-    return ellipse_of(pts.mean(axis=0), np.cov(pts.T), n)
-
-
 def ellipse_of(mean: np.ndarray, cov: np.ndarray, n: int = 48) -> dict:
     """1 sigma ellipse of a 2D Gaussian (``mean`` (2,), ``cov`` (2, 2), m and m²): semi-axes,
     angle of the major axis from downrange (rad), outline (n + 1, 2)."""

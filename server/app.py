@@ -98,7 +98,8 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
             job_tasks.bind(job_tasks.WorkerContext(sessions, settings.data_dir, settings, app.state.jobs))
         app.state.policies = PolicyService(fleet, sessions, store, settings, app.state.jobs)
         app.state.previews = PreviewService(fleet, sessions, app.state.throws, app.state.jobs, settings.data_dir,
-                                            settings.clearance_radius_m, settings.preview_profile)
+                                            settings.clearance_radius_m, settings.preview_profile,
+                                            settings.release_check_radius_m)
         try:
             fleet.start()
             app.state.reconciler.start()

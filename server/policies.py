@@ -217,7 +217,7 @@ def evaluate_version(sessions: sessionmaker[Session], data_dir: Path, version_id
         server.jobs.JobCancelled: from ``progress`` (the row is left ``failed``: cancelled).
     """
     from server.jobs.store import JobCancelled
-    from sim_twin.evaluate import _throw_batch, summarise  # the protocol's own throw loop
+    from sim_twin.evaluate import summarise, throw_batch  # the protocol's own throw loop
 
     with sessions.begin() as db:
         row = db.get(PolicyVersion, version_id)
@@ -235,7 +235,7 @@ def evaluate_version(sessions: sessionmaker[Session], data_dir: Path, version_id
         for i, d in enumerate(distances_m):
             progress(i / len(distances_m), f"{throws} throws at {d:.1f} m")
             seeds = [version_id * 1000 + i * 100 + k for k in range(throws)]
-            targets.append(summarise(d, _throw_batch(path, mode, d, seeds, profile_path)))
+            targets.append(summarise(d, throw_batch(path, mode, d, seeds, profile_path)))
         metrics = {"protocol": "paper Sec. IV-A (small sample)", "throws_per_target": throws,
                    "profile": profile_name, "targets": targets}
         status = "done"

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_twin.evaluate import _throw_batch, summarise
+from sim_twin.evaluate import summarise, throw_batch
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,7 @@ def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profi
     results = {(name, d): [] for name, _ in profiles for d in targets}
     t0 = time.time()
     with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
-        futs = {pool.submit(_throw_batch, str(policy), mode, d, s, paths[name]): (name, d) for name, d, s in jobs}
+        futs = {pool.submit(throw_batch, str(policy), mode, d, s, paths[name]): (name, d) for name, d, s in jobs}
         for k, fut in enumerate(as_completed(futs), 1):
             results[futs[fut]] += fut.result()
             if k % 20 == 0 or k == len(futs):

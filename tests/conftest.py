@@ -47,10 +47,33 @@ def pytest_configure(config) -> None:
     # Starlette's TestClient warns that it wants httpx2; not our concern here.
     config.addinivalue_line("filterwarnings", "ignore:Using `httpx` with `starlette.testclient`")
     config.addinivalue_line("filterwarnings", "ignore:No path_separator found")
-    # Runtimes and previews started by tests (slinger runtime / up) run the test policies of tests/fixtures.py,
-    # which are not throwers: the release check (runtime.release_check) would hold their releases.
-    # In-process executors keep ExecutorConfig's default; tests that need it off say so.
-    os.environ.setdefault("SLINGER_RELEASE_CHECK_RADIUS_M", "off")  # runtime.release_check.RADIUS_ENV
+    # Servers, workers and `slinger up` stacks started by tests run the test policies of tests/fixtures.py,
+    # which are not throwers: the release check (runtime.release_check) would hold their releases. Their
+    # settings (server.config.Settings.release_check_radius_m) switch it off for the previews and the
+    # runtimes `slinger up` starts; runtimes a test starts itself get TEST_POLICY_CHECK. In-process
+    # executors keep ExecutorConfig's default; tests that need it off say so.
+    os.environ.setdefault("SLINGER_RELEASE_CHECK_RADIUS_M", "off")
+
+
+TEST_POLICY_CHECK = ("--release-check-radius", "off")
+"""Arguments of a `slinger runtime` that a test starts with the test policies (not throwers)."""
+
+SYSTEM_MARKERS = ("browser", "postgres", "redis", "root", "torch", "slow", "acceptance")
+"""Markers of tests outside the fast tier; each also gets ``system``, so that the fast tier is
+``pytest -m "not system"`` (docs/development.md: test tiers)."""
+FIXTURE_MARKERS = {"pg_url": "postgres", "browser": "browser", "module_browser": "browser", "netns": "root"}
+"""Fixtures whose use marks a test: what the fixture needs (a service, Chromium, root)."""
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Mark tests by the fixtures they use (:data:`FIXTURE_MARKERS`), then add ``system`` to every
+    test with one of :data:`SYSTEM_MARKERS`."""
+    for item in items:
+        for fixture, marker in FIXTURE_MARKERS.items():
+            if fixture in getattr(item, "fixturenames", ()):
+                item.add_marker(marker)
+        if any(item.get_closest_marker(m) for m in SYSTEM_MARKERS):
+            item.add_marker("system")
 
 
 def free_port() -> int:

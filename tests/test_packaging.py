@@ -134,11 +134,28 @@ def test_runtime_installs_alone_and_stays_light(wheels, tmp_path):
         loaded = sorted(m for m in sys.modules if m.split(".")[0] in {HEAVY!r})
         missing = [m for m in {HEAVY!r} if importlib.util.find_spec(m) is None]
         print("LOADED", loaded, "MISSING", missing)
+        # without MuJoCo (the 'release-check' extra) the release check names the reason, and the
+        # executor refuses every throw with it unless the check is off
+        from runtime.dynamics import MJCF_PATH
+        from runtime.executor import ExecutorConfig, ThrowExecutor
+        from runtime.protocol.messages import MachineState, ThrowRequest
+        from runtime.policy import PolicyRunner
+        from runtime.release_check import ReleaseCheck
+        assert MJCF_PATH.is_file() and "site-packages" in str(MJCF_PATH), MJCF_PATH
+        check = ReleaseCheck.load()
+        assert check.predictor is None and "mujoco" in check.unavailable, check
+        state = MachineState(machine_id="m1", stamp_s=1.0, q=[0.0] * 6, qd=[0.0] * 6, gripper_open=False,
+                             payload_attached=True)
+        req = ThrowRequest(throw_id="t", machine_id="m1", mode="2d", target_m=[8.0, 0.0, 0.0])
+        refusal = ThrowExecutor({{"2d": PolicyRunner.load({str(REPO / "policies" / "throw2d.onnx")!r})}},
+                                release_check=check).start(req, state)
+        print("REFUSAL", refusal)
     """)
     out = subprocess.run([str(python), "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path,
                          env=_clean_env())
     assert out.returncode == 0, out.stderr[-3000:]
     assert "LOADED []" in out.stdout and f"MISSING {list(HEAVY)!r}" in out.stdout, out.stdout
+    assert "REFUSAL release check unavailable (ModuleNotFoundError: No module named 'mujoco')" in out.stdout, out.stdout
     helped = subprocess.run([str(python.parent / "slinger-runtime"), "--help"], capture_output=True, text=True,
                             timeout=120, cwd=tmp_path, env=_clean_env())
     assert helped.returncode == 0 and "--machine-id" in helped.stdout, helped.stderr[-2000:]
@@ -162,7 +179,7 @@ def test_server_wheel_runs_db_upgrade_without_the_repository(wheels, tmp_path):
         tables = {{r[0] for r in sqlite3.connect({str(db)!r}).execute("select name from sqlite_master where type='table'")}}
         assert {{"throws", "jobs", "users", "alembic_version"}} <= tables, tables
         from server.mjcf_chain import KinematicChain, default_mjcf_path  # the 3D view's machine, without the twin
-        assert "site-packages/server/assets" in str(default_mjcf_path()), default_mjcf_path()
+        assert "site-packages/runtime/dynamics/assets" in str(default_mjcf_path()), default_mjcf_path()
         assert len(KinematicChain.from_mjcf().geom_poses([0.0] * 6)) == 7
         print("MUJOCO", "mujoco" in sys.modules)
     """)], capture_output=True, text=True, timeout=120, cwd=tmp_path, env=_clean_env())

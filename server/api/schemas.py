@@ -150,24 +150,5 @@ class ThrowOut(BaseModel):
         )
 
 
-class SceneState(BaseModel):
-    """The console's 3D view: where it is served and what the operator picked in it."""
-
-    viser_port: int | None
-    machine_id: str | None
-    mode: Literal["2d", "3d"]
-    target: list[float] | None
-    preview: list[str] = Field(default_factory=list)
-    """Scene names of the preview drawn in the 3D view (paths, release, impact, ellipse, ...)."""
-
-
-class SceneUpdate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    machine_id: str | None = None
-    mode: Literal["2d", "3d"] | None = None
-    target: Vec3 | None = None
-
-
 class Problem(BaseModel):
     detail: str
