@@ -348,6 +348,7 @@ class ThrowExecutor:
     # --- helpers ----------------------------------------------------------------------------
     def _emit(self, phase: str, stamp_s: float, detail: str | None = None) -> None:
         th = self._throw
+        assert th is not None, "no throw running"
         self._events.append(PhaseEvent(th.request.throw_id, phase, stamp_s, detail))
         th.recorder.event(stamp_s, phase, detail)
 
@@ -359,6 +360,7 @@ class ThrowExecutor:
 
     def _finish(self, status: str, detail: str | None, stamp_s: float | None, **result) -> TickOutput:
         th = self._throw
+        assert th is not None, "no throw running"
         end = th.start_stamp_s if stamp_s is None else stamp_s
         self._emit(status, end, detail)
         self._finished = ThrowOutcome(

@@ -95,7 +95,7 @@ class PolicyRunner:
         return float(lo), float(hi)
 
     @classmethod
-    def load(cls, onnx_path: str | Path, manifest_path: str | Path | None = None) -> "PolicyRunner":
+    def load(cls, onnx_path: str | Path, manifest_path: str | Path | None = None) -> PolicyRunner:
         """Load and check a policy.
 
         Args:

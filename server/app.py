@@ -20,21 +20,21 @@ from fastapi.responses import JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
 from server.api.routes import adaptation, auth, diagnosis, health, jobs, live, machines, policies, previews, scene, throws, users
+from server.command_signer import CommandSigner
 from server.config import Settings, get_settings
 from server.db.migrate import upgrade
 from server.db.models import Throw
 from server.db.session import make_engine, make_sessionmaker
-from server.command_signer import CommandSigner
 from server.fleet import Fleet
-from server.reconcile import Reconciler
 from server.jobs import JobQueue, JobStore, queue_url
 from server.jobs import tasks as job_tasks
-from server.login_guard import LoginGuard
 from server.live import LiveHub
-from server.results import ResultStore
-from server.scene import ConsoleScene
+from server.login_guard import LoginGuard
 from server.policies import PolicyService
 from server.previews import PreviewService
+from server.reconcile import Reconciler
+from server.results import ResultStore
+from server.scene import ConsoleScene
 from server.throws import ThrowService
 from server.web_guard import BodySizeLimit, SecurityHeaders, inline_script_hashes
 

@@ -131,7 +131,7 @@ class Settings(BaseSettings):
         return parse_radius(value)
 
     @model_validator(mode="after")
-    def _default_database(self) -> "Settings":
+    def _default_database(self) -> Settings:
         if not self.database_url:
             self.database_url = f"sqlite:///{(self.data_dir / 'slinger.db').as_posix()}"
         return self

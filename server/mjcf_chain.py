@@ -146,7 +146,7 @@ class KinematicChain:
         self.joint_names = tuple(j.name for b in bodies for j in b.joints)
 
     @classmethod
-    def from_mjcf(cls, path: str | Path | None = None) -> "KinematicChain":
+    def from_mjcf(cls, path: str | Path | None = None) -> KinematicChain:
         """Parse an MJCF file (default :func:`default_mjcf_path`).
 
         Raises:

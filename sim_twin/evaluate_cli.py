@@ -57,7 +57,7 @@ def markdown_table(report: dict) -> str:
             "|---|---|---|---|---|---|---|---|\n")
     rows = []
     for t in report["targets"]:
-        def f(key, fmt="{:+.3f}"):
+        def f(key, fmt="{:+.3f}", t=t):
             return "n/a" if t[key] is None else fmt.format(t[key])
         rows.append(f"| {t['target_m']:.1f} | {100 * t['success_rate']:.1f} % | {f('mean_impact_m', '{:.3f}')} | {f('bias_m')} | "
                     f"{f('sigma_downrange_m', '{:.3f}')} | {f('mean_crossrange_m')} | {f('sigma_crossrange_m', '{:.3f}')} | "

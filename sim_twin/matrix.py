@@ -125,7 +125,9 @@ def markdown(report: dict) -> str:
            "|---|---|---|---|---|---|---|---|"]
     for p in report["profiles"]:
         for t in p["targets"]:
-            f = lambda k: "n/a" if t[k] is None else f"{t[k]:+.3f}"  # noqa: E731
+            def f(k, t=t):
+                return "n/a" if t[k] is None else f"{t[k]:+.3f}"
+
             miss = [k for k, v in t["bars"].items() if not v]
             out.append(f"| {p['name']} | {'yes' if p['shifts_mean'] else 'no'} | {t['target_m']:.1f} | {100 * t['success_rate']:.0f} % | "
                        f"{f('bias_m')} | {f('sigma_downrange_m')} | {f('sigma_crossrange_m')} | {'ok' if not miss else 'MISS ' + ', '.join(miss)} |")

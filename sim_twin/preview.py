@@ -37,10 +37,10 @@ from pathlib import Path
 import numpy as np
 
 from runtime.executor import ExecutorConfig, ThrowExecutor
-from runtime.release_check import DEFAULT_RADIUS_M, ReleaseCheck
 from runtime.machine import ACTIVE_JOINTS, clearance_violations, forward_kinematics
 from runtime.observation import PHYSICS_PERIOD_S
 from runtime.protocol.messages import MachineState, ThrowRequest
+from runtime.release_check import DEFAULT_RADIUS_M, ReleaseCheck
 from runtime.throw_geometry import impact_errors
 from sim_twin.effects.payload import FLIGHT_DT_S, grasp_point, integrate_flight
 from sim_twin.effects.release import ReleaseDelay
@@ -153,7 +153,7 @@ class _Payload:
     flight_accel: object
 
     @classmethod
-    def of(cls, profile: RealityProfile) -> "_Payload":
+    def of(cls, profile: RealityProfile) -> _Payload:
         stack = profile.stack()
         mean_s, std_s = stack.release_delay(profile.release_delay_mean_s, profile.release_delay_std_s)
         return cls(float(mean_s), float(std_s), stack.grasp_offset(), stack.flight_accel if stack.has("flight_accel") else None)

@@ -10,11 +10,10 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 
-from server.api.deps import OperatorDep, SceneDep, SessionDep, ThrowServiceDep, ViewerDep
-from server.api.schemas import (DISTANCE_LIMIT_M, Problem, ThrowCreate, ThrowCreated, ThrowOut, ThrowStatusName,
-                                UtcTime)
-from server.db.models import Throw
 from server.accuracy import accuracy
+from server.api.deps import OperatorDep, SceneDep, SessionDep, ThrowServiceDep, ViewerDep
+from server.api.schemas import DISTANCE_LIMIT_M, Problem, ThrowCreate, ThrowCreated, ThrowOut, ThrowStatusName, UtcTime
+from server.db.models import Throw
 from server.history import SORTS, ThrowFilter, page, to_csv
 from server.throws import ThrowRefused
 
