@@ -92,7 +92,7 @@ class _Http:
 
 
 def test_a_pose_refusal_makes_the_client_return_the_machine_to_ready(monkeypatch):
-    import bench_fleet_load as bench
+    from tests.benchmarks import bench_fleet_load as bench
 
     monkeypatch.setattr(bench, "RETURN_POLL_S", 0.0)
     site = type("S", (), {"machines": ["m1"], "base_url": "http://x"})()
