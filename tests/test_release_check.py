@@ -33,6 +33,7 @@ POLICY = {"2d": str(REPO / "policies" / "throw2d.onnx"), "3d": str(REPO / "polic
 OFF = {"release_check_radius_m": None}
 
 
+@pytest.mark.acceptance
 @pytest.mark.parametrize("mode, distance, index, bound_m", [("2d", 10.0, 5, 0.7), ("3d", 9.5, 5, 0.5)])
 def test_predicted_impact_matches_the_twin_on_nominal_throws(mode, distance, index, bound_m):
     """Bounds from the measurement (README): nominal 2D 10 m max 0.61 m, 3D 9.5 m max 0.40 m over
