@@ -175,7 +175,8 @@ class CommandVerifier:
         reason = verify_mac(msg, self.key)
         if reason:
             return reason
-        auth = msg.auth
+        auth = getattr(msg, "auth", None)
+        assert auth is not None, "verify_mac found it"
         if auth.epoch != self.epoch:
             return f"wrong epoch: addressed {auth.epoch}, this runtime is {self.epoch}"
         now = time.time() if now_unix_s is None else now_unix_s

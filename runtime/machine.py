@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 
@@ -80,11 +81,11 @@ class ChainPoints:
         gripper_centre_vel: (3,) its velocity, m/s.
     """
 
-    boom_pivot: object
-    dipper_pivot: object
-    hanger: object
-    gripper_centre: object
-    gripper_centre_vel: object
+    boom_pivot: Any
+    dipper_pivot: Any
+    hanger: Any
+    gripper_centre: Any
+    gripper_centre_vel: Any
 
 
 def _rot(xp: ModuleType, a, axis: str):

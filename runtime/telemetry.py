@@ -24,6 +24,7 @@ import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 from mcap.reader import make_reader
@@ -115,7 +116,7 @@ def write_mcap(recorder: TelemetryRecorder, metadata: dict[str, str] | None = No
     return buf.getvalue()
 
 
-def _open(source: bytes | bytearray | str | Path) -> io.BufferedIOBase:
+def _open(source: bytes | bytearray | str | Path) -> IO[bytes]:
     if isinstance(source, (bytes, bytearray)):
         return io.BytesIO(bytes(source))
     return open(source, "rb")
