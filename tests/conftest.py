@@ -79,6 +79,8 @@ SLOW_TESTS = {
     "tests/test_diagnosis.py::test_small_blind_benchmark": "slow",
     "tests/test_diagnosis.py::test_server_runs_a_diagnosis_on_stored_throws": "slow",
     "tests/test_diagnosis_encoder.py": "slow",
+    # the training extra (jax, torch): the fine-tuning config's privileged ranges
+    "tests/test_adapt.py::test_finetune_config_fixes_the_profiles_effects": "torch",
     # acceptance tests of the deployed policies (policies/*.onnx): how well they throw
     "tests/test_evaluate.py::test_deployed_2d_policy": "acceptance",
     "tests/test_controller.py::test_robust_3d_throws_with_a_slow_valve_delay": "acceptance",
