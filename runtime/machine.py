@@ -10,7 +10,7 @@ cabin-turn axis at ground level, x forward when ``cabin_turn = 0``, z up; metres
 
 Sources: joint offsets, ranges and masses from the HEAP URDF parameters quoted in
 ``shared/reference/machine-spec.md`` (leggedrobotics/rsl_heap, mm_parameters.urdf.xacro). The
-same numbers are written in ``sim_twin/assets/material_handler.xml``; ``tests/test_machine.py``
+same numbers are written in ``runtime/dynamics/assets/material_handler.xml``; ``tests/test_machine.py``
 checks that this module's forward kinematics agrees with MuJoCo's on that file.
 """
 
