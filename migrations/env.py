@@ -70,7 +70,7 @@ def _ours(name, type_, _parent_names) -> bool:
     return not (type_ == "table" and name and name.startswith("huey_"))
 
 
-def _run(connection) -> None:  # noqa: ANN001
+def _run(connection) -> None:
     context.configure(
         connection=connection,
         target_metadata=target_metadata,

@@ -4,11 +4,14 @@
     python packaging/build_wheels.py --out dist runtime    # only the runtime
 
 Each package is staged in a temporary folder: its pyproject.toml from ``packaging/<name>/``,
-its source folder from the repository (``runtime/``, ``sim_twin/``, ``server/``), and for the
-server the Alembic migrations, the console pages and the machine's MJCF as package data
-(``server/migrations``, ``server/web``, ``server/assets``). Then setuptools' PEP 517 backend of the running interpreter builds the wheel
-(no build isolation, no network). The repository's own pyproject.toml stays the
-all-in-one development install.
+its requirement files from ``packaging/requirements/`` (each dependency of the project is written
+once there; the root pyproject.toml reads the same files), a ``VERSION`` file and the pins on
+the sibling wheels (``requirements/slinger-*.txt``) from the root pyproject.toml's version, its
+source folder from the repository (``runtime/``, ``sim_twin/``, ``server/``; the machine's MJCF
+is the runtime's package data, runtime/dynamics/assets), and for the server the ``migrations``
+package and the console pages (``server/web``, vendored scripts included). Then setuptools' PEP 517 backend of the running interpreter
+builds the wheel (no build isolation, no network). The repository's own pyproject.toml stays the
+all-in-one install.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import tomllib
 from pathlib import Path
 
 log = logging.getLogger("build_wheels")
@@ -26,10 +30,20 @@ REPO = Path(__file__).resolve().parent.parent
 PACKAGES = {  # name -> (source folder, {extra copies: staged path <- repo path})
     "runtime": ("runtime", {}),
     "twin": ("sim_twin", {}),
-    # the machine's MJCF too: the 3D view draws it with server.mjcf_chain (numpy, no MuJoCo)
-    "server": ("server", {"server/migrations": "migrations", "server/web": "web", "server/assets": "sim_twin/assets"}),
+    "server": ("server", {"migrations": "migrations", "server/web": "web"}),
 }
-IGNORE = shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info", "build", "vendor")
+IGNORE = shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info")
+"""Build leftovers only: a pattern matches a name at every depth (``vendor`` once dropped the
+console's web/vendor/uplot from the server wheel)."""
+SIBLINGS = {"slinger-runtime": "slinger-runtime", "slinger-runtime-release-check": "slinger-runtime[release-check]",
+            "slinger-twin": "slinger-twin"}
+"""Pins on the sibling wheels, written into the staged ``requirements/<file>.txt`` (the twin's
+MuJoCo comes with the runtime's release-check extra, written once; the server's API needs none)."""
+
+
+def version() -> str:
+    """The project's version (root pyproject.toml), shared by the three wheels."""
+    return tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["version"]
 
 
 def stage(name: str, into: Path) -> Path:
@@ -40,6 +54,11 @@ def stage(name: str, into: Path) -> Path:
     """
     source, extra = PACKAGES[name]
     shutil.copy(REPO / "packaging" / name / "pyproject.toml", into / "pyproject.toml")
+    shutil.copytree(REPO / "packaging" / "requirements", into / "requirements")
+    v = version()
+    (into / "VERSION").write_text(v + "\n")
+    for file, requirement in SIBLINGS.items():
+        (into / "requirements" / f"{file}.txt").write_text(f"{requirement}=={v}\n")
     (into / "README.md").write_text(f"Slinger {name} package, built from {REPO.name}/{source}.\n")
     shutil.copytree(REPO / source, into / source, ignore=IGNORE)
     for staged, original in extra.items():

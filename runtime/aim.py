@@ -51,7 +51,7 @@ class AimCorrection:
     block: dict
 
     @classmethod
-    def from_block(cls, block: dict) -> "AimCorrection":
+    def from_block(cls, block: dict) -> AimCorrection:
         """Parse and check a manifest block.
 
         Raises:

@@ -27,8 +27,9 @@ import stat
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable, TypeVar
+from typing import TypeVar
 
 from runtime.protocol.messages import CommandAuth, Message
 
@@ -181,7 +182,8 @@ class CommandVerifier:
         reason = verify_mac(msg, self.key)
         if reason:
             return reason
-        auth = msg.auth
+        auth = getattr(msg, "auth", None)
+        assert auth is not None, "verify_mac found it"
         if auth.epoch != self.epoch:
             return f"wrong epoch: addressed {auth.epoch}, this runtime is {self.epoch}"
         now = self.wall_clock() if now_unix_s is None else now_unix_s

@@ -7,7 +7,7 @@ import argparse
 import logging
 import signal
 import threading
-from typing import Callable
+from collections.abc import Callable
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 

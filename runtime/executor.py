@@ -67,7 +67,7 @@ from runtime.observation import (
 from runtime.outcome import PhaseEvent, ThrowOutcome, TickOutput
 from runtime.policy import PolicyError, PolicyRunner
 from runtime.protocol.messages import ImpactReport, MachineState, ThrowRequest
-from runtime.release_check import DEFAULT_RADIUS_M, shared_predictor
+from runtime.release_check import DEFAULT_RADIUS_M, ReleaseCheck
 from runtime.telemetry import TelemetryRecorder
 from runtime.throw_geometry import impact_errors, target_refusal
 
@@ -128,12 +128,18 @@ class ThrowExecutor:
         policies: loaded policies by mode ("2d", "3d"); each runner's ``mode`` must match its key.
         controller: the joint-velocity controller (safety clipping lives there).
         config: timeouts and thresholds.
+        release_check: the release check (runtime.release_check.ReleaseCheck: a predictor, or
+            why there is none: then every throw is refused with that reason), used while
+            ``config.release_check_radius_m`` is not None; None builds one for this executor
+            (ReleaseCheck.load). Callers that make many executors in one thread hand the same one
+            to each (it is not thread-safe).
 
     Raises:
         ValueError: if a policy is filed under the wrong mode.
     """
 
-    def __init__(self, policies: dict[str, PolicyRunner], controller: JointVelocityController | None = None, config: ExecutorConfig | None = None):
+    def __init__(self, policies: dict[str, PolicyRunner], controller: JointVelocityController | None = None,
+                 config: ExecutorConfig | None = None, release_check: ReleaseCheck | None = None):
         for mode, runner in policies.items():
             if runner.mode != mode:
                 raise ValueError(f"policy {runner.version!r} is a {runner.mode} policy, filed under {mode!r}")
@@ -150,9 +156,11 @@ class ThrowExecutor:
         non-finite or misshaped action); throws with it are refused until another file is loaded."""
         self._predictor, self._check_unavailable = None, None
         if self.config.release_check_radius_m is not None:
-            self._predictor, self._check_unavailable = shared_predictor()
+            check = release_check or ReleaseCheck.load()
+            self._predictor, self._check_unavailable = check.predictor, check.unavailable
             if self._predictor is None:
-                log.error("release check unavailable (%s): every throw will be refused", self._check_unavailable)
+                log.error("release check unavailable (%s): every throw will be refused; install MuJoCo "
+                          "(slinger-runtime[release-check]) or switch the check off", self._check_unavailable)
 
     # --- queries ----------------------------------------------------------------------------
     @property
@@ -192,7 +200,8 @@ class ThrowExecutor:
         if not _state_finite(state):
             return "machine state is not finite"
         if self._check_unavailable is not None:
-            return f"release check unavailable ({self._check_unavailable}); install the twin's model or switch the check off"
+            return (f"release check unavailable ({self._check_unavailable}); install MuJoCo "
+                    "(slinger-runtime[release-check]) or switch the check off")
         refusal = target_refusal(request.mode, request.target_m, float(state.q[0]), policy.target_range_m)
         if refusal:
             return refusal
@@ -348,6 +357,7 @@ class ThrowExecutor:
     # --- helpers ----------------------------------------------------------------------------
     def _emit(self, phase: str, stamp_s: float, detail: str | None = None) -> None:
         th = self._throw
+        assert th is not None, "no throw running"
         self._events.append(PhaseEvent(th.request.throw_id, phase, stamp_s, detail))
         th.recorder.event(stamp_s, phase, detail)
 
@@ -359,6 +369,7 @@ class ThrowExecutor:
 
     def _finish(self, status: str, detail: str | None, stamp_s: float | None, **result) -> TickOutput:
         th = self._throw
+        assert th is not None, "no throw running"
         end = th.start_stamp_s if stamp_s is None else stamp_s
         self._emit(status, end, detail)
         self._finished = ThrowOutcome(

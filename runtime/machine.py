@@ -10,7 +10,7 @@ cabin-turn axis at ground level, x forward when ``cabin_turn = 0``, z up; metres
 
 Sources: joint offsets, ranges and masses from the HEAP URDF parameters quoted in
 ``shared/reference/machine-spec.md`` (leggedrobotics/rsl_heap, mm_parameters.urdf.xacro). The
-same numbers are written in ``sim_twin/assets/material_handler.xml``; ``tests/test_machine.py``
+same numbers are written in ``runtime/dynamics/assets/material_handler.xml``; ``tests/test_machine.py``
 checks that this module's forward kinematics agrees with MuJoCo's on that file.
 """
 
@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 
@@ -80,11 +81,11 @@ class ChainPoints:
         gripper_centre_vel: (3,) its velocity, m/s.
     """
 
-    boom_pivot: object
-    dipper_pivot: object
-    hanger: object
-    gripper_centre: object
-    gripper_centre_vel: object
+    boom_pivot: Any
+    dipper_pivot: Any
+    hanger: Any
+    gripper_centre: Any
+    gripper_centre_vel: Any
 
 
 def _rot(xp: ModuleType, a, axis: str):

@@ -20,8 +20,9 @@ Wiring (keys in runtime/protocol/README.md):
   ``<site_dir>/machines/<id>/command.key``). Without it every throw, E-STOP reset and policy
   offer is refused "no command key configured" (aborts still work);
 * release check (runtime.release_check, runtime.executor): ``--release-check-radius M`` (default
-  3.0 m, or the environment's ``SLINGER_RELEASE_CHECK_RADIUS_M``; ``off`` switches it off). If it
-  is on and MuJoCo or the machine's model cannot be loaded, every throw is refused with the reason;
+  3.0 m; ``off`` switches it off). If it is on and MuJoCo (the ``release-check`` extra) or the
+  machine's model cannot be loaded, the runtime says so at start-up and refuses every throw with
+  the reason;
 * fault injection for tests only: ``SLINGER_CLOCK_OFFSET_S`` runs this runtime's wall clock
   (command freshness, RuntimeInfo.clock_unix_s) that many seconds off the host's;
 * a watchdog thread (every 50 ms): no valid state for 0.2 s during a throw -> failed;
@@ -42,18 +43,18 @@ import threading
 import time
 from pathlib import Path
 
+from runtime import telemetry
 from runtime.command_auth import CommandVerifier, load_key
 from runtime.controller import JointVelocityController
-from runtime.estop_latch import EstopLatchFile
 from runtime.entrypoint import module_main, stop_on_signals
+from runtime.estop_latch import EstopLatchFile
 from runtime.executor import ExecutorConfig, ThrowExecutor
 from runtime.outbox import Outbox, zenoh_deliverer
 from runtime.policy import PolicyError, PolicyRunner
 from runtime.policy_update import PolicyUpdater, zenoh_fetcher
 from runtime.protocol import keys
 from runtime.protocol.messages import encode
-from runtime import telemetry
-from runtime.release_check import DEFAULT_RADIUS_M, RADIUS_ENV, parse_radius
+from runtime.release_check import DEFAULT_RADIUS_M, ReleaseCheck, parse_radius
 from runtime.service import LINK_TIMEOUT_S, RuntimeService
 from runtime.zenoh_session import Claimed, add_session_arguments, claim_exclusive, open_session, session_options
 
@@ -106,9 +107,9 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="where the E-STOP latch is kept across restarts (default: <outbox-dir>-state)")
     parser.add_argument("--policy-dir", type=Path, default=None, help="where promoted policy files are kept (default: <outbox-dir>-policies)")
     parser.add_argument("--link-timeout", type=float, default=LINK_TIMEOUT_S, help="seconds without machine state that fail a throw")
-    parser.add_argument("--release-check-radius", type=release_check_radius, default=os.environ.get(RADIUS_ENV, DEFAULT_RADIUS_M),
+    parser.add_argument("--release-check-radius", type=release_check_radius, default=DEFAULT_RADIUS_M,
                         help="hold a release whose predicted impact is farther than this from the target, m, or 'off' "
-                             f"(default ${RADIUS_ENV}, else {DEFAULT_RADIUS_M} m)")
+                             f"(default {DEFAULT_RADIUS_M} m; needs MuJoCo: the 'release-check' extra)")
 
 
 def release_check_radius(text) -> float | None:
@@ -167,7 +168,9 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         return 2
     if radius is None:
         log.warning("release check off (--release-check-radius off): releases are not checked")
-    executor = ThrowExecutor(policies, JointVelocityController(), ExecutorConfig(release_check_radius_m=radius))
+    check = ReleaseCheck.load() if radius is not None else None  # the executor logs why if it cannot
+    executor = ThrowExecutor(policies, JointVelocityController(), ExecutorConfig(release_check_radius_m=radius),
+                             release_check=check)
 
     with open_session(**zenoh_opts) as session:
         try:

@@ -18,8 +18,8 @@ import os
 import re
 import tempfile
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from runtime.protocol import keys
 from runtime.protocol.messages import ResultAck, ThrowResult, ValidationError, decode, encode
@@ -106,7 +106,7 @@ class Outbox:
                     continue
                 try:
                     ack = self.deliver(data)
-                except Exception as e:  # a failing transport must not kill the outbox
+                except Exception as e:  # noqa: BLE001  a failing transport must not kill the outbox
                     log.warning("delivering throw %s failed: %s", throw_id, e)
                     ack = None
                 if ack is not None and ack.stored and ack.throw_id == throw_id:

@@ -20,6 +20,7 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -74,7 +75,7 @@ class PolicyRunner:
 
     manifest: dict
     path: Path
-    _session: object
+    _session: Any  # onnxruntime.InferenceSession
     aim_correction: AimCorrection | None = None
 
     @property
@@ -95,7 +96,7 @@ class PolicyRunner:
         return float(lo), float(hi)
 
     @classmethod
-    def load(cls, onnx_path: str | Path, manifest_path: str | Path | None = None) -> "PolicyRunner":
+    def load(cls, onnx_path: str | Path, manifest_path: str | Path | None = None) -> PolicyRunner:
         """Load and check a policy.
 
         Args:

@@ -17,8 +17,8 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from runtime.policy import PolicyError, PolicyRunner
 from runtime.protocol.messages import PolicyOffer, PolicyOfferAck, PolicyUpdate, ValidationError, decode, encode
@@ -78,7 +78,7 @@ class PolicyUpdater:
             runner = PolicyRunner.load(path)
             if runner.mode != offer.mode:
                 raise PolicyError(f"a {runner.mode} policy offered for {offer.mode}")
-        except Exception as e:  # fetch errors, PolicyError, OSError
+        except Exception as e:  # noqa: BLE001  fetch errors, PolicyError, OSError
             log.error("policy %s (%s) not loaded: %s", offer.version, offer.mode, e)
             self._publish(offer, "failed", str(e))
             return

@@ -165,7 +165,7 @@ class ReturnToReady:
         err = self.target[1:] - q[1:4]
         arrived = bool(np.all(np.abs(err) < POSITION_TOL) and np.all(np.abs(qd[1:4]) < SETTLED_SPEED))
         self._settled_since = (self._settled_since or stamp_s) if arrived else None
-        if arrived and stamp_s - self._settled_since >= SETTLE_S:
+        if self._settled_since is not None and stamp_s - self._settled_since >= SETTLE_S:
             return self._end("reached the ready pose", 1.0)
         self.status = RecoveryStatus(True, progress, None)
         return self.controller.step(self._reference(err, stamp_s), q, qd)

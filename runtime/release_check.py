@@ -7,18 +7,19 @@ The gripper swings on meanwhile, so a ballistic impact from the state AT the com
 
 1. simulates the machine over the mean opening delay (26 physics steps of 10 ms, the twin's
    discretisation: it frees the payload on the first step at or after the delay) with MuJoCo on
-   the machine's own model (sim_twin/assets/material_handler.xml, loaded and checked by
-   sim_twin.model.load_model, as the simulated machine does). The active joints start at their
+   the machine's own model (runtime/dynamics/assets/material_handler.xml, loaded and checked by
+   runtime.dynamics.model.load_model, as the simulated machine does). The active joints start at their
    measured velocities and move towards the joint-velocity references of the release tick (the
    controller's, after its safety clipping; the policy keeps running after the release flag)
    through the nominal valve lag
-   (sim_twin.hydraulics.lag_step, NOMINAL_LAG_S 0.16 s, no transport delay: the commands of the
+   (runtime.dynamics.hydraulics.lag_step, NOMINAL_LAG_S 0.16 s, no transport delay: the commands of the
    last 0.1 s already in the valves are much like it. CHOSEN by measurement: a 0.05-0.1 s delay
    added made it worse (30-throw probe, 2D 10 m: median 0.13 -> 0.15-0.25 m); without the
    references, joints continuing at their measured velocities, the error is up to 4 times
    larger, table below), then through the same cylinder + velocity-servo mechanism the twin
-   uses (sim_twin.hydraulics.cylinder_step: stroke ends are hard stops); the passive gripper
-   joints swing freely with the paper's friction (sim_twin.physics.passive_friction_force);
+   uses (runtime.dynamics.hydraulics.cylinder_step: stroke ends are hard stops); the passive
+   gripper joints swing freely with the paper's friction
+   (runtime.dynamics.friction.passive_friction_force);
 2. flies the gripper centre (runtime.machine.forward_kinematics) drag-free to the ground, the
    payload's centre PAYLOAD_RADIUS_M above it (runtime.ballistics, as the twin).
 
@@ -53,16 +54,20 @@ Cost: 0.5-0.9 ms per prediction (median per cell; max 1-5 ms, one 30 ms outlier 
 2-core development host; one MjData per thread, reused, the model loaded once per process); it runs only on a
 release flag, at most once per 80 ms control step.
 
-Availability: MuJoCo and the model come with the twin (slinger-twin), not with the light runtime
-wheel. :func:`shared_predictor` returns the reason when they cannot be loaded; the executor then
-refuses throws (runtime.executor: fail closed) unless the check is switched off explicitly.
+Availability: the model and the dynamics are the runtime's own (runtime.dynamics); MuJoCo is the
+runtime wheel's ``release-check`` extra. :meth:`ReleaseCheck.load` gives the reason when MuJoCo or
+the model cannot be loaded; the runtime says so at start-up (runtime.node) and the executor then
+refuses every throw with that reason (runtime.executor: fail closed) unless the check is switched
+off explicitly. Whoever builds an executor hands it its :class:`ReleaseCheck` (one per thread:
+the predictor's MjData is scratch space that MuJoCo does not guard); the radius is the
+executor's configuration (runtime.executor.ExecutorConfig), given by the runtime's
+``--release-check-radius`` and, for previews, by the server's settings.
 """
 
 from __future__ import annotations
 
 import math
-import os
-import threading
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -74,9 +79,6 @@ OPENING_DELAY_MEAN_S = 0.258
 """Mean opening delay of the gripper, s (paper; shared/reference/machine-spec.md; std 15 ms)."""
 DEFAULT_RADIUS_M = 3.0
 """runtime.executor.ExecutorConfig.release_check_radius_m's default (its docstring: why)."""
-RADIUS_ENV = "SLINGER_RELEASE_CHECK_RADIUS_M"
-"""Environment variable with the radius (m) or "off" for the runtime process and the server's
-previews (:func:`configured_radius`)."""
 
 
 def parse_radius(text) -> float | None:
@@ -96,33 +98,24 @@ def parse_radius(text) -> float | None:
     return r
 
 
-def configured_radius() -> float | None:
-    """The radius of ``$SLINGER_RELEASE_CHECK_RADIUS_M``, else DEFAULT_RADIUS_M.
-
-    Raises:
-        ValueError: the variable is set to something :func:`parse_radius` refuses.
-    """
-    return parse_radius(os.environ.get(RADIUS_ENV, DEFAULT_RADIUS_M))
-
-
 class ReleasePredictor:
     """Predicts the payload's impact point for a release commanded at a measured state.
 
     Args:
-        model: a mujoco.MjModel of the machine (sim_twin.model.load_model's checks: joints in
-            JOINT_NAMES order, actuators = the 4 active joints as velocity servos).
+        model: a mujoco.MjModel of the machine (runtime.dynamics.model.load_model's checks:
+            joints in JOINT_NAMES order, actuators = the 4 active joints as velocity servos).
         opening_delay_s: gripper opening delay to simulate, s (default the paper's mean).
 
     Raises:
-        ImportError: MuJoCo or the twin's physics helpers are not installed.
+        ImportError: MuJoCo is not installed (the runtime wheel's ``release-check`` extra).
     """
 
     def __init__(self, model, opening_delay_s: float = OPENING_DELAY_MEAN_S):
         import mujoco
 
-        from sim_twin.hydraulics import NOMINAL_LAG_S, cylinder_step, lag_step
-        from sim_twin.model import passive_inertia_of
-        from sim_twin.physics import passive_friction_force
+        from runtime.dynamics.friction import passive_friction_force
+        from runtime.dynamics.hydraulics import NOMINAL_LAG_S, cylinder_step, lag_step
+        from runtime.dynamics.model import passive_inertia_of
 
         self._mj, self._cylinder_step, self._friction = mujoco, cylinder_step, passive_friction_force
         self._lag_step, self.lag_s = lag_step, NOMINAL_LAG_S
@@ -175,29 +168,31 @@ class ReleasePredictor:
 
 @lru_cache(maxsize=1)
 def _machine_model():
-    from sim_twin.model import load_model
+    """The machine's MjModel, loaded once per process (read-only once loaded)."""
+    from runtime.dynamics.model import load_model
 
     return load_model()
 
 
-_per_thread = threading.local()
+@dataclass(frozen=True)
+class ReleaseCheck:
+    """What an executor checks release flags with: a predictor, or why there is none.
 
-
-def shared_predictor() -> tuple[ReleasePredictor | None, str | None]:
-    """A predictor on the machine's MJCF, or why there is none; built once per thread and reused
-    by every executor of that thread (a preview makes one executor per rollout, an evaluation one
-    per throw). One per thread because its MjData is scratch space that MuJoCo does not guard;
-    the model itself is loaded once per process.
-
-    Returns:
-        (predictor, None), or (None, reason) when MuJoCo, the twin package or the MJCF cannot be
-        loaded (ImportError, OSError, ValueError of sim_twin.model.load_model).
+    Attributes:
+        predictor: the predictor, or None when it cannot be built.
+        unavailable: why there is no predictor (the executor refuses throws with it), else None.
     """
-    cached = getattr(_per_thread, "predictor", None)
-    if cached is None:
+
+    predictor: ReleasePredictor | None
+    unavailable: str | None = None
+
+    @classmethod
+    def load(cls) -> ReleaseCheck:
+        """A check on the machine's MJCF (runtime.dynamics), or the reason it cannot be built
+        (MuJoCo missing: ImportError; the MJCF unreadable or in another joint order: OSError,
+        ValueError of runtime.dynamics.model.load_model). Each call makes a new predictor (its
+        own MjData); the model is loaded once per process."""
         try:
-            cached = (ReleasePredictor(_machine_model()), None)
+            return cls(ReleasePredictor(_machine_model()))
         except (ImportError, OSError, ValueError) as e:
-            cached = (None, f"{type(e).__name__}: {e}")
-        _per_thread.predictor = cached
-    return cached
+            return cls(None, f"{type(e).__name__}: {e}")

@@ -37,7 +37,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -46,8 +46,6 @@ from runtime.controller import JointVelocityController
 from runtime.estop_latch import EstopLatchFile
 from runtime.executor import ThrowExecutor
 from runtime.outcome import TickOutput
-from runtime.recovery import POSE_REASONS, pose_refusal
-from runtime.recovery import ReturnToReady as Recovery
 from runtime.protocol import keys
 from runtime.protocol.messages import (
     AbortAck,
@@ -69,6 +67,8 @@ from runtime.protocol.messages import (
     decode,
     encode,
 )
+from runtime.recovery import POSE_REASONS, pose_refusal
+from runtime.recovery import ReturnToReady as Recovery
 from runtime.service_recovery import RecoveryHandling
 
 log = logging.getLogger(__name__)

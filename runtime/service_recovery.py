@@ -13,8 +13,8 @@ from __future__ import annotations
 import logging
 
 from runtime.outcome import TickOutput
-from runtime.recovery import ReturnToReady as Recovery
 from runtime.protocol.messages import MachineState, ReturnToReady, ReturnToReadyAck, encode
+from runtime.recovery import ReturnToReady as Recovery
 
 log = logging.getLogger("runtime.service")  # the logger of runtime.service, as before the split
 

@@ -39,6 +39,7 @@ import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 from mcap.reader import make_reader
@@ -199,7 +200,7 @@ def warm() -> None:
     write_mcap(TelemetryRecorder())
 
 
-def _open(source: bytes | bytearray | str | Path) -> io.BufferedIOBase:
+def _open(source: bytes | bytearray | str | Path) -> IO[bytes]:
     if isinstance(source, (bytes, bytearray)):
         return io.BytesIO(bytes(source))
     return open(source, "rb")

@@ -21,8 +21,8 @@ the signatures keep a compromised or misconfigured link from commanding a throw.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from runtime.protocol import keys
 

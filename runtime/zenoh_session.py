@@ -26,9 +26,9 @@ import json
 import secrets
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import zenoh
 
@@ -234,7 +234,9 @@ def tls_files(args: argparse.Namespace, cn: str) -> TlsFiles | None:
         return None
     if args.tls_dir is None and not all(explicit):
         raise ValueError("give --tls-dir, or all of --tls-ca, --tls-cert and --tls-key")
-    base = TlsFiles.from_site(args.tls_dir, cn) if args.tls_dir else None
+    if args.tls_dir is None:
+        return TlsFiles(args.tls_ca, args.tls_cert, args.tls_key).check()
+    base = TlsFiles.from_site(args.tls_dir, cn)
     return TlsFiles(args.tls_ca or base.ca, args.tls_cert or base.cert, args.tls_key or base.key).check()
 
 

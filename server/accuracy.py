@@ -28,7 +28,7 @@ SQLite builds without them).
 from __future__ import annotations
 
 import math
-from datetime import datetime, time, timedelta, timezone
+from datetime import UTC, datetime, time, timedelta
 
 import numpy as np
 from sqlalchemy import Float, String, and_, case, cast, func, literal, or_, select, type_coerce
@@ -93,16 +93,16 @@ def _whole_days(since: datetime | None, until: datetime | None):
     first = last = None
     edges = []
     if since is not None:
-        s = since.astimezone(timezone.utc)
-        first = s.date() if s.timetz() == time(0, tzinfo=timezone.utc) else s.date() + timedelta(days=1)
+        s = since.astimezone(UTC)
+        first = s.date() if s.timetz() == time(0, tzinfo=UTC) else s.date() + timedelta(days=1)
     if until is not None:
-        last = until.astimezone(timezone.utc).date() - timedelta(days=1)
+        last = until.astimezone(UTC).date() - timedelta(days=1)
     if first is not None and last is not None and first > last:
         return first, last, None
-    if since is not None and first != since.astimezone(timezone.utc).date():
-        edges.append(Throw.requested_at < datetime.combine(first, time(0), timezone.utc))
+    if since is not None and first != since.astimezone(UTC).date():
+        edges.append(Throw.requested_at < datetime.combine(first, time(0), UTC))
     if until is not None:
-        edges.append(Throw.requested_at >= datetime.combine(last + timedelta(days=1), time(0), timezone.utc))
+        edges.append(Throw.requested_at >= datetime.combine(last + timedelta(days=1), time(0), UTC))
     return first, last, edges
 
 
@@ -182,15 +182,6 @@ def accuracy(db, flt: ThrowFilter, bin_m: float = DISTANCE_BIN_M, errors_per_gro
             "errors_m": scatter.get((mode, ident, b), []),
         })
     return sorted(out, key=lambda g: (g["mode"], g["policy_version"], g["policy_sha256"] or "", g["target_distance_m"]))
-
-
-def error_ellipse(down: np.ndarray, cross: np.ndarray, n: int = 48) -> dict | None:
-    """1 sigma ellipse of the (downrange, crossrange) errors (each (N,), m): semi-axes, angle,
-    outline; None below 3 points."""
-    if len(down) < 3:
-        return None
-    pts = np.column_stack([down, cross])
-    return ellipse_of(pts.mean(axis=0), np.cov(pts.T), n)
 
 
 def ellipse_of(mean: np.ndarray, cov: np.ndarray, n: int = 48) -> dict:

@@ -19,28 +19,28 @@ from fastapi.staticfiles import StaticFiles
 from sqlalchemy.exc import SQLAlchemyError
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
+from server.adaptation import AdaptationRuns
 from server.api.errors import domain_error
-from server.errors import DomainError
 from server.api.routes import adaptation, auth, diagnosis, health, jobs, live, machines, policies, previews, scene, throws, users
+from server.command_signer import CommandSigner
 from server.config import Settings, get_settings
 from server.db.migrate import upgrade
 from server.db.models import Throw
 from server.db.session import make_engine, make_sessionmaker
-from server.command_signer import CommandSigner
+from server.diagnosis import DiagnosisRuns
+from server.errors import DomainError
 from server.fleet import Fleet
-from server.reconcile import Reconciler
 from server.jobs import JobQueue, JobStore, queue_url
 from server.jobs import tasks as job_tasks
 from server.jobs.watch import JobWatcher
-from server.login_guard import LoginGuard
-from server.storage import StorageFault, StorageMonitor, classify, storage_response
 from server.live import LiveHub
-from server.adaptation import AdaptationRuns
-from server.diagnosis import DiagnosisRuns
-from server.results import ResultStore
-from server.scene import ConsoleScene
+from server.login_guard import LoginGuard
 from server.policies import PolicyService
 from server.previews import PreviewService
+from server.reconcile import Reconciler
+from server.results import ResultStore
+from server.scene import ConsoleScene
+from server.storage import StorageFault, StorageMonitor, classify, storage_response
 from server.throws import ThrowService
 from server.web_guard import BodySizeLimit, SecurityHeaders, inline_script_hashes
 
@@ -109,7 +109,8 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
             job_tasks.bind(job_tasks.WorkerContext(sessions, settings.data_dir, settings, app.state.jobs))
         app.state.policies = PolicyService(fleet, sessions, store, settings, app.state.jobs)
         app.state.previews = PreviewService(fleet, sessions, app.state.throws, app.state.jobs, settings.data_dir,
-                                            settings.clearance_radius_m, settings.preview_profile)
+                                            settings.clearance_radius_m, settings.preview_profile,
+                                            settings.release_check_radius_m)
         app.state.job_watcher = job_watcher = JobWatcher(app.state.jobs.store, live_hub.publish)
         app.state.diagnosis_runs = DiagnosisRuns(sessions, app.state.jobs, settings.data_dir)
         app.state.adaptation_runs = AdaptationRuns(app.state.diagnosis_runs, app.state.policies, app.state.previews,
@@ -205,7 +206,7 @@ def _migrate(database_url: str, storage: StorageMonitor) -> None:
         return
     try:
         upgrade(database_url)
-    except Exception as e:  # noqa: BLE001  only storage faults are survived; others stop the start
+    except Exception as e:
         fault = classify(e)
         if fault is None:
             raise

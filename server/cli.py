@@ -12,7 +12,7 @@ Subcommands::
     slinger runtime     the runtime of one machine        (runtime.node)
     slinger ros2-bridge a ROS 2 machine behind the machine interface (runtime.ros2.bridge)
     slinger train       train a policy                   (sim_twin.train)
-    slinger evaluate    evaluate a policy                (sim_twin.evaluate)
+    slinger evaluate    evaluate a policy                (sim_twin.evaluate_cli)
     slinger diagnose    sim-to-real gap diagnosis        (sim_twin.diagnosis.cli)
     slinger adapt       adapt a policy to a diagnosed site (sim_twin.adapt)
     slinger results     docs/results.md from the committed reports (server.results_page)
@@ -41,7 +41,7 @@ DELEGATED = {
     "runtime": ("runtime.node", "the runtime of one machine"),
     "ros2-bridge": ("runtime.ros2.bridge", "the ROS 2 machine bridge: a ROS 2 (rmw_zenoh) machine behind the machine interface"),
     "train": ("sim_twin.train", "train a throwing policy (needs the 'train' extra)"),
-    "evaluate": ("sim_twin.evaluate", "evaluate a policy version"),
+    "evaluate": ("sim_twin.evaluate_cli", "evaluate a policy version"),
     "diagnose": ("sim_twin.diagnosis.cli", "sim-to-real gap diagnosis of logged throws (and 'diagnose benchmark')"),
     "adapt": ("sim_twin.adapt", "a policy version adapted to a site's (fitted) reality profile"),
     "results": ("server.results_page", "docs/results.md from the committed reports (--check: fail when stale)"),
@@ -149,7 +149,8 @@ def cmd_up(args: argparse.Namespace) -> int:
             from server.jobs.worker import worker_argv
 
             children.spawn("worker", worker_argv(settings), settings.data_dir / "logs")
-            stack.spawn_machines(children, args.machines, hub, policies, settings.data_dir, site.root)
+            stack.spawn_machines(children, args.machines, hub, policies, settings.data_dir, site.root,
+                                 settings.release_check_radius_m)
             children.supervise()
             log.info("child logs in %s", settings.data_dir / "logs")
             return _serve(settings, zenoh_session=session, on_started=_print_urls(settings))

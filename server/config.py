@@ -10,8 +10,10 @@ import os
 from functools import lru_cache
 from pathlib import Path
 
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from runtime.release_check import DEFAULT_RADIUS_M, parse_radius
 
 
 class KeepOutZone(BaseModel):
@@ -64,6 +66,10 @@ class Settings(BaseSettings):
             ``SLINGER_KEEP_OUT_ZONES='[{"name": "truck", "center_m": [7, 3], "radius_m": 1.5}]'``.
         clearance_radius_m: the swing must stay within this horizontal distance of the turn
             axis (the machine's clearance zone), m.
+        release_check_radius_m: the release check's radius, m, or None ("off"): given to the
+            runtimes that ``slinger up`` starts (``--release-check-radius``) and to every preview
+            (sim_twin.preview.PreviewRequest), so that a preview holds a release as the machine
+            would (runtime.release_check; env ``SLINGER_RELEASE_CHECK_RADIUS_M``, default 3.0).
         preview_rollouts: Monte Carlo rollouts of a full preview (1 sigma impact ellipse).
         preview_profile: the site's reality profile with its uncertainty block (parameter ranges,
             start-state model; sim_twin.uncertainty) that previews sample; default
@@ -124,6 +130,7 @@ class Settings(BaseSettings):
     login_max_pending: int = Field(8, ge=1, le=256)
     keep_out_zones: list[KeepOutZone] = Field(default_factory=list)
     clearance_radius_m: float = 12.0
+    release_check_radius_m: float | None = DEFAULT_RADIUS_M
     preview_rollouts: int = 200
     preview_profile: Path | None = None
     eval_distances_m: list[float] = Field(default_factory=list)
@@ -146,8 +153,13 @@ class Settings(BaseSettings):
     job_queue_url: str = ""
     preview_timeout_s: float = 15.0
 
+    @field_validator("release_check_radius_m", mode="before")
+    @classmethod
+    def _radius(cls, value):
+        return parse_radius(value)
+
     @model_validator(mode="after")
-    def _default_database(self) -> "Settings":
+    def _default_database(self) -> Settings:
         if not self.database_url:
             self.database_url = f"sqlite:///{(self.data_dir / 'slinger.db').as_posix()}"
         return self

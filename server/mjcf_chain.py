@@ -2,8 +2,8 @@
 kinematic chain (bodies with their pose in the parent, joints, geoms) evaluated with numpy.
 
 The API process never imports MuJoCo (docs/deployment.md, "Workers and queue URLs"); the 3D view still draws the
-twin's own geometry from the same file the twin simulates (``sim_twin/assets/material_handler.xml``;
-a server wheel carries a copy as ``server/assets``, see :func:`default_mjcf_path`).
+twin's own geometry from the same file the twin simulates (runtime.dynamics.MJCF_PATH, which the
+server's dependency slinger-runtime carries; see :func:`default_mjcf_path`).
 tests/test_mjcf_chain.py checks the body and geom poses against MuJoCo's forward kinematics.
 
 Supported MJCF (what the machine's file uses; anything else raises ValueError): nested
@@ -16,32 +16,27 @@ Frames: MuJoCo's world frame = Slinger's machine frame (z up, metres).
 
 from __future__ import annotations
 
-import importlib.util
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from runtime.dynamics import MJCF_PATH
+
 GEOM_TYPES = ("plane", "sphere", "capsule", "cylinder", "box")
 _ORIENTATIONS = ("axisangle", "euler", "xyaxes", "zaxis")
 
 
 def default_mjcf_path() -> Path:
-    """The twin's MJCF: ``sim_twin/assets/material_handler.xml`` (found without importing
-    sim_twin, so MuJoCo stays out of this process), else the copy a server wheel carries in
-    ``server/assets/``.
+    """The machine's MJCF, runtime.dynamics.MJCF_PATH (that package imports no MuJoCo).
 
     Raises:
-        FileNotFoundError: neither exists.
+        FileNotFoundError: the file is missing (a broken install).
     """
-    spec = importlib.util.find_spec("sim_twin")  # locates the package; does not run its __init__
-    candidates = [Path(p) / "assets" / "material_handler.xml" for p in (spec.submodule_search_locations or [])] if spec else []
-    candidates.append(Path(__file__).parent / "assets" / "material_handler.xml")
-    for path in candidates:
-        if path.is_file():
-            return path
-    raise FileNotFoundError(f"no machine MJCF at {', '.join(map(str, candidates))}")
+    if not MJCF_PATH.is_file():
+        raise FileNotFoundError(f"no machine MJCF at {MJCF_PATH}")
+    return MJCF_PATH
 
 
 def quat_to_mat(wxyz) -> np.ndarray:
@@ -151,7 +146,7 @@ class KinematicChain:
         self.joint_names = tuple(j.name for b in bodies for j in b.joints)
 
     @classmethod
-    def from_mjcf(cls, path: str | Path | None = None) -> "KinematicChain":
+    def from_mjcf(cls, path: str | Path | None = None) -> KinematicChain:
         """Parse an MJCF file (default :func:`default_mjcf_path`).
 
         Raises:

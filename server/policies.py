@@ -30,10 +30,10 @@ from runtime.protocol.messages import (
 from server.auth import audit
 from server.db.models import PolicyDeployment, PolicyVersion
 from server.db.types import utcnow
-from server.policy_validation import ValidationLimits, validate
-from server.fleet import Fleet, RuntimeUnavailable
-from server.results import ResultStore, ensure_machine
 from server.errors import Conflict, NotFound, Refused
+from server.fleet import Fleet, RuntimeUnavailable
+from server.policy_validation import ValidationLimits, validate
+from server.results import ResultStore, ensure_machine
 
 log = logging.getLogger(__name__)
 MAX_POLICY_BYTES = 50 * 1024 * 1024
@@ -232,7 +232,7 @@ def evaluate_version(sessions: sessionmaker[Session], data_dir: Path, version_id
         server.jobs.JobCancelled: from ``progress`` (the row is left ``failed``: cancelled).
     """
     from server.jobs.store import JobCancelled
-    from sim_twin.evaluate import _throw_batch, summarise  # the protocol's own throw loop
+    from sim_twin.evaluate import summarise, throw_batch  # the protocol's own throw loop
 
     with sessions.begin() as db:
         row = db.get(PolicyVersion, version_id)
@@ -257,7 +257,7 @@ def evaluate_version(sessions: sessionmaker[Session], data_dir: Path, version_id
         for i, d in enumerate(distances_m):
             progress(i / len(distances_m), f"{throws} throws at {d:.1f} m")
             seeds = [version_id * 1000 + i * 100 + k for k in range(throws)]
-            targets.append(summarise(d, _throw_batch(path, mode, d, seeds, profile_path)))
+            targets.append(summarise(d, throw_batch(path, mode, d, seeds, profile_path)))
         metrics = {"protocol": "paper Sec. IV-A (small sample)", "throws_per_target": throws,
                    "profile": profile_name, "targets": targets, "validation": verdict}
         status = "done"

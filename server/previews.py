@@ -14,6 +14,7 @@ from pathlib import Path
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from runtime.release_check import DEFAULT_RADIUS_M
 from server.db.models import PolicyVersion
 from server.errors import KINDS, Conflict, Failed, Refused, Unavailable
 from server.fleet import Fleet
@@ -42,10 +43,12 @@ class PreviewService:
     """
 
     def __init__(self, fleet: Fleet, sessions: sessionmaker[Session], throws: ThrowService, jobs: JobQueue,
-                 data_dir: Path, clearance_radius_m: float = 12.0, profile_path: Path | None = None):
+                 data_dir: Path, clearance_radius_m: float = 12.0, profile_path: Path | None = None,
+                 release_check_radius_m: float | None = DEFAULT_RADIUS_M):
         self.fleet, self.sessions, self.throws, self.jobs = fleet, sessions, throws, jobs
         self.data_dir = Path(data_dir)
         self.clearance_radius_m = clearance_radius_m
+        self.release_check_radius_m = release_check_radius_m
         self.profile_path = profile_path
 
     def get(self, preview_id: str) -> dict | None:
@@ -85,7 +88,7 @@ class PreviewService:
         state = self.throws.checked_state(machine_id, mode, target)
         onnx_path, sha, version = self.active_policy(machine_id, mode)
         request = dict(mode=mode, target_m=list(target), q=list(state.q), qd=list(state.qd), rollouts=rollouts,
-                       clearance_radius_m=self.clearance_radius_m)
+                       clearance_radius_m=self.clearance_radius_m, release_check_radius_m=self.release_check_radius_m)
         meta = dict(machine_id=machine_id, mode=mode, target_m=list(target), policy_version=version,
                     policy_sha256=sha, start_q=list(state.q))
         profile = str(self.profile_path) if self.profile_path else None

@@ -36,7 +36,7 @@ import math
 import os
 import subprocess
 import sys
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from runtime.policy import sha256_of
@@ -297,7 +297,7 @@ def host_description() -> str:
         pass
     parts = [f"{cpu}, {os.cpu_count()} CPUs"]
     try:
-        parts.append("load average %.1f / %.1f / %.1f" % os.getloadavg())
+        parts.append("load average {:.1f} / {:.1f} / {:.1f}".format(*os.getloadavg()))
     except OSError:
         pass
     try:
@@ -354,7 +354,7 @@ def stamp(report: Path, title: str, command: str, policies: list[Path], root: Pa
         raise ReportError(f"{report}: not readable JSON: {e}") from e
     if not isinstance(body, dict):
         raise ReportError(f"{report}: a report is a JSON object")
-    block = {"title": title, "date": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+    block = {"title": title, "date": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
              "commit": git_commit(root), "policies": [policy_entry(p, root) for p in policies],
              "host": host or host_description(), "command": command,
              "recorded": "at run time, by slinger results --stamp"}

@@ -14,6 +14,7 @@ import logging
 import sys
 from pathlib import Path
 
+from runtime.release_check import DEFAULT_RADIUS_M
 from server.supervise import Child, Children  # noqa: F401 (the stack's process supervision)
 from sim_twin import default_policy
 
@@ -44,16 +45,18 @@ def machine_ids(n: int) -> list[str]:
 
 
 def spawn_machines(children: Children, n: int, hub: str, policies: dict[str, Path], data_dir: Path,
-                   site_dir: Path | None = None) -> None:
+                   site_dir: Path | None = None, release_check_radius_m: float | None = DEFAULT_RADIUS_M) -> None:
     """Per machine: the simulated machine, and its runtime if any policy is given.
 
     With ``site_dir`` (server.certs.make_site) every child uses mutual TLS and the site's access
     control (``--tls-dir``; ``hub`` and the children's own listeners are then ``tls/``
-    endpoints) and each runtime gets its machine's command key (``--command-key``)."""
+    endpoints) and each runtime gets its machine's command key (``--command-key``). Each runtime
+    runs the release check at ``release_check_radius_m`` (None: off; server.config.Settings)."""
     log_dir = data_dir / "logs"
     ids = machine_ids(n)
     proto = "tls" if site_dir is not None else "tcp"
     tls = ["--tls-dir", str(site_dir), "--acl-machines", *ids] if site_dir is not None else []
+    radius = ["--release-check-radius", "off" if release_check_radius_m is None else str(release_check_radius_m)]
     for i, mid in enumerate(ids):
         link = ["--connect", hub, "--listen", f"{proto}/127.0.0.1:0", *tls]
         children.spawn(f"plant-{mid}", slinger_command("plant", "--machine-id", mid, "--seed", str(i), *link), log_dir)
@@ -62,7 +65,7 @@ def spawn_machines(children: Children, n: int, hub: str, policies: dict[str, Pat
         pol = [a for mode, p in sorted(policies.items()) for a in (f"--policy-{mode}", str(p))]
         key = ["--command-key", str(site_dir / "machines" / mid / "command.key")] if site_dir is not None else []
         children.spawn(f"runtime-{mid}", slinger_command(
-            "runtime", "--machine-id", mid, *pol, *link, *key, "--outbox-dir", str(data_dir / "outbox" / mid)), log_dir)
+            "runtime", "--machine-id", mid, *pol, *link, *key, *radius, "--outbox-dir", str(data_dir / "outbox" / mid)), log_dir)
 
 
 def register_policies(database_url: str, data_dir: Path, policies: dict[str, Path]) -> None:

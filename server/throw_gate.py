@@ -27,8 +27,8 @@ import math
 from dataclasses import dataclass
 from datetime import datetime
 
-from server.errors import Conflict, DomainError, Refused
 from runtime.machine import JOINT_NAMES
+from server.errors import Conflict, DomainError, Refused
 
 
 @dataclass(frozen=True)

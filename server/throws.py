@@ -14,20 +14,20 @@ from __future__ import annotations
 import logging
 import math
 import uuid
-from typing import Callable
+from collections.abc import Callable
 
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from runtime.protocol.messages import MachineState, ThrowAck, ThrowRequest
-from server.errors import Conflict, NotFound, Refused, Unavailable
-from server.targets import serve_refusal
 from server.api.schemas import ThrowCreate
 from server.auth import audit
 from server.db.models import Machine, PolicyVersion, Throw
 from server.db.types import utcnow
+from server.errors import Conflict, NotFound, Refused, Unavailable
 from server.fleet import Fleet, RuntimeUnavailable
 from server.results import ensure_machine
+from server.targets import serve_refusal
 from server.throw_gate import GateLimits, preview_refusal
 
 log = logging.getLogger(__name__)

@@ -343,7 +343,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from sim_twin.evaluate import parse_targets
+    from sim_twin.evaluate_cli import parse_targets
 
     report = json.loads(args.diagnosis.read_text()) if args.diagnosis else None
     res = adapt(args.profile, args.policy, args.out, args.name, args.method, report, args.throws, args.rounds,

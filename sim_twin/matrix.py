@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_twin.evaluate import _throw_batch, summarise
+from sim_twin.evaluate import summarise, throw_batch
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,7 @@ def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profi
     results = {(name, d): [] for name, _ in profiles for d in targets}
     t0 = time.time()
     with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
-        futs = {pool.submit(_throw_batch, str(policy), mode, d, s, paths[name]): (name, d) for name, d, s in jobs}
+        futs = {pool.submit(throw_batch, str(policy), mode, d, s, paths[name]): (name, d) for name, d, s in jobs}
         for k, fut in enumerate(as_completed(futs), 1):
             results[futs[fut]] += fut.result()
             if k % 20 == 0 or k == len(futs):
@@ -125,7 +125,9 @@ def markdown(report: dict) -> str:
            "|---|---|---|---|---|---|---|---|"]
     for p in report["profiles"]:
         for t in p["targets"]:
-            f = lambda k: "n/a" if t[k] is None else f"{t[k]:+.3f}"  # noqa: E731
+            def f(k, t=t):
+                return "n/a" if t[k] is None else f"{t[k]:+.3f}"
+
             miss = [k for k, v in t["bars"].items() if not v]
             out.append(f"| {p['name']} | {'yes' if p['shifts_mean'] else 'no'} | {t['target_m']:.1f} | {100 * t['success_rate']:.0f} % | "
                        f"{f('bias_m')} | {f('sigma_downrange_m')} | {f('sigma_crossrange_m')} | {'ok' if not miss else 'MISS ' + ', '.join(miss)} |")

@@ -92,7 +92,7 @@ class EnvConfig:
         return int(round(self.episode_length_s / (PHYSICS_PERIOD_S * SUBSTEPS)))
 
     @classmethod
-    def from_dict(cls, d: dict) -> "EnvConfig":
+    def from_dict(cls, d: dict) -> EnvConfig:
         d = dict(d)
         d["target_range_m"] = tuple(d.get("target_range_m", (5.0, 10.7)))
         return cls(**d)

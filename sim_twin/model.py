@@ -1,55 +1,15 @@
-"""Loading the MJCF model of the material handler and the ids used everywhere.
+"""The MJCF model of the material handler in the twin, and the ids used everywhere.
 
-MJCF names live here (mujoco_playground habit: one constants module, ids looked up once).
+MJCF names live here (mujoco_playground habit: one constants module, ids looked up once). The
+file and its loading are the runtime's (runtime.dynamics, which the release check needs too);
+their names are imported here for the twin.
 """
 
 from __future__ import annotations
 
-from functools import lru_cache
-from pathlib import Path
-
-import mujoco
-import numpy as np
-
 from runtime.ballistics import PAYLOAD_RADIUS_M  # noqa: F401 (re-exported; size 7 basketball, machine-spec.md)
-from runtime.machine import ACTIVE_JOINTS, JOINT_NAMES, hanging_pitch
+from runtime.dynamics import MJCF_PATH  # noqa: F401 (re-exported)
+from runtime.dynamics.model import load_model, passive_inertia, passive_inertia_of  # noqa: F401 (re-exported)
 
-MJCF_PATH = Path(__file__).parent / "assets" / "material_handler.xml"
 GRIPPER_CENTRE_SITE = "gripper_centre"
 PAYLOAD_MASS_KG = 0.6  # not added to the model: 0.05 % of the hanging mass
-
-
-def load_model(path: str | Path = MJCF_PATH) -> mujoco.MjModel:
-    """Load the MJCF and check that its joints and actuators are in Slinger's order.
-
-    Raises:
-        ValueError: if the joint or actuator order differs from runtime.machine.
-    """
-    model = mujoco.MjModel.from_xml_path(str(path))
-    joints = tuple(model.joint(i).name for i in range(model.njnt))
-    if joints != JOINT_NAMES:
-        raise ValueError(f"MJCF joints {joints} differ from {JOINT_NAMES}")
-    acts = tuple(model.actuator(i).name for i in range(model.nu))
-    if acts != ACTIVE_JOINTS:
-        raise ValueError(f"MJCF actuators {acts} differ from {ACTIVE_JOINTS}")
-    return model
-
-
-def passive_inertia_of(model: mujoco.MjModel) -> np.ndarray:
-    """(2,) effective inertia (kg m^2) of gripper_pitch and gripper_roll of ``model``: the diagonal
-    of MuJoCo's joint-space mass matrix with the gripper hanging plumb at a reference arm pose.
-    Used to turn the paper's friction accelerations into forces (sim_twin.physics)."""
-    data = mujoco.MjData(model)
-    q = np.array([0.0, -0.6, 1.5, 0.9, 0.0, 0.0])
-    q[4] = hanging_pitch(q)
-    data.qpos[:] = q
-    mujoco.mj_forward(model, data)
-    full = np.zeros((model.nv, model.nv))
-    mujoco.mj_fullM(model, data, full)
-    return np.diag(full)[4:6].copy()
-
-
-@lru_cache(maxsize=4)
-def passive_inertia(path: str | Path = MJCF_PATH) -> np.ndarray:
-    """passive_inertia_of the MJCF at ``path`` (cached)."""
-    return passive_inertia_of(load_model(path))

@@ -43,7 +43,7 @@ import argparse
 import logging
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -394,7 +394,7 @@ def plant_tick(twin: TwinMachine, inbox: PlantInbox, now_s: float) -> tuple[Mach
     inbox.last_gripper = gripper
     inbox.resting = quiet and inbox.still_ticks >= REST_TICKS and inbox.rest_state is not None
     if inbox.resting:
-        return inbox.rest_state.model_copy(update={"stamp_s": twin._clock(), "machine_fault": twin.fault}), None
+        return inbox.rest_state.model_copy(update={"stamp_s": twin._clock(), "machine_fault": twin.fault}), None  # noqa: SLF001
     for r in resets:
         q = twin.apply_reset(r)
         log.info("sim reset %d: q_active %s", twin.reset_count, np.round(q[:4], 3).tolist())

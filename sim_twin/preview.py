@@ -37,10 +37,10 @@ from pathlib import Path
 import numpy as np
 
 from runtime.executor import ExecutorConfig, ThrowExecutor
-from runtime.release_check import configured_radius
 from runtime.machine import ACTIVE_JOINTS, clearance_violations, forward_kinematics
 from runtime.observation import PHYSICS_PERIOD_S
 from runtime.protocol.messages import MachineState, ThrowRequest
+from runtime.release_check import DEFAULT_RADIUS_M, ReleaseCheck
 from runtime.throw_geometry import impact_errors
 from sim_twin.effects.payload import FLIGHT_DT_S, grasp_point, integrate_flight
 from sim_twin.effects.release import ReleaseDelay
@@ -94,6 +94,9 @@ class PreviewRequest:
         clearance_radius_m: the swing must stay within this distance of the turn axis.
         param_rollouts: full twin rollouts over the uncertain parameters and start state
             (at most ``rollouts // JITTER_PER_ROLLOUT``, at least 1).
+        release_check_radius_m: the release check as the machine's runtime runs it
+            (runtime.executor.ExecutorConfig.release_check_radius_m; None: off). The server
+            sets it from its settings (server.config.Settings.release_check_radius_m).
     """
 
     mode: str
@@ -104,6 +107,7 @@ class PreviewRequest:
     seed: int = 0
     clearance_radius_m: float = 12.0
     param_rollouts: int = PARAM_ROLLOUTS
+    release_check_radius_m: float | None = DEFAULT_RADIUS_M
 
 
 def _flight(p0: np.ndarray, v0: np.ndarray) -> tuple[np.ndarray, float]:
@@ -149,7 +153,7 @@ class _Payload:
     flight_accel: object
 
     @classmethod
-    def of(cls, profile: RealityProfile) -> "_Payload":
+    def of(cls, profile: RealityProfile) -> _Payload:
         stack = profile.stack()
         mean_s, std_s = stack.release_delay(profile.release_delay_mean_s, profile.release_delay_std_s)
         return cls(float(mean_s), float(std_s), stack.grasp_offset(), stack.flight_accel if stack.has("flight_accel") else None)
@@ -196,10 +200,12 @@ class _Swing:
         return hit, t_fall, p0, v0
 
 
-def _run_swing(policy, req: PreviewRequest, profile: RealityProfile, q, qd, seed: int, kinematics: bool):
+def _run_swing(policy, req: PreviewRequest, profile: RealityProfile, q, qd, seed: int, kinematics: bool,
+               check: ReleaseCheck | None):
     """Run the executor on a twin of ``profile`` from (q, qd) until DELAY_SIGMAS sigma after the
     mean opening. Returns (_Swing, extras) or (None, failure reason). ``kinematics``: also
-    record clearance flags and reach per step (extras = (flags (N, 3), radii (N,)))."""
+    record clearance flags and reach per step (extras = (flags (N, 3), radii (N,))). ``check``:
+    the release check of the preview's executors (one per preview, reused by its rollouts)."""
     payload = _Payload.of(profile)
     # the twin opens after the mean delay (a last release_delay effect overrides the others);
     # flight effects cannot change the swing and are left to _Swing.impacts
@@ -208,8 +214,9 @@ def _run_swing(policy, req: PreviewRequest, profile: RealityProfile, q, qd, seed
     sim = SimulatedMachine(dataclasses.replace(profile, effects=effects), seed=seed)
     sim.set_state(q, qd)
     twin = TwinMachine(sim, "preview")
-    # the release check as the runtime runs it ($SLINGER_RELEASE_CHECK_RADIUS_M, runtime.node)
-    executor = ThrowExecutor({req.mode: policy}, config=ExecutorConfig(prepare_timeout_s=10.0, release_check_radius_m=configured_radius()))
+    # the release check as the runtime runs it (the request's radius: the server's setting)
+    executor = ThrowExecutor({req.mode: policy}, config=ExecutorConfig(
+        prepare_timeout_s=10.0, release_check_radius_m=req.release_check_radius_m), release_check=check)
     request = ThrowRequest(throw_id="preview", machine_id="preview", mode=req.mode, target_m=list(req.target_m))
 
     def hardware_state():
@@ -282,7 +289,9 @@ def preview_throw(policy, req: PreviewRequest, profile: RealityProfile | None = 
     profile = profile or RealityProfile()
     unc = parse(profile.uncertainty)
     q, qd = np.asarray(req.q, dtype=float), np.asarray(req.qd, dtype=float)
-    swing, extra = _run_swing(policy, req, dataclasses.replace(profile, uncertainty={}), q, qd, req.seed, kinematics=True)
+    check = ReleaseCheck.load() if req.release_check_radius_m is not None else None
+    swing, extra = _run_swing(policy, req, dataclasses.replace(profile, uncertainty={}), q, qd, req.seed, kinematics=True,
+                              check=check)
     if swing is None:
         return {"status": "failed", "reason": extra}
     flags, radii = extra
@@ -313,12 +322,13 @@ def preview_throw(policy, req: PreviewRequest, profile: RealityProfile | None = 
     }
     t1 = time.perf_counter()
     if req.rollouts > 1:
-        summary["mc"] = _monte_carlo(policy, req, profile, unc, q, qd, swing)
+        summary["mc"] = _monte_carlo(policy, req, profile, unc, q, qd, swing, check)
     summary["timing_s"] = {"nominal": t_nominal, "mc": time.perf_counter() - t1}
     return summary
 
 
-def _monte_carlo(policy, req: PreviewRequest, profile: RealityProfile, unc, q, qd, nominal: _Swing) -> dict:
+def _monte_carlo(policy, req: PreviewRequest, profile: RealityProfile, unc, q, qd, nominal: _Swing,
+                 check: ReleaseCheck | None) -> dict:
     """``req.rollouts`` impacts over the site's uncertainty (module doc).
 
     Returns:
@@ -339,7 +349,7 @@ def _monte_carlo(policy, req: PreviewRequest, profile: RealityProfile, unc, q, q
         if uncertain:
             prof_i = sample_profile(profile, unc, points[i, : unc.param_dims])
             q_i, qd_i = start.perturb(q, qd, points[i, unc.param_dims:])
-            swing, _ = _run_swing(policy, req, prof_i, q_i, qd_i, req.seed * 1000 + i, kinematics=False)
+            swing, _ = _run_swing(policy, req, prof_i, q_i, qd_i, req.seed * 1000 + i, kinematics=False, check=check)
         else:
             swing = nominal
         if swing is None:

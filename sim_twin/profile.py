@@ -67,7 +67,7 @@ class SensorParams:
             setattr(self, k, v)
 
     @classmethod
-    def ideal(cls) -> "SensorParams":
+    def ideal(cls) -> SensorParams:
         """Perfect sensors (no noise, no latency): for tests of exact reproduction."""
         return cls(**{k: 0.0 for k in cls.__dataclass_fields__})
 
@@ -127,7 +127,7 @@ class RealityProfile:
         }
 
     @classmethod
-    def from_dict(cls, data: dict) -> "RealityProfile":
+    def from_dict(cls, data: dict) -> RealityProfile:
         """Build from a parsed JSON profile.
 
         Raises:
@@ -159,6 +159,6 @@ class RealityProfile:
         return prof
 
     @classmethod
-    def load(cls, path: str | Path) -> "RealityProfile":
+    def load(cls, path: str | Path) -> RealityProfile:
         """Read a JSON profile file (errors as in from_dict, plus OSError / JSONDecodeError)."""
         return cls.from_dict(json.loads(Path(path).read_text()))

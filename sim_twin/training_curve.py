@@ -17,7 +17,7 @@ class TrainingCurve:
         self.rows = rows or []
 
     @classmethod
-    def load_or_new(cls, path: Path) -> "TrainingCurve":
+    def load_or_new(cls, path: Path) -> TrainingCurve:
         path = Path(path)
         if not path.exists():
             return cls(path)

@@ -212,9 +212,9 @@ def unit_points(n: int, dims: int, seed: int) -> np.ndarray:
     n a power of two keeps the balance properties; other n work too."""
     if dims == 0:
         return np.zeros((n, 0))
-    from scipy.stats import qmc
-
     import warnings
+
+    from scipy.stats import qmc
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "balance properties ... n not a power of 2"

@@ -47,10 +47,62 @@ def pytest_configure(config) -> None:
     # Starlette's TestClient warns that it wants httpx2; not our concern here.
     config.addinivalue_line("filterwarnings", "ignore:Using `httpx` with `starlette.testclient`")
     config.addinivalue_line("filterwarnings", "ignore:No path_separator found")
-    # Runtimes and previews started by tests (slinger runtime / up) run the test policies of tests/fixtures.py,
-    # which are not throwers: the release check (runtime.release_check) would hold their releases.
-    # In-process executors keep ExecutorConfig's default; tests that need it off say so.
-    os.environ.setdefault("SLINGER_RELEASE_CHECK_RADIUS_M", "off")  # runtime.release_check.RADIUS_ENV
+    # Servers, workers and `slinger up` stacks started by tests run the test policies of tests/fixtures.py,
+    # which are not throwers: the release check (runtime.release_check) would hold their releases. Their
+    # settings (server.config.Settings.release_check_radius_m) switch it off for the previews and the
+    # runtimes `slinger up` starts; runtimes a test starts itself get TEST_POLICY_CHECK. In-process
+    # executors keep ExecutorConfig's default; tests that need it off say so.
+    os.environ.setdefault("SLINGER_RELEASE_CHECK_RADIUS_M", "off")
+
+
+TEST_POLICY_CHECK = ("--release-check-radius", "off")
+"""Arguments of a `slinger runtime` that a test starts with the test policies (not throwers)."""
+
+SYSTEM_MARKERS = ("browser", "postgres", "redis", "root", "torch", "slow", "acceptance")
+"""Markers of tests outside the fast tier; each also gets ``system``, so that the fast tier is
+``pytest -m "not system"`` (docs/development.md: test tiers)."""
+FIXTURE_MARKERS = {"pg_url": "postgres", "browser": "browser", "module_browser": "browser", "netns": "root"}
+"""Fixtures whose use marks a test: what the fixture needs (a service, Chromium, root)."""
+SLOW_TESTS = {
+    # whole stacks of processes (slinger up, plants and runtimes over Zenoh, workers, wheel installs)
+    "tests/test_stack.py": "slow", "tests/test_faults.py": "slow", "tests/test_supervise.py": "slow",
+    "tests/test_claim_race.py": "slow", "tests/test_packaging.py": "slow",
+    "tests/test_runtime_node.py::test_plant_and_runtime_throw_over_zenoh": "slow",
+    "tests/test_job_leases.py::test_sqlite_job_of_a_killed_worker": "slow",
+    "tests/test_jobs.py::test_api_process_never_imports_mujoco": "slow",
+    "tests/test_jobs.py::test_jobs_survive_an_api_restart": "slow",
+    "tests/test_mjcf_chain.py::test_api_with_the_3d_view_on_never_imports_mujoco": "slow",
+    "tests/test_policies.py::test_promote_and_rollback_on_a_real_runtime": "slow",
+    "tests/test_adapt.py::test_console_flow_diagnosis_to_adapted_version": "slow",
+    "tests/test_default_policy.py::test_diagnose_generate_outside_the_repo": "slow",
+    # many twin rollouts: the diagnosis benchmark and fits
+    "tests/test_diagnosis.py::test_small_blind_benchmark": "slow",
+    "tests/test_diagnosis.py::test_server_runs_a_diagnosis_on_stored_throws": "slow",
+    "tests/test_diagnosis_encoder.py": "slow",
+    # the training extra (jax, torch): the fine-tuning config's privileged ranges
+    "tests/test_adapt.py::test_finetune_config_fixes_the_profiles_effects": "torch",
+    # acceptance tests of the deployed policies (policies/*.onnx): how well they throw
+    "tests/test_evaluate.py::test_deployed_2d_policy": "acceptance",
+    "tests/test_controller.py::test_robust_3d_throws_with_a_slow_valve_delay": "acceptance",
+    "tests/test_preview.py::test_monte_carlo_ellipse": "acceptance",
+    "tests/test_jobs.py::test_preview_runs_in_a_worker": "acceptance",
+}
+"""Tests outside the fast tier by node id prefix, with the marker they get: each took several
+seconds (up to minutes) of the fast tier's time on the 2-core development host (``--durations``)."""
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Mark tests by node id (:data:`SLOW_TESTS`) and by the fixtures they use
+    (:data:`FIXTURE_MARKERS`), then add ``system`` to every test with one of :data:`SYSTEM_MARKERS`."""
+    for item in items:
+        for prefix, marker in SLOW_TESTS.items():
+            if item.nodeid.startswith(prefix):
+                item.add_marker(marker)
+        for fixture, marker in FIXTURE_MARKERS.items():
+            if fixture in getattr(item, "fixturenames", ()):
+                item.add_marker(marker)
+        if any(item.get_closest_marker(m) for m in SYSTEM_MARKERS):
+            item.add_marker("system")
 
 
 def free_port() -> int:

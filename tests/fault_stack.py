@@ -29,7 +29,7 @@ from runtime.protocol import keys
 from runtime.protocol.messages import MachineState, SimReset, ValveCommand, decode, encode
 from runtime.zenoh_session import open_session
 from server.stack import slinger_command
-from tests.conftest import ADMIN, free_port, login, machine_key, wait_for
+from tests.conftest import ADMIN, TEST_POLICY_CHECK, free_port, login, machine_key, wait_for
 
 log = logging.getLogger(__name__)
 
@@ -180,7 +180,7 @@ class FaultStack:
         key = self.data_dir / "site" / "machines" / machine_id / "command.key"
         return slinger_command("runtime", "--machine-id", machine_id, "--policy-2d", str(self.policy),
                                *(link or self.link()), "--outbox-dir", str(self.data_dir / "outbox" / machine_id),
-                               "--command-key", str(key))
+                               "--command-key", str(key), *TEST_POLICY_CHECK)
 
     def start_plant(self) -> subprocess.Popen:
         return self.spawn("plant", self.plant_argv())

@@ -29,7 +29,7 @@ import httpx
 from sqlalchemy import create_engine, text
 
 from server.stack import slinger_command
-from tests.conftest import ADMIN, free_port, login, serving, wait_for
+from tests.conftest import ADMIN, TEST_POLICY_CHECK, free_port, login, serving, wait_for
 from tests.fleet_net import Net, TcpRelay
 
 PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
@@ -155,7 +155,8 @@ class Site:
             self._spawn(f"plant-{mid}", slinger_command("plant", "--machine-id", mid, "--seed", str(i), *link), ns)
             self._spawn(f"runtime-{mid}", slinger_command(
                 "runtime", "--machine-id", mid, "--policy-2d", str(self.policy), *link, "--command-key",
-                str(self.site_dir / "machines" / mid / "command.key"), "--outbox-dir", str(self.tmp / "outbox" / mid)), ns)
+                str(self.site_dir / "machines" / mid / "command.key"), *TEST_POLICY_CHECK,
+                "--outbox-dir", str(self.tmp / "outbox" / mid)), ns)
         self.base_url = f"http://{site_ip}:{self.port}"
 
         def up():

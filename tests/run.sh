@@ -2,7 +2,10 @@
 # Install everything the tests need on a fresh machine and run them (README's test command).
 # Creates .venv, installs the CPU build of PyTorch 2.13.0 (from local disk) and Slinger with its
 # training and test extras, installs Debian's Chromium for the browser tests, makes sure the local
-# PostgreSQL and Redis are up (PostgreSQL migration and site job-queue tests), then runs pytest.
+# PostgreSQL and Redis are up (PostgreSQL migration and site job-queue tests), runs the static checks
+# (ruff, mypy, import-linter's layer contract; configured in pyproject.toml), then pytest.
+# The fast tier alone, after `pip install -e ".[test]"` (no torch, services, Chromium or root):
+#   python -m pytest -m "not system"
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -10,7 +13,7 @@ python3 -m venv .venv
 . .venv/bin/activate
 python -m pip install -q --upgrade pip
 python -m pip install -q torch==2.13.0
-python -m pip install -q -e ".[train,test]"
+python -m pip install -q -e ".[train,test,lint]"
 
 if [ ! -x /usr/bin/chromium ]; then
   export DEBIAN_FRONTEND=noninteractive
@@ -25,6 +28,10 @@ fi
 if command -v redis-cli >/dev/null && ! redis-cli -h 127.0.0.1 -p 6379 ping >/dev/null 2>&1; then
   command -v redis-server >/dev/null && redis-server --bind 127.0.0.1 --port 6379 --daemonize yes >/dev/null || true
 fi
+
+ruff check
+mypy
+lint-imports
 
 export MUJOCO_GL=egl
 python -m pytest -q --durations=25 "$@"

@@ -214,10 +214,10 @@ def test_robust_3d_throws_with_a_slow_valve_delay_stay_off_the_end_stops(tmp_pat
     velocity alone; with the commanded speed counted they are released and land."""
     import json
 
-    from sim_twin.evaluate import _throw_batch
+    from sim_twin.evaluate import throw_batch
 
     prof = tmp_path / "delay.json"
     prof.write_text(json.dumps({"name": "delay_0.2s", "effects": [{"effect": "valve_delay", "params": {"delay_s": 0.20}}]}))
     policy = Path(__file__).resolve().parents[1] / "policies" / "throw3d.onnx"
-    rows = _throw_batch(str(policy), "3d", 9.0, [400005, 400014], str(prof))
+    rows = throw_batch(str(policy), "3d", 9.0, [400005, 400014], str(prof))
     assert [r["status"] for r in rows] == ["landed", "landed"], rows

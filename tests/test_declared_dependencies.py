@@ -11,10 +11,9 @@ import ast
 import importlib.metadata as md
 import re
 import sys
-import tomllib
 from pathlib import Path
 
-from tests.test_packaging import closure
+from tests.test_packaging import closure, declared
 
 REPO = Path(__file__).resolve().parent.parent
 OURS = {"runtime", "server", "sim_twin", "migrations", "tests", "packaging"}
@@ -36,10 +35,9 @@ def _norm(name: str) -> str:
 
 
 def test_every_imported_distribution_is_declared():
-    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
-    base = closure(project["dependencies"])
+    base = closure(declared("root"))
     train_direct = {_norm(r.split(";")[0].split("[")[0].split(">")[0].split("=")[0].split("<")[0].strip())
-                    for r in project["optional-dependencies"]["train"]}
+                    for r in declared("root", "train")}
     owners = md.packages_distributions()
     missing: dict[str, set[str]] = {}
     for pkg in ("runtime", "server", "sim_twin"):

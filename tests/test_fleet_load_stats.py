@@ -5,14 +5,19 @@ grouped, and the /proc CPU readings are sane."""
 from __future__ import annotations
 
 import os
-import sys
 import time
-from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent / "benchmarks"))
-from fleet_load_stats import Tally, host_cpu_s, is_pose_refusal, percentile, proc_cpu_s, short_reason, tree_cpu_s  # noqa: E402
+from tests.benchmarks.fleet_load_stats import (
+    Tally,
+    host_cpu_s,
+    is_pose_refusal,
+    percentile,
+    proc_cpu_s,
+    short_reason,
+    tree_cpu_s,
+)
 
 
 def test_unfinished_throw_is_stuck_and_reasons_grouped():
@@ -87,7 +92,7 @@ class _Http:
 
 
 def test_a_pose_refusal_makes_the_client_return_the_machine_to_ready(monkeypatch):
-    import bench_fleet_load as bench
+    from tests.benchmarks import bench_fleet_load as bench
 
     monkeypatch.setattr(bench, "RETURN_POLL_S", 0.0)
     site = type("S", (), {"machines": ["m1"], "base_url": "http://x"})()

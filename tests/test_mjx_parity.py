@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 jax = pytest.importorskip("jax")
+pytestmark = pytest.mark.torch  # the training extra (jax, mujoco-mjx)
 jnp = jax.numpy
 
 from runtime.machine import forward_kinematics  # noqa: E402

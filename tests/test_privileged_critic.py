@@ -9,9 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
+torch = pytest.importorskip("torch")
 jax = pytest.importorskip("jax")
+pytestmark = pytest.mark.torch
 
 from runtime.observation import build_observation, observation_size  # noqa: E402
 from sim_twin import critic_surgery  # noqa: E402

@@ -18,7 +18,7 @@ import pytest
 from runtime.telemetry import read_telemetry
 from runtime.throw_geometry import impact_errors
 from server.stack import Children, resolve_policy, slinger_command
-from tests.conftest import SlingerUp, login, wait_for, wait_online
+from tests.conftest import TEST_POLICY_CHECK, SlingerUp, login, wait_for, wait_online
 from tests.fixtures import write_test_policy
 
 REPO = Path(__file__).resolve().parents[1]
@@ -68,7 +68,7 @@ def machine(tmp_path, zenoh_endpoint, settings):
     link = ["--connect", zenoh_endpoint, "--listen", "tcp/127.0.0.1:0"]
     children.spawn("plant", slinger_command("plant", "--machine-id", "m1", "--seed", "3", *link), tmp_path / "logs")
     children.spawn("runtime", slinger_command("runtime", "--machine-id", "m1", "--policy-2d", str(policy), *link,
-                                              "--command-key", str(site.command_key("m1")),
+                                              "--command-key", str(site.command_key("m1")), *TEST_POLICY_CHECK,
                                               "--outbox-dir", str(tmp_path / "outbox")), tmp_path / "logs")
     yield policy
     children.stop(grace_s=15)

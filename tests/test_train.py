@@ -5,9 +5,10 @@ from __future__ import annotations
 import argparse
 
 import pytest
-import torch
 
+torch = pytest.importorskip("torch")
 pytest.importorskip("jax")
+pytestmark = pytest.mark.torch
 
 from runtime.policy import PolicyRunner  # noqa: E402
 from sim_twin import train  # noqa: E402

@@ -12,14 +12,14 @@ Downgrade deletes ``catalog`` jobs first (they are a cache of the library, nothi
 
 from __future__ import annotations
 
-from typing import Sequence, Union
+from collections.abc import Sequence
 
 from alembic import op
 
 revision: str = "0005"
-down_revision: Union[str, None] = "0004"
-branch_labels: Union[str, Sequence[str], None] = None
-depends_on: Union[str, Sequence[str], None] = None
+down_revision: str | None = "0004"
+branch_labels: str | Sequence[str] | None = None
+depends_on: str | Sequence[str] | None = None
 
 JOB_KINDS_0004 = ("preview", "evaluation", "diagnosis", "adaptation", "probe")
 JOB_KINDS = (*JOB_KINDS_0004, "catalog")

@@ -16,16 +16,16 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
-from datetime import timezone
-from typing import Sequence, Union
+from collections.abc import Sequence
+from datetime import UTC
 
 import sqlalchemy as sa
 from alembic import op
 
 revision: str = "0006"
-down_revision: Union[str, None] = "0005"
-branch_labels: Union[str, Sequence[str], None] = None
-depends_on: Union[str, Sequence[str], None] = None
+down_revision: str | None = "0005"
+branch_labels: str | Sequence[str] | None = None
+depends_on: str | Sequence[str] | None = None
 
 BIN_M = 0.5
 KEYS = ("machine_id", "mode", "policy_sha256", "policy_version", "distance_bin", "day")
@@ -59,7 +59,7 @@ def _backfill(table: sa.Table) -> None:
     ).where(throws.c.status == "landed", throws.c.downrange_error_m.is_not(None),
             throws.c.crossrange_error_m.is_not(None)))
     for machine, mode, sha, version, x, y, at, down, cross in rows:
-        day = (at.astimezone(timezone.utc) if at.tzinfo else at).date()  # SQLite: naive UTC
+        day = (at.astimezone(UTC) if at.tzinfo else at).date()  # SQLite: naive UTC
         key = (machine, mode, sha or "", version or "", math.floor(math.sqrt(x * x + y * y) / BIN_M + 0.5), day)
         acc = sums[key]
         for i, s in enumerate((1, down, cross, down * down, cross * cross, down * cross,

@@ -12,13 +12,13 @@ Non-finite numbers (NaN, inf) are rejected at validation: a malformed or NaN mes
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal, TypeVar
+from typing import Annotated, Final, Literal, TypeVar
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
 
 from runtime.protocol.keys import machine_id_of, validate_machine_id
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION: Final = 1
 
 Mode = Literal["2d", "3d"]
 
@@ -36,13 +36,9 @@ def _unit_interval(values: list[float]) -> list[float]:
     return values
 
 
-def _vec(n: int):
-    return Annotated[list[float], Field(min_length=n, max_length=n), AfterValidator(_finite)]
-
-
-Vec3 = _vec(3)
-Vec4 = _vec(4)
-Vec6 = _vec(6)
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3), AfterValidator(_finite)]
+Vec4 = Annotated[list[float], Field(min_length=4, max_length=4), AfterValidator(_finite)]
+Vec6 = Annotated[list[float], Field(min_length=6, max_length=6), AfterValidator(_finite)]
 MachineId = Annotated[str, AfterValidator(validate_machine_id)]
 
 

@@ -98,7 +98,9 @@ def header(t_s: float, frame_id: str = ""):
 
 def joint_state(t_s: float, names, position=(), velocity=(), effort=()):
     """sensor_msgs/msg/JointState; arrays are float64, empty where not given."""
-    arr = lambda v: np.asarray(v, dtype=np.float64).reshape(-1)
+    def arr(v):
+        return np.asarray(v, dtype=np.float64).reshape(-1)
+
     return msg(JOINT_STATE, header=header(t_s), name=list(names), position=arr(position), velocity=arr(velocity), effort=arr(effort))
 
 

@@ -6,13 +6,12 @@ Positions are machine-frame metres ``[x, y, z]``; timestamps are UTC-aware ISO 8
 from __future__ import annotations
 
 import math
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from typing import Annotated, Literal
 
 from pydantic import AfterValidator, AwareDatetime, BaseModel, ConfigDict, Field
 
 from server.db.models import MODES, THROW_STATUSES, Throw
-
 
 COORD_LIMIT_M = 1000.0
 """Bound of any position coordinate the API accepts, m (the machines reach ~12 m)."""
@@ -27,7 +26,7 @@ DbId = Annotated[int, Field(ge=1, le=MAX_DB_ID)]
 
 def _utc(value: datetime) -> datetime:
     try:
-        return value.astimezone(timezone.utc)
+        return value.astimezone(UTC)
     except OverflowError as e:  # 0001-01-01T00:00+14:00 has no UTC equivalent
         raise ValueError("time out of range") from e
 
@@ -141,7 +140,7 @@ class ThrowOut(BaseModel):
     """The twin preview the throw was sent with (predicted impact, errors, ellipse), if any."""
 
     @classmethod
-    def of(cls, row: Throw) -> "ThrowOut":
+    def of(cls, row: Throw) -> ThrowOut:
         return cls(
             id=row.id, machine_id=row.machine_id, mode=row.mode, status=row.status,
             failure_reason=row.failure_reason, target=row.target_m, impact=row.impact_m,
@@ -153,25 +152,6 @@ class ThrowOut(BaseModel):
             target_distance_m=math.hypot(row.target_x_m, row.target_y_m),
             requested_by=row.requested_by, preview=row.preview,
         )
-
-
-class SceneState(BaseModel):
-    """The console's 3D view: where it is served and what the operator picked in it."""
-
-    viser_port: int | None
-    machine_id: str | None
-    mode: Literal["2d", "3d"]
-    target: list[float] | None
-    preview: list[str] = Field(default_factory=list)
-    """Scene names of the preview drawn in the 3D view (paths, release, impact, ellipse, ...)."""
-
-
-class SceneUpdate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    machine_id: str | None = None
-    mode: Literal["2d", "3d"] | None = None
-    target: Vec3 | None = None
 
 
 class Problem(BaseModel):

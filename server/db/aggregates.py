@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
-from datetime import date, datetime, timezone
+from datetime import UTC, date, datetime
 
 from sqlalchemy import delete, event, inspect, select
 from sqlalchemy.orm import Session
@@ -57,7 +57,7 @@ def contribution(v: dict) -> tuple[tuple, tuple] | None:
     if v["status"] != "landed" or down is None or cross is None:
         return None
     at: datetime = v["requested_at"]
-    day: date = (at.astimezone(timezone.utc) if at.tzinfo else at).date()
+    day: date = (at.astimezone(UTC) if at.tzinfo else at).date()
     key = (v["machine_id"], v["mode"], v["policy_sha256"] or "", v["policy_version"] or "",
            distance_bin(v["target_x_m"], v["target_y_m"]), day)
     return key, (1, down, cross, down * down, cross * cross, down * cross, math.sqrt(down * down + cross * cross))

@@ -1,14 +1,15 @@
 """Run Alembic migrations programmatically (``slinger db upgrade``, app startup, tests).
 
 The Alembic config is ``server/alembic.ini`` (shipped as package data); its script location is
-set here: ``server/migrations`` inside an installed slinger-server wheel (packaging/: the
-migrations are package data), else the repository's ``migrations/`` folder (the repo, an
-editable install), from any working directory.
+set here: the ``migrations`` package (the repository's ``migrations/`` folder, installed as a
+package by every install: ``pip install .``, the slinger-server wheel, an editable install),
+found through importlib.resources from any working directory.
 """
 
 from __future__ import annotations
 
 import logging
+from importlib import resources
 from pathlib import Path
 
 from alembic import command
@@ -18,21 +19,32 @@ log = logging.getLogger(__name__)
 
 SERVER_DIR = Path(__file__).resolve().parent.parent
 ALEMBIC_INI = SERVER_DIR / "alembic.ini"
-MIGRATIONS_DIR = next((d for d in (SERVER_DIR / "migrations", SERVER_DIR.parent / "migrations")
-                       if (d / "env.py").is_file()), SERVER_DIR.parent / "migrations")
+
+
+def migrations_dir() -> Path:
+    """The folder of the ``migrations`` package (env.py, versions/).
+
+    Raises:
+        FileNotFoundError: the package is not installed or has no env.py (a broken install).
+    """
+    try:
+        folder = Path(str(resources.files("migrations")))
+    except ModuleNotFoundError as e:
+        raise FileNotFoundError(f"Alembic migrations not found: the 'migrations' package is not installed ({e})") from e
+    if not (folder / "env.py").is_file():
+        raise FileNotFoundError(f"Alembic migrations not found at {folder}")
+    return folder
 
 
 def alembic_config(database_url: str) -> Config:
     """An Alembic config for ``database_url``.
 
     Raises:
-        FileNotFoundError: if the migrations folder is missing (an install of the all-in-one
-            root package without -e; install slinger-server, or ``pip install -e .``).
+        FileNotFoundError: the migrations package is missing (:func:`migrations_dir`).
     """
-    if not (MIGRATIONS_DIR / "env.py").is_file():
-        raise FileNotFoundError(f"Alembic migrations not found at {MIGRATIONS_DIR}")
+    folder = migrations_dir()
     cfg = Config(str(ALEMBIC_INI))
-    cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
+    cfg.set_main_option("script_location", str(folder))
     # '%' is interpolation syntax in ini files; escape it in passwords etc.
     cfg.set_main_option("sqlalchemy.url", database_url.replace("%", "%%"))
     cfg.attributes["configure_logging"] = False

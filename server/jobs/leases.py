@@ -182,5 +182,5 @@ class Leases:
             try:
                 self.renew()
                 self.reap()
-            except Exception:  # noqa: BLE001  a database hiccup must not end the heartbeat
+            except Exception:  # a database hiccup must not end the heartbeat
                 log.exception("job lease renewal/reaping failed; retrying in %.1f s", self.heartbeat_s)

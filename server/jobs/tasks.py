@@ -126,7 +126,7 @@ def execute(job_id: str) -> None:
             log.warning("job %s (%s) was taken from this worker (lease expired); stopped", job_id, job["kind"])
     except JobRefused as e:
         ctx.store.finish(job_id, "failed", result={"refused": e.kind}, error=e.detail, worker_id=me)
-    except Exception as e:  # noqa: BLE001  recorded in the row for the console
+    except Exception as e:  # recorded in the row for the console
         log.exception("job %s (%s) failed", job_id, job["kind"])
         ctx.store.finish(job_id, "failed", error=f"{type(e).__name__}: {e}", worker_id=me)
 

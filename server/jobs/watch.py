@@ -68,7 +68,7 @@ class JobWatcher:
         while not self._stop.is_set():
             try:
                 self.poll()
-            except Exception:  # noqa: BLE001  a database hiccup: look again next period
+            except Exception:
                 log.exception("job watcher: reading the jobs table failed")
             with self._lock:
                 busy = bool(self._waiters)

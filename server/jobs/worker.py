@@ -22,9 +22,9 @@ import argparse
 import logging
 from pathlib import Path
 
-from server.storage import StorageMonitor
 from server.jobs import leases, tasks
 from server.jobs.queue import LANES, JobQueue, queue_url
+from server.storage import StorageMonitor
 
 log = logging.getLogger(__name__)
 

@@ -252,7 +252,7 @@ def _job(args):
     t0, c0 = time.time(), time.process_time()
     try:
         return run_case(case, throws, Path(work), keep)
-    except Exception as e:  # one broken case must not lose a long run: it is recorded as a wrong answer
+    except Exception as e:  # noqa: BLE001  one broken case must not lose a long run: it is recorded as a wrong answer
         import traceback
 
         log.error("case %d failed: %s\n%s", case["case"], e, traceback.format_exc())

@@ -53,7 +53,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", type=Path, default=None, help="generate: reality profile JSON (default nominal)")
     parser.add_argument("--real-log", action="store_true", help="generate: logs like a real machine's (noise, no payload channel, no open flag, missing impacts)")
     parser.add_argument("--keep-data", type=Path, default=None, help="benchmark: keep the generated datasets here")
-    parser.add_argument("--mapping", type=Path, default=None, help="convert: column mapping JSON (sim_twin.diagnosis.convert), or for rosbag2 the ROS 2 bridge mapping (sim_twin.diagnosis.rosbag)")
+    parser.add_argument("--mapping", type=Path, default=None, help="convert: column mapping JSON (sim_twin.diagnosis.convert), or for rosbag2 "
+                             "the ROS 2 bridge mapping (sim_twin.diagnosis.rosbag)")
     parser.add_argument("--impacts", type=Path, default=None, help="convert: CSV with throw_id, target_x_m, target_y_m, impact_x_m, impact_y_m")
 
 

@@ -57,7 +57,7 @@ def _table(path: Path, mapping: dict) -> dict[str, np.ndarray]:
                 for _s, ch, msg in make_reader(f).iter_messages(log_time_order=True):
                     if ch.topic == topic:
                         rows.append(json.loads(msg.data))
-        except Exception as e:  # noqa: BLE001 mcap raises several types
+        except Exception as e:  # mcap raises several types
             raise ConvertError(f"{path}: not a readable MCAP file ({e})") from e
         if not rows:
             raise ConvertError(f"{path}: no messages on topic {topic!r}")

@@ -167,7 +167,9 @@ def simulate(throws: list[LoggedThrow], stacks: list[EffectStack], base: Reality
         mujoco.mj_forward(cols[sys_col[i]].model, d)
         datas.append(d)
     models = [cols[sys_col[i]].model for i in range(M)]
-    per = lambda f: np.stack([f(cols[c]) for c in sys_col])
+    def per(f):
+        return np.stack([f(cols[c]) for c in sys_col])
+
     db = per(lambda c: c.hyd.dead_band)
     steps = np.round(per(lambda c: c.hyd.delay_s) / TICK_S, 9)
     i0 = np.floor(steps).astype(int)

@@ -105,7 +105,7 @@ def _messages(path: Path, wanted: dict[str, str]) -> dict[str, list[tuple[float,
                 out[conn.topic].append((t_ns * 1e-9, store.deserialize_cdr(raw, conn.msgtype)))
     except ConvertError:
         raise
-    except Exception as e:  # noqa: BLE001 rosbags raises several types for unreadable bags
+    except Exception as e:
         raise ConvertError(f"{path}: not a readable rosbag2 ({type(e).__name__}: {e})") from e
     return out
 

@@ -13,11 +13,11 @@ import math
 
 import numpy as np
 
+from runtime.machine import JOINT_NAMES
 from runtime.throw_geometry import impact_errors
 from sim_twin.diagnosis import noise as nz
-from sim_twin.diagnosis.dataset import TICK_S, LoggedThrow
-from runtime.machine import JOINT_NAMES
 from sim_twin.diagnosis import replay as rp
+from sim_twin.diagnosis.dataset import TICK_S, LoggedThrow
 from sim_twin.diagnosis.replay import REST_ROWS, Replay, open_row
 from sim_twin.profile import RealityProfile
 

@@ -46,7 +46,6 @@ from sim_twin.diagnosis import replay as rp
 from sim_twin.diagnosis.scoring import Scorer
 from sim_twin.effects import Effect, EffectStack, PerJointEffect
 
-
 COARSE_1D = 7
 COARSE_2D = 4
 BOOTSTRAP = 200

@@ -58,7 +58,7 @@ def load_effect(spec: str) -> type[Effect]:
     if cls is None:
         raise ValueError(f"effect {spec!r}: module {module_name!r} has no {class_name!r}")
     if not (isinstance(cls, type) and issubclass(cls, Effect)):
-        raise ValueError(f"effect {spec!r}: {class_name} is not a subclass of sim_twin.effects.Effect")  # noqa: TRY004 (profile errors are ValueError)
+        raise ValueError(f"effect {spec!r}: {class_name} is not a subclass of sim_twin.effects.Effect")  # profile errors are ValueError
     if not cls.name or cls.stage not in STAGES:
         raise ValueError(f"effect {spec!r}: needs a non-empty 'name' and a stage in {STAGES}")
     return cls
@@ -91,5 +91,5 @@ def effect_from_dict(entry: dict) -> Effect:
         raise ValueError(f"profile effect entry: unknown keys {sorted(extra)}")
     params = entry.get("params") or {}
     if not isinstance(params, dict):
-        raise ValueError(f"effect {entry['effect']!r}: 'params' must be an object")  # noqa: TRY004
+        raise ValueError(f"effect {entry['effect']!r}: 'params' must be an object")
     return make_effect(entry["effect"], **params)

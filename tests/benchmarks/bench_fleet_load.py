@@ -38,8 +38,15 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fleet_load_stats import FINAL, Tally, host_cpu_s, is_pose_refusal, percentile, proc_cpu_s, tree_cpu_s  # noqa: E402
+from tests.benchmarks.fleet_load_stats import (  # noqa: E402
+    FINAL,
+    Tally,
+    host_cpu_s,
+    is_pose_refusal,
+    percentile,
+    proc_cpu_s,
+    tree_cpu_s,
+)
 
 POLICY = REPO / "policies" / "throw2d.onnx"
 COOLDOWN_S = 3.0

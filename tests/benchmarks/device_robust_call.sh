@@ -33,7 +33,7 @@ fi
 if [ "${MATRIX:-1}" = 1 ]; then
 for m in $MODES; do for s in ${SEEDS:-0}; do
   f=site_matrix_$m.json; [ "$s" = 0 ] || f=site_matrix_${m}_seed$s.json
-  timeout ${MHARD:-300} python3 -m sim_twin.evaluate --policy devwork/throw$m.onnx --matrix --seed $s --workers ${W:-13} --out devwork/$f >> $OUT/matrix.log 2>&1
+  timeout ${MHARD:-300} python3 -m sim_twin.evaluate_cli --policy devwork/throw$m.onnx --matrix --seed $s --workers ${W:-13} --out devwork/$f >> $OUT/matrix.log 2>&1
   cp devwork/$f $OUT/ 2>/dev/null; tail -n 2 $OUT/matrix.log
 done; done
 fi

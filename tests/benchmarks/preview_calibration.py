@@ -193,7 +193,7 @@ def main() -> int:
     ap.add_argument("--report-only", action="store_true", help="write the report from the rows finished so far (<out>.rows.jsonl)")
     args = ap.parse_args()
     from runtime.policy import PolicyRunner
-    from sim_twin.evaluate import parse_targets
+    from sim_twin.evaluate_cli import parse_targets
     from sim_twin.profile import RealityProfile
 
     policy = PolicyRunner.load(args.policy)

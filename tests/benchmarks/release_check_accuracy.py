@@ -42,14 +42,15 @@ def release_errors(policy_path: str, mode: str, distance_m: float, seeds: list[i
     from runtime.machine import forward_kinematics
     from runtime.policy import PolicyRunner
     from runtime.protocol.messages import ThrowRequest
-    from runtime.release_check import shared_predictor
+    from runtime.release_check import ReleaseCheck
     from sim_twin.evaluate import target_on_axis
     from sim_twin.plant import TwinMachine, run_throw
     from sim_twin.profile import RealityProfile
     from sim_twin.simulated_machine import SimulatedMachine
 
-    predictor, why = shared_predictor()
-    assert predictor is not None, why
+    check = ReleaseCheck.load()
+    predictor = check.predictor
+    assert predictor is not None, check.unavailable
     policy = PolicyRunner.load(policy_path)
     profile = RealityProfile.load(profile_path) if profile_path else RealityProfile()
     class Recording:  # the executor's predictor, keeping its last call
@@ -63,8 +64,8 @@ def release_errors(policy_path: str, mode: str, distance_m: float, seeds: list[i
     for seed in seeds:
         sim = SimulatedMachine(profile, seed=seed)
         sim.reset(cabin_turn=0.0 if mode == "2d" else None)
-        ex = ThrowExecutor({mode: policy}, config=ExecutorConfig(release_check_radius_m=1e9))
-        ex._predictor = rec = Recording()
+        rec = Recording()
+        ex = ThrowExecutor({mode: policy}, config=ExecutorConfig(release_check_radius_m=1e9), release_check=ReleaseCheck(rec))
         req = ThrowRequest(throw_id=f"acc-{seed}", machine_id="eval", mode=mode, target_m=target_on_axis(mode, distance_m))
         outcome, _ = run_throw(TwinMachine(sim, "eval"), ex, req)
         if outcome is None or outcome.status != "landed":

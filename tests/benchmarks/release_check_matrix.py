@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_twin.evaluate import _throw_batch, summarise
+from sim_twin.evaluate import summarise, throw_batch
 
 PROFILES = Path(__file__).resolve().parents[2] / "sim_twin" / "profiles"
 CELLS = (  # (policy, mode, profile or None, [(target m, index)])
@@ -51,7 +51,7 @@ def main() -> None:
             for d, i in targets:
                 seeds = [i * 100_000 + k for k in range(args.throws)]
                 for cfg in ({"release_check_radius_m": None}, None):
-                    futs = [pool.submit(_throw_batch, pol, mode, d, seeds[j:j + 25], path, cfg) for j in range(0, len(seeds), 25)]
+                    futs = [pool.submit(throw_batch, pol, mode, d, seeds[j:j + 25], path, cfg) for j in range(0, len(seeds), 25)]
                     jobs.append((mode, prof or "nominal", d, cfg is None, futs))
         cells: dict = {}
         for mode, prof, d, on, futs in jobs:

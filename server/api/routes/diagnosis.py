@@ -11,9 +11,9 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
-from server.web_guard import contained_file
 from server.api.deps import OperatorDep, ViewerDep
 from server.diagnosis import DiagnosisBusy, DiagnosisRuns
+from server.web_guard import contained_file
 
 router = APIRouter(prefix="/api/diagnosis", tags=["diagnosis"])
 

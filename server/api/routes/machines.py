@@ -13,10 +13,9 @@ from fastapi import APIRouter, HTTPException, Request
 from pydantic import BaseModel, Field
 from sqlalchemy import select
 
-from server.api.deps import FleetDep, OperatorDep, SessionDep, ViewerDep
-from server.api.deps import session_token
-from server.auth import audit, record_audit, role_at_least, user_for_token
+from server.api.deps import FleetDep, OperatorDep, SessionDep, ViewerDep, session_token
 from server.api.schemas import MachineOut
+from server.auth import audit, record_audit, role_at_least, user_for_token
 from server.db.models import Machine, Throw
 from server.fleet import RUNTIME_SILENT_S, Fleet, RuntimeUnavailable
 

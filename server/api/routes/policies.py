@@ -10,10 +10,10 @@ from fastapi import APIRouter, File, Form, HTTPException, Path, Query, Request, 
 from pydantic import BaseModel, Field
 from sqlalchemy import select
 
+from server.accuracy import accuracy
 from server.api.deps import AdminDep, SessionDep, ViewerDep
 from server.api.schemas import COORD_LIMIT_M, MAX_DB_ID, DbId, Problem
 from server.db.models import PolicyDeployment, PolicyVersion
-from server.accuracy import accuracy
 from server.history import ThrowFilter
 from server.policies import expire_stale_offers
 

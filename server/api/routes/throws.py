@@ -10,13 +10,12 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 
-from server.api.deps import OperatorDep, SceneDep, SessionDep, ThrowServiceDep, ViewerDep
-from server.web_guard import contained_file
-from server.api.schemas import (DISTANCE_LIMIT_M, Problem, ThrowCreate, ThrowCreated, ThrowOut, ThrowStatusName,
-                                UtcTime)
-from server.db.models import Throw
 from server.accuracy import accuracy
+from server.api.deps import OperatorDep, SceneDep, SessionDep, ThrowServiceDep, ViewerDep
+from server.api.schemas import DISTANCE_LIMIT_M, Problem, ThrowCreate, ThrowCreated, ThrowOut, ThrowStatusName, UtcTime
+from server.db.models import Throw
 from server.history import SORTS, ThrowFilter, page, to_csv
+from server.web_guard import contained_file
 
 router = APIRouter(prefix="/api/throws", tags=["throws"])
 EXPORT_LIMIT = 100_000
