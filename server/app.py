@@ -30,6 +30,8 @@ from server.reconcile import Reconciler
 from server.jobs import JobQueue, JobStore, queue_url
 from server.jobs import tasks as job_tasks
 from server.login_guard import LoginGuard
+from server.diagnosis import DiagnosisRuns
+from server.drift import DriftWatch
 from server.live import LiveHub
 from server.results import ResultStore
 from server.scene import ConsoleScene
@@ -99,6 +101,10 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         app.state.policies = PolicyService(fleet, sessions, store, settings, app.state.jobs)
         app.state.previews = PreviewService(fleet, sessions, app.state.throws, app.state.jobs, settings.data_dir,
                                             settings.clearance_radius_m, settings.preview_profile)
+        app.state.diagnosis_runs = DiagnosisRuns(sessions, settings.data_dir, jobs=app.state.jobs)
+        app.state.drift = live_hub.drift = DriftWatch(sessions, settings.data_dir, app.state.diagnosis_runs,
+                                                      webhook_url=settings.drift_webhook_url, publish=live_hub.publish)
+        fleet.result_listeners.append(app.state.drift.on_result)
         try:
             fleet.start()
             app.state.reconciler.start()

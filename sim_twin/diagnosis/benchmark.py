@@ -143,7 +143,7 @@ def run_case(case: dict, throws: int, workdir: Path, keep: bool = False) -> dict
     data_dir = workdir / f"case{case['case']:03d}"
     ds.generate(data_dir, profile_of(case), throws, POLICIES[case["mode"]], seed=case["seed"], mode=case["mode"], real_log=RealLogSpec())
     t_gen = time.time() - t0
-    rep = diagnose(data_dir, None, seed=case["seed"], plots=False)
+    rep = diagnose(data_dir, None, seed=case["seed"], plots=False, workers=1)  # cases run in parallel already
     v = rep["verdict"]
     named = v.get("evidence", {}).get("named", [])
     truth_names = [t["effect"] for t in case["truth"]]

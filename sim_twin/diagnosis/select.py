@@ -249,7 +249,9 @@ class Evaluator:
         # the nominal dynamics stay valid under a base that acts outside them (release, payload, flight)
         reuse = cache is not None and not rp.needs_dynamics(EffectStack(self.base))
         self.cache = cache if reuse else rp.simulate(throws, [EffectStack(self.base)], long=True)[0]
-        self.S_base = scorer.score(rp.replay_on(throws, EffectStack(self.base), self.cache))
+        reps = rp.replay_on(throws, EffectStack(self.base), self.cache)
+        self.S_base = scorer.score(reps)
+        self.M_base = scorer.signed(reps)  # (N, C) standardised mean residuals: the bias tests
         self.replays = 0
 
     def score(self, effects: list[Effect]) -> np.ndarray:
