@@ -43,7 +43,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mode", choices=("2d", "3d"), default="2d", help="generate: throw mode")
     parser.add_argument("--policy", type=Path, default=None, help="generate: ONNX policy (default policies/throw<mode>.onnx)")
     parser.add_argument("--no-plots", action="store_true")
-    parser.add_argument("--small", action="store_true", help="benchmark: the small CI version (6 cases, 16 throws)")
+    parser.add_argument("--small", action="store_true", help="benchmark: the small CI version (one case of every kind but held-out, two singles; 16 throws)")
     parser.add_argument("--cases", default=None, help="benchmark: only these case numbers (comma-separated)")
     parser.add_argument("--resume", action="store_true", help="benchmark: keep the finished cases already in --out (same seed/throws) and run the rest")
     parser.add_argument("--throws", type=int, default=30, help="benchmark: throws per case; generate: throws")
