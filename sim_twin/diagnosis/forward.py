@@ -135,14 +135,20 @@ def _profile_sigmas(sw: sel.Sweep, S_fit: np.ndarray, D: np.ndarray, fitted: lis
         ps = sel.profile_sigma(sw.X, sw.S.sum(axis=(1, 2, 3)))
         out = {n: float(ps[i] * span[n] * birge) for i, n in enumerate(sw.names) if n in fitted}
     else:
-        out = {n: float(v * birge) for n, v in _per_joint(sw, fitted, span, lambda S: sel.profile_sigma(sw.X, S.sum(axis=(1, 2, 3)))[0]).items()}
+        out = {n: float(v * birge) for n, v in _per_joint(sw, fitted, span, lambda X, S: sel.profile_sigma(X, S.sum(axis=(1, 2, 3)))[0]).items()}
     return {n: out.get(n, np.inf) for n in fitted}
 
 
 def _per_joint(sw: sel.Sweep, fitted: list[str], span: dict[str, float], sigma_of) -> dict[str, float]:
-    """Per-joint sweeps: ``sigma_of(S_joint)`` (normalised units) of each fitted joint from its
-    own channels, S_joint = sw.S[:, :, channels] (G, N, c, P), times the joint's prior span."""
-    return {name: float(sigma_of(sw.S[:, :, ch]) * span[name]) for name, ch in sw.joints if name in fitted}
+    """Per-joint sweeps: ``sigma_of(X, S_joint)`` (normalised units) of each fitted joint from its
+    own channels on its grid (:meth:`select.Sweep.grid_of`: X (G, 1), S_joint (G, N, c, P)),
+    times the joint's prior span."""
+    out = {}
+    for name, ch in sw.joints:
+        if name in fitted:
+            X, S = sw.grid_of(name)
+            out[name] = float(sigma_of(X, S[:, :, ch]) * span[name])
+    return out
 
 
 def _scatter_sigmas(sw: sel.Sweep, fitted: list[str], span: dict[str, float]) -> dict[str, float]:
@@ -154,7 +160,7 @@ def _scatter_sigmas(sw: sel.Sweep, fitted: list[str], span: dict[str, float]) ->
         if sw.names[0] in fitted:  # scatter_sigma is 0 for a grid of more than one parameter
             out[sw.names[0]] = sel.scatter_sigma(sw.X, sw.S.sum(axis=(2, 3))) * span[sw.names[0]]
     else:
-        out.update(_per_joint(sw, fitted, span, lambda S: sel.scatter_sigma(sw.X, S.sum(axis=(2, 3)))))
+        out.update(_per_joint(sw, fitted, span, lambda X, S: sel.scatter_sigma(X, S.sum(axis=(2, 3)))))
     return out
 
 
@@ -317,7 +323,7 @@ def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train
     while len(named) < sel.MAX_EFFECTS:
         ev = ev_factory(named)
         S_nominal = ev.S_base if S_nominal is None else S_nominal
-        gaps = channel_gaps(ev.S_base, D, S_nominal if named else None, ev.M_base)
+        gaps = channel_gaps(ev.S_base, D, S_nominal if named else None, getattr(ev, "M_base", None))  # an evaluator without signed residuals: no bias test
         rnd = Round(gaps=sorted(gaps))
         rounds.append(rnd)
         if not gaps:
@@ -430,7 +436,7 @@ def pair_step(ev_factory, classes, named: list[Effect], ev: sel.Evaluator, first
     if len(named) + 2 > sel.MAX_EFFECTS or first.wins < sel.WIN_FREQ or not first.worse or first.at_bound or first.k == 0 or not all(r.startswith("makes ") for r in reasons):
         return None, None
     ev2 = ev_factory(named + [first_sw.cls(**first.params)])
-    gaps2 = channel_gaps(ev2.S_base, D, S_nominal, ev2.M_base)
+    gaps2 = channel_gaps(ev2.S_base, D, S_nominal, getattr(ev2, "M_base", None))
     worse_gaps = {c: gaps2[c] for c in first.worse if c in gaps2}
     if not worse_gaps:
         return None, None
