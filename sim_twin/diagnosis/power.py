@@ -47,6 +47,8 @@ def detectable(throws, scorer, cache, M0: np.ndarray, D: np.ndarray, main=MAIN) 
     N = len(throws)
     has = D.sum(axis=2) > 0
     chans = [c for c in range(M0.shape[1]) if has[:, c].sum() >= 3]
+    if not chans:
+        return {"throws": N, "alpha": nz.BIAS_ALPHA, "power": nz.POWER, "effects": {}, "text": ""}
     sd = np.array([np.std(M0[has[:, c], c], ddof=1) for c in chans])
     unit = nz.detectable_mean(1.0, 1, len(chans))  # (z_a + z_b) for sd 1, one throw
     out = {}
