@@ -227,6 +227,9 @@ def diagnose(dataset_dir: str | Path, out_dir: str | Path | None = None, test_fr
     verdict = verdict_of(where, rounds, named, power)
     log.info("which: %s (%.0f s)", verdict["text"], time.time() - t0)
     how_far = _how_far(throws, train, scorer, rounds, named, nominal) if named else None
+    if how_far and how_far.get("impact_gap_shrink") is not None and how_far["constant_shift"].get("impact_gap_shrink") is not None:
+        verdict["text"] += (f" [held-out throws: impact RMS {100 * how_far['impact_gap_shrink']:.0f}% smaller with the fit, "
+                            f"{100 * how_far['constant_shift']['impact_gap_shrink']:.0f}% with a constant impact shift]")
     fitted = RealityProfile(name="fitted-" + "+".join(e.name for e in named) if named else "fitted-none", effects=named)
     report = {
         "format": REPORT_FORMAT, "dataset": str(dataset_dir), "machine_id": index.get("machine_id"),
