@@ -285,6 +285,8 @@ def format_summary(result: dict) -> str:
     lines = [f"Blind diagnosis benchmark (real-log-like: noise on every channel, no payload channel, no open flag, missing impacts): "
              f"{s['cases']} cases {s['by_kind']}, {result['throws_per_case']} throws each, seed {result['seed']}"
              + ("" if result.get("complete", True) else f"  [PARTIAL: {s['cases']} of {result.get('cases_planned')} cases finished]"),
+             f"date {result.get('date')}, commit {result.get('commit')}, host {result.get('host')} ({result.get('cpu_count')} cores), "
+             f"policy SHA-256 {result.get('policy_sha256')}, command: {result.get('command')}",
              f"wall {result['wall_s'] / 60:.1f} min, CPU {s['cpu_s'] / 60:.1f} min (workers {result['workers']}, machine shared); CPU per case "
              + (f"{s['cpu_s_per_case']:.0f} s (" + ", ".join(f"{k} {v:.0f} s" for k, v in s.get('cpu_s_per_case_by_kind', {}).items()) + ")"
                 if s.get("cpu_s_per_case") is not None else "n/a"), ""]
@@ -352,6 +354,18 @@ def _commit() -> str | None:
         return None
 
 
+def provenance() -> dict:
+    """Date (UTC), host, the policies' SHA-256 and the command line of this run."""
+    import hashlib
+    import platform
+    import sys
+    from datetime import UTC, datetime
+
+    return {"date": datetime.now(UTC).isoformat(timespec="seconds"), "host": platform.node(),
+            "policy_sha256": {m: hashlib.sha256(Path(p).read_bytes()).hexdigest() for m, p in POLICIES.items()},
+            "command": " ".join(["slinger diagnose"] + sys.argv[1:])}
+
+
 def load_done(out: Path, seed: int, throws: int, mix: dict[str, int]) -> list[dict]:
     """Rows of a previous run of the same benchmark in ``out`` (to resume it); [] when there is none.
 
@@ -393,7 +407,8 @@ def run(mix: dict[str, int], throws: int, seed: int, workers: int, out: Path | N
     def result(complete: bool) -> dict:
         done = sorted(rows, key=lambda r: r["case"])
         return {"format": FORMAT, "seed": seed, "throws_per_case": throws, "workers": workers, "mix": mix, "wall_s": wall_before + time.time() - t0,
-                "cpu_count": os.cpu_count(), "commit": _commit(), "complete": complete, "cases_planned": planned, "summary": summarise(done), "cases": done}
+                "cpu_count": os.cpu_count(), "commit": _commit(), "complete": complete, "cases_planned": planned, **provenance(),
+                "summary": summarise(done), "cases": done}
 
     with tempfile.TemporaryDirectory(prefix="slinger-bench-") as tmp:
         work = keep_data or Path(tmp)
