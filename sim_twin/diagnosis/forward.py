@@ -53,6 +53,7 @@ class Candidate:
     sigma_parts: dict = field(default_factory=dict)
     pair_with: str = ""
     joint_gain: dict = field(default_factory=dict)  # non-separable per-joint effects: training chi-square each joint's coarse fit removed
+    wins_admissible: float | None = None  # wins among the admissible candidates when the leader was not admissible
     evidence: dict = field(default_factory=dict)  # identifiability: which channels the fit changes and which confirm it (:func:`evidence_of`)
 
     def to_dict(self) -> dict:
@@ -384,8 +385,27 @@ def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train
         if not best.admissible:
             pair, rnd2 = pair_step(ev_factory, classes, named, ev, best, best_sw, L, D, train, W, S_nominal, workers)
             if pair is None:
-                rnd.decision = f"best candidate {best.effect} not admissible ({best.reason})"
                 rnd.pair_tried = rnd2.candidates if rnd2 is not None else []
+                adm = [i for i, (c, _) in enumerate(cands) if c.admissible]
+                if adm:
+                    # the inadmissible leader split the resamples with the admissible ones (e.g. an
+                    # encoder offset beside a release delay and an impact bias): those compete again
+                    # among themselves and "none" (their wins_admissible), as a round would
+                    won = np.argmin(L[[0] + [i + 1 for i in adm]], axis=0)
+                    for j, i in enumerate(adm):
+                        cands[i][0].wins_admissible = float(np.mean(won == j + 1))
+                    order_a = sorted(adm, key=lambda i: -cands[i][0].wins_admissible)
+                    a, a_sw = cands[order_a[0]]
+                    if a.wins_admissible >= sel.WIN_FREQ and a.wins_admissible > float(np.mean(won == 0)):
+                        rnd.decision, rnd.named = "named", a.effect
+                        a.wins = a.wins_admissible
+                        named.append(a_sw.cls(**a.params))
+                        continue
+                    if len(order_a) > 1 and cands[order_a[1]][0].wins_admissible >= sel.AMBIGUOUS_FREQ and a.wins_admissible > float(np.mean(won == 0)):
+                        rnd.decision, rnd.named, rnd.runner_up = "ambiguous", a.effect, cands[order_a[1]][0].effect
+                        a.wins, cands[order_a[1]][0].wins = a.wins_admissible, cands[order_a[1]][0].wins_admissible
+                        break
+                rnd.decision = f"best candidate {best.effect} not admissible ({best.reason})"
                 break
             second, second_sw = pair
             rnd.decision, rnd.named, best.pair_with = "named", best.effect, rnd2.named

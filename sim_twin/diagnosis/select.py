@@ -31,7 +31,11 @@ admissible, adds it to the base and repeats while a gap remains (at most MAX_EFF
 effect is named, a channel whose excess is below RESIDUAL_SHARE of its nominal excess counts as
 explained: at a large signal a fit within a few percent leaves a statistically visible rest).
 Otherwise the round ends "ambiguous" (an admissible runner-up wins at least AMBIGUOUS_FREQ) or
-"unexplained".
+"unexplained". A leader that is not admissible (and completes no pair) does not end the round by
+itself: the admissible candidates compete again among themselves and "none" on the same
+resamples, and one that wins WIN_FREQ of them is named (two that split them: "ambiguous"); with
+more impact-only candidates (the impact bias beside release delay, drag, wind, grasp offset) an
+inadmissible leader often wins only by splitting the others' share.
 """
 
 from __future__ import annotations
