@@ -44,6 +44,7 @@ def main() -> int:
     from sim_twin.profile import RealityProfile
 
     policy = REPO / "policies" / "throw2d.onnx"
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=REPO).stdout.strip()  # the code that runs
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         sets = list(args.dataset)
@@ -65,7 +66,6 @@ def main() -> int:
                 print(f"{d}: {row['throws']} throws, workers {w}: wall {row['wall_s']:.1f} s, CPU {row['cpu_s']:.1f} s, "
                       f"load average {load0[0]:.1f} -> {row['load_avg_1min_after']:.1f}; verdict {row['verdict']} {row['effects']}")
     if args.report:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=REPO).stdout.strip()
         res = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "commit": commit,
                "policy_sha256": hashlib.sha256(policy.read_bytes()).hexdigest(), "host": platform.node(), "cpu_count": os.cpu_count(),
                "command": " ".join(["python"] + sys.argv), "runs": rows}
