@@ -143,7 +143,8 @@ def test_listener_ignores_unknown_and_unlanded_throws_and_the_live_state_carries
     assert watch._state == {}
 
     class Fleet:
-        result_listeners: list = []
+        def __init__(self):
+            self.result_listeners = []
 
         def is_online(self, mid):
             return False

@@ -135,7 +135,7 @@ def bias_tests(M: np.ndarray, D: np.ndarray, alpha: float = BIAS_ALPHA) -> dict[
             continue
         sd = float(np.std(m, ddof=1))
         tt = float(m.mean() / (sd / np.sqrt(len(m)))) if sd > 0 else 0.0
-        rows[name] = {"mean": float(m.mean()), "sd": sd, "t": tt, "p": float(2 * student_t.sf(abs(tt), len(m) - 1)), "n": int(len(m))}
+        rows[name] = {"mean": float(m.mean()), "sd": sd, "t": tt, "p": float(2 * student_t.sf(abs(tt), len(m) - 1)), "n": len(m)}
     order = sorted(rows, key=lambda k: rows[k]["p"])
     running = 0.0
     for i, name in enumerate(order):

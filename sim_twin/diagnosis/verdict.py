@@ -47,8 +47,8 @@ OUTSIDE_IMPACT = ("a bias of the impact measurement (camera or survey calibratio
 """Causes outside the library that move only the measured impact (named in every "consistent" verdict)."""
 IMPACT_CHECKS = (
     "a survey mark under the gripper at a stand-still release (checks the impact measurement and the target survey)",
-    "throws at another distance and cabin angle (a measurement bias stays put in the site frame; release, flight and "
-    "calibration effects grow with the distance and turn with the cabin)",
+    ("throws at another distance and cabin angle (a measurement bias stays put in the site frame; release, flight and "
+     "calibration effects grow with the distance and turn with the cabin)"),
     "a camera check of where the payload sits in the gripper",
 )
 

@@ -44,7 +44,7 @@ def main() -> int:
     from sim_twin.profile import RealityProfile
 
     policy = REPO / "policies" / "throw2d.onnx"
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=REPO).stdout.strip()  # the code that runs
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=REPO, check=False).stdout.strip()  # the code that runs
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         sets = list(args.dataset)
