@@ -334,6 +334,46 @@ def error_row(case: dict, error: str, wall_s: float, cpu_s: float) -> dict:
             "held_out": None, "wall_s": wall_s, "cpu_s": cpu_s}
 
 
+def plot(result: dict, png: Path) -> Path:
+    """``png``: left, the share of cases answered right per kind (with the count); right, the
+    answers per kind (named / consistent / ambiguous / unexplained / no_gap / error) as stacked bars."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = result["cases"]
+    kinds = [k for k in KINDS if any(r["kind"] == k for r in rows)]
+    answers = ("named", "consistent", "ambiguous", "unexplained", "no_gap", "error")
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.5))
+    share = [np.mean([bool(r["correct"]) for r in rows if r["kind"] == k]) for k in kinds]
+    n = [sum(r["kind"] == k for r in rows) for k in kinds]
+    a1.bar(kinds, share, color="tab:green")
+    for i, (v, c) in enumerate(zip(share, n)):
+        a1.text(i, v + 0.02, f"{100 * v:.0f}% of {c}", ha="center", fontsize=8)
+    a1.set_ylim(0, 1.15)
+    a1.set_ylabel("answered right")
+    a1.set_title("diagnosis benchmark: right answers per kind")
+    bottom = np.zeros(len(kinds))
+    for a in answers:
+        h = np.array([sum(r["kind"] == k and r["answer"] == a for r in rows) for k in kinds], dtype=float)
+        if h.any():
+            a2.bar(kinds, h, bottom=bottom, label=a)
+            bottom += h
+    a2.set_ylabel("cases")
+    a2.set_title("answers per kind")
+    a2.legend(fontsize=8)
+    for ax in (a1, a2):
+        ax.tick_params(axis="x", rotation=30, labelsize=8)
+    sub = f"{result.get('date')} commit {result.get('commit')}, {result['throws_per_case']} throws per case" + ("" if result.get("complete", True) else ", PARTIAL run")
+    fig.suptitle(sub, fontsize=9)
+    fig.tight_layout()
+    png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    return png
+
+
 def _write(out: Path | None, result: dict) -> str:
     text = format_summary(result)
     if out is not None:
@@ -427,6 +467,8 @@ def run(mix: dict[str, int], throws: int, seed: int, workers: int, out: Path | N
                 _write(out, result(False))
     res = result(len(rows) == planned == len(draw_cases(mix, seed)))
     log.info("\n%s", _write(out, res))
+    if out is not None and rows:
+        plot(res, out.with_suffix(".png"))
     return res
 
 
