@@ -20,8 +20,8 @@ only logs and impacts; the truth stays in the benchmark's record. Kinds of case:
 * ``noise``: the nominal machine, noise only.
 
 Library effects that act only on the impact in a real machine's log (:data:`IMPACT_ONLY_LIBRARY`:
-no payload channel, no open flag) are right when named with a confirming channel or answered
-"consistent with" them (the truth among the listed effect and its alternatives).
+no payload channel, no open flag) are right when named with a confirming channel or listed by a
+"consistent" or "ambiguous" answer (:func:`score`).
 
 Scores: singles named (exactly the true effect), pairs (both named), parameters within
 TOLERANCE of the truth (every identifiable joint for per-joint effects), 1-sigma intervals that
@@ -183,28 +183,12 @@ def run_case(case: dict, throws: int, workdir: Path, keep: bool = False) -> dict
     rep = diagnose(data_dir, None, seed=case["seed"], plots=False, workers=1)  # cases run in parallel already
     v = rep["verdict"]
     named = v.get("evidence", {}).get("named", [])
-    truth_names = [t["effect"] for t in case["truth"]]
     row = {**case, "answer": v["answer"], "effects": v.get("effects", []), "between": v.get("between"), "text": v["text"],
            "throws_used": rep["throws"], "skipped": len(rep["skipped"]), "gen_s": t_gen}
-    kind = case["kind"]
-    listed = set(v.get("effects", [])) | {a for n in v.get("not_confirmed", []) for a in n.get("alternatives", [])} | set(v.get("between") or [])
-    if kind == "single" and truth_names[0] in IMPACT_ONLY_LIBRARY:
-        row["correct"] = (v["answer"] == "named" and v["effects"] == truth_names) or (v["answer"] == "consistent" and truth_names[0] in listed)
-    elif kind in ("single", "multijoint"):
-        row["correct"] = v["answer"] == "named" and v["effects"] == sorted(set(truth_names), key=truth_names.index)
-    elif kind == "pair":
-        row["correct"] = v["answer"] in ("named", "consistent") and set(truth_names) <= set(v["effects"])
-        row["one_named"] = bool(set(truth_names) & set(v["effects"]))
-    elif kind in ("outside", "heldout", "impact_only"):
-        row["correct"] = v["answer"] in ("unexplained", "ambiguous", "consistent")
-        row["confidently_wrong"] = v["answer"] == "named"
-    elif kind == "power":
-        row["no_gap"] = v["answer"] == "no_gap"
-        row["power_stated"] = bool(v.get("power") and v["power"].get("text"))
-        row["correct"] = (row["no_gap"] and row["power_stated"]) or (v["answer"] in ("named", "consistent") and truth_names[0] in listed)
-    else:
-        row["correct"] = v["answer"] == "no_gap" and bool(v.get("power") and v["power"].get("text"))
     row["alternatives"] = [a for n in v.get("not_confirmed", []) for a in n.get("alternatives", [])]
+    row["power_stated"] = bool(v.get("power") and v["power"].get("text"))
+    score(row)
+    kind = case["kind"]
     row["params"] = [c for t in case["truth"] for c in _compare(t, named)] if kind in ("single", "pair", "multijoint") else []
     hf = rep.get("how_far") or {}
     row["held_out"] = {k: hf.get(k) for k in ("gap_shrink", "impact_gap_shrink", "share_of_shrink", "impact_rms_m", "test_throws", "constant_shift")} if hf else None
@@ -216,6 +200,49 @@ def run_case(case: dict, throws: int, workdir: Path, keep: bool = False) -> dict
         shutil.rmtree(data_dir, ignore_errors=True)
     log.info("case %d %s %s %s -> %s (%s) %.0f s", case["case"], kind, case["mode"], [(t["effect"].split(":")[-1], t["value"]) for t in case["truth"]],
              v["text"][:160], "ok" if row["correct"] else "WRONG", row["wall_s"])
+    return row
+
+
+def score(row: dict) -> dict:
+    """Right or wrong, from the row's truth and recorded answer (``answer``, ``effects``,
+    ``between``, ``alternatives``, ``power_stated``), in place; also ``one_named`` (pairs),
+    ``confidently_wrong`` (outside kinds), ``no_gap`` (power).
+
+    An impact-only library effect (:data:`IMPACT_ONLY_LIBRARY`) is right when named with a
+    confirming channel or listed by a "consistent" or "ambiguous" answer (the effect, its
+    alternatives, or the two it is ambiguous between): on a real machine's log the impacts alone
+    cannot tell it from the others.
+    """
+    kind, ans = row["kind"], row["answer"]
+    truth = [t["effect"] for t in row["truth"]]
+    effects = list(row.get("effects") or [])
+    listed = set(effects) | set(row.get("alternatives") or []) | set(row.get("between") or [])
+    stated = row.get("power_stated")
+    if stated is None:  # rows of a run before power_stated was recorded
+        stated = "would not be visible" in row.get("text", "")
+
+    def found(e: str) -> bool:
+        if e in IMPACT_ONLY_LIBRARY:
+            return (ans in ("named", "consistent") and e in effects) or (ans in ("consistent", "ambiguous") and e in listed)
+        return e in effects and ans in ("named", "consistent", "ambiguous")
+
+    if kind == "single" and truth[0] in IMPACT_ONLY_LIBRARY:
+        row["correct"] = (ans == "named" and effects == truth) or (ans in ("consistent", "ambiguous") and truth[0] in listed)
+    elif kind in ("single", "multijoint"):
+        row["correct"] = ans == "named" and effects == sorted(set(truth), key=truth.index)
+    elif kind == "pair":
+        row["correct"] = ans in ("named", "consistent", "ambiguous") and all(found(e) for e in truth) and (ans != "ambiguous" or any(e in IMPACT_ONLY_LIBRARY for e in truth))
+        row["one_named"] = bool(set(truth) & set(effects))
+    elif kind in ("outside", "heldout", "impact_only"):
+        row["correct"] = ans in ("unexplained", "ambiguous", "consistent")
+        row["confidently_wrong"] = ans == "named"
+    elif kind == "power":
+        row["no_gap"] = ans == "no_gap"
+        row["correct"] = (row["no_gap"] and stated) or (ans in ("named", "consistent") and truth[0] in listed)
+    elif kind == "noise":
+        row["correct"] = ans == "no_gap" and stated
+    else:  # error rows keep what error_row set
+        row.setdefault("correct", False)
     return row
 
 
