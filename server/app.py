@@ -32,6 +32,7 @@ from server.errors import DomainError
 from server.fleet import Fleet
 from server.jobs import JobQueue, JobStore, queue_url
 from server.jobs import tasks as job_tasks
+from server.drift import DriftWatch
 from server.jobs.watch import JobWatcher
 from server.live import LiveHub
 from server.login_guard import LoginGuard
@@ -115,6 +116,9 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         app.state.diagnosis_runs = DiagnosisRuns(sessions, app.state.jobs, settings.data_dir)
         app.state.adaptation_runs = AdaptationRuns(app.state.diagnosis_runs, app.state.policies, app.state.previews,
                                                    app.state.jobs)
+        app.state.drift = live_hub.drift = DriftWatch(sessions, settings.data_dir, app.state.diagnosis_runs,
+                                                      webhook_url=settings.drift_webhook_url, publish=live_hub.publish)
+        fleet.result_listeners.append(app.state.drift.on_result)
         try:
             fleet.start()
             app.state.reconciler.start()

@@ -151,6 +151,8 @@ class Settings(BaseSettings):
     result_grace_s: float = Field(15.0, gt=0)
     runtime_gone_s: float = Field(30.0, gt=0)
     job_queue_url: str = ""
+    drift_webhook_url: str = ""
+    """POST every drift alert (server.drift) to this URL as JSON; empty: none."""
     preview_timeout_s: float = 15.0
 
     @field_validator("release_check_radius_m", mode="before")

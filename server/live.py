@@ -133,6 +133,7 @@ class LiveHub:
     """
 
     def __init__(self, session: zenoh.Session, fleet):
+        self.drift = None  # server.drift.DriftWatch: its alert joins each machine's state as "drift_alert"
         self.session, self.fleet = session, fleet
         self._lock = threading.Lock()
         self._subs: list[Subscriber] = []
@@ -208,6 +209,7 @@ class LiveHub:
         state = self.fleet.latest_state(machine_id)
         st["simulated"] = st["simulated"] or bool(state is not None and state.simulated)
         st["cabin_turn_rad"] = float(state.q[0]) if state is not None else None
+        st["drift_alert"] = self.drift.alert(machine_id) if self.drift is not None else None
         return st
 
     def statuses(self) -> list[dict]:

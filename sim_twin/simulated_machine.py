@@ -226,6 +226,7 @@ class SimulatedMachine:
             t_fall = float(ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
             hit = ballistic_position(np, p0, v0, t_fall)
         hit[2] = 0.0
+        hit = np.array(self.effects.measure_impact(hit), dtype=float)  # calibration biases (sim_twin.effects.sensing.ImpactBias)
         if self._impact_noise_m > 0:  # the measured landing spot (sim_twin.profile.SensorParams)
             hit[:2] = hit[:2] + self._meas_rng.normal(0.0, self._impact_noise_m, 2)
         self._attached, self._opened = False, True

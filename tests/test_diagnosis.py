@@ -246,3 +246,18 @@ def test_server_runs_a_diagnosis_on_stored_throws(client, nominal_dir: Path):
     assert client.get(f"/api/diagnosis/runs/{run_id}/files/..%2Fstatus.json").status_code == 404
     assert client.get("/api/diagnosis/runs/../../etc").status_code == 404
     assert "payload_drag" in client.get("/api/diagnosis/effects").json()
+
+
+def test_small_benchmark_impact_only_and_power_kinds(tmp_path: Path):
+    """Every CI run: a payload held sideways (outside the library, impact only) is never named
+    and comes with alternatives; a release delay below the detectable size is "no gap" with the
+    size stated (the CI mix's impact_only and power cases)."""
+    cases = [c for c in benchmark.draw_cases(benchmark.SMALL_MIX, 0) if c["kind"] in ("impact_only", "power")]
+    assert {c["kind"] for c in cases} == {"impact_only", "power"}
+    rows = [benchmark.run_case(c, benchmark.SMALL_THROWS, tmp_path) for c in cases]
+    imp, power = sorted(rows, key=lambda r: r["kind"])
+    assert imp["answer"] != "named" and not imp["confidently_wrong"] and imp["correct"], imp["text"]
+    assert imp["answer"] != "consistent" or imp["alternatives"], imp["text"]
+    assert power["answer"] == "no_gap" and power["power_stated"] and "would not be visible" in power["text"], power["text"]
+    s = benchmark.summarise(rows)
+    assert s["impact_only_not_named"] == 1.0 and s["power_no_gap"] == 1.0 and s["outside_confidently_wrong"] == 0.0

@@ -9,11 +9,15 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
+import pytest
 
 from sim_twin.diagnosis import forward as fw
 from sim_twin.diagnosis import noise as nz
 from sim_twin.diagnosis import select as sel
+from sim_twin.diagnosis.verdict import verdict_of
 from sim_twin.effects import Effect, effect_class
 from sim_twin.effects.base import Param
 
@@ -93,6 +97,7 @@ class FakeEvaluator(sel.Evaluator):
     def __init__(self, world: World, base: list[Effect]):
         self.world, self.base, self.replays = world, list(base), 0
         self.S_base = world.S(self.base)
+        self.scorer = SimpleNamespace(D=world.D)  # the degrees of freedom the joint refinement tests against
 
     def score(self, effects: list[Effect]) -> np.ndarray:
         self.replays += len(effects)
@@ -256,3 +261,65 @@ def test_scatter_sigma_covers_per_throw_start_errors():
         got = sel.scatter_sigma(X, Tn)
         assert 0.6 * want <= got <= 1.5 * want + 1e-9, (spread, got, want)
     assert sel.scatter_sigma(np.zeros((5, 2)), np.zeros((5, N))) == 0.0
+
+
+def _where_stub(carriers):
+    return {"gap": True, "carriers": carriers, "phases": {}}
+
+
+def test_an_effect_seen_only_in_the_impact_is_consistent_not_named():
+    world = World(m=0.0, f=0.5)
+    rounds, named = _select(world)
+    assert [type(e) for e in named] == [ImpactShift]
+    c = next(c for c in rounds[0].candidates if c.effect == rounds[0].named)
+    assert c.evidence["impact_only"] and c.evidence["impact_drop"] > 100 and c.evidence["confirmed_by"] == []
+    v = verdict_of(_where_stub(["impact.downrange"]), rounds, named)
+    assert v["answer"] == "consistent" and v["confirmed"] == [] and "not confirmed" in v["text"]
+    note = v["not_confirmed"][0]
+    assert note["effect"] == ImpactShift.spec() and "impact_bias" in note["alternatives"]
+    assert any("survey mark" in m for m in note["measurements"]) and any("another distance" in m for m in note["measurements"])
+    assert any("off-centre" in o for o in note["outside"])
+
+
+def test_a_swing_channel_confirms_an_effect_and_the_impact_only_partner_stays_unconfirmed():
+    world = World(m=0.6, f=0.5)
+    rounds, named = _select(world)
+    assert {type(e) for e in named} == {SwingMass, ImpactShift}
+    v = verdict_of(_where_stub(["q.gripper_pitch", "impact.downrange"]), rounds, named)
+    assert v["answer"] == "consistent" and v["confirmed"] == [SwingMass.spec()]
+    assert [n["effect"] for n in v["not_confirmed"]] == [ImpactShift.spec()]
+    swing = next(n for n in v["evidence"]["named"] if n["effect"] == SwingMass.spec())
+    assert swing["identifiability"]["confirmed_by"] == ["passive"] and "q.gripper_pitch" in swing["identifiability"]["changes"]
+
+
+def test_the_bias_test_finds_a_small_mean_shift_that_the_chi_square_excess_misses():
+    rng = np.random.default_rng(5)
+    D = np.zeros((N, len(nz.CHANNELS), len(nz.PHASES)))
+    D[:, IMPACT, 2] = 1
+    D[:, PITCH, 0] = BLOCKS
+    M = rng.normal(size=(N, len(nz.CHANNELS)))
+    M[:, IMPACT] += 0.9  # ~5 sigma / sqrt(N) on the mean; the chi-square gains only ~N * 0.8
+    S = np.zeros(D.shape)
+    S[:, IMPACT, 2] = M[:, IMPACT] ** 2
+    S[:, PITCH, 0] = BLOCKS
+    assert "impact.downrange" not in fw.channel_gaps(S, D)  # the excess test alone: "no gap"
+    gaps = fw.channel_gaps(S, D, None, M)
+    assert gaps["impact.downrange"]["kind"] == "bias" and "q.gripper_pitch" not in gaps
+    tests = nz.bias_tests(M, D)
+    assert set(tests) == {"impact.downrange", "q.gripper_pitch"}  # channels without data are not tested
+    assert tests["impact.downrange"]["p_holm"] == pytest.approx(min(1.0, 2 * tests["impact.downrange"]["p"]))  # Holm, 2 tests
+    # noise only: no bias
+    M0 = rng.normal(size=(N, len(nz.CHANNELS)))
+    assert not any(t["bias"] for t in nz.bias_tests(M0, D).values())
+
+
+def test_detectable_mean_is_the_bonferroni_quantile_plus_the_power_quantile_over_root_n():
+    assert nz.detectable_mean(1.0, 30, 1) == pytest.approx((2.5758 + 0.8416) / np.sqrt(30), rel=1e-3)
+    assert nz.detectable_mean(2.0, 120, 14) == pytest.approx(2 * nz.detectable_mean(1.0, 120, 14))
+    assert nz.detectable_mean(1.0, 120, 14) == pytest.approx(nz.detectable_mean(1.0, 30, 14) / 2)
+
+
+def test_workers_are_checked():
+    assert fw.resolve_workers(3) == 3 and fw.resolve_workers(None) >= 1
+    with pytest.raises(ValueError, match="workers must be >= 1"):
+        fw.resolve_workers(0)

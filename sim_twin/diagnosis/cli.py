@@ -40,13 +40,13 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=None, help="output directory (diagnosis: default reports/diagnosis/<dataset name>; "
                         "benchmark: JSON file, default reports/diagnosis_benchmark.json; generate/convert: dataset directory)")
     parser.add_argument("--seed", type=int, default=0, help="split / case / throw seed")
-    parser.add_argument("--workers", type=int, default=None, help="processes (generate, benchmark; default: all cores)")
+    parser.add_argument("--workers", type=int, default=None, help="processes (diagnosis sweeps, generate, benchmark; default: all cores)")
     parser.add_argument("--test-fraction", type=float, default=0.3, help="held-out share of the throws (default 0.3)")
     parser.add_argument("--candidates", default=None, help="comma-separated candidates: library names or package.module:Class (default: the library)")
     parser.add_argument("--mode", choices=("2d", "3d"), default="2d", help="generate: throw mode")
     parser.add_argument("--policy", type=Path, default=None, help="generate: ONNX policy (default policies/throw<mode>.onnx)")
     parser.add_argument("--no-plots", action="store_true")
-    parser.add_argument("--small", action="store_true", help="benchmark: the small CI version (6 cases, 16 throws)")
+    parser.add_argument("--small", action="store_true", help="benchmark: the small CI version (one case of every kind but held-out, two singles; 16 throws)")
     parser.add_argument("--cases", default=None, help="benchmark: only these case numbers (comma-separated)")
     parser.add_argument("--resume", action="store_true", help="benchmark: keep the finished cases already in --out (same seed/throws) and run the rest")
     parser.add_argument("--throws", type=int, default=30, help="benchmark: throws per case; generate: throws")
@@ -129,7 +129,7 @@ def _diagnose(args) -> int:
     dataset_dir = Path(args.what)
     out = args.out or Path("reports") / "diagnosis" / dataset_dir.resolve().name
     cands = [c.strip() for c in args.candidates.split(",")] if args.candidates else None
-    rep = diagnose(dataset_dir, out, args.test_fraction, args.seed, candidates=cands, plots=not args.no_plots)
+    rep = diagnose(dataset_dir, out, args.test_fraction, args.seed, workers=args.workers, candidates=cands, plots=not args.no_plots)
     w = rep["where"]
     print(f"Where: {', '.join(w['carriers']) or 'no channel beyond its noise'}"
           + (f" (phases: {', '.join(f'{p} {100 * s:.0f}%' for p, s in w['phases'].items())})" if w["phases"] else ""))

@@ -86,15 +86,16 @@ def resolve_candidates(candidates: list[str] | None) -> list[type[Effect]]:
     return out
 
 
-def _where(throws, S: np.ndarray, D: np.ndarray, noise: nz.NoiseModel, nominal) -> dict:
-    gaps = fw.channel_gaps(S, D)
+def _where(throws, S: np.ndarray, D: np.ndarray, noise: nz.NoiseModel, nominal, M: np.ndarray) -> dict:
+    gaps = fw.channel_gaps(S, D, None, M)
+    bias = nz.bias_tests(M, D)
     Sc, Dc = S.sum(axis=0), D.sum(axis=0)
     chans = {}
     for c, name in enumerate(nz.CHANNELS):
         if Dc[c].sum() == 0:
             continue
         chans[name] = {"chi2": float(Sc[c].sum()), "dof": float(Dc[c].sum()), "excess_z": nz.gap_test(Sc[c].sum(), Dc[c].sum())[1],
-                       "gap": name in gaps, "group": nz.group_of(name),
+                       "gap": name in gaps, "group": nz.group_of(name), "kind": gaps.get(name, {}).get("kind"), "bias": bias.get(name),
                        "by_phase": {nz.PHASES[p]: {"chi2": float(Sc[c, p]), "dof": float(Dc[c, p])} for p in range(len(nz.PHASES)) if Dc[c, p] > 0}}
     excess = {n: max(v["chi2"] - v["dof"], 0.0) for n, v in chans.items() if v["gap"]}
     tot = sum(excess.values())
@@ -102,9 +103,10 @@ def _where(throws, S: np.ndarray, D: np.ndarray, noise: nz.NoiseModel, nominal) 
                 for p in nz.PHASES}
     ptot = sum(phase_ex.values())
     r, _ = sc.impact_residuals(throws, nominal)
+    bias_only = sorted((n for n in gaps if n not in excess), key=lambda n: bias[n]["p"])
     return {
         "gap": bool(gaps), "channels": chans,
-        "carriers": sorted(excess, key=lambda n: -excess[n]),
+        "carriers": sorted(excess, key=lambda n: -excess[n]) + bias_only, "bias_only": bias_only,
         "share": {n: e / tot for n, e in excess.items()} if tot > 0 else {},
         "phases": {p: e / ptot for p, e in phase_ex.items()} if ptot > 0 else {},
         "groups": sorted({nz.group_of(n) for n in gaps}),
@@ -128,7 +130,7 @@ def _accuracy(throws: list, impacts: list[np.ndarray]) -> dict[str, dict]:
     return out
 
 
-def _how_far(throws, train: np.ndarray, scorer: sc.Scorer, rounds: list[fw.Round], named: list[Effect]) -> dict:
+def _how_far(throws, train: np.ndarray, scorer: sc.Scorer, rounds: list[fw.Round], named: list[Effect], nominal: list) -> dict:
     """Held-out throws, named effects fitted on the training throws only."""
     test = [t for t, m in zip(throws, train) if not m]
     test_scorer = sc.Scorer(test, scorer.noise)
@@ -145,7 +147,9 @@ def _how_far(throws, train: np.ndarray, scorer: sc.Scorer, rounds: list[fw.Round
     total = ex[0] - ex[-1]
     for i, e in enumerate(named):
         shares[e.spec()] = (ex[i] - ex[i + 1]) / total if total > 0 else None
+    const = _constant_shift(throws, train, test_scorer, reps[0], ex[0], rms[0], nominal)
     return {
+        "constant_shift": const,
         "test_throws": [t.throw_id for t in test],
         "named_fitted_on_train": [e.to_dict() for e in train_effects],
         "chi2_excess_before": ex[0], "chi2_excess_after": ex[-1], "dof": float(D.sum()),
@@ -163,6 +167,25 @@ def _how_far(throws, train: np.ndarray, scorer: sc.Scorer, rounds: list[fw.Round
     }
 
 
+def _constant_shift(throws, train: np.ndarray, test_scorer: sc.Scorer, nominal_test, ex_before: float, rms_before: float, nominal: list) -> dict:
+    """The held-out shrink a constant shift of the impact would give (no physics): the mean
+    impact residual (downrange, crossrange) of the TRAINING throws against the nominal replay,
+    subtracted from the held-out throws' residuals. A named effect whose held-out shrink is no
+    better than this adds nothing the impacts alone could show."""
+    train_th = [t for t, m in zip(throws, train) if m]
+    nominal_train = [r for r, m in zip(nominal, train) if m]
+    shift = sc.impact_residuals(train_th, nominal_train)[0].mean(axis=0) if train_th else np.zeros(2)
+    r, v = sc.impact_residuals(test_scorer.throws, nominal_test)
+    S = test_scorer.score(nominal_test)
+    var = test_scorer.noise.impact_sigma_m**2 + v
+    S[:, sc.IMPACT, 2] = (r - shift) ** 2 / var
+    ex = float(S.sum() - test_scorer.D.sum())
+    rms = float(np.sqrt(np.mean(np.sum((r - shift) ** 2, axis=1))))
+    return {"shift_downrange_m": float(shift[0]), "shift_crossrange_m": float(shift[1]), "chi2_excess_after": ex,
+            "gap_shrink": (1 - max(ex, 0.0) / ex_before) if ex_before > 0 else None,
+            "impact_rms_after_m": rms, "impact_gap_shrink": (1 - rms / rms_before) if rms_before > 0 else None}
+
+
 def diagnose(dataset_dir: str | Path, out_dir: str | Path | None = None, test_fraction: float = 0.3, seed: int = 0,
              workers: int | None = None, candidates: list[str] | None = None, policy: str | Path | None = None,
              accuracy_throws: int = 0, plots: bool = True, sensors: dict | None = None) -> dict:
@@ -171,8 +194,9 @@ def diagnose(dataset_dir: str | Path, out_dir: str | Path | None = None, test_fr
     Args:
         candidates: library names or ``package.module:Class`` (default: the whole library).
         sensors: declared sensor spec (overrides the dataset's ``sensors``).
-        workers, policy, accuracy_throws: accepted for compatibility; the diagnosis runs in
-            one process (callers parallelise over datasets).
+        workers: processes for the candidate sweeps (default: every core this process may
+            use; 1: in this process). A caller that already runs diagnoses in parallel passes 1.
+        policy, accuracy_throws: accepted for compatibility (unused).
 
     Returns:
         the report dict (also written to ``out_dir/report.json`` when out_dir is given).
@@ -180,7 +204,8 @@ def diagnose(dataset_dir: str | Path, out_dir: str | Path | None = None, test_fr
     Raises:
         ds.DatasetError: unusable dataset; ValueError: bad candidates (both before any work).
     """
-    t0 = time.time()
+    t0, c0 = time.time(), cpu_seconds()
+    workers = fw.resolve_workers(workers)
     classes = resolve_candidates(candidates)
     throws, index = ds.load(dataset_dir)
     train = split_mask(len(throws), test_fraction, seed)
@@ -190,12 +215,21 @@ def diagnose(dataset_dir: str | Path, out_dir: str | Path | None = None, test_fr
     noise = sc.estimate_noise(throws, nominal, {**index.get("sensors", {}), **(sensors or {})})
     scorer = sc.Scorer(throws, noise)
     S0 = scorer.score(nominal)
-    where = _where(throws, S0, scorer.D, noise, nominal)
+    M0 = scorer.signed(nominal)
+    where = _where(throws, S0, scorer.D, noise, nominal, M0)
     log.info("where: gap in %s (%.1f s)", where["carriers"] or "no channel", time.time() - t0)
-    rounds, named = fw.select_effects(lambda base: sel.Evaluator(throws, scorer, base, cache), classes, scorer.D, train, seed)
-    verdict = verdict_of(where, rounds, named)
+    rounds, named = fw.select_effects(lambda base: sel.Evaluator(throws, scorer, base, cache), classes, scorer.D, train, seed, workers)
+    power = None
+    if not where["gap"]:
+        from sim_twin.diagnosis.power import detectable
+
+        power = detectable(throws, scorer, cache, M0, scorer.D)
+    verdict = verdict_of(where, rounds, named, power)
     log.info("which: %s (%.0f s)", verdict["text"], time.time() - t0)
-    how_far = _how_far(throws, train, scorer, rounds, named) if named else None
+    how_far = _how_far(throws, train, scorer, rounds, named, nominal) if named else None
+    if how_far and how_far.get("impact_gap_shrink") is not None and how_far["constant_shift"].get("impact_gap_shrink") is not None:
+        verdict["text"] += (f" [held-out throws: impact RMS {100 * how_far['impact_gap_shrink']:.0f}% smaller with the fit, "
+                            f"{100 * how_far['constant_shift']['impact_gap_shrink']:.0f}% with a constant impact shift]")
     fitted = RealityProfile(name="fitted-" + "+".join(e.name for e in named) if named else "fitted-none", effects=named)
     report = {
         "format": REPORT_FORMAT, "dataset": str(dataset_dir), "machine_id": index.get("machine_id"),
@@ -206,7 +240,7 @@ def diagnose(dataset_dir: str | Path, out_dir: str | Path | None = None, test_fr
         "effects_library": {name: cls.describe() for name, cls in EFFECTS.items()},
         "method": {"block_rows": nz.BLOCK_ROWS, "z_gap": nz.Z_GAP, "r_gap": nz.R_GAP, "bootstrap": sel.BOOTSTRAP,
                    "win_freq": sel.WIN_FREQ, "ambiguous_freq": sel.AMBIGUOUS_FREQ, "penalty_per_param": sel.PENALTY_PER_PARAM},
-        "wall_s": time.time() - t0,
+        "wall_s": time.time() - t0, "workers": workers, "cpu_s": cpu_seconds() - c0,
     }
     if out_dir:
         out = Path(out_dir)
@@ -222,6 +256,14 @@ def diagnose(dataset_dir: str | Path, out_dir: str | Path | None = None, test_fr
         (out / "report.json").write_text(json.dumps(_json_safe(report), indent=1) + "\n")
     log.info("diagnosis done in %.1f s: %s", time.time() - t0, verdict["text"])
     return _json_safe(report)
+
+
+def cpu_seconds() -> float:
+    """CPU seconds of this process and its finished child processes (the sweep pool), user + system."""
+    import resource
+
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + ch.ru_utime + ch.ru_stime
 
 
 def _json_safe(v):

@@ -18,6 +18,14 @@ matches up to its noise contributes about one unit per degree of freedom (chi-sq
 A channel (or channel and phase) has a gap when its chi-square exceeds its degrees of freedom D
 by more than Z_GAP standard deviations sqrt(2 D) AND by more than R_GAP D (the second guards
 against noise that is not quite white).
+
+The chi-square excess is a weak test of a small systematic shift: a mean impact shift of
+k sigma / sqrt(N) adds only k^2 to a chi-square with N degrees of freedom. Every channel's mean
+residual is therefore also tested for a bias (:func:`bias_tests`): a one-sample t-test over the
+throws of the per-throw standardised mean residual (:meth:`scoring.Scorer.signed`), two-sided,
+with Holm's step-down correction over the channels tested (S. Holm, "A simple sequentially
+rejective multiple test procedure", Scand. J. Statist. 6 (1979) 65-70) at family-wise level
+BIAS_ALPHA. A channel with a significant bias has a gap as well.
 """
 
 from __future__ import annotations
@@ -34,6 +42,11 @@ R_GAP = 0.5
 FLOOR = {"q.active": 2e-4, "qd.active": 2e-3, "q.passive": 5e-4, "qd.passive": 5e-3, "payload": 2e-3}
 """Noise floors (rad, m, rad/s, m/s): encoder / IMU resolution of a noise-free log (CHOSEN)."""
 MIN_IMPACT_SIGMA_M = 0.01
+BIAS_ALPHA = 0.01
+"""Family-wise false-alarm probability of the bias tests of one diagnosis (CHOSEN: one nominal
+dataset in a hundred shows a bias gap from noise alone)."""
+POWER = 0.8
+"""Detection probability at which a detectable size is stated (CHOSEN, the usual 80 %)."""
 
 
 def trajectory_channels() -> list[tuple[str, str, int]]:
@@ -98,3 +111,44 @@ def worse_tolerance(D: np.ndarray) -> np.ndarray:
     """How much a channel's chi-square may grow before it counts as worse beyond its noise:
     2 standard deviations of a chi-square with D degrees of freedom, at least 2."""
     return np.maximum(2.0 * np.sqrt(2.0 * np.asarray(D, dtype=float)), 2.0)
+
+
+def bias_tests(M: np.ndarray, D: np.ndarray, alpha: float = BIAS_ALPHA) -> dict[str, dict]:
+    """Bias test of every channel with data (module doc).
+
+    Args:
+        M: (N, C) per-throw standardised mean residuals (:meth:`scoring.Scorer.signed`).
+        D: (N, C, P) degrees of freedom (a channel is tested where it has data in >= 3 throws).
+        alpha: family-wise level (Holm).
+
+    Returns:
+        channel -> {"mean": mean of M (noise units), "t": t statistic, "p": two-sided p,
+        "p_holm": Holm-adjusted p, "bias": bool (p_holm < alpha), "n": throws}.
+    """
+    from scipy.stats import t as student_t
+
+    has = D.sum(axis=2) > 0  # (N, C)
+    rows = {}
+    for c, name in enumerate(CHANNELS):
+        m = M[has[:, c], c]
+        if len(m) < 3:
+            continue
+        sd = float(np.std(m, ddof=1))
+        tt = float(m.mean() / (sd / np.sqrt(len(m)))) if sd > 0 else 0.0
+        rows[name] = {"mean": float(m.mean()), "sd": sd, "t": tt, "p": float(2 * student_t.sf(abs(tt), len(m) - 1)), "n": len(m)}
+    order = sorted(rows, key=lambda k: rows[k]["p"])
+    running = 0.0
+    for i, name in enumerate(order):
+        running = max(running, min(1.0, (len(order) - i) * rows[name]["p"]))
+        rows[name]["p_holm"] = running
+        rows[name]["bias"] = bool(running < alpha)
+    return rows
+
+
+def detectable_mean(sd: float, n: int, tests: int, alpha: float = BIAS_ALPHA, power: float = POWER) -> float:
+    """Smallest mean (noise units of M) the bias test finds with probability ``power`` in n
+    throws, at the Bonferroni level alpha / tests (Holm's first step; normal approximation):
+    (z_{1 - alpha / (2 tests)} + z_power) sd / sqrt(n)."""
+    from scipy.stats import norm
+
+    return float((norm.isf(alpha / (2 * max(tests, 1))) + norm.ppf(power)) * sd / np.sqrt(max(n, 1)))

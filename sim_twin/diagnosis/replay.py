@@ -132,6 +132,7 @@ class _Column:
         self.offset = stack.grasp_offset()
         self.flight = stack.flight_accel if stack.has("flight_accel") else None
         self.setpoint = stack.has("setpoint")
+        self.measure_impact = stack.measure_impact if stack.has("measure_impact") else None
 
 
 def simulate(throws: list[LoggedThrow], stacks: list[EffectStack], base: RealityProfile | None = None,
@@ -291,6 +292,9 @@ def finish(throws: list[LoggedThrow], col: _Column, trajs) -> list[Replay]:
     if logged:
         for n, f in zip(logged, _flights([throws[n] for n in logged], col, [trajs[n] for n in logged], [throws[n].open_row for n in logged])):
             cond[n] = {**f, "impact_cov_m2": np.zeros((2, 2))}
+    if col.measure_impact is not None:  # what the impact sensor reads (the covariance is unchanged by a bias)
+        pred = [{**f, "impact_m": col.measure_impact(f["impact_m"])} for f in pred]
+        cond = [pred[n] if th.open_row is None else {**cond[n], "impact_m": col.measure_impact(cond[n]["impact_m"])} for n, th in enumerate(throws)]
     out = []
     for n, th in enumerate(throws):
         q, qd = trajs[n]

@@ -129,6 +129,26 @@ class Scorer:
         return S
 
 
+    def signed(self, reps: list[Replay]) -> np.ndarray:
+        """M (N, C): per throw and channel the standardised mean residual (logged - replayed):
+        trajectory channels sum(e) / (sigma sqrt(n)) over the throw's scored rows, the impact
+        channels r / sqrt(var), the logged opening delay d / sd; 0 where a channel has no data.
+        Under the null each entry has mean 0; the bias test (:func:`noise.bias_tests`) uses their
+        spread across throws, so correlated noise within a throw does not fool it."""
+        M = np.zeros((len(self.throws), C))
+        for n, (th, rep) in enumerate(zip(self.throws, reps)):
+            L = rp.score_rows(th)
+            e = np.concatenate([th.q[:L] - rep.meas_q[:L], th.qd[:L] - rep.meas_qd[:L]], axis=1)
+            e = e[:, np.ravel(np.column_stack([np.arange(6), 6 + np.arange(6)]))]
+            M[n, :N_TRAJ] = e.sum(axis=0) / (self.sig * np.sqrt(max(L, 1)))
+            if th.open_row is not None:
+                d = th.open_delay_s - expected_logged_delay(rep.delay_mean_s, rep.delay_std_s)
+                M[n, DELAY] = d / np.sqrt(max(rep.delay_std_s, 1e-3) ** 2 + TICK_S**2 / 12)
+        r, v = impact_residuals(self.throws, reps)
+        M[:, IMPACT] = r / np.sqrt(self.noise.impact_sigma_m**2 + v)
+        return M
+
+
 def expected_logged_delay(mean_s: float, std_s: float) -> float:
     """Expected logged opening delay (s) for a delay D = max(0, N(mean, std)): the payload is
     free at the first 10 ms row at or after command + D, so the logged delay is dt * ceil(D / dt)

@@ -22,7 +22,7 @@ from sim_twin.effects.friction import PassiveFriction
 from sim_twin.effects.machine import CabinDrift, HangingMass
 from sim_twin.effects.payload import GraspOffset, PayloadDrag
 from sim_twin.effects.release import ReleaseDelay
-from sim_twin.effects.sensing import ImuPassive
+from sim_twin.effects.sensing import ImpactBias, ImuPassive
 from sim_twin.effects.site import Wind
 from sim_twin.effects.structure import Stiction, StructuralCompliance
 from sim_twin.effects.valve import JointRateLimit, ValveAsymmetry, ValveDeadBand, ValveDelay, ValveLag
@@ -32,7 +32,7 @@ EFFECTS: dict[str, type[Effect]] = {
     for cls in (
         ReleaseDelay, PassiveFriction, ValveDeadBand, ValveDelay, ValveLag, JointRateLimit,
         PayloadDrag, GraspOffset, CabinDrift, ImuPassive, HangingMass,
-        Wind, EncoderOffset, ImuOffset, ValveAsymmetry, StructuralCompliance, Stiction,
+        Wind, EncoderOffset, ImuOffset, ValveAsymmetry, StructuralCompliance, Stiction, ImpactBias,
     )
 }
 """Library effects by name, in a stable order."""

@@ -23,6 +23,8 @@ hook                   what it changes                                          
 ``flight_accel(p, v)`` extra payload acceleration in flight (..., 3), m/s^2            flight
 ``measure(hq, hqd,     measured (q, qd) (..., 6) from the history of true states       measurement
   dt, rng)``           (newest first, (H, ..., 6)); rng None = noise-free expectation
+``measure_impact(h)``  the measured landing spot (3,) from the true one (site frame,   measurement
+                       m): impact-measurement calibration, target survey error
 ``initial_state(q,     the true state (6,) behind a measured one at rest (inverse of   measurement
   qd)``                a static ``measure``, e.g. calibration offsets); replays start
                        from it
@@ -169,6 +171,9 @@ class Effect:
     def measure(self, hist_q: np.ndarray, hist_qd: np.ndarray, dt_s: float, rng: np.random.Generator | None):
         return hist_q[0], hist_qd[0]
 
+    def measure_impact(self, hit_m: np.ndarray) -> np.ndarray:
+        return hit_m
+
     def history_steps(self) -> int:
         """How many past true states ``measure`` needs (1 = only the current one)."""
         return 1
@@ -290,6 +295,12 @@ class EffectStack:
 
     def history_steps(self) -> int:
         return max([1] + [e.history_steps() for e in self.effects])
+
+    def measure_impact(self, hit_m: np.ndarray) -> np.ndarray:
+        """Measured landing spot(s) (..., 3) from the true one(s), effects applied in order."""
+        for e in self.effects:
+            hit_m = e.measure_impact(hit_m)
+        return hit_m
 
     def initial_state(self, q, qd):
         """True state behind a measured one, measurement effects undone last-applied first."""

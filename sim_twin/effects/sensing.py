@@ -80,3 +80,25 @@ class EncoderNoise(Effect):
             q[..., :4] += rng.normal(0.0, 1.0, q[..., :4].shape) * self.angle_noise_rad
             qd[..., :4] += rng.normal(0.0, 1.0, qd[..., :4].shape) * self.rate_noise_radps
         return q, qd
+
+
+class ImpactBias(Effect):
+    """A constant bias of the measured landing spot in the site frame (x forward from the
+    machine, y left), e.g. a camera or total-station calibration error or a target surveyed at
+    the wrong place. It moves every measured impact alike and nothing else: no joint, IMU or
+    payload channel sees it. It is the diagnosis's measurement-side explanation of an impact-only
+    gap: an effect that fits no better than it is not confirmed by the impacts alone."""
+
+    name = "impact_bias"
+    footprint = ("impact",)
+    summary = "constant bias of the measured impact (camera / survey calibration), site frame"
+    stage = "measurement"
+    params = (
+        Param("bias_x_m", "m", 0.0, -0.5, 0.5, "measured - true landing spot, site x (forward)",
+              "CHOSEN: a camera or survey calibration off by up to a few decimetres"),
+        Param("bias_y_m", "m", 0.0, -0.5, 0.5, "measured - true landing spot, site y (left)",
+              "CHOSEN: as bias_x_m"),
+    )
+
+    def measure_impact(self, hit_m):
+        return np.asarray(hit_m, dtype=float) + np.array([self.bias_x_m, self.bias_y_m, 0.0])
