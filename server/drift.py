@@ -115,11 +115,13 @@ class Cusum:
         side, ax = np.unravel_index(int(np.argmax(stats)), stats.shape)
         start = int((self.last_zero_hi if side == 0 else self.last_zero_lo)[ax]) + 1
         recent = np.array(self.errors[start:])
+        mu, sigma = self.mu, self.sigma
+        assert mu is not None and sigma is not None  # set with the baseline, before any test
         return {"axis": AXES[ax], "direction": DIRECTIONS[(AXES[ax], 1 if side == 0 else -1)], "statistic": float(stats[side, ax]),
                 "change_after": self.since[start - 1] if start > 0 else None, "throw_ids": self.since[start:],
                 "recent": {"n": len(recent), "mean_downrange_m": float(recent[:, 0].mean()), "mean_crossrange_m": float(recent[:, 1].mean())},
-                "baseline": {"n": len(self.baseline), "mean_downrange_m": float(self.mu[0]), "mean_crossrange_m": float(self.mu[1]),
-                             "sigma_downrange_m": float(self.sigma[0]), "sigma_crossrange_m": float(self.sigma[1])}}
+                "baseline": {"n": len(self.baseline), "mean_downrange_m": float(mu[0]), "mean_crossrange_m": float(mu[1]),
+                             "sigma_downrange_m": float(sigma[0]), "sigma_crossrange_m": float(sigma[1])}}
 
 
 class DriftWatch:
