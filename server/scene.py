@@ -40,6 +40,15 @@ CONSOLE_TTL_S = 12 * 3600.0
 OPERATOR_ONLY_CANVAS = "<style>body * { visibility: hidden !important; } canvas { visibility: visible !important; }</style>"
 """Injected into viser's page (a GUI HTML element): only the 3D canvas stays visible; hidden
 elements cannot be hit by the mouse nor focused, and clicks on the canvas still reach viser."""
+ESTOP_KEY_FORWARD = (
+    '<img alt="" src="data:," onerror="if (!window.__slingerKeys) { window.__slingerKeys = 1;'
+    " window.addEventListener('keydown', function (e) { if (e.key === 'Escape' || e.key === 'Esc') {"
+    " e.preventDefault(); window.parent.postMessage({ slinger: 'estop' }, '*'); } }, true); }\">"
+)
+"""Injected into viser's page like OPERATOR_ONLY_CANVAS: Esc pressed while the focus is in the 3D
+view (another origin: the console page cannot hear its keys) is posted to the console page, whose
+status strip (web/js/strip.js) sends the E-STOP. viser renders GUI HTML with innerHTML, where a
+<script> does not run but an image's error handler does (the empty data: URL is no image)."""
 MAX_CONSOLES = 500
 
 
@@ -138,7 +147,7 @@ class ConsoleScene:
         # page but the WebGL canvas (labels are drawn in it): its panel, settings button, scene
         # tree and notifications are neither visible nor focusable nor clickable
         self.server.gui.configure_theme(control_width="small", show_share_button=False, show_logo=False)
-        self.server.gui.add_html(OPERATOR_ONLY_CANVAS)
+        self.server.gui.add_html(OPERATOR_ONLY_CANVAS + ESTOP_KEY_FORWARD)
         self.server.scene.add_grid("/ground", width=40.0, height=40.0, cell_size=1.0, section_size=5.0,
                                    plane_color=(150, 165, 130), plane_opacity=0.35)
         self.server.on_client_connect(self._on_connect)
