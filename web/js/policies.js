@@ -60,6 +60,7 @@ async function loadPolicies() {
     tr.dataset.policyId = p.id;
     const cb = document.createElement("input");
     cb.type = "checkbox"; cb.className = "cmp"; cb.value = p.id; cb.checked = checked.has(String(p.id));
+    cb.setAttribute("aria-label", `compare ${p.name}`);
     tr.insertCell().appendChild(cb);
     [p.id, p.name, p.mode, p.sha256.slice(0, 12) + "…", p.target_range_m ? p.target_range_m.join("–") : "–",
       `${new Date(p.created_at).toLocaleString()} ${p.uploaded_by || ""}`, activeOn(p), evalSummary(p)]

@@ -19,9 +19,9 @@ const Strip = (() => {
   let resetWait = null; // { machineId, timer } while a reset waits for the runtime's state
   let viserOrigin = null;
 
+  const estopMarkup = `<button id="estop" class="estop" type="button" data-role="operator" aria-keyshortcuts="Escape"
+      title="E-STOP: stop the selected machine now, valves to neutral (keyboard: Esc, anywhere on the page, the 3D view included)">E-STOP <kbd>Esc</kbd></button>`;
   const markup = `
-    <button id="estop" class="estop" type="button" data-role="operator" aria-keyshortcuts="Escape"
-      title="E-STOP: stop the selected machine now, valves to neutral (keyboard: Esc, anywhere on the page, the 3D view included)">E-STOP <kbd>Esc</kbd></button>
     <div class="strip-row">
       <label class="machine-pick">Machine <select id="machine"></select></label>
       <span id="machine-kind" class="badge sim" hidden>SIMULATED</span>
@@ -45,6 +45,9 @@ const Strip = (() => {
     strip.setAttribute("aria-label", "machine status and E-STOP");
     strip.innerHTML = markup;
     document.body.prepend(strip);
+    // the E-STOP is a child of <body>, not of the strip: the sticky strip is a stacking context
+    // below the dialogs' backdrop; on its own the button's z-index puts it above every dialog
+    document.body.insertAdjacentHTML("afterbegin", estopMarkup);
   }
 
   // --- messages and alarms -------------------------------------------------------------------------
@@ -285,7 +288,7 @@ const Strip = (() => {
   // --- start ----------------------------------------------------------------------------------------
   async function init() {
     if (!session.user) { try { await whoAmI(); } catch (e) { return; } }
-    for (const el of $("strip").querySelectorAll("[data-role]")) el.hidden = !can(el.dataset.role);
+    for (const el of [$("estop"), ...$("strip").querySelectorAll("[data-role]")]) el.hidden = !can(el.dataset.role);
     try {
       for (const m of await api("GET", "/api/machines")) {
         if (!machines.has(m.id)) machines.set(m.id, { machine_id: m.id, state: m.online ? "not_ready" : "offline",

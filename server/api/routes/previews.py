@@ -92,6 +92,9 @@ def check_preview(preview_id: str, body: PreviewCheckIn, request: Request, _user
     now = utcnow()
     age = (now - datetime.fromisoformat(summary["created_at"])).total_seconds() if summary else None
     max_age = limits.max_age_s if limits else None
+    if summary is None:
+        return PreviewCheckOut(valid=False, condition="preview_unknown",
+                               reason=f"unknown or expired preview {preview_id!r}: preview again")
     if limits is None:
         return PreviewCheckOut(valid=summary is not None and summary.get("status") == "ok", age_s=age)
     state = app.state.fleet.latest_state(body.machine_id)

@@ -1,0 +1,26 @@
+"""Routes the console pages need: the API reference served without a CDN, and the preview
+check (is a preview still valid for a throw now?) for a preview the server does not know."""
+
+from __future__ import annotations
+
+
+def test_api_docs_work_offline(client):
+    for path in ("/docs", "/redoc"):
+        html = client.get(path).text
+        assert "/docs-static/" in html, path
+        assert "cdn." not in html and "https://" not in html.split("<body")[1], path  # nothing fetched from outside
+    for f in ("swagger-ui-bundle.js", "swagger-ui.css", "redoc.standalone.js"):
+        r = client.get(f"/docs-static/{f}")
+        assert r.status_code == 200 and len(r.content) > 10_000, f
+
+
+def test_preview_check_of_an_unknown_preview_is_invalid_with_a_reason(client):
+    r = client.post("/api/previews/nope/check", json={"machine_id": "m1", "mode": "2d", "target": [8.0, 0.0, 0.0]})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["valid"] is False and body["reason"], body
+
+
+def test_preview_check_refuses_bad_input(client):
+    r = client.post("/api/previews/nope/check", json={"machine_id": "m1", "mode": "2d", "target": [8.0, 0.0]})
+    assert r.status_code == 422
