@@ -162,19 +162,24 @@ class PolicyService:
             out.append(dep)
         return out
 
+    def rollback_target(self, machine_id: str, mode: str) -> PolicyVersion | None:
+        """The version ``machine_id`` ran for ``mode`` before its last active deployment, or None
+        (nothing to roll back to)."""
+        with self.sessions() as db:
+            last = db.scalar(select(PolicyDeployment).where(
+                PolicyDeployment.machine_id == machine_id, PolicyDeployment.mode == mode,
+                PolicyDeployment.status == "active").order_by(PolicyDeployment.requested_at.desc(), PolicyDeployment.id.desc()))
+            if last is None or not last.previous_sha256:
+                return None
+            return db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == last.previous_sha256))
+
     def rollback(self, machine_id: str, mode: str, username: str) -> PolicyDeployment:
         """Promote the version the machine ran before its last active deployment for ``mode``.
 
         Raises:
             ThrowRefused: 409 when there is no earlier version to go back to.
         """
-        with self.sessions() as db:
-            last = db.scalar(select(PolicyDeployment).where(
-                PolicyDeployment.machine_id == machine_id, PolicyDeployment.mode == mode,
-                PolicyDeployment.status == "active").order_by(PolicyDeployment.requested_at.desc(), PolicyDeployment.id.desc()))
-            prev = None
-            if last is not None and last.previous_sha256:
-                prev = db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == last.previous_sha256))
+        prev = self.rollback_target(machine_id, mode)
         if prev is None:
             raise ThrowRefused(409, f"no previous {mode} policy version of {machine_id} to roll back to")
         return self.promote(prev.id, [machine_id], username, action="rollback")[0]

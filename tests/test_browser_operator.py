@@ -203,18 +203,20 @@ def test_a_moved_machine_never_leaves_throw_enabled(up, page):
 
 def test_a_failed_throw_is_an_alarm_in_view_at_both_sizes(up, page):
     page.locator("#throw:not([disabled])").wait_for()
-    _press(page, "#throw")
-    page.locator("#machine-state", has_text="THROWING").wait_for()
     plant = _process_pid(up, "plant")
-    os.kill(plant, signal.SIGSTOP)  # the simulated machine's computer stalls mid-throw
+    with page.expect_response(lambda r: r.url.endswith("/api/throws") and r.request.method == "POST") as answer:
+        _press(page, "#throw")
+    assert answer.value.status == 202, answer.value.text()
+    os.kill(plant, signal.SIGSTOP)  # the simulated machine stalls as the throw starts: its runtime loses it
     try:
-        time.sleep(1.5)
+        time.sleep(2.0)
     finally:
         os.kill(plant, signal.SIGCONT)
     page.locator("#result", has_text=re.compile("FAILED|ABORTED|LOST")).wait_for()
     page.locator("#alarms li").first.wait_for()
     text = page.inner_text("#alarms")
     assert re.search("computer|link|machine", text) and re.search("preview|Check|Reduce|Look", text), text
+    assert "FAILED" in page.inner_text("#view-result") or "ABORTED" in page.inner_text("#view-result")
     assert "watch it live" not in page.inner_text("#status")
     for w, h in [(1440, 900), (390, 844)]:
         page.set_viewport_size({"width": w, "height": h})

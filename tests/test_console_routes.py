@@ -24,3 +24,26 @@ def test_preview_check_of_an_unknown_preview_is_invalid_with_a_reason(client):
 def test_preview_check_refuses_bad_input(client):
     r = client.post("/api/previews/nope/check", json={"machine_id": "m1", "mode": "2d", "target": [8.0, 0.0]})
     assert r.status_code == 422
+
+
+def test_a_user_changes_their_own_password_audited(client):
+    from tests.conftest import ADMIN
+
+    r = client.post("/api/account/password", json={"current_password": "not-it", "new_password": "a-new-password-1"})
+    assert r.status_code == 403 and "current password" in r.json()["detail"]
+    r = client.post("/api/account/password", json={"current_password": ADMIN[1], "new_password": "a-new-password-1"})
+    assert r.status_code == 204, r.text
+    assert client.get("/api/auth/me").status_code == 401  # every session ended: log in again
+    r = client.post("/api/auth/login", json={"username": ADMIN[0], "password": "a-new-password-1"})
+    assert r.status_code == 200
+    entries = [a for a in client.get("/api/audit").json() if a["action"] == "password_change"]
+    assert [e["detail"]["changed"] for e in entries] == [True, False], entries
+
+
+def test_refused_rollback_and_diagnosis_runs_are_audited(client):
+    r = client.post("/api/policies/rollback", json={"machine_id": "m1", "mode": "2d"})
+    assert r.status_code >= 400
+    r = client.post("/api/diagnosis/runs", json={"machine_id": "m1", "limit": 10})
+    assert r.status_code >= 400
+    actions = {a["action"] for a in client.get("/api/audit").json()}
+    assert {"rollback_refused", "diagnosis_run"} <= actions, actions

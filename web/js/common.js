@@ -51,7 +51,7 @@ const can = (role) => session.user && ROLE_RANK[session.user.role] >= ROLE_RANK[
 const SITE_PAGES = [
   ["index.html", "Console"], ["history.html", "History"], ["accuracy.html", "Accuracy"],
   ["policies.html", "Policies"], ["fleet.html", "Fleet"], ["diagnosis.html", "Diagnosis"],
-  ["admin.html", "Users", "admin"], ["/docs", "API"],
+  ["admin.html", "Users", "admin"], ["account.html", "My account"], ["/docs", "API"],
 ];
 
 function renderNav() {

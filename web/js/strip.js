@@ -257,7 +257,7 @@ const Strip = (() => {
       return;
     }
     const m = machines.get(mid);
-    if (m && m.state !== "estopped") { say(`E-STOP of ${mid} reset: confirmed, the machine is ${STATE_WORDS[m.state] || m.state}.`, "ok"); return; }
+    if (m && m.state !== "estopped") { say(`E-STOP of ${mid} reset: confirmed by its runtime, the machine is ${STATE_WORDS[m.state] || m.state}.`, "ok"); return; }
     say(`E-STOP of ${mid} reset sent; waiting for its runtime's state…`);
     if (resetWait) clearTimeout(resetWait.timer);
     resetWait = { machineId: mid, timer: setTimeout(() => {

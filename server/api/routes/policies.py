@@ -12,6 +12,7 @@ from sqlalchemy import select
 
 from server.api.deps import AdminDep, SessionDep, ViewerDep
 from server.api.schemas import COORD_LIMIT_M, MAX_DB_ID, DbId
+from server.auth import record_audit
 from server.db.models import PolicyDeployment, PolicyVersion, Throw
 from server.accuracy import accuracy
 from server.history import ThrowFilter
@@ -156,12 +157,26 @@ def promote(body: PromoteIn, request: Request, user: AdminDep,
     return [deployment_out(d, name) for d in deps]
 
 
+@router.get("/rollback-targets")
+def rollback_targets(request: Request, _user: ViewerDep,
+                     machine_id: str = Query(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")) -> dict:
+    """Per mode, the version a rollback of ``machine_id`` would go back to ({"id", "name"}), or
+    None: the Fleet page offers a rollback only where there is one."""
+    out = {}
+    for mode in ("2d", "3d"):
+        prev = request.app.state.policies.rollback_target(machine_id, mode)
+        out[mode] = {"id": prev.id, "name": prev.name} if prev is not None else None
+    return out
+
+
 @router.post("/rollback", response_model=DeploymentOut, responses={409: {"description": "nothing to roll back to"}})
 def rollback(body: RollbackIn, request: Request, user: AdminDep) -> DeploymentOut:
     """Go back to the version the machine ran before its last promotion for that mode."""
     try:
         d = request.app.state.policies.rollback(body.machine_id, body.mode, user.username)
-    except ThrowRefused as e:
+    except ThrowRefused as e:  # a refused attempt is audited too (a done one by server.policies)
+        record_audit(request.app.state.sessions, user.username, "rollback_refused", body.machine_id[:64],
+                     mode=body.mode, reason=e.detail)
         raise _refused(e) from e
     with request.app.state.sessions() as db:
         name = db.get(PolicyVersion, d.policy_version_id).name
