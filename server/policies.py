@@ -113,13 +113,36 @@ class PolicyService:
             db.flush()
             audit(db, username, action, str(row.id), name=name, mode=mode, sha256=row.sha256)
         if evaluate:
-            lo, hi = manifest["target_range_m"]
-            distances = list(self.settings.eval_distances_m) or [
-                round(x * 2) / 2 for x in np.linspace(lo + 0.5, hi - 0.5, 3)]
-            self.jobs.submit("evaluation", {"version_id": row.id, "distances_m": distances,
-                                            "throws": self.settings.eval_throws},
-                             subject=str(row.id), requested_by=username)
+            self._submit_evaluation(row.id, manifest["target_range_m"], username)
         return row
+
+    def evaluate(self, version_id: int, username: str) -> PolicyVersion:
+        """(Re-)evaluate a stored version in the twin (a deployed one that was never evaluated,
+        or one to evaluate again); audited as ``policy_evaluate``.
+
+        Raises:
+            ThrowRefused: 404 for an unknown version, 409 while its evaluation is pending or running.
+        """
+        with self.sessions.begin() as db:
+            row = db.get(PolicyVersion, version_id)
+            if row is None:
+                raise ThrowRefused(404, f"no policy version {version_id}")
+            if row.evaluation_status in ("pending", "running"):
+                raise ThrowRefused(409, f"the evaluation of {row.name} is already {row.evaluation_status}")
+            row.evaluation_status = "pending"
+            rng = (row.manifest or {}).get("target_range_m") or [5.0, 10.7]
+            audit(db, username, "policy_evaluate", str(row.id), name=row.name, mode=row.mode)
+        self._submit_evaluation(version_id, rng, username)
+        with self.sessions() as db:
+            return db.get(PolicyVersion, version_id)
+
+    def _submit_evaluation(self, version_id: int, target_range_m, username: str) -> None:
+        lo, hi = target_range_m
+        distances = list(self.settings.eval_distances_m) or [
+            round(x * 2) / 2 for x in np.linspace(lo + 0.5, hi - 0.5, 3)]
+        self.jobs.submit("evaluation", {"version_id": version_id, "distances_m": distances,
+                                        "throws": self.settings.eval_throws},
+                         subject=str(version_id), requested_by=username)
 
     # --- promotion ---------------------------------------------------------------------------
     def promote(self, version_id: int, machine_ids: list[str], username: str, action: str = "promote") -> list[PolicyDeployment]:

@@ -47,3 +47,10 @@ def test_refused_rollback_and_diagnosis_runs_are_audited(client):
     assert r.status_code >= 400
     actions = {a["action"] for a in client.get("/api/audit").json()}
     assert {"rollback_refused", "diagnosis_run"} <= actions, actions
+
+
+def test_rollback_targets_and_evaluate_an_unknown_version(client):
+    r = client.get("/api/policies/rollback-targets", params={"machine_id": "m1"})
+    assert r.status_code == 200 and r.json() == {"2d": None, "3d": None}, r.text  # nothing to roll back to
+    r = client.post("/api/policies/999/evaluate")
+    assert r.status_code == 404 and "no policy version" in r.json()["detail"]

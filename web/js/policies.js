@@ -71,6 +71,19 @@ async function loadPolicies() {
       b.addEventListener("click", () => showEvaluation(p));
       tr.cells[7].append(" ", b);
     }
+    if (can("admin") && p.has_file && !["pending", "running"].includes(p.evaluation_status)) {
+      const b = document.createElement("button"); // any version can be evaluated (again), deployed ones too
+      b.type = "button"; b.textContent = p.evaluation_status === "done" ? "Evaluate again" : "Evaluate"; b.className = "evaluate";
+      b.addEventListener("click", async () => {
+        b.disabled = true;
+        try {
+          await api("POST", `/api/policies/${p.id}/evaluate`);
+          $("p-status").textContent = `${p.name}: twin evaluation started; the table updates when it is done.`; $("p-status").className = "";
+          loadPolicies();
+        } catch (e) { $("p-status").textContent = `Not started: ${e.message}`; $("p-status").className = "error"; b.disabled = false; }
+      });
+      tr.cells[7].append(" ", b);
+    }
     const td = tr.insertCell();
     td.dataset.role = "admin"; td.hidden = !can("admin");
     if (p.has_file) {

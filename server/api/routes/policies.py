@@ -135,12 +135,34 @@ def compare(db: SessionDep, _user: ViewerDep, ids: list[DbId] = Query(..., min_l
     return out
 
 
+@router.get("/rollback-targets")
+def rollback_targets(request: Request, _user: ViewerDep,
+                     machine_id: str = Query(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")) -> dict:
+    """Per mode, the version a rollback of ``machine_id`` would go back to ({"id", "name"}), or
+    None: the Fleet page offers a rollback only where there is one."""
+    out = {}
+    for mode in ("2d", "3d"):
+        prev = request.app.state.policies.rollback_target(machine_id, mode)
+        out[mode] = {"id": prev.id, "name": prev.name} if prev is not None else None
+    return out
+
+
 @router.get("/{policy_id}", response_model=PolicyOut)
 def get_policy(db: SessionDep, _user: ViewerDep, policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> PolicyOut:
     p = db.get(PolicyVersion, policy_id)
     if p is None:
         raise HTTPException(404, f"no policy version {policy_id}")
     return policy_out(p)
+
+
+@router.post("/{policy_id}/evaluate", response_model=PolicyOut,
+             responses={404: {"description": "no such version"}, 409: {"description": "its evaluation runs"}})
+def evaluate(request: Request, user: AdminDep, policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> PolicyOut:
+    """Evaluate a stored version in the twin (again): any version, deployed ones included."""
+    try:
+        return policy_out(request.app.state.policies.evaluate(policy_id, user.username))
+    except ThrowRefused as e:
+        raise _refused(e) from e
 
 
 @router.post("/{policy_id}/promote", response_model=list[DeploymentOut])
@@ -155,18 +177,6 @@ def promote(body: PromoteIn, request: Request, user: AdminDep,
     with request.app.state.sessions() as db:
         name = db.get(PolicyVersion, policy_id).name
     return [deployment_out(d, name) for d in deps]
-
-
-@router.get("/rollback-targets")
-def rollback_targets(request: Request, _user: ViewerDep,
-                     machine_id: str = Query(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")) -> dict:
-    """Per mode, the version a rollback of ``machine_id`` would go back to ({"id", "name"}), or
-    None: the Fleet page offers a rollback only where there is one."""
-    out = {}
-    for mode in ("2d", "3d"):
-        prev = request.app.state.policies.rollback_target(machine_id, mode)
-        out[mode] = {"id": prev.id, "name": prev.name} if prev is not None else None
-    return out
 
 
 @router.post("/rollback", response_model=DeploymentOut, responses={409: {"description": "nothing to roll back to"}})
