@@ -43,12 +43,24 @@ def ann(up, module_browser):
     ctx = module_browser.new_context(viewport={"width": 1440, "height": 900})
     page = ctx.new_page()
     page.set_default_timeout(T)
+    page.errors = []
+    page.on("pageerror", lambda e: page.errors.append(str(e)))
     page.requests = []
     page.on("request", lambda r: page.requests.append((time.time(), r.method, r.url)))
     log_in(page, up.base_url)
     page.locator("#machine-state", has_text="m1 READY").wait_for()
     yield page
     ctx.close()
+
+
+@pytest.fixture(autouse=True)
+def no_page_errors(request):
+    """No test may leave an uncaught error in the console page."""
+    yield
+    if "ann" in request.fixturenames:
+        page = request.getfixturevalue("ann")
+        errors, page.errors[:] = list(page.errors), []
+        assert errors == [], errors
 
 
 def _stamp_when(page, selector: str, text: str) -> None:

@@ -395,6 +395,20 @@ async function refreshHistory() {
   }
 }
 
+// --- a stored throw from the History page, drawn in this page's 3D view -------------------------------
+async function showReplay(throwId) {
+  let t;
+  try { t = await api("GET", `/api/throws/${encodeURIComponent(throwId)}`); } catch (e) { setStatus(`No such throw to show. ${e.message}`, true); return; }
+  Strip.select(t.machine_id);
+  if (state.machineId !== t.machine_id) await selectMachine(t.machine_id);
+  await showResult(throwId);
+  const draw = () => api("POST", `/api/throws/${encodeURIComponent(throwId)}/replay`).catch(() => {});
+  // the 3D view connects after the page: draw once it is there, and once more for a slow connection
+  $("viser").addEventListener("load", () => setTimeout(draw, 1500), { once: true });
+  setTimeout(draw, 6000);
+  setStatus(`Showing throw ${throwId.slice(0, 8)} of ${t.machine_id} from the History page: its path and impact in the 3D view, its plots below.`);
+}
+
 // --- wiring -----------------------------------------------------------------------------------------
 async function setTypedTarget(e) {
   e.preventDefault();
@@ -446,6 +460,8 @@ async function init() {
   Strip.onSelect((id) => selectMachine(id));
   if (Strip.machineId) await selectMachine(Strip.machineId);
   setInterval(checkPreview, PREVIEW_CHECK_MS);
+  const replay = new URLSearchParams(location.search).get("replay");
+  if (replay) showReplay(replay);
   wireLive();
   Live.start(state.consoleId);
 }

@@ -109,20 +109,32 @@ class ThrowPlots {
       tr.target_m ? side([tr.target_m]) : [[], []]]);
   }
 
-  /** A range input + play button that move the cursor of every chart over the recorded time. */
+  /** A range input + play button that move the cursor of every chart over the recorded time;
+   *  a labelled speed choice (times real time) is added next to the button. */
   attachScrubber(input, playButton, readout) {
     this.scrubber = input; this.readout = readout;
+    const label = el("label", { class: "replay-speed" }, "speed ");
+    const speed = el("select", { "aria-label": "replay speed" });
+    for (const [v, t] of [["0.25", "0.25× real time"], ["0.5", "0.5× real time"], ["1", "1× real time"]]) speed.add(new Option(t, v));
+    speed.value = "0.25";
+    label.appendChild(speed);
+    playButton.after(label);
     input.addEventListener("input", () => this.scrub(Number(input.value)));
+    const TICK_MS = 40;
     playButton.addEventListener("click", () => {
       if (this.playing) { clearInterval(this.playing); this.playing = null; playButton.textContent = "Play"; return; }
       if (!this.data) return;
       playButton.textContent = "Pause";
       if (Number(input.value) >= Number(input.max)) input.value = 0;
+      const t = this.data.t_s;
+      let now = t[Number(input.value)] || t[0];
       this.playing = setInterval(() => {
-        const i = Number(input.value) + 1;
-        if (i > Number(input.max)) { clearInterval(this.playing); this.playing = null; playButton.textContent = "Play"; return; }
+        now += (TICK_MS / 1000) * Number(speed.value); // recorded seconds per tick at the chosen speed
+        let i = Number(input.value);
+        while (i < t.length - 1 && t[i + 1] <= now) i += 1;
+        if (i >= Number(input.max)) { input.value = input.max; this.scrub(Number(input.max)); clearInterval(this.playing); this.playing = null; playButton.textContent = "Play"; return; }
         input.value = i; this.scrub(i);
-      }, 40);
+      }, TICK_MS);
     });
   }
 

@@ -11,6 +11,7 @@ const Strip = (() => {
   const STORE_ALARMS = "slinger.alarms";
   const MAX_ALARMS = 20;
   const RESET_CONFIRM_MS = 10000;
+  const MESSAGE_MS = 20000;
   const STATE_WORDS = { ready: "READY", not_ready: "NOT READY", throwing: "THROWING", estopped: "E-STOPPED", offline: "OFFLINE" };
   const machines = new Map();
   const selectHandlers = [];
@@ -51,11 +52,15 @@ const Strip = (() => {
   }
 
   // --- messages and alarms -------------------------------------------------------------------------
+  let sayTimer = null;
+  /** A message in the strip; one that is not an error goes away after MESSAGE_MS. */
   function say(text, kind = "") {
     const el = $("strip-msg");
     el.textContent = text;
     el.className = `strip-msg ${kind}`;
     el.hidden = !text;
+    clearTimeout(sayTimer);
+    if (text && kind !== "error") sayTimer = setTimeout(() => { el.hidden = true; }, MESSAGE_MS);
   }
 
   function loadAlarms() {
@@ -76,10 +81,12 @@ const Strip = (() => {
       li.className = "alarm";
       li.dataset.key = a.key;
       const text = document.createElement("span");
-      text.innerHTML = "";
       const head = document.createElement("strong");
       head.textContent = `ALARM ${new Date(a.at).toLocaleTimeString()}: ${a.title}`;
-      text.append(head, ` ${a.text} `);
+      const detail = document.createElement("span");
+      detail.className = "alarm-detail";
+      detail.textContent = ` ${a.text} `;
+      text.append(head, detail, " ");
       const todo = document.createElement("em");
       todo.textContent = a.todo;
       text.append(todo);
