@@ -236,3 +236,29 @@ def test_a_failed_throw_is_an_alarm_in_view_at_both_sizes(up, page):
     page.goto(f"{up.base_url}/console/index.html")
     page.locator("#machine-state", has_text="m1").wait_for()
     assert page.locator("#alarms li").count() == n - 1
+
+
+def test_a_touch_tap_in_the_3d_view_sets_the_target_on_a_phone(up, module_browser):
+    ctx = module_browser.new_context(viewport={"width": 390, "height": 844}, has_touch=True, is_mobile=True)
+    phone = ctx.new_page()
+    phone.set_default_timeout(T)
+    errors = []
+    phone.on("pageerror", lambda e: errors.append(str(e)))
+    try:
+        log_in(phone, up.base_url)
+        phone.locator("#machine-state", has_text="m1").wait_for()
+        canvas = phone.frame_locator("#viser").locator("canvas").first
+        canvas.wait_for()
+        frame = phone.query_selector("#viser").content_frame()
+        wait_for(lambda: frame.evaluate("!!window.__slingerKeys"), 60, "the frame helpers in viser's page")
+        phone.wait_for_timeout(2000)  # the camera framed the band
+        box = canvas.bounding_box()
+        assert box["y"] + box["height"] <= 844, box  # the 3D view is on screen
+        phone.touchscreen.tap(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        phone.locator("#target", has_text="from the turn axis").wait_for(timeout=60_000)
+        x, y = float(phone.input_value("#target-x")), float(phone.input_value("#target-y"))
+        assert 5.0 < (x * x + y * y) ** 0.5 < 11.0, (x, y)  # the tapped point, in the fields
+        assert _in_viewport(phone, "#preview") and _in_viewport(phone, "#throw")
+    finally:
+        ctx.close()
+    assert errors == []
