@@ -9,6 +9,16 @@ const JOINTS = ["cabin turn", "boom", "dipper", "telescope"];
 const COLORS = ["#1f5fbf", "#c2410c", "#15803d", "#7e22ce"];
 const PASSIVE = ["gripper pitch", "gripper roll"];
 
+/** A scale range uPlot can always tick: padded, never empty nor non-finite. A zero-width range
+ *  (one sample, or a stalled machine repeating its state) made uPlot's axis splits loop until
+ *  "Invalid array length". */
+function safeRange(_u, min, max) {
+  if (!Number.isFinite(min) || !Number.isFinite(max)) return [0, 1];
+  const span = max - min;
+  if (span < 1e-6 * Math.max(1, Math.abs(min), Math.abs(max))) return [min - 0.5, max + 0.5];
+  return [min - 0.05 * span, max + 0.05 * span];
+}
+
 function el(tag, attrs = {}, text = "") {
   const e = document.createElement(tag);
   for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
@@ -38,7 +48,7 @@ class ThrowPlots {
     this.lastWidth = this.width();
     const opts = {
       width: this.lastWidth, height: 150, mode,
-      scales: { x: { time: false }, ...scales },
+      scales: { x: { time: false, range: safeRange }, y: { range: safeRange }, ...scales },
       axes: [{ stroke: "#333", grid: { stroke: "#e5e5e5" } }, { stroke: "#333", grid: { stroke: "#e5e5e5" }, size: 46 }],
       series: [{ label: mode === 2 ? "" : "t [s]" }, ...series],
       legend: { live: mode !== 2 },
