@@ -64,12 +64,13 @@ def _stall_plant_when_the_throw_starts(up, stall_s: float = 2.0) -> threading.Ev
     returned event is set once the plant runs again."""
     import httpx
 
-    done = threading.Event()
+    done, listening = threading.Event(), threading.Event()
     plant = stack_pid(up, "plant", "m1")
 
     def watch_stream() -> None:
         with httpx.Client(base_url=up.base_url, cookies=up.http.cookies, timeout=None) as c, \
                 c.stream("GET", "/api/live") as r:
+            listening.set()
             event = None
             for line in r.iter_lines():
                 if line.startswith("event:"):
@@ -84,7 +85,15 @@ def _stall_plant_when_the_throw_starts(up, stall_s: float = 2.0) -> threading.Ev
                     done.set()
                     return
 
-    threading.Thread(target=watch_stream, daemon=True).start()
+    def run() -> None:
+        try:
+            watch_stream()
+        except httpx.HTTPError:
+            pass  # the server went away (end of the module): nothing to stall
+
+    threading.Thread(target=run, daemon=True).start()
+    assert listening.wait(60), "no live stream"
+    time.sleep(0.5)  # the server registered the subscriber
     return done
 
 
