@@ -344,6 +344,12 @@ async function showResult(throwId) {
     : `${t.status.toUpperCase()}: ${t.failure_reason || "no reason given"}`;
   $("tp-result").className = `result ${ok ? "ok" : "error"}`;
   showLastResult(resultWords(t), ok ? "ok" : "error");
+  // the thrown preview beside the outcome (the preview panel above moves on to the next preview)
+  const pv = t.preview;
+  $("tp-compare").textContent = pv && pv.downrange_error_m !== undefined && pv.downrange_error_m !== null
+    ? `Preview (twin): ${fmt(pv.downrange_error_m)} m downrange, ${fmt(pv.crossrange_error_m)} m crossrange · outcome: ` +
+      (ok ? `${fmt(t.downrange_error_m)} m downrange, ${fmt(t.crossrange_error_m)} m crossrange` : t.status)
+    : "";
   setStatus(ok ? "Throw done: the machine returns to rest, then the preview refreshes by itself." :
     "The throw failed: see the alarm at the top.", !ok);
   if (t.preview && state.preview && state.preview.id === t.preview.id) {
