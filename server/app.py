@@ -147,7 +147,10 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         summary="Operator console and fleet service for throwing with material handlers",
         version="0.1.0",
         lifespan=lifespan,
+        docs_url=None,
+        redoc_url=None,
     )
+    _serve_api_docs(app)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(DomainError, domain_error)  # the one mapping of domain errors to HTTP
     _document_validation_errors(app, [m.router for m in ROUTE_MODULES])
@@ -169,6 +172,30 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
             return RedirectResponse("/console/")
 
     return app
+
+
+def _serve_api_docs(app: FastAPI) -> None:
+    """/docs (Swagger UI) and /redoc from files in the fastapi-offline package, not a CDN: the API
+    reference works on a site without internet."""
+    import fastapi_offline
+    from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+    from fastapi.responses import HTMLResponse
+
+    static = Path(fastapi_offline.__file__).resolve().parent / "static"
+    app.mount("/docs-static", StaticFiles(directory=static), name="docs-static")
+
+    @app.get("/docs", include_in_schema=False)
+    def _docs() -> HTMLResponse:
+        return get_swagger_ui_html(openapi_url=app.openapi_url, title=f"{app.title}: API",
+                                   swagger_js_url="/docs-static/swagger-ui-bundle.js",
+                                   swagger_css_url="/docs-static/swagger-ui.css",
+                                   swagger_favicon_url="/docs-static/favicon.png")
+
+    @app.get("/redoc", include_in_schema=False)
+    def _redoc() -> HTMLResponse:
+        return get_redoc_html(openapi_url=app.openapi_url, title=f"{app.title}: API",
+                              redoc_js_url="/docs-static/redoc.standalone.js",
+                              redoc_favicon_url="/docs-static/favicon.png", with_google_fonts=False)
 
 
 def _make_scene(app: FastAPI, fleet: Fleet, settings: Settings) -> ConsoleScene:

@@ -114,13 +114,36 @@ class PolicyService:
             db.flush()
             audit(db, username, action, str(row.id), name=name, mode=mode, sha256=row.sha256)
         if evaluate:
-            lo, hi = manifest["target_range_m"]
-            distances = list(self.settings.eval_distances_m) or [
-                round(x * 2) / 2 for x in np.linspace(lo + 0.5, hi - 0.5, 3)]
-            self.jobs.submit("evaluation", {"version_id": row.id, "distances_m": distances,
-                                            "throws": self.settings.eval_throws},
-                             subject=str(row.id), requested_by=username)
+            self._submit_evaluation(row.id, manifest["target_range_m"], username)
         return row
+
+    def evaluate(self, version_id: int, username: str) -> PolicyVersion:
+        """(Re-)evaluate a stored version in the twin (a deployed one that was never evaluated,
+        or one to evaluate again); audited as ``policy_evaluate``.
+
+        Raises:
+            NotFound: an unknown version. Conflict: its evaluation is pending or running.
+        """
+        with self.sessions.begin() as db:
+            row = db.get(PolicyVersion, version_id)
+            if row is None:
+                raise NotFound(f"no policy version {version_id}")
+            if row.evaluation_status in ("pending", "running"):
+                raise Conflict(f"the evaluation of {row.name} is already {row.evaluation_status}")
+            row.evaluation_status = "pending"
+            rng = (row.manifest or {}).get("target_range_m") or [5.0, 10.7]
+            audit(db, username, "policy_evaluate", str(row.id), name=row.name, mode=row.mode)
+        self._submit_evaluation(version_id, rng, username)
+        with self.sessions() as db:
+            return db.get(PolicyVersion, version_id)
+
+    def _submit_evaluation(self, version_id: int, target_range_m, username: str) -> None:
+        lo, hi = target_range_m
+        distances = list(self.settings.eval_distances_m) or [
+            round(x * 2) / 2 for x in np.linspace(lo + 0.5, hi - 0.5, 3)]
+        self.jobs.submit("evaluation", {"version_id": version_id, "distances_m": distances,
+                                        "throws": self.settings.eval_throws},
+                         subject=str(version_id), requested_by=username)
 
     # --- promotion ---------------------------------------------------------------------------
     def promote(self, version_id: int, machine_ids: list[str], username: str, action: str = "promote") -> list[PolicyDeployment]:
@@ -173,19 +196,24 @@ class PolicyService:
             out.append(dep)
         return out
 
+    def rollback_target(self, machine_id: str, mode: str) -> PolicyVersion | None:
+        """The version ``machine_id`` ran for ``mode`` before its last active deployment, or None
+        (nothing to roll back to)."""
+        with self.sessions() as db:
+            last = db.scalar(select(PolicyDeployment).where(
+                PolicyDeployment.machine_id == machine_id, PolicyDeployment.mode == mode,
+                PolicyDeployment.status == "active").order_by(PolicyDeployment.requested_at.desc(), PolicyDeployment.id.desc()))
+            if last is None or not last.previous_sha256:
+                return None
+            return db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == last.previous_sha256))
+
     def rollback(self, machine_id: str, mode: str, username: str) -> PolicyDeployment:
         """Promote the version the machine ran before its last active deployment for ``mode``.
 
         Raises:
             Conflict: there is no earlier version to go back to.
         """
-        with self.sessions() as db:
-            last = db.scalar(select(PolicyDeployment).where(
-                PolicyDeployment.machine_id == machine_id, PolicyDeployment.mode == mode,
-                PolicyDeployment.status == "active").order_by(PolicyDeployment.requested_at.desc(), PolicyDeployment.id.desc()))
-            prev = None
-            if last is not None and last.previous_sha256:
-                prev = db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == last.previous_sha256))
+        prev = self.rollback_target(machine_id, mode)
         if prev is None:
             raise Conflict(f"no previous {mode} policy version of {machine_id} to roll back to")
         return self.promote(prev.id, [machine_id], username, action="rollback")[0]

@@ -41,6 +41,30 @@ CONSOLE_TTL_S = 12 * 3600.0
 OPERATOR_ONLY_CANVAS = "<style>body * { visibility: hidden !important; } canvas { visibility: visible !important; }</style>"
 """Injected into viser's page (a GUI HTML element): only the 3D canvas stays visible; hidden
 elements cannot be hit by the mouse nor focused, and clicks on the canvas still reach viser."""
+_FRAME_SCRIPT = (
+    # Esc (E-STOP) pressed while the focus is in this frame: tell the console page
+    "window.addEventListener('keydown', function (e) { if (e.key === 'Escape' || e.key === 'Esc') {"
+    " e.preventDefault(); window.parent.postMessage({ slinger: 'estop' }, '*'); } }, true);"
+    # a short one-finger tap on the canvas: replay it as a mouse click, which viser turns into a ray
+    " var tap = null;"
+    " window.addEventListener('touchstart', function (e) { var t = e.touches[0];"
+    " tap = e.touches.length === 1 ? { x: t.clientX, y: t.clientY, at: Date.now() } : null; }, true);"
+    " window.addEventListener('touchend', function (e) { var t = e.changedTouches[0]; var s = tap; tap = null;"
+    " if (!s || Math.hypot(t.clientX - s.x, t.clientY - s.y) > 10 || Date.now() - s.at > 600) return;"
+    " var c = document.elementFromPoint(t.clientX, t.clientY); if (!c || c.tagName !== 'CANVAS') return;"
+    " ['pointerdown', 'mousedown', 'pointerup', 'mouseup', 'click'].forEach(function (type) {"
+    " var init = { bubbles: true, cancelable: true, clientX: t.clientX, clientY: t.clientY, button: 0,"
+    " buttons: /down/.test(type) ? 1 : 0, pointerId: 1, pointerType: 'mouse', isPrimary: true };"
+    " c.dispatchEvent(/pointer/.test(type) ? new PointerEvent(type, init) : new MouseEvent(type, init)); }); }, true);"
+)
+ESTOP_KEY_FORWARD = ('<img alt="" src="data:," onerror="if (!window.__slingerKeys) { window.__slingerKeys = 1; '
+                     + _FRAME_SCRIPT + ' }">')
+"""Injected into viser's page like OPERATOR_ONLY_CANVAS: Esc pressed while the focus is in the 3D
+view (another origin: the console page cannot hear its keys) is posted to the console page, whose
+status strip (web/js/strip.js) sends the E-STOP; a one-finger tap on a touch screen is replayed as
+a mouse click (viser turns clicks, not taps, into target rays). viser renders GUI HTML with
+innerHTML, where a <script> does not run but an image's error handler does (the empty data: URL is
+no image)."""
 MAX_CONSOLES = 500
 """Consoles open on one server at most; past it a new one is refused (:class:`ConsoleLimit`),
 never made by evicting another user's."""
@@ -149,7 +173,7 @@ class ConsoleScene:
         # page but the WebGL canvas (labels are drawn in it): its panel, settings button, scene
         # tree and notifications are neither visible nor focusable nor clickable
         self.server.gui.configure_theme(control_width="small", show_share_button=False, show_logo=False)
-        self.server.gui.add_html(OPERATOR_ONLY_CANVAS)
+        self.server.gui.add_html(OPERATOR_ONLY_CANVAS + ESTOP_KEY_FORWARD)
         self.server.scene.add_grid("/ground", width=40.0, height=40.0, cell_size=1.0, section_size=5.0,
                                    plane_color=(150, 165, 130), plane_opacity=0.35)
         self.server.on_client_connect(self._on_connect)

@@ -98,12 +98,16 @@ def snap_to_line(xy, cabin_turn_rad: float) -> np.ndarray | None:
 
 
 def camera_framing(cabin_turn_rad: float, lo_m: float, hi_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Camera (position, look_at) that frames the throwing area: from behind and above the
-    machine, looking at the middle of the valid band along the cabin's heading."""
+    """Camera (position, look_at) that frames the throwing area: from above, behind and to the
+    left of the machine, looking at the middle of the valid band along the cabin's heading.
+
+    Steep (about 50 degrees down) and to the side, so that the gripper hanging over the band
+    (between the camera and the ground) is seen beside the throwing line, not on the targets it
+    aims at; behind, so that downrange points up the screen."""
     u = np.array([math.cos(cabin_turn_rad), math.sin(cabin_turn_rad), 0.0])
     left = np.array([-u[1], u[0], 0.0])
     look = 0.5 * (lo_m + hi_m) * u
-    pos = look - 1.2 * hi_m * u - 0.3 * hi_m * left + np.array([0.0, 0.0, 1.15 * hi_m])
+    pos = look - 0.85 * hi_m * u + 0.55 * hi_m * left + np.array([0.0, 0.0, 1.25 * hi_m])
     return pos, look
 
 

@@ -101,6 +101,7 @@ def preview_refusal(preview: dict | None, preview_id: str | None, machine_id: st
         bound = limits.max_active_joint_delta if i < 4 else limits.max_passive_joint_delta
         delta = abs(current_q[i] - preview["start_q"][i])
         if delta > bound:
-            return Refusal(Conflict, "machine_moved", f"the machine moved since the preview ({name} by {delta:.3f}, "
-                                                 f"at most {bound:.3f}): {again}")
+            unit = "m" if name == "telescope" else "rad"
+            return Refusal(Conflict, "machine_moved", f"the machine moved since the preview ({name.replace('_', ' ')} by "
+                                                      f"{delta:.3f} {unit}, at most {bound:.3f} {unit}): {again}")
     return None

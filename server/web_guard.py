@@ -7,7 +7,7 @@
   inline scripts by hash, no ``unsafe-inline`` for scripts; the viser 3D view may be framed from
   the same host on any port; this site may not be framed by anyone: ``frame-ancestors 'none'``),
   ``X-Frame-Options: DENY``, ``X-Content-Type-Options: nosniff``, ``Referrer-Policy:
-  same-origin``. FastAPI's /docs and /redoc load their UI from a CDN and run inline code: they get
+  same-origin``. /docs and /redoc (server.app: Swagger UI and ReDoc from the server itself) run inline code: they get
   the other headers but no CSP.
 - :func:`contained_file`: a served file, its links resolved, only if it stays inside its folder.
 """

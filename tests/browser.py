@@ -4,6 +4,7 @@ logging in, axe-core accessibility checks and the layout checks of the console b
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -78,3 +79,82 @@ def layout(page) -> dict:
         return { estop: r("estop"), view: r("viser"), vw: innerWidth, vh: innerHeight,
                  scrollW: document.documentElement.scrollWidth };
     }""")
+
+
+def watch(page) -> None:
+    """Record on ``page`` its uncaught errors (``page.errors``) and requests (``page.requests``:
+    (wall time, method, url))."""
+    page.errors = []
+    page.on("pageerror", lambda e: page.errors.append(f"{e}\n{getattr(e, 'stack', '')}"))
+    page.requests = []
+    page.on("request", lambda r: page.requests.append((time.time(), r.method, r.url)))
+
+
+def take_errors(page) -> list[str]:
+    """The page errors recorded since the last call (see :func:`watch`), and forget them."""
+    errors, page.errors[:] = list(page.errors), []
+    return errors
+
+
+def press(page, selector: str) -> None:
+    """Click a page button without Playwright's "stable for two animation frames" wait (the
+    WebGL iframe starves animation frames on a loaded machine); the button's handler runs as on a
+    real click. Clicks in the 3D view use the real mouse."""
+    page.locator(selector).wait_for()
+    page.locator(selector).dispatch_event("click")
+
+
+def put_machine_at(up, machine_id: str, q_active) -> None:
+    """Move the simulated machine of the `slinger up` stack ``up`` to ``q_active`` (4,) (SimReset,
+    what a tool may send under the server's certificate)."""
+    from runtime.protocol import keys
+    from runtime.protocol.messages import SimReset, encode
+    from runtime.zenoh_session import TlsFiles, open_session
+
+    hub = f"tls/127.0.0.1:{up.argv[up.argv.index('--zenoh-port') + 1]}"
+    with open_session(mode="peer", connect=(hub,), listen=("tls/127.0.0.1:0",),
+                      tls=TlsFiles.from_site(up.data_dir / "site", "server")) as session:
+        time.sleep(1.0)  # the peers' gossip links us to the plant
+        for _ in range(3):
+            session.put(keys.sim_reset(machine_id), encode(SimReset(machine_id=machine_id, stamp_s=time.monotonic(),
+                                                                    q_active=list(q_active))))
+            time.sleep(0.3)
+
+
+def open_console(browser, base_url: str, viewport=(1440, 900), timeout_ms: int = 180_000, machine: str = "m1 READY"):
+    """A new browser context with the admin's console page (watched: :func:`watch`) showing
+    ``machine`` in its state badge: returns (context, page); the caller closes the context."""
+    ctx = browser.new_context(viewport={"width": viewport[0], "height": viewport[1]})
+    page = ctx.new_page()
+    page.set_default_timeout(timeout_ms)
+    watch(page)
+    log_in(page, base_url)
+    page.locator("#machine-state", has_text=machine).wait_for()
+    return ctx, page
+
+
+@pytest.fixture(autouse=False)
+def no_page_errors(request):
+    """After each test of a module that imports this fixture: no uncaught error in its console
+    page (the module's ``ann`` fixture)."""
+    yield
+    if "ann" in request.fixturenames:
+        errors = take_errors(request.getfixturevalue("ann"))
+        assert errors == [], errors
+
+
+def stack_pid(up, role: str, machine_id: str) -> int:
+    """The pid of the `slinger <role>` process (plant, runtime) of ``machine_id`` in the
+    `slinger up` stack ``up`` (its own --machine-id: the id of every machine also stands in a
+    runtime's --acl-machines list)."""
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                cmd = (entry / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if (cmd[1:4] == [b"-m", b"server.cli", role.encode()] and b"--machine-id" in cmd
+                    and cmd[cmd.index(b"--machine-id") + 1] == machine_id.encode()
+                    and any(str(up.data_dir).encode() in c for c in cmd)):
+                return int(entry.name)
+    pytest.fail(f"no {role} process of {machine_id}")

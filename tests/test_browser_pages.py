@@ -113,7 +113,8 @@ def test_diagnosis_page_is_linked_everywhere_and_refuses_a_machine_without_throw
         page.locator('nav a[href="diagnosis.html"]').wait_for(state="attached", timeout=20_000)
         assert page.locator('nav a[href="diagnosis.html"]').count() == 1, name
     page.goto(f"{base}/console/diagnosis.html")
-    page.fill("#machine_id", "m1")
+    page.locator("#machine_id option[value=m1]").wait_for(state="attached", timeout=20_000)
+    page.select_option("#machine_id", "m1")  # picked from the list of machines
     page.click("#start button[type=submit]")
     msg = page.locator("#start-msg")
     wait_for(lambda: msg.text_content() not in ("", "exporting throws…"), 20, "diagnosis start answered")
@@ -194,6 +195,9 @@ def test_diagnosis_page_shows_where_verdict_evidence_and_shrink(live, browser): 
     log_in(page, base)
     page.goto(f"{base}/console/diagnosis.html#{run_id}")
     page.locator("#r-verdict", has_text="ambiguous between wind and payload_drag").wait_for(timeout=20_000)
+    summary = page.locator("#r-summary").text_content()  # plain words first: what, how sure, what to do
+    assert "valve lag" in summary and "93%" in summary and "What to do" in summary, summary
+    assert page.locator("#r-details").get_attribute("open") is None  # the χ² tables wait behind "details"
     assert "track the payload in flight" in page.locator("#r-ambiguity").text_content()
     assert "q.boom" in page.locator("#where-summary").text_content() and "swing 70%" in page.locator("#where-summary").text_content()
     which = page.locator("#which").text_content()

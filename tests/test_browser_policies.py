@@ -28,7 +28,7 @@ def test_upload_reject_promote_and_rollback(tmp_path, browser):  # noqa: F811
         page.set_input_files("#u-file", str(junk))
         page.fill("#u-name", "junk")
         page.click("#u-submit")
-        page.locator("#p-status", has_text="Rejected: 422: not a loadable ONNX model").wait_for(timeout=10_000)
+        page.locator("#p-status", has_text="Rejected: Not a loadable ONNX model").wait_for(timeout=10_000)
 
         for path, name in ((pa, "pa"), (pb, "pb")):
             page.set_input_files("#u-file", str(path))

@@ -62,8 +62,8 @@ GATE_CASES = [  # (preview changes or None for no preview, target, status, condi
     ({}, [8.2, -0.292, 0.0], 422, "preview_target", "0.20 m away"),
     ({"created_at": "old"}, TARGET, 409, "preview_stale", "s old (at most 60 s)"),
     ({"policy_sha256": "cd" * 32}, TARGET, 409, "policy_changed", "policy changed"),
-    ({"start_q": [0.0, -0.43, 1.5, 0.2, -1.0, 0.0]}, TARGET, 409, "machine_moved", "boom by 0.070"),
-    ({"start_q": [0.0, -0.5, 1.5, 0.2, -1.5, 0.0]}, TARGET, 409, "machine_moved", "gripper_pitch by 0.500"),
+    ({"start_q": [0.0, -0.43, 1.5, 0.2, -1.0, 0.0]}, TARGET, 409, "machine_moved", "boom by 0.070 rad"),
+    ({"start_q": [0.0, -0.5, 1.5, 0.2, -1.5, 0.0]}, TARGET, 409, "machine_moved", "gripper pitch by 0.500 rad"),
 ]
 
 

@@ -13,15 +13,33 @@ async function api(method, path, body, isForm = false) {
   const res = await fetch(path, opts);
   if (res.status === 401 && !path.startsWith("/api/auth/login")) {
     location.href = `/console/login.html?next=${encodeURIComponent(location.pathname + location.search)}`;
-    throw new Error("401: log in first");
+    throw apiError(401, "Log in first.");
   }
   const data = await res.json().catch(() => null);
   if (!res.ok) {
     let detail = data && data.detail;
     if (Array.isArray(detail)) detail = detail.map((d) => `${(d.loc || []).join(".")}: ${d.msg}`).join("; ");
-    throw new Error(`${res.status}: ${detail || res.statusText}`);
+    throw apiError(res.status, detail || res.statusText, res.headers.get("X-Refused-Condition"));
   }
   return data;
+}
+
+/** The server's reason as a sentence an operator reads (never "409: ..."): capital first letter,
+ *  a full stop; the HTTP status and the gate condition (server.throw_gate) stay on the error as
+ *  ``status`` and ``condition`` for the code. */
+function sentence(text) {
+  const t = String(text || "").trim();
+  if (!t) return "";
+  const s = t[0].toUpperCase() + t.slice(1);
+  return /[.!?…]$/.test(s) ? s : `${s}.`;
+}
+
+function apiError(status, detail, condition = null) {
+  const reason = status === 503 && !detail ? "the server cannot reach the machine or its workers right now" : detail;
+  const err = new Error(sentence(reason || `the server answered ${status}`));
+  err.status = status;
+  err.condition = condition;
+  return err;
 }
 
 const fmt = (v, n = 2) => (v === null || v === undefined ? "–" : Number(v).toFixed(n));
@@ -33,7 +51,7 @@ const can = (role) => session.user && ROLE_RANK[session.user.role] >= ROLE_RANK[
 const SITE_PAGES = [
   ["index.html", "Console"], ["history.html", "History"], ["accuracy.html", "Accuracy"],
   ["policies.html", "Policies"], ["fleet.html", "Fleet"], ["diagnosis.html", "Diagnosis"],
-  ["admin.html", "Users", "admin"], ["/docs", "API"],
+  ["admin.html", "Users", "admin"], ["account.html", "My account"], ["/docs", "API"],
 ];
 
 function renderNav() {
@@ -69,9 +87,26 @@ function confirmAction(title, text, okLabel = "Confirm") {
   $("confirm-text").textContent = text;
   $("confirm-ok").textContent = okLabel;
   dlg.returnValue = "cancel";
+  // not showModal(): a modal dialog sits in the browser's top layer, above any z-index, and makes
+  // the rest of the page inert: the E-STOP would be dimmed and dead under its backdrop. A plain
+  // dialog with our own backdrop (.dialog-backdrop) keeps the E-STOP above both, live.
+  let backdrop = $("dialog-backdrop");
+  if (!backdrop) {
+    backdrop = document.createElement("div");
+    backdrop.id = "dialog-backdrop";
+    backdrop.className = "dialog-backdrop";
+    document.body.appendChild(backdrop);
+  }
+  const before = document.activeElement;
   return new Promise((resolve) => {
-    dlg.addEventListener("close", () => resolve(dlg.returnValue === "ok"), { once: true });
-    dlg.showModal();
+    dlg.addEventListener("close", () => {
+      backdrop.hidden = true;
+      if (before && before.focus) before.focus();
+      resolve(dlg.returnValue === "ok");
+    }, { once: true });
+    backdrop.hidden = false;
+    dlg.show();
+    $("confirm-ok").focus();
   });
 }
 

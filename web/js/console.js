@@ -1,11 +1,21 @@
 // Slinger operator console. Each page load opens its own console on the server (POST /api/consoles):
 // its own machine, mode, target and 3D view (viser, bound by the websocket path /c/<id>), never
 // shared with another operator. Machine state, throw progress, live samples and results arrive
-// by live push (live.js); the page sends commands only (preview, throw, E-STOP, reset).
+// by live push (live.js); the page sends commands only (preview, throw). The machine selection,
+// its state badge, E-STOP (button, Esc) and alarms live in the status strip (strip.js).
+// A preview on screen is re-checked against the throw gate every PREVIEW_CHECK_MS (POST
+// /api/previews/{id}/check): Throw is enabled only while it is valid, and when the machine is
+// ready and the preview went stale or the machine moved, the page previews again by itself.
 "use strict";
 
-const state = { consoleId: null, viserPort: null, machines: new Map(), machineId: null, mode: "2d", target: null,
-  targetReason: null, preview: null, previewKey: null, busy: false, throwId: null, throwStarted: null };
+const state = { consoleId: null, viserPort: null, machines: Strip.machines, machineId: null, mode: "2d", target: null,
+  targetReason: null, preview: null, previewKey: null, busy: false, throwId: null, throwStarted: null,
+  check: null, checkAt: 0, checking: false, autoAt: 0, typed: null };
+const PREVIEW_CHECK_MS = 1000;
+const AUTO_PREVIEW_MIN_MS = 4000; // at most one automatic preview per this interval
+const AUTO_PREVIEW_BEFORE_STALE_S = 10; // preview again this long before the gate calls it stale
+const JOINT_UNITS = { cabin_turn: ["cabin turn", "rad/s"], boom: ["boom", "rad/s"], dipper: ["dipper", "rad/s"],
+  telescope: ["telescope", "m/s"] };
 let plots = null;
 
 const PHASE_PROGRESS = { requested: 0.05, preparing: 0.15, swinging: 0.45, released: 0.8, landed: 1, failed: 1, aborted: 1 };
@@ -38,33 +48,21 @@ function recoveryFor(m) {
   return "";
 }
 
-// --- machine state, shown in the header badge, the state card and the E-STOP banner ---------------
+// --- machine state (the strip shows the badge, E-STOP banner and alarms) ---------------------------
 function renderState() {
   const m = selected();
-  const badge = $("machine-state");
   const lost = !Live.isConnected();
   if (!m) {
-    badge.textContent = lost ? "UNKNOWN: server unreachable" : "no machine";
-    badge.className = "state-badge state-unknown";
     $("state-line").textContent = lost ? "Server unreachable." : "No machine known yet: start one with slinger up or slinger plant + slinger runtime.";
     updateButtons();
     return;
   }
-  const st = lost ? "unknown" : m.state;
   const words = lost ? "UNKNOWN (server unreachable)" : STATE_WORDS[m.state] || m.state;
   const phase = m.state === "throwing" && m.phase ? `: ${m.phase}` : "";
-  badge.textContent = `${m.machine_id} ${words}${phase}`;
-  badge.className = `state-badge state-${st}`;
-  $("machine-kind").hidden = !m.simulated;
   $("state-line").textContent = `${m.machine_id}: ${words}${phase}` +
     (m.policies && m.policies[state.mode] ? ` · ${state.mode} policy ${m.policies[state.mode]}` : ` · no ${state.mode} policy`);
   $("state-reason").textContent = m.state === "ready" || lost ? "" : (m.reason ? `Why: ${m.reason}` : "");
   $("recovery").textContent = m.state === "ready" && !lost ? "" : recoveryFor(m);
-  const banner = $("estop-banner");
-  banner.hidden = m.state !== "estopped";
-  $("estop-machine").textContent = m.machine_id;
-  $("estop-text").textContent = m.estop_reason ? `Reason: ${m.estop_reason}. Throws are refused until Reset.` : "Throws are refused until Reset.";
-  document.body.classList.toggle("estopped", m.state === "estopped");
   const offer = !lost && m.state === "not_ready" && m.recovery === "return_to_ready" && !m.returning;
   $("return-ready").hidden = !(offer && can("operator"));
   const progressing = m.state === "throwing";
@@ -82,26 +80,7 @@ function renderState() {
   updateButtons();
 }
 
-function renderMachineList() {
-  const sel = $("machine");
-  const ids = [...state.machines.keys()].sort();
-  if (sel.options.length !== ids.length || [...sel.options].some((o, i) => o.value !== ids[i])) {
-    sel.innerHTML = "";
-    for (const id of ids) sel.add(new Option(id, id));
-    sel.value = state.machineId || "";
-  }
-  for (const o of sel.options) {
-    const m = state.machines.get(o.value);
-    o.textContent = `${o.value} (${(STATE_WORDS[m.state] || m.state).toLowerCase()})`;
-  }
-}
-
 function onMachineEvent(m) {
-  const known = state.machines.has(m.machine_id);
-  state.machines.set(m.machine_id, m);
-  if (!known) renderMachineList();
-  if (!state.machineId) selectMachine(m.machine_id);
-  renderMachineList();
   if (m.machine_id === state.machineId) renderState();
 }
 
@@ -111,7 +90,9 @@ async function openConsole() {
   state.consoleId = c.console_id;
   state.viserPort = c.viser_port;
   const ws = `${location.protocol === "https:" ? "wss" : "ws"}://${location.hostname}:${c.viser_port}${c.viser_path}`;
-  $("viser").src = `${location.protocol}//${location.hostname}:${c.viser_port}/?websocket=${encodeURIComponent(ws)}`;
+  const origin = `${location.protocol}//${location.hostname}:${c.viser_port}`;
+  Strip.setViserOrigin(origin); // Esc inside the 3D view arrives from there (server.scene)
+  $("viser").src = `${origin}/?websocket=${encodeURIComponent(ws)}`;
   if (state.machineId) await putConsole({ machine_id: state.machineId, mode: state.mode });
 }
 
@@ -121,8 +102,21 @@ function applyConsole(c) {
   state.targetReason = c.target_reason;
   if (c.target) {
     const d = Math.hypot(c.target[0], c.target[1]);
-    $("target").textContent = `x ${fmt(c.target[0])}  y ${fmt(c.target[1])} m, ${fmt(d, 1)} m from the turn axis` +
-      (c.snapped ? " (snapped onto the 2D line)" : "");
+    const typed = state.typed;
+    const moved = typed ? Math.hypot(typed[0] - c.target[0], typed[1] - c.target[1]) : 0;
+    let text = `x ${fmt(c.target[0])}  y ${fmt(c.target[1])} m, ${fmt(d, 1)} m from the turn axis`;
+    if (typed && moved > 0.005) {
+      // never move a typed target silently: say what was typed and where the target is now
+      text += ` (snapped onto the 2D line: you typed x ${fmt(typed[0])} y ${fmt(typed[1])} m, the target is ${fmt(moved)} m from it)`;
+    } else if (c.snapped) {
+      text += " (snapped onto the 2D line)";
+    }
+    $("target").textContent = text;
+    if (!typed) { // a click or tap in the 3D view: the point goes into the fields
+      $("target-x").value = fmt(c.target[0]);
+      $("target-y").value = fmt(c.target[1]);
+    }
+    state.typed = null;
   } else {
     $("target").textContent = "No target yet: click the ground inside the green band.";
   }
@@ -138,8 +132,8 @@ async function putConsole(body) {
 
 async function selectMachine(id) {
   state.machineId = id;
-  $("machine").value = id;
   state.preview = null;
+  state.check = null;
   $("preview-panel").hidden = true;
   $("throw-panel").hidden = true;
   if (state.consoleId) await putConsole({ machine_id: id, mode: state.mode }).catch((e) => setStatus(e.message, true));
@@ -147,15 +141,81 @@ async function selectMachine(id) {
   refreshHistory();
 }
 
+function previewOnScreen() {
+  return !!(state.preview && state.preview.status === "ok" && state.previewKey === requestKey());
+}
+
 function updateButtons() {
   const m = selected();
   const ready = !!(m && m.state === "ready" && Live.isConnected() && state.target && !state.targetReason) && !state.busy;
   $("preview").disabled = !ready;
-  const previewed = state.preview && state.preview.status === "ok" && state.previewKey === requestKey();
+  // Throw only with a preview of this request that the gate judged valid a moment ago
+  const fresh = state.check && state.check.previewId === (state.preview && state.preview.id) &&
+    Date.now() - state.checkAt < 3 * PREVIEW_CHECK_MS + 2000;
+  const valid = previewOnScreen() && fresh && state.check.valid;
   const confirmed = state.mode !== "3d" || $("confirm-clearance").checked;
-  $("throw").disabled = !(ready && previewed && confirmed);
+  $("throw").disabled = !(ready && valid && confirmed);
   $("confirm-box").hidden = state.mode !== "3d";
-  $("preview-panel").classList.toggle("stale", !!state.preview && state.previewKey !== requestKey());
+  $("preview-panel").classList.toggle("stale", !!state.preview && !(previewOnScreen() && (!state.check || state.check.valid)));
+  renderPreviewAge();
+}
+
+/** The operator's sentence for a failed gate condition (server.throw_gate). */
+function gateWords(check) {
+  switch (check.condition) {
+    case "preview_stale": return "The preview is too old";
+    case "machine_moved": return "The machine has moved since the preview";
+    case "policy_changed": return "The machine's policy changed since the preview";
+    case "preview_target": case "preview_other": return "The preview was made for another target";
+    case "no_state": return "No state from the machine";
+    default: return sentence(check.reason || "The preview is no longer valid").replace(/\.$/, "");
+  }
+}
+
+function renderPreviewAge() {
+  const el = $("preview-age");
+  if (!previewOnScreen()) { el.textContent = ""; el.className = "preview-age"; return; }
+  const age = state.check && state.check.age_s !== null && state.check.age_s !== undefined
+    ? state.check.age_s + (Date.now() - state.checkAt) / 1000 : (Date.now() - state.previewAt) / 1000;
+  const max = state.check && state.check.max_age_s;
+  if (state.check && !state.check.valid) {
+    el.textContent = `${gateWords(state.check)}: ${state.busy ? "previewing again…" : "preview again."}`;
+    el.className = "preview-age error";
+  } else {
+    el.textContent = `preview ${Math.max(0, Math.round(age))} s old` + (max ? ` (valid ${Math.round(max)} s)` : "");
+    el.className = "preview-age ok";
+  }
+}
+
+/** Ask the server whether the preview on screen still passes the throw gate; refresh it by
+ *  itself when the machine is ready and the preview went stale (or is about to) or it moved. */
+async function checkPreview() {
+  if (state.checking || !previewOnScreen() || !state.consoleId) { renderPreviewAge(); return; }
+  const m = selected();
+  if (!m || m.state === "throwing") { renderPreviewAge(); return; }
+  state.checking = true;
+  const p = state.preview;
+  try {
+    const c = await api("POST", `/api/previews/${encodeURIComponent(p.id)}/check`,
+      { machine_id: state.machineId, mode: state.mode, target: state.target });
+    if (state.preview !== p) return;
+    state.check = { ...c, previewId: p.id };
+    state.checkAt = Date.now();
+  } catch (e) {
+    state.check = { valid: false, condition: "unknown", reason: e.message, previewId: p.id };
+    state.checkAt = Date.now();
+  } finally {
+    state.checking = false;
+  }
+  updateButtons();
+  const c = state.check;
+  const ageing = c.valid && c.max_age_s && c.age_s > c.max_age_s - AUTO_PREVIEW_BEFORE_STALE_S;
+  const restOk = m.state === "ready" && !state.busy && Date.now() - state.autoAt > AUTO_PREVIEW_MIN_MS;
+  const refreshable = ["preview_stale", "machine_moved", "policy_changed", "preview_unknown"].includes(c.condition);
+  if (restOk && (ageing || (!c.valid && refreshable)) && !$("preview").disabled) {
+    state.autoAt = Date.now();
+    doPreview(true);
+  }
 }
 
 // --- preview ----------------------------------------------------------------------------------------
@@ -165,7 +225,7 @@ function showPreview(p) {
   for (const id of ["out-down", "out-cross", "out-duration"]) $(id).textContent = "–";
   if (p.status !== "ok") {
     for (const id of ["pv-down", "pv-cross", "pv-duration", "pv-release", "pv-speeds", "pv-clearance", "pv-sigma"]) $(id).textContent = "–";
-    setStatus(`Preview failed: the twin's swing ${p.reason}. Nothing was sent to the machine.`, true);
+    setStatus(`Preview failed: the twin's swing ${p.reason}. Nothing was sent to the machine; pick another target.`, true);
     return;
   }
   $("pv-down").textContent = `${fmt(p.downrange_error_m)} m`;
@@ -173,7 +233,8 @@ function showPreview(p) {
   $("pv-duration").textContent = `${fmt(p.duration_s)} s (release at ${fmt(p.release_after_s)} s)`;
   const v = p.release_vel_mps;
   $("pv-release").textContent = `${fmt(Math.hypot(v[0], v[1], v[2]))} m/s`;
-  $("pv-speeds").textContent = Object.entries(p.peak_joint_speeds).map(([k, x]) => `${k} ${fmt(x)}`).join(", ");
+  $("pv-speeds").textContent = Object.entries(p.peak_joint_speeds)
+    .map(([k, x]) => { const [name, unit] = JOINT_UNITS[k] || [k.replace(/_/g, " "), ""]; return `${name} ${fmt(x)} ${unit}`.trim(); }).join(", ");
   const c = p.clearance;
   $("pv-clearance").textContent = c.inside ? `inside (reach ${fmt(c.max_radius_m, 1)} m of ${fmt(c.radius_m, 1)} m)` : `OUTSIDE: ${c.reasons.join(", ")}`;
   $("pv-clearance").className = c.inside ? "ok" : "error";
@@ -181,14 +242,15 @@ function showPreview(p) {
     ? `${fmt(p.mc.sigma_downrange_m, 3)} / ${fmt(p.mc.sigma_crossrange_m, 3)} m (${p.mc.rollouts} rollouts)` : "computing…";
 }
 
-async function doPreview() {
+async function doPreview(auto = false) {
   state.busy = true; updateButtons();
   const body = { machine_id: state.machineId, mode: state.mode, target: state.target };
   const key = requestKey();
-  setStatus("Previewing in the twin…");
+  setStatus(auto ? "The machine or the preview changed: previewing again in the twin…" : "Previewing in the twin…");
   try {
     const quick = await api("POST", "/api/previews", { ...body, rollouts: 1 });
-    state.preview = quick; state.previewKey = key;
+    state.preview = quick; state.previewKey = key; state.previewAt = Date.now();
+    state.check = { valid: quick.status === "ok", age_s: 0, previewId: quick.id }; state.checkAt = Date.now();
     showPreview(quick);
     await api("POST", `/api/consoles/${state.consoleId}/preview`, { preview_id: quick.id }).then(applyConsole).catch(() => {});
     if (quick.status === "ok") {
@@ -197,8 +259,9 @@ async function doPreview() {
         $("pv-sigma").textContent = `unavailable (${e.message})`;
         setStatus(`Preview ready (nominal rollout only; the 1σ ellipse failed: ${e.message}). Press Throw to send it.`);
       }
-      if (full) {
-        state.preview = full;
+      if (full && state.previewKey === key) {
+        state.preview = full; state.previewAt = Date.now();
+        state.check = { valid: full.status === "ok", age_s: 0, previewId: full.id }; state.checkAt = Date.now();
         showPreview(full);
         await api("POST", `/api/consoles/${state.consoleId}/preview`, { preview_id: full.id }).then(applyConsole).catch(() => {});
         setStatus(`Preview ready: ${fmt(full.downrange_error_m)} m downrange, ${fmt(full.crossrange_error_m)} m crossrange. Press Throw to send it.`);
@@ -207,7 +270,7 @@ async function doPreview() {
   } catch (e) {
     state.preview = null;
     $("preview-panel").hidden = true;
-    setStatus(`Refused: ${e.message}`, true);
+    setStatus(`No preview: ${e.message}`, true);
   } finally {
     state.busy = false; updateButtons();
   }
@@ -229,10 +292,11 @@ async function doThrow() {
     const r = await api("POST", "/api/throws", body);
     state.throwId = r.id; state.throwStarted = Date.now();
     $("confirm-clearance").checked = false;
-    setStatus(`Throw ${r.id.slice(0, 8)} accepted (policy ${r.policy_version || "?"}): watch it live below.`);
+    setStatus(`Throw ${r.id.slice(0, 8)} accepted (policy ${r.policy_version || "?"}): running…`);
+    showLastResult(`Throw ${r.id.slice(0, 8)} running…`, "");
     startThrowPanel(r.id);
   } catch (e) {
-    setStatus(`Refused: ${e.message}`, true);
+    setStatus(`The throw was not sent. ${e.message}`, true);
   } finally {
     updateButtons();
   }
@@ -247,6 +311,27 @@ function startThrowPanel(throwId) {
   plots.reset();
 }
 
+/** The last throw's result next to Preview/Throw and over the 3D view. */
+function showLastResult(text, kind) {
+  for (const id of ["result", "view-result"]) {
+    $(id).textContent = text;
+    $(id).className = `${id === "result" ? "result last-result" : "view-result"} ${kind}`;
+    $(id).hidden = !text;
+  }
+}
+
+/** One line for a stored throw: landed with its error in metres, or what failed and what to do. */
+function resultWords(t) {
+  if (t.status === "landed") {
+    const err = Math.hypot(t.downrange_error_m || 0, t.crossrange_error_m || 0);
+    return `Throw ${t.id.slice(0, 8)} LANDED ${fmt(err)} m from the target ` +
+      `(${fmt(t.downrange_error_m)} m downrange, ${fmt(t.crossrange_error_m)} m crossrange).`;
+  }
+  const m = selected();
+  const why = Strip.explainFailure({ ...t, simulated: m && m.simulated });
+  return `Throw ${t.id.slice(0, 8)} ${t.status.toUpperCase()}: ${why.text} ${why.todo}`;
+}
+
 async function showResult(throwId) {
   let t, tr = null;
   try { t = await api("GET", `/api/throws/${throwId}`); } catch (e) { return; }
@@ -258,6 +343,15 @@ async function showResult(throwId) {
     ? `Landed at ${fmtVec(t.impact)} m: ${fmt(t.downrange_error_m)} m downrange, ${fmt(t.crossrange_error_m)} m crossrange of the target.`
     : `${t.status.toUpperCase()}: ${t.failure_reason || "no reason given"}`;
   $("tp-result").className = `result ${ok ? "ok" : "error"}`;
+  showLastResult(resultWords(t), ok ? "ok" : "error");
+  // the thrown preview beside the outcome (the preview panel above moves on to the next preview)
+  const pv = t.preview;
+  $("tp-compare").textContent = pv && pv.downrange_error_m !== undefined && pv.downrange_error_m !== null
+    ? `Preview (twin): ${fmt(pv.downrange_error_m)} m downrange, ${fmt(pv.crossrange_error_m)} m crossrange · outcome: ` +
+      (ok ? `${fmt(t.downrange_error_m)} m downrange, ${fmt(t.crossrange_error_m)} m crossrange` : t.status)
+    : "";
+  setStatus(ok ? "Throw done: the machine returns to rest, then the preview refreshes by itself." :
+    "The throw failed: see the alarm at the top.", !ok);
   if (t.preview && state.preview && state.preview.id === t.preview.id) {
     $("out-down").textContent = `${fmt(t.downrange_error_m)} m`;
     $("out-cross").textContent = `${fmt(t.crossrange_error_m)} m`;
@@ -266,30 +360,6 @@ async function showResult(throwId) {
   try { tr = await api("GET", `/api/throws/${throwId}/trajectory`); } catch (e) { /* no telemetry */ }
   if (tr) { plots.showTrajectory(tr); plots.enableScrubber(); }
   if (throwId === state.throwId) { state.throwId = null; state.throwStarted = null; }
-}
-
-// --- E-STOP -----------------------------------------------------------------------------------------
-async function doEstop() {
-  const mid = state.machineId;
-  if (!mid) { setStatus("E-STOP: no machine selected", true); return; }
-  setStatus(`E-STOP sent to ${mid}…`, true);
-  try {
-    const r = await api("POST", `/api/machines/${encodeURIComponent(mid)}/estop`, { reason: "E-STOP in the console" });
-    setStatus(`E-STOP confirmed by the runtime of ${r.machine_id}: valves neutral` +
-      (r.aborted_throw_id ? `, throw ${r.aborted_throw_id.slice(0, 8)} aborted` : "") + ".", true);
-  } catch (e) {
-    setStatus(`E-STOP NOT CONFIRMED for ${mid}: ${e.message}. Use the machine's own emergency stop.`, true);
-  }
-}
-
-async function doEstopReset() {
-  const mid = state.machineId;
-  try {
-    await api("POST", `/api/machines/${encodeURIComponent(mid)}/estop/reset`);
-    setStatus(`E-STOP of ${mid} reset: waiting for the runtime to confirm…`);
-  } catch (e) {
-    setStatus(`Reset refused: ${e.message}`, true);
-  }
 }
 
 async function doReturnToReady() {
@@ -303,7 +373,7 @@ async function doReturnToReady() {
     await api("POST", `/api/machines/${encodeURIComponent(mid)}/return-to-ready`);
     setStatus(`${mid} is returning to its ready pose…`);
   } catch (e) {
-    setStatus(`Return to the ready pose refused: ${e.message}`, true);
+    setStatus(`Return to the ready pose refused. ${e.message}`, true);
   } finally {
     $("return-ready").disabled = false;
   }
@@ -331,12 +401,27 @@ async function refreshHistory() {
   }
 }
 
+// --- a stored throw from the History page, drawn in this page's 3D view -------------------------------
+async function showReplay(throwId) {
+  let t;
+  try { t = await api("GET", `/api/throws/${encodeURIComponent(throwId)}`); } catch (e) { setStatus(`No such throw to show. ${e.message}`, true); return; }
+  Strip.select(t.machine_id);
+  if (state.machineId !== t.machine_id) await selectMachine(t.machine_id);
+  await showResult(throwId);
+  const draw = () => api("POST", `/api/throws/${encodeURIComponent(throwId)}/replay`).catch(() => {});
+  // the 3D view connects after the page: draw once it is there, and once more for a slow connection
+  $("viser").addEventListener("load", () => setTimeout(draw, 1500), { once: true });
+  setTimeout(draw, 6000);
+  setStatus(`Showing throw ${throwId.slice(0, 8)} of ${t.machine_id} from the History page: its path and impact in the 3D view, its plots below.`);
+}
+
 // --- wiring -----------------------------------------------------------------------------------------
 async function setTypedTarget(e) {
   e.preventDefault();
   const x = parseFloat($("target-x").value), y = parseFloat($("target-y").value);
   if (!Number.isFinite(x) || !Number.isFinite(y)) { setStatus("Type x and y in metres.", true); return; }
-  try { await putConsole({ target: [x, y, 0] }); } catch (err) { setStatus(err.message, true); }
+  state.typed = [x, y];
+  try { await putConsole({ target: [x, y, 0] }); } catch (err) { state.typed = null; setStatus(err.message, true); }
 }
 
 function wireLive() {
@@ -366,14 +451,10 @@ async function init() {
   plots = new ThrowPlots($("plots"));
   plots.attachScrubber($("scrub"), $("scrub-play"), $("scrub-readout"));
   $("throw").addEventListener("click", doThrow);
-  $("preview").addEventListener("click", doPreview);
-  $("estop").addEventListener("click", doEstop);
-  $("estop-reset").addEventListener("click", doEstopReset);
+  $("preview").addEventListener("click", () => doPreview(false));
   $("return-ready").addEventListener("click", doReturnToReady);
-  document.addEventListener("keydown", (e) => { if (e.key === "Escape" && can("operator")) doEstop(); });
   $("target-form").addEventListener("submit", setTypedTarget);
   $("confirm-clearance").addEventListener("change", updateButtons);
-  $("machine").addEventListener("change", (e) => selectMachine(e.target.value));
   for (const r of document.querySelectorAll("input[name=mode]")) {
     r.addEventListener("change", async (e) => {
       state.mode = e.target.value;
@@ -381,16 +462,12 @@ async function init() {
       renderState();
     });
   }
-  try { await openConsole(); } catch (e) { setStatus(`3D view unavailable: ${e.message}`, true); }
-  try {
-    for (const m of await api("GET", "/api/machines")) {
-      if (!state.machines.has(m.id)) state.machines.set(m.id, { machine_id: m.id, state: m.online ? "not_ready" : "offline",
-        reason: m.online ? "waiting for live state" : "runtime offline", policies: m.policies, simulated: m.simulated });
-    }
-  } catch (e) { /* the live stream fills it */ }
-  renderMachineList();
-  const first = [...state.machines.keys()].sort()[0];
-  if (first && !state.machineId) await selectMachine(first);
+  try { await openConsole(); } catch (e) { setStatus(`3D view unavailable. ${e.message}`, true); }
+  Strip.onSelect((id) => selectMachine(id));
+  if (Strip.machineId) await selectMachine(Strip.machineId);
+  setInterval(checkPreview, PREVIEW_CHECK_MS);
+  const replay = new URLSearchParams(location.search).get("replay");
+  if (replay) showReplay(replay);
   wireLive();
   Live.start(state.consoleId);
 }

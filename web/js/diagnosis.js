@@ -76,6 +76,28 @@ function showHowFar(h) {
     }).join("") + "</tr>").join("");
 }
 
+/** The answer in plain words first: what is wrong, how sure, what to do. */
+function plainSummary(run, rep) {
+  const v = rep.verdict, w = rep.where || {};
+  const m = run.machine_id || "the machine";
+  const n = run.throws ? `${run.throws} throws` : "its throws";
+  if (!w.gap) return `The twin matches ${m} within its measurement noise on ${n}. Nothing to do.`;
+  const named = (rep.rounds || []).filter((r) => r.decision === "named");
+  const sure = named.length ? Math.min(...named.map((r) => (r.candidates.find((c) => c.effect === r.named) || {}).wins || 0)) : null;
+  const h = rep.how_far;
+  const shrink = h && h.impact_rms_m ? ` With it, the twin's impact error on throws it never saw drops from ${fmt(h.impact_rms_m.before, 2)} m to ${fmt(h.impact_rms_m.after, 2)} m.` : "";
+  if (v.answer === "named" || (v.effects && v.effects.length && v.answer !== "unexplained")) {
+    const effects = (v.effects || named.map((r) => r.named)).map((e) => e.replace(/_/g, " ")).join(" and ");
+    let text = `${m} behaves differently from the twin: ${effects}` + (sure !== null ? ` (it explains the gap in ${pct(sure)} of resamples).` : ".") + shrink;
+    if (v.answer === "ambiguous") text += ` A further difference could be ${v.between.map((e) => e.replace(/_/g, " ")).join(" or ")}: to tell them apart, ${v.measurement}.`;
+    return `${text} What to do: adapt the policy to this machine (section 4 below), evaluate and promote it under Policies.`;
+  }
+  if (v.answer === "ambiguous") return `${m} differs from the twin, but the throws cannot tell whether it is ${v.between.map((e) => e.replace(/_/g, " ")).join(" or ")}. ` +
+    `What to do: ${v.measurement}, then run the diagnosis again.`;
+  return `${m} differs from the twin (in ${(w.carriers || []).join(", ")}) and no known effect explains it. What to do: ` +
+    "check the machine (hydraulics, sensors, payload) and the twin's model with an engineer; throws still work but may miss more.";
+}
+
 async function showRun(id) {
   const run = await api("GET", `/api/diagnosis/runs/${id}`);
   if (!run.report) return;
@@ -83,6 +105,7 @@ async function showRun(id) {
   $("report").hidden = false;
   $("r-id").textContent = id;
   const v = rep.verdict;
+  $("r-summary").textContent = plainSummary(run, rep);
   $("r-verdict").textContent = `${v.answer.replace("_", " ")}: ${v.text}`;
   $("r-verdict").dataset.answer = v.answer;
   $("r-ambiguity").hidden = v.answer !== "ambiguous";
@@ -118,11 +141,21 @@ function onJob(job) {
   }
 }
 
+async function fillMachines() {
+  const sel = $("machine_id");
+  let ids = [];
+  try { ids = (await api("GET", "/api/machines")).map((m) => m.id).sort(); } catch (e) { /* none listed */ }
+  sel.innerHTML = "";
+  for (const id of ids) sel.add(new Option(id, id));
+  if (Strip.machineId && ids.includes(Strip.machineId)) sel.value = Strip.machineId;
+}
+
 document.addEventListener("DOMContentLoaded", async () => {
   await whoAmI();
-  Live.on("job", onJob);
+  await fillMachines();
+  Strip.onSelect((id) => { if ([...$("machine_id").options].some((o) => o.value === id)) $("machine_id").value = id; });
+  Live.on("job", onJob); // the strip starts the live stream on this page
   Live.on("connected", loadRuns);
-  Live.start();
   $("start").addEventListener("submit", async (ev) => {
     ev.preventDefault();
     $("start-msg").textContent = "exporting throws…";

@@ -2,7 +2,7 @@
 // accuracy; admins roll a policy back (after a confirmation).
 "use strict";
 
-const fleet = { rows: new Map(), live: new Map() };
+const fleet = { rows: new Map(), live: new Map(), targets: new Map() };
 const WORDS = { ready: "ready", not_ready: "not ready", throwing: "throwing", estopped: "E-STOPPED", offline: "offline" };
 
 function stateText(id) {
@@ -35,18 +35,21 @@ function render() {
     });
     const td = tr.insertCell();
     td.dataset.role = "admin"; td.hidden = !can("admin");
+    const targets = fleet.targets.get(id) || {};
     for (const mode of ["2d", "3d"]) {
-      if (!policies[mode]) continue;
+      const prev = targets[mode];
+      if (!policies[mode] || !prev) continue; // offered only where there is a version to go back to
       const b = document.createElement("button");
-      b.type = "button"; b.textContent = `${mode} rollback`; b.className = `rollback-${mode}`;
-      b.addEventListener("click", () => rollback(id, mode, policies[mode]));
+      b.type = "button"; b.textContent = `${mode}: roll back to ${prev.name}`; b.className = `rollback-${mode}`;
+      b.addEventListener("click", () => rollback(id, mode, policies[mode], prev.name));
       td.appendChild(b);
     }
+    if (!td.childNodes.length) td.textContent = "nothing to roll back to";
   }
 }
 
-async function rollback(id, mode, current) {
-  const ok = await confirmAction(`Roll back ${id}?`, `${id} runs ${current} for ${mode}. Roll back to the policy it ran before? ` +
+async function rollback(id, mode, current, previous) {
+  const ok = await confirmAction(`Roll back ${id}?`, `${id} runs ${current} for ${mode}. Roll back to ${previous}, the policy it ran before? ` +
     "The runtime loads it between throws.", "Roll back");
   if (!ok) { $("fleet-status").textContent = "Rollback cancelled."; return; }
   try {
@@ -57,6 +60,10 @@ async function rollback(id, mode, current) {
 
 async function loadFleet() {
   try { for (const m of await api("GET", "/api/machines")) fleet.rows.set(m.id, m); } catch (e) { return; }
+  if (can("admin")) {
+    await Promise.all([...fleet.rows.keys()].map((id) => api("GET", `/api/policies/rollback-targets?machine_id=${encodeURIComponent(id)}`)
+      .then((t) => fleet.targets.set(id, t)).catch(() => {})));
+  }
   render();
 }
 

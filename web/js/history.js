@@ -59,10 +59,7 @@ async function showDetail(id) {
   $("d-pred-duration").textContent = fmt(p.duration_s); $("d-act-duration").textContent = fmt(t.duration_s);
   $("mcap").hidden = !t.telemetry_url;
   if (t.telemetry_url) $("mcap").href = t.telemetry_url;
-  $("replay").onclick = async () => {
-    try { await api("POST", `/api/throws/${id}/replay`); $("d-status").textContent = "drawn in the 3D view"; }
-    catch (e) { $("d-status").textContent = e.message; }
-  };
+  $("replay").onclick = () => { location.href = `index.html?replay=${encodeURIComponent(id)}`; }; // the 3D view is on the Console page
   $("d-failure").textContent = t.failure_reason ? `${t.status.toUpperCase()}: ${t.failure_reason}` : "";
   $("d-noplot").hidden = !!t.telemetry_url;
   if (!plots) { plots = new ThrowPlots($("d-plots")); plots.attachScrubber($("scrub"), $("scrub-play"), $("scrub-readout")); }

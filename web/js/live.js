@@ -50,9 +50,12 @@ const Live = (() => {
     });
   }
 
-  /** Start the stream (``consoleId``: also receive that console's own events). */
+  /** Start the stream (``consoleId``: also receive that console's own events); a second call
+   *  with the same argument keeps the stream that runs. */
   function start(consoleId) {
-    params = consoleId ? `?console=${encodeURIComponent(consoleId)}` : "";
+    const wanted = consoleId ? `?console=${encodeURIComponent(consoleId)}` : "";
+    if (source && wanted === params) return; // already streaming (the status strip and a page may both ask)
+    params = wanted;
     lastEventAt = Date.now();
     open();
     clearInterval(watchdog);

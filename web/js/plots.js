@@ -9,6 +9,16 @@ const JOINTS = ["cabin turn", "boom", "dipper", "telescope"];
 const COLORS = ["#1f5fbf", "#c2410c", "#15803d", "#7e22ce"];
 const PASSIVE = ["gripper pitch", "gripper roll"];
 
+/** A scale range uPlot can always tick: padded, never empty nor non-finite. A zero-width range
+ *  (one sample, or a stalled machine repeating its state) made uPlot's axis splits loop until
+ *  "Invalid array length". */
+function safeRange(_u, min, max) {
+  if (!Number.isFinite(min) || !Number.isFinite(max)) return [0, 1];
+  const span = max - min;
+  if (span < 1e-6 * Math.max(1, Math.abs(min), Math.abs(max))) return [min - 0.5, max + 0.5];
+  return [min - 0.05 * span, max + 0.05 * span];
+}
+
 function el(tag, attrs = {}, text = "") {
   const e = document.createElement(tag);
   for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
@@ -38,7 +48,7 @@ class ThrowPlots {
     this.lastWidth = this.width();
     const opts = {
       width: this.lastWidth, height: 150, mode,
-      scales: { x: { time: false }, ...scales },
+      scales: { x: { time: false, range: safeRange }, y: { range: safeRange }, ...scales },
       axes: [{ stroke: "#333", grid: { stroke: "#e5e5e5" } }, { stroke: "#333", grid: { stroke: "#e5e5e5" }, size: 46 }],
       series: [{ label: mode === 2 ? "" : "t [s]" }, ...series],
       legend: { live: mode !== 2 },
@@ -109,20 +119,32 @@ class ThrowPlots {
       tr.target_m ? side([tr.target_m]) : [[], []]]);
   }
 
-  /** A range input + play button that move the cursor of every chart over the recorded time. */
+  /** A range input + play button that move the cursor of every chart over the recorded time;
+   *  a labelled speed choice (times real time) is added next to the button. */
   attachScrubber(input, playButton, readout) {
     this.scrubber = input; this.readout = readout;
+    const label = el("label", { class: "replay-speed" }, "speed ");
+    const speed = el("select", { "aria-label": "replay speed" });
+    for (const [v, t] of [["0.25", "0.25× real time"], ["0.5", "0.5× real time"], ["1", "1× real time"]]) speed.add(new Option(t, v));
+    speed.value = "0.25";
+    label.appendChild(speed);
+    playButton.after(label);
     input.addEventListener("input", () => this.scrub(Number(input.value)));
+    const TICK_MS = 40;
     playButton.addEventListener("click", () => {
       if (this.playing) { clearInterval(this.playing); this.playing = null; playButton.textContent = "Play"; return; }
       if (!this.data) return;
       playButton.textContent = "Pause";
       if (Number(input.value) >= Number(input.max)) input.value = 0;
+      const t = this.data.t_s;
+      let now = t[Number(input.value)] || t[0];
       this.playing = setInterval(() => {
-        const i = Number(input.value) + 1;
-        if (i > Number(input.max)) { clearInterval(this.playing); this.playing = null; playButton.textContent = "Play"; return; }
+        now += (TICK_MS / 1000) * Number(speed.value); // recorded seconds per tick at the chosen speed
+        let i = Number(input.value);
+        while (i < t.length - 1 && t[i + 1] <= now) i += 1;
+        if (i >= Number(input.max)) { input.value = input.max; this.scrub(Number(input.max)); clearInterval(this.playing); this.playing = null; playButton.textContent = "Play"; return; }
         input.value = i; this.scrub(i);
-      }, 40);
+      }, TICK_MS);
     });
   }
 

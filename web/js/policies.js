@@ -60,6 +60,7 @@ async function loadPolicies() {
     tr.dataset.policyId = p.id;
     const cb = document.createElement("input");
     cb.type = "checkbox"; cb.className = "cmp"; cb.value = p.id; cb.checked = checked.has(String(p.id));
+    cb.setAttribute("aria-label", `compare ${p.name}`);
     tr.insertCell().appendChild(cb);
     [p.id, p.name, p.mode, p.sha256.slice(0, 12) + "…", p.target_range_m ? p.target_range_m.join("–") : "–",
       `${new Date(p.created_at).toLocaleString()} ${p.uploaded_by || ""}`, activeOn(p), evalSummary(p)]
@@ -68,6 +69,19 @@ async function loadPolicies() {
       const b = document.createElement("button");
       b.type = "button"; b.textContent = "Show evaluation"; b.className = "show-eval";
       b.addEventListener("click", () => showEvaluation(p));
+      tr.cells[7].append(" ", b);
+    }
+    if (can("admin") && p.has_file && !["pending", "running"].includes(p.evaluation_status)) {
+      const b = document.createElement("button"); // any version can be evaluated (again), deployed ones too
+      b.type = "button"; b.textContent = p.evaluation_status === "done" ? "Evaluate again" : "Evaluate"; b.className = "evaluate";
+      b.addEventListener("click", async () => {
+        b.disabled = true;
+        try {
+          await api("POST", `/api/policies/${p.id}/evaluate`);
+          $("p-status").textContent = `${p.name}: twin evaluation started; the table updates when it is done.`; $("p-status").className = "";
+          loadPolicies();
+        } catch (e) { $("p-status").textContent = `Not started: ${e.message}`; $("p-status").className = "error"; b.disabled = false; }
+      });
       tr.cells[7].append(" ", b);
     }
     const td = tr.insertCell();

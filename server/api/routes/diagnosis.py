@@ -12,6 +12,7 @@ from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
 from server.api.deps import OperatorDep, ViewerDep
+from server.auth import record_audit
 from server.diagnosis import DiagnosisBusy, DiagnosisRuns
 from server.web_guard import contained_file
 
@@ -55,14 +56,20 @@ def list_runs(runs: RunsDep, _user: ViewerDep, machine_id: str | None = None) ->
 
 
 @router.post("/runs", status_code=202, responses={409: {"description": "a diagnosis is running"}, 422: {"description": "too few throws"}})
-def create_run(body: DiagnosisCreate, runs: RunsDep, user: OperatorDep) -> dict:
-    """Export the machine's newest landed throws and diagnose them in the background."""
+def create_run(body: DiagnosisCreate, runs: RunsDep, user: OperatorDep, request: Request) -> dict:
+    """Export the machine's newest landed throws and diagnose them in the background (audited,
+    refusals too: ``diagnosis_run``)."""
+    sessions = request.app.state.sessions
     try:
-        return runs.start(body.machine_id, body.limit, requested_by=user.username)
+        st = runs.start(body.machine_id, body.limit, requested_by=user.username)
     except DiagnosisBusy as e:
+        record_audit(sessions, user.username, "diagnosis_run", body.machine_id[:64], started=False, reason=str(e))
         raise HTTPException(409, str(e)) from e
     except ValueError as e:
+        record_audit(sessions, user.username, "diagnosis_run", body.machine_id[:64], started=False, reason=str(e))
         raise HTTPException(422, str(e)) from e
+    record_audit(sessions, user.username, "diagnosis_run", body.machine_id, started=True, run_id=st.get("id"), limit=body.limit)
+    return st
 
 
 @router.post("/uploads", status_code=202, responses={409: {"description": "a diagnosis is running"},

@@ -13,7 +13,9 @@ from sqlalchemy import select
 from server.accuracy import accuracy
 from server.api.deps import AdminDep, SessionDep, ViewerDep
 from server.api.schemas import COORD_LIMIT_M, MAX_DB_ID, DbId, Problem
+from server.auth import record_audit
 from server.db.models import PolicyDeployment, PolicyVersion
+from server.errors import DomainError
 from server.history import ThrowFilter
 from server.policies import expire_stale_offers
 
@@ -126,12 +128,31 @@ def compare(db: SessionDep, _user: ViewerDep, ids: list[DbId] = Query(..., min_l
     return out
 
 
+@router.get("/rollback-targets")
+def rollback_targets(request: Request, _user: ViewerDep,
+                     machine_id: str = Query(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")) -> dict:
+    """Per mode, the version a rollback of ``machine_id`` would go back to ({"id", "name"}), or
+    None: the Fleet page offers a rollback only where there is one."""
+    out = {}
+    for mode in ("2d", "3d"):
+        prev = request.app.state.policies.rollback_target(machine_id, mode)
+        out[mode] = {"id": prev.id, "name": prev.name} if prev is not None else None
+    return out
+
+
 @router.get("/{policy_id}", response_model=PolicyOut, responses={404: {"model": Problem}})
 def get_policy(db: SessionDep, _user: ViewerDep, policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> PolicyOut:
     p = db.get(PolicyVersion, policy_id)
     if p is None:
         raise HTTPException(404, f"no policy version {policy_id}")
     return policy_out(p)
+
+
+@router.post("/{policy_id}/evaluate", response_model=PolicyOut, responses={
+    404: {"model": Problem, "description": "no such version"}, 409: {"model": Problem, "description": "its evaluation runs"}})
+def evaluate(request: Request, user: AdminDep, policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> PolicyOut:
+    """Evaluate a stored version in the twin (again): any version, deployed ones included."""
+    return policy_out(request.app.state.policies.evaluate(policy_id, user.username))
 
 
 @router.post("/{policy_id}/promote", response_model=list[DeploymentOut], responses={
@@ -150,7 +171,12 @@ def promote(body: PromoteIn, request: Request, user: AdminDep,
 @router.post("/rollback", response_model=DeploymentOut, responses={409: {"description": "nothing to roll back to"}})
 def rollback(body: RollbackIn, request: Request, user: AdminDep) -> DeploymentOut:
     """Go back to the version the machine ran before its last promotion for that mode."""
-    d = request.app.state.policies.rollback(body.machine_id, body.mode, user.username)
+    try:
+        d = request.app.state.policies.rollback(body.machine_id, body.mode, user.username)
+    except DomainError as e:  # a refused attempt is audited too (a done one by server.policies)
+        record_audit(request.app.state.sessions, user.username, "rollback_refused", body.machine_id[:64],
+                     mode=body.mode, reason=e.detail)
+        raise
     with request.app.state.sessions() as db:
         name = db.get(PolicyVersion, d.policy_version_id).name
     return deployment_out(d, name)

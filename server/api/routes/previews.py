@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+from datetime import datetime
+
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.concurrency import run_in_threadpool
+from pydantic import BaseModel, ConfigDict
 
 from server.api.deps import OperatorDep, ViewerDep
 from server.api.preview_schemas import PreviewCreate, PreviewOut
-from server.api.schemas import Problem
+from server.api.schemas import Problem, Vec3
+from server.db.types import utcnow
+from server.throw_gate import preview_refusal
 
 router = APIRouter(prefix="/api/previews", tags=["previews"])
 
@@ -47,3 +52,55 @@ def get_preview(preview_id: str, request: Request, _user: ViewerDep) -> PreviewO
     if summary is None:
         raise HTTPException(404, f"no preview {preview_id} (previews are kept for a while only)")
     return PreviewOut(**summary)
+
+
+class PreviewCheckIn(BaseModel):
+    """The throw the console would send with the preview: machine, mode, target (3,) m."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    machine_id: str
+    mode: str
+    target: Vec3
+
+
+class PreviewCheckOut(BaseModel):
+    """Whether a throw with this preview would pass the preview gate now (server.throw_gate).
+
+    ``condition``/``reason``: the failed gate condition and its message (None when valid);
+    ``age_s``: the preview's age, s; ``max_age_s``: the age at which it goes stale, s."""
+
+    valid: bool
+    condition: str | None = None
+    reason: str | None = None
+    age_s: float | None = None
+    max_age_s: float | None = None
+
+
+@router.post("/{preview_id}/check", response_model=PreviewCheckOut)
+def check_preview(preview_id: str, body: PreviewCheckIn, request: Request, _user: ViewerDep) -> PreviewCheckOut:
+    """Would a throw with this preview pass the gate now? The console asks while a preview is on
+    screen, so Throw is enabled only with a valid one. Reads the fleet's latest state and cached
+    runtime info only (no query to the machine); the throw itself checks again."""
+    app = request.app
+    summary = app.state.previews.get(preview_id)
+    limits = app.state.settings.gate_limits()
+    now = utcnow()
+    age = (now - datetime.fromisoformat(summary["created_at"])).total_seconds() if summary else None
+    max_age = limits.max_age_s if limits else None
+    if summary is None:
+        return PreviewCheckOut(valid=False, condition="preview_unknown",
+                               reason=f"unknown or expired preview {preview_id!r}: preview again")
+    if limits is None:
+        return PreviewCheckOut(valid=summary is not None and summary.get("status") == "ok", age_s=age)
+    state = app.state.fleet.latest_state(body.machine_id)
+    if state is None:
+        return PreviewCheckOut(valid=False, condition="no_state", reason=f"no state from machine {body.machine_id}",
+                               age_s=age, max_age_s=max_age)
+    info = app.state.fleet.cached_info(body.machine_id)
+    sha = next((p.sha256 for p in (info.policies if info else []) if p.mode == body.mode), None)
+    refusal = preview_refusal(summary, preview_id, body.machine_id, body.mode, list(body.target), list(state.q), sha,
+                              now, limits)
+    if refusal is None:
+        return PreviewCheckOut(valid=True, age_s=age, max_age_s=max_age)
+    return PreviewCheckOut(valid=False, condition=refusal.condition, reason=refusal.message, age_s=age, max_age_s=max_age)

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from fastapi import APIRouter, HTTPException, Query
+from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy import delete, select
 
 from server.api.account_schemas import AuditOut, UserCreate, UserOut, UserUpdate
-from server.api.deps import AdminDep, SessionDep
+from server.api.deps import AdminDep, SessionDep, ViewerDep
 from server.api.routes.auth import user_out
-from server.auth import AuthError, audit, check_password, create_user, hash_password
+from server.auth import MAX_PASSWORD_LENGTH, MIN_PASSWORD_LENGTH, AuthError, audit, check_password, create_user, hash_password, verify_password
 from server.db.models import AuditEntry, AuthSession, User
 
 router = APIRouter(prefix="/api", tags=["users"])
@@ -54,6 +57,34 @@ def update_user(username: str, body: UserUpdate, db: SessionDep, admin: AdminDep
     audit(db, admin.username, "user_update", username, **changes)
     db.commit()
     return user_out(user)
+
+
+class PasswordChange(BaseModel):
+    """A user's own password change: the current password, then the new one."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    current_password: Annotated[str, Field(min_length=1, max_length=MAX_PASSWORD_LENGTH)]
+    new_password: Annotated[str, Field(min_length=MIN_PASSWORD_LENGTH, max_length=MAX_PASSWORD_LENGTH)]
+
+
+@router.post("/account/password", status_code=204,
+             responses={403: {"description": "the current password is wrong"}, 422: {"description": "the new one is too weak"}})
+def change_own_password(body: PasswordChange, db: SessionDep, user: ViewerDep) -> None:
+    """Change one's own password (any role). Ends every session of the user, this one included:
+    log in again with the new password. Audited (``password_change``), failed attempts too."""
+    row = db.get(User, user.id)
+    if row is None or not verify_password(row.password_hash, body.current_password):
+        audit(db, user.username, "password_change", user.username, changed=False, reason="wrong current password")
+        db.commit()
+        raise HTTPException(403, "the current password is wrong")
+    try:
+        row.password_hash = hash_password(check_password(body.new_password))
+    except AuthError as e:
+        raise HTTPException(422, str(e)) from e
+    db.execute(delete(AuthSession).where(AuthSession.user_id == row.id))
+    audit(db, user.username, "password_change", user.username, changed=True)
+    db.commit()
 
 
 @router.get("/audit", response_model=list[AuditOut])

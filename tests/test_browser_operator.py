@@ -1,0 +1,248 @@
+"""The console as an operator uses it, in headless Chromium against one `slinger up` stack with
+one simulated machine (shared by the tests of this module, in order):
+
+* every page shows the status strip (state, policy, link, E-STOP) and it stays on screen when
+  the page scrolls, at 1440x900 and 390x844;
+* Esc stops the machine with the focus inside the 3D view's frame; repeated presses while the
+  stop is on its way send one request; the E-STOP button stays above the confirmation dialog's
+  backdrop; reset asks first and ends in a confirmed state;
+* a preview the machine moved away from never leaves Throw enabled, and the page previews
+  again by itself;
+* a throw failed on purpose (the simulated machine's process paused mid-throw) raises an alarm
+  that says what failed, visible without scrolling at both sizes and on the other pages until
+  acknowledged, and the result sits next to Preview/Throw and over the 3D view.
+
+No test may leave an uncaught page error. With SLINGER_SCREENSHOTS=DIR the states are
+photographed there (docs/img/ is made this way: tests/screenshots.sh)."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import threading
+import time
+
+import pytest
+
+from tests.browser import no_page_errors, open_console, stack_pid, axe_serious, log_in, module_browser, press, put_machine_at, take_errors, watch  # noqa: F401 (fixtures)
+from tests.conftest import SlingerUp, wait_for
+
+pytestmark = [pytest.mark.browser, pytest.mark.usefixtures("no_page_errors")]
+T = 180_000  # ms: generous waits for UI state on a loaded 2-core machine
+PAGES = ["index.html", "history.html", "accuracy.html", "policies.html", "fleet.html", "diagnosis.html", "admin.html",
+         "account.html"]
+SHOTS = os.environ.get("SLINGER_SCREENSHOTS")
+
+
+@pytest.fixture(scope="module")
+def up(tmp_path_factory):
+    with SlingerUp(tmp_path_factory.mktemp("operator"), machines=1) as stack:
+        stack.wait_machine_online("m1")
+        yield stack
+
+
+@pytest.fixture(scope="module")
+def ann(up, module_browser):
+    """The admin's console at 1440x900 with m1 selected and ready; page errors are collected in
+    ``ann.errors`` and each test checks none came."""
+    ctx, pg = open_console(module_browser, up.base_url, timeout_ms=T)
+    yield pg
+    ctx.close()
+
+
+def _in_viewport(ann, selector: str) -> bool:
+    """``selector`` is shown and wholly inside the viewport as the page stands (no scrolling)."""
+    return ann.evaluate("""(sel) => { const e = document.querySelector(sel); if (!e || e.closest('[hidden]')) return false;
+        const r = e.getBoundingClientRect(); return r.width > 0 && r.height > 0 && r.top >= 0 && r.left >= 0
+            && r.bottom <= innerHeight + 0.5 && r.right <= innerWidth + 0.5; }""", selector)
+
+
+def _stall_plant_when_the_throw_starts(up, stall_s: float = 2.0) -> threading.Event:
+    """Pause the simulated machine's process for ``stall_s`` as soon as the live stream says a
+    throw of m1 started (its runtime then loses the machine mid-throw: a failed throw); the
+    returned event is set once the plant runs again."""
+    import httpx
+
+    done, listening = threading.Event(), threading.Event()
+    plant = stack_pid(up, "plant", "m1")
+
+    def watch_stream() -> None:
+        with httpx.Client(base_url=up.base_url, cookies=up.http.cookies, timeout=None) as c, \
+                c.stream("GET", "/api/live") as r:
+            listening.set()
+            event = None
+            for line in r.iter_lines():
+                if line.startswith("event:"):
+                    event = line.split(":", 1)[1].strip()
+                elif line.startswith("data:") and event == "throw" and '"machine_id": "m1"' in line.replace('":"', '": "') \
+                        and re.search(r'"phase": ?"(preparing|swinging)"', line):
+                    os.kill(plant, signal.SIGSTOP)
+                    try:
+                        time.sleep(stall_s)
+                    finally:
+                        os.kill(plant, signal.SIGCONT)
+                    done.set()
+                    return
+
+    def run() -> None:
+        try:
+            watch_stream()
+        except httpx.HTTPError:
+            pass  # the server went away (end of the module): nothing to stall
+
+    threading.Thread(target=run, daemon=True).start()
+    assert listening.wait(60), "no live stream"
+    time.sleep(0.5)  # the server registered the subscriber
+    return done
+
+
+def _set_target_and_preview(ann, x: float = 8.0, y: float = 0.0) -> None:
+    ann.fill("#target-x", str(x))
+    ann.fill("#target-y", str(y))
+    press(ann, "#target-set")
+    ann.locator("#target", has_text="from the turn axis").wait_for()
+    ann.locator("#preview:not([disabled])").wait_for()
+    press(ann, "#preview")
+    ann.locator("#throw:not([disabled])").wait_for()
+    ann.locator("#preview-age", has_text=re.compile(r"preview \d+ s old")).wait_for()
+
+
+def test_every_page_shows_the_strip_at_both_sizes(up, ann):
+    problems = []
+    for name in PAGES:
+        ann.goto(f"{up.base_url}/console/{name}")
+        ann.locator("#machine-state", has_text="m1").wait_for()
+        ann.locator("#strip-link", has_text="link: OK").wait_for()
+        if "policy 2d" not in ann.inner_text("#strip-policy"):
+            problems.append(f"{name}: policy {ann.inner_text('#strip-policy')!r}")
+        for w, h in [(1440, 900), (390, 844)]:
+            ann.set_viewport_size({"width": w, "height": h})
+            ann.wait_for_timeout(200)
+            ann.evaluate("scrollTo(0, document.documentElement.scrollHeight)")  # the strip must not scroll away
+            ann.wait_for_timeout(100)
+            for sel in ("#estop", "#machine-state"):
+                if not _in_viewport(ann, sel):
+                    problems.append(f"{name} at {w}x{h}: {sel} off screen after scrolling")
+            if SHOTS and name != "index.html":
+                ann.evaluate("scrollTo(0, 0)")
+                ann.screenshot(path=f"{SHOTS}/strip-{name.split('.')[0]}-{w}x{h}.png")
+        ann.set_viewport_size({"width": 1440, "height": 900})
+        problems += [f"{name}: {v}" for v in axe_serious(ann)]
+    assert problems == []
+    ann.goto(f"{up.base_url}/console/index.html")
+    ann.locator("#machine-state", has_text="m1 READY").wait_for()
+
+
+def test_esc_in_the_3d_frame_stops_the_machine_once_and_reset_is_confirmed(up, ann):
+    canvas = ann.frame_locator("#viser").locator("canvas").first
+    canvas.wait_for()
+    frame = ann.query_selector("#viser").content_frame()
+    wait_for(lambda: frame.evaluate("!!window.__slingerKeys"), 60, "the key forwarder in viser's page")
+    box = canvas.bounding_box()
+    ann.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)  # focus into the 3D frame
+    assert ann.evaluate("document.activeElement.id") == "viser"
+    n0 = len([r for r in ann.requests if r[1] == "POST" and r[2].endswith("/estop")])
+    for _ in range(4):  # an anxious operator: four presses while the first stop is on its way
+        ann.keyboard.press("Escape")
+    ann.locator("#strip-msg", has_text=re.compile("confirmed|NOT CONFIRMED")).wait_for()
+    assert "E-STOP confirmed by the runtime" in ann.inner_text("#strip-msg"), ann.inner_text("#strip-msg")
+    ann.locator("#estop-banner").wait_for(state="visible")
+    sent = [r for r in ann.requests if r[1] == "POST" and r[2].endswith("/estop")][n0:]
+    assert 1 <= len(sent) <= 2, f"{len(sent)} E-STOP requests for 4 presses"  # presses after the answer may send one more
+    audit = up.http.get("/api/audit").json()
+    assert any(a["action"] == "abort" and a["subject"] == "m1" for a in audit)
+    # reset: asks first; the E-STOP stays on top of the dialog's backdrop and answers clicks
+    press(ann, "#estop-reset")
+    ann.locator("#confirm-dialog[open]").wait_for()
+    top = ann.evaluate("""() => { const r = document.getElementById('estop').getBoundingClientRect();
+        const e = document.elementFromPoint(r.left + r.width / 2, r.top + r.height / 2); return e && e.closest('#estop') ? 'estop' : (e && e.id); }""")
+    assert top == "estop", f"under the dialog the E-STOP's centre is covered by {top}"
+    if SHOTS:
+        ann.screenshot(path=f"{SHOTS}/estop-reset-confirm-1440x900.png")
+    press(ann, "#confirm-ok")
+    ann.locator("#strip-msg", has_text="confirmed by its runtime").wait_for()
+    ann.locator("#estop-banner").wait_for(state="hidden")
+    ann.locator("#machine-state", has_text="m1 READY").wait_for()
+    assert "waiting" not in ann.inner_text("#strip-msg")
+
+
+def test_a_moved_machine_never_leaves_throw_enabled(up, ann):
+    _set_target_and_preview(ann)
+    # watch Throw from now on: it must be disabled while the machine is away from the preview
+    ann.evaluate("""() => { window.__throwEnabledWhileMoved = []; window.__moved = false;
+        new MutationObserver(() => { const b = document.getElementById('throw');
+            if (window.__moved && !b.disabled && /moved/.test(document.getElementById('preview-age').textContent))
+                window.__throwEnabledWhileMoved.push(Date.now()); })
+          .observe(document.body, { subtree: true, attributes: true, childList: true, characterData: true }); }""")
+    first = ann.evaluate("state.preview.id")
+    cabin = next(m for m in up.http.get("/api/machines").json() if m["id"] == "m1")["cabin_turn_rad"]
+    ann.evaluate("window.__moved = true")
+    put_machine_at(up, "m1", [cabin, -0.72, 1.6, 0.6])  # boom 0.08 rad off the previewed start
+    # either the page saw it moved (Throw off, "moved") or it already previewed again from the new pose
+    wait_for(lambda: ann.evaluate("state.preview && state.preview.id") != first and ann.evaluate(
+        "!document.getElementById('throw').disabled"), 90, "a new preview from the moved pose and Throw enabled")
+    assert ann.evaluate("window.__throwEnabledWhileMoved") == []
+    r = up.http.post(f"/api/previews/{first}/check", json={"machine_id": "m1", "mode": "2d", "target": ann.evaluate("state.target")})
+    assert r.status_code == 200 and r.json()["valid"] is False and r.json()["condition"] == "machine_moved", r.text
+    assert "preview" in ann.inner_text("#status").lower()
+    assert "409" not in ann.inner_text("#panel")
+
+
+def test_a_failed_throw_is_an_alarm_in_view_at_both_sizes(up, ann):
+    if ann.locator("#throw").is_disabled():
+        _set_target_and_preview(ann)
+    ann.locator("#throw:not([disabled])").wait_for()
+    stall = _stall_plant_when_the_throw_starts(up)
+    press(ann, "#throw")
+    assert stall.wait(120), "the throw never started"
+    ann.locator("#result", has_text=re.compile("FAILED|ABORTED|LOST")).wait_for()
+    ann.locator("#alarms li").first.wait_for()
+    text = ann.inner_text("#alarms")
+    assert re.search("computer|link|machine", text) and re.search("preview|Check|Reduce|Look", text), text
+    assert "FAILED" in ann.inner_text("#view-result") or "ABORTED" in ann.inner_text("#view-result")
+    assert "watch it live" not in ann.inner_text("#status")
+    for w, h in [(1440, 900), (390, 844)]:
+        ann.set_viewport_size({"width": w, "height": h})
+        ann.evaluate("scrollTo(0, 0); document.getElementById('panel').scrollTop = 0")
+        ann.wait_for_timeout(300)
+        for sel in ("#alarms li", "#result", "#view-result", "#preview", "#throw", "#estop"):
+            assert _in_viewport(ann, sel), f"{sel} not in view at {w}x{h}"
+        if SHOTS:
+            ann.screenshot(path=f"{SHOTS}/alarm-failed-throw-{w}x{h}.png")
+    ann.set_viewport_size({"width": 1440, "height": 900})
+    # the alarm follows to the other pages until acknowledged
+    ann.goto(f"{up.base_url}/console/history.html")
+    ann.locator("#alarms li").first.wait_for()
+    n = ann.locator("#alarms li").count()
+    press(ann, "#alarms li .alarm-ack")
+    wait_for(lambda: ann.locator("#alarms li").count() == n - 1, 10, "the alarm acknowledged")
+    ann.goto(f"{up.base_url}/console/index.html")
+    ann.locator("#machine-state", has_text="m1").wait_for()
+    assert ann.locator("#alarms li").count() == n - 1
+
+
+def test_a_touch_tap_in_the_3d_view_sets_the_target_on_a_phone(up, module_browser):
+    ctx = module_browser.new_context(viewport={"width": 390, "height": 844}, has_touch=True, is_mobile=True)
+    phone = ctx.new_page()
+    phone.set_default_timeout(T)
+    errors = []
+    phone.on("pageerror", lambda e: errors.append(str(e)))
+    try:
+        log_in(phone, up.base_url)
+        phone.locator("#machine-state", has_text="m1").wait_for()
+        canvas = phone.frame_locator("#viser").locator("canvas").first
+        canvas.wait_for()
+        frame = phone.query_selector("#viser").content_frame()
+        wait_for(lambda: frame.evaluate("!!window.__slingerKeys"), 60, "the frame helpers in viser's page")
+        phone.wait_for_timeout(2000)  # the camera framed the band
+        box = canvas.bounding_box()
+        assert box["y"] + box["height"] <= 844, box  # the 3D view is on screen
+        phone.touchscreen.tap(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        phone.locator("#target", has_text="from the turn axis").wait_for(timeout=60_000)
+        x, y = float(phone.input_value("#target-x")), float(phone.input_value("#target-y"))
+        assert 5.0 < (x * x + y * y) ** 0.5 < 11.0, (x, y)  # the tapped point, in the fields
+        assert _in_viewport(phone, "#preview") and _in_viewport(phone, "#throw")
+    finally:
+        ctx.close()
+    assert errors == []
