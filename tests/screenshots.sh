@@ -7,6 +7,6 @@ mkdir -p reports/screenshots
 export SLINGER_SCREENSHOTS="$PWD/reports/screenshots" MUJOCO_GL=egl
 python -m pytest -q tests/test_browser_pages.py tests/test_browser_console.py \
   -k "accessible or layout or throw_from_a_click or return_to_ready" "$@"
-# The operator guide's pictures (docs/operator-guide-console.md): status strip, alarm, E-STOP reset.
+# The operator guide's pictures (docs/operator-guide.md): status strip, alarm, E-STOP reset.
 mkdir -p docs/img
 SLINGER_SCREENSHOTS="$PWD/docs/img" python -m pytest -q tests/test_browser_operator.py "$@"
