@@ -106,14 +106,17 @@ class MatrixGate:
     def _out(self, it: int, seed: int) -> Path:
         return self.out_dir / (f"site_matrix_{self.mode}_it{it}" + (f"_seed{seed}" if seed else "") + ".json")
 
+    def command(self, onnx: str, seed: int, out: str) -> list[str]:
+        """The child process that writes the site matrix of ``onnx`` on ``seed`` to ``out``."""
+        cmd = [sys.executable, "-m", "sim_twin.evaluate", "--policy", onnx, "--matrix", "--seed", str(seed),
+               "--throws", str(self.throws), "--workers", str(self.workers), "--out", out]
+        return cmd + (["--targets", self.targets] if self.targets else [])
+
     def _start_seed(self) -> None:
         c = self._cand
         seed = self.seeds[c["seed_index"]]
         c["out"] = str(self._out(c["iteration"], seed))
-        cmd = [sys.executable, "-m", "sim_twin.evaluate", "--policy", c["onnx"], "--matrix", "--seed", str(seed),
-               "--throws", str(self.throws), "--workers", str(self.workers), "--out", c["out"]]
-        if self.targets:
-            cmd += ["--targets", self.targets]
+        cmd = self.command(c["onnx"], seed, c["out"])
         env = {**os.environ, "CUDA_VISIBLE_DEVICES": "", "JAX_PLATFORMS": "cpu", "OMP_NUM_THREADS": "1"}
         logf = open(self.out_dir / "matrix_gate.log", "a")
         log.info("site matrix of iteration %d, seed %d started (%d workers)", c["iteration"], seed, self.workers)

@@ -243,6 +243,8 @@ def run(args: argparse.Namespace) -> int:
                 **env.read_term_means(),
             )
             runner.save(str(log_dir / "checkpoint.pt"))
+            for stale in Path(tb_dir).glob("model_*.pt"):  # rsl_rl saves one per learn() call; checkpoint.pt is ours
+                stale.unlink()
             if args.keep_every and it % args.keep_every == 0:
                 runner.save(str(log_dir / f"checkpoint_{it}.pt"))
             curve.save()
