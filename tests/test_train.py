@@ -45,6 +45,7 @@ def test_train_checkpoint_resume_export(tmp_path):
 
 
 def _tb_tags(tb_dir):
+    pytest.importorskip("tensorboard")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     tags = set()
