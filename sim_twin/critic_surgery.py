@@ -108,6 +108,29 @@ def _fit_optimizer(opt: Mapping, param_shapes: Sequence[torch.Size]) -> tuple[di
     return dict(opt, state=state), notes
 
 
+def match_std_parameter(actor_state: dict, actor_cfg: dict) -> tuple[dict, list[str]]:
+    """Convert the actor's std parameter between rsl_rl's parameterisations.
+
+    A checkpoint with ``distribution.std_param`` (std_type "scalar") loaded into a config with
+    std_type "log" gets ``distribution.log_std_param`` = log of the std clamped to the config's
+    ``std_range``, and the reverse; the std the policy samples with is unchanged where it lies in
+    the range. Returns (actor state, notes); the state is returned as is when nothing differs.
+    """
+    dist = actor_cfg.get("distribution_cfg") or {}
+    std_type = dist.get("std_type", "scalar")
+    lo, hi = dist.get("std_range", (1e-6, 1e6))
+    lo = max(lo, 1e-6)
+    if std_type == "log" and "distribution.std_param" in actor_state:
+        out = dict(actor_state)
+        out["distribution.log_std_param"] = torch.log(out.pop("distribution.std_param").clamp(lo, hi))
+        return out, ["actor std: scalar -> log parameter"]
+    if std_type == "scalar" and "distribution.log_std_param" in actor_state:
+        out = dict(actor_state)
+        out["distribution.std_param"] = torch.exp(out.pop("distribution.log_std_param")).clamp(lo, hi)
+        return out, ["actor std: log -> scalar parameter"]
+    return actor_state, []
+
+
 def resume(runner, path: Path, device: str) -> list[str]:
     """Load ``path`` into an rsl_rl OnPolicyRunner, widening the critic where needed.
 
@@ -119,6 +142,8 @@ def resume(runner, path: Path, device: str) -> list[str]:
     target = runner.alg.save()["critic_state_dict"]
     shapes = [p.shape for g in runner.alg.optimizer.param_groups for p in g["params"]]
     ckpt, notes = widen_critic(ckpt, target, shapes)
+    ckpt["actor_state_dict"], std_notes = match_std_parameter(ckpt["actor_state_dict"], runner.cfg["actor"])
+    notes += std_notes  # the Adam moments of the std parameter are kept (same shape)
     for n in notes:
         log.info("resume %s: %s", path, n)
     runner.alg.load(ckpt, None, strict=True)

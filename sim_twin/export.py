@@ -47,7 +47,9 @@ def export_checkpoint(checkpoint: Path, cfg: dict, out_path: Path, name: str) ->
     actor_cfg.pop("class_name")
     actor = MLPModel(obs, {"actor": ["policy"]}, "actor", num_actions(mode), **actor_cfg)
     state = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    actor.load_state_dict(state["actor_state_dict"])
+    from sim_twin.critic_surgery import match_std_parameter
+
+    actor.load_state_dict(match_std_parameter(state["actor_state_dict"], cfg["runner"]["actor"])[0])
     actor.eval()
     wrapper = actor.as_onnx(verbose=False).eval()
     out_path = Path(out_path)

@@ -30,18 +30,20 @@ after the release delay (sampled per episode around the identified 258 ms); the 
 leaves with the gripper centre's velocity and flies ballistically (analytic) until it reaches the
 ground, which ends the episode with the positive terminal reward.
 
-Rewards (paper Sec. III-E), weights in the config file:
-    r = c1 r_delta_err + c2 r_err3d - c3 r_act_diff - c4 r_act  (+ terminal rewards)
-The paper writes the landing reward as exp(b2 err^2) with b2 > 0, which would grow with the
-error; we use exp(-b2 err^2) (its evident intent). Choices the paper leaves open are marked
+Rewards (paper Sec. III-E): one function per term in sim_twin.rewards, weights in the config's
+``env.rewards`` (typed: sim_twin.rewards.RewardScales); ``step`` returns every scaled term in
+``info["reward_terms"]`` and the reward is their sum. Choices the paper leaves open are marked
 CHOSEN in configs/throw_2d.json.
+
+Physics runs on MJX's JAX implementation by default; ``ThrowEnvCore(cfg, impl="warp")`` asks MJX
+for its MuJoCo Warp implementation instead (needs warp-lang and a CUDA GPU).
 
 Everything below works on one environment and is vmapped over ``num_envs``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import jax
@@ -65,6 +67,7 @@ from sim_twin.initial_pose import pose_from_uniform, pose_is_valid
 from sim_twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
 from sim_twin.physics import ballistic_impact_time, ballistic_position, passive_friction_force
 from sim_twin.privileged import GAIN_ERROR_DEFAULT, RELEASE_DELAY_DEFAULTS, configured_range, normalisation_ranges, privileged_observation
+from sim_twin.rewards import RewardInputs, RewardScales, reward_terms, total_reward
 
 MAX_VALVE_DELAY_STEPS = 30  # longest valve transport delay the training env can model (0.30 s)
 MAX_SENSOR_LAG_STEPS = 5  # longest sensor latency the training env can model (0.05 s)
@@ -74,14 +77,40 @@ FALLBACK_POSE_U = np.array([0.45, 0.45, 0.5])  # a known valid pose if all candi
 
 
 @dataclass(frozen=True)
+class ForcedRelease:
+    """Forced release (paper Sec. III-D): with ``probability`` per control step the gripper is
+    opened when it is within ``radius_m`` (horizontal) of the target and slower than ``speed_mps``
+    (CHOSEN values in configs/*.json)."""
+
+    probability: float = 0.05
+    radius_m: float = 1.5
+    speed_mps: float = 0.5
+
+
+def _typed(cls, d: dict, what: str):
+    """``cls(**d)`` with a clear error for unknown keys (a typo would otherwise be ignored)."""
+    names = {f.name for f in fields(cls)}
+    unknown = set(d) - names
+    if unknown:
+        raise ValueError(f"unknown {what} settings {sorted(unknown)}; known: {sorted(names)}")
+    return cls(**d)
+
+
+@dataclass(frozen=True)
 class EnvConfig:
-    """Task, reward and randomisation settings (see configs/*.json)."""
+    """Task, reward and randomisation settings (see configs/*.json).
+
+    ``rewards`` and ``forced_release`` are typed (RewardScales, ForcedRelease); ``randomization``
+    stays the config mapping that sim_twin.privileged normalises over (its defaults are
+    sim_twin.privileged.RANDOMIZATION_DEFAULTS).
+    """
 
     mode: str = "2d"
     episode_length_s: float = 10.0
     target_range_m: tuple[float, float] = (5.0, 10.7)
-    rewards: dict[str, float] = field(default_factory=dict)
-    forced_release: dict[str, float] = field(default_factory=dict)
+    rewards: RewardScales = field(default_factory=lambda: RewardScales(
+        delta_err=1.0, err_3d=0.05, b1=0.1, act_diff=0.01, act=0.002, failure=-5.0, landing=10.0, b2=0.5))
+    forced_release: ForcedRelease = field(default_factory=ForcedRelease)
     randomization: dict[str, Any] = field(default_factory=dict)
     privileged_ranges: dict[str, Any] = field(default_factory=dict)
     """Ranges the critic's privileged inputs are normalised over where they differ from
@@ -93,9 +122,25 @@ class EnvConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> EnvConfig:
+        """From the config file's ``env`` mapping.
+
+        Raises:
+            ValueError: unknown keys, a missing reward weight, or a mode other than 2d / 3d.
+        """
         d = dict(d)
-        d["target_range_m"] = tuple(d.get("target_range_m", (5.0, 10.7)))
-        return cls(**d)
+        if d.get("mode", "2d") not in ("2d", "3d"):
+            raise ValueError(f"env.mode must be '2d' or '3d', not {d['mode']!r}")
+        if "target_range_m" in d:
+            d["target_range_m"] = tuple(float(x) for x in d["target_range_m"])
+        if "rewards" in d:
+            d["rewards"] = RewardScales.from_dict(d["rewards"])
+        if "forced_release" in d:
+            d["forced_release"] = _typed(ForcedRelease, d["forced_release"], "forced_release")
+        return _typed(cls, d, "env")
+
+    def as_dict(self) -> dict:
+        """The config as plain JSON-able data (the ``env`` mapping of a config file)."""
+        return asdict(self)
 
 
 class EnvState(dict):
@@ -119,19 +164,19 @@ class ThrowEnvCore:
     Shapes: action (num_actions(mode),); observation (observation_size(mode),).
     """
 
-    def __init__(self, cfg: EnvConfig):
+    def __init__(self, cfg: EnvConfig, impl: str = "jax"):
         self.cfg = cfg
+        self.impl = impl
         self.mode = cfg.mode
         self.num_obs = observation_size(cfg.mode)
         self.num_act = num_actions(cfg.mode)
         mj_model = load_model()
-        self.model = mjx.put_model(mj_model)
+        self.model = mjx.put_model(mj_model, impl=impl)
         self.gripper_id = mj_model.body(GRIPPER_BODY).id
-        self.data0 = mjx.make_data(mj_model)
+        self.data0 = mjx.make_data(mj_model, impl=impl)
         self.inertia = jnp.asarray(passive_inertia(), dtype=jnp.float32)
         self.vmax = jnp.asarray(ACTIVE_VELOCITY_LIMITS, dtype=jnp.float32)
-        r = cfg.rewards
-        self.w = {k: float(v) for k, v in r.items()}
+        self.w = cfg.rewards
         self.rand = cfg.randomization
         self.priv_ranges = normalisation_ranges(cfg.randomization, cfg.privileged_ranges)
         self.forced = cfg.forced_release
@@ -249,6 +294,10 @@ class ThrowEnvCore:
         normalised over ``cfg.privileged_ranges`` where given, else the randomisation ranges."""
         return privileged_observation(self.priv_ranges, self.hydraulic, s)
 
+    def privileged_batch(self, s: EnvState) -> jnp.ndarray:
+        """privileged() of a batch of states: (num_envs, PRIVILEGED_SIZE)."""
+        return jax.vmap(self.privileged)(s)
+
     # --- step -------------------------------------------------------------------------------
     def _actuate(self, s: EnvState, target_v) -> tuple[EnvState, jnp.ndarray]:
         """Training joint-velocity controller: new state and the servo setpoints (4,)."""
@@ -307,16 +356,18 @@ class ThrowEnvCore:
         return q + q_std * jax.random.normal(k1, (6,)), qd + qd_std * jax.random.normal(k2, (6,))
 
     def step(self, s: EnvState, action):
-        """One control step. Returns (state, obs, reward, terminated, time_out, info)."""
+        """One control step. Returns (state, obs, reward, terminated, time_out, info); ``info``
+        holds ``landed``, ``failed``, ``impact_err_m``, ``released`` and ``reward_terms`` (the
+        scaled terms of sim_twin.rewards, whose sum is ``reward``)."""
         w = self.w
         key, k_force, k_noise, k_obs = jax.random.split(s["key"], 4)
         qd_ref, release = decode_action(jnp, self.mode, action)
         # forced release (paper Sec. III-D): near the target at low speed, 5 % of the time
         pts0 = forward_kinematics(jnp, s["data"].qpos, s["data"].qvel)
         d0 = s["target"] - pts0.gripper_centre
-        near = jnp.sqrt(d0[0] ** 2 + d0[1] ** 2) < self.forced.get("radius_m", 1.5)
-        slow = jnp.linalg.norm(pts0.gripper_centre_vel) < self.forced.get("speed_mps", 0.5)
-        forced = near & slow & (jax.random.uniform(k_force) < self.forced.get("probability", 0.05))
+        near = jnp.sqrt(d0[0] ** 2 + d0[1] ** 2) < self.forced.radius_m
+        slow = jnp.linalg.norm(pts0.gripper_centre_vel) < self.forced.speed_mps
+        forced = near & slow & (jax.random.uniform(k_force) < self.forced.probability)
         do_release = (release | forced) & ~s["release_cmd"]
         s = EnvState(
             s,
@@ -336,26 +387,15 @@ class ThrowEnvCore:
         err = s["target"] - ball
         err2 = jnp.sqrt(err[0] ** 2 + err[1] ** 2)
         err3 = jnp.sqrt(err2**2 + err[2] ** 2)
-        r_delta = jnp.maximum(0.0, s["err2_min"] - err2) + jnp.maximum(0.0, s["err3_min"] - err3)
-        r_err3d = jnp.exp(-w["b1"] * err3**2)
-        a = jnp.clip(action, -1.0, 1.0)
-        r_act_diff = jnp.sum((a - jnp.clip(s["prev_action"], -1.0, 1.0)) ** 2)
-        r_act = jnp.sum(a**2) * s["opened"]
         ground, cabin, limit = clearance_violations(jnp, data.qpos, pts)
         failed = ground | cabin | limit | ~jnp.all(jnp.isfinite(data.qpos))
         impact = ballistic_position(jnp, s["ball_p0"], s["ball_v0"], s["t_flight"])
         impact_err = jnp.sqrt(jnp.sum((impact[:2] - s["target"][:2]) ** 2))
-        land_reward = w["landing"] * jnp.exp(-w["b2"] * impact_err**2) + w.get("landing_fine", 0.0) * jnp.exp(
-            -w.get("b3", 4.0) * impact_err**2
+        terms = reward_terms(
+            RewardInputs(err2, err3, s["err2_min"], s["err3_min"], action, s["prev_action"], s["opened"], failed, landed, impact_err),
+            w,
         )
-        reward = (
-            w["delta_err"] * r_delta
-            + w["err_3d"] * r_err3d
-            - w["act_diff"] * r_act_diff
-            - w["act"] * r_act
-            + jnp.where(failed, w["failure"], 0.0)
-            + jnp.where(landed & ~failed, land_reward, 0.0)
-        )
+        reward = total_reward(terms, w.failure)
         step = s["step"] + 1
         time_out = (step >= self.cfg.max_steps) & ~failed & ~landed
         terminated = failed | landed
@@ -371,8 +411,9 @@ class ThrowEnvCore:
             "failed": failed,
             "impact_err_m": impact_err,
             "released": s["release_cmd"],
+            "reward_terms": terms,
         }
-        return s, self.observe(s), jnp.nan_to_num(reward, nan=w["failure"]), terminated, time_out, info
+        return s, self.observe(s), reward, terminated, time_out, info
 
     def step_autoreset(self, s: EnvState, action):
         """step, then replace finished episodes by fresh ones (observation of the new episode)."""

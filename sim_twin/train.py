@@ -1,11 +1,28 @@
 """PPO training of the throwing policy (rsl_rl's OnPolicyRunner on the MJX environment).
 
-``slinger train --mode 2d`` runs on the GPU when there is one (JAX and PyTorch both on it), on
-the CPU otherwise (use tiny settings there). Training runs in chunks; after every chunk the
-checkpoint (policy, critic, optimiser state, iteration) is written to ``<log-dir>/checkpoint.pt``
-together with the resolved config and the training curve, so a run stopped at any moment resumes
-exactly with ``--resume <log-dir>/checkpoint.pt``. ``--max-minutes`` stops cleanly before a
-time limit. Progress is printed by rsl_rl every iteration; TensorBoard logs go to the log dir.
+``slinger train --mode 2d`` trains from scratch on the GPU (JAX and PyTorch both on it; the CPU
+when there is none: use tiny settings there) and, with ``--gate`` (the default), runs the site
+matrix of its newest checkpoint on the CPU cores beside it (sim_twin.matrix_gate) and stops at the
+first checkpoint that meets every site-matrix bar on every ``--gate-seeds`` seed. That checkpoint
+is exported to ONNX (``--export``, default ``<log-dir>/throw<mode>.onnx``) with its model card
+(sim_twin.model_card: command, config hash, GPU, wall time, matrices). If no checkpoint met the bars
+when ``--iterations`` or ``--max-minutes`` run out, nothing is exported unless ``--export`` is given
+(then the last checkpoint, its card saying the bars were not met).
+
+Training runs in chunks of ``--chunk`` iterations; after every chunk the checkpoint (policy,
+critic, optimiser state, iteration) is written to ``<log-dir>/checkpoint.pt`` with the resolved
+config, the training curve (``curve.csv``, per-term reward means included) and the gate's state,
+so a run stopped at any moment resumes with ``--resume <log-dir>/checkpoint.pt``. rsl_rl writes
+every iteration's losses, action std and per-term reward means (``Reward/<term>``) to TensorBoard
+(``<log-dir>/tb``).
+
+Exploration: the config's ``training.std_schedule`` caps the actor's learned action std at a
+value that falls from ``start`` to ``end`` over ``iterations`` (exponentially), applied at every
+chunk boundary; below the cap the std is learned (rsl_rl's GaussianDistribution).
+
+Several GPUs: ``--gpus N`` re-launches the command under torchrun (one process per GPU, each with
+``--num-envs`` environments, rsl_rl's multi-GPU mode: gradients all-reduced, rank 0 logs,
+checkpoints and runs the gate; the stop decision is broadcast to every rank).
 
 The actor sees the ``policy`` group only (config ``runner.obs_groups.actor``, checked); the
 critic the groups in ``runner.obs_groups.critic``: ["policy"] or, for the asymmetric
@@ -19,9 +36,13 @@ import argparse
 import copy
 import json
 import logging
+import math
 import os
+import shlex
 import statistics
+import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from runtime.entrypoint import module_main
@@ -31,38 +52,121 @@ log = logging.getLogger(__name__)
 CONFIG_DIR = Path(__file__).parent / "configs"
 
 
+@dataclass(frozen=True)
+class StdSchedule:
+    """Cap on the actor's action std: ``start`` -> ``end`` exponentially over ``iterations``,
+    ``end`` after (config ``training.std_schedule``; CHOSEN values in configs/*.json)."""
+
+    start: float
+    end: float
+    iterations: int
+
+    def cap(self, iteration: int) -> float:
+        """The cap at ``iteration`` (>= 0)."""
+        f = min(max(iteration, 0) / max(self.iterations, 1), 1.0)
+        return float(self.start * (self.end / self.start) ** f)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> StdSchedule:
+        """Raises ValueError on unknown keys or non-positive values."""
+        unknown = set(d) - {"start", "end", "iterations"}
+        if unknown:
+            raise ValueError(f"unknown std_schedule settings {sorted(unknown)}")
+        s = cls(float(d["start"]), float(d["end"]), int(d["iterations"]))
+        if s.start <= 0 or s.end <= 0 or s.iterations < 1:
+            raise ValueError(f"std_schedule needs start, end > 0 and iterations >= 1, got {d}")
+        return s
+
+
 def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mode", choices=["2d", "3d"], default="2d")
     parser.add_argument("--config", type=Path, default=None, help="default: sim_twin/configs/throw_<mode>.json")
-    parser.add_argument("--num-envs", type=int, default=None, help="override the config's num_envs")
-    parser.add_argument("--iterations", type=int, default=1000, help="PPO iterations to run in this call")
+    parser.add_argument("--num-envs", type=int, default=None, help="override the config's num_envs (per GPU)")
+    parser.add_argument("--iterations", type=int, default=5000, help="most PPO iterations to run in this call")
     parser.add_argument("--chunk", type=int, default=25, help="iterations between checkpoints")
     parser.add_argument("--max-minutes", type=float, default=None, help="stop after the chunk that passes this")
-    parser.add_argument("--log-dir", type=Path, default=Path("runs/throw_2d"))
+    parser.add_argument("--log-dir", type=Path, default=None, help="default runs/throw_<mode>")
     parser.add_argument("--tb-dir", type=Path, default=None, help="TensorBoard dir (default <log-dir>/tb)")
     parser.add_argument("--resume", type=Path, default=None, help="checkpoint.pt to resume from")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--keep-every", type=int, default=0, help="also keep checkpoint_<iter>.pt every N iterations")
-    parser.add_argument("--export", type=Path, default=None, help="write ONNX + manifest here at the end")
+    parser.add_argument("--export", type=Path, default=None,
+                        help="ONNX to write (default with the gate: <log-dir>/throw<mode>.onnx once the bars are met)")
     parser.add_argument("--name", default=None, help="policy version name for the export")
+    parser.add_argument("--gate", action=argparse.BooleanOptionalAction, default=True,
+                        help="site matrix of new checkpoints on the CPU beside the training; stop at the first that meets every bar")
+    parser.add_argument("--gate-seeds", default="0,1", help="start-pose seeds every bar must be met on")
+    parser.add_argument("--gate-throws", type=int, default=100, help="throws per site-matrix cell")
+    parser.add_argument("--gate-targets", default=None, help="matrix targets (default the matrix's)")
+    parser.add_argument("--gate-workers", type=int, default=None, help="matrix processes (default cores - 3)")
+    parser.add_argument("--gate-every", type=int, default=1, help="offer every N-th checkpoint to the gate")
+    parser.add_argument("--gate-wait-minutes", type=float, default=0.0,
+                        help="at the end, wait this long for a running matrix")
+    parser.add_argument("--physics", choices=["jax", "warp"], default="jax", help="MJX implementation")
+    parser.add_argument("--gpus", type=int, default=1, help="GPUs of this host to train on (torchrun, one process each)")
 
 
 def load_config(mode: str, path: Path | None) -> dict:
-    """The training config (env + runner + num_envs) as a dict."""
+    """The training config (env + runner + num_envs [+ training]) as a dict."""
     return json.loads((path or CONFIG_DIR / f"throw_{mode}.json").read_text())
+
+
+def apply_std_cap(runner, cap: float) -> None:
+    """Cap the actor's action std at ``cap``: the learned parameter is clamped in place (so its
+    gradient lives again below the cap) and so is the distribution's upper clamp."""
+    import torch
+
+    dist = runner.alg.actor.distribution
+    with torch.no_grad():
+        if getattr(dist, "std_type", "scalar") == "log":
+            dist.log_std_param.clamp_(max=math.log(cap))
+            dist.log_std_range[1] = math.log(cap)
+        else:
+            dist.std_param.clamp_(max=cap)
+        dist.std_range[1] = cap
+
+
+def current_std(runner) -> float:
+    """Mean over actions of the actor's action std (after its clamp)."""
+    import torch
+
+    dist = runner.alg.actor.distribution
+    with torch.no_grad():
+        if getattr(dist, "std_type", "scalar") == "log":
+            return float(dist.log_std_param.clamp(*dist.log_std_range).exp().mean())
+        return float(dist.std_param.clamp(*dist.std_range).mean())
+
+
+def _launch_torchrun(args: argparse.Namespace, argv: list[str]) -> int:
+    """Re-run this command under torchrun with one process per GPU."""
+    import subprocess
+
+    i = argv.index("--gpus") if "--gpus" in argv else None
+    rest = [a for k, a in enumerate(argv) if i is None or k not in (i, i + 1)]
+    rest = [a for a in rest if not a.startswith("--gpus=")]
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={args.gpus}", "-m", "sim_twin.train", *rest]
+    log.info("launching %s", shlex.join(cmd))
+    return subprocess.call(cmd)
 
 
 def run(args: argparse.Namespace) -> int:
     """Train; returns 0. Raises on configuration errors."""
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    import jax
     import torch
     from rsl_rl.runners import OnPolicyRunner
 
     from sim_twin import critic_surgery
+    from sim_twin.matrix_gate import MatrixGate
     from sim_twin.mjx_env import EnvConfig
     from sim_twin.training_curve import TrainingCurve
     from sim_twin.vec_env import MjxThrowVecEnv
 
+    gate_on = getattr(args, "gate", False)
+    log_dir = args.log_dir or Path("runs") / f"throw_{args.mode}"
     cfg = load_config(args.mode, args.config)
     if args.num_envs:
         cfg["num_envs"] = args.num_envs
@@ -72,15 +176,28 @@ def run(args: argparse.Namespace) -> int:
     actor_groups = cfg["runner"].get("obs_groups", {}).get("actor", ["policy"])
     if actor_groups != ["policy"]:
         raise ValueError(f"runner.obs_groups.actor must be ['policy'] (the exported policy's input), not {actor_groups}")
-    device = "cuda" if torch.cuda.is_available() else "cpu"
-    log.info("training %s on %s with %d envs", args.mode, device, cfg["num_envs"])
-    args.log_dir.mkdir(parents=True, exist_ok=True)
-    (args.log_dir / "config.json").write_text(json.dumps(cfg, indent=2))
+    schedule = StdSchedule.from_dict(cfg["training"]["std_schedule"]) if "std_schedule" in cfg.get("training", {}) else None
+    if torch.cuda.is_available():
+        device = f"cuda:{local_rank}" if world > 1 else "cuda"
+        if world > 1:  # JAX on this process's GPU too (DLPack hands arrays over without a copy)
+            jax.config.update("jax_default_device", jax.devices("gpu")[local_rank])
+    else:
+        if world > 1:
+            raise ValueError("more than one process needs CUDA GPUs")
+        device = "cpu"
+    main_rank = rank == 0
+    if main_rank:
+        log.info("training %s on %s: %d process(es) x %d envs, physics %s", args.mode, device, world, cfg["num_envs"],
+                 getattr(args, "physics", "jax"))
+        log_dir.mkdir(parents=True, exist_ok=True)
+        (log_dir / "config.json").write_text(json.dumps(cfg, indent=2))
 
-    env = MjxThrowVecEnv(env_cfg, cfg["num_envs"], seed=args.seed, device=device)
+    env = MjxThrowVecEnv(env_cfg, cfg["num_envs"], seed=args.seed + 1000 * rank, device=device,
+                         impl=getattr(args, "physics", "jax"))
     runner_cfg = copy.deepcopy(cfg["runner"])
-    runner = OnPolicyRunner(env, runner_cfg, log_dir=str(args.tb_dir or args.log_dir / "tb"), device=device)
-    curve = TrainingCurve.load_or_new(args.log_dir / "curve.csv")
+    tb_dir = (args.tb_dir or log_dir / "tb") if main_rank else None
+    runner = OnPolicyRunner(env, runner_cfg, log_dir=str(tb_dir) if tb_dir else None, device=device)
+    curve = TrainingCurve.load_or_new(log_dir / "curve.csv")
     wall_offset = curve.last_wall_s()
     if args.resume:
         critic_surgery.resume(runner, args.resume, device)  # widens an older critic (privileged inputs)
@@ -88,40 +205,114 @@ def run(args: argparse.Namespace) -> int:
         log.info("resumed from %s at iteration %d", args.resume, runner.current_learning_iteration)
 
     start = time.time()
-    done_iters = 0
-    while done_iters < args.iterations:
+    clock = lambda: wall_offset + time.time() - start  # noqa: E731
+    gate = None
+    if gate_on and main_rank:
+        gate = MatrixGate(log_dir / "matrices", args.mode, [int(s) for s in str(args.gate_seeds).split(",")],
+                          throws=args.gate_throws, targets=args.gate_targets, workers=args.gate_workers, clock=clock)
+    done_iters, chunks = 0, 0
+    stop_reason = "iterations"
+    passed = gate.passed if gate else None
+    while done_iters < args.iterations and not passed:
+        if schedule:
+            apply_std_cap(runner, schedule.cap(runner.current_learning_iteration))
         n = min(args.chunk, args.iterations - done_iters)
         env.reset_stats()
+        t_chunk = time.time()
         runner.learn(num_learning_iterations=n)
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+        chunk_s = time.time() - t_chunk
         runner.current_learning_iteration += 1
         done_iters += n
-        buf = runner.logger.rewbuffer
-        stats = env.read_stats()
-        curve.append(
-            iteration=runner.current_learning_iteration,
-            wall_s=wall_offset + time.time() - start,
-            mean_reward=statistics.mean(buf) if buf else float("nan"),
-            mean_episode_length=statistics.mean(runner.logger.lenbuffer) if runner.logger.lenbuffer else float("nan"),
-            **stats,
-        )
-        runner.save(str(args.log_dir / "checkpoint.pt"))
+        chunks += 1
         it = runner.current_learning_iteration
-        if args.keep_every and it % args.keep_every == 0:
-            runner.save(str(args.log_dir / f"checkpoint_{it}.pt"))
-        curve.save()
-        log.info("checkpoint at iteration %d: %s", runner.current_learning_iteration, stats)
-        if args.max_minutes and (time.time() - start) / 60.0 > args.max_minutes:
-            log.info("time budget of %.1f min reached", args.max_minutes)
+        stop = torch.zeros(1, device=device)
+        if main_rank:
+            buf = runner.logger.rewbuffer
+            stats = env.read_stats()
+            std = current_std(runner)
+            curve.append(
+                iteration=it,
+                wall_s=clock(),
+                mean_reward=statistics.mean(buf) if buf else float("nan"),
+                mean_episode_length=statistics.mean(runner.logger.lenbuffer) if runner.logger.lenbuffer else float("nan"),
+                action_std=std,
+                control_steps_per_s=cfg["num_envs"] * world * cfg["runner"]["num_steps_per_env"] * n / chunk_s,
+                **stats,
+                **env.read_term_means(),
+            )
+            runner.save(str(log_dir / "checkpoint.pt"))
+            for stale in (Path(tb_dir).glob("model_*.pt") if tb_dir else ()):  # rsl_rl saves one per learn() call; checkpoint.pt is ours
+                stale.unlink()
+            if args.keep_every and it % args.keep_every == 0:
+                runner.save(str(log_dir / f"checkpoint_{it}.pt"))
+            curve.save()
+            log.info("checkpoint at iteration %d (%.1f min): %s, std %.3f", it, clock() / 60, stats, std)
+            if gate:
+                passed = gate.poll()
+                if not passed and not gate.busy and chunks % max(args.gate_every, 1) == 0:
+                    cand = log_dir / "candidates" / f"checkpoint_{it}.pt"
+                    cand.parent.mkdir(exist_ok=True)
+                    runner.save(str(cand))
+                    onnx = _export(cand, cfg, cand.with_suffix(".onnx"), f"throw{args.mode}-it{it}")
+                    gate.submit(it, onnx, clock())
+            if passed:
+                stop_reason = "bars met"
+            elif args.max_minutes and (time.time() - start) / 60.0 > args.max_minutes:
+                stop_reason = "time budget"
+            stop[0] = 1.0 if stop_reason != "iterations" else 0.0
+        if world > 1:
+            torch.distributed.broadcast(stop, src=0)
+        if stop[0] > 0:
             break
-    curve.plot(args.log_dir / "training_curve.png", title=f"PPO, {args.mode}, {cfg['num_envs']} envs")
-    if args.export:
-        from sim_twin.export import export_checkpoint
-
-        export_checkpoint(args.log_dir / "checkpoint.pt", cfg, args.export, name=args.name or args.export.stem)
+    if not main_rank:
+        return 0
+    if gate and not passed and args.gate_wait_minutes > 0:
+        log.info("waiting up to %.1f min for the running site matrix", args.gate_wait_minutes)
+        passed = gate.wait(args.gate_wait_minutes * 60)
+    if gate:
+        gate.stop()
+    log.info("training stopped (%s) at iteration %d after %.1f min", "bars met" if passed else stop_reason,
+             runner.current_learning_iteration, clock() / 60)
+    curve.plot(log_dir / "training_curve.png", title=f"PPO, {args.mode}, {world} x {cfg['num_envs']} envs")
+    out = args.export or (log_dir / f"throw{args.mode}.onnx" if passed else None)
+    if out:
+        ckpt = Path(passed["onnx"]).with_suffix(".pt") if passed else log_dir / "checkpoint.pt"
+        it = passed["iteration"] if passed else runner.current_learning_iteration
+        _export(ckpt, cfg, out, args.name or out.stem, card=dict(
+            iteration=it, train_wall_s=passed["train_wall_s"] if passed else clock(),
+            verdict_wall_s=passed["verdict_wall_s"] if passed else None, world_size=world,
+            matrices=[r.__dict__ for r in gate.results if r.iteration == it] if gate else [], bars_met=bool(passed)))
     return 0
 
 
+def _export(checkpoint: Path, cfg: dict, out: Path, name: str, card: dict | None = None) -> Path:
+    """Export ``checkpoint`` to ONNX + manifest; with ``card`` also write the model card and put
+    it into the manifest's ``training`` section."""
+    from runtime.policy import sha256_of, write_manifest
+    from sim_twin import model_card
+    from sim_twin.export import export_checkpoint
+
+    export_checkpoint(checkpoint, cfg, out, name=name)
+    if card is not None:
+        c = model_card.build_card(command=shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]), cfg=cfg, gpus=model_card.accelerator(),
+                                  policy_sha256=sha256_of(out), **card)
+        model_card.write_card(out, c)
+        manifest = json.loads(out.with_suffix(".json").read_text())
+        manifest["training"]["model_card"] = c
+        write_manifest(out, manifest)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--gpus", type=int, default=1)
+    known, _ = p.parse_known_args(argv)
+    if known.gpus > 1 and "WORLD_SIZE" not in os.environ:
+        logging.basicConfig(level=logging.INFO)
+        return _launch_torchrun(known, argv)
     return module_main('slinger train', __doc__, build_parser, run, argv)
 
 

@@ -100,7 +100,11 @@ def test_resume_old_checkpoint_widens_critic_then_trains_and_exports(tmp_path):
     assert runner.current_learning_iteration == old["iter"]
     assert any("critic input 56 -> 85" in n for n in notes)
     saved = runner.alg.save()
-    for k, v in old["actor_state_dict"].items():  # the actor is untouched
+    for k, v in old["actor_state_dict"].items():  # the actor is untouched but for its std's parameterisation
+        if k == "distribution.std_param":
+            lo, hi = cfg["runner"]["actor"]["distribution_cfg"]["std_range"]
+            torch.testing.assert_close(saved["actor_state_dict"]["distribution.log_std_param"], torch.log(v.clamp(lo, hi)))
+            continue
         assert torch.equal(saved["actor_state_dict"][k], v), k
     crit = saved["critic_state_dict"]
     assert torch.equal(crit["mlp.0.weight"][:, :56], old["critic_state_dict"]["mlp.0.weight"])

@@ -1,4 +1,6 @@
-"""PPO training on the CPU with tiny settings: checkpoints, exact resume, curve, ONNX export."""
+"""PPO training on the CPU with tiny settings: checkpoints, exact resume, curve, ONNX export, the
+per-term reward logs in TensorBoard, the std cap, and the one-command run with its site-matrix gate
+and model card."""
 
 from __future__ import annotations
 
@@ -18,6 +20,8 @@ def _args(tmp_path, **kw):
     p = argparse.ArgumentParser()
     train.build_parser(p)
     argv = ["--mode", "2d", "--num-envs", "8", "--iterations", "2", "--chunk", "1", "--log-dir", str(tmp_path / "run")]
+    if not kw.pop("gate", False):
+        argv.append("--no-gate")
     for k, v in kw.items():
         argv += [f"--{k.replace('_', '-')}", str(v)]
     return p.parse_args(argv)
@@ -39,3 +43,63 @@ def test_train_checkpoint_resume_export(tmp_path):
     assert (tmp_path / "run" / "training_curve.png").stat().st_size > 1000
     runner = PolicyRunner.load(onnx)
     assert runner.version == "tiny" and runner.mode == "2d"
+
+
+def _tb_tags(tb_dir):
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    tags = set()
+    for f in tb_dir.glob("events.out.tfevents.*"):
+        acc = EventAccumulator(str(f))
+        acc.Reload()
+        tags |= set(acc.Tags()["scalars"])
+    return tags
+
+
+def test_one_command_with_gate_model_card_and_term_logs(tmp_path):
+    """slinger train with the gate on tiny settings: the matrix of a checkpoint runs beside the
+    training, its verdict is kept, the export carries a model card (bars not met here)."""
+    import json
+
+    from sim_twin.rewards import REWARD_TERMS
+
+    onnx = tmp_path / "p.onnx"
+    args = _args(tmp_path, gate=True, gate_targets="8.5", gate_throws=1, gate_seeds="0", gate_workers=2,
+                 gate_wait_minutes=10, export=onnx, name="tiny-gated")
+    assert train.run(args) == 0
+    run = tmp_path / "run"
+    gate = json.loads((run / "matrices" / "matrix_gate.json").read_text())
+    assert gate["results"] and gate["results"][0]["seed"] == 0 and gate["results"][0]["passed"] is False
+    assert (run / "matrices" / f"site_matrix_2d_it{gate['results'][0]['iteration']}.md").exists()
+    card = json.loads((tmp_path / "p.card.json").read_text())
+    assert card["bars_met"] is False and len(card["config_sha256"]) == 64 and card["command"]
+    assert json.loads(onnx.with_suffix(".json").read_text())["training"]["model_card"]["onnx_sha256"] == card["onnx_sha256"]
+    header = (run / "curve.csv").read_text().splitlines()[0].split(",")
+    assert {f"reward_{k}" for k in REWARD_TERMS} <= set(header) and "action_std" in header
+    tags = _tb_tags(run / "tb")
+    assert {f"Reward/{k}" for k in REWARD_TERMS} <= tags and "Policy/mean_std" in tags
+    assert not list((run / "tb").glob("model_*.pt"))
+
+
+def test_std_schedule_caps_the_learned_std():
+    s = train.StdSchedule.from_dict({"start": 0.6, "end": 0.06, "iterations": 100})
+    assert s.cap(0) == pytest.approx(0.6) and s.cap(50) == pytest.approx(0.6 * 0.1**0.5) and s.cap(500) == pytest.approx(0.06)
+    with pytest.raises(ValueError):
+        train.StdSchedule.from_dict({"start": 0.6, "end": 0.0, "iterations": 100})
+    with pytest.raises(ValueError):
+        train.StdSchedule.from_dict({"start": 0.6, "end": 0.1, "iters": 100})
+    from rsl_rl.modules.distribution import GaussianDistribution
+
+    dist = GaussianDistribution(3, init_std=0.6, std_range=(0.02, 0.6), std_type="log")
+
+    class R:  # the runner attributes apply_std_cap touches
+        class alg:
+            class actor:
+                distribution = dist
+
+    train.apply_std_cap(R, 0.2)
+    assert train.current_std(R) == pytest.approx(0.2, rel=1e-5)
+    dist.log_std_param.data -= 1.0  # learned below the cap: kept
+    train.apply_std_cap(R, 0.3)
+    assert train.current_std(R) == pytest.approx(0.2 * 2.718281828**-1, rel=1e-4)

@@ -1,10 +1,25 @@
-"""Training throughput of the MJX throwing environment with PPO learning included.
+"""Throughput of the MJX throwing environment, Isaac-Lab style, per physics implementation.
 
-Run on a GPU machine (``python tests/benchmarks/bench_training_throughput.py --out bench.json``).
-For each environment count it builds the MJX environment and rsl_rl's OnPolicyRunner, runs two
-warm-up iterations (JIT compilation), then times ``--iterations`` PPO iterations (rollout of 32
-control steps per environment + the PPO update) and prints control steps per second, i.e.
-num_envs * 32 * iterations / wall time. All counts are measured side by side in one process.
+Run on a GPU machine::
+
+    python tests/benchmarks/bench_training_throughput.py --impls jax,warp --envs 4096,16384,65536 --out bench.json
+
+For each MJX implementation (``jax``: MJX's JAX physics; ``warp``: MJX calling MuJoCo Warp) and
+environment count it measures, in one process on one GPU:
+
+* ``physics_steps_per_s``: bare ``mjx.step`` of the machine's MJCF, vmapped over the worlds,
+  ``--physics-steps`` steps in one jitted loop (10 ms steps);
+* ``env_steps_per_s``: the training environment's control step (8 physics steps with the
+  hydraulic actuation, rewards, terminations, auto-reset; 80 ms) jitted, no PyTorch;
+* ``step_infer_steps_per_s``: the rsl_rl rollout: actor inference (PyTorch) + environment step
+  (DLPack hand-over) + rollout storage, 32 steps per iteration;
+* ``learn_steps_per_s``: rsl_rl's full PPO iteration (rollout + update), and the seconds per
+  iteration spent in the rollout and in the update.
+
+All rates count control steps (one policy decision of one environment) except
+``physics_steps_per_s`` (one 10 ms physics step of one world). Prints a table and writes JSON.
+A configuration that fails (for instance an implementation that cannot run the environment)
+is reported with its error and the others go on.
 """
 
 from __future__ import annotations
@@ -14,11 +29,46 @@ import copy
 import json
 import os
 import time
+import traceback
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 
-def measure(mode: str, num_envs: int, iterations: int) -> dict:
+def physics_rate(impl: str, n: int, steps: int) -> float:
+    """Bare mjx.step of the MJCF over ``n`` worlds: physics steps per second."""
+    import jax
+    import jax.numpy as jnp
+    from mujoco import mjx
+
+    from sim_twin.model import load_model
+
+    m = load_model()
+    mx = mjx.put_model(m, impl=impl)
+
+    @jax.jit
+    def init(q):
+        d = jax.vmap(lambda qq: mjx.make_data(m, impl=impl).replace(qpos=qq))(q)
+        return d
+
+    q0 = jnp.tile(jnp.asarray(m.qpos0, jnp.float32), (n, 1))
+    d = init(q0)
+    ctrl = 0.1 * jnp.ones((n, m.nu), jnp.float32)
+
+    @jax.jit
+    def roll(d):
+        def body(_, dd):
+            return jax.vmap(lambda x: mjx.step(mx, x.replace(ctrl=x.ctrl * 0 + ctrl[0])))(dd)
+
+        return jax.lax.fori_loop(0, steps, body, d)
+
+    jax.block_until_ready(roll(d))
+    t0 = time.perf_counter()
+    jax.block_until_ready(roll(d))
+    return n * steps / (time.perf_counter() - t0)
+
+
+def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int) -> dict:
+    import jax
     import torch
     from rsl_rl.runners import OnPolicyRunner
 
@@ -26,37 +76,94 @@ def measure(mode: str, num_envs: int, iterations: int) -> dict:
     from sim_twin.train import load_config
     from sim_twin.vec_env import MjxThrowVecEnv
 
-    cfg = load_config(mode, None)
-    device = "cuda" if torch.cuda.is_available() else "cpu"
-    env = MjxThrowVecEnv(EnvConfig.from_dict(cfg["env"]), num_envs, seed=0, device=device)
-    runner = OnPolicyRunner(env, copy.deepcopy(cfg["runner"]), log_dir=None, device=device)
-    t0 = time.perf_counter()
-    runner.learn(num_learning_iterations=2)
-    warm = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    runner.learn(num_learning_iterations=iterations)
-    if device == "cuda":
-        torch.cuda.synchronize()
-    wall = time.perf_counter() - t0
-    steps = num_envs * cfg["runner"]["num_steps_per_env"] * iterations
-    return {"mode": mode, "num_envs": num_envs, "iterations": iterations, "wall_s": wall,
-            "control_steps_per_s": steps / wall, "warmup_s": warm, "device": device}
+    row = {"mode": mode, "impl": impl, "num_envs": n}
+    try:
+        row["physics_steps_per_s"] = physics_rate(impl, n, physics_steps)
+    except Exception as e:  # noqa: BLE001 - reported, the benchmark goes on
+        row["physics_error"] = f"{type(e).__name__}: {e}"[:400]
+    try:
+        cfg = load_config(mode, None)
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+        t0 = time.perf_counter()
+        env = MjxThrowVecEnv(EnvConfig.from_dict(cfg["env"]), n, seed=0, device=device, impl=impl)
+        a = jax.numpy.zeros((n, env.num_actions), jax.numpy.float32)
+        out = env._step(env.state, a)
+        jax.block_until_ready(out)
+        row["env_compile_s"] = time.perf_counter() - t0
+        st = out[0]
+        k = 32
+        t0 = time.perf_counter()
+        for _ in range(k):
+            out = env._step(st, a)
+            st = out[0]
+        jax.block_until_ready(out)
+        row["env_steps_per_s"] = n * k / (time.perf_counter() - t0)
+
+        runner = OnPolicyRunner(env, copy.deepcopy(cfg["runner"]), log_dir=None, device=device)
+        T = cfg["runner"]["num_steps_per_env"]
+        alg = runner.alg
+
+        def rollout():
+            obs = env.get_observations()
+            with torch.inference_mode():
+                for _ in range(T):
+                    act = alg.act(obs)
+                    obs, rew, dones, extras = env.step(act)
+                    alg.process_env_step(obs, rew, dones, extras)
+                alg.compute_returns(obs)
+            torch.cuda.synchronize() if device == "cuda" else None
+
+        rollout()
+        alg.storage.clear()
+        t0 = time.perf_counter()
+        for _ in range(iterations):
+            rollout()
+            alg.storage.clear()
+        row["step_infer_steps_per_s"] = n * T * iterations / (time.perf_counter() - t0)
+        runner.learn(num_learning_iterations=1)
+        torch.cuda.synchronize() if device == "cuda" else None
+        t0 = time.perf_counter()
+        runner.learn(num_learning_iterations=iterations)
+        torch.cuda.synchronize() if device == "cuda" else None
+        wall = time.perf_counter() - t0
+        row["learn_steps_per_s"] = n * T * iterations / wall
+        row["iteration_s"] = wall / iterations
+        row["rollout_s"] = n * T / row["step_infer_steps_per_s"]
+        row["update_s"] = row["iteration_s"] - row["rollout_s"]
+        row["device"] = torch.cuda.get_device_name(0) if device == "cuda" else "cpu"
+        del runner, env
+    except Exception as e:  # noqa: BLE001
+        row["error"] = f"{type(e).__name__}: {e}"[:400]
+        traceback.print_exc()
+    return row
+
+
+def _f(x, scale=1e6, fmt="{:8.2f}"):
+    return fmt.format(x / scale) if isinstance(x, (int, float)) else f"{'-':>8}"
 
 
 def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("--mode", default="2d")
-    p.add_argument("--envs", default="4096,8192,16384")
-    p.add_argument("--iterations", type=int, default=10)
+    p.add_argument("--impls", default="jax")
+    p.add_argument("--envs", default="4096,16384,65536")
+    p.add_argument("--iterations", type=int, default=5)
+    p.add_argument("--physics-steps", type=int, default=200)
     p.add_argument("--out", default=None)
     a = p.parse_args()
-    rows = [measure(a.mode, int(n), a.iterations) for n in a.envs.split(",")]
+    rows = []
+    for impl in a.impls.split(","):
+        for n in a.envs.split(","):
+            rows.append(measure(a.mode, impl, int(n), a.iterations, a.physics_steps))
+            print(json.dumps(rows[-1]), flush=True)
+            if a.out:
+                with open(a.out, "w") as f:
+                    json.dump(rows, f, indent=2)
+    print("impl   envs   physics M/s  env M/s  step+infer M/s  +PPO M/s  rollout s  update s")
     for r in rows:
-        print(f"{r['mode']} {r['num_envs']:>6} envs: {r['control_steps_per_s']:>10.0f} control steps/s "
-              f"(learning included, {r['iterations']} iterations in {r['wall_s']:.1f} s, warm-up {r['warmup_s']:.1f} s, {r['device']})")
-    if a.out:
-        with open(a.out, "w") as f:
-            json.dump(rows, f, indent=2)
+        print(f"{r['impl']:5} {r['num_envs']:6} {_f(r.get('physics_steps_per_s'))}     {_f(r.get('env_steps_per_s'))} "
+              f"{_f(r.get('step_infer_steps_per_s'))}       {_f(r.get('learn_steps_per_s'))}  {_f(r.get('rollout_s'), 1)}  "
+              f"{_f(r.get('update_s'), 1)}  {r.get('error', '') or r.get('physics_error', '')}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,188 @@
+"""Site-matrix gate of a training run: the site matrix of new checkpoints runs on the CPU cores
+beside the training, and the run stops at the first checkpoint that meets every bar.
+
+One candidate at a time: when the gate is idle, the training hands it its newest exported
+checkpoint (older ones that came while a matrix ran are skipped). The candidate's matrix runs seed
+by seed (``slinger evaluate --matrix --seed s``, sim_twin.matrix, in a child process with its own
+worker pool); a seed that misses a bar ends that candidate. A candidate that meets every bar on
+every seed has *passed*. The state (every verdict) is saved to ``<dir>/matrix_gate.json`` after
+every change so a resumed training keeps it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class MatrixResult:
+    """Verdict of one (candidate, seed) site matrix."""
+
+    iteration: int
+    seed: int
+    passed: bool
+    missing_cells: int
+    """Cells (profile x target) missing at least one bar."""
+    matrix_path: str
+    train_wall_s: float
+    """Training wall time at the checkpoint [s]."""
+    verdict_wall_s: float
+    """Training wall time when the verdict came [s]."""
+    misses: list[str] = field(default_factory=list)
+
+
+def summarise_matrix(report: dict) -> tuple[int, list[str]]:
+    """(cells missing a bar, "profile@target: bar,..." strings) of a sim_twin.matrix report."""
+    misses = []
+    for p in report["profiles"]:
+        for t in p["targets"]:
+            bad = [k for k, v in t["bars"].items() if not v]
+            if bad:
+                misses.append(f"{p['name']}@{t['target_m']:g}: {','.join(bad)}")
+    return len(misses), misses
+
+
+class MatrixGate:
+    """Background site matrices of training checkpoints (see module doc).
+
+    Args:
+        out_dir: where matrices (``site_matrix_<mode>_it<iter>[_seed<s>].json/.md/.png``) and
+            ``matrix_gate.json`` go.
+        mode: "2d" or "3d".
+        seeds: start-pose seeds every bar must be met on, in the order they are run.
+        throws: throws per (profile, target) cell (the bars are defined for 100).
+        targets: target spec for ``slinger evaluate --targets`` (default the matrix's).
+        workers: processes of the matrix's pool (default all cores but ``reserve_cores``).
+        reserve_cores: cores left to the training process when ``workers`` is not given.
+        clock: function returning the training wall time now [s].
+
+    Raises:
+        ValueError: no seeds or fewer than 1 throw.
+    """
+
+    def __init__(self, out_dir: Path, mode: str, seeds: list[int], throws: int = 100, targets: str | None = None,
+                 workers: int | None = None, reserve_cores: int = 3, clock=None):
+        if not seeds:
+            raise ValueError("the gate needs at least one seed")
+        if throws < 1:
+            raise ValueError("throws must be >= 1")
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.mode, self.seeds, self.throws, self.targets = mode, list(seeds), throws, targets
+        self.workers = workers or max(1, (os.cpu_count() or 1) - reserve_cores)
+        self.clock = clock or time.time
+        self.state_path = self.out_dir / "matrix_gate.json"
+        self.results: list[MatrixResult] = []
+        self.passed: dict | None = None  # {"iteration", "onnx", "train_wall_s"} of the first candidate that passed
+        self._proc: subprocess.Popen | None = None
+        self._cand: dict | None = None  # {"iteration", "onnx", "train_wall_s", "seed_index", "out"}
+        if self.state_path.exists():
+            st = json.loads(self.state_path.read_text())
+            self.results = [MatrixResult(**r) for r in st.get("results", [])]
+            self.passed = st.get("passed")
+
+    @property
+    def busy(self) -> bool:
+        """A candidate's matrix is running."""
+        return self._cand is not None
+
+    def submit(self, iteration: int, onnx: Path, train_wall_s: float) -> bool:
+        """Start the matrix of this candidate if the gate is idle; returns whether it started."""
+        if self.busy or self.passed:
+            return False
+        self._cand = {"iteration": int(iteration), "onnx": str(onnx), "train_wall_s": float(train_wall_s), "seed_index": 0}
+        self._start_seed()
+        return True
+
+    def _candidate(self) -> dict:
+        """The checkpoint under test (only called while one is).
+
+        Raises:
+            RuntimeError: no candidate (a bug of the caller).
+        """
+        if self._cand is None:
+            raise RuntimeError("matrix gate: no checkpoint under test")
+        return self._cand
+
+    def _out(self, it: int, seed: int) -> Path:
+        return self.out_dir / (f"site_matrix_{self.mode}_it{it}" + (f"_seed{seed}" if seed else "") + ".json")
+
+    def command(self, onnx: str, seed: int, out: str) -> list[str]:
+        """The child process that writes the site matrix of ``onnx`` on ``seed`` to ``out``."""
+        cmd = [sys.executable, "-m", "sim_twin.evaluate_cli", "--policy", onnx, "--matrix", "--seed", str(seed),
+               "--throws", str(self.throws), "--workers", str(self.workers), "--out", out]
+        return cmd + (["--targets", self.targets] if self.targets else [])
+
+    def _start_seed(self) -> None:
+        c = self._candidate()
+        seed = self.seeds[c["seed_index"]]
+        c["out"] = str(self._out(c["iteration"], seed))
+        cmd = self.command(c["onnx"], seed, c["out"])
+        env = {**os.environ, "CUDA_VISIBLE_DEVICES": "", "JAX_PLATFORMS": "cpu", "OMP_NUM_THREADS": "1"}
+        logf = open(self.out_dir / "matrix_gate.log", "a")
+        log.info("site matrix of iteration %d, seed %d started (%d workers)", c["iteration"], seed, self.workers)
+        self._proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=env)
+        logf.close()
+
+    def poll(self) -> dict | None:
+        """Collect a finished matrix, start the candidate's next seed if it passed; returns
+        ``self.passed`` (the first candidate that met every bar on every seed) or None."""
+        if self._proc is None or self._proc.poll() is None:
+            return self.passed
+        c, rc = self._candidate(), self._proc.returncode
+        self._proc = None
+        seed = self.seeds[c["seed_index"]]
+        out = Path(c["out"])
+        if rc != 0 or not out.exists():
+            log.error("site matrix of iteration %d seed %d failed (exit %s); see %s", c["iteration"], seed, rc,
+                      self.out_dir / "matrix_gate.log")
+            self._cand = None
+            return self.passed
+        rep = json.loads(out.read_text())
+        n_miss, misses = summarise_matrix(rep)
+        res = MatrixResult(c["iteration"], seed, bool(rep["pass"]), n_miss, str(out), c["train_wall_s"], float(self.clock()), misses)
+        self.results.append(res)
+        log.info("site matrix of iteration %d seed %d: %s (%d cells miss a bar)", c["iteration"], seed,
+                 "every bar met" if res.passed else "missed", n_miss)
+        if res.passed and c["seed_index"] + 1 < len(self.seeds):
+            c["seed_index"] += 1
+            self._start_seed()
+        else:
+            if res.passed:
+                self.passed = {"iteration": c["iteration"], "onnx": c["onnx"], "train_wall_s": c["train_wall_s"],
+                               "verdict_wall_s": res.verdict_wall_s}
+            self._cand = None
+        self.save()
+        return self.passed
+
+    def wait(self, timeout_s: float) -> dict | None:
+        """Poll until the gate is idle or ``timeout_s`` passed; returns ``self.passed``."""
+        end = time.time() + timeout_s
+        while self.busy and time.time() < end:
+            self.poll()
+            time.sleep(1.0)
+        return self.passed
+
+    def stop(self) -> None:
+        """Terminate a running matrix (its result is dropped)."""
+        if self._proc is not None and self._proc.poll() is None:
+            self._proc.terminate()
+            try:
+                self._proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+        self._proc, self._cand = None, None
+
+    def save(self) -> None:
+        self.state_path.write_text(json.dumps(
+            {"mode": self.mode, "seeds": self.seeds, "throws": self.throws, "passed": self.passed,
+             "results": [asdict(r) for r in self.results]}, indent=2) + "\n")

@@ -1,0 +1,92 @@
+"""Report of a `slinger train` run's site-matrix gate: wall time to each bar.
+
+``python tests/benchmarks/training_run_report.py policies/training/<run> --out reports/<name>``
+reads ``<run>/matrices/matrix_gate.json`` and the matrices beside it and writes ``<name>.md``,
+``<name>.json`` and ``<name>.png`` (cells missing a bar against training wall time). For every
+profile it gives the first checkpoint (training wall time) at which that profile met all its bars
+on the gate's first seed, and whether it kept meeting them after.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import platform
+import subprocess
+from datetime import datetime, timezone
+from pathlib import Path
+
+
+def main() -> None:
+    p = argparse.ArgumentParser()
+    p.add_argument("run", type=Path)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--gpu", default="one NVIDIA H100 80GB HBM3")
+    p.add_argument("--command", default="slinger train --mode 2d")
+    a = p.parse_args()
+    gate = json.loads((a.run / "matrices" / "matrix_gate.json").read_text())
+    rows = sorted(gate["results"], key=lambda r: (r["iteration"], r["seed"]))
+    first_seed = gate["seeds"][0]
+    per_profile: dict[str, list[tuple[float, int, bool]]] = {}
+    for r in rows:
+        if r["seed"] != first_seed:
+            continue
+        rep = json.loads(Path(a.run / "matrices" / Path(r["matrix_path"]).name).read_text())
+        for prof in rep["profiles"]:
+            per_profile.setdefault(prof["name"], []).append((r["train_wall_s"], r["iteration"], prof["pass"]))
+    first_met = {}
+    for name, hist in per_profile.items():
+        met = [(t, it) for t, it, ok in hist if ok]
+        kept = bool(met) and all(ok for t, it, ok in hist if t >= met[0][0])
+        first_met[name] = {"wall_min": round(met[0][0] / 60, 1) if met else None, "iteration": met[0][1] if met else None, "kept": kept}
+    ckpt = a.run / "checkpoint.pt"
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    out = {
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "commit": commit,
+        "host": platform.node(),
+        "gpu": a.gpu,
+        "command": a.command,
+        "run": str(a.run),
+        "checkpoint_sha256": hashlib.sha256(ckpt.read_bytes()).hexdigest() if ckpt.exists() else None,
+        "seeds": gate["seeds"],
+        "passed": gate["passed"],
+        "results": [{k: r[k] for k in ("iteration", "seed", "passed", "missing_cells", "train_wall_s", "misses")} for r in rows],
+        "first_met_per_profile": first_met,
+    }
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    a.out.with_suffix(".json").write_text(json.dumps(out, indent=2) + "\n")
+    md = [f"# Training run {a.run.name}: wall time to the site-matrix bars", "",
+          f"Date {out['date']}, commit `{commit}`, {a.gpu}; checkpoint SHA-256 `{out['checkpoint_sha256']}`; "
+          f"command `{a.command}`. Gate seeds {gate['seeds']}; every bar met on every seed: "
+          f"**{'yes, iteration ' + str(gate['passed']['iteration']) if gate['passed'] else 'no'}**.", "",
+          "| iteration | training wall time [min] | seed | cells missing a bar (of 66) | misses |", "|---|---|---|---|---|"]
+    for r in rows:
+        miss = "; ".join(r["misses"]) if r["missing_cells"] <= 6 else f"{r['missing_cells']} cells"
+        md.append(f"| {r['iteration']} | {r['train_wall_s'] / 60:.1f} | {r['seed']} | {r['missing_cells']} | {miss} |")
+    md += ["", f"First checkpoint at which each profile met all its bars (seed {first_seed}):", "",
+           "| profile | training wall time [min] | iteration | met at every later checkpoint |", "|---|---|---|---|"]
+    for name, f in first_met.items():
+        md.append(f"| {name} | {f['wall_min'] if f['wall_min'] is not None else 'not met'} | {f['iteration'] or '-'} | {'yes' if f['kept'] else 'no'} |")
+    a.out.with_suffix(".md").write_text("\n".join(md) + "\n")
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    s0 = [r for r in rows if r["seed"] == first_seed]
+    ax.plot([r["train_wall_s"] / 60 for r in s0], [r["missing_cells"] for r in s0], "o-")
+    ax.set_yscale("symlog", linthresh=1)
+    ax.set_xlabel("training wall time [min]")
+    ax.set_ylabel("site-matrix cells missing a bar")
+    ax.set_title(f"{a.run.name}: cells missing a bar (seed {first_seed}, 66 cells)", fontsize=10)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(a.out.with_suffix(".png"), dpi=110)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,56 @@
+"""Site-matrix gate: seeds in order, a miss ends a candidate, the first candidate meeting every bar
+on every seed stops the gate; its state survives a restart."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from sim_twin.matrix_gate import MatrixGate
+
+
+class FakeGate(MatrixGate):
+    """Writes a one-cell matrix report instead of running the site matrix: iterations in
+    ``passing`` meet the bar, others miss it."""
+
+    passing: set[int] = set()
+
+    def command(self, onnx, seed, out):
+        it = int(onnx.rsplit("_", 1)[1].split(".")[0])
+        ok = it in self.passing
+        rep = {"pass": ok, "profiles": [{"name": "nominal", "targets": [{"target_m": 10.0, "bars": {"success": True, "accuracy": ok}}]}]}
+        return [sys.executable, "-c", f"import json; open({out!r}, 'w').write(json.dumps({rep!r}))"]
+
+
+def _run(gate, it):
+    assert gate.submit(it, f"cand/checkpoint_{it}.onnx", train_wall_s=60.0 * it)
+    assert not gate.submit(it + 1, f"cand/checkpoint_{it + 1}.onnx", 0.0)  # busy: one candidate at a time
+    return gate.wait(60)
+
+
+def test_gate_runs_seeds_in_order_and_stops_at_first_pass(tmp_path):
+    FakeGate.passing = {3}
+    gate = FakeGate(tmp_path, "2d", seeds=[0, 1], workers=1, clock=lambda: 1.0)
+    assert _run(gate, 2) is None  # missed on seed 0: seed 1 is not run
+    assert [(r.iteration, r.seed, r.passed, r.missing_cells) for r in gate.results] == [(2, 0, False, 1)]
+    assert gate.results[0].misses == ["nominal@10: accuracy"]
+    passed = _run(gate, 3)
+    assert passed["iteration"] == 3 and passed["train_wall_s"] == 180.0
+    assert [(r.iteration, r.seed, r.passed) for r in gate.results[1:]] == [(3, 0, True), (3, 1, True)]
+    assert (tmp_path / "site_matrix_2d_it3_seed1.json").exists()
+    assert not gate.submit(4, "cand/checkpoint_4.onnx", 0.0)  # passed: nothing more to judge
+    again = FakeGate(tmp_path, "2d", seeds=[0, 1], workers=1)
+    assert again.passed["iteration"] == 3 and len(again.results) == 3
+    assert json.loads((tmp_path / "matrix_gate.json").read_text())["passed"]["iteration"] == 3
+
+
+def test_gate_reports_a_crashed_matrix_and_goes_on(tmp_path):
+    class Crashing(MatrixGate):
+        def command(self, onnx, seed, out):
+            return [sys.executable, "-c", "raise SystemExit(3)"]
+
+    gate = Crashing(tmp_path, "2d", seeds=[0], workers=1)
+    assert gate.submit(1, "x.onnx", 0.0)
+    assert gate.wait(60) is None and not gate.busy and gate.results == []
+    assert gate.submit(2, "y.onnx", 0.0)  # idle again: the next candidate starts
+    gate.stop()

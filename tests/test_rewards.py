@@ -1,0 +1,79 @@
+"""Rewards as terms: one function per term, typed scales, sum = reward, every term logged."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+jax = pytest.importorskip("jax")
+
+import jax.numpy as jnp  # noqa: E402
+
+from sim_twin.mjx_env import EnvConfig  # noqa: E402
+from sim_twin.rewards import REWARD_TERMS, RewardInputs, RewardScales, reward_terms, total_reward  # noqa: E402
+from sim_twin.train import CONFIG_DIR  # noqa: E402
+
+SCALES = RewardScales.from_dict(json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]["rewards"])
+
+
+def _inputs(rng, n):
+    f = lambda lo, hi: jnp.asarray(rng.uniform(lo, hi, n), jnp.float32)  # noqa: E731
+    b = lambda p: jnp.asarray(rng.random(n) < p)  # noqa: E731
+    return RewardInputs(f(0, 12), f(0, 12), f(0, 12), f(0, 12), jnp.asarray(rng.normal(0, 1, (n, 4)), jnp.float32),
+                        jnp.asarray(rng.normal(0, 1, (n, 4)), jnp.float32), b(0.5), b(0.2), b(0.3), f(0, 3))
+
+
+def test_terms_sum_to_reward_and_have_their_signs():
+    x = _inputs(np.random.default_rng(0), 256)
+    terms = jax.vmap(lambda xi: reward_terms(xi, SCALES))(x)
+    assert set(terms) == set(REWARD_TERMS)
+    total = jax.vmap(lambda xi: total_reward(reward_terms(xi, SCALES), SCALES.failure))(x)
+    np.testing.assert_allclose(np.asarray(total), np.asarray(sum(terms.values())), rtol=1e-6, atol=1e-6)
+    assert np.all(np.asarray(terms["act_diff"]) <= 0) and np.all(np.asarray(terms["failure"]) <= 0)
+    landed_ok = np.asarray(x.landed & ~x.failed)
+    assert np.all(np.asarray(terms["landing"])[~landed_ok] == 0) and np.all(np.asarray(terms["landing"])[landed_ok] > 0)
+    # a term is its scale times its function: doubling one scale doubles that term only
+    doubled = RewardScales(**{**SCALES.__dict__, "landing_fine": 2 * SCALES.landing_fine})
+    t2 = jax.vmap(lambda xi: reward_terms(xi, doubled))(x)
+    np.testing.assert_allclose(np.asarray(t2["landing_fine"]), 2 * np.asarray(terms["landing_fine"]), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(t2["landing"]), np.asarray(terms["landing"]))
+
+
+def test_non_finite_reward_becomes_the_failure_reward():
+    terms = {"a": jnp.asarray(jnp.nan), "b": jnp.asarray(1.0)}
+    assert float(total_reward(terms, -5.0)) == -5.0
+
+
+def test_typed_config_refuses_unknown_and_missing_settings():
+    env = json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]
+    cfg = EnvConfig.from_dict(env)
+    assert isinstance(cfg.rewards, RewardScales) and cfg.forced_release.radius_m == env["forced_release"]["radius_m"]
+    with pytest.raises(ValueError, match="unknown reward"):
+        RewardScales.from_dict({**env["rewards"], "landng": 1.0})
+    with pytest.raises(ValueError, match="incomplete"):
+        RewardScales.from_dict({"delta_err": 1.0})
+    with pytest.raises(ValueError, match="unknown forced_release"):
+        EnvConfig.from_dict({**env, "forced_release": {"probabilty": 0.1}})
+    with pytest.raises(ValueError, match="unknown env"):
+        EnvConfig.from_dict({**env, "reward": {}})
+    with pytest.raises(ValueError, match="mode"):
+        EnvConfig.from_dict({**env, "mode": "4d"})
+
+
+def test_vec_env_logs_every_term_and_their_sum_is_the_mean_reward():
+    import torch
+
+    from sim_twin.vec_env import MjxThrowVecEnv
+
+    env = MjxThrowVecEnv(EnvConfig.from_dict(json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]), 6, seed=2)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(4):
+        _, rew, _, extras = env.step(torch.rand(6, env.num_actions, generator=g) * 2 - 1)
+        log = extras["log"]
+        assert {f"Reward/{k}" for k in REWARD_TERMS} <= set(log)
+        total = sum(float(log[f"Reward/{k}"]) for k in REWARD_TERMS)
+        assert total == pytest.approx(float(rew.mean()), rel=1e-5, abs=1e-5)
+    means = env.read_term_means()
+    assert set(means) == {f"reward_{k}" for k in REWARD_TERMS}
