@@ -323,3 +323,27 @@ def test_workers_are_checked():
     assert fw.resolve_workers(3) == 3 and fw.resolve_workers(None) >= 1
     with pytest.raises(ValueError, match="workers must be >= 1"):
         fw.resolve_workers(0)
+
+
+def test_a_trajectory_bias_within_the_margin_is_not_a_gap_and_one_beyond_it_is():
+    """Minimum-effect bias test: the margin shifts the null (|E M| <= margin); without a margin it
+    is the plain two-sided t-test; a bad margin is a clear error."""
+    rng = np.random.default_rng(3)
+    D = np.zeros((N, len(nz.CHANNELS), len(nz.PHASES)))
+    D[:, PITCH, 0] = BLOCKS
+    D[:, IMPACT, 2] = 1
+    M = rng.normal(size=(N, len(nz.CHANNELS)))
+    M[:, PITCH] += 1.5  # significant (t ~ 1.5 sqrt(N)) but within a margin of 2
+    margin = np.zeros_like(M)
+    margin[:, PITCH] = 2.0
+    plain, material = nz.bias_tests(M, D), nz.bias_tests(M, D, margin=margin)
+    assert plain["q.gripper_pitch"]["bias"] and not material["q.gripper_pitch"]["bias"]
+    assert material["q.gripper_pitch"]["t_material"] < 0 < plain["q.gripper_pitch"]["t"]
+    assert material["impact.downrange"]["p"] == pytest.approx(plain["impact.downrange"]["p"])  # no margin there: the same test
+    M[:, PITCH] += 3.0  # now well beyond the margin
+    assert nz.bias_tests(M, D, margin=margin)["q.gripper_pitch"]["bias"]
+    with pytest.raises(ValueError, match="margin"):
+        nz.bias_tests(M, D, margin=-margin)
+    with pytest.raises(ValueError, match="margin"):
+        nz.bias_tests(M, D, margin=margin[:, :3])
+    assert nz.detectable_mean(1.0, 30, 1, margin=0.5) == pytest.approx(0.5 + nz.detectable_mean(1.0, 30, 1))

@@ -86,9 +86,11 @@ def resolve_candidates(candidates: list[str] | None) -> list[type[Effect]]:
     return out
 
 
-def _where(throws, S: np.ndarray, D: np.ndarray, noise: nz.NoiseModel, nominal, M: np.ndarray) -> dict:
-    gaps = fw.channel_gaps(S, D, None, M)
-    bias = nz.bias_tests(M, D)
+def _where(throws, S: np.ndarray, D: np.ndarray, noise: nz.NoiseModel, nominal, M: np.ndarray, margin: np.ndarray | None = None) -> dict:
+    """The where stage (docs/diagnosis.md): per channel the chi-square excess and the bias test
+    of the nominal replay's residuals; ``margin`` (N, C): :attr:`scoring.Scorer.bias_margin`."""
+    gaps = fw.channel_gaps(S, D, None, M, margin)
+    bias = nz.bias_tests(M, D, margin=margin)
     Sc, Dc = S.sum(axis=0), D.sum(axis=0)
     chans = {}
     for c, name in enumerate(nz.CHANNELS):
@@ -97,7 +99,7 @@ def _where(throws, S: np.ndarray, D: np.ndarray, noise: nz.NoiseModel, nominal, 
         chans[name] = {"chi2": float(Sc[c].sum()), "dof": float(Dc[c].sum()), "excess_z": nz.gap_test(Sc[c].sum(), Dc[c].sum())[1],
                        "gap": name in gaps, "group": nz.group_of(name), "kind": gaps.get(name, {}).get("kind"), "bias": bias.get(name),
                        "by_phase": {nz.PHASES[p]: {"chi2": float(Sc[c, p]), "dof": float(Dc[c, p])} for p in range(len(nz.PHASES)) if Dc[c, p] > 0}}
-    excess = {n: max(v["chi2"] - v["dof"], 0.0) for n, v in chans.items() if v["gap"]}
+    excess = {n: max(v["chi2"] - v["dof"], 0.0) for n, v in chans.items() if v["gap"] and v["kind"] != "bias"}
     tot = sum(excess.values())
     phase_ex = {p: sum(max(v["by_phase"].get(p, {}).get("chi2", 0) - v["by_phase"].get(p, {}).get("dof", 0), 0) for n, v in chans.items() if v["gap"])
                 for p in nz.PHASES}
@@ -216,7 +218,7 @@ def diagnose(dataset_dir: str | Path, out_dir: str | Path | None = None, test_fr
     scorer = sc.Scorer(throws, noise)
     S0 = scorer.score(nominal)
     M0 = scorer.signed(nominal)
-    where = _where(throws, S0, scorer.D, noise, nominal, M0)
+    where = _where(throws, S0, scorer.D, noise, nominal, M0, scorer.bias_margin)
     log.info("where: gap in %s (%.1f s)", where["carriers"] or "no channel", time.time() - t0)
     rounds, named = fw.select_effects(lambda base: sel.Evaluator(throws, scorer, base, cache), classes, scorer.D, train, seed, workers)
     power = None

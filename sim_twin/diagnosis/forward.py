@@ -77,7 +77,8 @@ class Round:
                 "pair_tried": [c.to_dict() for c in self.pair_tried]}
 
 
-def channel_gaps(S: np.ndarray, D: np.ndarray, S_ref: np.ndarray | None = None, M: np.ndarray | None = None) -> dict[str, dict]:
+def channel_gaps(S: np.ndarray, D: np.ndarray, S_ref: np.ndarray | None = None, M: np.ndarray | None = None,
+                 margin: np.ndarray | None = None) -> dict[str, dict]:
     """Channels (summed over throws and phases) with a gap: name -> {S, D, z, z_phase, phases:
     [phases with a gap of their own], kind: "excess" | "bias" | "excess+bias", bias: the bias
     test or None}. With ``S_ref`` (the nominal twin's), a trajectory channel whose excess is
@@ -88,10 +89,11 @@ def channel_gaps(S: np.ndarray, D: np.ndarray, S_ref: np.ndarray | None = None, 
     friction) stays visible. With ``M`` (N, C) (:meth:`scoring.Scorer.signed`) a channel whose
     mean residual fails the bias test (:func:`noise.bias_tests`, Holm over the channels) has a
     gap too, though its chi-square excess is below the threshold (a small systematic shift);
-    a trajectory channel explained by the RESIDUAL_SHARE rule stays explained."""
+    ``margin`` (N, C) is the bias tests' immaterial mean (:attr:`scoring.Scorer.bias_margin`;
+    None: 0). A trajectory channel explained by the RESIDUAL_SHARE rule stays explained."""
     Sc, Dc = S.sum(axis=0), D.sum(axis=0)
     ref = None if S_ref is None else S_ref.sum(axis=(0, 2))
-    bias = nz.bias_tests(M, D) if M is not None else {}
+    bias = nz.bias_tests(M, D, margin=margin) if M is not None else {}
     out = {}
     for c, name in enumerate(nz.CHANNELS):
         gap, z = nz.gap_test(Sc[c].sum(), Dc[c].sum())
@@ -328,7 +330,7 @@ def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train
     while len(named) < sel.MAX_EFFECTS:
         ev = ev_factory(named)
         S_nominal = ev.S_base if S_nominal is None else S_nominal
-        gaps = channel_gaps(ev.S_base, D, S_nominal if named else None, getattr(ev, "M_base", None))  # an evaluator without signed residuals: no bias test
+        gaps = channel_gaps(ev.S_base, D, S_nominal if named else None, getattr(ev, "M_base", None), getattr(ev, "bias_margin", None))  # an evaluator without signed residuals: no bias test
         rnd = Round(gaps=sorted(gaps))
         rounds.append(rnd)
         if not gaps:
@@ -460,7 +462,7 @@ def pair_step(ev_factory, classes, named: list[Effect], ev: sel.Evaluator, first
     if len(named) + 2 > sel.MAX_EFFECTS or first.wins < sel.WIN_FREQ or not first.worse or first.at_bound or first.k == 0 or not all(r.startswith("makes ") for r in reasons):
         return None, None
     ev2 = ev_factory(named + [first_sw.cls(**first.params)])
-    gaps2 = channel_gaps(ev2.S_base, D, S_nominal, getattr(ev2, "M_base", None))
+    gaps2 = channel_gaps(ev2.S_base, D, S_nominal, getattr(ev2, "M_base", None), getattr(ev2, "bias_margin", None))
     worse_gaps = {c: gaps2[c] for c in first.worse if c in gaps2}
     if not worse_gaps:
         return None, None

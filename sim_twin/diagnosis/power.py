@@ -4,8 +4,9 @@ For each main candidate (:data:`MAIN`) the throws are replayed once with its par
 small step from nominal; the change of every channel's per-throw standardised mean residual
 (:meth:`scoring.Scorer.signed`) per unit of the parameter is its sensitivity s_c. The bias test
 (:func:`noise.bias_tests`) finds a change delta in channel c with probability noise.POWER when
-|s_c delta| >= (z_{1 - alpha / (2 m)} + z_power) sd_c / sqrt(N) (:func:`noise.detectable_mean`;
-sd_c the channel's spread over the throws, m the channels tested). The detectable size is the
+|s_c delta| >= d_c + (z_{1 - alpha / (2 m)} + z_power) sd_c / sqrt(N) (:func:`noise.detectable_mean`;
+sd_c the channel's spread over the throws, m the channels tested, d_c the test's immaterial mean,
+:attr:`scoring.Scorer.bias_margin`, 0 on the impact). The detectable size is the
 smallest delta over the channels; the throws needed for the reference change follow from the
 same formula. Linear in the parameter (one step): a statement of scale, not a guarantee.
 """
@@ -50,6 +51,7 @@ def detectable(throws, scorer, cache, M0: np.ndarray, D: np.ndarray, main=MAIN) 
     if not chans:
         return {"throws": N, "alpha": nz.BIAS_ALPHA, "power": nz.POWER, "effects": {}, "text": ""}
     sd = np.array([np.std(M0[has[:, c], c], ddof=1) for c in chans])
+    margin = np.array([np.mean(scorer.bias_margin[has[:, c], c]) for c in chans])
     unit = nz.detectable_mean(1.0, 1, len(chans))  # (z_a + z_b) for sd 1, one throw
     out = {}
     for name, param, step, ref, disp, k in main:
@@ -61,8 +63,8 @@ def detectable(throws, scorer, cache, M0: np.ndarray, D: np.ndarray, main=MAIN) 
         M1 = scorer.signed(reps)
         s = np.array([np.mean((M1 - M0)[has[:, c], c]) / delta for c in chans])
         with np.errstate(divide="ignore", invalid="ignore"):
-            d_min = np.where(np.abs(s) > 0, unit * sd / (np.abs(s) * np.sqrt(N)), np.inf)
-            n_ref = float(np.min(np.where(np.abs(s) > 0, (unit * sd / (np.abs(s) * ref)) ** 2, np.inf)))
+            d_min = np.where(np.abs(s) > 0, (margin + unit * sd / np.sqrt(N)) / np.abs(s), np.inf)
+            n_ref = float(np.min(np.where(np.abs(s) * ref > margin, (unit * sd / (np.abs(s) * ref - margin)) ** 2, np.inf)))
         i = int(np.argmin(d_min))
         out[name] = {"param": param, "unit": disp, "min_change": float(d_min[i] * k), "channel": nz.CHANNELS[chans[i]],
                      "reference_change": ref * k, "throws_for_reference": int(np.ceil(n_ref)) if np.isfinite(n_ref) else None}

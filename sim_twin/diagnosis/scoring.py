@@ -70,6 +70,12 @@ class Scorer:
     Args:
         throws: N logged throws.
         noise: the noise model (:func:`estimate_noise`).
+
+    Attributes:
+        D: (N, C, P) degrees of freedom.
+        bias_margin: (N, C) the immaterial mean of :meth:`signed` per throw (units of M), the
+            margin of the bias tests (:func:`noise.bias_tests`): noise.BIAS_MARGIN sqrt(L) on
+            the trajectory channels (L scored rows), 0 on the impact and the opening delay.
     """
 
     def __init__(self, throws: list[LoggedThrow], noise: nz.NoiseModel):
@@ -99,6 +105,11 @@ class Scorer:
             if th.open_row is not None:
                 D[n, DELAY, 1] = 1
         self.D = D
+        # the immaterial mean of M per throw (noise.BIAS_MARGIN): a per-sample bias b (units of
+        # sigma) over L scored rows gives M = b sqrt(L); the impact and the opening delay: 0
+        rows = np.array([max(rp.score_rows(th), 1) for th in throws], dtype=float)
+        self.bias_margin = np.zeros((len(throws), C))
+        self.bias_margin[:, :N_TRAJ] = np.sqrt(rows)[:, None] * np.array([nz.BIAS_MARGIN[kind] for _c, kind, _j in nz.TRAJ])[None, :]
 
     def score(self, reps: list[Replay]) -> np.ndarray:
         """S (N, C, P) for replays of the N throws (same order)."""
@@ -133,7 +144,8 @@ class Scorer:
         """M (N, C): per throw and channel the standardised mean residual (logged - replayed):
         trajectory channels sum(e) / (sigma sqrt(n)) over the throw's scored rows, the impact
         channels r / sqrt(var), the logged opening delay d / sd; 0 where a channel has no data.
-        Under the null each entry has mean 0; the bias test (:func:`noise.bias_tests`) uses their
+        Under the null each entry has mean 0 (on the trajectory channels: up to the replay's
+        systematic error, :attr:`bias_margin`); the bias test (:func:`noise.bias_tests`) uses their
         spread across throws, so correlated noise within a throw does not fool it."""
         M = np.zeros((len(self.throws), C))
         for n, (th, rep) in enumerate(zip(self.throws, reps)):

@@ -264,6 +264,7 @@ class Evaluator:
         reps = rp.replay_on(throws, EffectStack(self.base), self.cache)
         self.S_base = scorer.score(reps)
         self.M_base = scorer.signed(reps)  # (N, C) standardised mean residuals: the bias tests
+        self.bias_margin = scorer.bias_margin  # (N, C) their immaterial mean
         self.replays = 0
 
     def score(self, effects: list[Effect]) -> np.ndarray:
