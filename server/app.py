@@ -28,11 +28,12 @@ from server.db.migrate import upgrade
 from server.db.models import Throw
 from server.db.session import make_engine, make_sessionmaker
 from server.diagnosis import DiagnosisRuns
+from server.drift import DriftWatch
 from server.errors import DomainError
 from server.fleet import Fleet
+from server.fleet_events import on_results
 from server.jobs import JobQueue, JobStore, queue_url
 from server.jobs import tasks as job_tasks
-from server.drift import DriftWatch
 from server.jobs.watch import JobWatcher
 from server.live import LiveHub
 from server.login_guard import LoginGuard
@@ -92,7 +93,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         own_session = zenoh_session is None
         zsession = open_zenoh(settings) if own_session else zenoh_session
         fleet = Fleet(zsession, store, settings.query_timeout_s, signer=CommandSigner(settings.resolved_site_dir))
-        app.state.live = live_hub = LiveHub(zsession, fleet)
+        app.state.live = live_hub = LiveHub(fleet)
         app.state.login_guard = LoginGuard(settings.login_failures_per_user, settings.login_failures_per_address,
                                            settings.login_workers, settings.login_max_pending,
                                            per_user_address=settings.login_failures_per_user_address)
@@ -118,16 +119,16 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
                                                    app.state.jobs)
         app.state.drift = live_hub.drift = DriftWatch(sessions, settings.data_dir, app.state.diagnosis_runs,
                                                       webhook_url=settings.drift_webhook_url, publish=live_hub.publish)
-        fleet.result_listeners.append(app.state.drift.on_result)
+        fleet.add_consumer(on_results(app.state.drift.on_result))
         try:
+            live_hub.start()  # a consumer before the fleet's subscribers exist: it hears every event
             fleet.start()
             app.state.reconciler.start()
-            live_hub.start()
             job_watcher.start()
             app.state.policies.start()
             if scene_obj is not None:
                 scene_obj.start()
-                fleet.result_listeners.append(lambda tid: _show_result(app, tid))
+                fleet.add_consumer(on_results(ResultDrawer(scene_obj, sessions, store)))
             yield
         finally:
             if scene_obj is not None:
@@ -191,14 +192,19 @@ def _make_scene(app: FastAPI, fleet: Fleet, settings: Settings) -> ConsoleScene:
     )
 
 
-def _show_result(app: FastAPI, throw_id: str) -> None:
-    """Fleet result listener: draw the stored throw in the views showing its machine."""
-    scene_obj: ConsoleScene = app.state.scene
-    with app.state.sessions() as db:
-        row = db.get(Throw, throw_id)
-        if row is None:
-            return
-        scene_obj.show_throw(row.machine_id, app.state.store.telemetry_file(row), row.impact_m, row.target_m)
+class ResultDrawer:
+    """The 3D scene's consumer of stored results: draws each stored throw in the views showing
+    its machine (called with the throw id, :func:`server.fleet_events.on_results`)."""
+
+    def __init__(self, scene: ConsoleScene, sessions, store: ResultStore):
+        self.scene, self.sessions, self.store = scene, sessions, store
+
+    def __call__(self, throw_id: str) -> None:
+        with self.sessions() as db:
+            row = db.get(Throw, throw_id)
+            if row is None:
+                return
+            self.scene.show_throw(row.machine_id, self.store.telemetry_file(row), row.impact_m, row.target_m)
 
 
 def _migrate(database_url: str, storage: StorageMonitor) -> None:
