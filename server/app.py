@@ -97,10 +97,9 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         app.state.login_guard = LoginGuard(settings.login_failures_per_user, settings.login_failures_per_address,
                                            settings.login_workers, settings.login_max_pending,
                                            per_user_address=settings.login_failures_per_user_address)
-        app.state.throws = ThrowService(fleet, sessions, settings.keep_out_zones,
-                                        previews=lambda pid: app.state.previews.get(pid),
-                                        gate=settings.gate_limits(), machine_status=live_hub.status)
-        scene_obj = _make_scene(app, fleet, settings) if settings.viser_enabled else None
+        app.state.throws = throws = ThrowService(fleet, sessions, settings.keep_out_zones,
+                                                 gate=settings.gate_limits(), machine_status=live_hub.status)
+        scene_obj = _make_scene(fleet, throws, live_hub, settings) if settings.viser_enabled else None
         app.state.settings, app.state.sessions, app.state.store = settings, sessions, store
         app.state.fleet, app.state.scene = fleet, scene_obj
         app.state.reconciler = Reconciler(fleet, sessions, store.mark_lost, settings.result_grace_s,
@@ -113,6 +112,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         app.state.previews = PreviewService(fleet, sessions, app.state.throws, app.state.jobs, settings.data_dir,
                                             settings.clearance_radius_m, settings.preview_profile,
                                             settings.release_check_radius_m)
+        throws.previews = app.state.previews.get  # a throw looks its preview up (built after the throws)
         app.state.job_watcher = job_watcher = JobWatcher(app.state.jobs.store, live_hub.publish)
         app.state.diagnosis_runs = DiagnosisRuns(sessions, app.state.jobs, settings.data_dir)
         app.state.adaptation_runs = AdaptationRuns(app.state.diagnosis_runs, app.state.policies, app.state.previews,
@@ -172,7 +172,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
     return app
 
 
-def _make_scene(app: FastAPI, fleet: Fleet, settings: Settings) -> ConsoleScene:
+def _make_scene(fleet: Fleet, throws: ThrowService, live_hub: LiveHub, settings: Settings) -> ConsoleScene:
     """The 3D view, judging clicked targets like a throw request would (mode geometry, the
     policy's trained range, keep-out zones) and pushing console changes live."""
     from server.targets import serve_refusal
@@ -181,15 +181,13 @@ def _make_scene(app: FastAPI, fleet: Fleet, settings: Settings) -> ConsoleScene:
         state = fleet.latest_state(machine_id)
         if state is None:
             return f"no state from machine {machine_id}"
-        return serve_refusal(mode, target, state.q[0], app.state.throws._target_range(machine_id, mode),  # noqa: SLF001
-                             settings.keep_out_zones)
+        return serve_refusal(mode, target, state.q[0], throws.target_range(machine_id, mode), settings.keep_out_zones)
 
-    return ConsoleScene(
-        fleet, settings.viser_host, settings.viser_port, refusal=refusal,
-        band=lambda mid, mode: app.state.throws._target_range(mid, mode),  # noqa: SLF001
-        zones=settings.keep_out_zones,
-        on_console_change=lambda con: app.state.live.publish("console", con, console_id=con["console_id"]),
-    )
+    def console_changed(con: dict) -> None:
+        live_hub.publish("console", con, console_id=con["console_id"])
+
+    return ConsoleScene(fleet, settings.viser_host, settings.viser_port, refusal=refusal, band=throws.target_range,
+                        zones=settings.keep_out_zones, on_console_change=console_changed)
 
 
 class ResultDrawer:
