@@ -11,7 +11,6 @@ import pytest
 
 from runtime.protocol import keys
 from runtime.protocol.messages import MachineState, PolicyInfo, RuntimeInfo, ThrowStatus, encode
-from server import fleet_events
 from server.fleet import Fleet
 from server.fleet_events import ResultStored
 from server.live import NO_REASON, LiveHub, machine_status
@@ -105,16 +104,46 @@ def test_hub_pushes_runtime_state_presence_progress_and_results(linked):
 
 
 def test_a_machine_state_is_decoded_once_and_reaches_the_fleet_and_the_live_stream(linked, monkeypatch):
+    """Counted at pydantic's JSON parse of each message class (whatever module decodes it), so a
+    second subscriber anywhere in the server would show as a second decode."""
     fleet, hub, z = linked
     decoded: list[type] = []
-    real = fleet_events.decode_on_key
+    for cls in (MachineState, ThrowStatus):
+        real = cls.model_validate_json
 
-    def counting(cls, key_expr, payload):
-        decoded.append(cls)
-        return real(cls, key_expr, payload)
+        def counting(payload, *a, _cls=cls, _real=real, **kw):
+            decoded.append(_cls)
+            return _real(payload, *a, **kw)
 
-    monkeypatch.setattr(fleet_events, "decode_on_key", counting)
+        monkeypatch.setattr(cls, "model_validate_json", counting)
     asyncio.run(_state_once(hub, fleet, z, decoded))
+
+
+def test_one_runtime_info_cache_feeds_commands_and_the_console(linked, monkeypatch):
+    """The RuntimeInfo the runtime publishes lands in the fleet's one cache (clock offset measured
+    from it); the console state reads the same entry, keeps showing it after the fleet forgot it
+    for reads, and shows the runtime offline once it is silent too long."""
+    from server import live
+
+    fleet, hub, z = linked
+    monkeypatch.setattr(live, "SILENT_AFTER_S", 1.0)
+    asyncio.run(_one_cache(hub, fleet, z))
+
+
+async def _one_cache(hub, fleet, z):
+    sub = hub.subscribe()
+    token = z.liveliness().declare_token(keys.runtime_alive("m1"))
+    await _next(sub, "machine", lambda d: d["machine_id"] == "m1" and d["state"] != "offline")
+    z.put(keys.runtime_state("m1"), encode(_info(clock_unix_s=time.time() + 5.0)))
+    await _next(sub, "machine", lambda d: d["state"] == "ready")
+    assert fleet.cached_info("m1").policies == POL and abs(fleet.clock_offset_s("m1") - 5.0) < 0.5
+    fleet.forget_info("m1")
+    assert fleet.cached_info("m1") is None and fleet.last_info("m1") is not None
+    assert hub.status("m1")["state"] == "ready"
+    st = await _next(sub, "machine", lambda d: d["state"] == "offline", timeout_s=5.0)  # silent > 1 s
+    assert st["reason"].startswith("runtime not answering")
+    token.undeclare()
+    hub.unsubscribe(sub)
 
 
 async def _state_once(hub, fleet, z, decoded):
