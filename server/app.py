@@ -31,6 +31,7 @@ from server.diagnosis import DiagnosisRuns
 from server.drift import DriftWatch
 from server.errors import DomainError
 from server.fleet import Fleet
+from server.fleet_events import on_results
 from server.jobs import JobQueue, JobStore, queue_url
 from server.jobs import tasks as job_tasks
 from server.jobs.watch import JobWatcher
@@ -92,14 +93,13 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         own_session = zenoh_session is None
         zsession = open_zenoh(settings) if own_session else zenoh_session
         fleet = Fleet(zsession, store, settings.query_timeout_s, signer=CommandSigner(settings.resolved_site_dir))
-        app.state.live = live_hub = LiveHub(zsession, fleet)
+        app.state.live = live_hub = LiveHub(fleet)
         app.state.login_guard = LoginGuard(settings.login_failures_per_user, settings.login_failures_per_address,
                                            settings.login_workers, settings.login_max_pending,
                                            per_user_address=settings.login_failures_per_user_address)
-        app.state.throws = ThrowService(fleet, sessions, settings.keep_out_zones,
-                                        previews=lambda pid: app.state.previews.get(pid),
-                                        gate=settings.gate_limits(), machine_status=live_hub.status)
-        scene_obj = _make_scene(app, fleet, settings) if settings.viser_enabled else None
+        app.state.throws = throws = ThrowService(fleet, sessions, settings.keep_out_zones,
+                                                 gate=settings.gate_limits(), machine_status=live_hub.status)
+        scene_obj = _make_scene(fleet, throws, live_hub, settings) if settings.viser_enabled else None
         app.state.settings, app.state.sessions, app.state.store = settings, sessions, store
         app.state.fleet, app.state.scene = fleet, scene_obj
         app.state.reconciler = Reconciler(fleet, sessions, store.mark_lost, settings.result_grace_s,
@@ -112,22 +112,23 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         app.state.previews = PreviewService(fleet, sessions, app.state.throws, app.state.jobs, settings.data_dir,
                                             settings.clearance_radius_m, settings.preview_profile,
                                             settings.release_check_radius_m)
+        throws.previews = app.state.previews.get  # a throw looks its preview up (built after the throws)
         app.state.job_watcher = job_watcher = JobWatcher(app.state.jobs.store, live_hub.publish)
         app.state.diagnosis_runs = DiagnosisRuns(sessions, app.state.jobs, settings.data_dir)
         app.state.adaptation_runs = AdaptationRuns(app.state.diagnosis_runs, app.state.policies, app.state.previews,
                                                    app.state.jobs)
         app.state.drift = live_hub.drift = DriftWatch(sessions, settings.data_dir, app.state.diagnosis_runs,
                                                       webhook_url=settings.drift_webhook_url, publish=live_hub.publish)
-        fleet.result_listeners.append(app.state.drift.on_result)
+        fleet.add_consumer(on_results(app.state.drift.on_result))
         try:
+            live_hub.start()  # a consumer before the fleet's subscribers exist: it hears every event
             fleet.start()
             app.state.reconciler.start()
-            live_hub.start()
             job_watcher.start()
             app.state.policies.start()
             if scene_obj is not None:
                 scene_obj.start()
-                fleet.result_listeners.append(lambda tid: _show_result(app, tid))
+                fleet.add_consumer(on_results(ResultDrawer(scene_obj, sessions, store)))
             yield
         finally:
             if scene_obj is not None:
@@ -198,7 +199,7 @@ def _serve_api_docs(app: FastAPI) -> None:
                               redoc_favicon_url="/docs-static/favicon.png", with_google_fonts=False)
 
 
-def _make_scene(app: FastAPI, fleet: Fleet, settings: Settings) -> ConsoleScene:
+def _make_scene(fleet: Fleet, throws: ThrowService, live_hub: LiveHub, settings: Settings) -> ConsoleScene:
     """The 3D view, judging clicked targets like a throw request would (mode geometry, the
     policy's trained range, keep-out zones) and pushing console changes live."""
     from server.targets import serve_refusal
@@ -207,25 +208,28 @@ def _make_scene(app: FastAPI, fleet: Fleet, settings: Settings) -> ConsoleScene:
         state = fleet.latest_state(machine_id)
         if state is None:
             return f"no state from machine {machine_id}"
-        return serve_refusal(mode, target, state.q[0], app.state.throws._target_range(machine_id, mode),  # noqa: SLF001
-                             settings.keep_out_zones)
+        return serve_refusal(mode, target, state.q[0], throws.target_range(machine_id, mode), settings.keep_out_zones)
 
-    return ConsoleScene(
-        fleet, settings.viser_host, settings.viser_port, refusal=refusal,
-        band=lambda mid, mode: app.state.throws._target_range(mid, mode),  # noqa: SLF001
-        zones=settings.keep_out_zones,
-        on_console_change=lambda con: app.state.live.publish("console", con, console_id=con["console_id"]),
-    )
+    def console_changed(con: dict) -> None:
+        live_hub.publish("console", con, console_id=con["console_id"])
+
+    return ConsoleScene(fleet, settings.viser_host, settings.viser_port, refusal=refusal, band=throws.target_range,
+                        zones=settings.keep_out_zones, on_console_change=console_changed)
 
 
-def _show_result(app: FastAPI, throw_id: str) -> None:
-    """Fleet result listener: draw the stored throw in the views showing its machine."""
-    scene_obj: ConsoleScene = app.state.scene
-    with app.state.sessions() as db:
-        row = db.get(Throw, throw_id)
-        if row is None:
-            return
-        scene_obj.show_throw(row.machine_id, app.state.store.telemetry_file(row), row.impact_m, row.target_m)
+class ResultDrawer:
+    """The 3D scene's consumer of stored results: draws each stored throw in the views showing
+    its machine (called with the throw id, :func:`server.fleet_events.on_results`)."""
+
+    def __init__(self, scene: ConsoleScene, sessions, store: ResultStore):
+        self.scene, self.sessions, self.store = scene, sessions, store
+
+    def __call__(self, throw_id: str) -> None:
+        with self.sessions() as db:
+            row = db.get(Throw, throw_id)
+            if row is None:
+                return
+            self.scene.show_throw(row.machine_id, self.store.telemetry_file(row), row.impact_m, row.target_m)
 
 
 def _migrate(database_url: str, storage: StorageMonitor) -> None:

@@ -63,6 +63,8 @@ class DiagnosisRuns:
         self.sessions, self.jobs, self.workers = sessions, jobs, workers
         self.data_dir = Path(data_dir)
         self._job_id: str | None = None
+        self.effects_catalog: dict | None = None
+        """The effects library as a worker described it (GET /api/diagnosis/effects), kept once fetched."""
 
     def start(self, machine_id: str, limit: int = 50, requested_by: str | None = None, workers: int | None = None) -> dict:
         """Submit a diagnosis job (export + diagnose in a worker); returns the run.

@@ -1,9 +1,13 @@
 """The server's link to the fleet over Zenoh.
 
-:class:`Fleet` tracks which runtimes are alive (liveliness of ``keys.ALL_RUNTIME_ALIVE``), keeps the
-latest :class:`MachineState` per machine (``keys.ALL_STATES``), queries runtimes (ThrowRequest ->
-ThrowAck, RuntimeInfo), follows ThrowStatus (``keys.ALL_STATUS``) into the throws table and is
-the queryable of ``keys.THROW_RESULT``: it stores each result (row + MCAP file, see
+:class:`Fleet` owns the server's one :class:`server.fleet_events.FleetListener` (one subscriber
+per machine stream, each message decoded once) and is its first consumer: it tracks which
+runtimes are alive (liveliness of ``keys.ALL_RUNTIME_ALIVE``), keeps the latest
+:class:`MachineState` per machine (``keys.ALL_STATES``) and the one RuntimeInfo cache of the
+server, follows ThrowStatus (``keys.ALL_STATUS``) into the throws table; the other consumers
+(the live stream, the drift watch, the 3D scene) register with :meth:`Fleet.add_consumer` and
+see the same events after the fleet's state is updated. It queries runtimes (ThrowRequest ->
+ThrowAck, RuntimeInfo) and is the queryable of ``keys.THROW_RESULT``: it stores each result (row + MCAP file, see
 :mod:`server.results`) and replies ``ResultAck(stored=True)`` only after the commit. Results are
 stored only with a valid MAC of their machine's command key and only for throws the server issued;
 anything else is refused with the reason, logged and never shown in the history.
@@ -38,19 +42,21 @@ import zenoh
 from pydantic import ValidationError
 
 from runtime.protocol import keys
-from runtime.protocol.messages import (
-    MachineState,
-    ResultAck,
-    RuntimeInfo,
-    ThrowResult,
-    ThrowStatus,
-    decode,
-    decode_on_key,
-    encode,
-)
+from runtime.protocol.messages import MachineState, ResultAck, RuntimeInfo, ThrowResult, decode, encode
 from server.command_signer import CommandSigner
 from server.estop import EstopLine
 from server.fleet_commands import FleetCommands, RuntimeUnavailable
+from server.fleet_events import (
+    Consumer,
+    FleetEvent,
+    FleetListener,
+    MachineStateEvent,
+    ResultStored,
+    RuntimeInfoEvent,
+    RuntimeOffline,
+    RuntimeOnline,
+    ThrowStatusEvent,
+)
 from server.results import ResultStore, UnknownThrow
 
 log = logging.getLogger(__name__)
@@ -93,6 +99,10 @@ class Fleet(FleetCommands):
         """(throw id, reason) of the last refused results (bounded), for tests and diagnostics."""
         self._states: dict[str, MachineState] = {}
         self._infos: dict[str, tuple[float, RuntimeInfo]] = {}
+        """machine id -> (monotonic s received, RuntimeInfo): the server's one RuntimeInfo cache."""
+        self._forgotten: set[str] = set()
+        """machines whose cached RuntimeInfo is forgotten (:meth:`forget_info`): reads ask again,
+        the console still shows it (:meth:`last_info`) until a newer one arrives."""
         self._published_s: dict[str, float] = {}
         """machine id -> monotonic s of its runtime's last RuntimeInfo on keys.runtime_state."""
         self._clock_offsets: dict[str, float] = {}
@@ -104,26 +114,35 @@ class Fleet(FleetCommands):
         self._stage = ThreadPoolExecutor(max_workers=STAGE_THREADS, thread_name_prefix="telemetry")
         self._worker: threading.Thread | None = None
         self._decls: list = []
-        self.result_listeners: list[Callable[[str], None]] = []
-        """Called (on the worker thread) with the throw id after a result is stored."""
+        self.listener = FleetListener()
+        """The one subscriber of the machine streams; the fleet is its first consumer."""
+        self.listener.add_consumer(self._on_event)
 
     # --- lifecycle -----------------------------------------------------------------------------
+    def add_consumer(self, consumer: Consumer) -> None:
+        """Register ``consumer`` for every fleet event (:mod:`server.fleet_events`), after the
+        fleet's own handling of it. Zenoh events come on Zenoh threads, :class:`ResultStored` on
+        the fleet's database thread; a consumer must not block."""
+        self.listener.add_consumer(consumer)
+
+    def remove_consumer(self, consumer: Consumer) -> None:
+        self.listener.remove_consumer(consumer)
+
     def start(self) -> None:
-        """Start the worker, then declare subscribers and the result queryable."""
+        """Start the worker, then declare the listener's subscribers, the E-STOP acks' and the
+        result queryable."""
         self._worker = threading.Thread(target=self._work, name="fleet-db", daemon=True)
         self._worker.start()
         s = self.session
+        self.listener.start(s)
         self._decls = [
-            s.liveliness().declare_subscriber(keys.ALL_RUNTIME_ALIVE, self._on_alive, history=True),
-            s.declare_subscriber(keys.ALL_STATES, self._on_state),
-            s.declare_subscriber(keys.ALL_STATUS, self._on_status),
-            s.declare_subscriber(keys.ALL_RUNTIME_STATES, self._on_runtime_state),
             s.declare_subscriber(keys.ALL_ESTOP_ACKS, self._estop.on_ack),
             s.declare_queryable(keys.THROW_RESULT, self._on_result, complete=True),
         ]
 
     def stop(self) -> None:
         """Undeclare everything and drain the worker (pending results are still stored)."""
+        self.listener.stop()
         for d in self._decls:
             try:
                 d.undeclare()
@@ -165,7 +184,15 @@ class Fleet(FleetCommands):
             return dict(self._states)
 
     def cached_info(self, machine_id: str) -> RuntimeInfo | None:
-        """The last RuntimeInfo of ``machine_id`` (None if none since it came online)."""
+        """The last RuntimeInfo of ``machine_id`` (None if none since it came online or since
+        :meth:`forget_info`)."""
+        with self._lock:
+            entry = None if machine_id in self._forgotten else self._infos.get(machine_id)
+        return entry[1] if entry else None
+
+    def last_info(self, machine_id: str) -> RuntimeInfo | None:
+        """The last RuntimeInfo heard from ``machine_id``'s runtime since it came online, even
+        one :meth:`forget_info` dropped for reads (what the console shows until a newer one comes)."""
         with self._lock:
             entry = self._infos.get(machine_id)
         return entry[1] if entry else None
@@ -177,7 +204,7 @@ class Fleet(FleetCommands):
         if not self.is_online(machine_id):
             return None
         with self._lock:
-            entry = self._infos.get(machine_id)
+            entry = None if machine_id in self._forgotten else self._infos.get(machine_id)
         if entry is not None and time.monotonic() - entry[0] <= max_age_s:
             return entry[1]
         if not self.is_answering(machine_id):  # silent: a query would only wait for its timeout
@@ -190,7 +217,7 @@ class Fleet(FleetCommands):
 
     def silent_for_s(self, machine_id: str) -> float:
         """Seconds since the runtime of ``machine_id`` last published its RuntimeInfo (it does
-        at >= 2 Hz); 0 while it is offline or has never published (an older runtime)."""
+        at >= 2 Hz); 0 while it is offline or has not published since it came online."""
         with self._lock:
             if machine_id not in self._alive or machine_id not in self._published_s:
                 return 0.0
@@ -215,6 +242,7 @@ class Fleet(FleetCommands):
             if info.machine_id not in self._alive and published:
                 return
             self._infos[info.machine_id] = (now, info)
+            self._forgotten.discard(info.machine_id)
             if published:
                 self._published_s[info.machine_id] = now
             if info.clock_unix_s is not None:
@@ -223,7 +251,8 @@ class Fleet(FleetCommands):
     def forget_info(self, machine_id: str) -> None:
         """Drop the cached RuntimeInfo (e.g. after its policies changed) so the next read asks."""
         with self._lock:
-            self._infos.pop(machine_id, None)
+            if machine_id in self._infos:
+                self._forgotten.add(machine_id)
 
     def submit_db_job(self, job: Callable[[], object]) -> Future:
         """Run ``job`` on the fleet's database thread; its Future completes when it ran."""
@@ -239,53 +268,37 @@ class Fleet(FleetCommands):
         self._jobs.put(run)
         return done
 
-    # --- callbacks (Zenoh threads) -------------------------------------------------------------
-    def _on_alive(self, sample: zenoh.Sample) -> None:
-        try:
-            machine_id = keys.machine_id_of(str(sample.key_expr))
-        except ValueError:
-            return
-        if sample.kind == zenoh.SampleKind.PUT:
-            log.info("runtime %s online", machine_id)
+    # --- events (Zenoh threads) ----------------------------------------------------------------
+    def _on_event(self, event: FleetEvent) -> None:
+        """The fleet's own handling of a listener event, before any other consumer sees it."""
+        if isinstance(event, MachineStateEvent):
             with self._lock:
+                self._states[event.machine_id] = event.state
+        elif isinstance(event, RuntimeInfoEvent):
+            self._note_info(event.info, published=True)
+        elif isinstance(event, ThrowStatusEvent):
+            status = event.status
+            self._jobs.put(lambda: self.store.apply_status(status))
+        elif isinstance(event, RuntimeOnline):
+            log.info("runtime %s online", event.machine_id)
+            self._set_alive(event.machine_id, True)
+            self._jobs.put(lambda: self._register(event.machine_id))
+        elif isinstance(event, RuntimeOffline):
+            log.info("runtime %s offline", event.machine_id)
+            self._set_alive(event.machine_id, False)
+
+    def _set_alive(self, machine_id: str, alive: bool) -> None:
+        """Presence changed: a new claim (or none) -- its RuntimeInfo and epoch are asked again."""
+        with self._lock:
+            if alive:
                 self._alive.add(machine_id)
                 self._offline_since.pop(machine_id, None)
-                self._infos.pop(machine_id, None)  # a new claim: its epoch is asked again
-                self._published_s.pop(machine_id, None)
-            self._jobs.put(lambda: self._register(machine_id))
-        else:
-            log.info("runtime %s offline", machine_id)
-            with self._lock:
+            else:
                 self._alive.discard(machine_id)
                 self._offline_since[machine_id] = time.monotonic()
-                self._infos.pop(machine_id, None)
-                self._published_s.pop(machine_id, None)
-
-    def _on_runtime_state(self, sample: zenoh.Sample) -> None:
-        """A runtime's published RuntimeInfo (2 Hz and on change) refreshes the cache."""
-        try:
-            info = decode_on_key(RuntimeInfo, sample.key_expr, sample.payload.to_bytes())
-        except (ValidationError, ValueError) as e:
-            log.debug("dropped RuntimeInfo on %s: %s", sample.key_expr, e)
-            return
-        self._note_info(info, published=True)
-
-    def _on_state(self, sample: zenoh.Sample) -> None:
-        try:
-            state = decode(MachineState, sample.payload.to_bytes())
-        except ValidationError:
-            log.debug("dropped malformed MachineState on %s", sample.key_expr)
-            return
-        with self._lock:
-            self._states[state.machine_id] = state
-
-    def _on_status(self, sample: zenoh.Sample) -> None:
-        try:
-            status = decode(ThrowStatus, sample.payload.to_bytes())
-        except ValidationError:
-            log.warning("dropped malformed ThrowStatus on %s", sample.key_expr)
-            return
-        self._jobs.put(lambda: self.store.apply_status(status))
+            self._infos.pop(machine_id, None)
+            self._forgotten.discard(machine_id)
+            self._published_s.pop(machine_id, None)
 
     def _on_result(self, query: zenoh.Query) -> None:
         raw = query.payload.to_bytes() if query.payload is not None else b""
@@ -377,8 +390,4 @@ class Fleet(FleetCommands):
         finally:
             query.drop()
         if stored:
-            for listener in list(self.result_listeners):
-                try:
-                    listener(result.throw_id)
-                except Exception:
-                    log.exception("result listener failed")
+            self.listener.emit(ResultStored(result.throw_id))

@@ -1,19 +1,20 @@
 """Live push to the console: one machine state per machine, throw progress, results and live
 throw samples, delivered to every open console page over Server-Sent Events (``GET /api/live``).
 
-:class:`LiveHub` listens on Zenoh next to :class:`server.fleet.Fleet` (same session):
+:class:`LiveHub` is a consumer of the fleet's events (:mod:`server.fleet_events`, through
+:meth:`server.fleet.Fleet.add_consumer`); it declares nothing on Zenoh itself:
 
-* ``keys.ALL_RUNTIME_STATES``: the runtime's RuntimeInfo (2 Hz and on every change) ->
-  ``machine`` events (see :func:`machine_status`);
-* ``keys.ALL_RUNTIME_ALIVE`` (liveliness): runtime online/offline -> ``machine`` events at once;
-* ``keys.ALL_STATUS``: ThrowStatus -> ``throw`` events (phase, seconds since the request);
-* ``keys.ALL_STATES`` and the valve commands: during a throw, ``sample`` events at
-  ``SAMPLE_RATE_HZ`` (joint velocities, passive angles, valve commands, payload position);
-* stored results (``Fleet.result_listeners``) -> ``result`` events;
+* RuntimeInfoEvent (the runtime's RuntimeInfo, 2 Hz and on every change) -> ``machine`` events
+  (see :func:`machine_status`; the RuntimeInfo is read from the fleet's one cache);
+* RuntimeOnline / RuntimeOffline (liveliness) -> ``machine`` events at once;
+* ThrowStatusEvent -> ``throw`` events (phase, seconds since the request);
+* MachineStateEvent and ValveCommandEvent: during a throw, ``sample`` events at ``SAMPLE_RATE_HZ``
+  (joint velocities, passive angles, valve commands, payload position);
+* ResultStored -> ``result`` events;
 * per-console events (the target a click picked, ...) from :mod:`server.scene` via :meth:`LiveHub.publish`.
 
 Every subscriber also gets a ``heartbeat`` each ``HEARTBEAT_S`` so a page notices a silent server.
-Zenoh callbacks run on Zenoh threads; events are handed to each subscriber's asyncio queue with
+Fleet events come on Zenoh threads; events are handed to each subscriber's asyncio queue with
 ``loop.call_soon_threadsafe`` (a full queue drops the subscriber's oldest events: slow pages lose
 samples, never block the server).
 """
@@ -27,13 +28,20 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import zenoh
-from pydantic import ValidationError
 
 from runtime.machine import forward_kinematics
-from runtime.protocol import keys
-from runtime.protocol.messages import MachineState, RuntimeInfo, ThrowStatus, ValveCommand, decode
+from runtime.protocol.messages import MachineState, RuntimeInfo
 from server.fleet import RUNTIME_SILENT_S
+from server.fleet_events import (
+    FleetEvent,
+    MachineStateEvent,
+    ResultStored,
+    RuntimeInfoEvent,
+    RuntimeOffline,
+    RuntimeOnline,
+    ThrowStatusEvent,
+    ValveCommandEvent,
+)
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +51,7 @@ SAMPLE_RATE_HZ = 25.0
 """Live throw samples per second and machine (MachineState comes at 100 Hz)."""
 QUEUE_SIZE = 2000
 ACTIVE_PHASES = ("preparing", "swinging", "released")
-ALL_VALVE_CMDS = f"{keys.ROOT}/machine/*/valve_cmd"
+NO_REASON = "the runtime says it is not ready (no reason given)"
 SILENT_AFTER_S = RUNTIME_SILENT_S
 """A runtime that published RuntimeInfo before and is silent this long is shown offline
 ("runtime not answering": frozen or cut off), whatever it said last (busy, swinging, ...)."""
@@ -57,7 +65,8 @@ def machine_status(machine_id: str, online: bool, info: RuntimeInfo | None, info
         machine_id: the machine.
         online: the runtime holds its liveliness token.
         info: its latest RuntimeInfo (None if none heard since it came online).
-        info_age_s: seconds since ``info`` was received (None: never).
+        info_age_s: seconds since the runtime last published its RuntimeInfo (None or 0: not
+            judged, e.g. none published since it came online).
         throw: the running throw as tracked from ThrowStatus ({"throw_id", "phase", ...}).
 
     Returns:
@@ -65,9 +74,7 @@ def machine_status(machine_id: str, online: bool, info: RuntimeInfo | None, info
         "reason" (str | None, plain words), "estop_reason", "phase", "throw_id", "policies"
         {mode: version}, "simulated", "recovery" (the runtime's offered recovery action, e.g.
         "return_to_ready", else None), "returning" (a return to the ready pose runs),
-        "return_progress" (0..1 or None), "return_result" (how the last one ended or None)}. A runtime without the machine-state fields of RuntimeInfo
-        (older protocol; on the wire as ready False without a reason) is judged by ``busy``,
-        ``machine_online`` and its policies.
+        "return_progress" (0..1 or None), "return_result" (how the last one ended or None)}.
     """
     out = {"machine_id": machine_id, "state": "offline", "reason": "runtime offline", "estop_reason": None,
            "phase": None, "throw_id": None, "policies": {}, "simulated": bool(info and info.simulated),
@@ -93,14 +100,7 @@ def machine_status(machine_id: str, online: bool, info: RuntimeInfo | None, info
         return {**out, "state": "not_ready", "reason": "machine offline (no joint states)"}
     if info.ready:
         return {**out, "state": "ready"}
-    if info.not_ready_reason:
-        return {**out, "state": "not_ready", "reason": info.not_ready_reason}
-    # not ready without a reason: a runtime that does not judge readiness itself (older protocol)
-    if not info.policies:
-        return {**out, "state": "not_ready", "reason": "no policy installed"}
-    if info.busy:
-        return {**out, "state": "throwing"}
-    return {**out, "state": "ready"}
+    return {**out, "state": "not_ready", "reason": info.not_ready_reason or NO_REASON}
 
 
 @dataclass
@@ -125,49 +125,35 @@ class Subscriber:
 
 
 class LiveHub:
-    """Collects machine state, throw progress and results; fans them out to subscribers.
+    """Turns fleet events into console events and fans them out to subscribers.
 
     Args:
-        session: the server's open Zenoh session (the caller closes it).
-        fleet: :class:`server.fleet.Fleet` (presence, result listeners, RuntimeInfo fallback).
+        fleet: :class:`server.fleet.Fleet`: its events (:meth:`~server.fleet.Fleet.add_consumer`),
+            presence, latest machine states and its RuntimeInfo cache.
     """
 
-    def __init__(self, session: zenoh.Session, fleet):
+    def __init__(self, fleet):
         self.drift = None  # server.drift.DriftWatch: its alert joins each machine's state as "drift_alert"
-        self.session, self.fleet = session, fleet
+        self.fleet = fleet
         self._lock = threading.Lock()
         self._subs: list[Subscriber] = []
-        self._infos: dict[str, tuple[float, RuntimeInfo]] = {}
         self._throws: dict[str, dict] = {}
         self._valves: dict[str, list[float]] = {}
         self._last_sample: dict[str, float] = {}
         self._last_status: dict[str, dict] = {}
-        self._decls: list = []
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
     # --- lifecycle -----------------------------------------------------------------------------
     def start(self) -> None:
-        s = self.session
-        self._decls = [
-            s.declare_subscriber(keys.ALL_RUNTIME_STATES, self._on_runtime_state),
-            s.liveliness().declare_subscriber(keys.ALL_RUNTIME_ALIVE, self._on_alive, history=True),
-            s.declare_subscriber(keys.ALL_STATUS, self._on_status),
-            s.declare_subscriber(keys.ALL_STATES, self._on_state),
-            s.declare_subscriber(ALL_VALVE_CMDS, self._on_valve),
-        ]
-        self.fleet.result_listeners.append(self._on_result)
+        """Consume the fleet's events and start the heartbeat thread."""
+        self.fleet.add_consumer(self.on_event)
         self._thread = threading.Thread(target=self._tick, name="live-hub", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
         self._stop.set()
-        for d in self._decls:
-            try:
-                d.undeclare()
-            except Exception:  # session already closed
-                log.debug("undeclare failed", exc_info=True)
-        self._decls = []
+        self.fleet.remove_consumer(self.on_event)
         if self._thread is not None:
             self._thread.join(timeout=3.0)
 
@@ -194,18 +180,15 @@ class LiveHub:
             s.put((event, data))
 
     # --- state ---------------------------------------------------------------------------------
-    def status(self, machine_id: str, online: bool | None = None) -> dict:
-        """:func:`machine_status` of ``machine_id`` now (``online``: presence if known better
-        than the fleet's, e.g. from the liveliness sample being handled)."""
-        online = self.fleet.is_online(machine_id) if online is None else online
+    def status(self, machine_id: str) -> dict:
+        """:func:`machine_status` of ``machine_id`` now, from the fleet's presence and RuntimeInfo
+        cache, with ``simulated``, ``cabin_turn_rad`` (from its latest MachineState, rad, None if
+        none) and ``drift_alert`` (:meth:`server.drift.DriftWatch.alert`) added."""
+        online = self.fleet.is_online(machine_id)
         with self._lock:
-            entry = self._infos.get(machine_id)
             throw = self._throws.get(machine_id)
-        if entry is not None:
-            info, age = entry[1], time.monotonic() - entry[0]
-        else:
-            info, age = self.fleet.cached_info(machine_id), None
-        st = machine_status(machine_id, online, info, age, throw)
+        info = self.fleet.last_info(machine_id)
+        st = machine_status(machine_id, online, info, self.fleet.silent_for_s(machine_id) if info else None, throw)
         state = self.fleet.latest_state(machine_id)
         st["simulated"] = st["simulated"] or bool(state is not None and state.simulated)
         st["cabin_turn_rad"] = float(state.q[0]) if state is not None else None
@@ -215,7 +198,7 @@ class LiveHub:
     def statuses(self) -> list[dict]:
         ids = set(self.fleet.online_ids()) | set(self.fleet.latest_states())
         with self._lock:
-            ids |= set(self._infos) | set(self._last_status)
+            ids |= set(self._last_status)
         return [self.status(mid) for mid in sorted(ids)]
 
     def _push_status(self, machine_id: str, force: bool = False) -> None:
@@ -227,38 +210,28 @@ class LiveHub:
         if force or not same:
             self.publish("machine", st)
 
-    # --- Zenoh callbacks -----------------------------------------------------------------------
-    def _on_runtime_state(self, sample: zenoh.Sample) -> None:
-        try:
-            info = decode(RuntimeInfo, sample.payload.to_bytes())
-        except ValidationError:
-            log.debug("dropped malformed RuntimeInfo on %s", sample.key_expr)
-            return
-        with self._lock:
-            self._infos[info.machine_id] = (time.monotonic(), info)
-        self._push_status(info.machine_id)
-
-    def _on_alive(self, sample: zenoh.Sample) -> None:
-        try:
-            machine_id = keys.machine_id_of(str(sample.key_expr))
-        except ValueError:
-            return
-        if sample.kind != zenoh.SampleKind.PUT:
+    # --- fleet events (Zenoh threads; ResultStored on the fleet's database thread) ---------------
+    def on_event(self, event: FleetEvent) -> None:
+        """Consume one fleet event (the fleet's own state is already updated)."""
+        if isinstance(event, MachineStateEvent):
+            self._on_state(event.state)
+        elif isinstance(event, ValveCommandEvent):
             with self._lock:
-                self._infos.pop(machine_id, None)
-                self._throws.pop(machine_id, None)
-        # the fleet's own liveliness callback may run after ours: judge presence from the sample
-        st = self.status(machine_id, online=sample.kind == zenoh.SampleKind.PUT)
-        with self._lock:
-            self._last_status[machine_id] = {k: v for k, v in st.items() if k != "cabin_turn_rad"}
-        self.publish("machine", st)
+                self._valves[event.machine_id] = [round(float(u), 4) for u in event.command.u]
+        elif isinstance(event, RuntimeInfoEvent):
+            self._push_status(event.machine_id)
+        elif isinstance(event, ThrowStatusEvent):
+            self._on_status(event)
+        elif isinstance(event, (RuntimeOnline, RuntimeOffline)):
+            if isinstance(event, RuntimeOffline):
+                with self._lock:
+                    self._throws.pop(event.machine_id, None)
+            self._push_status(event.machine_id, force=True)
+        elif isinstance(event, ResultStored):
+            self.publish("result", {"throw_id": event.throw_id})
 
-    def _on_status(self, sample: zenoh.Sample) -> None:
-        try:
-            status = decode(ThrowStatus, sample.payload.to_bytes())
-            machine_id = keys.machine_id_of(str(sample.key_expr))
-        except (ValidationError, ValueError):
-            return
+    def _on_status(self, event: ThrowStatusEvent) -> None:
+        status, machine_id = event.status, event.machine_id
         now = time.monotonic()
         with self._lock:
             cur = self._throws.get(machine_id)
@@ -273,20 +246,7 @@ class LiveHub:
                                "detail": status.detail, "elapsed_s": round(now - cur["started"], 3)})
         self._push_status(machine_id)
 
-    def _on_valve(self, sample: zenoh.Sample) -> None:
-        try:
-            cmd = decode(ValveCommand, sample.payload.to_bytes())
-            machine_id = keys.machine_id_of(str(sample.key_expr))
-        except (ValidationError, ValueError):
-            return
-        with self._lock:
-            self._valves[machine_id] = [round(float(u), 4) for u in cmd.u]
-
-    def _on_state(self, sample: zenoh.Sample) -> None:
-        try:
-            state = decode(MachineState, sample.payload.to_bytes())
-        except ValidationError:
-            return
+    def _on_state(self, state: MachineState) -> None:
         mid = state.machine_id
         now = time.monotonic()
         with self._lock:
@@ -297,22 +257,14 @@ class LiveHub:
             valves = self._valves.get(mid)
         self.publish("sample", sample_of(state, throw, valves, now))
 
-    def _on_result(self, throw_id: str) -> None:
-        self.publish("result", {"throw_id": throw_id})
-
     def _tick(self) -> None:
-        """Heartbeats, and re-judged states (a silent runtime, presence changes seen late)."""
+        """Heartbeats, and re-judged states (a runtime gone silent shows offline after SILENT_AFTER_S)."""
         while not self._stop.wait(HEARTBEAT_S):
             self.publish("heartbeat", {"server_time_s": time.time()})
             ids = set(self.fleet.online_ids())
             with self._lock:
                 ids |= set(self._last_status)
             for mid in ids:
-                with self._lock:
-                    heard = mid in self._infos
-                if not heard and self.fleet.is_online(mid):
-                    # runtime without keys.runtime_state (older protocol): ask it (cached 2 s)
-                    self.fleet.fresh_info(mid, max_age_s=2.0, timeout_s=0.5)
                 self._push_status(mid)
 
 

@@ -15,12 +15,12 @@ import logging
 import math
 import uuid
 from collections.abc import Callable
+from dataclasses import dataclass
 
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from runtime.protocol.messages import MachineState, ThrowAck, ThrowRequest
-from server.api.schemas import ThrowCreate
 from server.auth import audit
 from server.db.models import Machine, PolicyVersion, Throw
 from server.db.types import utcnow
@@ -31,6 +31,25 @@ from server.targets import serve_refusal
 from server.throw_gate import GateLimits, preview_refusal
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ThrowOrder:
+    """An operator's throw, as the service takes it (the API's ThrowCreate, validated there).
+
+    Attributes:
+        machine_id: the machine.
+        mode: "2d" or "3d".
+        target: (3,) target in the machine frame, m.
+        preview_id: the preview the throw was shown (its prediction is stored with the throw).
+        confirm_clearance: 3D throws only: the operator confirmed the swept clearance zone is clear.
+    """
+
+    machine_id: str
+    mode: str
+    target: list[float]
+    preview_id: str | None = None
+    confirm_clearance: bool = False
 
 
 class ThrowService:
@@ -75,12 +94,12 @@ class ThrowService:
             raise Unavailable(f"the runtime of machine {mid} is offline")
         if state is None:
             raise Unavailable(f"no state from machine {mid} yet: is the machine connected?")
-        reason = serve_refusal(mode, target, state.q[0], self._target_range(mid, mode), self.keep_out_zones)
+        reason = serve_refusal(mode, target, state.q[0], self.target_range(mid, mode), self.keep_out_zones)
         if reason is not None:
             raise Refused(reason)
         return state
 
-    def create(self, body: ThrowCreate, username: str = "system") -> tuple[Throw, ThrowAck]:
+    def create(self, body: ThrowOrder, username: str = "system") -> tuple[Throw, ThrowAck]:
         """Check, record and hand a throw to its runtime.
 
         Returns:
@@ -151,7 +170,7 @@ class ThrowService:
             return st.get("estop_reason") or "no reason given"
         return None
 
-    def _preview_of(self, body: ThrowCreate, state: MachineState) -> dict | None:
+    def _preview_of(self, body: ThrowOrder, state: MachineState) -> dict | None:
         """The stored form of the preview the throw is sent with, after the gate
         (server.throw_gate) passed; None without a preview when the gate is off.
 
@@ -189,7 +208,7 @@ class ThrowService:
         info = self.fleet.fresh_info(machine_id, max_age_s=60.0, timeout_s=1.0)
         return next((p.sha256 for p in (info.policies if info else []) if p.mode == mode and p.version == version), None)
 
-    def _target_range(self, machine_id: str, mode: str) -> tuple[float, float] | None:
+    def target_range(self, machine_id: str, mode: str) -> tuple[float, float] | None:
         """The trained target range of the policy ``machine_id`` runs for ``mode``, from its
         registered manifest; None when unknown (target_refusal then uses its default)."""
         default = None

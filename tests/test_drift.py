@@ -143,19 +143,16 @@ def test_listener_ignores_unknown_and_unlanded_throws_and_the_live_state_carries
     assert watch._state == {}
 
     class Fleet:
-        def __init__(self):
-            self.result_listeners = []
-
         def is_online(self, mid):
             return False
 
-        def cached_info(self, mid):
+        def last_info(self, mid):
             return None
 
         def latest_state(self, mid):
             return None
 
-    hub = LiveHub(None, Fleet())
+    hub = LiveHub(Fleet())
     assert hub.status("m2")["drift_alert"] is None
     hub.drift = watch
     rng = np.random.default_rng(3)

@@ -1,4 +1,11 @@
-"""Dependencies with aliases so routes read like prose (``db: SessionDep``)."""
+"""Typed dependencies, so routes read like prose (``db: SessionDep``, ``fleet: FleetDep``).
+
+The services are built once at start-up from the settings (:func:`server.app.create_app`'s
+lifespan) and kept on the application; this module is the one place that reads them from there:
+routes take them as parameters of the types below and never read ``request.app.state``. The
+getters are ``async`` so they run on the event loop, never waiting for a request thread (the
+E-STOP route relies on that).
+"""
 
 from __future__ import annotations
 
@@ -6,13 +13,23 @@ from collections.abc import Iterator
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
+from server.adaptation import AdaptationRuns
 from server.auth import COOKIE_NAME, role_at_least, user_for_token
 from server.config import Settings
 from server.db.models import User
+from server.diagnosis import DiagnosisRuns
 from server.fleet import Fleet
+from server.jobs import JobQueue
+from server.jobs.watch import JobWatcher
+from server.live import LiveHub
+from server.login_guard import LoginGuard
+from server.policies import PolicyService
+from server.previews import PreviewService
+from server.results import ResultStore
 from server.scene import ConsoleScene
+from server.storage import StorageMonitor
 from server.throws import ThrowService
 
 
@@ -21,27 +38,84 @@ def get_db(request: Request) -> Iterator[Session]:
         yield session
 
 
-def get_fleet(request: Request) -> Fleet:
+async def get_sessions(request: Request) -> sessionmaker[Session]:
+    """The session factory (for work that opens its own sessions, e.g. after the reply)."""
+    return request.app.state.sessions
+
+
+async def get_fleet(request: Request) -> Fleet:
     return request.app.state.fleet
 
 
-def get_throw_service(request: Request) -> ThrowService:
+async def get_throw_service(request: Request) -> ThrowService:
     return request.app.state.throws
 
 
-def get_scene(request: Request) -> ConsoleScene | None:
+async def get_scene(request: Request) -> ConsoleScene | None:
     return request.app.state.scene
 
 
-def get_app_settings(request: Request) -> Settings:
+async def get_app_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
+async def get_live(request: Request) -> LiveHub | None:
+    """The live push hub (None before the lifespan built it)."""
+    return getattr(request.app.state, "live", None)
+
+
+async def get_jobs(request: Request) -> JobQueue:
+    return request.app.state.jobs
+
+
+async def get_job_watcher(request: Request) -> JobWatcher:
+    return request.app.state.job_watcher
+
+
+async def get_previews(request: Request) -> PreviewService:
+    return request.app.state.previews
+
+
+async def get_policies(request: Request) -> PolicyService:
+    return request.app.state.policies
+
+
+async def get_store(request: Request) -> ResultStore:
+    return request.app.state.store
+
+
+async def get_diagnosis_runs(request: Request) -> DiagnosisRuns:
+    return request.app.state.diagnosis_runs
+
+
+async def get_adaptation_runs(request: Request) -> AdaptationRuns:
+    return request.app.state.adaptation_runs
+
+
+async def get_login_guard(request: Request) -> LoginGuard:
+    return request.app.state.login_guard
+
+
+async def get_storage(request: Request) -> StorageMonitor:
+    return request.app.state.storage
+
+
 SessionDep = Annotated[Session, Depends(get_db)]
+SessionsDep = Annotated[sessionmaker[Session], Depends(get_sessions)]
 FleetDep = Annotated[Fleet, Depends(get_fleet)]
 ThrowServiceDep = Annotated[ThrowService, Depends(get_throw_service)]
 SceneDep = Annotated[ConsoleScene | None, Depends(get_scene)]
 SettingsDep = Annotated[Settings, Depends(get_app_settings)]
+LiveDep = Annotated[LiveHub | None, Depends(get_live)]
+JobsDep = Annotated[JobQueue, Depends(get_jobs)]
+JobWatcherDep = Annotated[JobWatcher, Depends(get_job_watcher)]
+PreviewsDep = Annotated[PreviewService, Depends(get_previews)]
+PoliciesDep = Annotated[PolicyService, Depends(get_policies)]
+StoreDep = Annotated[ResultStore, Depends(get_store)]
+DiagnosisRunsDep = Annotated[DiagnosisRuns, Depends(get_diagnosis_runs)]
+AdaptationRunsDep = Annotated[AdaptationRuns, Depends(get_adaptation_runs)]
+LoginGuardDep = Annotated[LoginGuard, Depends(get_login_guard)]
+StorageDep = Annotated[StorageMonitor, Depends(get_storage)]
 
 
 def session_token(request: Request) -> str | None:

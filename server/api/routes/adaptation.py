@@ -4,23 +4,17 @@ the site's fitted profile, ready to promote); GET lists and reads runs."""
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Literal
 
-from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi import APIRouter, HTTPException
 from pydantic import BaseModel, Field
 
-from server.adaptation import AdaptationRuns
-from server.api.deps import AdminDep, ViewerDep
+from server.api.deps import AdaptationRunsDep, AdminDep, ViewerDep
 
 router = APIRouter(tags=["adaptation"])
 
 
-def get_adaptations(request: Request) -> AdaptationRuns:
-    """The app's adaptation runs (built once at start-up, server.app)."""
-    return request.app.state.adaptation_runs
-
-
-AdaptDep = Annotated[AdaptationRuns, Depends(get_adaptations)]
+AdaptDep = AdaptationRunsDep
 
 
 class AdaptCreate(BaseModel):

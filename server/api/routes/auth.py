@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, HTTPException, Request, Response
 
 from server.api.account_schemas import LoginIn, LoginOut, UserOut
-from server.api.deps import CurrentUser, SettingsDep, session_token
+from server.api.deps import CurrentUser, LoginGuardDep, SessionsDep, SettingsDep, session_token
 from server.auth import COOKIE_NAME, AuthError, audit, authenticate, create_session, end_session
 from server.login_guard import LoginBusy
 
@@ -40,7 +40,8 @@ def _too_many(detail: str, retry_after_s: int) -> HTTPException:
     401: {"description": "bad credentials"},
     429: {"description": "too many failed log-ins for this user or address, or too many log-ins in "
                          "progress; the Retry-After header says in how many seconds to try again"}})
-async def login(body: LoginIn, request: Request, response: Response, settings: SettingsDep) -> LoginOut:
+async def login(body: LoginIn, request: Request, response: Response, settings: SettingsDep, guard: LoginGuardDep,
+                sessions: SessionsDep) -> LoginOut:
     """Check the credentials, start a session: cookie ``slinger_session`` (Secure when served over
     HTTPS) and the token in the body (send it as ``Authorization: Bearer <token>`` from scripts).
 
@@ -48,13 +49,12 @@ async def login(body: LoginIn, request: Request, response: Response, settings: S
     sparing addresses the user logged in from) the user name for a while (429 with Retry-After);
     the password check runs in a small bounded pool (server.login_guard). The client address is
     the peer's unless the peer is a configured trusted proxy (``Settings.trusted_proxies``)."""
-    guard = request.app.state.login_guard
     address = request.client.host if request.client else "unknown"
     wait_s = guard.retry_after_s(body.username, address)
     if wait_s is not None:
         raise _too_many(f"too many failed log-ins: try again in {wait_s} s", wait_s)
     try:
-        user, token, row = await guard.run(_check_and_start_session, request.app.state.sessions,
+        user, token, row = await guard.run(_check_and_start_session, sessions,
                                            body.username, body.password, settings.session_ttl_s)
     except LoginBusy as e:
         raise _too_many(str(e), 1) from e
@@ -68,9 +68,9 @@ async def login(body: LoginIn, request: Request, response: Response, settings: S
 
 
 @router.post("/logout", status_code=204)
-def logout(request: Request, response: Response) -> Response:
+def logout(request: Request, response: Response, sessions: SessionsDep) -> Response:
     """End the current session (no error without one)."""
-    with request.app.state.sessions.begin() as db:
+    with sessions.begin() as db:
         end_session(db, session_token(request))
     response.delete_cookie(COOKIE_NAME, path="/")
     response.status_code = 204

@@ -4,27 +4,20 @@ events on /api/live)."""
 
 from __future__ import annotations
 
-from typing import Annotated
-
-from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, UploadFile
+from fastapi import APIRouter, File, Form, HTTPException, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
-from server.api.deps import OperatorDep, ViewerDep
+from server.api.deps import DiagnosisRunsDep, JobsDep, JobWatcherDep, OperatorDep, SessionsDep, SettingsDep, ViewerDep
 from server.auth import record_audit
-from server.diagnosis import DiagnosisBusy, DiagnosisRuns
+from server.diagnosis import DiagnosisBusy
 from server.web_guard import contained_file
 
 router = APIRouter(prefix="/api/diagnosis", tags=["diagnosis"])
 
 
-def get_runs(request: Request) -> DiagnosisRuns:
-    """The app's diagnosis runs (built once at start-up, server.app)."""
-    return request.app.state.diagnosis_runs
-
-
-RunsDep = Annotated[DiagnosisRuns, Depends(get_runs)]
+RunsDep = DiagnosisRunsDep
 
 
 class DiagnosisCreate(BaseModel):
@@ -33,19 +26,18 @@ class DiagnosisCreate(BaseModel):
 
 
 @router.get("/effects", responses={503: {"description": "no worker answered"}})
-async def effects(request: Request, _user: ViewerDep) -> dict:
+async def effects(runs: RunsDep, jobs: JobsDep, watcher: JobWatcherDep, _user: ViewerDep) -> dict:
     """The effects library: name, physical meaning, parameters with units, prior ranges, sources
     (a ``catalog`` job: the twin lives in the workers; kept once fetched)."""
-    cached = getattr(request.app.state, "effects_catalog", None)
+    cached = runs.effects_catalog
     if cached is None:
-        jobs = request.app.state.jobs
         job_id = await run_in_threadpool(jobs.submit, "catalog", {})
-        job = await request.app.state.job_watcher.wait(job_id, 10.0)
+        job = await watcher.wait(job_id, 10.0)
         if job is None or job["status"] != "done":
             if job is not None and job["status"] in ("queued", "running"):
                 await run_in_threadpool(jobs.cancel, job_id)
             raise HTTPException(503, f"no worker described the effects library: {(job or {}).get('error') or 'timeout'}")
-        cached = request.app.state.effects_catalog = job["result"]["effects"]
+        cached = runs.effects_catalog = job["result"]["effects"]
     return cached
 
 
@@ -56,10 +48,9 @@ def list_runs(runs: RunsDep, _user: ViewerDep, machine_id: str | None = None) ->
 
 
 @router.post("/runs", status_code=202, responses={409: {"description": "a diagnosis is running"}, 422: {"description": "too few throws"}})
-def create_run(body: DiagnosisCreate, runs: RunsDep, user: OperatorDep, request: Request) -> dict:
+def create_run(body: DiagnosisCreate, runs: RunsDep, user: OperatorDep, sessions: SessionsDep) -> dict:
     """Export the machine's newest landed throws and diagnose them in the background (audited,
     refusals too: ``diagnosis_run``)."""
-    sessions = request.app.state.sessions
     try:
         st = runs.start(body.machine_id, body.limit, requested_by=user.username)
     except DiagnosisBusy as e:
@@ -76,7 +67,7 @@ def create_run(body: DiagnosisCreate, runs: RunsDep, user: OperatorDep, request:
                                                      413: {"description": "upload too large"},
                                                      422: {"description": "unusable upload (the detail says why)"}})
 async def upload_bags(
-    request: Request,
+    settings: SettingsDep,
     runs: RunsDep,
     user: OperatorDep,
     bags: list[UploadFile] = File(..., description="one bag per throw: .mcap, .db3, or a .zip of a rosbag2 directory; "
@@ -90,7 +81,7 @@ async def upload_bags(
     worker (GET /runs/{id} follows it; a conversion problem fails the run with its reason)."""
     from server.diagnosis_upload import UploadError
 
-    limit, total = request.app.state.settings.max_bag_upload_bytes, 0
+    limit, total = settings.max_bag_upload_bytes, 0
 
     async def read(f: UploadFile) -> bytes:
         nonlocal total

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 from sqlalchemy import text
 
-from server.api.deps import FleetDep
+from server.api.deps import FleetDep, SessionsDep, StorageDep
 from server.api.schemas import Health, Problem
 from server.storage import classify, storage_response
 
@@ -15,15 +15,14 @@ router = APIRouter(prefix="/api/health", tags=["health"])
 @router.get("", response_model=Health, responses={503: {"model": Problem, "description": (
         "a storage fault: ``condition`` is disk_full, database_locked, database_read_only, "
         "database_unreadable or database_unavailable, ``detail`` says what (server.storage)")}})
-def health(request: Request, fleet: FleetDep):
+def health(fleet: FleetDep, storage: StorageDep, sessions: SessionsDep):
     """200 when the database answers and its storage has no fault; else 503 naming the fault.
     The server stays up through storage faults: everything not needing the database still works."""
     zenoh_open = not fleet.session.is_closed()
-    storage = request.app.state.storage
     fault = storage.check()
     if fault is None:
         try:
-            with request.app.state.sessions() as db:
+            with sessions() as db:
                 db.execute(text("SELECT 1"))
         except Exception as e:  # noqa: BLE001  any failure here is the answer
             fault = classify(e)
@@ -33,5 +32,5 @@ def health(request: Request, fleet: FleetDep):
             storage.report(fault)
     current = storage.fault() if fault is None else fault
     if current is not None:
-        return storage_response(current.condition, current.reason, zenoh=zenoh_open)
+        return storage_response(current.condition or "database_unavailable", current.reason, zenoh=zenoh_open)
     return Health(zenoh=zenoh_open, database=True)

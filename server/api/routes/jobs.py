@@ -16,7 +16,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from server.api.deps import AdminDep, OperatorDep, ViewerDep
+from server.api.deps import AdminDep, JobsDep, OperatorDep, ViewerDep
 from server.db.models import FINAL_JOB_STATUSES, JOB_KINDS, JOB_STATUSES
 
 router = APIRouter(prefix="/api/jobs", tags=["jobs"])
@@ -68,34 +68,33 @@ class JobCreate(BaseModel):
 
 
 @router.get("", response_model=list[JobOut])
-def list_jobs(request: Request, _user: ViewerDep, kind: JobKind | None = None, subject: str | None = None,
+def list_jobs(jobs: JobsDep, _user: ViewerDep, kind: JobKind | None = None, subject: str | None = None,
               status: JobStatus | None = None, limit: Annotated[int, Query(ge=1, le=500)] = 50) -> list[dict]:
     """Jobs, newest first, without results."""
-    return request.app.state.jobs.store.list(kind, subject, status, limit)
+    return jobs.store.list(kind, subject, status, limit)
 
 
 @router.post("", response_model=JobOut, status_code=202,
              responses={429: {"description": "the user has their limit of jobs queued or running"}})
-def create_job(body: JobCreate, request: Request, user: AdminDep) -> dict:
+def create_job(body: JobCreate, jobs: JobsDep, user: AdminDep) -> dict:
     """Queue a probe (a worker health check that reports progress and can be cancelled)."""
-    jobs = request.app.state.jobs
     job_id = jobs.submit(body.kind, body.params.model_dump(exclude_none=True), subject=body.params.machine_id,
                          requested_by=user.username)  # JobLimit is a Limited: 429 (server.api.errors)
     return jobs.store.get(job_id)
 
 
 @router.get("/{job_id}", response_model=JobOut, responses={404: {"description": "no such job"}})
-def get_job(job_id: str, request: Request, _user: ViewerDep) -> dict:
-    job = request.app.state.jobs.store.get(job_id)
+def get_job(job_id: str, jobs: JobsDep, _user: ViewerDep) -> dict:
+    job = jobs.store.get(job_id)
     if job is None:
         raise HTTPException(404, f"no job {job_id}")
     return job
 
 
 @router.post("/{job_id}/cancel", response_model=JobOut, responses={404: {"description": "no such job"}})
-def cancel_job(job_id: str, request: Request, _user: OperatorDep) -> dict:
+def cancel_job(job_id: str, jobs: JobsDep, _user: OperatorDep) -> dict:
     """Cancel: a queued job at once, a running one at its next progress report."""
-    job = request.app.state.jobs.cancel(job_id)
+    job = jobs.cancel(job_id)
     if job is None:
         raise HTTPException(404, f"no job {job_id}")
     return job
@@ -103,9 +102,9 @@ def cancel_job(job_id: str, request: Request, _user: OperatorDep) -> dict:
 
 @router.get("/{job_id}/events", responses={404: {"description": "no such job"}},
             response_class=StreamingResponse)
-async def job_events(job_id: str, request: Request, _user: ViewerDep) -> StreamingResponse:
+async def job_events(job_id: str, request: Request, jobs: JobsDep, _user: ViewerDep) -> StreamingResponse:
     """Server-Sent Events: the job on every change of status, progress or message, until it ends."""
-    store = request.app.state.jobs.store
+    store = jobs.store
     first = await run_in_threadpool(store.get, job_id)
     if first is None:
         raise HTTPException(404, f"no job {job_id}")

@@ -9,21 +9,19 @@ from __future__ import annotations
 import asyncio
 import json
 
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter, HTTPException
 from sse_starlette.sse import EventSourceResponse
 
-from server.api.deps import ViewerDep
+from server.api.deps import LiveDep, SceneDep, ViewerDep
 
 router = APIRouter(tags=["live"])
 
 
 @router.get("/api/live", response_class=EventSourceResponse)
-async def live(request: Request, user: ViewerDep, console: str | None = None) -> EventSourceResponse:
+async def live(hub: LiveDep, scene: SceneDep, user: ViewerDep, console: str | None = None) -> EventSourceResponse:
     """The event stream (text/event-stream); starts with every machine's state."""
-    hub = getattr(request.app.state, "live", None)
     if hub is None:
         raise HTTPException(503, "live push is not running")
-    scene = request.app.state.scene
     if console is not None and scene is not None:
         con = scene.get_console(console)
         if con is None or con.username != user.username:

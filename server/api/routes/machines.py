@@ -13,7 +13,7 @@ from fastapi import APIRouter, HTTPException, Request
 from pydantic import BaseModel, Field
 from sqlalchemy import select
 
-from server.api.deps import FleetDep, OperatorDep, SessionDep, ViewerDep, session_token
+from server.api.deps import FleetDep, OperatorDep, SessionDep, SessionsDep, ViewerDep, session_token
 from server.api.schemas import MachineOut
 from server.auth import audit, record_audit, role_at_least, user_for_token
 from server.db.models import Machine, Throw
@@ -111,10 +111,10 @@ class EstopResetOut(BaseModel):
     reason: str | None = None
 
 
-def _operator_or_raise(request: Request):
+def _operator_or_raise(request: Request, sessions):
     """The logged-in operator (or admin) of ``request``; 401/403 otherwise. Runs on the event
     loop: one indexed read, so the E-STOP never waits for a free request thread."""
-    with request.app.state.sessions() as db:
+    with sessions() as db:
         user = user_for_token(db, session_token(request))
     if user is None:
         raise HTTPException(401, "log in first (session missing or expired)", headers={"WWW-Authenticate": "Bearer"})
@@ -129,7 +129,8 @@ STOP_RESPONSES = {401: {"description": "log in first"}, 403: {"description": "ne
 
 @router.post("/{machine_id}/estop", response_model=AbortOut, responses=STOP_RESPONSES)
 @router.post("/{machine_id}/abort", response_model=AbortOut, responses=STOP_RESPONSES)
-async def estop(machine_id: str, request: Request, body: AbortIn | None = None) -> AbortOut:
+async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: SessionsDep,
+                body: AbortIn | None = None) -> AbortOut:
     """E-STOP: the runtime ends any throw as aborted, puts the valves to neutral and LATCHES
     (throws refused until POST .../estop/reset; the latch survives a runtime restart). Fast path:
     an async route that puts the stop for this machine at once (server.estop: fire-and-forget,
@@ -139,8 +140,7 @@ async def estop(machine_id: str, request: Request, body: AbortIn | None = None) 
     for: the audit entry is written afterwards on the fleet's database thread, also when the
     runtime does not confirm."""
     t0 = time.perf_counter()
-    user = _operator_or_raise(request)
-    fleet: Fleet = request.app.state.fleet
+    user = _operator_or_raise(request, sessions)
     reason = f"{(body or AbortIn()).reason} ({user.username})"
     try:
         t_auth = time.perf_counter()
@@ -149,12 +149,12 @@ async def estop(machine_id: str, request: Request, body: AbortIn | None = None) 
                  (t_auth - t0) * 1e3, (time.perf_counter() - t_auth) * 1e3)
     except (RuntimeUnavailable, ValueError) as e:
         error = _sentence(e)
-        _audit_later(fleet, lambda: record_audit(request.app.state.sessions, user.username, "abort", machine_id[:64],
+        _audit_later(fleet, lambda: record_audit(sessions, user.username, "abort", machine_id[:64],
                                                  reason=reason, delivered=False, error=error))
-        await asyncio.to_thread(_404_if_unknown, request, machine_id)
+        await asyncio.to_thread(_404_if_unknown, fleet, sessions, machine_id)
         raise HTTPException(503, f"abort of {machine_id} not confirmed: {error}") from e
     fleet.forget_info(machine_id)
-    _audit_later(fleet, lambda: record_audit(request.app.state.sessions, user.username, "abort", machine_id,
+    _audit_later(fleet, lambda: record_audit(sessions, user.username, "abort", machine_id,
                                              reason=reason, delivered=True, throw_id=ack.aborted_throw_id))
     return AbortOut(machine_id=machine_id, aborted_throw_id=ack.aborted_throw_id)
 
@@ -175,28 +175,28 @@ def _sentence(e: Exception) -> str:
     return (str(e).strip().splitlines() or [type(e).__name__])[0]
 
 
-def _404_if_unknown(request: Request, machine_id: str) -> None:
+def _404_if_unknown(fleet: Fleet, sessions, machine_id: str) -> None:
     """HTTPException 404 if no machine ``machine_id`` was ever registered nor is online (checked
     only after a command failed, so the E-STOP path never waits for the database)."""
-    fleet = request.app.state.fleet
     if fleet.is_online(machine_id) or fleet.latest_state(machine_id) is not None:
         return
-    with request.app.state.sessions() as db:
+    with sessions() as db:
         if db.get(Machine, machine_id) is None:
             raise HTTPException(404, f"unknown machine {machine_id!r}")
 
 
-def _delivered(db, username: str, action: str, machine_id: str, what: str, send, request: Request | None = None):
+def _delivered(db, username: str, action: str, machine_id: str, what: str, send, fleet: Fleet | None = None,
+               sessions=None):
     """The runtime's ack of a signed command ``send()``; if it was not confirmed, the attempt is
-    audited as undelivered (action ``action``) and HTTPException 404 (unknown machine) or 503
-    names ``what``."""
+    audited as undelivered (action ``action``) and HTTPException 404 (unknown machine, checked
+    when ``fleet`` and ``sessions`` are given) or 503 names ``what``."""
     try:
         return send()
     except (RuntimeUnavailable, ValueError) as e:
         audit(db, username, action, machine_id[:64], delivered=False, error=_sentence(e))
         db.commit()
-        if request is not None:
-            _404_if_unknown(request, machine_id)
+        if fleet is not None and sessions is not None:
+            _404_if_unknown(fleet, sessions, machine_id)
         raise HTTPException(503, f"{what} of {machine_id} not confirmed: {_sentence(e)}") from e
 
 
@@ -204,10 +204,10 @@ def _delivered(db, username: str, action: str, machine_id: str, what: str, send,
              responses={404: {"description": "unknown machine"},
                         409: {"description": "the runtime refused the reset (its reason)"},
                         503: {"description": "the runtime did not answer, or no command key"}})
-def estop_reset(machine_id: str, request: Request, db: SessionDep, fleet: FleetDep, user: OperatorDep) -> EstopResetOut:
+def estop_reset(machine_id: str, db: SessionDep, sessions: SessionsDep, fleet: FleetDep, user: OperatorDep) -> EstopResetOut:
     """Release the runtime's latched E-STOP (a signed EstopReset in the operator's name); audited."""
     ack = _delivered(db, user.username, "estop_reset", machine_id, "E-STOP reset",
-                     lambda: fleet.estop_reset(machine_id, user.username), request)
+                     lambda: fleet.estop_reset(machine_id, user.username), fleet, sessions)
     audit(db, user.username, "estop_reset", machine_id, delivered=True, reset=ack.reset, reason=ack.reason)
     db.commit()
     if not ack.reset:
@@ -226,13 +226,13 @@ class ReturnToReadyOut(BaseModel):
              responses={404: {"description": "unknown machine"},
                         409: {"description": "the runtime refused (its reason: E-STOP latched, a throw runs, ...)"},
                         503: {"description": "the runtime did not answer, or no command key"}})
-def return_to_ready(machine_id: str, request: Request, db: SessionDep, fleet: FleetDep,
+def return_to_ready(machine_id: str, db: SessionDep, sessions: SessionsDep, fleet: FleetDep,
                     user: OperatorDep) -> ReturnToReadyOut:
     """Recovery action: the runtime drives the arm back to its ready pose (a signed ReturnToReady
     in the operator's name; runtime/recovery.py). Progress and the end follow in the machine's live
     state (``returning``, ``return_progress``, ``return_result``). Audited."""
     ack = _delivered(db, user.username, "return_to_ready", machine_id, "return to the ready pose",
-                     lambda: fleet.return_to_ready(machine_id, user.username), request)
+                     lambda: fleet.return_to_ready(machine_id, user.username), fleet, sessions)
     audit(db, user.username, "return_to_ready", machine_id, delivered=True, accepted=ack.accepted, reason=ack.reason)
     db.commit()
     if not ack.accepted:

@@ -6,12 +6,12 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Literal
 
-from fastapi import APIRouter, File, Form, HTTPException, Path, Query, Request, UploadFile
+from fastapi import APIRouter, File, Form, HTTPException, Path, Query, UploadFile
 from pydantic import BaseModel, Field
 from sqlalchemy import select
 
 from server.accuracy import accuracy
-from server.api.deps import AdminDep, SessionDep, ViewerDep
+from server.api.deps import AdminDep, PoliciesDep, SessionDep, SessionsDep, ViewerDep
 from server.api.schemas import COORD_LIMIT_M, MAX_DB_ID, DbId, Problem
 from server.auth import record_audit
 from server.db.models import PolicyDeployment, PolicyVersion
@@ -79,7 +79,7 @@ def list_policies(db: SessionDep, _user: ViewerDep) -> list[PolicyOut]:
 @router.post("", status_code=201, response_model=PolicyOut,
              responses={409: {"description": "already a version"}, 422: {"description": "rejected, with the reason"}})
 async def upload_policy(
-    request: Request, user: AdminDep,
+    policies: PoliciesDep, user: AdminDep,
     file: UploadFile = File(..., description="the ONNX file (obs -> actions)"),
     mode: Literal["2d", "3d"] = Form(...),
     name: str = Form(..., min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.-]+$"),
@@ -94,7 +94,7 @@ async def upload_policy(
     data = await file.read()
     from starlette.concurrency import run_in_threadpool
 
-    row = await run_in_threadpool(request.app.state.policies.upload, data, mode, name,
+    row = await run_in_threadpool(policies.upload, data, mode, name,
                                   (target_min_m, target_max_m), notes, user.username)
     return policy_out(row)
 
@@ -129,13 +129,13 @@ def compare(db: SessionDep, _user: ViewerDep, ids: list[DbId] = Query(..., min_l
 
 
 @router.get("/rollback-targets")
-def rollback_targets(request: Request, _user: ViewerDep,
+def rollback_targets(policies: PoliciesDep, _user: ViewerDep,
                      machine_id: str = Query(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")) -> dict:
     """Per mode, the version a rollback of ``machine_id`` would go back to ({"id", "name"}), or
     None: the Fleet page offers a rollback only where there is one."""
     out = {}
     for mode in ("2d", "3d"):
-        prev = request.app.state.policies.rollback_target(machine_id, mode)
+        prev = policies.rollback_target(machine_id, mode)
         out[mode] = {"id": prev.id, "name": prev.name} if prev is not None else None
     return out
 
@@ -150,33 +150,32 @@ def get_policy(db: SessionDep, _user: ViewerDep, policy_id: int = Path(ge=1, le=
 
 @router.post("/{policy_id}/evaluate", response_model=PolicyOut, responses={
     404: {"model": Problem, "description": "no such version"}, 409: {"model": Problem, "description": "its evaluation runs"}})
-def evaluate(request: Request, user: AdminDep, policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> PolicyOut:
+def evaluate(policies: PoliciesDep, user: AdminDep, policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> PolicyOut:
     """Evaluate a stored version in the twin (again): any version, deployed ones included."""
-    return policy_out(request.app.state.policies.evaluate(policy_id, user.username))
+    return policy_out(policies.evaluate(policy_id, user.username))
 
 
 @router.post("/{policy_id}/promote", response_model=list[DeploymentOut], responses={
     404: {"model": Problem, "description": "no such policy version"},
     409: {"model": Problem, "description": "no file of the version, or it has not passed its validation"}})
-def promote(body: PromoteIn, request: Request, user: AdminDep,
+def promote(body: PromoteIn, policies: PoliciesDep, sessions: SessionsDep, user: AdminDep,
             policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> list[DeploymentOut]:
     """Offer the version to the machines; each runtime fetches it, checks it, loads it between
     throws and confirms (the deployment turns ``active``; GET /api/machines shows it)."""
-    deps = request.app.state.policies.promote(policy_id, body.machine_ids, user.username)
-    with request.app.state.sessions() as db:
-        name = db.get(PolicyVersion, policy_id).name
+    deps = policies.promote(policy_id, body.machine_ids, user.username)
+    with sessions() as db:
+        name = db.get_one(PolicyVersion, policy_id).name
     return [deployment_out(d, name) for d in deps]
 
 
 @router.post("/rollback", response_model=DeploymentOut, responses={409: {"description": "nothing to roll back to"}})
-def rollback(body: RollbackIn, request: Request, user: AdminDep) -> DeploymentOut:
+def rollback(body: RollbackIn, policies: PoliciesDep, sessions: SessionsDep, user: AdminDep) -> DeploymentOut:
     """Go back to the version the machine ran before its last promotion for that mode."""
     try:
-        d = request.app.state.policies.rollback(body.machine_id, body.mode, user.username)
+        d = policies.rollback(body.machine_id, body.mode, user.username)
     except DomainError as e:  # a refused attempt is audited too (a done one by server.policies)
-        record_audit(request.app.state.sessions, user.username, "rollback_refused", body.machine_id[:64],
-                     mode=body.mode, reason=e.detail)
+        record_audit(sessions, user.username, "rollback_refused", body.machine_id[:64], mode=body.mode, reason=e.detail)
         raise
-    with request.app.state.sessions() as db:
-        name = db.get(PolicyVersion, d.policy_version_id).name
+    with sessions() as db:
+        name = db.get_one(PolicyVersion, d.policy_version_id).name
     return deployment_out(d, name)

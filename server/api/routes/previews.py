@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter, HTTPException
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, ConfigDict
 
-from server.api.deps import OperatorDep, ViewerDep
+from server.api.deps import FleetDep, JobWatcherDep, OperatorDep, PreviewsDep, SettingsDep, ViewerDep
 from server.api.preview_schemas import PreviewCreate, PreviewOut
 from server.api.schemas import Problem, Vec3
 from server.db.types import utcnow
@@ -28,7 +28,8 @@ router = APIRouter(prefix="/api/previews", tags=["previews"])
         503: {"model": Problem, "description": "runtime offline, no machine state, or no worker answered in 3 s"},
     },
 )
-async def create_preview(body: PreviewCreate, request: Request, user: OperatorDep) -> PreviewOut:
+async def create_preview(body: PreviewCreate, service: PreviewsDep, settings: SettingsDep, watcher: JobWatcherDep,
+                         user: OperatorDep) -> PreviewOut:
     """Preview a throw of ``machine_id`` at ``target`` in ``mode`` from its current joint state.
 
     ``rollouts`` <= 1 gives the nominal rollout only (fast); more adds the Monte Carlo 1 sigma
@@ -36,19 +37,18 @@ async def create_preview(body: PreviewCreate, request: Request, user: OperatorDe
     its id is the preview id); this route awaits it without holding a request thread. The console
     draws it in its own 3D view (POST /api/consoles/{id}/preview).
     """
-    service = request.app.state.previews
-    rollouts = body.rollouts if body.rollouts is not None else request.app.state.settings.preview_rollouts
+    rollouts = body.rollouts if body.rollouts is not None else settings.preview_rollouts
     job_id = await run_in_threadpool(service.submit, body.machine_id, body.mode, body.target, rollouts,
                                      user.username)
-    timeout_s = request.app.state.settings.preview_timeout_s
-    job = await request.app.state.job_watcher.wait(job_id, timeout_s)
+    timeout_s = settings.preview_timeout_s
+    job = await watcher.wait(job_id, timeout_s)
     summary = await run_in_threadpool(service.outcome, job, timeout_s)  # domain errors: server.api.errors
     return PreviewOut(**summary)
 
 
 @router.get("/{preview_id}", response_model=PreviewOut, responses={404: {"model": Problem}})
-def get_preview(preview_id: str, request: Request, _user: ViewerDep) -> PreviewOut:
-    summary = request.app.state.previews.get(preview_id)
+def get_preview(preview_id: str, service: PreviewsDep, _user: ViewerDep) -> PreviewOut:
+    summary = service.get(preview_id)
     if summary is None:
         raise HTTPException(404, f"no preview {preview_id} (previews are kept for a while only)")
     return PreviewOut(**summary)
@@ -78,13 +78,13 @@ class PreviewCheckOut(BaseModel):
 
 
 @router.post("/{preview_id}/check", response_model=PreviewCheckOut)
-def check_preview(preview_id: str, body: PreviewCheckIn, request: Request, _user: ViewerDep) -> PreviewCheckOut:
+def check_preview(preview_id: str, body: PreviewCheckIn, previews: PreviewsDep, settings: SettingsDep, fleet: FleetDep,
+                  _user: ViewerDep) -> PreviewCheckOut:
     """Would a throw with this preview pass the gate now? The console asks while a preview is on
     screen, so Throw is enabled only with a valid one. Reads the fleet's latest state and cached
     runtime info only (no query to the machine); the throw itself checks again."""
-    app = request.app
-    summary = app.state.previews.get(preview_id)
-    limits = app.state.settings.gate_limits()
+    summary = previews.get(preview_id)
+    limits = settings.gate_limits()
     now = utcnow()
     age = (now - datetime.fromisoformat(summary["created_at"])).total_seconds() if summary else None
     max_age = limits.max_age_s if limits else None
@@ -93,11 +93,11 @@ def check_preview(preview_id: str, body: PreviewCheckIn, request: Request, _user
                                reason=f"unknown or expired preview {preview_id!r}: preview again")
     if limits is None:
         return PreviewCheckOut(valid=summary is not None and summary.get("status") == "ok", age_s=age)
-    state = app.state.fleet.latest_state(body.machine_id)
+    state = fleet.latest_state(body.machine_id)
     if state is None:
         return PreviewCheckOut(valid=False, condition="no_state", reason=f"no state from machine {body.machine_id}",
                                age_s=age, max_age_s=max_age)
-    info = app.state.fleet.cached_info(body.machine_id)
+    info = fleet.cached_info(body.machine_id)
     sha = next((p.sha256 for p in (info.policies if info else []) if p.mode == body.mode), None)
     refusal = preview_refusal(summary, preview_id, body.machine_id, body.mode, list(body.target), list(state.q), sha,
                               now, limits)

@@ -8,10 +8,10 @@ to the user who opened it (403 for anyone else).
 
 from __future__ import annotations
 
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter, HTTPException
 
 from server.api.console_schemas import ConsoleOut, ConsoleShowPreview, ConsoleUpdate, SceneInfo
-from server.api.deps import CurrentUser, OperatorDep, SceneDep, ViewerDep
+from server.api.deps import CurrentUser, OperatorDep, PreviewsDep, SceneDep, ViewerDep
 from server.api.schemas import Problem
 
 router = APIRouter(tags=["scene"])
@@ -69,11 +69,11 @@ def update_console(console_id: str, update: ConsoleUpdate, scene: SceneDep, user
 
 @router.post("/api/consoles/{console_id}/preview", response_model=ConsoleOut,
              responses={404: {"model": Problem}, 409: {"model": Problem, "description": "the 3D view is disabled"}, 422: {"model": Problem}})
-def show_preview(console_id: str, body: ConsoleShowPreview, request: Request, scene: SceneDep,
+def show_preview(console_id: str, body: ConsoleShowPreview, previews: PreviewsDep, scene: SceneDep,
                  user: OperatorDep) -> ConsoleOut:
     """Draw a preview (POST /api/previews) in this console's 3D view."""
     con = _console(scene, console_id, user)
-    summary = request.app.state.previews.get(body.preview_id)
+    summary = previews.get(body.preview_id)
     if summary is None:
         raise HTTPException(404, f"no preview {body.preview_id} (previews are kept for a while only)")
     if summary["machine_id"] != con.machine_id:

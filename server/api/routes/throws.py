@@ -7,14 +7,15 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
+from fastapi import APIRouter, Depends, HTTPException, Query, Response
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 
 from server.accuracy import accuracy
-from server.api.deps import OperatorDep, SceneDep, SessionDep, ThrowServiceDep, ViewerDep
+from server.api.deps import OperatorDep, SceneDep, SessionDep, StoreDep, ThrowServiceDep, ViewerDep
 from server.api.schemas import DISTANCE_LIMIT_M, Problem, ThrowCreate, ThrowCreated, ThrowOut, ThrowStatusName, UtcTime
 from server.db.models import Throw
 from server.history import SORTS, ThrowFilter, page, to_csv
+from server.throws import ThrowOrder
 from server.web_guard import contained_file
 
 router = APIRouter(prefix="/api/throws", tags=["throws"])
@@ -62,7 +63,8 @@ def create_throw(body: ThrowCreate, service: ThrowServiceDep, user: OperatorDep)
     no throw is recorded; on 503 after the request was sent the throw stays until its runtime
     reports it or the reconciliation marks it ``lost``.
     """
-    row, ack = service.create(body, user.username)  # domain errors: server.api.errors
+    order = ThrowOrder(body.machine_id, body.mode, list(body.target), body.preview_id, body.confirm_clearance)
+    row, ack = service.create(order, user.username)  # domain errors: server.api.errors
     return ThrowCreated(id=row.id, status=row.status, policy_version=ack.policy_version, policy_sha256=row.policy_sha256)
 
 
@@ -124,10 +126,9 @@ def get_throw(throw_id: str, db: SessionDep, _user: ViewerDep) -> ThrowOut:
     response_class=FileResponse,
     responses={200: {"content": {"application/x-mcap": {}}}, 404: {"model": Problem}},
 )
-def get_telemetry(throw_id: str, db: SessionDep, request: Request, _user: ViewerDep) -> FileResponse:
+def get_telemetry(throw_id: str, db: SessionDep, store: StoreDep, _user: ViewerDep) -> FileResponse:
     """The throw's 100 Hz telemetry as an MCAP file."""
     row = _row(db, throw_id)
-    store = request.app.state.store
     path = contained_file(store.data_dir / "telemetry", store.telemetry_file(row))
     if path is None:
         raise HTTPException(404, f"throw {throw_id} has no telemetry")
@@ -135,7 +136,7 @@ def get_telemetry(throw_id: str, db: SessionDep, request: Request, _user: Viewer
 
 
 @router.get("/{throw_id}/trajectory", responses={404: {"model": Problem}})
-def get_trajectory(throw_id: str, db: SessionDep, request: Request, _user: ViewerDep) -> dict:
+def get_trajectory(throw_id: str, db: SessionDep, store: StoreDep, _user: ViewerDep) -> dict:
     """The recorded trajectory (from the MCAP telemetry, at most 300 points): time, gripper-centre
     path (forward kinematics of the joints), joint velocities ``qd`` (N, 6) and their references
     ``qd_ref`` (N, 4), valve commands ``valve_u`` (N, 4), passive angles (``q`` columns 4-5),
@@ -144,7 +145,6 @@ def get_trajectory(throw_id: str, db: SessionDep, request: Request, _user: Viewe
     from runtime.telemetry import read_telemetry
 
     row = _row(db, throw_id)
-    store = request.app.state.store
     path = contained_file(store.data_dir / "telemetry", store.telemetry_file(row))
     if path is None:
         raise HTTPException(404, f"throw {throw_id} has no telemetry")
@@ -171,11 +171,11 @@ def get_trajectory(throw_id: str, db: SessionDep, request: Request, _user: Viewe
 
 @router.post("/{throw_id}/replay", status_code=204,
              responses={403: {"model": Problem}, 404: {"model": Problem}, 409: {"model": Problem}})
-def replay(throw_id: str, db: SessionDep, request: Request, scene: SceneDep, _user: OperatorDep) -> Response:
+def replay(throw_id: str, db: SessionDep, store: StoreDep, scene: SceneDep, _user: OperatorDep) -> Response:
     """Draw the throw's recorded trajectory and impact in the 3D view (operators: the view is
     shared by every console, a viewer may not change it)."""
     row = _row(db, throw_id)
     if scene is None:
         raise HTTPException(409, "the 3D view is disabled")
-    scene.show_throw(row.machine_id, request.app.state.store.telemetry_file(row), row.impact_m, row.target_m)
+    scene.show_throw(row.machine_id, store.telemetry_file(row), row.impact_m, row.target_m)
     return Response(status_code=204)
