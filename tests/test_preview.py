@@ -200,7 +200,10 @@ def test_abort_reaches_the_runtime_and_is_audited(client, fake_runtime_factory):
     r = client.post("/api/machines/m1/abort", json={"reason": "person in zone"})
     assert r.status_code == 200, r.text
     assert len(rt.aborts) == 1 and b"person in zone" in rt.aborts[0]
-    entry = client.get("/api/audit", params={"action": "abort"}).json()[0]
+    # the audit entry is written after the stop went out, on the fleet's database thread
+    entries = lambda: client.get("/api/audit", params={"action": "abort"}).json()  # noqa: E731
+    entry = wait_for(lambda: entries() and entries()[0], 10, "the abort audited")
     assert entry["subject"] == "m1" and entry["detail"]["delivered"] is True and entry["username"] == "admin"
     assert client.post("/api/machines/ghost/abort").status_code == 404  # unknown machine (still audited)
-    assert client.get("/api/audit", params={"action": "abort"}).json()[0]["detail"]["delivered"] is False
+    wait_for(lambda: len(entries()) == 2, 10, "the refused abort audited")
+    assert entries()[0]["detail"]["delivered"] is False
