@@ -71,6 +71,19 @@ STAGE_THREADS = 8
 """Threads that write and fsync the results' telemetry files before the DB thread commits them
 (file I/O overlaps the database's; the GIL is released while writing)."""
 
+CLOCK_WARN_S = 1.0
+"""A runtime whose wall clock differs from the server's by more than this (seconds) gets a clock
+warning (signed commands are compensated by the measured offset; the warning names the cause)."""
+
+
+def clock_warning(offset_s: float | None) -> str | None:
+    """The clock warning of a runtime whose wall clock is ``offset_s`` seconds off the server's,
+    or None within :data:`CLOCK_WARN_S` (or unknown)."""
+    if offset_s is None or abs(offset_s) <= CLOCK_WARN_S:
+        return None
+    return (f"clock differs from the server by {offset_s:+.1f} s (signed commands are compensated; "
+            "fix the time sync of the runtime's host)")
+
 
 class Fleet(FleetCommands):
     """Zenoh side of the server. Call :meth:`start` once, :meth:`stop` at shutdown. The queries

@@ -31,7 +31,7 @@ import numpy as np
 
 from runtime.machine import forward_kinematics
 from runtime.protocol.messages import MachineState, RuntimeInfo
-from server.fleet import RUNTIME_SILENT_S
+from server.fleet import RUNTIME_SILENT_S, clock_warning
 from server.fleet_events import (
     FleetEvent,
     MachineStateEvent,
@@ -183,7 +183,8 @@ class LiveHub:
     def status(self, machine_id: str) -> dict:
         """:func:`machine_status` of ``machine_id`` now, from the fleet's presence and RuntimeInfo
         cache, with ``simulated``, ``cabin_turn_rad`` (from its latest MachineState, rad, None if
-        none) and ``drift_alert`` (:meth:`server.drift.DriftWatch.alert`) added."""
+        none), ``drift_alert`` (:meth:`server.drift.DriftWatch.alert`) and ``clock_warning``
+        (:func:`server.fleet.clock_warning`, None while the clocks agree) added."""
         online = self.fleet.is_online(machine_id)
         with self._lock:
             throw = self._throws.get(machine_id)
@@ -193,6 +194,7 @@ class LiveHub:
         st["simulated"] = st["simulated"] or bool(state is not None and state.simulated)
         st["cabin_turn_rad"] = float(state.q[0]) if state is not None else None
         st["drift_alert"] = self.drift.alert(machine_id) if self.drift is not None else None
+        st["clock_warning"] = clock_warning(self.fleet.clock_offset_s(machine_id)) if online else None
         return st
 
     def statuses(self) -> list[dict]:

@@ -206,3 +206,22 @@ def test_diagnosis_page_shows_where_verdict_evidence_and_shrink(live, browser): 
     assert "gap shrink 90%" in page.locator("#howfar").text_content() and "80%" in page.locator("#shares").text_content()
     assert "acts on impact" in page.locator("#gated").text_content()
     page.close()
+
+
+def test_diagnosis_page_uploads_rosbags_and_shows_the_refusal(live, browser):  # noqa: F811
+    """The rosbag2 upload form sends the bags, the mapping and the impacts as one multipart request
+    (POST /api/diagnosis/uploads); an unusable upload is refused with the server's sentence."""
+    base, _app = live
+    page = browser.new_page(viewport={"width": 1440, "height": 900})
+    log_in(page, base)
+    page.goto(f"{base}/console/diagnosis.html")
+    page.locator("#upload-fold summary").click()
+    page.set_input_files("#up-bags", [{"name": "throw 1.mcap", "mimeType": "application/octet-stream", "buffer": b"\x89MCAP0\r\n"}])
+    page.set_input_files("#up-mapping", [{"name": "map.toml", "mimeType": "text/plain", "buffer": b"[topics]\n"}])
+    page.set_input_files("#up-impacts", [{"name": "impacts.csv", "mimeType": "text/csv",
+                                          "buffer": b"throw_id,target_x_m,target_y_m,impact_x_m,impact_y_m\n"}])
+    page.locator("#upload button[type=submit]").click()
+    msg = page.locator("#upload-msg", has_text="the throw id")
+    msg.wait_for(timeout=20_000)
+    assert "409" not in msg.text_content() and "422" not in msg.text_content()  # a sentence, not a status code
+    page.close()

@@ -167,6 +167,22 @@ document.addEventListener("DOMContentLoaded", async () => {
       $("start-msg").textContent = e.message;
     }
   });
+  $("upload").addEventListener("submit", async (ev) => {
+    ev.preventDefault();
+    const form = new FormData();
+    for (const f of $("up-bags").files) form.append("bags", f, f.name);
+    form.append("mapping", $("up-mapping").files[0]);
+    form.append("impacts", $("up-impacts").files[0]);
+    form.append("machine_id", $("up-machine").value || "external");
+    $("upload-msg").textContent = `uploading ${$("up-bags").files.length} bags…`;
+    try {
+      const st = await api("POST", "/api/diagnosis/uploads", form, true);
+      $("upload-msg").textContent = `Run ${st.id} started on the uploaded bags; it appears in the list below.`;
+      loadRuns();
+    } catch (e) {
+      $("upload-msg").textContent = e.message;
+    }
+  });
   $("adapt").addEventListener("submit", async (ev) => {
     ev.preventDefault();
     const id = $("r-id").textContent;

@@ -177,7 +177,9 @@ const Strip = (() => {
     badge.textContent = `${m.machine_id} ${words}${phase}`;
     badge.className = `state-badge state-${st}`;
     $("machine-kind").hidden = !m.simulated;
-    $("strip-reason").textContent = !lost && m.state !== "ready" && m.reason ? m.reason : "";
+    const reason = !lost && m.state !== "ready" && m.reason ? m.reason : "";
+    // a clock difference between the server and the machine's computer is compensated, but named
+    $("strip-reason").textContent = [reason, !lost && m.clock_warning ? `Warning: ${m.clock_warning}.` : ""].filter(Boolean).join(" ");
     const pol = Object.entries(m.policies || {}).sort().map(([mode, v]) => `${mode} ${v}`).join(" · ");
     $("strip-policy").textContent = pol ? `policy ${pol}` : "no policy deployed";
     const banner = $("estop-banner");
@@ -217,6 +219,11 @@ const Strip = (() => {
     if (before && before.state !== "offline" && m.state === "offline") {
       raise(`offline-${m.machine_id}`, `${m.machine_id} OFFLINE (the link)`, `The runtime of ${m.machine_id} stopped answering: ${m.reason || "offline"}.`,
         "Check the machine's computer and network; start its runtime again (slinger runtime).");
+    }
+    const drift = m.drift_alert;
+    if (drift && drift.status === "open" && (!before || !before.drift_alert || before.drift_alert.raised_at !== drift.raised_at)) {
+      raise(`drift-${m.machine_id}-${drift.raised_at}`, `${m.machine_id}: accuracy drift`, drift.text || "The impacts drifted beyond what noise explains.",
+        "A diagnosis of the recent throws was started: read it on the Diagnosis page before throwing on.");
     }
     if (m.machine_id === machineId) render();
   }

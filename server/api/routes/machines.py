@@ -17,14 +17,13 @@ from server.api.deps import FleetDep, OperatorDep, SessionDep, SessionsDep, View
 from server.api.schemas import MachineOut
 from server.auth import audit, record_audit, role_at_least, user_for_token
 from server.db.models import Machine, Throw
-from server.fleet import RUNTIME_SILENT_S, Fleet, RuntimeUnavailable
+from server.fleet import RUNTIME_SILENT_S, Fleet, RuntimeUnavailable, clock_warning
 
 router = APIRouter(prefix="/api/machines", tags=["machines"])
 log = logging.getLogger(__name__)
 
 INFO_TIMEOUT_S = 1.0
 INFO_MAX_AGE_S = 2.0  # busy flag and policies are at most this old
-CLOCK_WARN_S = 1.0
 """A runtime whose wall clock is further off the server's gets a clock warning in its row."""
 
 
@@ -59,21 +58,12 @@ def _with_throws(db, m: MachineOut) -> MachineOut:
     return m
 
 
-def clock_words(offset_s: float | None) -> str | None:
-    """The clock warning of a runtime whose wall clock is ``offset_s`` off the server's, or
-    None within CLOCK_WARN_S."""
-    if offset_s is None or abs(offset_s) <= CLOCK_WARN_S:
-        return None
-    return (f"clock differs from the server by {offset_s:+.1f} s (signed commands are compensated; "
-            "fix the time sync of the runtime's host)")
-
-
 def _machine_out(mid: str, row: Machine | None, fleet: Fleet) -> MachineOut:
     online = fleet.is_online(mid)
     silent_s = fleet.silent_for_s(mid)
     state = fleet.latest_state(mid)
     offset_s = fleet.clock_offset_s(mid)
-    clock = {"clock_offset_s": round(offset_s, 3) if offset_s is not None else None, "clock_warning": clock_words(offset_s)}
+    clock = {"clock_offset_s": round(offset_s, 3) if offset_s is not None else None, "clock_warning": clock_warning(offset_s)}
     if silent_s > RUNTIME_SILENT_S:  # frozen or cut off: its last state is no longer true
         return MachineOut(id=mid, online=False, simulated=bool((state and state.simulated) or (row and row.simulated)),
                           cabin_turn_rad=state.q[0] if state is not None else None, ready=False,
@@ -211,7 +201,7 @@ def estop_reset(machine_id: str, db: SessionDep, sessions: SessionsDep, fleet: F
     audit(db, user.username, "estop_reset", machine_id, delivered=True, reset=ack.reset, reason=ack.reason)
     db.commit()
     if not ack.reset:
-        clock = clock_words(fleet.clock_offset_s(machine_id))
+        clock = clock_warning(fleet.clock_offset_s(machine_id))
         raise HTTPException(409, f"the runtime of {machine_id} kept E-STOP latched: {ack.reason}" + (f"; {clock}" if clock else ""))
     return EstopResetOut(machine_id=machine_id, reset=True, reason=ack.reason)
 
