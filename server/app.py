@@ -28,11 +28,11 @@ from server.db.migrate import upgrade
 from server.db.models import Throw
 from server.db.session import make_engine, make_sessionmaker
 from server.diagnosis import DiagnosisRuns
+from server.drift import DriftWatch
 from server.errors import DomainError
 from server.fleet import Fleet
 from server.jobs import JobQueue, JobStore, queue_url
 from server.jobs import tasks as job_tasks
-from server.drift import DriftWatch
 from server.jobs.watch import JobWatcher
 from server.live import LiveHub
 from server.login_guard import LoginGuard

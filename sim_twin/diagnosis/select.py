@@ -440,7 +440,7 @@ class Evaluator:
         if not sw.joint_grids:
             sw.identifiable = []
         joint = bool(sw.joint_grids)
-        for i, (name, ch) in enumerate(sw.joints):
+        for name, ch in sw.joints:
             p = next(p for p in sw.cls.params if p.name == name)
             if joint:  # fitted jointly: identifiability was decided on the common sweep
                 if name not in sw.joint_grids:
