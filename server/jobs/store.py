@@ -13,12 +13,12 @@ import builtins
 import logging
 import time
 from datetime import datetime, timedelta
-from typing import cast
 
-from sqlalchemy import CursorResult, Result, func, select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.db.models import FINAL_JOB_STATUSES, JOB_KINDS, Job
+from server.db.session import rowcount
 from server.db.types import utcnow
 from server.errors import Limited
 from server.jobs.leases import LEASE_S, WorkerIdentity
@@ -136,7 +136,7 @@ class JobStore:
                                      worker_host=worker.host, worker_pid=worker.pid, started_at=now,
                                      heartbeat_at=now, lease_expires_at=now + timedelta(seconds=lease_s),
                                      progress=0.0, attempts=Job.attempts + 1))
-            if not _rowcount(res):
+            if not rowcount(res):
                 return None
             row = db.get(Job, job_id)
             if row is None:
@@ -161,7 +161,7 @@ class JobStore:
         if worker_id is not None:
             stmt = stmt.where(Job.worker_id == worker_id, Job.status == "running")
         with self.sessions.begin() as db:
-            mine = _rowcount(db.execute(stmt.values(progress=fraction, message=message)))
+            mine = rowcount(db.execute(stmt.values(progress=fraction, message=message)))
             cancel = db.scalar(select(Job.cancel_requested).where(Job.id == job_id))
         if cancel or not mine:
             raise JobCancelled(job_id)
@@ -188,13 +188,7 @@ class JobStore:
         if worker_id is not None:
             stmt = stmt.where(Job.worker_id == worker_id, Job.status == "running")
         with self.sessions.begin() as db:
-            return bool(_rowcount(db.execute(stmt.values(**values))))
-
-
-def _rowcount(result: Result) -> int:
-    """Rows an UPDATE matched (``Session.execute`` types its result as a plain ``Result``; an
-    UPDATE's is a ``CursorResult``)."""
-    return cast(CursorResult, result).rowcount
+            return bool(rowcount(db.execute(stmt.values(**values))))
 
 
 def as_dict(row: Job, with_result: bool = True) -> dict:
