@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import logging
 
-from runtime.protocol.messages import M, ValidationError, ValveCommand, decode
+from runtime.protocol.messages import M, ValidationError, ValveCommand, decode, machine_id_in
 
 log = logging.getLogger(__name__)
 
@@ -19,8 +19,8 @@ def decode_for(cls: type[M], payload: bytes, machine_id: str) -> M | None:
     except ValidationError as e:
         log.warning("dropping malformed %s: %s", cls.__name__, e.errors()[0]["msg"] if e.errors() else e)
         return None
-    if msg.machine_id != machine_id:
-        log.warning("dropping %s for machine %r", cls.__name__, msg.machine_id)
+    if machine_id_in(msg) != machine_id:
+        log.warning("dropping %s for machine %r", cls.__name__, machine_id_in(msg))
         return None
     return msg
 
@@ -30,7 +30,7 @@ class EpochFence:
     older ones (and epoch-less commands once an epoch was seen) are refused, logged once per epoch.
     Not thread-safe: call under the caller's lock."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.epoch: int | None = None
         self._stale_logged: set[int | None] = set()
 

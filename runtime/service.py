@@ -240,6 +240,8 @@ class RuntimeService(RecoveryHandling):
             reason = denied or self._throw_refusal(state) or self.executor.start(req, state)
             policy = self.executor.policies.get(req.mode)
             if reason is None:
+                if state is None:  # _throw_refusal refuses without a state
+                    raise RuntimeError(f"throw {req.throw_id} accepted without a machine state")
                 log.info("throw %s accepted for %s: %s at %s", req.throw_id, self._who(req), req.mode, req.target_m)
                 self._publish(self.executor.drain(), state.stamp_s)  # the preparing status
                 self.publish_info()
@@ -318,6 +320,8 @@ class RuntimeService(RecoveryHandling):
             return False
         if already and self._latch_on_disk:
             return True
+        if self.estop_reason is None:  # callers latch first
+            raise RuntimeError("E-STOP latch written without a reason")
         try:
             self.latch.write(self.estop_reason)
             self._latch_on_disk = True
@@ -381,6 +385,7 @@ class RuntimeService(RecoveryHandling):
         with self.lock:
             ex, state = self.executor, self.latest_state
             online = self._online(ONLINE_TIMEOUT_S)
+            why: str | None
             if self.estop_reason is not None:
                 why = "E-STOP latched"
             elif self.verifier is None:
@@ -389,7 +394,7 @@ class RuntimeService(RecoveryHandling):
                 why = f"busy with throw {ex.throw_id}"
             elif self.returning:
                 why = f"returning to the ready pose ({100 * self._return_progress():.0f} %)"
-            elif not online:
+            elif not online or state is None:  # online implies a state
                 why = "machine offline"
             elif not ex.policies:
                 why = "no policy loaded"

@@ -11,10 +11,17 @@ its progress in 5 % steps for RuntimeInfo.
 from __future__ import annotations
 
 import logging
+import threading
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from runtime.outcome import TickOutput
-from runtime.protocol.messages import MachineState, ReturnToReady, ReturnToReadyAck, encode
+from runtime.protocol.messages import MachineState, Message, ReturnToReady, ReturnToReadyAck, encode
 from runtime.recovery import ReturnToReady as Recovery
+
+if TYPE_CHECKING:
+    from runtime.controller import JointVelocityController
+    from runtime.executor import ThrowExecutor
 
 log = logging.getLogger("runtime.service")  # the logger of runtime.service, as before the split
 
@@ -28,6 +35,28 @@ class RecoveryHandling:
     and :meth:`~runtime.service.RuntimeService.publish_info`.
     """
 
+    if TYPE_CHECKING:  # provided by runtime.service.RuntimeService (declared here for the type checker)
+        machine_id: str
+        executor: ThrowExecutor
+        lock: threading.RLock
+        latest_state: MachineState | None
+        link_timeout_s: float
+        estop_reason: str | None
+        recovery: Recovery | None
+        _recovery_ctrl: JointVelocityController
+        _gripper_sent: bool | None
+
+        def authorize(self, msg: Message) -> str | None: ...
+
+        def _addressed(self, payload: bytes, command_type: type[Message],
+                       refusal: Callable[[str], bytes]) -> tuple[Any, bytes | None]: ...
+
+        @staticmethod
+        def _who(msg: Message) -> str: ...
+
+        def _online(self, within_s: float) -> bool: ...
+
+        def publish_info(self, now_s: float | None = None) -> bool: ...
 
     @property
     def returning(self) -> bool:
@@ -46,6 +75,8 @@ class RecoveryHandling:
             if reason is None:
                 reason = self._return_refusal(state)
             if reason is None and not self.returning:
+                if state is None:  # _return_refusal refuses without a state
+                    raise RuntimeError("return to the ready pose accepted without a machine state")
                 self.recovery = Recovery(state.q, state.stamp_s, self._recovery_ctrl)
                 self.publish_info()
         log.log(logging.WARNING if reason else logging.INFO, "return to the ready pose %s for %s%s",
@@ -63,16 +94,27 @@ class RecoveryHandling:
             return f"machine fault: {state.machine_fault}"
         return None
 
+    def _current_recovery(self) -> Recovery:
+        """The current or last return to the ready pose.
+
+        Raises:
+            RuntimeError: none was ever started (callers check :attr:`returning` or ``recovery`` first).
+        """
+        if self.recovery is None:
+            raise RuntimeError("no return to the ready pose was started")
+        return self.recovery
+
     def _tick_return(self, state: MachineState) -> TickOutput:
-        ctrl = self.recovery.tick(state.q, state.qd, state.stamp_s)
-        if not self.recovery.status.active:
-            log.info("return to the ready pose: %s", self.recovery.status.result)
+        recovery = self._current_recovery()
+        ctrl = recovery.tick(state.q, state.qd, state.stamp_s)
+        if not recovery.status.active:
+            log.info("return to the ready pose: %s", recovery.status.result)
         return TickOutput(ctrl.valve_u.copy(), ctrl.qd_ref.copy(), bool(self._gripper_sent), (), None)
 
     def _stop_return(self, why: str) -> None:
-        self.recovery.stop(why)
+        self._current_recovery().stop(why)
         log.warning("return to the ready pose stopped: %s", why)
 
     def _return_progress(self) -> float:
         """The recovery's progress in 5 % steps (RuntimeInfo is published on every change)."""
-        return round(20 * self.recovery.status.progress) / 20
+        return round(20 * self._current_recovery().status.progress) / 20

@@ -39,7 +39,7 @@ import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 import numpy as np
 from mcap.reader import make_reader
@@ -235,16 +235,17 @@ def read_messages(source: bytes | bytearray | str | Path) -> dict[str, list[dict
 def _from_ros2(per: dict[str, list]) -> dict[str, list[dict]]:
     from runtime.ros2 import types as rt
 
-    def decoded(topic: str) -> list[tuple[float, object]]:
+    # rosbags messages are classes made at run time from .msg definitions: no static types.
+    def decoded(topic: str) -> list[tuple[float, Any]]:
         return [(t, rt.deserialize(data, name)) for t, name, data in per.get(topic, [])]
 
-    def by_time(topic: str) -> dict[int, object]:
+    def by_time(topic: str) -> dict[int, Any]:
         return {round(t * 1e9): m for t, m in decoded(topic)}
 
     out: dict[str, list[dict]] = {t: [] for t in _JSON_TOPICS}
     refs, valves = by_time("/references"), by_time("/valve_commands")
     latched = {topic: sorted(by_time(topic).items()) for topic in ("/gripper/command", "/gripper/state", "/throw/phase")}
-    current: dict[str, object] = {topic: None for topic in latched}
+    current: dict[str, Any] = {topic: None for topic in latched}
     for t, js in decoded("/joint_states"):
         t_s = rt.stamp_s(js.header.stamp)
         k = round(t * 1e9)

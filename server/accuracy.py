@@ -99,9 +99,9 @@ def _whole_days(since: datetime | None, until: datetime | None):
         last = until.astimezone(UTC).date() - timedelta(days=1)
     if first is not None and last is not None and first > last:
         return first, last, None
-    if since is not None and first != since.astimezone(UTC).date():
+    if since is not None and first is not None and first != since.astimezone(UTC).date():  # first is set with since
         edges.append(Throw.requested_at < datetime.combine(first, time(0), UTC))
-    if until is not None:
+    if until is not None and last is not None:  # last is set with until
         edges.append(Throw.requested_at >= datetime.combine(last + timedelta(days=1), time(0), UTC))
     return first, last, edges
 

@@ -79,7 +79,10 @@ class AdaptationRuns:
                 "base_path": base.onnx_path, "profile": json.loads(profile.read_text()), "report": st.get("report"),
                 "throws": throws, "rounds": rounds, "workers": self.workers}
         self._job_id = self.jobs.submit("adaptation", spec, subject=st["machine_id"], requested_by=username)
-        return self.get(self._job_id)
+        run = self.get(self._job_id)
+        if run is None:
+            raise RuntimeError(f"adaptation job {self._job_id} not found right after it was submitted")
+        return run
 
     def _base(self, machine_id: str, mode: str, name: str | None) -> PolicyVersion:
         with self.policies.sessions() as db:

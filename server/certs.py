@@ -105,6 +105,8 @@ def _name(cn: str) -> x509.Name:
 def _ensure_ca(site: Site) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
     if site.ca_cert.is_file() and site.ca_key.is_file():
         key = serialization.load_pem_private_key(site.ca_key.read_bytes(), password=None)
+        if not isinstance(key, ec.EllipticCurvePrivateKey):
+            raise ValueError(f"{site.ca_key}: the site CA key is not an elliptic-curve key")
         return key, x509.load_pem_x509_certificate(site.ca_cert.read_bytes())
     key = ec.generate_private_key(ec.SECP256R1())
     name = _name("Slinger site CA")

@@ -83,7 +83,7 @@ class DiagnosisRuns:
         self._job_id = self.jobs.submit("diagnosis", {"machine_id": machine_id, "limit": limit,
                                                       "workers": workers or self.workers},
                                         subject=machine_id, requested_by=requested_by)
-        return self.get(self._job_id, with_report=False)
+        return self._submitted(self._job_id)
 
     def start_upload(self, machine_id: str, bags: list[tuple[str, bytes]], mapping: tuple[str, bytes], impacts: bytes,
                      requested_by: str | None = None, workers: int | None = None, max_bytes: int | None = None) -> dict:
@@ -103,7 +103,18 @@ class DiagnosisRuns:
         self._job_id = self.jobs.submit("diagnosis", {"machine_id": machine_id, "limit": len(ids), "upload": upload,
                                                       "workers": workers or self.workers},
                                         subject=machine_id, requested_by=requested_by)
-        return self.get(self._job_id, with_report=False)
+        return self._submitted(self._job_id)
+
+    def _submitted(self, job_id: str) -> dict:
+        """The run just submitted (without its report).
+
+        Raises:
+            RuntimeError: the job store does not have it (a bug: it was just written).
+        """
+        run = self.get(job_id, with_report=False)
+        if run is None:
+            raise RuntimeError(f"diagnosis job {job_id} not found right after it was submitted")
+        return run
 
     def wait(self, timeout_s: float | None = None) -> None:
         """Block until the last run started here finishes (tests)."""

@@ -95,7 +95,7 @@ class Cusum:
         e = np.asarray(error_m, dtype=float)
         if e.shape != (2,) or not np.all(np.isfinite(e)):
             raise ValueError(f"impact error must be two finite numbers (downrange, crossrange), got {error_m!r}")
-        if self.mu is None:
+        if self.mu is None or self.sigma is None:  # set together once the baseline is full
             self.baseline.append(e)
             if len(self.baseline) >= BASELINE_THROWS:
                 b = np.array(self.baseline)

@@ -97,12 +97,13 @@ class EstopLine:
                 press.presses += 1
                 self.coalesced += 1
                 return press.future
-        request = AbortRequest(machine_id=machine_id, reason=reason[:200], request_id=secrets.token_hex(8))
+        request_id = secrets.token_hex(8)
+        request = AbortRequest(machine_id=machine_id, reason=reason[:200], request_id=request_id)
         try:
             request = self.sign(request, machine_id, user)
         except ValueError as e:
             log.warning("E-STOP of %s sent unsigned: %s", machine_id, e)
-        press = Press(machine_id, request.request_id, encode(request), time.monotonic() + self.deadline_s)
+        press = Press(machine_id, request_id, encode(request), time.monotonic() + self.deadline_s)
         with self._lock:
             joined = self._pending.get(machine_id)
             if joined is not None:  # another press got there first

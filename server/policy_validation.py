@@ -35,6 +35,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -116,13 +117,13 @@ def twin_sweep(onnx_path: str, mode: str, target_range_m, distances: int, throws
     """Twin throws over the declared range from random start poses; returns (why it failed or
     None, throws made). Only failures caused by the policy count; a throw that misses or is held
     by the release check is the evaluation's business, not validation's."""
-    from sim_twin.evaluate import _throw_batch  # the protocol's own throw loop
+    from sim_twin.evaluate import throw_batch  # the protocol's own throw loop
 
     lo, hi = target_range_m
     made = 0
     for k, d in enumerate(np.linspace(lo, hi, distances) if distances > 1 else [0.5 * (lo + hi)] * distances):
         seeds = [seed + 1000 * k + j for j in range(throws_per_distance)]
-        for row in _throw_batch(onnx_path, mode, float(d), seeds, None):
+        for row in throw_batch(onnx_path, mode, float(d), seeds, None):
             made += 1
             reason = str(row.get("reason") or "")
             if row["status"] == "failed" and ("policy" in reason or "non-finite" in reason):
@@ -135,7 +136,7 @@ def _child(args: dict) -> dict:
     from runtime.policy import PolicyError, PolicyRunner
 
     t0 = time.monotonic()
-    out = {"passed": False, "reason": None, "observations": 0, "throws": 0}
+    out: dict[str, Any] = {"passed": False, "reason": None, "observations": 0, "throws": 0}
     try:
         runner = PolicyRunner.load(args["onnx_path"], args.get("manifest_path"))
     except PolicyError as e:

@@ -109,9 +109,11 @@ class PreviewService:
             raise Unavailable(f"no worker finished the preview within {timeout_s:.0f} s: is a worker running "
                                     "(slinger worker)?")
         if job["status"] != "done":
-            error = KINDS.get((job.get("result") or {}).get("refused"), Failed)
+            error = KINDS.get((job.get("result") or {}).get("refused") or "", Failed)
             raise error(f"preview failed: {job['error'] or job['status']}")
         summary = self.get(job["id"])
+        if summary is None:
+            raise RuntimeError(f"preview job {job['id']} finished but cannot be read back")
         log.info("preview %s for %s %s at %s: %s", job["id"][:8], summary["machine_id"], summary["mode"],
                  summary["target_m"], summary["status"])
         return summary

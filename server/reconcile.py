@@ -105,7 +105,8 @@ class Reconciler:
         for tid in list(self._not_running_since):
             if tid not in open_ids:
                 del self._not_running_since[tid]
-        lost, infos = [], {}
+        lost = []
+        infos: dict = {}
         for r in rows:
             if r.requested_at > young:
                 continue

@@ -15,12 +15,13 @@ from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
 from pathlib import Path
 
-from sqlalchemy import case, func, literal, select, update
+from sqlalchemy import ColumnElement, case, func, literal, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from runtime.protocol.messages import PolicyInfo, ThrowResult, ThrowStatus
 from runtime.throw_geometry import impact_errors
 from server.db.models import FINAL_STATUSES, Machine, PolicyVersion, Throw
+from server.db.session import rowcount
 from server.db.types import UTCDateTime, utcnow
 
 log = logging.getLogger(__name__)
@@ -94,7 +95,7 @@ class ResultStore:
         UPDATE (one round trip; a result stored meanwhile by another transaction is never
         overwritten; the accuracy aggregates, which only final rows enter, need no change)."""
         now = literal(utcnow(), UTCDateTime)
-        values = {"started_at": func.coalesce(Throw.started_at, now)}
+        values: dict[str, ColumnElement] = {"started_at": func.coalesce(Throw.started_at, now)}
         if status.phase == "released":
             values["released_at"] = func.coalesce(Throw.released_at, now)
         if status.phase not in FINAL_STATUSES:
@@ -102,7 +103,7 @@ class ResultStore:
         with self.sessions.begin() as db:
             done = db.execute(update(Throw).where(Throw.id == status.throw_id).values(**values)
                               .execution_options(synchronize_session=False))
-        if done.rowcount == 0:
+        if rowcount(done) == 0:
             log.debug("status for unknown throw %s dropped", status.throw_id)
 
     def store_result(self, result: ThrowResult) -> Throw:
@@ -168,6 +169,8 @@ class ResultStore:
         re-delivery rewrites them)."""
         if staged is None:
             staged = _stage_all(self, results)
+        if len(staged) != len(results):
+            raise ValueError(f"{len(staged)} staged telemetry entries for {len(results)} results")
         out: list[Throw | Exception | None] = [None] * len(results)
         try:
             with self.sessions.begin() as db:
@@ -196,7 +199,7 @@ class ResultStore:
         for r, o in zip(results, out):
             if isinstance(o, Throw):
                 log.info("stored result of throw %s: %s", r.throw_id, r.status)
-        return out
+        return [o for o in out if o is not None]  # every slot is filled: one per result
 
     def mark_lost(self, throw_id: str, reason: str) -> bool:
         """Close an open throw as ``lost`` with ``reason``; False if it is already final (or
@@ -207,7 +210,7 @@ class ResultStore:
             done = db.execute(update(Throw).where(Throw.id == throw_id, Throw.status.not_in(FINAL_STATUSES))
                               .values(status="lost", failure_reason=reason, completed_at=utcnow())
                               .execution_options(synchronize_session=False))
-        return done.rowcount == 1
+        return rowcount(done) == 1
 
 
 def _check_issued(known: Throw | None, result: ThrowResult) -> None:

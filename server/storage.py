@@ -56,6 +56,8 @@ RECENT_FAULT_S = 30.0
 class StorageFault(Unavailable):
     """A storage fault; ``condition`` names it (module docstring), the message says what and why."""
 
+    condition: str  # always set (DomainError's is optional)
+
     def __init__(self, condition: str, reason: str):
         super().__init__(reason, condition)
         self.reason = reason
@@ -265,7 +267,8 @@ class StorageMonitor:
 
         for conn in list(self._open.values()):
             ctypes.pythonapi.Py_IncRef(ctypes.py_object(conn))  # never deallocated: never closed
-        log.error("database connections left open at exit: %s", self.fault().reason if self.fault() else "")
+        fault = self.fault()
+        log.error("database connections left open at exit: %s", fault.reason if fault is not None else "")
 
     @property
     def files_ok(self) -> bool:

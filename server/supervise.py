@@ -153,18 +153,20 @@ class Children:
             child.log_dir.mkdir(parents=True, exist_ok=True)
             out = open(child.log_dir / f"{child.name}.log", "ab")
         try:
-            child.proc = subprocess.Popen(child.argv, stdout=out, stderr=subprocess.STDOUT if out else None,
+            proc = child.proc = subprocess.Popen(child.argv, stdout=out, stderr=subprocess.STDOUT if out else None,
                                           start_new_session=True, cwd=os.getcwd(), env=self._env(),
                                           preexec_fn=die_with_parent())
         finally:
             if out is not None:
                 out.close()
         child.started_s, child.restart_at_s = time.monotonic(), None
-        self._tell_warden(f"+{child.proc.pid}")  # the child leads its own process group
-        log.info("started %s (pid %d): %s", child.name, child.proc.pid, " ".join(child.argv[1:]))
+        self._tell_warden(f"+{proc.pid}")  # the child leads its own process group
+        log.info("started %s (pid %d): %s", child.name, proc.pid, " ".join(child.argv[1:]))
 
     def _on_exit(self, child: Child, rc: int, now_s: float) -> None:
         """Log the exit, clear what the child left in its group, schedule the restart."""
+        if child.proc is None:
+            raise RuntimeError(f"{child.name} exited before it was started")
         pgid = child.proc.pid
         _killpg(pgid, signal.SIGKILL)  # its own children, if any survived it
         self._tell_warden(f"-{pgid}")
@@ -240,7 +242,8 @@ class Children:
                 c.proc.wait(timeout=5.0)
             _killpg(c.proc.pid, signal.SIGKILL)  # leftovers of its group
         if self._warden is not None:
-            self._warden.stdin.close()  # EOF: the warden finds no group left and exits
+            if self._warden.stdin is not None:  # always a pipe
+                self._warden.stdin.close()  # EOF: the warden finds no group left and exits
             try:
                 self._warden.wait(timeout=5.0)
             except subprocess.TimeoutExpired:

@@ -151,6 +151,8 @@ class ThrowService:
         self.fleet.forget_info(mid)  # busy now: the next read asks the runtime
         with self.sessions.begin() as db:
             row = db.get(Throw, throw_id)
+            if row is None:
+                raise RuntimeError(f"throw {throw_id} vanished while its runtime accepted it")
             row.policy_version, row.runtime_epoch = ack.policy_version, epoch
             row.policy_sha256 = ack.policy_sha256 or self._policy_sha256(mid, body.mode, ack.policy_version)
             audit(db, username, "throw", throw_id, machine_id=mid, mode=body.mode, target_m=body.target,

@@ -228,7 +228,7 @@ def finetune(profile: RealityProfile, checkpoint: Path, config: Path | dict, out
 def fitted_sigma(report: dict) -> dict[str, dict[str, float]]:
     """{effect: {param: 1 sigma}} of the effects a diagnosis report's fitted profile holds
     (``which`` entries; the named or best one, or every fitted one in a multi-effect report)."""
-    out = {}
+    out: dict[str, dict[str, float]] = {}
     for row in report.get("which", []):
         if row.get("sigma") and row.get("effect"):
             out.setdefault(row["effect"], {k: v for k, v in row["sigma"].items() if v is not None})
@@ -279,6 +279,8 @@ def adapt(profile: RealityProfile | dict | Path, policy_path: Path, out_dir: Pat
     if method == "finetune" and not (checkpoint and config):
         raise ValueError("fine-tuning needs the base version's --checkpoint and --config")
     if method == "finetune" or (method == "auto" and checkpoint and config and _has_gpu()):
+        if not (checkpoint and config):
+            raise ValueError("fine-tuning needs the base version's --checkpoint and --config")
         if not _has_gpu():
             log.warning("no GPU: fine-tuning on the CPU (use tiny settings)")
         source, ft = finetune(prof, checkpoint, config, out_dir / f"{name}-ft.onnx", f"{name}-ft")

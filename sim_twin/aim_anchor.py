@@ -67,7 +67,8 @@ def logged_errors(dataset_dir: str | Path, policy_version: str, mode: str) -> di
     import json
 
     index = json.loads((Path(dataset_dir) / "index.json").read_text())
-    d, down, cross, skipped = [], [], [], {}
+    d, down, cross = [], [], []
+    skipped: dict[str, int] = {}
     for row in index.get("throws", []):
         why = ("not landed" if row.get("status") != "landed" else "no measured impact" if row.get("impact_m") is None
                else "other mode" if row.get("mode", mode) != mode else "other policy" if row.get("policy_version") != policy_version else None)

@@ -77,17 +77,17 @@ def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profi
         FileNotFoundError: a profile file is missing.
     """
     profiles = profiles or MATRIX_PROFILES
-    paths = {}
+    paths: dict[str, str | None] = {}
     for name, _ in profiles:
-        paths[name] = None if name == "nominal" else str(PROFILE_DIR / f"{name}.json")
-        if paths[name] and not Path(paths[name]).is_file():
-            raise FileNotFoundError(paths[name])
+        path = paths[name] = None if name == "nominal" else str(PROFILE_DIR / f"{name}.json")
+        if path and not Path(path).is_file():
+            raise FileNotFoundError(path)
     jobs = []
     for name, _ in profiles:
         for i, d in enumerate(targets):
             seeds = [seed * 1_000_003 + i * 100_000 + k for k in range(throws)]  # same start poses in every profile
             jobs += [(name, d, seeds[j : j + batch]) for j in range(0, throws, batch)]
-    results = {(name, d): [] for name, _ in profiles for d in targets}
+    results: dict[tuple[str, float], list[dict]] = {(name, d): [] for name, _ in profiles for d in targets}
     t0 = time.time()
     with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
         futs = {pool.submit(throw_batch, str(policy), mode, d, s, paths[name]): (name, d) for name, d, s in jobs}

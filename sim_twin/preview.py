@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -150,7 +151,7 @@ class _Payload:
     delay_mean_s: float
     delay_std_s: float
     grasp_offset: np.ndarray | None
-    flight_accel: object
+    flight_accel: Callable | None  # (pos, vel) -> extra acceleration, m/s^2
 
     @classmethod
     def of(cls, profile: RealityProfile) -> _Payload:
@@ -260,6 +261,8 @@ def _run_swing(policy, req: PreviewRequest, profile: RealityProfile, q, qd, seed
         return None, "the swing did not release within the twin's time budget"
     if release_t is None:
         return None, "no release"
+    if swing_t is None:  # the executor swings before it releases
+        raise RuntimeError("the twin released without a swinging phase")
     swing = _Swing(payload, swing_t, release_t, np.array(rec["t"]), np.array(rec["qpos"]), np.array(rec["qvel"]),
                    np.array(rec["mq"]), np.array(rec["mqd"]))
     return swing, (np.array(rec["flags"]).reshape(-1, 3), np.array(rec["radii"]))

@@ -115,11 +115,11 @@ class SimulatedMachine:
         p0, v0, t0 = self._release
         if self._flight is not None:
             ts, ps, vs = self._flight
-            t = min(self.time_s - t0, self._impact.impact_time_s - t0)
+            t = min(self.time_s - t0, self._impact_time_s() - t0)
             pos = np.array([np.interp(t, ts, ps[:, i]) for i in range(3)])
             vel = np.zeros(3) if self._landed else np.array([np.interp(t, ts, vs[:, i]) for i in range(3)])
             return pos, vel
-        t = min(self.time_s - t0, self._impact.impact_time_s - t0)
+        t = min(self.time_s - t0, self._impact_time_s() - t0)
         pos = ballistic_position(np, p0, v0, t)
         vel = v0 + np.array([0.0, 0.0, -9.81]) * t
         if self._landed:
@@ -205,8 +205,18 @@ class SimulatedMachine:
             self._measure()
         if self._open_at is not None and self._attached and self.time_s >= self._open_at - 1e-9:
             self._open_payload()
-        if self._release is not None and not self._landed and self.time_s >= self._impact.impact_time_s:
+        if self._release is not None and not self._landed and self.time_s >= self._impact_time_s():
             self._landed = True
+
+    def _impact_time_s(self) -> float:
+        """The released payload's impact time, s (twin clock).
+
+        Raises:
+            RuntimeError: no payload was released (callers check ``_release`` first).
+        """
+        if self._impact is None:
+            raise RuntimeError("impact time asked before the payload was released")
+        return self._impact.impact_time_s
 
     def _measure(self) -> None:
         self._meas_q, self._meas_qd = self.effects.measure(self._hist_q, self._hist_qd, float(self.model.opt.timestep), self._meas_rng)

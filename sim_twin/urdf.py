@@ -65,7 +65,7 @@ def _visuals(link: ET.Element, model: mujoco.MjModel, body: int) -> None:
         for k, (p, (kind, attrs)) in enumerate(shapes):
             vis = ET.SubElement(link, "visual", name=name if k == 0 else f"{name}_end{k}")
             _origin(vis, p, quat)
-            ET.SubElement(ET.SubElement(vis, "geometry"), kind, **attrs)
+            ET.SubElement(ET.SubElement(vis, "geometry"), kind, attrib=attrs)
             mat = ET.SubElement(vis, "material", name=f"{name}_colour")
             ET.SubElement(mat, "color", rgba=_f(rgba))
 

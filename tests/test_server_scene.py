@@ -214,6 +214,23 @@ def test_console_api_keeps_each_console_to_its_user(settings):
         assert r.status_code == 403 and "operator" in r.json()["detail"]
 
 
+def test_console_routes_answer_409_while_the_3d_view_is_disabled(settings):
+    """Without the 3D view every console route refuses with 409 (not a server error)."""
+    from fastapi.testclient import TestClient
+
+    from server.app import create_app
+    from tests.conftest import ADMIN, add_user, login
+
+    settings.viser_enabled = False
+    with TestClient(create_app(settings)) as c:
+        add_user(c.app.state.sessions, *ADMIN, "admin")
+        login(c, *ADMIN)
+        assert c.post("/api/consoles").status_code == 409
+        r = c.put("/api/consoles/any", json={"mode": "3d"})
+        assert r.status_code == 409 and "disabled" in r.json()["detail"]
+        assert c.post("/api/consoles/any/preview", json={"preview_id": "p"}).status_code == 409
+
+
 def test_a_console_flood_never_evicts_another_users_console():
     """520 console openings by one viewer (issue 24 finding 6: they pushed the operator's console
     out of a global 500-entry LRU) leave the operator's console open; the viewer keeps its limit."""

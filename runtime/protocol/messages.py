@@ -362,6 +362,18 @@ class PolicyUpdate(Stamped):
 M = TypeVar("M", bound=Message)
 
 
+def machine_id_in(msg: Message) -> str:
+    """The ``machine_id`` field of ``msg``.
+
+    Raises:
+        TypeError: ``msg``'s type has no ``machine_id`` field (it is not a per-machine message).
+    """
+    machine_id = getattr(msg, "machine_id", None)
+    if not isinstance(machine_id, str):
+        raise TypeError(f"{type(msg).__name__} has no machine_id field")
+    return machine_id
+
+
 def encode(msg: Message) -> bytes:
     """Serialise a message to UTF-8 JSON bytes."""
     return msg.model_dump_json().encode()
@@ -379,18 +391,20 @@ def decode(cls: type[M], payload: bytes | bytearray | memoryview | str) -> M:
     return cls.model_validate_json(payload)
 
 
-def decode_on_key(cls: type[M], key_expr: str, payload: bytes | bytearray | memoryview | str) -> M:
-    """:func:`decode` a message that arrived on ``key_expr`` and check that it is the key's
-    machine's (a runtime may publish only under its own machine id).
+def decode_on_key(cls: type[M], key_expr: object, payload: bytes | bytearray | memoryview | str) -> M:
+    """:func:`decode` a message that arrived on ``key_expr`` (a str or a ``zenoh.KeyExpr``, read
+    with ``str()``) and check that it is the key's machine's (a runtime may publish only under its
+    own machine id).
 
     Raises:
         pydantic.ValidationError: as :func:`decode`.
         ValueError: the key is not a machine/runtime key, or names another machine.
     """
     msg = decode(cls, payload)
-    if machine_id_of(str(key_expr)) != msg.machine_id:
-        raise ValueError(f"{cls.__name__} of {msg.machine_id} on {key_expr}")
+    machine_id = machine_id_in(msg)
+    if machine_id_of(str(key_expr)) != machine_id:
+        raise ValueError(f"{cls.__name__} of {machine_id} on {key_expr}")
     return msg
 
 
-__all__ = [name for name in dir() if name[0].isupper()] + ["encode", "decode", "decode_on_key", "ValidationError"]
+__all__ = [name for name in dir() if name[0].isupper()] + ["encode", "decode", "decode_on_key", "machine_id_in", "ValidationError"]

@@ -92,7 +92,7 @@ class MachineBridge:
         self.rx: dict[str, float] = {}  # topic role -> monotonic receive time
         self.active: tuple[list[float], list[float]] | None = None
         self.passive: tuple[list[float], list[float]] | None = None
-        self.imu: tuple[tuple, tuple] | None = None  # orientation (x, y, z, w), angular velocity (IMU frame)
+        self.imu: tuple[tuple[float, float, float, float], tuple[float, float, float]] | None = None  # orientation (x, y, z, w), angular velocity (IMU frame)
         self.gripper_open: bool | None = None
         self.payload_attached: bool | None = None
         self.payload: tuple[list[float], list[float]] | None = None
@@ -196,16 +196,24 @@ class MachineBridge:
         if self.stale is not None:
             log.info("ROS topics fresh again: machine states resume")
             self.stale = None
+        if self.active is None:
+            raise RuntimeError("joint_states counted fresh but no active joint state stored")
         if self.config.topics.imu:
+            if self.imu is None:
+                raise RuntimeError("IMU counted fresh but no IMU reading stored")
             angles, rates = passive_from_imu(self.active[0], self.active[1], *self.imu)
+            if rates is None:
+                raise RuntimeError("IMU reading stored without angular velocity")
             self.passive = (angles, rates)
+        if self.passive is None:
+            raise RuntimeError("passive joints counted fresh but no passive joint state stored")
         q = self.active[0] + self.passive[0]
         qd = self.active[1] + self.passive[1]
         attached = self.payload_attached if self.config.topics.payload_attached else not self.gripper_open
-        fresh_payload = self.payload is not None and now - self.rx.get("payload", -np.inf) <= limit
+        payload = self.payload if now - self.rx.get("payload", -np.inf) <= limit else None  # None when stale
         return MachineState(machine_id=self.machine_id, stamp_s=now, q=q, qd=qd, gripper_open=bool(self.gripper_open),
-                            payload_attached=bool(attached), payload_pos_m=self.payload[0] if fresh_payload else None,
-                            payload_vel_mps=self.payload[1] if fresh_payload else None, simulated=self.config.simulated,
+                            payload_attached=bool(attached), payload_pos_m=payload[0] if payload is not None else None,
+                            payload_vel_mps=payload[1] if payload is not None else None, simulated=self.config.simulated,
                             machine_fault=self.fault)
 
     def _drop(self, why: str) -> None:

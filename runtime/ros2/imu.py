@@ -74,4 +74,6 @@ def imu_from_joints(q, qd) -> tuple[tuple[float, float, float, float], tuple[flo
     rzy = rz @ _matrix(qy)
     w_world = float(qd[0]) * np.array([0.0, 0.0, 1.0]) + (float(qd[1]) + float(qd[2]) + float(qd[4])) * rz[:, 1] + float(qd[5]) * rzy[:, 0]
     w_body = _matrix(quat).T @ w_world
-    return tuple(float(v) for v in quat), tuple(float(v) for v in w_body)
+    x, y, z, w = (float(v) for v in quat)
+    wx, wy, wz = (float(v) for v in w_body)
+    return (x, y, z, w), (wx, wy, wz)

@@ -89,14 +89,20 @@ class UrdfChain:
             if kind not in ("fixed", "revolute", "continuous", "prismatic"):
                 raise ValueError(f"joint {j.get('name')}: type {kind!r} is not supported")
             origin = j.find("origin")
-            xyz = tuple(float(v) for v in (origin.get("xyz", "0 0 0") if origin is not None else "0 0 0").split())
+            xyz_values = [float(v) for v in (origin.get("xyz", "0 0 0") if origin is not None else "0 0 0").split()]
+            if len(xyz_values) != 3:
+                raise ValueError(f"joint {j.get('name')}: origin xyz needs 3 numbers, got {len(xyz_values)}")
+            xyz = (xyz_values[0], xyz_values[1], xyz_values[2])
             rpy = [float(v) for v in (origin.get("rpy", "0 0 0") if origin is not None else "0 0 0").split()]
             axis = j.find("axis")
-            ax = np.array([float(v) for v in (axis.get("xyz") if axis is not None else "1 0 0").split()])
+            ax = np.array([float(v) for v in (axis.get("xyz", "1 0 0") if axis is not None else "1 0 0").split()])
             parent, child = j.find("parent"), j.find("child")
             if parent is None or child is None:
                 raise ValueError(f"joint {j.get('name')}: needs parent and child")
-            self.joints.append(UrdfJoint(j.get("name"), kind, parent.get("link"), child.get("link"), xyz,
+            name, parent_link, child_link = j.get("name"), parent.get("link"), child.get("link")
+            if name is None or parent_link is None or child_link is None:
+                raise ValueError(f"joint {name}: needs a name and parent and child links")
+            self.joints.append(UrdfJoint(name, kind, parent_link, child_link, xyz,
                                          tuple(_quat_rpy(*rpy)), tuple(ax / np.linalg.norm(ax))))
 
     @property

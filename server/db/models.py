@@ -138,7 +138,7 @@ class Throw(Base):
 
     @property
     def impact_m(self) -> list[float] | None:
-        if self.impact_x_m is None:
+        if self.impact_x_m is None or self.impact_y_m is None or self.impact_z_m is None:  # written together
             return None
         return [self.impact_x_m, self.impact_y_m, self.impact_z_m]
 

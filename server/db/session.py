@@ -1,13 +1,21 @@
-"""Engine and session factory, built from settings inside ``create_app`` (never at import)."""
+"""Engine and session factory, built from settings inside ``create_app`` (never at import), and
+the typed row count of an executed UPDATE or DELETE."""
 
 from __future__ import annotations
 
 import math
+from typing import cast
 
-from sqlalchemy import Engine, create_engine, event
+from sqlalchemy import CursorResult, Engine, Result, create_engine, event
 from sqlalchemy.orm import Session, sessionmaker
 
 import server.db.aggregates  # noqa: F401  (registers the listener that keeps the accuracy aggregates)
+
+
+def rowcount(result: Result) -> int:
+    """Rows an UPDATE or DELETE matched (``Session.execute`` types its result as a plain
+    ``Result``; for those statements it is a ``CursorResult``)."""
+    return cast(CursorResult, result).rowcount
 
 
 def make_engine(database_url: str, busy_timeout_s: float = 10.0) -> Engine:

@@ -44,6 +44,8 @@ def export(sessions: sessionmaker[Session], data_dir: Path, machine_id: str, lim
                                .order_by(Throw.requested_at.desc()).limit(limit)))
     out = []
     for t in rows:
+        if t.telemetry_path is None:  # landed_with_telemetry excludes these
+            raise RuntimeError(f"throw {t.id} selected for export has no telemetry path")
         path = Path(data_dir) / t.telemetry_path
         try:
             data = path.read_bytes()

@@ -36,6 +36,7 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.db.models import Job
+from server.db.session import rowcount
 from server.db.types import utcnow
 
 log = logging.getLogger(__name__)
@@ -105,7 +106,7 @@ class Leases:
         with self.sessions.begin() as db:
             res = db.execute(update(Job).where(Job.worker_id == self.me.id, Job.status == "running")
                              .values(heartbeat_at=now, lease_expires_at=now + timedelta(seconds=self.lease_s)))
-            return res.rowcount or 0
+            return rowcount(res)
 
     def reap(self) -> list[tuple[str, str]]:
         """Re-queue, fail or cancel ``running`` jobs of dead workers (see the module doc).
@@ -144,6 +145,7 @@ class Leases:
         return out
 
     def _orphaned(self, job_id: str, kind: str, worker_id: str | None, attempts: int, cancel: bool, why: str) -> str | None:
+        values: dict[str, object]
         if cancel:
             status, values = "cancelled", {"message": f"cancelled ({why})"}
         elif attempts >= self.max_attempts:
@@ -157,7 +159,7 @@ class Leases:
         with self.sessions.begin() as db:
             res = db.execute(update(Job).where(Job.id == job_id, Job.status == "running", Job.worker_id == worker_id)
                              .values(status=status, lease_expires_at=None, **values))
-            if not res.rowcount:
+            if not rowcount(res):
                 return None  # another reaper got there first, or the worker finished it meanwhile
         if status == "queued":
             self.requeue(job_id, kind)

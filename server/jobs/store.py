@@ -9,6 +9,7 @@ cancelled at once, a running one at its next :meth:`JobStore.progress` call.
 
 from __future__ import annotations
 
+import builtins
 import logging
 import time
 from datetime import datetime, timedelta
@@ -17,6 +18,7 @@ from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.db.models import FINAL_JOB_STATUSES, JOB_KINDS, Job
+from server.db.session import rowcount
 from server.db.types import utcnow
 from server.errors import Limited
 from server.jobs.leases import LEASE_S, WorkerIdentity
@@ -75,7 +77,7 @@ class JobStore:
             if requested_by is not None and kind in USER_STARTED_KINDS:
                 active = db.scalar(select(func.count()).select_from(Job).where(
                     Job.requested_by == requested_by, Job.kind.in_(USER_STARTED_KINDS),
-                    Job.status.in_(("queued", "running"))))
+                    Job.status.in_(("queued", "running")))) or 0  # COUNT(*) always returns a row
                 if active >= self.max_active_per_user:
                     raise JobLimit(f"{requested_by} has {active} previews or probes queued or running, the limit "
                                    "per user: wait for one to finish")
@@ -101,7 +103,7 @@ class JobStore:
         with self.sessions() as db:
             return [as_dict(r, with_result=with_result) for r in db.scalars(stmt)]
 
-    def changed_since(self, since: datetime) -> list[dict]:
+    def changed_since(self, since: datetime) -> builtins.list[dict]:
         """Jobs that can still change (queued, running) or finished at or after ``since`` (UTC),
         without results: what server.jobs.watch.JobWatcher looks at."""
         stmt = select(Job).where((Job.status.in_(("queued", "running"))) | (Job.finished_at >= since))
@@ -134,9 +136,12 @@ class JobStore:
                                      worker_host=worker.host, worker_pid=worker.pid, started_at=now,
                                      heartbeat_at=now, lease_expires_at=now + timedelta(seconds=lease_s),
                                      progress=0.0, attempts=Job.attempts + 1))
-            if not res.rowcount:
+            if not rowcount(res):
                 return None
-            return as_dict(db.get(Job, job_id))
+            row = db.get(Job, job_id)
+            if row is None:
+                raise RuntimeError(f"job {job_id} vanished inside the transaction that started it")
+            return as_dict(row)
 
     def progress(self, job_id: str, fraction: float, message: str | None = None, force: bool = False,
                  worker_id: str | None = None) -> None:
@@ -156,7 +161,7 @@ class JobStore:
         if worker_id is not None:
             stmt = stmt.where(Job.worker_id == worker_id, Job.status == "running")
         with self.sessions.begin() as db:
-            mine = db.execute(stmt.values(progress=fraction, message=message)).rowcount
+            mine = rowcount(db.execute(stmt.values(progress=fraction, message=message)))
             cancel = db.scalar(select(Job.cancel_requested).where(Job.id == job_id))
         if cancel or not mine:
             raise JobCancelled(job_id)
@@ -174,7 +179,7 @@ class JobStore:
         if status not in FINAL_JOB_STATUSES:
             raise ValueError(f"not a final job status: {status!r}")
         self._last_write.pop(job_id, None)
-        values = {"status": status, "result": result, "error": error, "finished_at": utcnow(), "lease_expires_at": None}
+        values: dict[str, object] = {"status": status, "result": result, "error": error, "finished_at": utcnow(), "lease_expires_at": None}
         if status == "done":
             values["progress"] = 1.0
         if status == "cancelled":
@@ -183,7 +188,7 @@ class JobStore:
         if worker_id is not None:
             stmt = stmt.where(Job.worker_id == worker_id, Job.status == "running")
         with self.sessions.begin() as db:
-            return bool(db.execute(stmt.values(**values)).rowcount)
+            return bool(rowcount(db.execute(stmt.values(**values))))
 
 
 def as_dict(row: Job, with_result: bool = True) -> dict:

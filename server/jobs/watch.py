@@ -29,6 +29,12 @@ log = logging.getLogger(__name__)
 EVENT_FIELDS = ("id", "kind", "status", "subject", "progress", "message", "error", "requested_by")
 
 
+def _wake(fut: asyncio.Future) -> None:
+    """Resolve a waiter's future (in its event loop) unless it is already done (timed out)."""
+    if not fut.done():
+        fut.set_result(None)
+
+
 class JobWatcher:
     """Turns changes of job rows into events and wake-ups.
 
@@ -100,7 +106,7 @@ class JobWatcher:
         with self._lock:
             waiters = self._waiters.pop(job_id, [])
         for loop, fut in waiters:
-            loop.call_soon_threadsafe(lambda f=fut: f.done() or f.set_result(None))
+            loop.call_soon_threadsafe(_wake, fut)
 
     async def wait(self, job_id: str, timeout_s: float) -> dict | None:
         """Await the job's end (or ``timeout_s``); returns its row with the result (None if unknown).

@@ -65,7 +65,7 @@ def _table(path: Path, mapping: dict) -> dict[str, np.ndarray]:
         return {k: np.array([float(r.get(k, np.nan)) for r in rows]) for k in keys}
     with open(path, newline="") as f:
         reader = csv.DictReader(f)
-        data = {k: [] for k in reader.fieldnames or []}
+        data: dict[str, list[float]] = {k: [] for k in reader.fieldnames or []}
         for i, row in enumerate(reader, start=2):
             for k, v in row.items():
                 try:

@@ -35,6 +35,7 @@ import csv
 import json
 import logging
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from mcap.reader import make_reader
@@ -117,7 +118,7 @@ def arrays(per: dict[str, list[dict]]) -> dict:
         qd[:, 4:6] = _matched(t, per["/gripper_imu"], "rate_radps", 2, "/gripper_imu")
     elif width == 4:
         raise LogError("no gripper IMU: /joint_states has 4 values and there is no /gripper_imu topic")
-    out = {"t_s": t, "q": q, "qd": qd, "valve_u": _matched(t, per["/valve_commands"], "u", 4, "/valve_commands"),
+    out: dict[str, Any] = {"t_s": t, "q": q, "qd": qd, "valve_u": _matched(t, per["/valve_commands"], "u", 4, "/valve_commands"),
            "gripper_cmd": _matched(t, per["/gripper"], "command_open", None, "/gripper", dtype=bool)}
     g = per["/gripper"]
     out["gripper_open"] = _matched(t, g, "open", None, "/gripper", dtype=bool) if all("open" in m for m in g) else None

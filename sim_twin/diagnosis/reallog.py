@@ -93,7 +93,7 @@ def write_log(rows: list[dict], events: list[dict], spec: RealLogSpec, metadata:
     buf = io.BytesIO()
     w = Writer(buf, compression=CompressionType.ZSTD)
     w.start(profile="", library="slinger-reallog")
-    props = {
+    props: dict[str, dict[str, object]] = {
         "/joint_states": {"t_s": {"type": "number"}, "q": _ARR, "qd": _ARR},
         "/references": {"t_s": {"type": "number"}, "phase": {"type": "string"}, "qd_ref": _ARR},
         "/valve_commands": {"t_s": {"type": "number"}, "u": _ARR},

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 
@@ -58,7 +58,7 @@ def load_mapping(path: str | Path) -> BagMapping:
         ConvertError: what runtime.ros2.config.load refuses, for this model.
     """
     try:
-        return load_config(path, BagMapping)
+        return cast(BagMapping, load_config(path, BagMapping))  # load returns an instance of the model it is given
     except ConfigError as e:
         raise ConvertError(f"mapping {e}") from e
 
@@ -82,7 +82,7 @@ def is_rosbag(path: str | Path) -> bool:
     return False
 
 
-def _messages(path: Path, wanted: dict[str, str]) -> dict[str, list[tuple[float, object]]]:
+def _messages(path: Path, wanted: dict[str, str]) -> dict[str, list[tuple[float, Any]]]:  # rosbags messages: no static types
     """(receive time s, message) per wanted topic (topic -> expected type) of one bag.
 
     Raises:
@@ -171,7 +171,7 @@ def convert_bag(path: Path, mapping: BagMapping) -> list[dict]:
             except ValueError as e:
                 raise ConvertError(f"{path}: {t.imu}: {e}") from e
     else:
-        ts, q_pas, qd_pas = joints(t.passive_topic, PASSIVE_JOINTS)
+        ts, q_pas, qd_pas = joints(mapping.passive_topic, PASSIVE_JOINTS)
         if t.passive_joint_states:
             idx = np.clip(_before(ts, rows_t), 0, None)
             q_pas, qd_pas = q_pas[idx], qd_pas[idx]
@@ -202,10 +202,10 @@ def convert_bag(path: Path, mapping: BagMapping) -> list[dict]:
     t0 = rows_t[0]
     rows = []
     for i in range(len(rows_t)):
-        known = pay is not None and np.all(np.isfinite(pay[i]))
+        pay_i = pay[i] if pay is not None and np.all(np.isfinite(pay[i])) else None
         rows.append({"t_s": float(rows_t[i] - t0), "q": q[i].tolist(), "qd": qd[i].tolist(), "qd_ref": [0.0] * 4, "u": u[i].tolist(),
                      "command_open": bool(cmd[i]), "open": bool(opened[i]), "phase": "swinging",
-                     "pos_m": pay[i, :3].tolist() if known else None, "vel_mps": pay[i, 3:].tolist() if known else None})
+                     "pos_m": pay_i[:3].tolist() if pay_i is not None else None, "vel_mps": pay_i[3:].tolist() if pay_i is not None else None})
     return rows
 
 

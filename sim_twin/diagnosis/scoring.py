@@ -130,8 +130,8 @@ class Scorer:
             corr = a * u * u / (1.0 + a * ln.sum())
             for p in range(P):
                 S[n, :N_TRAJ, p] -= corr * (np.sum(ph == p) / len(ph))
-            if th.open_row is not None:
-                d = th.open_delay_s - expected_logged_delay(rep.delay_mean_s, rep.delay_std_s)
+            if (open_delay_s := th.open_delay_s) is not None:  # None without a logged opening
+                d = open_delay_s - expected_logged_delay(rep.delay_mean_s, rep.delay_std_s)
                 S[n, DELAY, 1] = d * d / (max(rep.delay_std_s, 1e-3) ** 2 + TICK_S**2 / 12)
         r, v = impact_residuals(self.throws, reps)
         var = self.noise.impact_sigma_m**2 + v
@@ -153,8 +153,8 @@ class Scorer:
             e = np.concatenate([th.q[:L] - rep.meas_q[:L], th.qd[:L] - rep.meas_qd[:L]], axis=1)
             e = e[:, np.ravel(np.column_stack([np.arange(6), 6 + np.arange(6)]))]
             M[n, :N_TRAJ] = e.sum(axis=0) / (self.sig * np.sqrt(max(L, 1)))
-            if th.open_row is not None:
-                d = th.open_delay_s - expected_logged_delay(rep.delay_mean_s, rep.delay_std_s)
+            if (open_delay_s := th.open_delay_s) is not None:  # None without a logged opening
+                d = open_delay_s - expected_logged_delay(rep.delay_mean_s, rep.delay_std_s)
                 M[n, DELAY] = d / np.sqrt(max(rep.delay_std_s, 1e-3) ** 2 + TICK_S**2 / 12)
         r, v = impact_residuals(self.throws, reps)
         M[:, IMPACT] = r / np.sqrt(self.noise.impact_sigma_m**2 + v)

@@ -114,6 +114,8 @@ def verdict_of(where: dict, rounds: list[fw.Round], named: list[Effect], power: 
 
     names_txt = " + ".join(one(c) for c in named_c)
     if last.decision == "ambiguous":
+        if last.named is None or last.runner_up is None:
+            raise RuntimeError("an ambiguous round without both its leading effects")
         meas = separating_measurement(last.named, last.runner_up)
         a = next(c for c in last.candidates if c.effect == last.named)
         b = next(c for c in last.candidates if c.effect == last.runner_up)

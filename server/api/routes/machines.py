@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from typing import Any
 
 from fastapi import APIRouter, HTTPException, Request
 from pydantic import BaseModel, Field
@@ -113,7 +114,7 @@ def _operator_or_raise(request: Request, sessions):
     return user
 
 
-STOP_RESPONSES = {401: {"description": "log in first"}, 403: {"description": "needs the operator role"},
+STOP_RESPONSES: dict[int | str, dict[str, Any]] = {401: {"description": "log in first"}, 403: {"description": "needs the operator role"},
                   404: {"description": "unknown machine"}, 503: {"description": "the runtime did not confirm the stop"}}
 
 

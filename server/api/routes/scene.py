@@ -13,6 +13,7 @@ from fastapi import APIRouter, HTTPException
 from server.api.console_schemas import ConsoleOut, ConsoleShowPreview, ConsoleUpdate, SceneInfo
 from server.api.deps import CurrentUser, OperatorDep, PreviewsDep, SceneDep, ViewerDep
 from server.api.schemas import Problem
+from server.scene import ConsoleScene
 
 router = APIRouter(tags=["scene"])
 
@@ -27,10 +28,15 @@ def _out(scene, con) -> ConsoleOut:
     return ConsoleOut(**con.public(), viser_port=scene.port, viser_path=f"/c/{con.console_id}")
 
 
-def _console(scene, console_id: str, user):
+def _enabled(scene: ConsoleScene | None) -> ConsoleScene:
+    """The console scene; HTTP 409 when the 3D view is disabled."""
     if scene is None:
         raise HTTPException(409, "the 3D view is disabled")
-    con = scene.get_console(console_id)
+    return scene
+
+
+def _console(scene, console_id: str, user):
+    con = _enabled(scene).get_console(console_id)
     if con is None:
         raise HTTPException(404, f"no console {console_id} (reload the page)")
     if con.username != user.username:
@@ -60,6 +66,7 @@ def get_console(console_id: str, scene: SceneDep, user: CurrentUser) -> ConsoleO
 def update_console(console_id: str, update: ConsoleUpdate, scene: SceneDep, user: ViewerDep) -> ConsoleOut:
     """Pick the machine or mode shown (viewers too), or type a target (operators). A target in 2D
     snaps to the throwing line; ``target_reason`` says why it cannot be served."""
+    scene = _enabled(scene)
     con = _console(scene, console_id, user)
     if update.target is not None and user.role == "viewer":
         raise HTTPException(403, "needs the operator role to set a target (you are viewer)")
@@ -72,6 +79,7 @@ def update_console(console_id: str, update: ConsoleUpdate, scene: SceneDep, user
 def show_preview(console_id: str, body: ConsoleShowPreview, previews: PreviewsDep, scene: SceneDep,
                  user: OperatorDep) -> ConsoleOut:
     """Draw a preview (POST /api/previews) in this console's 3D view."""
+    scene = _enabled(scene)
     con = _console(scene, console_id, user)
     summary = previews.get(body.preview_id)
     if summary is None:

@@ -41,7 +41,7 @@ def update_user(username: str, body: UserUpdate, db: SessionDep, admin: AdminDep
         raise HTTPException(404, f"no user {username!r}")
     if user.id == admin.id and (body.active is False or (body.role and body.role != "admin")):
         raise HTTPException(422, "you cannot demote or deactivate yourself")
-    changes = {}
+    changes: dict[str, object] = {}
     if body.role is not None:
         user.role = changes["role"] = body.role
     if body.active is not None:
