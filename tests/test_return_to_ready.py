@@ -137,8 +137,13 @@ def test_recovery_stops_when_the_way_back_hits_new_trouble_and_rejects_bad_input
 
 
 def test_route_needs_an_operator_and_audits_an_undelivered_request(client):
+    from server.db.models import Machine
     from tests.conftest import add_user, login
 
+    r = client.post("/api/machines/m1/return-to-ready")
+    assert r.status_code == 404 and "unknown machine" in r.json()["detail"], r.text  # never registered
+    with client.app.state.sessions.begin() as db:  # a known machine whose runtime is not running
+        db.add(Machine(id="m1", simulated=True))
     r = client.post("/api/machines/m1/return-to-ready")
     assert r.status_code == 503 and "offline" in r.json()["detail"], r.text  # no runtime of m1 here
     entry = client.get("/api/audit", params={"action": "return_to_ready"}).json()[0]
