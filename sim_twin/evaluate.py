@@ -20,12 +20,13 @@ import logging
 import math
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from pathlib import Path
 
 import numpy as np
 
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
+from sim_twin.pools import process_pool
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +154,7 @@ def evaluate(
     results: dict[float, list[dict]] = {d: [] for d in distances_m}
     t0, done = time.time(), 0
     prof = str(profile_path) if profile_path else None
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    with process_pool(workers) as pool:
         futs = {pool.submit(throw_batch, str(policy_path), mode, d, s, prof): d for d, s in jobs}
         for fut in as_completed(futs):
             results[futs[fut]] += fut.result()

@@ -19,14 +19,14 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from pathlib import Path
 
 import numpy as np
 
 from sim_twin.evaluate import summarise, throw_batch
+from sim_twin.pools import process_pool
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +89,7 @@ def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profi
             jobs += [(name, d, seeds[j : j + batch]) for j in range(0, throws, batch)]
     results: dict[tuple[str, float], list[dict]] = {(name, d): [] for name, _ in profiles for d in targets}
     t0 = time.time()
-    with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
+    with process_pool(workers) as pool:
         futs = {pool.submit(throw_batch, str(policy), mode, d, s, paths[name]): (name, d) for name, d, s in jobs}
         for k, fut in enumerate(as_completed(futs), 1):
             results[futs[fut]] += fut.result()

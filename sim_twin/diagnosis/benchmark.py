@@ -36,7 +36,7 @@ import logging
 import os
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +44,7 @@ import numpy as np
 from sim_twin import default_policy
 from sim_twin.diagnosis import dataset as ds
 from sim_twin.diagnosis.reallog import RealLogSpec
+from sim_twin.pools import process_pool
 
 log = logging.getLogger(__name__)
 
@@ -484,7 +485,7 @@ def run(mix: dict[str, int], throws: int, seed: int, workers: int, out: Path | N
         rank = {c["case"]: sum(1 for d in cases if d["kind"] == c["kind"] and d["case"] < c["case"]) for c in cases}
         jobs = [(c, throws, str(work), keep_data is not None) for c in sorted(cases, key=lambda c: (rank[c["case"]], c["case"]))]
         if workers > 1:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
+            with process_pool(workers) as pool:
                 for fut in as_completed([pool.submit(_job, j) for j in jobs]):  # written as each case finishes
                     rows.append(fut.result())
                     _write(out, result(False))

@@ -266,9 +266,9 @@ def generate(directory, profile_dict: dict, throws: int, policy_path: str | Path
         profile_dict = {**profile_dict, "effects": list(profile_dict.get("effects", [])) + [real_log.noise_effect()]}
     jobs = [(str(policy_path), profile_dict, seed * 10007 + i, float(distances_m[i % len(distances_m)]), mode, real_log) for i in range(throws)]
     if workers > 1:
-        from concurrent.futures import ProcessPoolExecutor
+        from sim_twin.pools import process_pool
 
-        with ProcessPoolExecutor(max_workers=workers) as pool:
+        with process_pool(workers) as pool:
             results = list(pool.map(_throw_worker, jobs, chunksize=max(1, throws // (4 * workers))))
     else:
         results = [_throw_worker(j) for j in jobs]

@@ -76,7 +76,7 @@ const Strip = (() => {
     const ul = $("alarms");
     ul.innerHTML = "";
     ul.hidden = list.length === 0;
-    for (const a of list) {
+    for (const a of list.slice().reverse()) { // newest first: the one in view on a small screen
       const li = document.createElement("li");
       li.className = "alarm";
       li.dataset.key = a.key;
@@ -104,6 +104,7 @@ const Strip = (() => {
   /** Raise an alarm that stays (on every page, across reloads) until acknowledged; a second
    *  alarm with the same ``key`` replaces the first. */
   function raise(key, title, text, todo) {
+    if (!$("strip-msg").classList.contains("error")) say(""); // an alarm outranks a passing message: keep the strip short
     const list = loadAlarms().filter((a) => a.key !== key);
     list.push({ key, title, text, todo, at: Date.now() });
     saveAlarms(list);
