@@ -79,23 +79,27 @@ def sqlite_file(database_url: str) -> Path | None:
 
 
 def _writable(path: Path) -> str | None:
-    """Why ``path`` (an existing file) cannot be opened for writing, else None. Opening read-write
-    and closing at once changes nothing; it fails for an immutable file even for root."""
-    try:
-        with open(path, "r+b"):
-            return None
-    except OSError as e:
-        if e.errno == errno.EPERM:
-            return f"{path.name} is immutable or append-only (chattr +i/+a): {e.strerror}"
-        return f"{path.name} cannot be written: {e.strerror}"
+    """Why ``path`` (an existing file) cannot be written, else None, WITHOUT opening it: closing
+    any descriptor of a file releases every POSIX lock this process holds on it, SQLite's included
+    (sqlite.org "How To Corrupt An SQLite Database File", 2.2), so a check that opened the database,
+    its ``-wal`` or ``-shm`` while SQLite has them open would break SQLite's locking. ``access``
+    (Linux ``inode_permission``) refuses writing an immutable or append-only file even for root."""
+    if os.access(path, os.W_OK):
+        return None
+    if os.geteuid() == 0:  # root passes the permission bits: only the file's flags refuse it
+        return f"{path.name} is immutable or append-only (chattr +i/+a): {os.strerror(errno.EPERM)}"
+    return f"{path.name} cannot be written: {os.strerror(errno.EACCES)}"
 
 
-def check_files(db_file: Path, min_free_bytes: int = DEFAULT_MIN_FREE_BYTES) -> StorageFault | None:
+def check_files(db_file: Path, min_free_bytes: int = DEFAULT_MIN_FREE_BYTES, read_header: bool = True) -> StorageFault | None:
     """Check a SQLite database's folder, file, ``-wal`` and ``-shm`` without opening it with SQLite.
 
     Args:
         db_file: the database file (it may not exist yet: then only its folder is checked).
         min_free_bytes: less free space than this in the folder is ``disk_full``.
+        read_header: also read the file's first bytes (the SQLite header). Only while this process
+            has no SQLite connection to the file: closing the descriptor of that read would release
+            SQLite's POSIX locks (see :func:`_writable`).
 
     Returns:
         The fault found, or None when the files are usable.
@@ -111,7 +115,7 @@ def check_files(db_file: Path, min_free_bytes: int = DEFAULT_MIN_FREE_BYTES) -> 
         if free < min_free_bytes:
             return StorageFault("disk_full", f"the disk of {folder} is full ({free / 2**20:.1f} MiB free, "
                                              f"{min_free_bytes / 2**20:.0f} MiB needed)")
-    if db_file.exists():
+    if read_header and db_file.exists():
         try:
             with open(db_file, "rb") as f:
                 header = f.read(len(SQLITE_HEADER))
@@ -184,7 +188,10 @@ class StorageMonitor:
 
     def check_files(self) -> StorageFault | None:
         """:func:`check_files` for a SQLite database (None for others); remembers the result."""
-        fault = check_files(self.db_file, self.min_free_bytes) if self.db_file is not None else None
+        with self._lock:
+            connected = bool(self._open)
+        fault = (check_files(self.db_file, self.min_free_bytes, read_header=not connected)
+                 if self.db_file is not None else None)
         with self._lock:
             if fault is None:
                 if self._files is not None:
