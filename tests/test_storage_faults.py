@@ -211,3 +211,31 @@ def add_user_direct(db: Path) -> None:
         add_user(make_sessionmaker(engine), *ADMIN, "admin")
     finally:
         engine.dispose()
+
+
+def test_storage_checks_keep_sqlite_locks(tmp_path):
+    """Checking the files must not release SQLite's locks: closing any descriptor of a file drops
+    every POSIX lock the process holds on it. While this process holds the write lock, another
+    process must still find the database locked after a check."""
+    import sqlite3
+    import subprocess
+    import sys
+
+    from server.storage import StorageMonitor
+
+    db = tmp_path / "x.db"
+    conn = sqlite3.connect(db, isolation_level=None)
+    conn.execute("PRAGMA journal_mode=WAL")
+    conn.execute("CREATE TABLE t (x)")
+    conn.execute("BEGIN IMMEDIATE")
+    conn.execute("INSERT INTO t VALUES (1)")
+    try:
+        monitor = StorageMonitor(f"sqlite:///{db}", 0)
+        monitor._open[id(conn)] = conn  # noqa: SLF001  as the engine's connect event records it
+        assert monitor.check_files() is None
+        other = subprocess.run([sys.executable, "-c", "import sqlite3, sys; c = sqlite3.connect(sys.argv[1], timeout=0.2); "
+                                "c.execute('BEGIN IMMEDIATE')", str(db)], capture_output=True, text=True, timeout=60)
+        assert other.returncode != 0 and "locked" in other.stderr, other
+    finally:
+        conn.execute("ROLLBACK")
+        conn.close()
