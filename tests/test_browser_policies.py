@@ -37,6 +37,9 @@ def test_upload_reject_promote_and_rollback(tmp_path, browser):  # noqa: F811
             page.locator("#p-status", has_text=f"accepted: {name}").wait_for(timeout=20_000)
             row = page.locator("#policies tbody tr", has_text=name).first
             row.wait_for(timeout=10_000)
+            # a version is promoted only after its validation (its twin evaluation) passed
+            wait_for(lambda: any(v["name"] == name and v["evaluation_status"] == "done"
+                                 for v in up.http.get("/api/policies").json()), 120, f"{name} validated")
             row.locator("button.promote").click()
             page.locator("#confirm-dialog[open]").wait_for(timeout=10_000)  # promotion asks first
             page.click("#confirm-ok")
