@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import secrets
 import threading
 import time
@@ -31,6 +32,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
+
+log = logging.getLogger(__name__)
 
 MODES = ("peer", "client", "router")
 
@@ -254,3 +257,14 @@ def session_options(args: argparse.Namespace, cn: str, machine_ids: Sequence[str
     acl_ids = args.acl_machines if getattr(args, "acl_machines", None) else list(machine_ids)
     return {"mode": args.mode, "listen": args.listen, "connect": args.connect, "tls": tls,
             "access_control": site_acl(acl_ids) if tls is not None else None}
+
+
+def undeclare_all(declarations: list) -> None:
+    """Undeclare Zenoh subscribers, queryables, publishers or tokens; one already closed with its
+    session is skipped (logged at debug level). The list is emptied."""
+    for d in declarations:
+        try:
+            d.undeclare()
+        except Exception:  # already closed with the session
+            log.debug("undeclare failed", exc_info=True)
+    declarations.clear()

@@ -43,6 +43,7 @@ from pydantic import ValidationError
 
 from runtime.protocol import keys
 from runtime.protocol.messages import MachineState, ResultAck, RuntimeInfo, ThrowResult, decode, encode
+from runtime.zenoh_session import undeclare_all
 from server.command_signer import CommandSigner
 from server.estop import EstopLine
 from server.fleet_commands import FleetCommands, RuntimeUnavailable
@@ -156,12 +157,7 @@ class Fleet(FleetCommands):
     def stop(self) -> None:
         """Undeclare everything and drain the worker (pending results are still stored)."""
         self.listener.stop()
-        for d in self._decls:
-            try:
-                d.undeclare()
-            except Exception:  # already closed with the session
-                log.debug("undeclare failed", exc_info=True)
-        self._decls = []
+        undeclare_all(self._decls)
         self._estop.close()
         self._stage.shutdown(wait=True)  # staged results still reach the DB thread
         if self._worker is not None:

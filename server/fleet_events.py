@@ -27,6 +27,7 @@ from pydantic import ValidationError
 
 from runtime.protocol import keys
 from runtime.protocol.messages import MachineState, Message, RuntimeInfo, ThrowStatus, ValveCommand, decode_on_key
+from runtime.zenoh_session import undeclare_all
 
 log = logging.getLogger(__name__)
 
@@ -156,12 +157,7 @@ class FleetListener:
         ]
 
     def stop(self) -> None:
-        for d in self._decls:
-            try:
-                d.undeclare()
-            except Exception:  # already closed with the session
-                log.debug("undeclare failed", exc_info=True)
-        self._decls = []
+        undeclare_all(self._decls)
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         try:
