@@ -18,12 +18,17 @@ def module_main(
     build_parser: Callable[[argparse.ArgumentParser], None],
     run: Callable[[argparse.Namespace], int],
     argv: list[str] | None = None,
+    intermixed: bool = False,
 ) -> int:
-    """``python -m <module>``: INFO logging, parse ``argv`` with ``build_parser``, return ``run``'s code."""
+    """``python -m <module>``: INFO logging, parse ``argv`` with ``build_parser``, return ``run``'s code.
+
+    ``intermixed``: options may stand between positional arguments (``what --out X a b``;
+    argparse's ``parse_intermixed_args``)."""
     logging.basicConfig(level=logging.INFO, format=LOG_FORMAT)
     parser = argparse.ArgumentParser(prog=prog, description=description.strip().splitlines()[0])
     build_parser(parser)
-    return int(run(parser.parse_args(argv)) or 0)
+    args = parser.parse_intermixed_args(argv) if intermixed else parser.parse_args(argv)
+    return int(run(args) or 0)
 
 
 def stop_on_signals(stop: threading.Event | None = None) -> threading.Event:

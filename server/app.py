@@ -21,6 +21,7 @@ from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
 from server.adaptation import AdaptationRuns
 from server.api.errors import domain_error
+from server.api.responses import document_errors
 from server.api.routes import adaptation, auth, diagnosis, health, jobs, live, machines, policies, previews, scene, throws, users
 from server.command_signer import CommandSigner
 from server.config import Settings, get_settings
@@ -91,7 +92,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         sessions = make_sessionmaker(engine, before_use=storage.before_use)
         store = ResultStore(sessions, settings.data_dir)
         own_session = zenoh_session is None
-        zsession = open_zenoh(settings) if own_session else zenoh_session
+        zsession = zenoh_session if zenoh_session is not None else open_zenoh(settings)
         fleet = Fleet(zsession, store, settings.query_timeout_s, signer=CommandSigner(settings.resolved_site_dir))
         app.state.live = live_hub = LiveHub(fleet)
         app.state.login_guard = LoginGuard(settings.login_failures_per_user, settings.login_failures_per_address,
@@ -105,6 +106,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         app.state.reconciler = Reconciler(fleet, sessions, store.mark_lost, settings.result_grace_s,
                                           settings.runtime_gone_s, settings.reconcile_period_s,
                                           handshake_s=settings.query_timeout_s + 2.0)
+        fleet.add_consumer(app.state.reconciler.on_event)  # passes follow the fleet's events
         app.state.jobs = JobQueue(queue_url(settings), JobStore(sessions), job_tasks.execute)
         if app.state.jobs.url == "immediate":  # tests: jobs run in this process
             job_tasks.bind(job_tasks.WorkerContext(sessions, settings.data_dir, settings, app.state.jobs))
@@ -140,8 +142,8 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
             fleet.stop()
             if own_session:
                 zsession.close()
+            app.state.login_guard.close()  # its pending audit entries are written first
             storage.release(engine)  # disposes it, unless its files are unwritable (server.storage)
-            app.state.login_guard.close()
 
     app = FastAPI(
         title="Slinger",
@@ -154,7 +156,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
     _serve_api_docs(app)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(DomainError, domain_error)  # the one mapping of domain errors to HTTP
-    _document_validation_errors(app, [m.router for m in ROUTE_MODULES])
+    _document_errors(app, [m.router for m in ROUTE_MODULES])
     for exc_type in (StorageFault, SQLAlchemyError, OSError):
         app.add_exception_handler(exc_type, _storage_error)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes,
@@ -187,14 +189,14 @@ def _serve_api_docs(app: FastAPI) -> None:
 
     @app.get("/docs", include_in_schema=False)
     def _docs() -> HTMLResponse:
-        return get_swagger_ui_html(openapi_url=app.openapi_url, title=f"{app.title}: API",
+        return get_swagger_ui_html(openapi_url=app.openapi_url or "/openapi.json", title=f"{app.title}: API",
                                    swagger_js_url="/docs-static/swagger-ui-bundle.js",
                                    swagger_css_url="/docs-static/swagger-ui.css",
                                    swagger_favicon_url="/docs-static/favicon.png")
 
     @app.get("/redoc", include_in_schema=False)
     def _redoc() -> HTMLResponse:
-        return get_redoc_html(openapi_url=app.openapi_url, title=f"{app.title}: API",
+        return get_redoc_html(openapi_url=app.openapi_url or "/openapi.json", title=f"{app.title}: API",
                               redoc_js_url="/docs-static/redoc.standalone.js",
                               redoc_favicon_url="/docs-static/favicon.png", with_google_fonts=False)
 
@@ -260,11 +262,15 @@ async def _storage_error(request: Request, exc: Exception) -> JSONResponse:
     return storage_response(fault.condition, fault.reason)
 
 
-async def _validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
+async def _validation_error(_request: Request, exc: Exception) -> JSONResponse:
     """422 with a sentence naming each bad field (at most three) and ``fields``, the names alone;
-    never pydantic's error dump nor the input echoed back (it may be huge, hostile or not JSON)."""
+    never pydantic's error dump nor the input echoed back (it may be huge, hostile or not JSON).
+    Registered for RequestValidationError."""
+    if not isinstance(exc, RequestValidationError):
+        raise TypeError(f"_validation_error handles RequestValidationError, not {type(exc).__name__}")
     errors = exc.errors()
-    parts, fields = [], []
+    parts: list[str] = []
+    fields: list[str] = []
     for err in errors:
         loc = [str(x) for x in err.get("loc", ()) if x not in ("body", "query", "path", "header", "cookie")]
         field = ".".join(loc) or "request body"
@@ -276,75 +282,16 @@ async def _validation_error(_request: Request, exc: RequestValidationError) -> J
                                                   "fields": fields})
 
 
-VALIDATION_ERROR_SCHEMA = {
-    "title": "HTTPValidationError", "type": "object", "required": ["detail"],
-    "properties": {"detail": {"type": "string", "title": "Detail"},
-                   "fields": {"type": "array", "items": {"type": "string"}, "title": "Fields"}},
-}
-
-
-BODY_NOT_PARSED = {"description": "the body could not be parsed (not JSON, or not in its declared encoding)",
-                   "content": {"application/json": {"schema": {"$ref": "#/components/schemas/HTTPValidationError"}}}}
-
-
-def _document_validation_errors(app: FastAPI, routers: list) -> None:
-    """Make the OpenAPI document describe the 422 body :func:`_validation_error` writes (and the
-    answers that carry only ``detail``), and the 400 FastAPI gives a body it cannot parse."""
+def _document_errors(app: FastAPI, routers: list) -> None:
+    """Make the OpenAPI document describe every error answer (server.api.responses.document_errors)."""
     build = app.openapi
 
     def openapi() -> dict:
         if app.openapi_schema is None:
-            schema = build()
-            schema.get("components", {}).get("schemas", {})["HTTPValidationError"] = VALIDATION_ERROR_SCHEMA
-            for path in schema.get("paths", {}).values():
-                for operation in path.values():
-                    if isinstance(operation, dict) and "requestBody" in operation:
-                        operation.setdefault("responses", {}).setdefault("400", BODY_NOT_PARSED)
-            _document_auth_errors(routers, schema)
-            app.openapi_schema = schema
+            app.openapi_schema = document_errors(build(), routers)
         return app.openapi_schema
 
-    app.openapi = openapi
-
-
-def _auth_needs(dependant) -> tuple[bool, bool]:
-    """(needs a session, needs more than the viewer role) of a route, from its dependencies
-    (server.api.deps.get_current_user and require_role)."""
-    from server.api.deps import get_current_user
-
-    session, role = False, False
-    for dep in dependant.dependencies:
-        if dep.call is get_current_user:
-            session = True
-        closure = getattr(dep.call, "__closure__", None) or ()
-        if getattr(dep.call, "__qualname__", "").startswith("require_role."):
-            session = True
-            role = role or any(c.cell_contents in ("operator", "admin") for c in closure
-                               if isinstance(c.cell_contents, str))
-        s, r = _auth_needs(dep)
-        session, role = session or s, role or r
-    return session, role
-
-
-def _document_auth_errors(routers: list, schema: dict) -> None:
-    """Document 401 on every route that needs a session and 403 on those that need the operator
-    or admin role (what server.api.deps answers)."""
-    from fastapi.routing import APIRoute
-
-    problem = {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/Problem"}}}}
-    for route in (r for router in routers for r in router.routes):
-        if not isinstance(route, APIRoute) or route.path not in schema.get("paths", {}):
-            continue
-        session, role = _auth_needs(route.dependant)
-        for method in route.methods:
-            operation = schema["paths"][route.path].get(method.lower())
-            if operation is None:
-                continue
-            responses = operation.setdefault("responses", {})
-            if session:
-                responses.setdefault("401", {"description": "log in first (session missing or expired)", **problem})
-            if role:
-                responses.setdefault("403", {"description": "needs a higher role", **problem})
+    app.openapi = openapi  # type: ignore[method-assign]  # FastAPI's documented way to extend the schema
 
 
 def _control_free(text: str) -> str:

@@ -21,6 +21,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from server.db.models import ROLES, AuditEntry, AuthSession, User
 from server.db.types import utcnow
+from server.errors import Conflict, Refused, Unauthenticated
 
 log = logging.getLogger(__name__)
 
@@ -30,8 +31,23 @@ MAX_PASSWORD_LENGTH = 256
 _hasher = PasswordHasher()  # argon2id with the library's recommended parameters
 
 
-class AuthError(ValueError):
-    """Bad credentials or an invalid account change; the message is safe to show."""
+class AuthError(Refused, ValueError):
+    """An invalid account change (a weak password, an unknown role, a malformed user name); the
+    message is safe to show. Subclasses: :class:`UserExists`, :class:`BadCredentials`."""
+
+
+class UserExists(Conflict, AuthError):
+    """A user of that name exists already."""
+
+
+class BadCredentials(Unauthenticated, AuthError):
+    """Unknown user, wrong password or inactive account. The message is the same for every cause
+    (safe to show, on purpose); ``reason`` names the cause for the audit log only:
+    ``"unknown user"``, ``"wrong password"`` or ``"account disabled"``."""
+
+    def __init__(self, reason: str):
+        super().__init__("invalid user name or password")
+        self.reason = reason
 
 
 def hash_password(password: str) -> str:
@@ -75,7 +91,7 @@ def create_user(db: Session, username: str, password: str, role: str) -> User:
 
     Raises:
         AuthError: unknown role, password too short or long (:func:`check_password`), malformed
-            or taken user name.
+            user name; :class:`UserExists` (an AuthError): the name is taken.
     """
     if role not in ROLES:
         raise AuthError(f"unknown role {role!r}; use one of {', '.join(ROLES)}")
@@ -83,7 +99,7 @@ def create_user(db: Session, username: str, password: str, role: str) -> User:
         raise AuthError("user name must be 1-64 letters, digits or . _ - @")
     check_password(password)
     if db.scalar(select(User).where(User.username == username)) is not None:
-        raise AuthError(f"user {username!r} exists")
+        raise UserExists(f"user {username!r} exists")
     user = User(username=username, password_hash=hash_password(password), role=role, active=True)
     db.add(user)
     db.flush()
@@ -98,14 +114,17 @@ def authenticate(db: Session, username: str, password: str) -> User:
     """The active user with these credentials.
 
     Raises:
-        AuthError: "invalid user name or password" (the same text for both, on purpose).
+        BadCredentials: "invalid user name or password" (the same text for every cause, on
+            purpose; its ``reason`` names the cause for the audit log).
     """
     user = db.scalar(select(User).where(User.username == username))
     if user is None:
         hash_password(password)  # spend the same time as a real check
-        raise AuthError("invalid user name or password")
-    if not verify_password(user.password_hash, password) or not user.active:
-        raise AuthError("invalid user name or password")
+        raise BadCredentials("unknown user")
+    if not verify_password(user.password_hash, password):
+        raise BadCredentials("wrong password")
+    if not user.active:
+        raise BadCredentials("account disabled")
     if _hasher.check_needs_rehash(user.password_hash):
         user.password_hash = hash_password(password)
     return user

@@ -21,13 +21,14 @@ from typing import TypeVar
 from runtime.command_auth import load_key, sign, verify_mac
 from runtime.protocol.keys import validate_machine_id
 from runtime.protocol.messages import Message, ThrowResult
+from server.errors import Unavailable
 
 log = logging.getLogger(__name__)
 
 M = TypeVar("M", bound=Message)
 
 
-class NoCommandKey(RuntimeError):
+class NoCommandKey(Unavailable, RuntimeError):
     """The server has no command key for a machine, so it cannot command it."""
 
 

@@ -71,6 +71,10 @@ class Settings(BaseSettings):
             (sim_twin.preview.PreviewRequest), so that a preview holds a release as the machine
             would (runtime.release_check; env ``SLINGER_RELEASE_CHECK_RADIUS_M``, default 3.0).
         preview_rollouts: Monte Carlo rollouts of a full preview (1 sigma impact ellipse).
+        preview_processes: processes a worker runs the Monte Carlo's full rollouts in (a pool
+            started with the worker and kept; 0 or 1: in the worker's own thread). Default 2: on
+            2 cores the 200-rollout ellipse takes about 40 % of its one-process time
+            (tests/benchmarks/bench_preview.py).
         preview_profile: the site's reality profile with its uncertainty block (parameter ranges,
             start-state model; sim_twin.uncertainty) that previews sample; default
             sim_twin/profiles/nominal_uncertain.json. A policy version adapted to a diagnosed site
@@ -132,6 +136,7 @@ class Settings(BaseSettings):
     clearance_radius_m: float = 12.0
     release_check_radius_m: float | None = DEFAULT_RADIUS_M
     preview_rollouts: int = 200
+    preview_processes: int = Field(default=2, ge=0, le=64)
     preview_profile: Path | None = None
     eval_distances_m: list[float] = Field(default_factory=list)
     eval_throws: int = 4

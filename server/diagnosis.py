@@ -16,6 +16,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.db.models import Throw
+from server.errors import Conflict, Refused
 from server.jobs.diagnosis_job import landed_with_telemetry
 from server.jobs.specs import job_dir
 
@@ -25,8 +26,12 @@ REPORT_FILES = ("report.json", "profile_fitted.json", "where.png", "which.png", 
 ACTIVE = ("queued", "running")
 
 
-class DiagnosisBusy(RuntimeError):
+class DiagnosisBusy(Conflict, RuntimeError):
     """A diagnosis is already queued or running."""
+
+
+class TooFewThrows(Refused, ValueError):
+    """The machine has too few landed throws with telemetry for a diagnosis."""
 
 
 def run_view(job: dict) -> dict:
@@ -71,7 +76,8 @@ class DiagnosisRuns:
 
         Raises:
             DiagnosisBusy: a run is queued or in progress.
-            ValueError: the machine has fewer than 4 landed throws with telemetry.
+            TooFewThrows (a ValueError): the machine has fewer than 4 landed throws with telemetry.
+            server.jobs.specs.JobSpecError (a Refused): bad job parameters.
         """
         if any(j["status"] in ACTIVE for j in self.jobs.store.list(kind="diagnosis", limit=20)):
             raise DiagnosisBusy("a diagnosis is already running; wait for it to finish")
@@ -79,7 +85,7 @@ class DiagnosisRuns:
             n = db.scalar(select(func.count()).select_from(Throw).where(*landed_with_telemetry(machine_id)))
         n = min(int(n or 0), limit)
         if n < 4:
-            raise ValueError(f"machine {machine_id!r} has {n} landed throws with telemetry; a diagnosis needs at least 4")
+            raise TooFewThrows(f"machine {machine_id!r} has {n} landed throws with telemetry; a diagnosis needs at least 4")
         self._job_id = self.jobs.submit("diagnosis", {"machine_id": machine_id, "limit": limit,
                                                       "workers": workers or self.workers},
                                         subject=machine_id, requested_by=requested_by)

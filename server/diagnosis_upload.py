@@ -22,6 +22,8 @@ import uuid
 import zipfile
 from pathlib import Path, PurePosixPath
 
+from server.errors import Refused
+
 MAX_UPLOAD_BYTES = 512 * 2**20
 """Default largest upload (all files, and all unzipped content), bytes (the server's setting
 ``max_bag_upload_bytes``)."""
@@ -47,7 +49,7 @@ def upload_dir(data_dir: Path, upload: str) -> Path:
     return Path(data_dir) / "uploads" / upload
 
 
-class UploadError(ValueError):
+class UploadError(Refused, ValueError):
     """The upload cannot be used (the message says which file and why); nothing is kept."""
 
 

@@ -31,7 +31,10 @@ On an alarm the watch
    alert: the diagnosis run to adapt from and its effects; the operator starts it).
 
 The statistics then restart with a new baseline (the machine's new normal). The CUSUM state
-lives in memory (a restarted server takes a new baseline); alerts persist until acknowledged.
+lives in memory (a restarted server takes a new baseline); alerts persist until acknowledged
+(:meth:`DriftWatch.acknowledge`, POST /api/machines/{id}/drift/ack: an operator or admin,
+audited as ``drift_ack``; the acknowledged alert is pushed as a ``drift`` event, so the status
+strip's drift alarm clears on every open console) and are kept for the record until the next.
 """
 
 from __future__ import annotations
@@ -238,13 +241,39 @@ class DriftWatch:
         return cur
 
     def acknowledge(self, machine_id: str, username: str) -> dict | None:
-        """Mark the machine's alert acknowledged (kept for the record until the next one)."""
-        cur = self._read(machine_id)
-        if cur is None:
-            return None
-        cur.update(status="acknowledged", acknowledged_by=username, acknowledged_at=datetime.now(UTC).isoformat())
-        self._write(machine_id, cur)
+        """Mark the machine's alert acknowledged (kept for the record until the next one) and
+        publish it (``("drift", alert)``: every open console clears its drift alarm). An alert
+        already acknowledged stays as it was (its first acknowledgement is kept).
+
+        Returns:
+            The alert, or None when the machine has none.
+        """
+        with self._lock:
+            cur = self._read(machine_id)
+            if cur is None:
+                return None
+            if cur.get("status") == "acknowledged":
+                return cur
+            cur.update(status="acknowledged", acknowledged_by=username, acknowledged_at=datetime.now(UTC).isoformat())
+            self._write(machine_id, cur)
+        if self.publish is not None:
+            self.publish("drift", cur)
         return cur
+
+    def alerts(self) -> list[dict]:
+        """Every machine's latest alert (open or acknowledged), sorted by machine id: what a
+        console that just connected is sent (server.live.LiveHub.subscribe)."""
+        try:
+            paths = sorted(self.root.glob("*.json"))
+        except OSError:
+            return []
+        out = []
+        for p in paths:
+            try:
+                out.append(json.loads(p.read_text()))
+            except (OSError, json.JSONDecodeError):
+                log.warning("drift watch: unreadable alert file %s skipped", p)
+        return sorted(out, key=lambda a: str(a.get("machine_id")))
 
     def _path(self, machine_id: str) -> Path:
         return self.root / f"{SAFE.sub('_', machine_id)}.json"

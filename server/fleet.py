@@ -37,6 +37,7 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
 
 import zenoh
 from pydantic import ValidationError
@@ -122,7 +123,7 @@ class Fleet(FleetCommands):
         self._clock_offsets: dict[str, float] = {}
         """machine id -> its runtime's wall clock minus the server's, s (latest RuntimeInfo)."""
         self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue()
-        self._results: list[tuple[zenoh.Query, ThrowResult, object]] = []
+        self._results: list[tuple[zenoh.Query, ThrowResult, Path | Exception | None]] = []
         """Results with their staged telemetry waiting for the DB thread; one job stores all that
         arrived meanwhile."""
         self._stage = ThreadPoolExecutor(max_workers=STAGE_THREADS, thread_name_prefix="telemetry")
@@ -205,6 +206,16 @@ class Fleet(FleetCommands):
         with self._lock:
             entry = self._infos.get(machine_id)
         return entry[1] if entry else None
+
+    def published_info(self, machine_id: str, max_age_s: float) -> RuntimeInfo | None:
+        """The cached RuntimeInfo of ``machine_id`` if its runtime published one (keys.runtime_state)
+        within ``max_age_s`` (s), else None; never queries."""
+        with self._lock:
+            published = self._published_s.get(machine_id)
+            entry = None if machine_id in self._forgotten else self._infos.get(machine_id)
+        if published is None or entry is None or time.monotonic() - published > max_age_s:
+            return None
+        return entry[1]
 
     def fresh_info(self, machine_id: str, max_age_s: float = 2.0, timeout_s: float = 1.0) -> RuntimeInfo | None:
         """RuntimeInfo at most ``max_age_s`` old: the cache, else a query (``timeout_s``);
@@ -329,6 +340,7 @@ class Fleet(FleetCommands):
             query.drop()
 
     def _staged(self, query: zenoh.Query, result: ThrowResult) -> None:
+        staged: Path | Exception | None
         try:
             staged = self.store.stage_telemetry(result)
         except (ValueError, OSError) as e:

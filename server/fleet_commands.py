@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import time
 from concurrent.futures import Future
+from typing import TYPE_CHECKING, Any
 
 from pydantic import ValidationError
 
@@ -32,6 +33,13 @@ from runtime.protocol.messages import (
     decode,
     encode,
 )
+from server.errors import Unavailable
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from server.command_signer import CommandSigner
+    from server.estop import EstopLine
 
 log = logging.getLogger("server.fleet")  # the logger of server.fleet, as before the split
 
@@ -41,7 +49,7 @@ RETRY_REASONS = ("wrong epoch", "stale (", "in the future")
 clock asked afresh (it restarted, or its clock moved)."""
 
 
-class RuntimeUnavailable(RuntimeError):
+class RuntimeUnavailable(Unavailable, RuntimeError):
     """The runtime did not answer (offline, or no reply within the timeout)."""
 
 
@@ -55,6 +63,19 @@ class FleetCommands:
     :meth:`~server.fleet.Fleet.forget_info`, :meth:`~server.fleet.Fleet.clock_offset_s` and
     :meth:`~server.fleet.Fleet._note_info`.
     """
+
+    # what server.fleet.Fleet provides, declared for the type checker
+    session: zenoh.Session
+    signer: CommandSigner
+    query_timeout_s: float
+    _estop: EstopLine
+
+    if TYPE_CHECKING:
+        def is_online(self, machine_id: str) -> bool: ...
+        def cached_info(self, machine_id: str) -> RuntimeInfo | None: ...
+        def forget_info(self, machine_id: str) -> None: ...
+        def clock_offset_s(self, machine_id: str) -> float | None: ...
+        def _note_info(self, info: RuntimeInfo, published: bool) -> None: ...
 
     # --- queries -------------------------------------------------------------------------------
     def query_info(self, machine_id: str, timeout_s: float | None = None) -> RuntimeInfo:
@@ -185,7 +206,7 @@ class FleetCommands:
 
     def _query_one(self, key: str, payload: bytes | None, timeout_s: float | None = None) -> bytes:
         timeout_s = timeout_s or self.query_timeout_s
-        kwargs = {"timeout": timeout_s}
+        kwargs: dict[str, Any] = {"timeout": timeout_s}
         if payload is not None:
             kwargs["payload"] = payload
         errors = []

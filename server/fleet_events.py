@@ -6,8 +6,9 @@ decodes each message once with :func:`runtime.protocol.messages.decode_on_key` (
 name the machine of its key) and hands one event to each registered consumer, in registration
 order, on the Zenoh callback thread. :class:`server.fleet.Fleet` registers first (its caches are
 current before anyone else hears of a change); the live stream (:class:`server.live.LiveHub`),
-the drift watch and the 3D scene follow. :class:`ResultStored` is emitted by the fleet after a
-result's commit (on its database thread), through the same consumers.
+the reconciler (:class:`server.reconcile.Reconciler`), the drift watch and the 3D scene follow.
+:class:`ResultStored` is emitted by the fleet after a result's commit (on its database thread),
+through the same consumers.
 
 A consumer is any callable taking one event; it must return quickly (MachineState comes at
 100 Hz per machine) and never block. An exception in a consumer is logged and does not reach the

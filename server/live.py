@@ -26,6 +26,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -76,7 +77,7 @@ def machine_status(machine_id: str, online: bool, info: RuntimeInfo | None, info
         "return_to_ready", else None), "returning" (a return to the ready pose runs),
         "return_progress" (0..1 or None), "return_result" (how the last one ended or None)}.
     """
-    out = {"machine_id": machine_id, "state": "offline", "reason": "runtime offline", "estop_reason": None,
+    out: dict[str, Any] = {"machine_id": machine_id, "state": "offline", "reason": "runtime offline", "estop_reason": None,
            "phase": None, "throw_id": None, "policies": {}, "simulated": bool(info and info.simulated),
            "recovery": None, "returning": False, "return_progress": None, "return_result": None}
     if not online:
@@ -159,12 +160,15 @@ class LiveHub:
 
     # --- subscribers ---------------------------------------------------------------------------
     def subscribe(self, console_id: str | None = None) -> Subscriber:
-        """A new event stream on the running asyncio loop; it starts with every machine's state."""
+        """A new event stream on the running asyncio loop; it starts with every machine's state
+        and every machine's drift alert (``drift`` events, server.drift)."""
         sub = Subscriber(asyncio.get_running_loop(), console_id)
         with self._lock:
             self._subs.append(sub)
         for status in self.statuses():
             sub.put(("machine", status))
+        for alert in self.drift.alerts() if self.drift is not None else []:
+            sub.put(("drift", alert))
         return sub
 
     def unsubscribe(self, sub: Subscriber) -> None:

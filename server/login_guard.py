@@ -22,6 +22,12 @@ default a quarter of the cores: on a 2-core machine one, so the API keeps a core
 ``max_pending`` checks are already queued or running, a further log-in is refused at once with
 429 and ``Retry-After: 1``.
 
+Refused attempts are audited (server.api.routes.auth): a failed check in the check pool itself;
+a refusal that never reaches the check (held, or too many in progress) on the guard's one audit
+thread (:meth:`LoginGuard.record_later`), at most ``max_audit_backlog`` entries waiting, so a
+flood of refused log-ins costs the database one thread's writes; entries past the backlog are
+counted and the next entry written carries the count.
+
 A successful log-in clears its (user name, address) failures and remembers the address as known
 for that user. The client address is the TCP peer unless the peer is one of the configured
 trusted proxies (``Settings.trusted_proxies``; none by default, loopback included), whose
@@ -44,11 +50,13 @@ from limits import parse
 from limits.storage import MemoryStorage
 from limits.strategies import MovingWindowRateLimiter
 
+from server.errors import Limited
+
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 
-class LoginBusy(RuntimeError):
+class LoginBusy(Limited, RuntimeError):
     """Too many log-in checks in progress; retry in a second."""
 
 
@@ -61,11 +69,13 @@ class LoginGuard:
         known_address_ttl_s: how long an address a user logged in from stays exempt from the
             ``per_user`` lock, s.
         max_known: (user, address) pairs remembered at most (oldest forgotten first).
+        max_audit_backlog: audit entries of refused log-ins waiting at most (see
+            :meth:`record_later`).
     """
 
     def __init__(self, per_user: str = "100/5minutes", per_address: str = "20/5minutes", workers: int = 2,
                  max_pending: int = 8, per_user_address: str = "5/5minutes",
-                 known_address_ttl_s: float = 30 * 86400.0, max_known: int = 100_000):
+                 known_address_ttl_s: float = 30 * 86400.0, max_known: int = 100_000, max_audit_backlog: int = 256):
         if workers < 1 or max_pending < 1:
             raise ValueError(f"need workers >= 1 and max_pending >= 1, got {workers}, {max_pending}")
         self._limiter = MovingWindowRateLimiter(MemoryStorage())
@@ -78,6 +88,10 @@ class LoginGuard:
         self._known: OrderedDict[tuple[str, str], float] = OrderedDict()
         self._known_ttl_s = known_address_ttl_s
         self._max_known = max_known
+        self._audit = ThreadPoolExecutor(max_workers=1, thread_name_prefix="login-audit")
+        self._audit_backlog = 0
+        self._max_audit_backlog = max_audit_backlog
+        self._unrecorded = 0
 
     def _keys(self, username: str, address: str) -> list[tuple[str, str]]:
         return [("user_address", f"{username}\x00{address}"), ("address", address), ("user", username)]
@@ -133,5 +147,28 @@ class LoginGuard:
             with self._lock:
                 self._pending -= 1
 
+    def record_later(self, write: Callable[[int], None]) -> None:
+        """Run ``write(unrecorded)`` on the guard's audit thread without waiting; ``unrecorded``
+        is the number of entries dropped since the last one handed to ``write``. When
+        ``max_audit_backlog`` writes already wait, this one is dropped, counted and logged."""
+        with self._lock:
+            if self._audit_backlog >= self._max_audit_backlog:
+                self._unrecorded += 1
+                log.warning("audit entry of a refused log-in dropped (%d waiting)", self._audit_backlog)
+                return
+            self._audit_backlog += 1
+
+        def run() -> None:
+            with self._lock:
+                self._audit_backlog -= 1
+                unrecorded, self._unrecorded = self._unrecorded, 0
+            try:
+                write(unrecorded)
+            except Exception:
+                log.exception("audit entry of a refused log-in not written")
+
+        self._audit.submit(run)
+
     def close(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)
+        self._audit.shutdown(wait=True)

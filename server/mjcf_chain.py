@@ -55,16 +55,16 @@ def mat_to_quat(mat) -> tuple[float, float, float, float]:
     tr = np.trace(m)
     if tr > 0:
         s = 2.0 * np.sqrt(tr + 1.0)
-        q = (0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s)
+        q = np.array([0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s])
     else:
         i = int(np.argmax(np.diag(m)))
         j, k = (i + 1) % 3, (i + 2) % 3
         s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
-        q = [0.0, 0.0, 0.0, 0.0]
+        q = np.zeros(4)
         q[0] = (m[k, j] - m[j, k]) / s
         q[1 + i], q[1 + j], q[1 + k] = 0.25 * s, (m[j, i] + m[i, j]) / s, (m[k, i] + m[i, k]) / s
-    q = np.asarray(q) * (1.0 if q[0] >= 0 else -1.0)
-    return tuple(float(v) for v in q)
+    w, x, y, z = (float(v) for v in q * (1.0 if q[0] >= 0 else -1.0))
+    return w, x, y, z
 
 
 def axis_rotation(axis, angle_rad: float) -> np.ndarray:
@@ -206,8 +206,8 @@ class KinematicChain:
             # MuJoCo's compiler points the frame's z axis from "to" back to "from"
             pos, rot, size[1] = 0.5 * (ft[:3] + ft[3:]), _z_to(-d / length), 0.5 * length
         rgba = _floats(el, "rgba", (0.5, 0.5, 0.5, 1.0), 4)
-        rgb = tuple(int(255 * c) for c in rgba[:3])
-        return Geom(el.get("name", ""), kind, size, rgb, body, pos, rot)
+        red, green, blue = (int(255 * c) for c in rgba[:3])
+        return Geom(el.get("name", ""), kind, size, (red, green, blue), body, pos, rot)
 
     def body_poses(self, q) -> tuple[np.ndarray, np.ndarray]:
         """World positions (nbody, 3) and rotations (nbody, 3, 3) at joint values ``q``.

@@ -14,6 +14,7 @@ import logging
 import tempfile
 from datetime import datetime, timedelta
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from sqlalchemy import select
@@ -40,16 +41,24 @@ MAX_POLICY_BYTES = 50 * 1024 * 1024
 
 
 class PolicyService:
-    """Args: fleet, sessions, store (policy files), settings (eval_distances_m, eval_throws),
-    jobs (server.jobs.JobQueue: the twin evaluation of an upload runs as a job in a worker)."""
+    """Args: fleet (None in a worker: no fleet link, so no promotion, rollback or policy files over
+    Zenoh), sessions, store (policy files), settings (eval_distances_m, eval_throws), jobs
+    (server.jobs.JobQueue: the twin evaluation of an upload runs as a job in a worker)."""
 
-    def __init__(self, fleet: Fleet, sessions: sessionmaker[Session], store: ResultStore, settings, jobs):
+    def __init__(self, fleet: Fleet | None, sessions: sessionmaker[Session], store: ResultStore, settings, jobs):
         self.fleet, self.sessions, self.store, self.settings, self.jobs = fleet, sessions, store, settings, jobs
         self._decls: list = []
 
+    @property
+    def _link(self) -> Fleet:
+        """The fleet link; RuntimeError in a service made without one (a worker's)."""
+        if self.fleet is None:
+            raise RuntimeError("this PolicyService has no fleet link (a worker's): it cannot reach runtimes")
+        return self.fleet
+
     # --- lifecycle ---------------------------------------------------------------------------
     def start(self) -> None:
-        s = self.fleet.session
+        s = self._link.session
         self._decls = [s.declare_queryable(keys.POLICY_FILES, self._on_file_query, complete=True),
                        s.declare_subscriber(keys.ALL_POLICY_STATUS, self._on_update)]
 
@@ -135,7 +144,7 @@ class PolicyService:
             audit(db, username, "policy_evaluate", str(row.id), name=row.name, mode=row.mode)
         self._submit_evaluation(version_id, rng, username)
         with self.sessions() as db:
-            return db.get(PolicyVersion, version_id)
+            return db.get_one(PolicyVersion, version_id)
 
     def _submit_evaluation(self, version_id: int, target_range_m, username: str) -> None:
         lo, hi = target_range_m
@@ -167,7 +176,7 @@ class PolicyService:
                 raise Conflict(refusal, condition="validation")
         out = []
         for mid in machine_ids:
-            info = self.fleet.fresh_info(mid, max_age_s=0.0, timeout_s=2.0)
+            info = self._link.fresh_info(mid, max_age_s=0.0, timeout_s=2.0)
             previous = next((p.sha256 for p in (info.policies if info else []) if p.mode == version.mode), None)
             # the row exists before the offer: the runtime's confirmation may come back at once
             with self.sessions.begin() as db:
@@ -182,13 +191,13 @@ class PolicyService:
                 try:
                     offer = PolicyOffer(machine_id=mid, mode=version.mode, version=version.name, sha256=version.sha256,
                                         manifest=version.manifest)
-                    ack = self.fleet.offer_policy(offer, username)
+                    ack = self._link.offer_policy(offer, username)
                     if not ack.accepted:
                         status, reason = "failed", ack.reason
                 except (RuntimeUnavailable, ValidationError, ValueError) as e:
                     status, reason = "failed", str(e)
             with self.sessions.begin() as db:
-                dep = db.get(PolicyDeployment, dep.id)
+                dep = db.get_one(PolicyDeployment, dep.id)
                 if status == "failed":
                     dep.status, dep.reason = status, reason
                 audit(db, username, action, mid, policy_version=version.name, policy_version_id=version.id,
@@ -233,7 +242,7 @@ class PolicyService:
         except ValidationError:
             log.warning("malformed PolicyUpdate dropped")
             return
-        self.fleet.forget_info(msg.machine_id)
+        self._link.forget_info(msg.machine_id)
         with self.sessions.begin() as db:
             dep = db.scalar(select(PolicyDeployment).join(PolicyVersion).where(
                 PolicyDeployment.machine_id == msg.machine_id, PolicyDeployment.mode == msg.mode,
@@ -263,7 +272,9 @@ def evaluate_version(sessions: sessionmaker[Session], data_dir: Path, version_id
     from sim_twin.evaluate import summarise, throw_batch  # the protocol's own throw loop
 
     with sessions.begin() as db:
-        row = db.get(PolicyVersion, version_id)
+        row = db.get_one(PolicyVersion, version_id)
+        if row.onnx_path is None:
+            raise ValueError(f"policy version {version_id} ({row.name}) has no ONNX file to evaluate")
         row.evaluation_status = "running"
         mode, path = row.mode, str(Path(data_dir) / row.onnx_path)
         site = row.manifest.get("site_profile")  # a version adapted to a site is evaluated on that site
@@ -272,7 +283,8 @@ def evaluate_version(sessions: sessionmaker[Session], data_dir: Path, version_id
         profile_path = str(Path(path).with_suffix(".site_profile.json"))
         Path(profile_path).write_text(json.dumps({**site, "uncertainty": {}}))
         profile_name = site.get("name", "site")
-    metrics, status = {"error": "cancelled"}, "failed"
+    metrics: dict[str, Any] = {"error": "cancelled"}
+    status = "failed"
     try:
         progress(0.0, "validation: observation sweep and twin throws over the target range")
         verdict = validate(path, limits or ValidationLimits(), check_cancel=lambda: progress(0.0, None),
@@ -297,7 +309,7 @@ def evaluate_version(sessions: sessionmaker[Session], data_dir: Path, version_id
         raise
     finally:
         with sessions.begin() as db:
-            row = db.get(PolicyVersion, version_id)
+            row = db.get_one(PolicyVersion, version_id)
             row.metrics, row.evaluation_status = metrics, status
         log.info("policy version %d evaluated: %s", version_id, status)
     return metrics

@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from runtime.release_check import DEFAULT_RADIUS_M
 from server.db.models import PolicyVersion
-from server.errors import KINDS, Conflict, Failed, Refused, Unavailable
+from server.errors import KINDS, Conflict, Failed, Refused, Unavailable, found
 from server.fleet import Fleet
 from server.jobs import JobQueue
 from server.throws import ThrowService
@@ -57,6 +57,14 @@ class PreviewService:
         if job is None or job["kind"] != "preview" or job["status"] != "done":
             return None
         return {**job["result"], **job["params"]["meta"], "id": job["id"], "created_at": job["created_at"]}
+
+    def require(self, preview_id: str) -> dict:
+        """:meth:`get`, for a preview that must exist.
+
+        Raises:
+            NotFound: unknown, expired or not a finished preview.
+        """
+        return found(self.get(preview_id), f"no preview {preview_id} (previews are kept for a while only)")
 
     def active_policy(self, machine_id: str, mode: str) -> tuple[str, str, str]:
         """(ONNX path relative to the data dir, SHA-256, version name) of the policy

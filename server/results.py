@@ -23,11 +23,12 @@ from runtime.throw_geometry import impact_errors
 from server.db.models import FINAL_STATUSES, Machine, PolicyVersion, Throw
 from server.db.session import rowcount
 from server.db.types import UTCDateTime, utcnow
+from server.errors import NotFound
 
 log = logging.getLogger(__name__)
 
 
-class UnknownThrow(LookupError):
+class UnknownThrow(NotFound, LookupError):
     """A result for a throw the server never issued (forged, or from another site's database)."""
 
 

@@ -10,7 +10,9 @@ A drawing thread poses each console's machine from its latest MachineState at ``
 Clicks: viser reports a RAY (origin, direction, machine frame, z up); :func:`ground_point`
 intersects it with z = 0; in 2D mode the point snaps to the throwing line; the reason a target
 cannot be served is computed at once (``refusal``) and drawn, and the console page hears the new
-target over live push (``on_console_change``).
+target over live push (``on_console_change``). A console replaying a recorded throw
+(server.scene_replay, the History page) shows the machine posed from the recording at the time its
+page seeks to, instead of the live state.
 """
 
 from __future__ import annotations
@@ -27,15 +29,14 @@ from pathlib import Path
 import numpy as np
 import viser
 
-from runtime.machine import forward_kinematics
 from runtime.throw_geometry import MIN_TARGET_DISTANCE_M
-from server.errors import Limited
+from server.errors import Conflict, Denied, Limited, NotFound
+from server.scene_replay import Replay, recorded_paths
 from server.scene_view import ClientView, MachineGeometry, snap_to_line
 
 log = logging.getLogger(__name__)
 
 DARK, RED = (60, 60, 70), (200, 40, 40)
-TRAJECTORY_POINTS = 300
 DEFAULT_BAND_M = (MIN_TARGET_DISTANCE_M, 10.7)
 CONSOLE_TTL_S = 12 * 3600.0
 OPERATOR_ONLY_CANVAS = "<style>body * { visibility: hidden !important; } canvas { visibility: visible !important; }</style>"
@@ -77,6 +78,21 @@ class ConsoleLimit(Limited):
     """The server holds :data:`MAX_CONSOLES` consoles of other users; the message says so."""
 
 
+class SceneDisabled(Conflict):
+    """The 3D view is off on this server (``Settings.viser_enabled``)."""
+
+
+def enabled(scene: ConsoleScene | None) -> ConsoleScene:
+    """``scene`` when the 3D view runs.
+
+    Raises:
+        SceneDisabled: ``scene`` is None (the view is off).
+    """
+    if scene is None:
+        raise SceneDisabled("the 3D view is disabled")
+    return scene
+
+
 def ground_point(ray_origin, ray_direction, max_range_m: float = 200.0) -> np.ndarray | None:
     """Intersection of a click ray with the ground plane z = 0.
 
@@ -111,7 +127,8 @@ class Console:
     Attributes:
         machine_id / mode: what the operator looks at; target (3,) m or None, with
         ``target_reason`` (why it cannot be served, None if it can) and ``snapped`` (moved onto
-        the 2D line). ``preview_names``: the scene names of the drawn preview.
+        the 2D line). ``preview_names``: the scene names of the drawn preview. ``replay``: the
+        recorded throw the view replays (server.scene_replay), None for the live machine.
     """
 
     console_id: str
@@ -123,11 +140,12 @@ class Console:
     snapped: bool = False
     preview_names: list[str] = field(default_factory=list)
     touched: float = field(default_factory=time.monotonic)
+    replay: Replay | None = None
 
     def public(self) -> dict:
         return {"console_id": self.console_id, "machine_id": self.machine_id, "mode": self.mode,
                 "target": self.target, "target_reason": self.target_reason, "snapped": self.snapped,
-                "preview": list(self.preview_names)}
+                "preview": list(self.preview_names), "replay": self.replay.public() if self.replay else None}
 
 
 class ConsoleScene:
@@ -156,7 +174,8 @@ class ConsoleScene:
         self.port: int | None = None
         self.consoles: dict[str, Console] = {}
         self.max_consoles, self.max_per_user = MAX_CONSOLES, MAX_CONSOLES_PER_USER
-        self._views: dict[int, tuple[str, ClientView]] = {}
+        self._views: dict[int, tuple[str | None, ClientView]] = {}
+        """viser client id -> (its console id, None for a client without one; its view)."""
         self._geometry: MachineGeometry | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -222,6 +241,20 @@ class ConsoleScene:
                 con.touched = time.monotonic()
             return con
 
+    def owned_console(self, console_id: str, username: str) -> Console:
+        """Console ``console_id`` of ``username`` (touched, as :meth:`get_console`).
+
+        Raises:
+            NotFound: no such console (closed, expired or never opened).
+            Denied: the console belongs to another user.
+        """
+        con = self.get_console(console_id)
+        if con is None:
+            raise NotFound(f"no console {console_id} (reload the page)")
+        if con.username != username:
+            raise Denied("this console belongs to another user")
+        return con
+
     def update_console(self, con: Console, machine_id: str | None = None, mode: str | None = None,
                        target=None) -> Console:
         """Change what a console shows; a new machine or mode drops the old target, preview and throw."""
@@ -232,7 +265,7 @@ class ConsoleScene:
             if mode is not None:
                 con.mode = mode
             if changed:
-                con.target, con.target_reason, con.preview_names = None, None, []
+                con.target, con.target_reason, con.preview_names, con.replay = None, None, [], None
                 for view in self._views_of(con.console_id):
                     view.clear("/preview", "/throw", "/target", "/band")
                     view.framed_for = view.drawn_for = None
@@ -267,16 +300,35 @@ class ConsoleScene:
 
     # --- viser clients -------------------------------------------------------------------------
     def _console_of_client(self, client) -> str | None:
-        """The console id in the client's websocket path (/c/<console_id>)."""
+        """The console id in the client's websocket path (/c/<console_id>), or None (a view opened
+        outside a console page, or a viser whose internals moved).
+
+        The one private reach-in into viser, kept here alone: viser 1.1 has no public way to learn
+        which URL a client connected with. Its public client API is
+        :meth:`viser.ViserServer.get_clients` / :meth:`~viser.ViserServer.on_client_connect`,
+        which hand a :class:`viser.ClientHandle` whose public attributes are ``client_id``,
+        ``scene``, ``gui``, ``camera`` and ``local_storage``; the websocket request, and with it
+        its path, is kept only in the private ``WebsockServer._live_connections``. The public
+        ``local_storage`` cannot carry the console id instead: it is shared by every tab of the
+        viser origin (two console pages open in one browser would overwrite each other's id),
+        and it is read asynchronously after the connection, so the view would be unbound until
+        a round trip to the browser answered. Covered by tests/test_server_scene.py (a view
+        opened at /c/<console_id> draws that console's target)."""
+        if self.server is None:
+            return None
         try:
-            conn = self.server._websock_server._live_connections[client.client_id]  # noqa: SLF001 (viser has no public path)
-            path = conn.request.path.split("?")[0]
+            request = self.server._websock_server._live_connections[client.client_id].request  # noqa: SLF001 (see the docstring)
         except (AttributeError, KeyError):
             return None
+        if request is None:
+            return None
+        path = request.path.split("?")[0]
         parts = [p for p in path.split("/") if p]
         return parts[1] if len(parts) == 2 and parts[0] == "c" else None
 
     def _on_connect(self, client) -> None:
+        if self._geometry is None:
+            raise RuntimeError("a viser client connected before SceneServer.start")
         cid = self._console_of_client(client)
         view = ClientView(client, self._geometry)
         with self._lock:
@@ -306,6 +358,47 @@ class ConsoleScene:
         if self.on_console_change is not None:
             self.on_console_change(con.public())
 
+    # --- replay of a recorded throw ------------------------------------------------------------
+    def start_replay(self, con: Console, replay: Replay) -> None:
+        """Replay ``replay`` in the console's views: its machine, the recorded paths, impact and
+        target drawn, the machine posed from the recording at its shown time."""
+        with self._lock:
+            if con.machine_id != replay.machine_id:
+                self.update_console(con, machine_id=replay.machine_id)
+            con.replay = replay
+            for view in self._views_of(con.console_id):
+                view.clear("/preview", "/target")
+                _draw_recorded(view, replay.gripper_path_m, replay.payload_path_m, replay.impact_m, replay.target_m)
+                self._draw(con, view)
+
+    def seek_replay(self, con: Console, t_s: float) -> float:
+        """Show the console's replay at ``t_s`` (s from the recording's start, clamped), drawn
+        in its views before this returns; returns the time shown.
+
+        Raises:
+            ValueError: the console replays nothing.
+        """
+        with self._lock:
+            if con.replay is None:
+                raise ValueError("this console replays no throw")
+            shown = con.replay.seek(t_s)
+            for view in self._views_of(con.console_id):
+                self._draw(con, view)
+        return shown
+
+    def stop_replay(self, con: Console) -> None:
+        """Back to the live machine: the replay and its drawn paths go."""
+        with self._lock:
+            con.replay = None
+            for view in self._views_of(con.console_id):
+                view.clear("/throw")
+
+    def drawn_poses(self, console_id: str) -> list[np.ndarray | None]:
+        """The joint positions (6,) each connected view of the console last drew (None: none
+        yet): what the operator sees, for checks."""
+        with self._lock:
+            return [None if v.last_q is None else v.last_q.copy() for v in self._views_of(console_id)]
+
     # --- drawing -------------------------------------------------------------------------------
     def _run(self) -> None:
         period = 1.0 / self.rate_hz
@@ -319,37 +412,45 @@ class ConsoleScene:
                     log.exception("drawing a console view failed")
 
     def _draw(self, con: Console | None, view: ClientView) -> None:
-        mid = con.machine_id if con is not None else None
+        replay = con.replay if con is not None else None
+        mid = replay.machine_id if replay is not None else con.machine_id if con is not None else None
         if mid is None:
             ids = sorted(self.fleet.latest_states())
             mid = ids[0] if ids else None
-        state = self.fleet.latest_state(mid) if mid else None
-        if state is None:
-            return
-        online = self.fleet.is_online(mid) if hasattr(self.fleet, "is_online") else True
-        kind = "SIMULATED machine" if state.simulated else "machine"
-        label = f"{kind} {mid}" + ("" if online else " (runtime OFFLINE: last known pose)")
-        flying = state.payload_pos_m is not None and state.payload_attached is False
+        if replay is not None:
+            q, payload = replay.pose()
+            label = f"REPLAY of throw {replay.throw_id[:8]} on {mid}: t = {replay.shown_t_s:.2f} s"
+        else:
+            state = self.fleet.latest_state(mid) if mid else None
+            if state is None:
+                return
+            online = self.fleet.is_online(mid) if hasattr(self.fleet, "is_online") else True
+            kind = "SIMULATED machine" if state.simulated else "machine"
+            label = f"{kind} {mid}" + ("" if online else " (runtime OFFLINE: last known pose)")
+            flying = state.payload_pos_m is not None and state.payload_attached is False
+            q, payload = state.q, state.payload_pos_m if flying else None
         with self._lock:
-            view.draw_machine(label, state.q, state.payload_pos_m if flying else None)
+            view.draw_machine(label, q, payload)
             mode = con.mode if con is not None else "2d"
             band = self.band(mid, mode) or DEFAULT_BAND_M
-            key = (mid, mode, tuple(band), round(float(state.q[0]), 2) if mode == "2d" else None)
+            key = (mid, mode, tuple(band), round(float(q[0]), 2) if mode == "2d" else None)
             if view.drawn_for != key:
-                view.draw_band(mode, state.q[0], band)
+                view.draw_band(mode, q[0], band)
                 view.drawn_for = key
             if view.framed_for is None or view.framed_for[:2] != key[:2]:
-                view.frame_camera(state.q[0], band, key)
+                view.frame_camera(q[0], band, key)
+            view.relabel()  # the camera, the gripper or a label moved: labels stay clear of each other
 
     # --- previews and throws -------------------------------------------------------------------
     def show_preview(self, con: Console, summary: dict) -> list[str]:
         """Draw a preview (server.scene_preview) in the views of ``con`` only."""
-        from server.scene_preview import draw_preview
+        from server.scene_preview import draw_preview, preview_labels
 
         names: list[str] = []
         with self._lock:
             for view in self._views_of(con.console_id):
                 names = draw_preview(view.client, summary, summary.get("mode", con.mode))
+                view.set_labels("/preview", preview_labels(summary))
             con.preview_names = names
             if summary.get("status") != "ok":
                 con.target_reason = f"preview failed: {summary.get('reason')}"
@@ -363,25 +464,30 @@ class ConsoleScene:
         if telemetry_path is not None and Path(telemetry_path).is_file():
             from runtime.telemetry import read_telemetry
 
-            tel = read_telemetry(telemetry_path)
-            idx = np.linspace(0, len(tel["q"]) - 1, min(len(tel["q"]), TRAJECTORY_POINTS)).astype(int)
-            if len(idx) >= 2:
-                gripper = np.array([forward_kinematics(np, tel["q"][i], tel["qd"][i]).gripper_centre for i in idx])
-            if len(tel["payload_pos_m"]) >= 2:
-                payload = np.asarray(tel["payload_pos_m"])
+            gripper, payload = recorded_paths(read_telemetry(telemetry_path))
         with self._lock:
-            views = [v for cid, v in self._views.values() if cid in self.consoles and self.consoles[cid].machine_id == machine_id]
+            views = [v for cid, v in self._views.values() if cid in self.consoles and self.consoles[cid].machine_id == machine_id
+                     and self.consoles[cid].replay is None]
         for view in views:
-            s = view.client.scene
-            with view.client.atomic():
-                s.remove_by_name("/throw")
-                s.add_frame("/throw", show_axes=False)
-                if gripper is not None:
-                    s.add_line_segments("/throw/gripper_path", _segments(gripper), DARK, thickness=0.06)
-                if payload is not None:
-                    s.add_line_segments("/throw/payload_path", _segments(payload), RED, thickness=0.06)
-                if impact_m is not None:
-                    s.add_icosphere("/throw/impact", radius=0.3, color=RED, position=tuple(impact_m))
-                    err = math.hypot(impact_m[0] - target_m[0], impact_m[1] - target_m[1])
-                    s.add_label("/throw/impact/label", f"impact {err:.2f} m from target", position=(0, 0, -0.4),
-                                anchor="top-right")
+            _draw_recorded(view, gripper, payload, impact_m, target_m)
+
+
+def _draw_recorded(view: ClientView, gripper, payload, impact_m, target_m) -> None:
+    """A recorded throw under ``/throw`` in one view: the gripper centre's path (dark), the
+    payload's (red), the impact with its distance from the target."""
+    s = view.client.scene
+    with view.client.atomic():
+        s.remove_by_name("/throw")
+        s.add_frame("/throw", show_axes=False)
+        if gripper is not None:
+            s.add_line_segments("/throw/gripper_path", _segments(gripper), DARK, thickness=0.06)
+        if payload is not None:
+            s.add_line_segments("/throw/payload_path", _segments(payload), RED, thickness=0.06)
+        labels = []
+        if impact_m is not None:
+            s.add_icosphere("/throw/impact", radius=0.3, color=RED, position=tuple(impact_m))
+            text = "impact"
+            if target_m is not None:
+                text = f"impact {math.hypot(impact_m[0] - target_m[0], impact_m[1] - target_m[1]):.2f} m from target"
+            labels.append(("/throw/impact", impact_m, text))
+        view.set_labels("/throw", labels)

@@ -1,9 +1,9 @@
 """Drawing a preview in the 3D view (viser): gripper and payload paths, the release point with its
 velocity vector, the predicted impact, the 1 sigma impact ellipse and, in 3D mode, the swept
 clearance zone. Every shape lives under ``/preview`` so one call replaces the previous preview.
-Drawn client-scoped (one operator's view): the numbers are in the console page, so the only
-label here is the release speed (the predicted errors are in the page, so no label overlaps
-the target's or the throw's); a failed preview is said by the target's own label.
+Drawn client-scoped (one operator's view): the numbers are in the console page, so the labels
+are the release speed and the ellipse's name (:func:`preview_labels`, placed with the view's
+other labels by server.scene_labels); a failed preview is said by the target's own label.
 """
 
 from __future__ import annotations
@@ -63,8 +63,6 @@ def draw_preview(client, summary: dict, mode: str) -> list[str]:
         add("/preview/release", s.add_icosphere, radius=0.18, color=PURPLE, position=tuple(p0))
         add("/preview/release_velocity", s.add_line_segments,
             np.array([[p0, p0 + VELOCITY_ARROW_S * v0]]), PURPLE, thickness=0.08)
-        add("/preview/release/label", s.add_label, f"release {np.linalg.norm(v0):.1f} m/s", position=(0, 0, 0.5),
-            anchor="bottom-center")
         add("/preview/impact", s.add_icosphere, radius=0.22, color=ORANGE, position=tuple(summary["impact_m"]))
         ell = (summary.get("mc") or {}).get("ellipse")
         if ell:
@@ -77,3 +75,19 @@ def draw_preview(client, summary: dict, mode: str) -> list[str]:
             add("/preview/clearance_zone", s.add_mesh_simple, verts, faces, color=CLEAR, opacity=0.3, side="double")
             add("/preview/clearance_outline", s.add_line_segments, _segments(outline), CLEAR, thickness=0.05)
     return names
+
+
+def preview_labels(summary: dict) -> list[tuple[str, tuple[float, float, float], str]]:
+    """The preview's labels (marker's scene name, anchor (3,) m, text), in priority order: the
+    1 sigma ellipse (anchored at its centre on the ground), the release speed (at the release
+    point); none for a failed preview."""
+    if summary.get("status") != "ok":
+        return []
+    out = []
+    ell = (summary.get("mc") or {}).get("ellipse")
+    if ell:
+        c = np.asarray(ell["outline_m"], dtype=float).mean(axis=0)
+        out.append(("/preview/ellipse", (float(c[0]), float(c[1]), 0.04), "1σ landing area"))
+    p0, v0 = summary["release_pos_m"], np.asarray(summary["release_vel_mps"], dtype=float)
+    out.append(("/preview/release", (float(p0[0]), float(p0[1]), float(p0[2])), f"release {np.linalg.norm(v0):.1f} m/s"))
+    return out

@@ -5,16 +5,26 @@ keep-out zones, the target with its reason when it cannot be served).
 Everything here is client-scoped (``client.scene``): what one operator picks or sees is never
 drawn for another. Frames: machine frame, z up, metres. Shapes are re-created per client on
 connect (viser client state is ephemeral, see viser.ClientHandle).
+
+The labels of the markers (target, impact, preview) are placed by server.scene_labels for the
+camera the operator has (before the browser reports it: the framing camera), clear of each other,
+of the markers, of the fixed labels and of the hanging gripper, each joined to its marker by a
+leader line; they move when the camera, the gripper or the labels change (:meth:`ClientView.relabel`).
 """
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M, PLANE_TOLERANCE_M
 from server.mjcf_chain import KinematicChain, mat_to_quat
+from server.scene_labels import Box, PinholeCamera, fixed_label_box, gripper_footprint, place_labels
+
+if TYPE_CHECKING:  # viser is imported by the scene process only (server.scene)
+    import viser
 
 RING_MAX_M = 14
 """Range rings at 1, 2, ... RING_MAX_M metres from the turn axis."""
@@ -22,6 +32,12 @@ BAND_GREEN, BAD_RED, KEEP_OUT_RED, TARGET_GREEN, RING_GREY = (30, 150, 70), (200
 PAYLOAD_RED = (200, 40, 40)
 REDRAW_TOL = 2e-3
 """Joint change (rad, m) below which the machine is not redrawn."""
+LEADER_GREY = (40, 40, 40)
+MACHINE_LABEL_M, MACHINE_LABEL_ANCHOR = (0.0, 0.0, 6.5), "bottom-center"
+RING_LABELS_M = (5, 10)
+"""Range rings with a distance label."""
+RELABEL_PX = 4.0
+"""Screen change (px) of the gripper's footprint below which labels stay where they are."""
 
 
 class MachineGeometry:
@@ -122,13 +138,18 @@ class ClientView:
     def __init__(self, client, geometry: MachineGeometry):
         self.client, self.geometry = client, geometry
         self.handles: list = []
-        self.payload = None
-        self.label = None
+        self.payload: viser.IcosphereHandle | None = None
+        self.label: viser.LabelHandle | None = None
         self.last_q: np.ndarray | None = None
         self.framed_for: tuple | None = None
         """(machine, mode, ...) the camera was last framed for."""
         self.drawn_for: tuple | None = None
         """(machine, mode, band, cabin angle) the band was last drawn for."""
+        self.labels: dict[str, tuple[tuple[float, float, float], str]] = {}
+        """Marker labels: scene name of the marker -> (anchor (3,) m, text); placed by :meth:`relabel`."""
+        self.placements: dict = {}
+        """Marker scene name -> server.scene_labels.Placement last drawn."""
+        self._label_key: tuple | None = None
 
     def build(self, zones) -> None:
         """Machine shapes, range rings with labels at 5 m and 10 m, keep-out zones."""
@@ -144,9 +165,9 @@ class ClientView:
                     h = s.add_icosphere(path, radius=float(size[0]), color=rgb)
                 self.handles.append(h)
             self.payload = s.add_icosphere("/machine/payload", radius=0.3, color=PAYLOAD_RED, visible=False)
-            self.label = s.add_label("/machine/label", "no machine", position=(0.0, 0.0, 6.5), anchor="bottom-center")
+            self.label = s.add_label("/machine/label", "no machine", position=MACHINE_LABEL_M, anchor=MACHINE_LABEL_ANCHOR)
             s.add_line_segments("/rings", ring_segments(range(1, RING_MAX_M + 1)), RING_GREY, thickness=0.03)
-            for r in (5, 10):
+            for r in RING_LABELS_M:
                 s.add_label(f"/rings/label_{r}", f"{r} m", position=(0.0, -r - 0.1, 0.05), anchor="top-center")
             for i, z in enumerate(zones):
                 cx, cy = z.center_m
@@ -159,6 +180,8 @@ class ClientView:
         """Pose the machine from joint positions ``q`` (6,); the payload where it flies. A pose
         within REDRAW_TOL of the last one drawn is skipped: viser renders on demand, so a still
         machine costs the browser nothing."""
+        if self.payload is None or self.label is None:
+            raise RuntimeError("ClientView.draw_machine before ClientView.build")
         q = np.asarray(q, dtype=float)
         same = (self.last_q is not None and np.max(np.abs(q - self.last_q)) < REDRAW_TOL
                 and label == self.label.text and payload_pos is None and not self.payload.visible)
@@ -211,15 +234,88 @@ class ClientView:
         with self.client.atomic():
             s.remove_by_name("/target")
             if target_m is None:
+                self.set_labels("/target", [])
                 return
             x, y = target_m[0], target_m[1]
             ok = reason is None
             s.add_cylinder("/target", radius=0.35, height=0.06, color=TARGET_GREEN if ok else BAD_RED,
                            position=(x, y, 0.04))
             text = f"target {math.hypot(x, y):.1f} m" if ok else f"cannot throw here: {reason}"
-            s.add_label("/target/label", text, position=(0.0, 0.0, 0.1), anchor="top-left")
+            self.set_labels("/target", [("/target", (x, y, 0.06), text)])
 
     def clear(self, *names: str) -> None:
+        """Remove the shapes ``names`` (scene names) and their markers' labels."""
         with self.client.atomic():
             for n in names:
                 self.client.scene.remove_by_name(n)
+            for n in names:
+                self.set_labels(n, [], relabel=False)
+        self.relabel()
+
+    # --- labels ----------------------------------------------------------------------------------
+    def set_labels(self, prefix: str, labels, relabel: bool = True) -> None:
+        """Replace the marker labels under ``prefix`` (scene names starting with it) by ``labels``:
+        (marker's scene name, anchor (3,) m, text) in priority order; then place all labels."""
+        for key in [k for k in self.labels if k == prefix or k.startswith(prefix + "/")]:
+            del self.labels[key]
+            self._remove_label(key)
+        for key, anchor, text in labels:
+            x, y, z = (float(v) for v in anchor)
+            self.labels[key] = ((x, y, z), str(text))
+        if relabel:
+            self.relabel()
+
+    def camera(self) -> PinholeCamera:
+        """The operator's camera as the browser reported it, else the framing camera."""
+        cam = self.client.camera
+        try:
+            return PinholeCamera(tuple(cam.position), tuple(cam.look_at), tuple(cam.up_direction), float(cam.fov),
+                                 int(cam.image_width) or 1280, int(cam.image_height) or 720)
+        except AssertionError:  # viser asserts until the browser reported its camera
+            lo_hi = self.framed_for[2] if self.framed_for else (5.0, 10.7)
+            cabin = float(self.last_q[0]) if self.last_q is not None else 0.0
+            pos, look = camera_framing(cabin, *lo_hi)
+            return PinholeCamera(tuple(pos), tuple(look))
+
+    def relabel(self) -> None:
+        """Place the marker labels (server.scene_labels.place_labels) for the current camera and
+        gripper, and move those whose place changed. Cheap when nothing changed."""
+        cam = self.camera()
+        obstacles = [b for b in self.fixed_boxes(cam) if b is not None]
+        grip = gripper_footprint(cam, self.last_q) if self.last_q is not None else None
+        if grip is not None:
+            obstacles.append(grip)
+        key = (cam, tuple(self.labels.items()),
+               tuple(tuple(round(v / RELABEL_PX) for v in (b.x0, b.y0, b.x1, b.y1)) for b in obstacles))
+        if key == self._label_key:
+            return
+        self._label_key = key
+        placed = place_labels(cam, [(k, a, t) for k, (a, t) in self.labels.items()], obstacles)
+        s = self.client.scene
+        with self.client.atomic():
+            for k, p in placed.items():
+                anchor, text = self.labels[k]
+                node = _label_node(k)
+                s.add_label(f"/labels/{node}", text, position=tuple(p.position_m), anchor="center-center")
+                s.add_line_segments(f"/leaders/{node}", np.array([[anchor, p.position_m]], dtype=np.float32), LEADER_GREY,
+                                    thickness=0.02)
+            for k in set(self.placements) - set(placed):
+                self._remove_label(k)
+        self.placements = placed
+
+    def fixed_boxes(self, cam: PinholeCamera) -> list[Box | None]:
+        """Screen boxes of the labels that do not move: the machine's name, the rings' distances."""
+        boxes = [fixed_label_box(cam, MACHINE_LABEL_M, self.label.text if self.label is not None else "", MACHINE_LABEL_ANCHOR)]
+        boxes += [fixed_label_box(cam, (0.0, -r - 0.1, 0.05), f"{r} m", "top-center") for r in RING_LABELS_M]
+        return boxes
+
+    def _remove_label(self, key: str) -> None:
+        node = _label_node(key)
+        self.client.scene.remove_by_name(f"/labels/{node}")
+        self.client.scene.remove_by_name(f"/leaders/{node}")
+        self.placements.pop(key, None)
+
+
+def _label_node(key: str) -> str:
+    """The scene node name of a marker's label: its scene name without slashes."""
+    return key.strip("/").replace("/", "_")

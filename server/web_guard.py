@@ -117,7 +117,8 @@ class BodySizeLimit:
             message = await receive()
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))
-                if seen > limit:  # answered by the app's HTTPException handling
+                if seen > limit:  # answered by the app's HTTPException handling: an HTTPException, not a
+                    # server.errors.TooLarge, as FastAPI turns any other error raised while it reads a body into 400
                     raise HTTPException(413, _too_large_text(limit))
             return message
 

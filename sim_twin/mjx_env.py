@@ -87,6 +87,17 @@ class ForcedRelease:
     speed_mps: float = 0.5
 
 
+@dataclass(frozen=True)
+class FarTargets:
+    """Target-distance weighting: a ``fraction`` of episodes draws its target distance from
+    ``range_m`` [m] instead of the whole ``target_range_m`` (CHOSEN values in configs/*.json). The
+    far end of the range is where a from-scratch policy's spread stays largest longest, so more of
+    the samples go there; 0 keeps the uniform draw."""
+
+    fraction: float = 0.0
+    range_m: tuple[float, float] = (9.0, 10.7)
+
+
 def _typed(cls, d: dict, what: str):
     """``cls(**d)`` with a clear error for unknown keys (a typo would otherwise be ignored)."""
     names = {f.name for f in fields(cls)}
@@ -100,7 +111,8 @@ def _typed(cls, d: dict, what: str):
 class EnvConfig:
     """Task, reward and randomisation settings (see configs/*.json).
 
-    ``rewards`` and ``forced_release`` are typed (RewardScales, ForcedRelease); ``randomization``
+    ``rewards``, ``forced_release`` and ``far_targets`` are typed (RewardScales, ForcedRelease,
+    FarTargets); ``randomization``
     stays the config mapping that sim_twin.privileged normalises over (its defaults are
     sim_twin.privileged.RANDOMIZATION_DEFAULTS).
     """
@@ -111,6 +123,7 @@ class EnvConfig:
     rewards: RewardScales = field(default_factory=lambda: RewardScales(
         delta_err=1.0, err_3d=0.05, b1=0.1, act_diff=0.01, act=0.002, failure=-5.0, landing=10.0, b2=0.5))
     forced_release: ForcedRelease = field(default_factory=ForcedRelease)
+    far_targets: FarTargets = field(default_factory=FarTargets)
     randomization: dict[str, Any] = field(default_factory=dict)
     privileged_ranges: dict[str, Any] = field(default_factory=dict)
     """Ranges the critic's privileged inputs are normalised over where they differ from
@@ -136,6 +149,13 @@ class EnvConfig:
             d["rewards"] = RewardScales.from_dict(d["rewards"])
         if "forced_release" in d:
             d["forced_release"] = _typed(ForcedRelease, d["forced_release"], "forced_release")
+        if "far_targets" in d:
+            far = dict(d["far_targets"])
+            if "range_m" in far:
+                far["range_m"] = tuple(float(x) for x in far["range_m"])
+            d["far_targets"] = _typed(FarTargets, far, "far_targets")
+            if not 0.0 <= d["far_targets"].fraction <= 1.0:
+                raise ValueError(f"far_targets.fraction must be in [0, 1], not {d['far_targets'].fraction}")
         return _typed(cls, d, "env")
 
     def as_dict(self) -> dict:
@@ -203,6 +223,11 @@ class ThrowEnvCore:
         k1, k2 = jax.random.split(key)
         lo, hi = self.cfg.target_range_m
         dist = jax.random.uniform(k1, (), minval=lo, maxval=hi)
+        far = self.cfg.far_targets
+        if far.fraction > 0:  # a config constant: with the option off the draw is the uniform one, key for key
+            k3, k4 = jax.random.split(jax.random.fold_in(key, 1))
+            dist = jnp.where(jax.random.uniform(k3) < far.fraction,
+                             jax.random.uniform(k4, (), minval=far.range_m[0], maxval=far.range_m[1]), dist)
         if self.mode == "2d":  # on the arm's plane in the cabin frame, then into the machine frame
             x_c = jnp.sqrt(dist**2 - ARM_PLANE_OFFSET_M**2)
             c, s = jnp.cos(cabin_turn), jnp.sin(cabin_turn)
@@ -415,13 +440,27 @@ class ThrowEnvCore:
         }
         return s, self.observe(s), reward, terminated, time_out, info
 
-    def step_autoreset(self, s: EnvState, action):
-        """step, then replace finished episodes by fresh ones (observation of the new episode)."""
-        s1, obs, rew, term, tout, info = self.step(s, action)
+    def step_autoreset_batch(self, s: EnvState, action):
+        """:meth:`step` over a batch, then finished episodes replaced by fresh ones (observation
+        of the new episode): (N, ...) states and (N, num_act) actions. Each environment's key
+        splits into its next key and its reset key.
+
+        The step and the reset are two vmaps joined by a selection over the batch (not a reset
+        nested in a vmapped per-environment step): MJX's MuJoCo Warp implementation
+        (``impl="warp"``) cannot trace a reset nested in the step's vmap (JAX reports a leaked
+        tracer), and batch-level selection works for both implementations. State leaves that are
+        not batched (Warp's empty contact buffers) are kept as they are.
+        """
+        s1, obs, rew, term, tout, info = jax.vmap(self.step)(s, action)
         done = term | tout
-        key, k_reset = jax.random.split(s1["key"])
-        s1 = EnvState(s1, key=key)
-        s_new, obs_new = self.reset(k_reset)
-        s_out = jax.tree_util.tree_map(lambda n, o: jnp.where(done, n, o), s_new, s1)
-        obs_out = jnp.where(done, obs_new, obs)
-        return s_out, obs_out, rew, done, tout, info
+        keys = jax.vmap(jax.random.split)(s1["key"])
+        s1 = EnvState(s1, key=keys[:, 0])
+        s_new, obs_new = jax.vmap(self.reset)(keys[:, 1])
+
+        def pick(new, old):
+            if new.ndim == 0 or new.shape != old.shape or new.shape[:1] != done.shape:
+                return old
+            return jnp.where(done.reshape(done.shape + (1,) * (new.ndim - 1)), new, old)
+
+        s_out = jax.tree_util.tree_map(pick, s_new, s1)
+        return s_out, pick(obs_new, obs), rew, done, tout, info

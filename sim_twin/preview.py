@@ -32,6 +32,7 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -268,13 +269,17 @@ def _run_swing(policy, req: PreviewRequest, profile: RealityProfile, q, qd, seed
     return swing, (np.array(rec["flags"]).reshape(-1, 3), np.array(rec["radii"]))
 
 
-def preview_throw(policy, req: PreviewRequest, profile: RealityProfile | None = None) -> dict:
+def preview_throw(policy, req: PreviewRequest, profile: RealityProfile | None = None,
+                  pool: Executor | None = None) -> dict:
     """Preview one throw; returns a JSON-ready summary (see the keys below).
 
     Args:
         policy: a loaded runtime.policy.PolicyRunner of ``req.mode``.
         req: the request and the machine's current (measured) state.
         profile: the site's reality profile, with its uncertainty block if any (default nominal).
+        pool: processes for the Monte Carlo's full rollouts (a long-lived pool of
+            sim_twin.pools.process_pool; each process loads the policy from ``policy.path`` once),
+            or None to run them here one after the other. The impacts are the same either way.
 
     Returns:
         ``status`` ("ok" or "failed"), ``reason``; and when ok: ``impact_m``, ``downrange_error_m``,
@@ -325,14 +330,70 @@ def preview_throw(policy, req: PreviewRequest, profile: RealityProfile | None = 
     }
     t1 = time.perf_counter()
     if req.rollouts > 1:
-        summary["mc"] = _monte_carlo(policy, req, profile, unc, q, qd, swing, check)
+        summary["mc"] = _monte_carlo(policy, req, profile, unc, q, qd, swing, check, pool)
     summary["timing_s"] = {"nominal": t_nominal, "mc": time.perf_counter() - t1}
     return summary
 
 
+def _draw_delays(payload: _Payload, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n,) release delays [s] of one full rollout: its payload's delay distribution, clipped at
+    DELAY_SIGMAS sigma (the swing is recorded that far)."""
+    mean_s, std_s = payload.delay_mean_s, payload.delay_std_s
+    tail = DELAY_SIGMAS * std_s
+    return np.clip(rng.normal(mean_s, std_s, n), max(0.0, mean_s - tail), mean_s + tail)
+
+
+def _impacts_at(swing: _Swing, delays: np.ndarray) -> np.ndarray:
+    """(n, 3) impacts [m, machine frame] of ``swing`` opened after each of ``delays`` [s]."""
+    idx = swing.open_index(delays)
+    uniq, inv = np.unique(idx, return_inverse=True)
+    return swing.impacts(uniq, MC_FLIGHT_DT_S)[0][inv.ravel()]
+
+
+def _rollout_impacts(policy, req: PreviewRequest, profile: RealityProfile, q, qd, seed: int, delays: np.ndarray,
+                     check: ReleaseCheck | None) -> np.ndarray | None:
+    """One full rollout of the Monte Carlo: (n, 3) impacts [m], or None when its swing failed."""
+    swing, _ = _run_swing(policy, req, profile, q, qd, seed, kinematics=False, check=check)
+    return None if swing is None else _impacts_at(swing, delays)
+
+
+_PROCESS_CACHE: dict = {}
+"""In a pool process: loaded policies by path and the release check (loaded once per process)."""
+
+
+def _rollout_in_process(policy_path: str, req: PreviewRequest, profile: RealityProfile, q, qd, seed: int,
+                        delays: np.ndarray) -> np.ndarray | None:
+    """:func:`_rollout_impacts` in a pool process (the policy and release check cached there)."""
+    from runtime.policy import PolicyRunner
+
+    policy = _PROCESS_CACHE.get(policy_path)
+    if policy is None:
+        policy = _PROCESS_CACHE[policy_path] = PolicyRunner.load(policy_path)
+    check = None
+    if req.release_check_radius_m is not None:
+        check = _PROCESS_CACHE.get("release_check")
+        if check is None:
+            check = _PROCESS_CACHE["release_check"] = ReleaseCheck.load()
+    return _rollout_impacts(policy, req, profile, q, qd, seed, delays, check)
+
+
+def warm_up(pool: Executor, processes: int) -> None:
+    """Import the twin in the ``processes`` processes of ``pool`` (a preview's first rollouts
+    then start at once); returns when they are up."""
+    for f in [pool.submit(_import_twin) for _ in range(processes)]:
+        f.result()
+
+
+def _import_twin() -> None:
+    import runtime.policy  # noqa: F401
+    import sim_twin.simulated_machine  # noqa: F401
+
+
 def _monte_carlo(policy, req: PreviewRequest, profile: RealityProfile, unc, q, qd, nominal: _Swing,
-                 check: ReleaseCheck | None) -> dict:
-    """``req.rollouts`` impacts over the site's uncertainty (module doc).
+                 check: ReleaseCheck | None, pool: Executor | None = None) -> dict:
+    """``req.rollouts`` impacts over the site's uncertainty (module doc); the full rollouts run in
+    ``pool`` when one is given (:func:`preview_throw`). Every release delay is drawn before the
+    rollouts run, so the impacts do not depend on where or in which order they ran.
 
     Returns:
         {rollouts, param_rollouts, failed_rollouts, effects (what was sampled), impacts_m (R, 2),
@@ -347,23 +408,22 @@ def _monte_carlo(policy, req: PreviewRequest, profile: RealityProfile, unc, q, q
     rng = np.random.default_rng(req.seed)
     per = np.full(n_full, req.rollouts // n_full)
     per[: req.rollouts % n_full] += 1
-    impacts, failed = [], 0
+    tasks = []
     for i in range(n_full):
-        if uncertain:
-            prof_i = sample_profile(profile, unc, points[i, : unc.param_dims])
-            q_i, qd_i = start.perturb(q, qd, points[i, unc.param_dims:])
-            swing, _ = _run_swing(policy, req, prof_i, q_i, qd_i, req.seed * 1000 + i, kinematics=False, check=check)
-        else:
-            swing = nominal
-        if swing is None:
-            failed += 1
-            continue
-        mean_s, std_s = swing.payload.delay_mean_s, swing.payload.delay_std_s
-        tail = DELAY_SIGMAS * std_s
-        delays = np.clip(rng.normal(mean_s, std_s, per[i]), max(0.0, mean_s - tail), mean_s + tail)
-        idx = swing.open_index(delays)
-        uniq, inv = np.unique(idx, return_inverse=True)
-        impacts.append(swing.impacts(uniq, MC_FLIGHT_DT_S)[0][inv.ravel()])
+        prof_i = sample_profile(profile, unc, points[i, : unc.param_dims]) if uncertain else profile
+        q_i, qd_i = start.perturb(q, qd, points[i, unc.param_dims:]) if uncertain else (q, qd)
+        tasks.append((prof_i, q_i, qd_i, req.seed * 1000 + i, _draw_delays(_Payload.of(prof_i), per[i], rng)))
+    results: list[np.ndarray | None]
+    if not uncertain:
+        results = [_impacts_at(nominal, tasks[0][4])]
+    elif pool is not None and n_full > 1:
+        path = str(policy.path)
+        futures = [pool.submit(_rollout_in_process, path, req, *t) for t in tasks]
+        results = [f.result() for f in futures]
+    else:
+        results = [_rollout_impacts(policy, req, *t, check) for t in tasks]
+    impacts = [r for r in results if r is not None]
+    failed = len(results) - len(impacts)
     effects = (["release_delay"] + [p.path for p in unc.params]
                + (["start_state"] if start.active else []))
     out = {"rollouts": int(req.rollouts), "param_rollouts": n_full, "failed_rollouts": failed,

@@ -55,11 +55,16 @@ CONFIG_DIR = Path(__file__).parent / "configs"
 @dataclass(frozen=True)
 class StdSchedule:
     """Cap on the actor's action std: ``start`` -> ``end`` exponentially over ``iterations``,
-    ``end`` after (config ``training.std_schedule``; CHOSEN values in configs/*.json)."""
+    ``end`` after (config ``training.std_schedule``; CHOSEN values in configs/*.json).
+
+    ``release_floor`` (0: none) is a lower bound on the std of the release flag (the last action):
+    with a learned std the flag's std can shrink before the release is timed, after which the flag
+    never crosses its 0.9 threshold and the policy stops throwing (seen from scratch in 3D)."""
 
     start: float
     end: float
     iterations: int
+    release_floor: float = 0.0
 
     def cap(self, iteration: int) -> float:
         """The cap at ``iteration`` (>= 0)."""
@@ -69,12 +74,14 @@ class StdSchedule:
     @classmethod
     def from_dict(cls, d: dict) -> StdSchedule:
         """Raises ValueError on unknown keys or non-positive values."""
-        unknown = set(d) - {"start", "end", "iterations"}
+        unknown = set(d) - {"start", "end", "iterations", "release_floor"}
         if unknown:
             raise ValueError(f"unknown std_schedule settings {sorted(unknown)}")
-        s = cls(float(d["start"]), float(d["end"]), int(d["iterations"]))
+        s = cls(float(d["start"]), float(d["end"]), int(d["iterations"]), float(d.get("release_floor", 0.0)))
         if s.start <= 0 or s.end <= 0 or s.iterations < 1:
             raise ValueError(f"std_schedule needs start, end > 0 and iterations >= 1, got {d}")
+        if not 0.0 <= s.release_floor <= s.end:
+            raise ValueError(f"std_schedule.release_floor must be in [0, end], got {s.release_floor}")
         return s
 
 
@@ -111,9 +118,10 @@ def load_config(mode: str, path: Path | None) -> dict:
     return json.loads((path or CONFIG_DIR / f"throw_{mode}.json").read_text())
 
 
-def apply_std_cap(runner, cap: float) -> None:
+def apply_std_cap(runner, cap: float, release_floor: float = 0.0) -> None:
     """Cap the actor's action std at ``cap``: the learned parameter is clamped in place (so its
-    gradient lives again below the cap) and so is the distribution's upper clamp."""
+    gradient lives again below the cap) and so is the distribution's upper clamp. With
+    ``release_floor`` > 0 the release flag's (last action's) std is raised to at least that."""
     import torch
 
     dist = runner.alg.actor.distribution
@@ -121,8 +129,12 @@ def apply_std_cap(runner, cap: float) -> None:
         if getattr(dist, "std_type", "scalar") == "log":
             dist.log_std_param.clamp_(max=math.log(cap))
             dist.log_std_range[1] = math.log(cap)
+            if release_floor > 0:
+                dist.log_std_param[-1].clamp_(min=math.log(release_floor))
         else:
             dist.std_param.clamp_(max=cap)
+            if release_floor > 0:
+                dist.std_param[-1].clamp_(min=release_floor)
         dist.std_range[1] = cap
 
 
@@ -215,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
     passed = gate.passed if gate else None
     while done_iters < args.iterations and not passed:
         if schedule:
-            apply_std_cap(runner, schedule.cap(runner.current_learning_iteration))
+            apply_std_cap(runner, schedule.cap(runner.current_learning_iteration), schedule.release_floor)
         n = min(args.chunk, args.iterations - done_iters)
         env.reset_stats()
         t_chunk = time.time()

@@ -105,10 +105,31 @@ class ParamSpec:
     def dims(self) -> int:
         return NUM_ACTIVE if self.path.startswith("hydraulics.") else 1
 
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi), each (dims,), of a uniform parameter.
+
+        Raises:
+            ValueError: the parameter is a Gaussian (``sigma`` set, no range).
+        """
+        if self.lo is None or self.hi is None:
+            raise ValueError(f"uncertain parameter {self.path!r} is a Gaussian (sigma), not a range")
+        return self.lo, self.hi
+
+    def at_quantiles(self, u: np.ndarray, centre) -> np.ndarray:
+        """The parameter's values at quantiles ``u`` (dims,) in (0, 1): ``lo + u (hi - lo)`` for
+        a uniform range, ``centre + sigma * Phi^-1(u)`` (Phi: the standard normal CDF) for a Gaussian
+        about ``centre`` (the profile's value, scalar or (dims,))."""
+        if self.sigma is not None:
+            from scipy.stats import norm
+
+            return centre + self.sigma * norm.ppf(u)
+        lo, hi = self.bounds()
+        return lo + u * (hi - lo)
+
     def to_dict(self) -> dict:
         if self.sigma is not None:
             return {"sigma": self.sigma}
-        lo, hi = self.lo.tolist(), self.hi.tolist()
+        lo, hi = (b.tolist() for b in self.bounds())
         return {"range": [lo[0], hi[0]] if len(set(lo)) == 1 and len(set(hi)) == 1 else [lo, hi]}
 
 
@@ -233,8 +254,6 @@ def sample_profile(profile, unc: Uncertainty, u: np.ndarray):
     Returns:
         a new RealityProfile without uncertainty, every listed parameter set.
     """
-    from scipy.stats import norm
-
     from sim_twin.effects import effect_class
 
     prof = replace(profile, uncertainty={}, effects=[copy.deepcopy(e) for e in profile.effects],
@@ -246,22 +265,21 @@ def sample_profile(profile, unc: Uncertainty, u: np.ndarray):
         if p.path.startswith("hydraulics."):
             name = p.path.split(".", 1)[1]
             centre = getattr(prof.hydraulics, name)
-            val = p.lo + uu * (p.hi - p.lo) if p.sigma is None else centre + p.sigma * norm.ppf(uu)
+            values = p.at_quantiles(uu, centre)
             hi = 0.99 if name == "dead_band" else np.inf
-            prof.hydraulics = replace(prof.hydraulics, **{name: np.clip(val, 0.0, hi)})
+            prof.hydraulics = replace(prof.hydraulics, **{name: np.clip(values, 0.0, hi)})
             continue
         if p.path in SCALARS:
             centre = getattr(prof, p.path)
-            val = p.lo[0] + uu[0] * (p.hi[0] - p.lo[0]) if p.sigma is None else max(0.0, centre + p.sigma * norm.ppf(uu[0]))
-            setattr(prof, p.path, float(val))
+            scalar = float(p.at_quantiles(uu, centre)[0])
+            setattr(prof, p.path, scalar if p.sigma is None else max(0.0, scalar))
             continue
         spec, _, pname = p.path.rpartition(".")
         cls = effect_class(spec)
         par = next(x for x in cls.params if x.name == pname)
         eff = next((e for e in prof.effects if type(e) is cls), None)
         centre = eff.values[pname] if eff is not None else par.nominal
-        val = p.lo[0] + uu[0] * (p.hi[0] - p.lo[0]) if p.sigma is None else centre + p.sigma * norm.ppf(uu[0])
-        val = float(np.clip(val, par.lo, par.hi))
+        val = float(np.clip(p.at_quantiles(uu, centre)[0], par.lo, par.hi))
         if eff is None:
             prof.effects.append(cls(**{pname: val}))
         else:

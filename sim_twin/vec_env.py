@@ -65,8 +65,8 @@ class MjxThrowVecEnv(VecEnv):
         self.reset_stats()
 
     def _batched_step(self, state, actions):
-        """vmapped step_autoreset plus the per-step means that are logged, in one jit."""
-        state, obs, rew, done, tout, info = jax.vmap(self.core.step_autoreset)(state, actions)
+        """step_autoreset_batch plus the per-step means that are logged, in one jit."""
+        state, obs, rew, done, tout, info = self.core.step_autoreset_batch(state, actions)
         landed = info["landed"]
         n_done, n_landed = jnp.sum(done), jnp.sum(landed)
         err_sum = jnp.sum(jnp.where(landed, info["impact_err_m"], 0.0))

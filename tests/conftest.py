@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import os
 import socket
+import sys
 import threading
 import time
 import uuid
@@ -53,32 +54,57 @@ def pytest_configure(config) -> None:
     # runtimes `slinger up` starts; runtimes a test starts itself get TEST_POLICY_CHECK. In-process
     # executors keep ExecutorConfig's default; tests that need it off say so.
     os.environ.setdefault("SLINGER_RELEASE_CHECK_RADIUS_M", "off")
+    _watch_process_starts()
 
 
 TEST_POLICY_CHECK = ("--release-check-radius", "off")
 """Arguments of a `slinger runtime` that a test starts with the test policies (not throwers)."""
 
-SYSTEM_MARKERS = ("browser", "postgres", "redis", "root", "torch", "slow", "acceptance")
+SYSTEM_MARKERS = ("browser", "postgres", "redis", "root", "torch", "processes", "slow", "acceptance")
 """Markers of tests outside the fast tier; each also gets ``system``, so that the fast tier is
 ``pytest -m "not system"`` (docs/development.md: test tiers)."""
 FIXTURE_MARKERS = {"pg_url": "postgres", "browser": "browser", "module_browser": "browser", "netns": "root"}
 """Fixtures whose use marks a test: what the fixture needs (a service, Chromium, root)."""
 SLOW_TESTS = {
-    # whole stacks of processes (slinger up, plants and runtimes over Zenoh, workers, wheel installs)
-    "tests/test_stack.py": "slow", "tests/test_faults.py": "slow", "tests/test_supervise.py": "slow",
-    "tests/test_claim_race.py": "slow", "tests/test_packaging.py": "slow",
-    "tests/test_runtime_node.py::test_plant_and_runtime_throw_over_zenoh": "slow",
-    "tests/test_job_leases.py::test_sqlite_job_of_a_killed_worker": "slow",
-    "tests/test_jobs.py::test_api_process_never_imports_mujoco": "slow",
-    "tests/test_jobs.py::test_jobs_survive_an_api_restart": "slow",
-    "tests/test_mjcf_chain.py::test_api_with_the_3d_view_on_never_imports_mujoco": "slow",
-    "tests/test_policies.py::test_promote_and_rollback_on_a_real_runtime": "slow",
-    "tests/test_adapt.py::test_console_flow_diagnosis_to_adapted_version": "slow",
-    "tests/test_default_policy.py::test_diagnose_generate_outside_the_repo": "slow",
-    # many twin rollouts: the diagnosis benchmark and fits
+    # processes: the test starts Python processes (Slinger's server, worker, runtime, plant or ROS 2
+    # bridge; a policy validation child; a process pool of twin throws). Checked: a fast-tier test
+    # that starts one fails (_fast_tier_starts_no_processes).
+    "tests/test_stack.py": "processes", "tests/test_faults.py": "processes", "tests/test_supervise.py": "processes",
+    "tests/test_claim_race.py": "processes", "tests/test_packaging.py": "processes",
+    "tests/test_estop_faults.py": "processes", "tests/test_storage_faults.py": "processes",
+    "tests/test_policy_validation.py": "processes", "tests/test_policies.py": "processes",
+    "tests/test_runtime_node.py::test_plant_and_runtime_throw_over_zenoh": "processes",
+    "tests/test_ros2_bridge.py::test_throw_lands_through_the_ros2_bridge": "processes",
+    "tests/test_ros2_bridge.py::test_bridge_process_reads_ros_topics": "processes",
+    "tests/test_job_leases.py::test_sqlite_job_of_a_killed_worker": "processes",
+    "tests/test_job_state.py::test_a_diagnosis_killed_on_its_last_attempt": "processes",
+    "tests/test_jobs.py::test_api_process_never_imports_mujoco": "processes",
+    "tests/test_jobs.py::test_jobs_survive_an_api_restart": "processes",
+    "tests/test_mjcf_chain.py::test_api_with_the_3d_view_on_never_imports_mujoco": "processes",
+    "tests/test_adapt.py::test_console_flow_diagnosis_to_adapted_version": "processes",
+    "tests/test_default_policy.py::test_diagnose_generate_outside_the_repo": "processes",
+    "tests/test_matrix.py::test_tiny_matrix_writes_table_json_and_figure": "processes",
+    "tests/test_matrix_gate.py": "processes",
+    "tests/test_pools.py": "processes",
+    "tests/test_diagnosis_benchmark.py::test_stopping_the_workers_ends_running_cases_at_once": "processes",
+    "tests/test_jobs.py::test_bad_queue_and_job_input_is_refused": "processes",
+    "tests/test_web_hygiene.py::test_request_body_size_limit": "processes",
+    # (as admin, the fuzzer's upload of a loadable ONNX starts a validation child)
+    "tests/test_schemathesis.py::test_no_server_errors_and_conformance_as_admin": "processes",
+    # slow: more than about 20 twin throws (dataset generation, diagnosis fits, benchmarks) or a
+    # wait of 2 s or more on a real-time bound (an E-STOP's confirmation deadline, a frozen runtime)
     "tests/test_diagnosis.py::test_small_blind_benchmark": "slow",
     "tests/test_diagnosis.py::test_server_runs_a_diagnosis_on_stored_throws": "slow",
+    "tests/test_diagnosis.py::test_small_benchmark_impact_only_and_power_kinds": "slow",
+    "tests/test_diagnosis.py::test_noise_only_dataset_with_a_sub_noise_trajectory_bias_is_no_gap": "slow",
+    "tests/test_diagnosis.py::test_pure_noise_is_no_gap_and_release_delay_is_smooth_without_open_flag": "slow",
     "tests/test_diagnosis_encoder.py": "slow",
+    "tests/test_diagnosis_rosbag.py::test_bags_uploaded_through_the_api_are_diagnosed": "slow",
+    "tests/test_diagnosis_rosbag.py::test_rosbag2_of_another_library_converts_and_diagnoses": "slow",
+    "tests/test_drift.py::test_profile_change_mid_run_raises_an_alert_starts_a_diagnosis_and_offers_the_adaptation": "slow",
+    "tests/test_estop_isolation.py::test_a_frozen_machines_estops_do_not_delay_another_machines": "slow",
+    "tests/test_clean_edges.py::test_unknown_machine_is_404_known_offline_machine_is_503[estop]": "slow",
+    "tests/test_clean_edges.py::test_unknown_machine_is_404_known_offline_machine_is_503[abort]": "slow",
     # the training extra (jax, torch): the fine-tuning config's privileged ranges
     "tests/test_adapt.py::test_finetune_config_fixes_the_profiles_effects": "torch",
     # acceptance tests of the deployed policies (policies/*.onnx): how well they throw
@@ -87,8 +113,70 @@ SLOW_TESTS = {
     "tests/test_preview.py::test_monte_carlo_ellipse": "acceptance",
     "tests/test_jobs.py::test_preview_runs_in_a_worker": "acceptance",
 }
-"""Tests outside the fast tier by node id prefix, with the marker they get: each took several
-seconds (up to minutes) of the fast tier's time on the 2-core development host (``--durations``)."""
+"""Tests outside the fast tier by node id prefix, with the marker they get; the comment above each
+group states the rule that puts a test there (docs/development.md: test tiers)."""
+
+
+def _python_argv(args) -> bool:
+    """``args`` (Popen's first argument) runs a Python interpreter: Slinger's processes
+    (server.stack.slinger_command), a policy validation child, ``python -c ...``."""
+    argv = [args] if isinstance(args, (str, bytes, os.PathLike)) else list(args)
+    if not argv:
+        return False
+    first = os.fsdecode(argv[0])
+    return first == sys.executable or os.path.basename(first).startswith("python") or os.path.basename(first) == "slinger"
+
+
+_PROCESSES_OF: dict[str, list[str]] = {}
+"""Node id of the running fast-tier test -> the Python processes it (or its fixtures) started."""
+_running: list[str | None] = [None]
+
+
+def _record_process(what: str) -> None:
+    nodeid = _running[0]
+    if nodeid is not None:
+        _PROCESSES_OF.setdefault(nodeid, []).append(what)
+
+
+def _watch_process_starts() -> None:
+    """Record every Python child process (subprocess) and multiprocessing process (process pools)
+    started while a fast-tier test runs; :func:`_fast_tier_starts_no_processes` fails the test."""
+    import multiprocessing.process
+    import subprocess
+
+    popen_init = subprocess.Popen.__init__
+    process_start = multiprocessing.process.BaseProcess.start
+
+    def init(self, args, *a, **kw):
+        if _python_argv(args):
+            argv = " ".join(map(os.fsdecode, args)) if isinstance(args, list | tuple) else os.fsdecode(args)
+            _record_process(f"subprocess {argv[:160]}")
+        popen_init(self, args, *a, **kw)
+
+    def start(self):
+        _record_process(f"multiprocessing {type(self).__name__} {self.name}")
+        process_start(self)
+
+    subprocess.Popen.__init__ = init  # type: ignore[method-assign]
+    multiprocessing.process.BaseProcess.start = start  # type: ignore[method-assign]
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item) -> None:
+    _running[0] = None if item.get_closest_marker("system") else item.nodeid
+
+
+@pytest.fixture(autouse=True)
+def _fast_tier_starts_no_processes(request):
+    """The fast tier's rule, checked: a test without ``system`` starts no Python process (a
+    Slinger server, worker, runtime, plant or bridge, a policy validation child, a process pool of
+    twin throws), in its body or its fixtures; one that does needs the ``processes`` marker
+    (:data:`SLOW_TESTS`). Short commands of other programs (git, sqlite3) are allowed."""
+    yield
+    started = _PROCESSES_OF.pop(request.node.nodeid, [])
+    if started:
+        pytest.fail("a fast-tier test started Python processes (mark it 'processes' in tests/conftest.py SLOW_TESTS): "
+                    + "; ".join(started[:5]), pytrace=False)
 
 
 def pytest_collection_modifyitems(config, items) -> None:
@@ -103,6 +191,37 @@ def pytest_collection_modifyitems(config, items) -> None:
                 item.add_marker(marker)
         if any(item.get_closest_marker(m) for m in SYSTEM_MARKERS):
             item.add_marker("system")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def cheap_password_hashes():
+    """argon2id at its minimal cost in this process (1 pass, 1 MiB, 1 lane): the hash's cost is
+    not what the tests check, and the library's default (64 MiB, 3 passes, 4 lanes; server.auth)
+    costs about 0.2 s of CPU per hash or log-in. Processes that tests start keep the default."""
+    from argon2 import PasswordHasher
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("server.auth._hasher", PasswordHasher(time_cost=1, memory_cost=1024, parallelism=1))
+        yield
+
+
+@pytest.fixture(scope="session")
+def fixture_policy(tmp_path_factory) -> Callable[[str], Path]:
+    """``fixture_policy(mode)``: the path of a small fixture policy of ``mode`` ("2d" or "3d"; a
+    random linear-tanh ONNX with its manifest, tests.fixtures.write_test_policy), written once per
+    session. Not a thrower: for tests whose assertions do not depend on how well a policy throws;
+    the deployed policies' acceptance tests load policies/*.onnx (docs/development.md)."""
+    from tests.fixtures import write_test_policy
+
+    root = tmp_path_factory.mktemp("fixture-policies")
+    made: dict[str, Path] = {}
+
+    def path(mode: str) -> Path:
+        if mode not in made:
+            made[mode] = write_test_policy(root / mode, mode, name=f"fixture-{mode}")
+        return made[mode]
+
+    return path
 
 
 def free_port() -> int:

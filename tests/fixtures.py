@@ -69,3 +69,48 @@ def finished_diagnosis_run(state, machine_id: str, report: dict, profile: dict |
         (folder / "profile_fitted.json").write_text(json.dumps(profile))
     store.finish(run_id, "done", result={"throws": throws, "verdict": report.get("verdict")})
     return run_id
+
+
+def raise_drift_alert(watch, machine_id: str, shift_m: float = 0.3, seed: int = 0) -> dict:
+    """Raise a drift alert on ``machine_id`` through the watch's own input
+    (:meth:`server.drift.DriftWatch.observe`): BASELINE_THROWS landed throws with 5 cm noise,
+    then throws landing ``shift_m`` long, until the CUSUM alarms. Returns the alert.
+
+    Raises:
+        AssertionError: no alert after 100 shifted throws.
+    """
+    from server.drift import BASELINE_THROWS
+
+    rng = np.random.default_rng(seed)
+    for i in range(BASELINE_THROWS):
+        assert watch.observe(machine_id, f"{machine_id}-base-{i}", rng.normal(0.0, 0.05, 2)) is None
+    for i in range(100):
+        alert = watch.observe(machine_id, f"{machine_id}-shift-{i}", rng.normal(0.0, 0.05, 2) + [shift_m, 0.0])
+        if alert is not None:
+            return alert
+    raise AssertionError(f"no drift alert on {machine_id} after 100 throws {shift_m} m long")
+
+
+def write_swing_telemetry(path: Path, seconds: float = 2.0, release_s: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """Write an MCAP recording (runtime.telemetry, 100 Hz) of a made-up swing: the cabin turns
+    from 0 to 0.8 rad and the boom from -0.8 to -0.5 rad (dipper 1.6 rad, telescope 0.6 m: the
+    ready pose, runtime.recovery.READY_POSE), the payload released at ``release_s`` and flying on
+    a parabola. It is a recording to replay, not a throw a policy made. Returns (t_s (N,), q (N, 6))."""
+    from runtime.telemetry import TelemetryRecorder, write_mcap
+
+    t = np.round(np.arange(0.0, seconds + 1e-9, 0.01), 4)
+    s = t / seconds
+    q = np.column_stack([0.8 * s, -0.8 + 0.3 * s, np.full_like(t, 1.6), np.full_like(t, 0.6),
+                         0.2 * np.sin(3 * t), np.zeros_like(t)])
+    rec = TelemetryRecorder()
+    rec.event(0.0, "swinging")
+    rec.event(release_s, "released")
+    for i, ti in enumerate(t):
+        flying = ti >= release_s
+        dt = ti - release_s
+        payload = [5.0 + 6.0 * dt, 0.5, 4.0 + 3.0 * dt - 4.905 * dt * dt] if flying else None
+        rec.record(ti, q[i], np.zeros(6), np.zeros(4), np.zeros(4), flying, flying, "released" if flying else "swinging",
+                   payload_pos_m=payload, payload_vel_mps=[6.0, 0.0, 3.0 - 9.81 * dt] if flying else None)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(write_mcap(rec))
+    return t, q

@@ -4,8 +4,9 @@
 # training and test extras, installs Debian's Chromium for the browser tests, makes sure the local
 # PostgreSQL and Redis are up (PostgreSQL migration and site job-queue tests), runs the static checks
 # (ruff, mypy, import-linter's layer contract; configured in pyproject.toml), then pytest.
-# The fast tier alone, after `pip install -e ".[test]"` (no torch, services, Chromium or root):
-#   python -m pytest -m "not system"
+# The fast tier alone, after `pip install -e ".[test]"` (no torch, services, Chromium or root; two
+# pytest-xdist processes; docs/development.md: test tiers):
+#   python -m pytest -m "not system" -n 2 --dist loadfile
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -34,4 +35,9 @@ mypy
 lint-imports
 
 export MUJOCO_GL=egl
-python -m pytest -q --durations=25 "$@"
+if [ $# -gt 0 ]; then exec python -m pytest -q --durations=25 "$@"; fi
+# The whole suite in two runs: the fast tier on two processes (its tests are safe in parallel,
+# docs/development.md#test-tiers), then the system tier in one (its processes, stacks and real-time
+# limits would compete for the cores).
+python -m pytest -q -m "not system" -n 2 --dist loadfile
+python -m pytest -q -m system --durations=25

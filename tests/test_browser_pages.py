@@ -1,17 +1,19 @@
 """History, accuracy, policies, fleet and users pages in headless Chromium against a live server
-(uvicorn in a thread, no 3D view, no runtime; rows are written straight into the database)."""
+(uvicorn in a thread, no 3D view, no runtime; rows are written straight into the database; a
+drift alert is raised through the server's drift watch)."""
 
 from __future__ import annotations
 
+import re
 import threading
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 
 import pytest
 
 from server.db.models import Machine, Throw
-from tests.conftest import ADMIN, add_user, free_port, wait_for
-from tests.fixtures import finished_diagnosis_run
 from tests.browser import SIZES, axe_serious, browser, log_in  # noqa: F401 (fixture)
+from tests.conftest import ADMIN, add_user, free_port, wait_for
+from tests.fixtures import finished_diagnosis_run, raise_drift_alert, write_swing_telemetry
 
 pytestmark = pytest.mark.browser
 
@@ -19,6 +21,17 @@ pytestmark = pytest.mark.browser
 @pytest.fixture
 def live(settings):
     """The app served by uvicorn on a free port: yields (base_url, app)."""
+    yield from _serve(settings)
+
+
+@pytest.fixture
+def live_3d(settings):
+    """:func:`live` with the 3D view (viser) on a free port."""
+    settings.viser_enabled, settings.viser_port = True, free_port()
+    yield from _serve(settings)
+
+
+def _serve(settings):
     import uvicorn
 
     from server.app import create_app
@@ -36,7 +49,7 @@ def live(settings):
 
 
 def _seed(app, n: int = 30) -> None:
-    t0 = datetime(2026, 5, 1, 12, 0, tzinfo=timezone.utc)
+    t0 = datetime(2026, 5, 1, 12, 0, tzinfo=UTC)
     with app.state.sessions.begin() as db:
         db.add_all([Machine(id="m1", simulated=True), Machine(id="m2", simulated=True)])
         for i in range(n):
@@ -121,6 +134,93 @@ def test_diagnosis_page_is_linked_everywhere_and_refuses_a_machine_without_throw
     text = msg.text_content()
     assert "throw" in text.lower() and "started" not in text, text  # the reason names the missing throws
     page.close()
+
+
+def test_history_replay_drives_the_3d_view_along_the_plots_timeline(live_3d, browser):  # noqa: F811
+    """Seek, play and pause on the History page's timeline move the plots' cursor and the 3D
+    view's machine together; the page says the time the 3D view shows (``data-shown-t``, from the
+    server's answer) and the scene's drawn pose is the recording's at that time."""
+    import numpy as np
+
+    base, app = live_3d
+    t, q = write_swing_telemetry(app.state.settings.data_dir / "telemetry" / "th-1.mcap")
+    with app.state.sessions.begin() as db:
+        db.add(Machine(id="m1", simulated=True))
+        db.add(Throw(id="th-1", machine_id="m1", mode="2d", target_x_m=8.2, target_y_m=0.4, target_z_m=0.0, status="landed",
+                     impact_x_m=8.0, impact_y_m=0.5, impact_z_m=0.0, downrange_error_m=-0.2, crossrange_error_m=0.1,
+                     duration_s=2.0, telemetry_path="telemetry/th-1.mcap", requested_at=datetime(2026, 5, 1, 12, tzinfo=UTC)))
+    page = browser.new_page(viewport={"width": 1440, "height": 900})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    log_in(page, base, start="/console/history.html?throw=th-1")
+    page.locator("#replay-view[data-shown-t='0.000']").wait_for(timeout=30_000)
+    assert page.locator("#strip").is_visible()
+    speed = page.locator(".replay-speed select")
+    assert page.locator(".replay-speed").inner_text().startswith("speed")
+    assert speed.locator("option:checked").inner_text() == "0.25× real time"
+    (cid,) = list(app.state.scene.consoles)
+    scene = app.state.scene
+    drawn = lambda k: wait_for(lambda: any(p is not None and np.allclose(p, q[k], atol=1e-6) for p in scene.drawn_poses(cid)),  # noqa: E731
+                               30, f"the 3D machine at t = {t[k]} s")
+    drawn(0)  # the 3D view connected and shows the start of the recording
+    page.eval_on_selector("#scrub", "(e) => { e.value = 100; e.dispatchEvent(new Event('input')); }")  # seek to t = 1 s
+    page.locator("#replay-view[data-shown-t='1.000']").wait_for(timeout=20_000)
+    drawn(100)
+    assert "t = 1.00 s" in page.locator("#scrub-readout").inner_text()  # the plots' cursor at the same time
+    assert not np.allclose(q[100], q[0])  # the machine really moved between the two times
+    speed.select_option("1")
+    page.click("#scrub-play")
+    page.wait_for_function("() => Number(document.querySelector('#replay-view').dataset.shownT) >= 1.6", timeout=30_000)
+    page.click("#scrub-play")  # pause
+    assert page.locator("#scrub-play").inner_text() == "Play"
+    page.wait_for_timeout(500)
+    shown = float(page.locator("#replay-view").get_attribute("data-shown-t"))
+    page.wait_for_timeout(500)
+    assert float(page.locator("#replay-view").get_attribute("data-shown-t")) == shown  # paused: both stand still
+    k = int(page.eval_on_selector("#scrub", "(e) => Number(e.value)"))
+    assert shown == pytest.approx(t[k], abs=1e-3)  # the 3D view shows the plots' sample
+    drawn(k)
+    assert errors == [], errors
+    page.close()
+
+
+def test_a_drift_alarm_shows_on_every_open_console_until_an_operator_acknowledges_it(live, browser):  # noqa: F811
+    """Two consoles (two browsers' worth of contexts: no shared storage) on two pages; the alert
+    comes through server.drift's own input; Acknowledge in one clears it in both; a viewer's
+    press is refused with a sentence."""
+    base, app = live
+    _seed(app, n=3)
+    add_user(app.state.sessions, "vera", "viewer-pass-1", "viewer")
+    pages = []
+    for user, start in ((ADMIN, "/console/history.html"), (("vera", "viewer-pass-1"), "/console/diagnosis.html")):
+        ctx = browser.new_context(viewport={"width": 1440, "height": 900})
+        page = ctx.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e, errors=errors: errors.append(str(e)))
+        log_in(page, base, user, start)
+        page.locator("#strip-link", has_text=re.compile("link: (OK|m1 offline)")).wait_for(timeout=30_000)  # live
+        pages.append((page, errors))
+    (admin_page, _), (viewer_page, _) = pages
+    alert = raise_drift_alert(app.state.drift, "m1")
+    for page, _ in pages:
+        page.locator("#alarms li.alarm", has_text="m1: accuracy drift").wait_for(timeout=20_000)
+        assert alert["text"] in page.locator("#alarms li.alarm").first.inner_text()
+    viewer_page.click("#alarms li.alarm button.alarm-ack")
+    viewer_page.locator("#strip-msg", has_text="needs the operator role").wait_for(timeout=20_000)
+    assert viewer_page.locator("#alarms li.alarm").count() == 1 and app.state.drift.alert("m1")["status"] == "open"
+    viewer_page.reload()  # a console opened later gets the open alert too
+    viewer_page.locator("#alarms li.alarm", has_text="m1: accuracy drift").wait_for(timeout=20_000)
+    admin_page.click("#alarms li.alarm button.alarm-ack")
+    for page, _ in pages:
+        page.locator("#alarms").wait_for(state="hidden", timeout=20_000)
+    admin_page.locator("#strip-msg", has_text="Drift alert of m1 acknowledged.").wait_for(timeout=20_000)
+    assert app.state.drift.alert("m1")["acknowledged_by"] == ADMIN[0]
+    admin_page.goto(f"{base}/console/admin.html")  # the acknowledgement is in the audit log
+    admin_page.locator("#audit tbody tr", has_text="drift ack").first.wait_for(timeout=20_000)
+    assert admin_page.locator("#alarms li.alarm").count() == 0  # and stays acknowledged on a new page
+    for page, errors in pages:
+        assert errors == [], errors
+        page.context.close()
 
 
 PAGES = ["history.html?throw=t29", "accuracy.html", "policies.html", "fleet.html", "admin.html", "diagnosis.html"]

@@ -6,6 +6,7 @@ accepted throw here proves the server signed it for the right epoch."""
 
 from __future__ import annotations
 
+import time
 from datetime import timedelta
 
 import pytest
@@ -128,6 +129,7 @@ def test_restarted_runtime_without_the_throw_makes_it_lost(client, fake_runtime_
     wait_online(client)
     tid = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET}).json()["id"]
     reconciler = client.app.state.reconciler
+    reconciler.stop()  # passes by hand only: the running one acts on fleet events (server.reconcile)
     reconciler.handshake_s, reconciler.result_grace_s = 0.0, 0.0
     assert reconciler.run_once() == []  # the runtime is running it
     first.close()
@@ -141,6 +143,25 @@ def test_restarted_runtime_without_the_throw_makes_it_lost(client, fake_runtime_
     assert row["status"] == "lost" and f"epoch {first.epoch} -> {second.epoch}" in row["failure_reason"]
 
 
+def test_running_reconciler_acts_on_the_restart_event_not_on_its_sweep(client, fake_runtime_factory):
+    """The reconciler's own thread marks the throw lost when the restarted runtime comes online
+    (a fleet event), long before its backstop sweep (60 s here) would have."""
+    first = fake_runtime_factory(hold=True)
+    wait_online(client)
+    tid = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET}).json()["id"]
+    reconciler = client.app.state.reconciler
+    reconciler.handshake_s, reconciler.result_grace_s, reconciler.period_s = 0.0, 0.0, 60.0
+    reconciler.wake()  # a pass now, which sets its next sweep 60 s away
+    time.sleep(0.5)
+    assert client.get(f"/api/throws/{tid}").json()["status"] != "lost"  # the runtime is running it
+    first.close()
+    wait_online(client, online=False)
+    fake_runtime_factory()
+    t0 = time.monotonic()
+    wait_for(lambda: client.get(f"/api/throws/{tid}").json()["status"] == "lost", 8, "throw lost")
+    assert time.monotonic() - t0 < 8 and "restarted" in client.get(f"/api/throws/{tid}").json()["failure_reason"]
+
+
 def test_runtime_gone_past_the_bound_then_a_late_result_replaces_lost(client, fake_runtime_factory):
     from runtime.protocol.messages import ThrowRequest
 
@@ -151,6 +172,7 @@ def test_runtime_gone_past_the_bound_then_a_late_result_replaces_lost(client, fa
     rt.close()
     wait_online(client, online=False)
     reconciler = client.app.state.reconciler
+    reconciler.stop()  # passes by hand only: the running one acts on fleet events (server.reconcile)
     reconciler.handshake_s = 0.0
     assert reconciler.run_once() == []  # offline for less than the bound
     reconciler.runtime_gone_s = 0.0

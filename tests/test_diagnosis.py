@@ -55,6 +55,22 @@ def test_replay_of_nominal_throws_reproduces_the_log(nominal_dir: Path):
         np.testing.assert_allclose(rep.cond["impact_m"], th.impact_m, atol=2e-3)  # released where the log says
 
 
+def test_residual_vector_squares_to_the_chi_square_without_the_start_state_term(noisy_dir: Path):
+    from sim_twin.diagnosis import scoring
+    from sim_twin.effects import effect_class
+
+    throws, _ = dataset.load(noisy_dir)
+    nominal = replay.replay(throws, [EffectStack()])[0]
+    scorer = scoring.Scorer(throws, scoring.estimate_noise(throws, nominal))
+    scorer.tau2_rel = np.zeros_like(scorer.tau2_rel)  # no start-state correction: S is a plain sum of squares
+    reps = replay.replay(throws, [EffectStack([effect_class("valve_lag")(lag_s=0.3)])])[0]  # a wrong model: large residuals
+    r, S = scorer.residuals(reps), scorer.score(reps)
+    traj_and_impact = S[:, : scoring.N_TRAJ].sum() + S[:, scoring.IMPACT].sum()
+    assert S[:, : scoring.N_TRAJ].sum() > 100 * r.size ** 0.5  # the residuals are not noise
+    assert float(r @ r) == pytest.approx(traj_and_impact, rel=1e-9)
+    assert r.size == int(scorer.D[:, : scoring.N_TRAJ].sum() + scorer.D[:, scoring.IMPACT].sum())
+
+
 def test_real_log_without_payload_or_open_flag_loads_and_skips_a_missing_impact(noisy_dir: Path, caplog):
     with caplog.at_level(logging.WARNING):
         throws, index = dataset.load(noisy_dir)
@@ -236,6 +252,8 @@ def test_server_runs_a_diagnosis_on_stored_throws(client, nominal_dir: Path):
     r = client.post("/api/diagnosis/runs", json={"machine_id": "m9", "limit": 8})
     assert r.status_code == 202, r.text
     run_id = r.json()["id"]
+    started = [e for e in client.get("/api/audit", params={"action": "diagnosis_run"}).json() if e["detail"]["started"]]
+    assert [(e["username"], e["subject"], e["detail"]["run_id"]) for e in started] == [("admin", "m9", run_id)]  # by whom, which machine
     runs.wait(300)
     st = client.get(f"/api/diagnosis/runs/{run_id}").json()
     assert st["status"] == "done", st.get("error")

@@ -99,3 +99,81 @@ def test_benchmark_figure(tmp_path: Path, monkeypatch):
     res = benchmark.run(MIX, 5, 7, 1, tmp_path / "b.json", only=[0, 2, 3])
     png = plots.benchmark(res, tmp_path / "b.png")
     assert png.stat().st_size > 5000 and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_shards_partition_the_benchmark_with_each_kind_balanced():
+    cases = benchmark.draw_cases(benchmark.MIX, 0)
+    shards = [benchmark.shard_of(cases, (i, 4)) for i in range(1, 5)]
+    assert sorted(c["case"] for s in shards for c in s) == [c["case"] for c in cases]  # every case exactly once
+    for kind, n in benchmark.MIX.items():
+        per = [sum(c["kind"] == kind for c in s) for s in shards]
+        assert max(per) - min(per) <= 1 and sum(per) == n, (kind, per)
+    assert max(len(s) for s in shards) - min(len(s) for s in shards) <= 1
+    assert benchmark.parse_shard("2/3") == (2, 3)
+    for bad in ("0/3", "4/3", "2", "a/b", "1/0"):
+        with pytest.raises(ValueError, match="I/N"):
+            benchmark.parse_shard(bad)
+
+
+def test_shard_reports_merge_into_the_whole_benchmark(tmp_path: Path, monkeypatch):
+    calls: list[int] = []
+    monkeypatch.setattr(benchmark, "run_case", _fake_case(calls))
+    parts = [benchmark.run(MIX, 5, 7, 1, tmp_path / f"s{i}.json", shard=(i, 2), plots=False) for i in (1, 2)]
+    assert sorted(calls) == [0, 1, 2, 3] and not any(p["complete"] for p in parts) and [p["shard"] for p in parts] == [[1, 2], [2, 2]]
+    whole = benchmark.run(MIX, 5, 7, 1, tmp_path / "whole.json", plots=False)
+    res = benchmark.merge([tmp_path / "s1.json", tmp_path / "s2.json"], tmp_path / "m.json", plots=False)
+    assert res["complete"] and res["not_run"] == [] and [r["case"] for r in res["cases"]] == [0, 1, 2, 3]
+    assert res["summary"] == whole["summary"] and len(res["shards"]) == 2 and res["shards"][0]["cases"] == 2
+    assert json.loads((tmp_path / "m.json").read_text())["summary"] == whole["summary"]
+    half = benchmark.merge([tmp_path / "s1.json"], None, plots=False)
+    assert not half["complete"] and half["not_run"] == [c["case"] for c in parts[1]["cases"]]
+
+
+def test_merge_refuses_other_benchmarks_and_conflicting_cases(tmp_path: Path, monkeypatch):
+    monkeypatch.setattr(benchmark, "run_case", _fake_case([]))
+    benchmark.run(MIX, 5, 7, 1, tmp_path / "a.json", only=[0], plots=False)
+    benchmark.run(MIX, 5, 8, 1, tmp_path / "b.json", only=[0], plots=False)  # other seed
+    with pytest.raises(ValueError, match="different benchmarks"):
+        benchmark.merge([tmp_path / "a.json", tmp_path / "b.json"], None)
+    body = json.loads((tmp_path / "a.json").read_text())
+    body["cases"][0]["answer"] = "unexplained"
+    (tmp_path / "c.json").write_text(json.dumps(body))
+    with pytest.raises(ValueError, match="different answers"):
+        benchmark.merge([tmp_path / "a.json", tmp_path / "c.json"], None)
+    (tmp_path / "d.json").write_text("{not json")
+    with pytest.raises(ValueError, match="not a readable"):
+        benchmark.merge([tmp_path / "d.json"], None)
+    with pytest.raises(ValueError, match="at least one"):
+        benchmark.merge([], None)
+
+
+def test_a_passed_deadline_starts_no_case_and_says_which_did_not_run(tmp_path: Path, monkeypatch):
+    calls: list[int] = []
+    monkeypatch.setattr(benchmark, "run_case", _fake_case(calls))
+    res = benchmark.run(MIX, 5, 7, 1, tmp_path / "b.json", deadline_s=0.0, plots=False)
+    assert calls == [] and not res["complete"] and res["not_run"] == [0, 1, 2, 3]
+
+
+def test_stopping_the_workers_ends_running_cases_at_once():
+    import time
+
+    from sim_twin.pools import process_pool
+
+    pool = process_pool(2)
+    futs = [pool.submit(time.sleep, 60) for _ in range(3)]
+    time.sleep(1.0)
+    t0 = time.time()
+    benchmark.stop_workers(pool)
+    assert time.time() - t0 < 20 and all(f.done() for f in futs[:2])
+
+
+def test_merge_on_the_command_line_takes_options_between_the_reports(tmp_path: Path, monkeypatch):
+    from sim_twin.diagnosis import cli
+
+    monkeypatch.setattr(benchmark, "run_case", _fake_case([]))
+    for i in (1, 2):
+        benchmark.run(MIX, 5, 7, 1, tmp_path / f"s{i}.json", shard=(i, 2), plots=False)
+    out = tmp_path / "m.json"
+    assert cli.main(["merge", str(tmp_path / "s1.json"), "--out", str(out), "--no-plots", str(tmp_path / "s2.json")]) == 0
+    assert [r["case"] for r in json.loads(out.read_text())["cases"]] == [0, 1, 2, 3]
+    assert cli.main(["merge", "--out", str(out)]) == 2  # no reports: a clear error

@@ -132,7 +132,9 @@ def test_pair_step_names_both_effects_when_together_they_explain_the_gap():
 
 
 def test_pair_step_refuses_when_no_candidate_completes_the_pair():
-    world = World(m=0.6, f=0.0, outside=4.8)
+    # the outside effect's spread leaves the best pair an impact chi-square of 108 on 30 degrees
+    # of freedom, beyond the 5 sigma quantile of the chi-square (86)
+    world = World(m=0.6, f=0.0, outside=6.0)
     alone = world.S([SwingMass(m=0.6)])[:, IMPACT].sum() - world.S([])[:, IMPACT].sum()
     assert alone > nz.worse_tolerance(world.D[:, IMPACT].sum())  # the same refusal as above ...
     rounds, named = _select(world)
@@ -224,7 +226,7 @@ def test_non_separable_sweep_fits_the_joint_that_explains_the_shared_channels():
     assert sw.joint_gain["offset_boom"] > 0.2 * sw.joint_gain["offset_dipper"]  # the boom alone would explain part of it
     train = np.zeros(N, bool)
     train[: int(0.7 * N)] = True
-    cand, _, _ = fw.evaluate_candidate(ev, sw, world.D, train, fw._bootstrap_weights(N, 0)[:40])
+    cand, _, _ = fw.evaluate_candidate(ev, sw, world.D, train, fw.bootstrap_weights(N, 0)[:40])
     assert abs(cand.params["offset_dipper"] - 0.03) < 0.03 * 0.02 and set(cand.sigma) == {"offset_dipper"}
     assert 0 < cand.sigma["offset_dipper"] < 1e-3 and cand.k == 1
     assert {cand.params[n] for n in sw.held_nominal} == {0.0} and sorted(cand.not_identifiable) == sorted(sw.held_nominal)
@@ -347,3 +349,63 @@ def test_a_trajectory_bias_within_the_margin_is_not_a_gap_and_one_beyond_it_is()
     with pytest.raises(ValueError, match="margin"):
         nz.bias_tests(M, D, margin=margin[:, :3])
     assert nz.detectable_mean(1.0, 30, 1, margin=0.5) == pytest.approx(0.5 + nz.detectable_mean(1.0, 30, 1))
+
+
+class DeadBandWorld:
+    """A valve dead band per joint: the boom's channels follow its dead band (truth 0.15), the
+    cabin turn only gets small commands, so its channels are the same for any dead band from the
+    nominal 0.05 up and worse only below it (a plateau, as in a 2D throw)."""
+
+    def __init__(self, boom: float = 0.15, seed: int = 5):
+        rng = np.random.default_rng(seed)
+        self.boom, self.cabin = rng.normal(size=(N, BLOCKS)), rng.normal(size=(N, BLOCKS))
+        self.truth = boom
+        self.D = np.zeros((N, len(nz.CHANNELS), len(nz.PHASES)))
+        self.ch = {j: [nz.CH_INDEX[f"q.{j}"], nz.CH_INDEX[f"qd.{j}"]] for j in ("cabin_turn", "boom")}
+        for j in self.ch:
+            self.D[:, self.ch[j][0], 0] = BLOCKS
+
+    def S(self, effects: list[Effect]) -> np.ndarray:
+        vals = {}
+        for e in effects:
+            vals.update(e.values)
+        db = {j: vals.get(f"dead_band_{j}", 0.05) for j in self.ch}
+        S = np.zeros(self.D.shape)
+        S[:, self.ch["boom"][0], 0] = ((self.boom + 40.0 * (db["boom"] - self.truth)) ** 2).sum(axis=1)
+        S[:, self.ch["cabin_turn"][0], 0] = ((self.cabin + 40.0 * max(0.05 - db["cabin_turn"], 0.0)) ** 2).sum(axis=1)
+        return S
+
+
+def test_a_joint_whose_channels_prefer_no_value_over_the_nominal_stays_nominal():
+    world = DeadBandWorld()
+    ev = FakeEvaluator(world, [])
+    sw = ev.sweep(effect_class("valve_dead_band"), np.ones(N, bool))
+    params, _ = ev.fit(sw, np.ones(N))
+    T = sw.S[:, :, world.ch["cabin_turn"]].sum(axis=(1, 2, 3))
+    assert T.max() - T.min() > 100 * sel.IDENTIFIABLE_CHI2  # the sweep does move the cabin's channels (below the nominal)
+    assert params["dead_band_cabin_turn"] == 0.05 and params["dead_band_dipper"] == 0.05  # held: the data prefer no other value
+    assert abs(params["dead_band_boom"] - 0.15) < 0.005
+    rng = np.random.default_rng(0)
+    W = np.stack([np.bincount(rng.integers(0, N, N), minlength=N) for _ in range(20)]).astype(float)  # bootstrap resamples
+    cand, _, _ = fw.evaluate_candidate(ev, sw, world.D, np.ones(N, bool), W)
+    assert "dead_band_cabin_turn" in cand.not_identifiable and "dead_band_cabin_turn" not in cand.sigma and not cand.at_bound
+
+
+def test_the_excess_test_uses_the_chi_square_tail_not_the_normal_approximation():
+    """Few degrees of freedom (the impact channels: one per throw): a chi-square of 26 is skewed,
+    so D + 5 sqrt(2 D) = 62 is reached by noise alone with probability ~9e-5, not 2.9e-7; the
+    gap needs the exact 5 sigma quantile (~79). Many degrees of freedom: the 50 % rule decides."""
+    from scipy.stats import chi2, norm
+
+    assert nz.P_GAP == pytest.approx(norm.sf(nz.Z_GAP))
+    q = chi2.isf(nz.P_GAP, 26)
+    assert 78 < q < 80
+    assert nz.gap_test(62.5, 26)[1] > nz.Z_GAP  # beyond 5 "sigma" of the normal approximation ...
+    assert not nz.gap_test(62.5, 26)[0]  # ... yet no gap: P(chi2_26 >= 62.5) ~ 8e-5
+    assert not nz.gap_test(q - 0.5, 26)[0] and nz.gap_test(q + 0.5, 26)[0]
+    assert not nz.gap_test(1.49 * 410, 410)[0] and nz.gap_test(1.51 * 410, 410)[0]  # R_GAP decides at 410
+    assert nz.gap_test(5.0, 0) == (False, 0.0) and not nz.gap_test(0.0, 26)[0]
+    # a 30-throw impact channel with the declared noise: the false-alarm rate is the intended one
+    rng = np.random.default_rng(3)
+    S = rng.chisquare(26, size=200_000)
+    assert np.mean([nz.gap_test(s, 26)[0] for s in S[S > 60]]) * np.mean(S > 60) < 5e-6

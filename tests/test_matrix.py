@@ -1,17 +1,14 @@
 """Site matrix (slinger evaluate --matrix): bar verdicts per cell and a tiny end-to-end run that
-writes the table, the JSON and the figure."""
+writes the table, the JSON and the figure (with the fixture policy: the run's form is under test,
+not how well it throws)."""
 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 
 from sim_twin import matrix
-
-POLICY_2D = Path(__file__).resolve().parents[1] / "policies" / "throw2d.onnx"
-
 
 def _cell(success=1.0, bias=0.0, down=0.05, cross=0.05):
     return {"success_rate": success, "landed": 10, "bias_m": bias, "sigma_downrange_m": down, "sigma_crossrange_m": cross}
@@ -33,15 +30,15 @@ def test_cell_bars(mode, profile, shifts, cell, ok):
     assert all(matrix.cell_bars(mode, profile, shifts, cell).values()) is ok
 
 
-def test_every_matrix_profile_is_committed():
+def test_every_matrix_profile_is_committed(fixture_policy):
     for name, _ in matrix.MATRIX_PROFILES[1:]:
         assert (matrix.PROFILE_DIR / f"{name}.json").is_file(), name
     with pytest.raises(FileNotFoundError):
-        matrix.run_matrix(POLICY_2D, "2d", [8.5], 1, profiles=[("no_such_site", False)])
+        matrix.run_matrix(fixture_policy("2d"), "2d", [8.5], 1, profiles=[("no_such_site", False)])
 
 
-def test_tiny_matrix_writes_table_json_and_figure(tmp_path):
-    rep = matrix.run_matrix(POLICY_2D, "2d", [8.5], 2, profiles=[("nominal", False), ("friction_x3", False)], workers=1)
+def test_tiny_matrix_writes_table_json_and_figure(tmp_path, fixture_policy):
+    rep = matrix.run_matrix(fixture_policy("2d"), "2d", [8.5], 2, profiles=[("nominal", False), ("friction_x3", False)], workers=1)
     assert [p["name"] for p in rep["profiles"]] == ["nominal", "friction_x3"]
     assert all(p["targets"][0]["throws"] == 2 for p in rep["profiles"])
     matrix.write(rep, tmp_path / "m.json")

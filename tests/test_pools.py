@@ -27,3 +27,29 @@ def test_pool_workers_start_from_a_fresh_interpreter_while_a_thread_holds_a_lock
     finally:
         release.set()
         t.join(5)
+
+
+def test_preview_monte_carlo_in_a_pool_gives_the_same_impacts():
+    """The preview's full rollouts in pool processes (the worker's Settings.preview_processes)
+    land where they land in one process: every release delay is drawn before they run."""
+    import numpy as np
+
+    from runtime.policy import PolicyRunner
+    from sim_twin.initial_pose import sample_pose
+    from sim_twin.pools import process_pool
+    from sim_twin.preview import PreviewRequest, preview_throw, site_profile, warm_up
+
+    policy = PolicyRunner.load("policies/throw2d.onnx")
+    profile = site_profile(None, None)
+    q = sample_pose(np.random.default_rng(0), cabin_turn=0.0).tolist()
+    req = PreviewRequest("2d", [8.5, -0.292, 0.0], q, [0.0] * 6, rollouts=48)
+    alone = preview_throw(policy, req, profile)
+    pool = process_pool(2)
+    try:
+        warm_up(pool, 2)
+        pooled = preview_throw(policy, req, profile, pool=pool)
+    finally:
+        pool.shutdown()
+    assert alone["mc"]["param_rollouts"] == 4 and alone["mc"]["failed_rollouts"] == 0
+    assert pooled["mc"]["impacts_m"] == alone["mc"]["impacts_m"]
+    assert pooled["mc"]["sigma_downrange_m"] == alone["mc"]["sigma_downrange_m"]

@@ -60,6 +60,25 @@ def test_typed_config_refuses_unknown_and_missing_settings():
         EnvConfig.from_dict({**env, "reward": {}})
     with pytest.raises(ValueError, match="mode"):
         EnvConfig.from_dict({**env, "mode": "4d"})
+    assert cfg.far_targets.fraction == 0.0 and cfg.rewards.landing_precise == 0.0  # options, off by default
+    with pytest.raises(ValueError, match="unknown far_targets"):
+        EnvConfig.from_dict({**env, "far_targets": {"fractoin": 0.5}})
+    with pytest.raises(ValueError, match="fraction"):
+        EnvConfig.from_dict({**env, "far_targets": {"fraction": 1.5}})
+
+
+def test_far_targets_weight_the_target_distance():
+    """With far_targets.fraction f, a fraction f of episodes draws from the far range on top of the
+    uniform draw over target_range_m (the 2D target lies on the arm's plane, so |target| = distance)."""
+    from sim_twin.mjx_env import ThrowEnvCore
+
+    env = json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]
+    keys = jax.random.split(jax.random.PRNGKey(0), 4000)
+    for fraction, expect in ((0.0, (10.7 - 9.0) / 5.7), (0.5, 0.5 + 0.5 * (10.7 - 9.0) / 5.7)):
+        core = ThrowEnvCore(EnvConfig.from_dict({**env, "far_targets": {"fraction": fraction, "range_m": [9.0, 10.7]}}))
+        dist = np.linalg.norm(np.asarray(jax.vmap(lambda k: core._sample_target(k, 0.0))(keys))[:, :2], axis=1)
+        assert dist.min() >= 5.0 - 1e-4 and dist.max() <= 10.7 + 1e-4
+        assert np.mean(dist >= 9.0) == pytest.approx(expect, abs=0.03)
 
 
 def test_vec_env_logs_every_term_and_their_sum_is_the_mean_reward():

@@ -147,7 +147,7 @@ def test_each_console_has_its_own_view_target_and_machine(scene, tmp_path):
         # bob types an unreachable target: kept where typed (3D), marked with the reason
         scene.update_console(b, target=[20.0, 1.0, 0.0])
         assert b.target == [20.0, 1.0, 0.0] and b.target_reason == "out of range (20.0 m)" and not b.snapped
-        assert "cannot throw here" in vb.client.scene._handle_from_node_name["/target/label"].text
+        assert "cannot throw here" in vb.client.scene._handle_from_node_name["/labels/target"].text
 
         # a finished throw is drawn in the views of its machine only
         rec = TelemetryRecorder()
@@ -167,6 +167,45 @@ def test_each_console_has_its_own_view_target_and_machine(scene, tmp_path):
         ws_a.close()
         ws_b.close()
     wait_for(lambda: not scene._views, 10, "views dropped on disconnect")
+
+
+def test_a_replay_poses_the_console_machine_from_the_recording_at_the_seeked_time(scene, tmp_path):
+    from server.scene_replay import Replay
+    from tests.fixtures import write_swing_telemetry
+
+    t, q = write_swing_telemetry(tmp_path / "swing.mcap")
+    a, b = scene.open_console("ann"), scene.open_console("ann")
+    scene.update_console(a, machine_id="m1")
+    scene.update_console(b, machine_id="m1")
+    ws_a, va = _view(scene, a.console_id)
+    ws_b, vb = _view(scene, b.console_id)
+    try:
+        replay = Replay.load("th-1", "m1", tmp_path / "swing.mcap", impact_m=[8.0, 0.5, 0.0], target_m=[8.2, 0.4, 0.0])
+        assert replay.duration_s == pytest.approx(2.0)
+        scene.start_replay(a, replay)
+        assert {"/throw/gripper_path", "/throw/payload_path", "/throw/impact"} <= _names(va)
+        assert "/throw/impact" not in _names(vb)  # the other console shows the live machine
+        for want in (0.0, 1.234, 1.7, 5.0):
+            shown = scene.seek_replay(a, want)
+            assert shown == pytest.approx(min(want, 2.0))
+            expect = [np.interp(shown, t, q[:, j]) for j in range(6)]
+            assert va.last_q == pytest.approx(expect, abs=1e-9)  # drawn before seek_replay returned
+            assert va.label.text == f"REPLAY of throw th-1 on m1: t = {shown:.2f} s"
+            assert va.payload.visible == (shown >= 1.5)  # the payload flies after the release
+        assert a.public()["replay"] == {"throw_id": "th-1", "t_s": 2.0, "duration_s": 2.0}
+        time.sleep(0.2)  # the drawing thread keeps the replayed pose, not the live one
+        assert va.last_q == pytest.approx(q[-1]) and vb.last_q == pytest.approx(Q1)
+        scene.stop_replay(a)
+        wait_for(lambda: np.allclose(va.last_q, Q1), 10, "back to the live machine")
+        assert "/throw/impact" not in _names(va) and a.public()["replay"] is None
+        with pytest.raises(ValueError, match="replays no throw"):
+            scene.seek_replay(a, 1.0)
+        (tmp_path / "bad.mcap").write_bytes(b"not mcap")
+        with pytest.raises(ValueError, match="cannot be read"):
+            Replay.load("th-2", "m1", tmp_path / "bad.mcap")
+    finally:
+        ws_a.close()
+        ws_b.close()
 
 
 def test_scene_reports_the_port_viser_really_uses():
@@ -212,6 +251,47 @@ def test_console_api_keeps_each_console_to_its_user(settings):
         assert c.put(f"/api/consoles/{mine}", json={"mode": "3d"}).status_code == 200
         r = c.put(f"/api/consoles/{mine}", json={"target": [8.0, 0.0, 0.0]})
         assert r.status_code == 403 and "operator" in r.json()["detail"]
+
+
+def test_replay_route_loads_seeks_and_refuses_with_reasons(settings):
+    """PUT /api/consoles/{id}/replay (viewers too: the page's own view): 404 for an unknown throw,
+    409 for one without telemetry or with an unreadable one, 422 for a bad time; the answer says
+    the time shown (clamped to the recording); DELETE goes back to the live machine."""
+    from fastapi.testclient import TestClient
+
+    from server.app import create_app
+    from server.db.models import Machine, Throw
+    from tests.conftest import add_user, login
+    from tests.fixtures import write_swing_telemetry
+
+    settings.viser_enabled, settings.viser_port = True, free_port()
+    with TestClient(create_app(settings)) as c:
+        data_dir = c.app.state.settings.data_dir
+        write_swing_telemetry(data_dir / "telemetry" / "th-1.mcap")
+        (data_dir / "telemetry" / "th-bad.mcap").write_bytes(b"not an mcap file")
+        with c.app.state.sessions.begin() as db:
+            db.add(Machine(id="m1", simulated=True))
+            for tid, path in (("th-1", "telemetry/th-1.mcap"), ("th-none", None), ("th-bad", "telemetry/th-bad.mcap")):
+                db.add(Throw(id=tid, machine_id="m1", mode="2d", target_x_m=8.0, target_y_m=0.0, target_z_m=0.0,
+                             status="landed", telemetry_path=path))
+        add_user(c.app.state.sessions, "vera", "viewer-pass-12", "viewer")
+        login(c, "vera", "viewer-pass-12")
+        cid = c.post("/api/consoles").json()["console_id"]
+        url = f"/api/consoles/{cid}/replay"
+        r = c.put(url, json={"throw_id": "nope", "t_s": 0.0})
+        assert r.status_code == 404 and "no throw nope" in r.json()["detail"]
+        r = c.put(url, json={"throw_id": "th-none", "t_s": 0.0})
+        assert r.status_code == 409 and "no telemetry" in r.json()["detail"]
+        r = c.put(url, json={"throw_id": "th-bad", "t_s": 0.0})
+        assert r.status_code == 409 and "cannot be read" in r.json()["detail"]
+        assert c.put(url, json={"throw_id": "th-1", "t_s": -1.0}).status_code == 422
+        r = c.put(url, json={"throw_id": "th-1", "t_s": 0.75})
+        assert r.status_code == 200, r.text
+        body = r.json()
+        assert body["machine_id"] == "m1" and body["replay"] == {"throw_id": "th-1", "t_s": 0.75, "duration_s": 2.0}
+        assert c.put(url, json={"throw_id": "th-1", "t_s": 60.0}).json()["replay"]["t_s"] == 2.0  # clamped
+        r = c.delete(url)
+        assert r.status_code == 200 and r.json()["replay"] is None
 
 
 def test_console_routes_answer_409_while_the_3d_view_is_disabled(settings):

@@ -24,13 +24,6 @@ from tests.conftest import ADMIN, add_user
 LOGIN = {"username": ADMIN[0], "password": ADMIN[1]}
 
 
-@pytest.fixture(autouse=True)
-def cheap_hashes(monkeypatch):
-    from argon2 import PasswordHasher
-
-    monkeypatch.setattr("server.auth._hasher", PasswordHasher(time_cost=1, memory_cost=1024, parallelism=1))
-
-
 def _client(settings, **overrides):
     from fastapi.testclient import TestClient
 

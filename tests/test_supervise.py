@@ -52,7 +52,9 @@ def test_kill_9_of_the_supervisor_takes_children_and_grandchildren(tmp_path):
     try:
         # the child, its `sleep` grandchild and the warden
         wait_for(lambda: len(stack_processes(stack_dir)) >= 3, 20, "child, grandchild and warden")
-        assert any(cmd.startswith("sleep") for cmd in stack_processes(stack_dir).values())
+        # the grandchild is a fork of the child until it has exec'd `sleep`
+        wait_for(lambda: any(cmd.startswith("sleep") for cmd in stack_processes(stack_dir).values()), 20,
+                 "the grandchild running sleep")
         os.kill(harness.pid, signal.SIGKILL)
         harness.wait(timeout=5)
         wait_for(lambda: not stack_processes(stack_dir), 10, "no process of the stack left")

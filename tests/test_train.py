@@ -103,3 +103,9 @@ def test_std_schedule_caps_the_learned_std():
     dist.log_std_param.data -= 1.0  # learned below the cap: kept
     train.apply_std_cap(R, 0.3)
     assert train.current_std(R) == pytest.approx(0.2 * 2.718281828**-1, rel=1e-4)
+    # the release flag (last action) keeps at least its floor; the other actions keep learning below
+    train.apply_std_cap(R, 0.3, release_floor=0.25)
+    std = dist.log_std_param.exp()
+    assert std[-1].item() == pytest.approx(0.25, rel=1e-5) and std[0].item() == pytest.approx(0.2 * 2.718281828**-1, rel=1e-4)
+    with pytest.raises(ValueError, match="release_floor"):
+        train.StdSchedule.from_dict({"start": 0.6, "end": 0.1, "iterations": 100, "release_floor": 0.3})

@@ -13,14 +13,6 @@ from server.login_guard import LoginBusy, LoginGuard
 from tests.conftest import ADMIN, add_user, login
 
 
-@pytest.fixture(autouse=True)
-def cheap_hashes(monkeypatch):
-    """argon2 with minimal cost: the hash's cost is not what these tests check."""
-    from argon2 import PasswordHasher
-
-    monkeypatch.setattr("server.auth._hasher", PasswordHasher(time_cost=1, memory_cost=1024, parallelism=1))
-
-
 @pytest.fixture
 def app_client(settings):
     """A TestClient whose settings the test changes first: ``app_client(**overrides)``."""

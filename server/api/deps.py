@@ -9,10 +9,10 @@ E-STOP route relies on that).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Annotated
 
-from fastapi import Depends, HTTPException, Request
+from fastapi import Depends, Request
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.adaptation import AdaptationRuns
@@ -20,6 +20,8 @@ from server.auth import COOKIE_NAME, role_at_least, user_for_token
 from server.config import Settings
 from server.db.models import User
 from server.diagnosis import DiagnosisRuns
+from server.drift import DriftWatch
+from server.errors import Denied, Unauthenticated
 from server.fleet import Fleet
 from server.jobs import JobQueue
 from server.jobs.watch import JobWatcher
@@ -100,6 +102,10 @@ async def get_storage(request: Request) -> StorageMonitor:
     return request.app.state.storage
 
 
+async def get_drift(request: Request) -> DriftWatch:
+    return request.app.state.drift
+
+
 SessionDep = Annotated[Session, Depends(get_db)]
 SessionsDep = Annotated[sessionmaker[Session], Depends(get_sessions)]
 FleetDep = Annotated[Fleet, Depends(get_fleet)]
@@ -116,6 +122,7 @@ DiagnosisRunsDep = Annotated[DiagnosisRuns, Depends(get_diagnosis_runs)]
 AdaptationRunsDep = Annotated[AdaptationRuns, Depends(get_adaptation_runs)]
 LoginGuardDep = Annotated[LoginGuard, Depends(get_login_guard)]
 StorageDep = Annotated[StorageMonitor, Depends(get_storage)]
+DriftDep = Annotated[DriftWatch, Depends(get_drift)]
 
 
 def session_token(request: Request) -> str | None:
@@ -126,23 +133,50 @@ def session_token(request: Request) -> str | None:
     return request.cookies.get(COOKIE_NAME)
 
 
-def get_current_user(request: Request) -> User:
-    """The logged-in user; 401 without a valid, unexpired session."""
-    with request.app.state.sessions() as db:
-        user = user_for_token(db, session_token(request))
+def authorised(user: User | None, role: str = "viewer") -> User:
+    """``user`` if it is logged in with at least ``role``.
+
+    Raises:
+        Unauthenticated: ``user`` is None (no valid, unexpired session): 401.
+        Denied: the user's role is below ``role``: 403.
+    """
     if user is None:
-        raise HTTPException(401, "log in first (session missing or expired)",
-                            headers={"WWW-Authenticate": "Bearer"})
+        raise Unauthenticated("log in first (session missing or expired)")
+    if not role_at_least(user.role, role):
+        raise Denied(f"needs the {role} role (you are {user.role})")
     return user
 
 
+def authorised_or_audited(user: User, role: str, record: Callable[[str], None], action: str = "") -> User:
+    """:func:`authorised` for a route that audits its refusals: a role below ``role`` is passed to
+    ``record(reason)`` (the route's audit entry) before Denied is raised.
+
+    Args:
+        action: what was asked, in words, to begin the reason with (e.g. "acknowledging a drift
+            alert"); "" for the plain "needs the <role> role (you are <role>)".
+
+    Raises:
+        Denied: the user's role is below ``role``: 403, the reason as its detail.
+    """
+    try:
+        return authorised(user, role)
+    except Denied as e:
+        reason = f"{action} {e.detail}" if action else e.detail
+        record(reason)
+        raise Denied(reason) from None
+
+
+def get_current_user(request: Request) -> User:
+    """The logged-in user; Unauthenticated (401) without a valid, unexpired session."""
+    with request.app.state.sessions() as db:
+        return authorised(user_for_token(db, session_token(request)))
+
+
 def require_role(role: str):
-    """A dependency: the current user, 403 unless their role is at least ``role``."""
+    """A dependency: the current user, Denied (403) unless their role is at least ``role``."""
 
     def check(user: Annotated[User, Depends(get_current_user)]) -> User:
-        if not role_at_least(user.role, role):
-            raise HTTPException(403, f"needs the {role} role (you are {user.role})")
-        return user
+        return authorised(user, role)
 
     return check
 

@@ -155,4 +155,8 @@ class ThrowOut(BaseModel):
 
 
 class Problem(BaseModel):
+    """An error answer (server.api.errors): a sentence for the operator and, when the error names
+    one, the failed condition (also in the ``X-Refused-Condition`` header)."""
+
     detail: str
+    condition: str | None = None

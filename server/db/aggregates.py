@@ -28,6 +28,7 @@ from collections import defaultdict
 from datetime import UTC, date, datetime
 
 from sqlalchemy import delete, event, inspect, select
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 from sqlalchemy.orm.base import NO_VALUE
 
@@ -111,14 +112,14 @@ def upsert(connection, deltas: dict[tuple, list]) -> None:
     if not deltas:
         return
     name = connection.dialect.name
+    stmt: postgresql.Insert | sqlite.Insert
     if name == "postgresql":
-        from sqlalchemy.dialects.postgresql import insert
+        stmt = postgresql.insert(ThrowAccuracy)
     elif name == "sqlite":
-        from sqlalchemy.dialects.sqlite import insert
+        stmt = sqlite.insert(ThrowAccuracy)
     else:
         raise NotImplementedError(f"accuracy aggregates on {name}: only SQLite and PostgreSQL")
     table = ThrowAccuracy.__table__
-    stmt = insert(table)
     stmt = stmt.on_conflict_do_update(index_elements=list(KEY_COLUMNS),
                                       set_={c: table.c[c] + stmt.excluded[c] for c in SUM_COLUMNS})
     rows = [dict(zip(KEY_COLUMNS, k)) | dict(zip(SUM_COLUMNS, s)) for k, s in sorted(deltas.items())]

@@ -14,6 +14,7 @@ from __future__ import annotations
 import secrets
 import uuid
 from datetime import date, datetime
+from typing import Literal, get_args
 
 from sqlalchemy import JSON, BigInteger, Boolean, Date, Enum, Float, ForeignKey, Index, Integer, MetaData, String, Text
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
@@ -254,8 +255,10 @@ class PolicyDeployment(Base):
     confirmed_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
 
 
-JOB_KINDS = ("preview", "evaluation", "diagnosis", "adaptation", "probe", "catalog")
-JOB_STATUSES = ("queued", "running", "done", "failed", "cancelled")
+JobKind = Literal["preview", "evaluation", "diagnosis", "adaptation", "probe", "catalog"]
+JobStatus = Literal["queued", "running", "done", "failed", "cancelled"]
+JOB_KINDS: tuple[str, ...] = get_args(JobKind)
+JOB_STATUSES: tuple[str, ...] = get_args(JobStatus)
 FINAL_JOB_STATUSES = ("done", "failed", "cancelled")
 
 

@@ -16,8 +16,10 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from server.errors import Refused
 
-class JobSpecError(ValueError):
+
+class JobSpecError(Refused, ValueError):
     """A job's parameters do not match its kind's spec (the message names the fields)."""
 
 

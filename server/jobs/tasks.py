@@ -28,25 +28,36 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Callable
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Generic, TypeVar
 
 from sqlalchemy.orm import Session, sessionmaker
 
+from server.config import Settings
+from server.errors import Conflict, kind_of
 from server.jobs.leases import LEASE_S, WorkerIdentity
-from server.jobs.specs import JobSpecError, parse_spec
+from server.jobs.specs import (
+    AdaptationSpec,
+    CatalogSpec,
+    DiagnosisSpec,
+    EvaluationSpec,
+    JobSpecError,
+    PreviewSpec,
+    ProbeSpec,
+    parse_spec,
+)
 from server.jobs.store import JobCancelled, JobStore
 
 log = logging.getLogger(__name__)
 
 
-class JobRefused(Exception):
-    """A job that cannot be done as asked; ``kind`` names the domain error the API raises for it
-    (a key of server.errors.KINDS, e.g. ``"conflict"``), kept in the job's result as ``refused``."""
-
-    def __init__(self, kind: str, detail: str):
-        super().__init__(detail)
-        self.kind, self.detail = kind, detail
+class JobRefused(Conflict):
+    """A job that this worker cannot do as asked (e.g. its policy file does not load here); its
+    kind (server.errors.kind_of: ``"conflict"``) is kept in the job's result as ``refused``, and
+    the API raises that kind for it (server.previews)."""
 
 
 @dataclass
@@ -56,7 +67,7 @@ class WorkerContext:
 
     sessions: sessionmaker[Session]
     data_dir: Path
-    settings: object = None
+    settings: Settings | None = None
     jobs: object = None
     identity: WorkerIdentity = field(default_factory=WorkerIdentity)
     lease_s: float = LEASE_S
@@ -67,10 +78,29 @@ class WorkerContext:
     profiles: dict = field(default_factory=dict)
     """Site profiles of previews by source."""
     lock: threading.Lock = field(default_factory=threading.Lock)
+    preview_pool: Executor | None = None
+    """Processes for the previews' Monte Carlo rollouts (:meth:`start_preview_pool`), or None."""
 
     def __post_init__(self):
         self.store = JobStore(self.sessions)
         self.data_dir = Path(self.data_dir)
+
+    def start_preview_pool(self) -> None:
+        """Start ``settings.preview_processes`` processes for the previews' Monte Carlo and import
+        the twin in them (sim_twin.preview.warm_up); none for fewer than 2."""
+        from sim_twin.pools import process_pool
+        from sim_twin.preview import warm_up
+
+        n = self.settings.preview_processes if self.settings is not None else 0
+        if n >= 2 and self.preview_pool is None:
+            self.preview_pool = process_pool(n)
+            warm_up(self.preview_pool, n)
+
+    def close(self) -> None:
+        """Stop the preview pool's processes."""
+        if self.preview_pool is not None:
+            self.preview_pool.shutdown(cancel_futures=True)
+            self.preview_pool = None
 
     @property
     def name(self) -> str:
@@ -78,13 +108,17 @@ class WorkerContext:
         return self.identity.name
 
 
+SpecT = TypeVar("SpecT")
+
+
 @dataclass(frozen=True)
-class JobRun:
+class JobRun(Generic[SpecT]):
     """What a runner is given about its job: ``id`` (its files go under
-    ``server.jobs.specs.job_dir(data_dir, id)``), the parsed ``spec`` and ``requested_by``."""
+    ``server.jobs.specs.job_dir(data_dir, id)``), the parsed ``spec`` (the spec class of its kind,
+    server.jobs.specs.parse_spec) and ``requested_by``."""
 
     id: str
-    spec: object
+    spec: SpecT
     requested_by: str | None = None
 
 
@@ -125,7 +159,7 @@ def execute(job_id: str) -> None:
         else:
             log.warning("job %s (%s) was taken from this worker (lease expired); stopped", job_id, job["kind"])
     except JobRefused as e:
-        ctx.store.finish(job_id, "failed", result={"refused": e.kind}, error=e.detail, worker_id=me)
+        ctx.store.finish(job_id, "failed", result={"refused": kind_of(e)}, error=e.detail, worker_id=me)
     except Exception as e:  # recorded in the row for the console
         log.exception("job %s (%s) failed", job_id, job["kind"])
         ctx.store.finish(job_id, "failed", error=f"{type(e).__name__}: {e}", worker_id=me)
@@ -137,7 +171,7 @@ def _json_safe(result) -> dict:
 
 
 # --- runners ----------------------------------------------------------------------------------
-def run_preview(ctx: WorkerContext, job: JobRun, progress) -> dict:
+def run_preview(ctx: WorkerContext, job: JobRun[PreviewSpec], progress) -> dict:
     from runtime.policy import PolicyError, PolicyRunner
     from sim_twin.preview import PreviewRequest, preview_throw
 
@@ -149,10 +183,11 @@ def run_preview(ctx: WorkerContext, job: JobRun, progress) -> dict:
         try:
             runner = PolicyRunner.load(ctx.data_dir / spec.onnx_path)
         except (PolicyError, OSError) as e:
-            raise JobRefused("conflict", f"policy {sha[:12]}… does not load on the worker: {e}") from e
+            raise JobRefused(f"policy {sha[:12]}… does not load on the worker: {e}") from e
         with ctx.lock:
             ctx.runners[sha] = runner
-    return preview_throw(runner, PreviewRequest(**spec.request), _site_profile(ctx, runner, spec.profile_path))
+    return preview_throw(runner, PreviewRequest(**spec.request), _site_profile(ctx, runner, spec.profile_path),
+                         pool=ctx.preview_pool)
 
 
 def _site_profile(ctx: WorkerContext, runner, profile_path: str | None):
@@ -167,13 +202,13 @@ def _site_profile(ctx: WorkerContext, runner, profile_path: str | None):
         return ctx.profiles[key]
 
 
-def run_catalog(ctx: WorkerContext, job: JobRun, progress) -> dict:
+def run_catalog(ctx: WorkerContext, job: JobRun[CatalogSpec], progress) -> dict:
     from sim_twin.effects import EFFECTS
 
     return {"effects": {name: cls.describe() for name, cls in EFFECTS.items()}}
 
 
-def run_evaluation(ctx: WorkerContext, job: JobRun, progress) -> dict:
+def run_evaluation(ctx: WorkerContext, job: JobRun[EvaluationSpec], progress) -> dict:
     from server.policies import evaluate_version
 
     limits = ctx.settings.validation_limits() if ctx.settings is not None else None
@@ -181,13 +216,13 @@ def run_evaluation(ctx: WorkerContext, job: JobRun, progress) -> dict:
                             job.spec.throws, progress, limits)
 
 
-def run_diagnosis(ctx: WorkerContext, job: JobRun, progress) -> dict:
+def run_diagnosis(ctx: WorkerContext, job: JobRun[DiagnosisSpec], progress) -> dict:
     from server.jobs.diagnosis_job import run
 
     return run(ctx.sessions, ctx.data_dir, job.id, job.spec, progress)
 
 
-def run_adaptation(ctx: WorkerContext, job: JobRun, progress) -> dict:
+def run_adaptation(ctx: WorkerContext, job: JobRun[AdaptationSpec], progress) -> dict:
     from server.jobs.adaptation_job import run
     from server.policies import PolicyService
     from server.results import ResultStore
@@ -196,7 +231,7 @@ def run_adaptation(ctx: WorkerContext, job: JobRun, progress) -> dict:
     return run(policies, ctx.data_dir, job, progress)
 
 
-def run_probe(ctx: WorkerContext, job: JobRun, progress) -> dict:
+def run_probe(ctx: WorkerContext, job: JobRun[ProbeSpec], progress) -> dict:
     spec = job.spec
     steps, step_s, kill_at = spec.steps, spec.step_s, spec.kill_worker_at_step
     for i in range(steps):
@@ -211,5 +246,5 @@ def run_probe(ctx: WorkerContext, job: JobRun, progress) -> dict:
     return {"worker": ctx.name, "steps": steps}
 
 
-RUNNERS = {"preview": run_preview, "catalog": run_catalog, "evaluation": run_evaluation,
+RUNNERS: dict[str, Callable[[WorkerContext, Any, Any], dict]] = {"preview": run_preview, "catalog": run_catalog, "evaluation": run_evaluation,
            "diagnosis": run_diagnosis, "adaptation": run_adaptation, "probe": run_probe}

@@ -74,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
     lease.reap()  # jobs of workers that died while none ran
     if "fast" in lanes:
         import sim_twin.preview  # noqa: F401  warm: the first preview must not pay MuJoCo's import
+
+        ctx.start_preview_pool()
     consumers = []
     for lane in lanes:
         workers = args.fast_workers if lane == "fast" else args.heavy_workers
@@ -90,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
             c.stop(graceful=True)
     finally:
         lease.stop()
+        ctx.close()
         try:
             lease.release_own("stopped while running it")
         finally:

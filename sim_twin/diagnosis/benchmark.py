@@ -36,8 +36,10 @@ import logging
 import os
 import tempfile
 import time
-from concurrent.futures import as_completed
+from collections import deque
+from concurrent.futures import FIRST_COMPLETED, wait
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -125,9 +127,9 @@ def _draw(rng, spec) -> tuple[str, str, float]:
 def draw_cases(mix: dict[str, int], seed: int, every_3d: int = 5) -> list[dict]:
     """The case list (seeded): kinds in ``mix`` order, every ``every_3d``-th case of a kind in 3D."""
     rng = np.random.default_rng(seed)
-    pools = {"single": SINGLES, "pair": PAIRS, "outside": OUTSIDE, "heldout": HELD_OUT, "impact_only": IMPACT_ONLY,
+    pools: dict[str, list[Any]] = {"single": SINGLES, "pair": PAIRS, "outside": OUTSIDE, "heldout": HELD_OUT, "impact_only": IMPACT_ONLY,
              "multijoint": MULTI_JOINT, "power": POWER_LIMITED, "noise": [None]}
-    out = []
+    out: list[dict[str, Any]] = []
     for kind, n in mix.items():
         for i in range(n):
             spec = pools[kind][i % len(pools[kind])]
@@ -292,14 +294,14 @@ def summarise(rows: list[dict]) -> dict:
         "noise_no_gap": _frac(r["correct"] for r in by["noise"]),
         "held_out_gap_shrink_median": float(np.median(shrink)) if shrink else None,
         "held_out_impact_shrink_median": float(np.median(ishrink)) if ishrink else None,
-        "held_out_impact_shrink_constant_shift_median": float(np.median(cshrink)) if cshrink else None,
+        "held_out_impact_shrink_constant_shift_median": float(np.median(np.asarray(cshrink, dtype=float))) if cshrink else None,
         "cpu_s": float(sum(r["cpu_s"] for r in rows)),
         "cpu_s_per_case": float(np.mean([r["cpu_s"] for r in rows])) if rows else None,
         "cpu_s_per_case_by_kind": {k: float(np.mean([r["cpu_s"] for r in v])) for k, v in by.items() if v},
     }
 
 
-BARS = [("singles_named", ">=", 0.9), ("multijoint_named", ">=", 0.9), ("pairs_both_named", ">=", 0.7),
+BARS: list[tuple[str, str, Any]] = [("singles_named", ">=", 0.9), ("multijoint_named", ">=", 0.9), ("pairs_both_named", ">=", 0.7),
         ("params_within_tolerance_cases", ">=", 0.8), ("outside_unexplained_or_ambiguous", ">=", 0.9), ("outside_confidently_wrong", "<=", 0.0),
         ("impact_only_not_named", ">=", 1.0), ("power_no_gap", ">=", 0.9), ("noise_no_gap", ">=", 0.9), ("one_sigma_coverage", "in", (0.6, 0.75))]
 
@@ -449,53 +451,180 @@ def load_done(out: Path, seed: int, throws: int, mix: dict[str, int]) -> list[di
     return list(prev.get("cases", []))
 
 
+COST_S = {"single": 44.0, "pair": 45.0, "outside": 88.0, "heldout": 141.0, "impact_only": 18.0, "multijoint": 65.0, "power": 5.0, "noise": 14.0}
+"""Mean CPU seconds of one 30-throw case per kind (reports/diagnosis_benchmark.json, 2-core VM,
+2026-11-22): used only to start the long cases first, which shortens the wall time of a parallel
+run (longest-processing-time-first scheduling)."""
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """``"I/N"`` (1 <= I <= N) as ``(I, N)``.
+
+    Raises:
+        ValueError: not of that form.
+    """
+    try:
+        i, n = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise ValueError(f"a shard is I/N with 1 <= I <= N, got {text!r}") from None
+    if not 1 <= i <= n:
+        raise ValueError(f"a shard is I/N with 1 <= I <= N, got {text!r}")
+    return i, n
+
+
+def shard_of(cases: list[dict], shard: tuple[int, int]) -> list[dict]:
+    """The cases of shard ``(I, N)``: the cases ordered by kind (as :func:`draw_cases` lists
+    them) and dealt round-robin, the p-th to shard ``p % N + 1``, so every shard gets each kind's
+    cases within one and the N shards together hold every case exactly once."""
+    i, n = shard
+    return [c for p, c in enumerate(sorted(cases, key=lambda c: (KINDS.index(c["kind"]), c["case"]))) if p % n == i - 1]
+
+
+def stop_workers(pool) -> None:
+    """Stop the cases still running in ``pool`` (the processes this run started) and shut it down."""
+    terminate = getattr(pool, "terminate_workers", None)  # Python >= 3.14
+    if terminate is not None:
+        terminate()
+        return
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        proc.terminate()
+    pool.shutdown(wait=True, cancel_futures=True)
+
+
 def run(mix: dict[str, int], throws: int, seed: int, workers: int, out: Path | None, keep_data: Path | None = None,
-        only: list[int] | None = None, resume: bool = False) -> dict:
-    """The benchmark (cases in parallel over ``workers`` processes); writes ``out`` (JSON) and
-    ``out`` with .txt after every finished case (``complete`` says whether all cases ran).
+        only: list[int] | None = None, resume: bool = False, shard: tuple[int, int] | None = None,
+        deadline_s: float | None = None, plots: bool = True) -> dict:
+    """The benchmark (cases in parallel over ``workers`` processes, one case per process, the
+    long kinds first); writes ``out`` (JSON) and ``out`` with .txt after every finished case
+    (``complete`` says whether all cases of the benchmark ran).
 
     Args:
         only: case numbers to run (default all).
         resume: keep the finished cases already in ``out`` (same seed, throws, mix) and run only
             the others; CPU seconds of earlier runs stay in their rows.
+        shard: ``(I, N)``: only the cases of shard I of N (:func:`shard_of`); :func:`merge`
+            combines the N reports.
+        deadline_s: wall seconds from the start: no case starts after it, and cases still
+            running at it are stopped (with ``workers`` > 1; one worker finishes its case) and
+            left out of the report, which then says ``complete`` false and lists them under
+            ``not_run``; ``--resume`` runs them later.
+        plots: write the figure ``out`` with .png.
 
     Raises:
         ValueError: ``resume`` with an ``out`` from another benchmark (:func:`load_done`).
     """
     cases = draw_cases(mix, seed)
+    if shard is not None:
+        cases = shard_of(cases, shard)
     if only is not None:
         cases = [c for c in cases if c["case"] in only]
     t0 = time.time()
     rows: list[dict] = load_done(out, seed, throws, mix) if resume and out is not None else []
     done = {r["case"] for r in rows}
     planned = len({c["case"] for c in cases} | done)
-    wall_before = float(json.loads(out.read_text()).get("wall_s", 0.0)) if rows else 0.0
+    wall_before = float(json.loads(out.read_text()).get("wall_s", 0.0)) if rows and out is not None else 0.0
     cases = [c for c in cases if c["case"] not in done]
 
     def result(complete: bool) -> dict:
         done = sorted(rows, key=lambda r: r["case"])
+        got = {r["case"] for r in rows}
         return {"format": FORMAT, "seed": seed, "throws_per_case": throws, "workers": workers, "mix": mix, "wall_s": wall_before + time.time() - t0,
-                "cpu_count": os.cpu_count(), "commit": _commit(), "complete": complete, "cases_planned": planned, **provenance(),
+                "cpu_count": os.cpu_count(), "commit": _commit(), "complete": complete, "cases_planned": planned,
+                "shard": list(shard) if shard else None, "deadline_s": deadline_s,
+                "not_run": sorted(c["case"] for c in cases if c["case"] not in got), **provenance(),
                 "summary": summarise(done), "cases": done}
+
+    def past_deadline() -> bool:
+        return deadline_s is not None and time.time() - t0 >= deadline_s
 
     with tempfile.TemporaryDirectory(prefix="slinger-bench-") as tmp:
         work = keep_data or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        # kinds interleaved, so that a run cut short still covers every kind
-        rank = {c["case"]: sum(1 for d in cases if d["kind"] == c["kind"] and d["case"] < c["case"]) for c in cases}
-        jobs = [(c, throws, str(work), keep_data is not None) for c in sorted(cases, key=lambda c: (rank[c["case"]], c["case"]))]
+        jobs = deque((c, throws, str(work), keep_data is not None) for c in sorted(cases, key=lambda c: (-COST_S.get(c["kind"], 0.0), c["case"])))
         if workers > 1:
-            with process_pool(workers) as pool:
-                for fut in as_completed([pool.submit(_job, j) for j in jobs]):  # written as each case finishes
-                    rows.append(fut.result())
-                    _write(out, result(False))
+            pool = process_pool(workers)
+            running: dict = {}
+            try:
+                while jobs or running:
+                    while jobs and len(running) < workers and not past_deadline():
+                        job = jobs.popleft()
+                        running[pool.submit(_job, job)] = job
+                    if not running:
+                        break
+                    left = None if deadline_s is None else max(0.0, deadline_s - (time.time() - t0))
+                    finished, _ = wait(running, timeout=left, return_when=FIRST_COMPLETED)
+                    for fut in finished:  # written as each case finishes
+                        running.pop(fut)
+                        rows.append(fut.result())
+                        _write(out, result(False))
+                    if not finished and past_deadline():
+                        log.warning("deadline of %.0f s: stopping %d running cases (%s)", deadline_s, len(running), sorted(j[0]["case"] for j in running.values()))
+                        break
+            finally:
+                if running:
+                    stop_workers(pool)
+                else:
+                    pool.shutdown(wait=True)
         else:
-            for j in jobs:
-                rows.append(_job(j))
+            while jobs and not past_deadline():
+                rows.append(_job(jobs.popleft()))
                 _write(out, result(False))
     res = result(len(rows) == planned == len(draw_cases(mix, seed)))
     log.info("\n%s", _write(out, res))
-    if out is not None and rows:
+    if plots and out is not None and rows:
+        plot(res, out.with_suffix(".png"))
+    return res
+
+
+def merge(reports: list[Path], out: Path | None, plots: bool = True) -> dict:
+    """One benchmark report from the reports of its shards (or of any runs of the same benchmark:
+    same format, seed, throws per case and mix): the cases of all, the summary recomputed,
+    ``complete`` when every case of the benchmark is there, ``wall_s`` the longest run's,
+    ``shards`` the provenance of each input (file, date, commit, host, cores, workers, command,
+    wall seconds, cases). Writes ``out`` (JSON, .txt and, with ``plots``, .png) when given.
+
+    Raises:
+        ValueError: no reports, a report of another benchmark or format, or one case in two
+            reports with different answers.
+    """
+    if not reports:
+        raise ValueError("merge needs at least one benchmark report")
+    parts = []
+    for path in reports:
+        try:
+            body = json.loads(Path(path).read_text())
+        except (OSError, ValueError) as e:
+            raise ValueError(f"{path}: not a readable benchmark report: {e}") from e
+        if not isinstance(body, dict) or body.get("format") != FORMAT:
+            raise ValueError(f"{path}: not a {FORMAT} report (format {body.get('format') if isinstance(body, dict) else None!r})")
+        parts.append((Path(path), body))
+    key = {(b["seed"], b["throws_per_case"], json.dumps(b["mix"], sort_keys=True), json.dumps(b.get("policy_sha256"), sort_keys=True)) for _, b in parts}
+    if len(key) > 1:
+        raise ValueError(f"the reports are of different benchmarks (seed, throws, mix, policies): {sorted(key)}")
+    _, first = parts[0]
+    rows: dict[int, dict] = {}
+    for path, body in parts:
+        for r in body["cases"]:
+            old = rows.get(r["case"])
+            if old is not None and (old["answer"], old["effects"]) != (r["answer"], r["effects"]):
+                raise ValueError(f"case {r['case']} is in two reports with different answers ({old['answer']} {old['effects']} vs "
+                                 f"{r['answer']} {r['effects']}; the second in {path})")
+            rows.setdefault(r["case"], r)
+    done = sorted(rows.values(), key=lambda r: r["case"])
+    everything = draw_cases(first["mix"], first["seed"])
+    commits = sorted({str(b.get("commit")) for _, b in parts})
+    res = {"format": FORMAT, "seed": first["seed"], "throws_per_case": first["throws_per_case"], "workers": max(b["workers"] for _, b in parts),
+           "mix": first["mix"], "wall_s": max(float(b["wall_s"]) for _, b in parts), "cpu_count": max(b.get("cpu_count") or 0 for _, b in parts),
+           "commit": commits[0] if len(commits) == 1 else " ".join(commits), "complete": len(done) == len(everything),
+           "cases_planned": len(everything), "not_run": sorted({c["case"] for c in everything} - set(rows)),
+           "date": max(str(b.get("date")) for _, b in parts), "host": " ".join(sorted({str(b.get("host")) for _, b in parts})),
+           "policy_sha256": first.get("policy_sha256"),
+           "command": "; ".join(str(b.get("command")) for _, b in parts) + "; slinger diagnose merge",
+           "shards": [{"file": str(p), **{k: b.get(k) for k in ("shard", "date", "commit", "host", "cpu_count", "workers", "command", "wall_s", "deadline_s")},
+                       "cases": len(b["cases"]), "cpu_s": b["summary"]["cpu_s"]} for p, b in parts],
+           "summary": summarise(done), "cases": done}
+    log.info("\n%s", _write(out, res))
+    if plots and out is not None and done:
         plot(res, out.with_suffix(".png"))
     return res
 

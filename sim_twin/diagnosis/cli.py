@@ -4,7 +4,9 @@
 
     slinger diagnose DATASET [--out DIR] [--candidates a,b,pkg.mod:Class]   diagnose logged throws
     slinger diagnose benchmark [--small] [--throws 30] [--workers 2] [--cases 0,5] [--resume]
-                                                                             blind benchmark
+                               [--shard I/N] [--deadline-s S]                blind benchmark (or shard I of N)
+    slinger diagnose merge --out reports/diagnosis_benchmark.json SHARD.json...
+                                                                             one report from the shards' reports
     slinger diagnose generate --mode 2d|3d --throws 50 --out DIR [--profile P.json] [--real-log]
                                                                              make a dataset with the
                                                                              simulated machine
@@ -35,8 +37,9 @@ log = logging.getLogger(__name__)
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("what", help="a dataset directory, or one of: benchmark, generate, convert, effects")
-    parser.add_argument("inputs", nargs="*", type=Path, help="convert: the throw logs (CSV or MCAP, or rosbag2 bags: one per throw)")
+    parser.add_argument("what", help="a dataset directory, or one of: benchmark, merge, generate, convert, effects")
+    parser.add_argument("inputs", nargs="*", type=Path, help="convert: the throw logs (CSV or MCAP, or rosbag2 bags: one per throw); "
+                        "merge: the benchmark reports of the shards")
     parser.add_argument("--out", type=Path, default=None, help="output directory (diagnosis: default reports/diagnosis/<dataset name>; "
                         "benchmark: JSON file, default reports/diagnosis_benchmark.json; generate/convert: dataset directory)")
     parser.add_argument("--seed", type=int, default=0, help="split / case / throw seed")
@@ -48,6 +51,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-plots", action="store_true")
     parser.add_argument("--small", action="store_true", help="benchmark: the small CI version (one case of every kind but held-out, two singles; 16 throws)")
     parser.add_argument("--cases", default=None, help="benchmark: only these case numbers (comma-separated)")
+    parser.add_argument("--shard", default=None, metavar="I/N", help="benchmark: only shard I of N (the cases dealt round-robin by kind); "
+                        "`merge` combines the N reports")
+    parser.add_argument("--deadline-s", type=float, default=None, help="benchmark: start no case after this many wall seconds and stop "
+                        "the cases still running then; the report keeps the finished ones (--resume runs the rest)")
     parser.add_argument("--resume", action="store_true", help="benchmark: keep the finished cases already in --out (same seed/throws) and run the rest")
     parser.add_argument("--throws", type=int, default=30, help="benchmark: throws per case; generate: throws")
     parser.add_argument("--profile", type=Path, default=None, help="generate: reality profile JSON (default nominal)")
@@ -89,17 +96,32 @@ def run(args: argparse.Namespace) -> int:
             mix = benchmark.SMALL_MIX if args.small else benchmark.MIX
             throws = benchmark.SMALL_THROWS if args.small else args.throws
             only = [int(c) for c in args.cases.split(",")] if args.cases else None
-            res = benchmark.run(mix, throws, args.seed, args.workers or _cores(), out, args.keep_data, only=only, resume=args.resume)
-            print(benchmark.format_summary(res))
-            if res["cases"]:
-                from sim_twin.diagnosis import plots
+            shard = benchmark.parse_shard(args.shard) if args.shard else None
+            res = benchmark.run(mix, throws, args.seed, args.workers or _cores(), out, args.keep_data, only=only, resume=args.resume,
+                                shard=shard, deadline_s=args.deadline_s, plots=False)
+            return _benchmark_done(res, out, not args.no_plots)
+        if args.what == "merge":
+            from sim_twin.diagnosis import benchmark
 
-                print(f"figure: {plots.benchmark(res, out.with_suffix('.png'))}")
-            return 0 if res["cases"] else 1
+            if args.out is None or not args.inputs:
+                raise ValueError("merge needs --out and the shards' benchmark reports")
+            return _benchmark_done(benchmark.merge(args.inputs, args.out, plots=False), args.out, not args.no_plots)
         return _diagnose(args)
     except (DatasetError, ConvertError, ValueError, OSError) as e:
         print(f"slinger diagnose: {e}", file=sys.stderr)
         return 2
+
+
+def _benchmark_done(res: dict, out: Path, plots: bool) -> int:
+    """Print the summary of a benchmark result and write its figure; 0 when it holds cases."""
+    from sim_twin.diagnosis import benchmark
+
+    print(benchmark.format_summary(res))
+    if res["cases"] and plots:
+        from sim_twin.diagnosis import plots as figures
+
+        print(f"figure: {figures.benchmark(res, out.with_suffix('.png'))}")
+    return 0 if res["cases"] else 1
 
 
 def _cores() -> int:
@@ -149,7 +171,7 @@ def _diagnose(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return module_main('slinger diagnose', __doc__, build_parser, run, argv)
+    return module_main('slinger diagnose', __doc__, build_parser, run, argv, intermixed=True)
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ import logging
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -92,7 +93,7 @@ def _where(throws, S: np.ndarray, D: np.ndarray, noise: nz.NoiseModel, nominal, 
     gaps = fw.channel_gaps(S, D, None, M, margin)
     bias = nz.bias_tests(M, D, margin=margin)
     Sc, Dc = S.sum(axis=0), D.sum(axis=0)
-    chans = {}
+    chans: dict[str, dict[str, Any]] = {}  # channel name -> its statistics (mixed value types)
     for c, name in enumerate(nz.CHANNELS):
         if Dc[c].sum() == 0:
             continue

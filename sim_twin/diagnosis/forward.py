@@ -126,7 +126,9 @@ def gated(cls: type[Effect], gaps: dict[str, dict]) -> str | None:
     return None
 
 
-def _bootstrap_weights(N: int, seed: int) -> np.ndarray:
+def bootstrap_weights(N: int, seed: int) -> np.ndarray:
+    """(select.BOOTSTRAP, N) throw weights of the bootstrap resamples (counts of each throw in
+    a draw of N with replacement; seeded)."""
     rng = np.random.default_rng(seed)
     return np.stack([np.bincount(rng.integers(0, N, N), minlength=N) for _ in range(sel.BOOTSTRAP)]).astype(float)
 
@@ -150,6 +152,8 @@ def _per_joint(sw: sel.Sweep, fitted: list[str], span: dict[str, float], sigma_o
     """Per-joint sweeps: ``sigma_of(X, S_joint)`` (normalised units) of each fitted joint from its
     own channels on its grid (:meth:`select.Sweep.grid_of`: X (G, 1), S_joint (G, N, c, P)),
     times the joint's prior span."""
+    if sw.joints is None:  # cannot happen: both callers take this branch only when sw.joints is set
+        raise ValueError("_per_joint needs a per-joint sweep (sw.joints set)")
     out = {}
     for name, ch in sw.joints:
         if name in fitted:
@@ -215,12 +219,13 @@ def evaluate_candidate(ev: sel.Evaluator, sw: sel.Sweep, D: np.ndarray, train: n
         params, params_train, not_ident = with_held(params), with_held(params_train), list(sw.held_nominal)
     fitted = [n for n in params if n not in not_ident]
     # bootstrap: parameter spread and out-of-bag losses
-    thetas, oob = [], np.zeros(len(W))
+    theta_rows: list[list[float]] = []
+    oob = np.zeros(len(W))
     for b, w in enumerate(W):
         pb, Sb = ev.fit(sw, w)
-        thetas.append([pb[n] for n in fitted])
+        theta_rows.append([pb[n] for n in fitted])
         oob[b] = np.sum((w == 0) * Sb.sum(axis=(1, 2)))
-    thetas = np.array(thetas, dtype=float).reshape(len(W), len(fitted))
+    thetas = np.array(theta_rows, dtype=float).reshape(len(W), len(fitted))
     span = {p.name: p.hi - p.lo for p in sw.cls.params}
     spread = np.std(thetas, axis=0, ddof=1) if len(W) > 1 else np.zeros(len(fitted))
     # no grid-quantisation term (h / sqrt(12)): the fit interpolates between grid points, and on a
@@ -261,8 +266,11 @@ _POOL_EV: sel.Evaluator | None = None
 def _sweep_job(args) -> tuple[Candidate, np.ndarray, np.ndarray, sel.Sweep]:
     cls, train, W, D = args
     t0 = time.time()
-    sw = _POOL_EV.sweep(cls, train)
-    cand, oob, S_fit = evaluate_candidate(_POOL_EV, sw, D, train, W)
+    ev = _POOL_EV
+    if ev is None:  # cannot happen: sweep_candidates sets _POOL_EV before running (or forking for) any job
+        raise RuntimeError("_sweep_job runs only inside sweep_candidates")
+    sw = ev.sweep(cls, train)
+    cand, oob, S_fit = evaluate_candidate(ev, sw, D, train, W)
     cand.wall_s = time.time() - t0
     return cand, oob, S_fit, sw
 
@@ -323,7 +331,7 @@ def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train
     Returns:
         (rounds, named effects at their all-throw fits).
     """
-    W = _bootstrap_weights(D.shape[0], seed)
+    W = bootstrap_weights(D.shape[0], seed)
     named: list[Effect] = []
     rounds: list[Round] = []
     S_nominal = None
@@ -394,27 +402,32 @@ def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train
                     # encoder offset beside a release delay and an impact bias): those compete again
                     # among themselves and "none" (their wins_admissible), as a round would
                     won = np.argmin(L[[0] + [i + 1 for i in adm]], axis=0)
+                    wins_a: dict[int, float] = {}  # candidate index -> its wins_admissible (as a float)
                     for j, i in enumerate(adm):
-                        cands[i][0].wins_admissible = float(np.mean(won == j + 1))
-                    order_a = sorted(adm, key=lambda i: -cands[i][0].wins_admissible)
+                        wins_a[i] = cands[i][0].wins_admissible = float(np.mean(won == j + 1))
+                    order_a = sorted(adm, key=lambda i: -wins_a[i])
                     a, a_sw = cands[order_a[0]]
-                    if a.wins_admissible >= sel.WIN_FREQ and a.wins_admissible > float(np.mean(won == 0)):
+                    if wins_a[order_a[0]] >= sel.WIN_FREQ and wins_a[order_a[0]] > float(np.mean(won == 0)):
                         rnd.decision, rnd.named = "named", a.effect
-                        a.wins = a.wins_admissible
+                        a.wins = wins_a[order_a[0]]
                         named.append(a_sw.cls(**a.params))
                         continue
-                    if len(order_a) > 1 and cands[order_a[1]][0].wins_admissible >= sel.AMBIGUOUS_FREQ and a.wins_admissible > float(np.mean(won == 0)):
+                    if len(order_a) > 1 and wins_a[order_a[1]] >= sel.AMBIGUOUS_FREQ and wins_a[order_a[0]] > float(np.mean(won == 0)):
                         rnd.decision, rnd.named, rnd.runner_up = "ambiguous", a.effect, cands[order_a[1]][0].effect
-                        a.wins, cands[order_a[1]][0].wins = a.wins_admissible, cands[order_a[1]][0].wins_admissible
+                        a.wins, cands[order_a[1]][0].wins = wins_a[order_a[0]], wins_a[order_a[1]]
                         break
                 rnd.decision = f"best candidate {best.effect} not admissible ({best.reason})"
                 break
+            if rnd2 is None or rnd2.named is None:  # cannot happen: pair_step returns with every pair its round, which names the second
+                raise RuntimeError("pair_step returned a pair without the round naming it")
             second, second_sw = pair
             rnd.decision, rnd.named, best.pair_with = "named", best.effect, rnd2.named
             named.append(best_sw.cls(**best.params))
             rounds.append(rnd2)
             if second is None:  # the first is named, the second ambiguous between two that complete it
                 break
+            if second_sw is None:  # cannot happen: pair_step returns a second candidate with its sweep
+                raise RuntimeError("pair_step returned a candidate without its sweep")
             named.append(second_sw.cls(**second.params))
             continue
         if best.wins < sel.WIN_FREQ:
@@ -433,7 +446,8 @@ def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train
 
 
 def pair_step(ev_factory, classes, named: list[Effect], ev: sel.Evaluator, first: Candidate, first_sw: sel.Sweep, L: np.ndarray,
-              D: np.ndarray, train: np.ndarray, W: np.ndarray, S_nominal: np.ndarray, workers: int = 1) -> tuple[tuple[Candidate, sel.Sweep] | None, Round | None]:
+              D: np.ndarray, train: np.ndarray, W: np.ndarray, S_nominal: np.ndarray, workers: int = 1
+              ) -> tuple[tuple[Candidate, sel.Sweep] | tuple[None, None] | None, Round | None]:
     """Forward selection's pair step: two effects whose joint fit explains the gap when no single one is admissible.
 
     Tried only when the pair fits within MAX_EFFECTS, the round's best candidate ``first`` wins

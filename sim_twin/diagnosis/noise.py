@@ -16,8 +16,15 @@ matches up to its noise contributes about one unit per degree of freedom (chi-sq
 * release delay (only with a logged payload-free flag): variance = jitter^2 + tick^2 / 12.
 
 A channel (or channel and phase) has a gap when its chi-square exceeds its degrees of freedom D
-by more than Z_GAP standard deviations sqrt(2 D) AND by more than R_GAP D (the second guards
-against noise that is not quite white).
+by more than Z_GAP standard deviations AND by more than R_GAP D (the second guards against noise
+that is not quite white). "Z_GAP standard deviations" is a tail probability, that of Z_GAP
+sigma of a normal (P_GAP, 2.9e-7 at 5 sigma), taken from the chi-square distribution itself
+(:func:`gap_test`), not from the normal approximation D + Z_GAP sqrt(2 D): a chi-square with few
+degrees of freedom is skewed to the right, and on the impact channels (one degree of freedom per
+throw, ~26 in 30 throws) the approximation's threshold 62 is exceeded by noise alone with
+probability 9e-5, 300 times the intended level (the exact threshold is 79). Above 270 degrees
+of freedom (a trajectory channel of 30 throws has about 400) the R_GAP rule is the stricter one
+and the two agree.
 
 The chi-square excess is a weak test of a small systematic shift: a mean impact shift of
 k sigma / sqrt(N) adds only k^2 to a chi-square with N degrees of freedom. Every channel's mean
@@ -48,6 +55,9 @@ from runtime.machine import JOINT_NAMES
 BLOCK_ROWS = 10
 Z_GAP = 5.0
 R_GAP = 0.5
+P_GAP = 2.866515718791933e-07
+"""One-sided tail probability of Z_GAP sigma of a normal (``scipy.stats.norm.sf(Z_GAP)``): the
+false-alarm probability of one channel's excess test (:func:`gap_test`)."""
 FLOOR = {"q.active": 2e-4, "qd.active": 2e-3, "q.passive": 5e-4, "qd.passive": 5e-3, "payload": 2e-3}
 """Noise floors (rad, m, rad/s, m/s): encoder / IMU resolution of a noise-free log (CHOSEN)."""
 MIN_IMPACT_SIGMA_M = 0.01
@@ -114,11 +124,19 @@ class NoiseModel:
 
 
 def gap_test(S: float, D: float) -> tuple[bool, float]:
-    """(gap?, excess z-score) of a chi-square S with D degrees of freedom (see module doc)."""
+    """(gap?, excess z-score) of a chi-square S with D degrees of freedom (see module doc).
+
+    The gap: S > (1 + R_GAP) D and P(chi2_D >= S) < P_GAP (the exact chi-square tail,
+    ``scipy.stats.chi2.sf``). The returned z is the excess in standard deviations of the
+    chi-square, (S - D) / sqrt(2 D) (reported as ``excess_z``; the swing gate
+    ``forward.SWING_Z`` compares it), not the z of that tail probability.
+    """
+    from scipy.stats import chi2
+
     if D <= 0:
         return False, 0.0
     z = (S - D) / np.sqrt(2 * D)
-    return bool(z > Z_GAP and S > (1 + R_GAP) * D), float(z)
+    return bool(S > (1 + R_GAP) * D and z > 0 and chi2.sf(S, D) < P_GAP), float(z)
 
 
 def worse_tolerance(D: np.ndarray) -> np.ndarray:

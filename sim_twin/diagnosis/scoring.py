@@ -111,15 +111,34 @@ class Scorer:
         self.bias_margin = np.zeros((len(throws), C))
         self.bias_margin[:, :N_TRAJ] = np.sqrt(rows)[:, None] * np.array([nz.BIAS_MARGIN[kind] for _c, kind, _j in nz.TRAJ])[None, :]
 
+    def block_z(self, n: int, rep: Replay) -> np.ndarray:
+        """(blocks, 12) noise-scaled block residuals of throw n's trajectory channels (TRAJ order:
+        q.j, qd.j): each block's summed residual (logged - replayed) over sigma sqrt(rows), so its
+        square is the block's chi-square; the blocks are :attr:`layout`'s."""
+        th = self.throws[n]
+        L = rp.score_rows(th)
+        e = np.concatenate([th.q[:L] - rep.meas_q[:L], th.qd[:L] - rep.meas_qd[:L]], axis=1)  # (L, 12): q0..q5, qd0..qd5
+        e = e[:, np.ravel(np.column_stack([np.arange(6), 6 + np.arange(6)]))]  # TRAJ order: q.j, qd.j
+        st, ln, _ = self.layout[n]
+        return np.add.reduceat(e, st, axis=0) / (self.sig * np.sqrt(ln)[:, None])
+
+    def residuals(self, reps: list[Replay]) -> np.ndarray:
+        """(K,) the noise-scaled residual vector of replays of the N throws: every throw's block
+        residuals (:meth:`block_z`, channels with data) and its impact residuals over their
+        sigma. Its squared norm is :meth:`score`'s total without the start-state correction, the
+        logged opening delay and the impact-spread term (for least-squares engines that need
+        residuals, e.g. ``mujoco.minimize.least_squares``)."""
+        has = self.D.sum(axis=(0, 2))[:N_TRAJ] > 0
+        r, v = impact_residuals(self.throws, reps)
+        parts = [self.block_z(n, rep)[:, has].ravel() for n, rep in enumerate(reps)]
+        return np.concatenate(parts + [(r / np.sqrt(self.noise.impact_sigma_m**2 + v)).ravel()])
+
     def score(self, reps: list[Replay]) -> np.ndarray:
         """S (N, C, P) for replays of the N throws (same order)."""
         S = np.zeros((len(self.throws), C, P))
         for n, (th, rep) in enumerate(zip(self.throws, reps)):
-            L = rp.score_rows(th)
-            e = np.concatenate([th.q[:L] - rep.meas_q[:L], th.qd[:L] - rep.meas_qd[:L]], axis=1)  # (L, 12): q0..q5, qd0..qd5
-            e = e[:, np.ravel(np.column_stack([np.arange(6), 6 + np.arange(6)]))]  # TRAJ order: q.j, qd.j
+            z = self.block_z(n, rep)  # (blocks, 12) block means / their sigma
             st, ln, ph = self.layout[n]
-            z = np.add.reduceat(e, st, axis=0) / (self.sig * np.sqrt(ln)[:, None])  # (blocks, 12) block means / their sigma
             z2 = z * z
             for p in range(P):
                 S[n, :N_TRAJ, p] = z2[ph == p].sum(axis=0)

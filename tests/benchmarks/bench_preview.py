@@ -3,8 +3,9 @@ the 200-rollout Monte Carlo impact ellipse, both through the HTTP API (POST /api
 the console calls: a job run by a `slinger worker` process started here) and of
 sim_twin.preview.preview_throw alone.
 
-Run: ``python tests/benchmarks/bench_preview.py [--repeats 10] [--profile P]``. Prints median / max
-wall seconds per case and the bar (0.3 s single rollout, 3 s for 200 rollouts), and for the
+Run: ``python tests/benchmarks/bench_preview.py [--repeats 10] [--profile P] [--processes N ...]``.
+Prints median / max wall seconds per case and the bar (0.3 s single rollout, 1.5 s for 200
+rollouts), the function alone with its Monte Carlo in 1 and in 2 processes, and for the
 function alone also the CPU seconds of this process (what the wall time is on an idle core when
 the machine is shared); no assertions. The default profile is the server's default site profile
 (sim_twin.preview.DEFAULT_SITE_PROFILE: parameter ranges, start-state model, release jitter).
@@ -31,11 +32,18 @@ POLICY = REPO / "policies" / "throw2d.onnx"
 TARGETS = [[d, -0.292, 0.0] for d in (7.5, 8.0, 8.5, 9.0, 9.5)]
 
 
-def bench_function(repeats: int, profile_path: Path | None) -> tuple[dict, dict]:
+def bench_function(repeats: int, profile_path: Path | None, processes: int = 0) -> tuple[dict, dict]:
+    """preview_throw alone; with ``processes`` >= 2 its Monte Carlo runs in a pool of that many
+    processes (as a worker runs it, Settings.preview_processes). CPU is this process's only."""
     from runtime.policy import PolicyRunner
     from sim_twin.initial_pose import sample_pose
-    from sim_twin.preview import PreviewRequest, preview_throw, site_profile
+    from sim_twin.pools import process_pool
+    from sim_twin.preview import PreviewRequest, preview_throw, site_profile, warm_up
 
+    pool = None
+    if processes >= 2:
+        pool = process_pool(processes)
+        warm_up(pool, processes)
     policy = PolicyRunner.load(POLICY)
     profile = site_profile(None, profile_path)
     rng = np.random.default_rng(0)
@@ -46,11 +54,14 @@ def bench_function(repeats: int, profile_path: Path | None) -> tuple[dict, dict]
         for i in range(repeats):
             q = sample_pose(rng, cabin_turn=0.0)
             t, c = time.perf_counter(), time.process_time()
-            s = preview_throw(policy, PreviewRequest("2d", TARGETS[i % len(TARGETS)], q.tolist(), [0.0] * 6, rollouts=rollouts), profile)
+            s = preview_throw(policy, PreviewRequest("2d", TARGETS[i % len(TARGETS)], q.tolist(), [0.0] * 6, rollouts=rollouts), profile,
+                              pool=pool)
             times.append(time.perf_counter() - t)
             cpus.append(time.process_time() - c)
             assert s["status"] in ("ok", "failed")
         out[rollouts], cpu[rollouts] = times, cpus
+    if pool is not None:
+        pool.shutdown()
     return out, cpu
 
 
@@ -98,17 +109,21 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--profile", type=Path, default=None, help="site profile (default: the server's default)")
     ap.add_argument("--no-http", action="store_true")
+    ap.add_argument("--processes", type=int, action="append", default=[],
+                    help="Monte Carlo processes of the function runs (repeatable; default 1 and 2)")
     args = ap.parse_args()
     import os
 
     print(f"cores: {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}")
-    wall, cpu = bench_function(args.repeats, args.profile)
-    cases = [("preview_throw()", wall), ("preview_throw() CPU", cpu)]
+    cases = []
+    for n in args.processes or [1, 2]:
+        wall, cpu = bench_function(args.repeats, args.profile, n)
+        cases += [(f"preview_throw() x{n}", wall), (f"preview_throw() x{n} CPU", cpu)]
     if not args.no_http:
         cases.append(("POST /api/previews", bench_http(args.repeats)))
     for name, res in cases:
         for rollouts, times in res.items():
-            bar = 0.3 if rollouts == 1 else 3.0
+            bar = 0.3 if rollouts == 1 else 1.5
             print(f"{name:22s} rollouts={rollouts:3d}: median {statistics.median(times):.3f} s, "
                   f"max {max(times):.3f} s over {len(times)} (bar {bar} s)")
     return 0

@@ -1,8 +1,8 @@
 """Which part of the diagnosis' 1 sigma makes the benchmark's intervals wide: coverage per part.
 
-Run: ``python tests/benchmarks/diagnosis_sigma_parts.py [--benchmark reports/diagnosis_benchmark.json]
-[--report reports/diagnosis_sigma_parts.json]``. Reads a committed benchmark report (no replay,
-no diagnosis) and, over its compared parameters (right answers only, as the benchmark's
+Run: ``python tests/benchmarks/diagnosis_sigma_parts.py [--benchmark reports/diagnosis_benchmark.json ...]
+[--report reports/diagnosis_sigma_parts.json]``. Reads committed benchmark reports (no replay,
+no diagnosis; several: their parameters pooled, each case named by its seed) and, over their compared parameters (right answers only, as the benchmark's
 coverage), gives for each part of the reported 1 sigma (``sigma_parts``: bootstrap spread,
 Birge-scaled likelihood profile, between-throw scatter, back-fit shift; the diagnosis reports
 their largest, :func:`sim_twin.diagnosis.forward.evaluate_candidate`) and for the reported sigma:
@@ -23,11 +23,16 @@ import numpy as np
 PARTS = ("bootstrap", "profile", "scatter", "backfit_shift")
 
 
-def analyse(bench: dict) -> dict:
-    """Coverage and median |z| per sigma part over the benchmark's compared parameters."""
-    params = [(c["case"], p) for c in bench["cases"] if c.get("correct") for p in c.get("params", [])]
-    out = {"benchmark": {k: bench.get(k) for k in ("seed", "throws_per_case", "commit", "date", "complete")},
-           "parameters": len(params), "parts": {}}
+def analyse(bench: dict | list[dict]) -> dict:
+    """Coverage and median |z| per sigma part over the compared parameters of one benchmark
+    report or of several pooled (cases then named ``seed:case``)."""
+    benches = bench if isinstance(bench, list) else [bench]
+    params = [(c["case"] if len(benches) == 1 else f"{b['seed']}:{c['case']}", p)
+              for b in benches for c in b["cases"] if c.get("correct") for p in c.get("params", [])]
+    info = [{k: b.get(k) for k in ("seed", "throws_per_case", "commit", "date", "complete")} for b in benches]
+    pooled = {**{k: ", ".join(str(i[k]) for i in info) for k in info[0]}, "complete": all(i["complete"] for i in info)}
+    out = {"benchmark": info[0] if len(benches) == 1 else pooled,
+           "benchmarks": info, "parameters": len(params), "parts": {}}
     rows = []
     for case, p in params:
         err = abs(p["fit"] - p["truth"])
@@ -59,17 +64,17 @@ def format_report(r: dict) -> str:
         lines.append(f"  {k:14s} {v['n']:3d}   {cov:>7s}   {mz:>8s}   {v['largest_in'] if k != 'reported' else '-'}")
     lines.append("  case param |fit - truth| reported sigma (largest part): bootstrap / profile / scatter / backfit_shift")
     for x in r["rows"]:
-        lines.append(f"    {x['case']:3d} {x['param']:22s} {x['abs_error']:.3g} {x['sigma']:.3g} ({x['largest_part']}): "
+        lines.append(f"    {x['case']!s:>5s} {x['param']:22s} {x['abs_error']:.3g} {x['sigma']:.3g} ({x['largest_part']}): "
                      + " / ".join("-" if x[k] is None else f"{x[k]:.3g}" for k in PARTS))
     return "\n".join(lines)
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--benchmark", type=Path, default=Path("reports/diagnosis_benchmark.json"))
+    parser.add_argument("--benchmark", type=Path, action="append", default=[], help="benchmark report (repeatable: pooled; default reports/diagnosis_benchmark.json)")
     parser.add_argument("--report", type=Path, default=None)
     args = parser.parse_args()
-    r = analyse(json.loads(args.benchmark.read_text()))
+    r = analyse([json.loads(b.read_text()) for b in args.benchmark or [Path("reports/diagnosis_benchmark.json")]])
     text = format_report(r)
     print(text)
     if args.report:

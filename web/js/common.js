@@ -12,8 +12,10 @@ async function api(method, path, body, isForm = false) {
   }
   const res = await fetch(path, opts);
   if (res.status === 401 && !path.startsWith("/api/auth/login")) {
+    // The page is leaving for the log-in page: the call never settles, so no caller shows a stale
+    // error and no unhandled rejection is reported while the page unloads.
     location.href = `/console/login.html?next=${encodeURIComponent(location.pathname + location.search)}`;
-    throw apiError(401, "Log in first.");
+    return new Promise(() => {});
   }
   const data = await res.json().catch(() => null);
   if (!res.ok) {
@@ -40,6 +42,16 @@ function apiError(status, detail, condition = null) {
   err.status = status;
   err.condition = condition;
   return err;
+}
+
+/** Show the 3D view (viser) of console ``c`` (POST /api/consoles' answer) in ``iframe``: its
+ *  websocket path binds the view to the console (server.scene); the status strip hears Esc from
+ *  the frame's origin. */
+function embedViser(iframe, c) {
+  const ws = `${location.protocol === "https:" ? "wss" : "ws"}://${location.hostname}:${c.viser_port}${c.viser_path}`;
+  const origin = `${location.protocol}//${location.hostname}:${c.viser_port}`;
+  if (typeof Strip !== "undefined") Strip.setViserOrigin(origin); // Esc inside the 3D view arrives from there
+  iframe.src = `${origin}/?websocket=${encodeURIComponent(ws)}`;
 }
 
 const fmt = (v, n = 2) => (v === null || v === undefined ? "–" : Number(v).toFixed(n));

@@ -89,10 +89,7 @@ async function openConsole() {
   const c = await api("POST", "/api/consoles");
   state.consoleId = c.console_id;
   state.viserPort = c.viser_port;
-  const ws = `${location.protocol === "https:" ? "wss" : "ws"}://${location.hostname}:${c.viser_port}${c.viser_path}`;
-  const origin = `${location.protocol}//${location.hostname}:${c.viser_port}`;
-  Strip.setViserOrigin(origin); // Esc inside the 3D view arrives from there (server.scene)
-  $("viser").src = `${origin}/?websocket=${encodeURIComponent(ws)}`;
+  embedViser($("viser"), c);
   if (state.machineId) await putConsole({ machine_id: state.machineId, mode: state.mode });
 }
 
@@ -116,10 +113,10 @@ function applyConsole(c) {
       $("target-x").value = fmt(c.target[0]);
       $("target-y").value = fmt(c.target[1]);
     }
-    state.typed = null;
   } else {
     $("target").textContent = "No target yet: click the ground inside the green band.";
   }
+  state.typed = null;
   $("target-reason").textContent = c.target_reason ? `Cannot throw here: ${c.target_reason}` : "";
   updateButtons();
 }
@@ -147,7 +144,8 @@ function previewOnScreen() {
 
 function updateButtons() {
   const m = selected();
-  const ready = !!(m && m.state === "ready" && Live.isConnected() && state.target && !state.targetReason) && !state.busy;
+  const ready = !!(m && m.state === "ready" && Live.isConnected() && state.target && !state.targetReason) && !state.busy &&
+    !state.typed; // a typed target the server has not answered yet
   $("preview").disabled = !ready;
   // Throw only with a preview of this request that the gate judged valid a moment ago
   const fresh = state.check && state.check.previewId === (state.preview && state.preview.id) &&
@@ -192,7 +190,8 @@ function renderPreviewAge() {
 async function checkPreview() {
   if (state.checking || !previewOnScreen() || !state.consoleId) { renderPreviewAge(); return; }
   const m = selected();
-  if (!m || m.state === "throwing") { renderPreviewAge(); return; }
+  // no judgement while a throw runs (its result clears state.throwId): the swing outdates it
+  if (!m || m.state === "throwing" || state.throwId) { renderPreviewAge(); return; }
   state.checking = true;
   const p = state.preview;
   try {
@@ -291,6 +290,10 @@ async function doThrow() {
     if (state.mode === "3d") body.confirm_clearance = $("confirm-clearance").checked;
     const r = await api("POST", "/api/throws", body);
     state.throwId = r.id; state.throwStarted = Date.now();
+    // the gate's last judgement was of the machine before this throw: void until it judges again
+    // (checkPreview, once the throw is over), so Throw never re-enables on a judgement the swing outdated
+    state.check = { valid: false, condition: "preview_used", reason: "the preview was used for this throw", previewId: state.preview.id };
+    state.checkAt = Date.now();
     $("confirm-clearance").checked = false;
     setStatus(`Throw ${r.id.slice(0, 8)} accepted (policy ${r.policy_version || "?"}): running…`);
     showLastResult(`Throw ${r.id.slice(0, 8)} running…`, "");
@@ -421,7 +424,8 @@ async function setTypedTarget(e) {
   const x = parseFloat($("target-x").value), y = parseFloat($("target-y").value);
   if (!Number.isFinite(x) || !Number.isFinite(y)) { setStatus("Type x and y in metres.", true); return; }
   state.typed = [x, y];
-  try { await putConsole({ target: [x, y, 0] }); } catch (err) { state.typed = null; setStatus(err.message, true); }
+  updateButtons(); // no Preview of the old target while the typed one is on its way
+  try { await putConsole({ target: [x, y, 0] }); } catch (err) { state.typed = null; setStatus(err.message, true); updateButtons(); }
 }
 
 function wireLive() {

@@ -1,5 +1,6 @@
 // Throw history: server-side filters, sorting and pagination; per-throw preview vs actual,
-// telemetry download, replay in the 3D view and a side view of the recorded trajectory.
+// telemetry download, the recorded plots with a timeline that drives this page's own 3D view (the
+// machine posed from the recording at the cursor's time: play, pause, seek and speed move both).
 "use strict";
 
 const FILTERS = ["machine_id", "policy_version", "mode", "status", "min_distance_m", "max_distance_m", "since", "until"];
@@ -48,6 +49,66 @@ async function load() {
 
 let plots = null;
 
+// --- the 3D replay: this page's own console (server.scene), posed from the recording at the plots' time ---
+const replay3d = { consoleId: null, throwId: null, busy: false, pending: null, unavailable: "" };
+
+/** Open this page's console and its 3D view once; false (with the reason shown) when there is none. */
+async function open3d() {
+  if (replay3d.consoleId) return true;
+  if (replay3d.unavailable) return false;
+  try {
+    const c = await api("POST", "/api/consoles");
+    replay3d.consoleId = c.console_id;
+    embedViser($("viser"), c);
+    return true;
+  } catch (e) {
+    replay3d.unavailable = e.message;
+    return false;
+  }
+}
+
+function showShown(r) {
+  const fig = $("replay-view");
+  fig.dataset.throwId = r.throw_id;
+  fig.dataset.shownT = r.t_s.toFixed(3);
+  $("replay-3d").textContent = `3D view: throw ${r.throw_id.slice(0, 8)} at t = ${fmt(r.t_s)} s of ${fmt(r.duration_s)} s, the time of the plots' cursor.`;
+}
+
+/** Pose the 3D view at ``t`` (s): one request at a time, the newest time wins. */
+function seek3d(t) {
+  if (!replay3d.consoleId || !replay3d.throwId) return;
+  replay3d.pending = t;
+  if (replay3d.busy) return;
+  replay3d.busy = true;
+  (async () => {
+    while (replay3d.pending !== null) {
+      const want = replay3d.pending, throwId = replay3d.throwId;
+      replay3d.pending = null;
+      try {
+        const c = await api("PUT", `/api/consoles/${replay3d.consoleId}/replay`, { throw_id: throwId, t_s: want });
+        if (c.replay && c.replay.throw_id === replay3d.throwId) showShown(c.replay);
+      } catch (e) {
+        $("replay-3d").textContent = `The 3D view cannot replay this throw. ${e.message}`;
+      }
+    }
+    replay3d.busy = false;
+  })();
+}
+
+/** Show the 3D replay of throw ``id`` (with telemetry) at the start of its recording. */
+async function start3d(id) {
+  const fig = $("replay-view");
+  fig.hidden = false;
+  replay3d.throwId = id;
+  delete fig.dataset.shownT;
+  if (!(await open3d())) {
+    $("viser").hidden = true;
+    $("replay-3d").textContent = `No 3D replay here: ${replay3d.unavailable}`;
+    return;
+  }
+  seek3d(0);
+}
+
 async function showDetail(id) {
   const t = await api("GET", `/api/throws/${id}`);
   $("detail").hidden = false;
@@ -62,8 +123,18 @@ async function showDetail(id) {
   $("replay").onclick = () => { location.href = `index.html?replay=${encodeURIComponent(id)}`; }; // the 3D view is on the Console page
   $("d-failure").textContent = t.failure_reason ? `${t.status.toUpperCase()}: ${t.failure_reason}` : "";
   $("d-noplot").hidden = !!t.telemetry_url;
-  if (!plots) { plots = new ThrowPlots($("d-plots")); plots.attachScrubber($("scrub"), $("scrub-play"), $("scrub-readout")); }
-  if (!t.telemetry_url) { plots.clear(); return; }
+  if (!plots) {
+    plots = new ThrowPlots($("d-plots"));
+    plots.attachScrubber($("scrub"), $("scrub-play"), $("scrub-readout"));
+    plots.onScrub = (time) => seek3d(time); // play, pause and seek move the 3D view with the plots
+  }
+  if (!t.telemetry_url) {
+    plots.clear();
+    replay3d.throwId = null;
+    $("replay-view").hidden = true;
+    return;
+  }
+  await start3d(id);
   const tr = await api("GET", `/api/throws/${id}/trajectory`);
   plots.showTrajectory(tr);
   plots.enableScrubber();

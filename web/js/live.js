@@ -1,5 +1,6 @@
 // Live push from the server (Server-Sent Events on GET /api/live, see server/live.py): machine
-// states, throw progress, live throw samples, stored results, job progress, heartbeats, this console's changes.
+// states, throw progress, live throw samples, stored results, job progress, drift alerts, heartbeats,
+// this console's changes.
 // No polling: the page reacts to events. The server-unreachable banner (#server-banner) shows when
 // the stream breaks or no heartbeat came for SILENT_MS, and hides again when events flow.
 "use strict";
@@ -41,7 +42,7 @@ const Live = (() => {
   function open() {
     if (source) source.close();
     source = new EventSource(`/api/live${params}`);
-    for (const name of ["machine", "throw", "sample", "result", "heartbeat", "console", "job"]) listen(name);
+    for (const name of ["machine", "throw", "sample", "result", "heartbeat", "console", "job", "drift"]) listen(name);
     source.addEventListener("open", () => { lastEventAt = Date.now(); setConnected(true); });
     source.addEventListener("error", () => {
       broke = true;

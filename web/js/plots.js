@@ -2,7 +2,8 @@
 // their references, valve commands, passive angles (time on x), and the payload path seen from
 // the side (distance from the turn axis, height) with release, impact and target marked, next to
 // the preview's predicted path. Live during a throw (addSample, from server-sent samples), full
-// after it (showTrajectory, GET /api/throws/{id}/trajectory), with a timeline scrubber.
+// after it (showTrajectory, GET /api/throws/{id}/trajectory), with a timeline scrubber whose
+// cursor time other views follow (onScrub: the History page's 3D replay).
 "use strict";
 
 const JOINTS = ["cabin turn", "boom", "dipper", "telescope"];
@@ -36,6 +37,7 @@ class ThrowPlots {
     this.playing = null;
     this.readout = null;
     this.lastWidth = 0;
+    this.onScrub = null; // (t [s from the recording's start], sample index): called whenever the cursor moves
     new ResizeObserver(() => { if (Math.abs(this.width() - this.lastWidth) > 4) this.resize(); }).observe(root);
   }
 
@@ -165,6 +167,7 @@ class ThrowPlots {
       const c = this.charts[key];
       c.setCursor({ left: c.valToPos(t, "x"), top: 10 });
     }
+    if (this.onScrub) this.onScrub(t, i);
     const qd = tr.qd[i] || [], u = tr.valve_u[i] || [];
     const phase = (tr.events || []).filter((e) => e.t_s <= t).map((e) => e.phase).pop() || "start";
     if (this.readout) {

@@ -1,6 +1,7 @@
 // The status strip of every console page (included after common.js and live.js): the selected
 // machine's state with its reason, its active policies, the link to the server and the machine,
-// the E-STOP button (Esc anywhere, the 3D frame included) and alarms that stay until acknowledged.
+// the E-STOP button (Esc anywhere, the 3D frame included) and alarms that stay until acknowledged
+// (a drift alarm is acknowledged on the server, which clears it on every open console).
 // The strip is the first element of <body>, sticky at the top, so it never scrolls away. It owns
 // the machine selection of every page (kept in localStorage, so every page shows the same machine):
 // pages follow it with Strip.onSelect(fn) and read Strip.machines (machine_id -> live state).
@@ -95,18 +96,19 @@ const Strip = (() => {
       ack.className = "alarm-ack";
       ack.textContent = "Acknowledge";
       ack.setAttribute("aria-label", `Acknowledge alarm: ${a.title}`);
-      ack.addEventListener("click", () => acknowledge(a.key));
+      ack.addEventListener("click", () => (a.drift ? acknowledgeDrift(a) : acknowledge(a.key)));
       li.append(text, ack);
       ul.append(li);
     }
   }
 
   /** Raise an alarm that stays (on every page, across reloads) until acknowledged; a second
-   *  alarm with the same ``key`` replaces the first. */
-  function raise(key, title, text, todo) {
+   *  alarm with the same ``key`` replaces the first. ``extra`` is kept with it (``drift``: the
+   *  machine whose drift alert the server acknowledges). */
+  function raise(key, title, text, todo, extra = {}) {
     if (!$("strip-msg").classList.contains("error")) say(""); // an alarm outranks a passing message: keep the strip short
     const list = loadAlarms().filter((a) => a.key !== key);
-    list.push({ key, title, text, todo, at: Date.now() });
+    list.push({ key, title, text, todo, at: Date.now(), ...extra });
     saveAlarms(list);
     renderAlarms();
   }
@@ -114,6 +116,40 @@ const Strip = (() => {
   function acknowledge(key) {
     saveAlarms(loadAlarms().filter((a) => a.key !== key));
     renderAlarms();
+  }
+
+  /** A drift alarm is acknowledged on the server (audited): its ``drift`` event then clears the
+   *  alarm on every open console, this one included. */
+  async function acknowledgeDrift(a) {
+    try {
+      await api("POST", `/api/machines/${encodeURIComponent(a.drift)}/drift/ack`);
+    } catch (e) {
+      say(`Drift alert of ${a.drift} not acknowledged: ${sentence(e.message)}`, "error");
+      return;
+    }
+    acknowledge(a.key);
+    say(`Drift alert of ${a.drift} acknowledged.`, "ok");
+  }
+
+  /** The server's drift alert of a machine (server.drift; a ``drift`` event or a machine state's
+   *  ``drift_alert``): an open one is an alarm until someone acknowledges it, on any console; an
+   *  acknowledged one clears that alarm here. */
+  function onDrift(alert) {
+    if (!alert || !alert.machine_id) return;
+    const mid = alert.machine_id;
+    const key = `drift-${mid}-${alert.raised_at}`;
+    const m = machines.get(mid);
+    if (m) m.drift_alert = alert;
+    const mine = loadAlarms().filter((a) => a.key.startsWith(`drift-${mid}-`));
+    if (alert.status === "open") {
+      if (!mine.some((a) => a.key === key)) {
+        raise(key, `${mid}: accuracy drift`, alert.text || "The impacts drifted beyond what noise explains.",
+          "A diagnosis of the recent throws was started: read it on the Diagnosis page before throwing on.", { drift: mid });
+      }
+    } else if (mine.length) {
+      saveAlarms(loadAlarms().filter((a) => !a.key.startsWith(`drift-${mid}-`)));
+      renderAlarms();
+    }
   }
 
   /** What failed in a throw that did not land, in the operator's words: {what, text, todo}.
@@ -222,10 +258,7 @@ const Strip = (() => {
         "Check the machine's computer and network; start its runtime again (slinger runtime).");
     }
     const drift = m.drift_alert;
-    if (drift && drift.status === "open" && (!before || !before.drift_alert || before.drift_alert.raised_at !== drift.raised_at)) {
-      raise(`drift-${m.machine_id}-${drift.raised_at}`, `${m.machine_id}: accuracy drift`, drift.text || "The impacts drifted beyond what noise explains.",
-        "A diagnosis of the recent throws was started: read it on the Diagnosis page before throwing on.");
-    }
+    if (drift && (!before || !before.drift_alert || before.drift_alert.raised_at !== drift.raised_at || before.drift_alert.status !== drift.status)) onDrift(drift);
     if (m.machine_id === machineId) render();
   }
 
@@ -328,6 +361,7 @@ const Strip = (() => {
   window.addEventListener("storage", (e) => { if (e.key === STORE_ALARMS) renderAlarms(); });
   Live.on("machine", onMachine);
   Live.on("result", onResult);
+  Live.on("drift", onDrift);
   for (const ev of ["connected", "resumed", "disconnected"]) Live.on(ev, render);
   document.addEventListener("DOMContentLoaded", init);
 

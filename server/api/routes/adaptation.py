@@ -6,10 +6,13 @@ from __future__ import annotations
 
 from typing import Literal
 
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
 from server.api.deps import AdaptationRunsDep, AdminDep, ViewerDep
+from server.api.report_schemas import AdaptationRunOut
+from server.api.responses import errors
+from server.errors import found
 
 router = APIRouter(tags=["adaptation"])
 
@@ -24,24 +27,21 @@ class AdaptCreate(BaseModel):
     rounds: int = Field(2, ge=1, le=4)
 
 
-@router.post("/api/diagnosis/runs/{run_id}/adapt", status_code=202,
-             responses={404: {"description": "no such diagnosis"}, 409: {"description": "not done, busy or no base file"}})
+@router.post("/api/diagnosis/runs/{run_id}/adapt", status_code=202, response_model=AdaptationRunOut,
+             responses=errors((404, "no such diagnosis"), (409, "not done, busy or no base file")))
 def create_adaptation(run_id: str, body: AdaptCreate, runs: AdaptDep, user: AdminDep) -> dict:
     """Adapt the machine's policy to the diagnosis' fitted profile (aim correction in the CPU
     twin, in the background); its progress comes as ``job`` events on /api/live."""
     return runs.start(run_id, body.mode, user.username, body.base_version, body.throws, body.rounds)
 
 
-@router.get("/api/adaptations")
+@router.get("/api/adaptations", response_model=list[AdaptationRunOut])
 def list_adaptations(runs: AdaptDep, _user: ViewerDep) -> list[dict]:
     """Adaptation runs, newest first."""
     return runs.list()
 
 
-@router.get("/api/adaptations/{adapt_id}", responses={404: {"description": "no such run"}})
+@router.get("/api/adaptations/{adapt_id}", response_model=AdaptationRunOut, responses=errors((404, "no such run")))
 def get_adaptation(adapt_id: str, runs: AdaptDep, _user: ViewerDep) -> dict:
     """Status, progress lines and (when done) the new policy version's id and name."""
-    st = runs.get(adapt_id)
-    if st is None:
-        raise HTTPException(404, f"no adaptation run {adapt_id}")
-    return st
+    return found(runs.get(adapt_id), f"no adaptation run {adapt_id}")

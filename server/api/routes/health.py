@@ -6,15 +6,16 @@ from fastapi import APIRouter
 from sqlalchemy import text
 
 from server.api.deps import FleetDep, SessionsDep, StorageDep
-from server.api.schemas import Health, Problem
+from server.api.responses import errors
+from server.api.schemas import Health
 from server.storage import classify, storage_response
 
 router = APIRouter(prefix="/api/health", tags=["health"])
 
 
-@router.get("", response_model=Health, responses={503: {"model": Problem, "description": (
+@router.get("", response_model=Health, responses=errors((503, (
         "a storage fault: ``condition`` is disk_full, database_locked, database_read_only, "
-        "database_unreadable or database_unavailable, ``detail`` says what (server.storage)")}})
+        "database_unreadable or database_unavailable, ``detail`` says what (server.storage)"))))
 def health(fleet: FleetDep, storage: StorageDep, sessions: SessionsDep):
     """200 when the database answers and its storage has no fault; else 503 naming the fault.
     The server stays up through storage faults: everything not needing the database still works."""

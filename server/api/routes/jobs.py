@@ -11,19 +11,19 @@ import asyncio
 import json
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi import APIRouter, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from server.api.deps import AdminDep, JobsDep, OperatorDep, ViewerDep
-from server.db.models import FINAL_JOB_STATUSES, JOB_KINDS, JOB_STATUSES
+from server.api.responses import errors
+from server.db.models import FINAL_JOB_STATUSES, JobKind, JobStatus
+from server.errors import found
 
 router = APIRouter(prefix="/api/jobs", tags=["jobs"])
 STREAM_POLL_S = 0.25
 
-JobKind = Literal[JOB_KINDS]
-JobStatus = Literal[JOB_STATUSES]
 
 
 class JobOut(BaseModel):
@@ -75,39 +75,31 @@ def list_jobs(jobs: JobsDep, _user: ViewerDep, kind: JobKind | None = None, subj
 
 
 @router.post("", response_model=JobOut, status_code=202,
-             responses={429: {"description": "the user has their limit of jobs queued or running"}})
+             responses=errors((429, "the user has their limit of jobs queued or running")))
 def create_job(body: JobCreate, jobs: JobsDep, user: AdminDep) -> dict:
     """Queue a probe (a worker health check that reports progress and can be cancelled)."""
     job_id = jobs.submit(body.kind, body.params.model_dump(exclude_none=True), subject=body.params.machine_id,
                          requested_by=user.username)  # JobLimit is a Limited: 429 (server.api.errors)
-    return jobs.store.get(job_id)
+    return found(jobs.store.get(job_id), f"job {job_id} vanished as it was queued")
 
 
-@router.get("/{job_id}", response_model=JobOut, responses={404: {"description": "no such job"}})
+@router.get("/{job_id}", response_model=JobOut, responses=errors((404, "no such job")))
 def get_job(job_id: str, jobs: JobsDep, _user: ViewerDep) -> dict:
-    job = jobs.store.get(job_id)
-    if job is None:
-        raise HTTPException(404, f"no job {job_id}")
-    return job
+    return found(jobs.store.get(job_id), f"no job {job_id}")
 
 
-@router.post("/{job_id}/cancel", response_model=JobOut, responses={404: {"description": "no such job"}})
+@router.post("/{job_id}/cancel", response_model=JobOut, responses=errors((404, "no such job")))
 def cancel_job(job_id: str, jobs: JobsDep, _user: OperatorDep) -> dict:
     """Cancel: a queued job at once, a running one at its next progress report."""
-    job = jobs.cancel(job_id)
-    if job is None:
-        raise HTTPException(404, f"no job {job_id}")
-    return job
+    return found(jobs.cancel(job_id), f"no job {job_id}")
 
 
-@router.get("/{job_id}/events", responses={404: {"description": "no such job"}},
+@router.get("/{job_id}/events", responses={200: {"content": {"text/event-stream": {}}}, **errors((404, "no such job"))},
             response_class=StreamingResponse)
 async def job_events(job_id: str, request: Request, jobs: JobsDep, _user: ViewerDep) -> StreamingResponse:
     """Server-Sent Events: the job on every change of status, progress or message, until it ends."""
     store = jobs.store
-    first = await run_in_threadpool(store.get, job_id)
-    if first is None:
-        raise HTTPException(404, f"no job {job_id}")
+    first = found(await run_in_threadpool(store.get, job_id), f"no job {job_id}")
 
     async def stream():
         job, last = first, None

@@ -9,23 +9,27 @@ from __future__ import annotations
 import asyncio
 import json
 
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter
 from sse_starlette.sse import EventSourceResponse
 
 from server.api.deps import LiveDep, SceneDep, ViewerDep
+from server.api.responses import errors
+from server.errors import NotFound, Unavailable
 
 router = APIRouter(tags=["live"])
 
 
-@router.get("/api/live", response_class=EventSourceResponse)
+@router.get("/api/live", response_class=EventSourceResponse,
+            responses={200: {"content": {"text/event-stream": {}}},
+                       **errors((404, "no such console of this user"), (503, "live push is not running"))})
 async def live(hub: LiveDep, scene: SceneDep, user: ViewerDep, console: str | None = None) -> EventSourceResponse:
     """The event stream (text/event-stream); starts with every machine's state."""
     if hub is None:
-        raise HTTPException(503, "live push is not running")
+        raise Unavailable("live push is not running")
     if console is not None and scene is not None:
         con = scene.get_console(console)
         if con is None or con.username != user.username:
-            raise HTTPException(404, f"no console {console} of yours (reload the page)")
+            raise NotFound(f"no console {console} of yours (reload the page)")
     sub = hub.subscribe(console)
 
     async def events():

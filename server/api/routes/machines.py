@@ -1,7 +1,8 @@
 """GET /api/machines: the machines the server knows or hears, with presence, policies and the
 runtime's state (E-STOP latch, readiness, running throw). E-STOP: POST .../estop (alias .../abort)
 on the fast path; POST .../estop/reset releases the latch and POST .../return-to-ready starts the
-runtime's recovery action (operator, audited)."""
+runtime's recovery action (operator, audited). POST .../drift/ack acknowledges the machine's
+drift alert (server.drift; operator, audited)."""
 
 from __future__ import annotations
 
@@ -10,14 +11,27 @@ import logging
 import time
 from typing import Any
 
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter, Request
 from pydantic import BaseModel, Field
 from sqlalchemy import select
 
-from server.api.deps import FleetDep, OperatorDep, SessionDep, SessionsDep, ViewerDep, session_token
+from server.api.deps import (
+    DriftDep,
+    FleetDep,
+    OperatorDep,
+    SessionDep,
+    SessionsDep,
+    ViewerDep,
+    authorised,
+    authorised_or_audited,
+    session_token,
+)
+from server.api.report_schemas import DriftAlertOut
+from server.api.responses import errors
 from server.api.schemas import MachineOut
-from server.auth import audit, record_audit, role_at_least, user_for_token
+from server.auth import audit, record_audit, user_for_token
 from server.db.models import Machine, Throw
+from server.errors import Conflict, NotFound, Unavailable
 from server.fleet import RUNTIME_SILENT_S, Fleet, RuntimeUnavailable, clock_warning
 
 router = APIRouter(prefix="/api/machines", tags=["machines"])
@@ -103,19 +117,16 @@ class EstopResetOut(BaseModel):
 
 
 def _operator_or_raise(request: Request, sessions):
-    """The logged-in operator (or admin) of ``request``; 401/403 otherwise. Runs on the event
-    loop: one indexed read, so the E-STOP never waits for a free request thread."""
+    """The logged-in operator (or admin) of ``request``; Unauthenticated (401) / Denied (403)
+    otherwise. Runs on the event loop: one indexed read, so the E-STOP never waits for a free
+    request thread."""
     with sessions() as db:
-        user = user_for_token(db, session_token(request))
-    if user is None:
-        raise HTTPException(401, "log in first (session missing or expired)", headers={"WWW-Authenticate": "Bearer"})
-    if not role_at_least(user.role, "operator"):
-        raise HTTPException(403, f"needs the operator role (you are {user.role})")
-    return user
+        return authorised(user_for_token(db, session_token(request)), "operator")
 
 
-STOP_RESPONSES: dict[int | str, dict[str, Any]] = {401: {"description": "log in first"}, 403: {"description": "needs the operator role"},
-                  404: {"description": "unknown machine"}, 503: {"description": "the runtime did not confirm the stop"}}
+STOP_RESPONSES = errors(401, (403, "needs the operator role"), (404, "unknown machine"),
+                        (503, "the runtime did not confirm the stop, or storage does not answer"))
+"""The E-STOP checks its session itself (no dependency, see :func:`_operator_or_raise`): it lists 401/403."""
 
 
 @router.post("/{machine_id}/estop", response_model=AbortOut, responses=STOP_RESPONSES)
@@ -143,7 +154,7 @@ async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: Se
         _audit_later(fleet, lambda: record_audit(sessions, user.username, "abort", machine_id[:64],
                                                  reason=reason, delivered=False, error=error))
         await asyncio.to_thread(_404_if_unknown, fleet, sessions, machine_id)
-        raise HTTPException(503, f"abort of {machine_id} not confirmed: {error}") from e
+        raise Unavailable(f"abort of {machine_id} not confirmed: {error}") from e
     fleet.forget_info(machine_id)
     _audit_later(fleet, lambda: record_audit(sessions, user.username, "abort", machine_id,
                                              reason=reason, delivered=True, throw_id=ack.aborted_throw_id))
@@ -167,20 +178,20 @@ def _sentence(e: Exception) -> str:
 
 
 def _404_if_unknown(fleet: Fleet, sessions, machine_id: str) -> None:
-    """HTTPException 404 if no machine ``machine_id`` was ever registered nor is online (checked
+    """NotFound (404) if no machine ``machine_id`` was ever registered nor is online (checked
     only after a command failed, so the E-STOP path never waits for the database)."""
     if fleet.is_online(machine_id) or fleet.latest_state(machine_id) is not None:
         return
     with sessions() as db:
         if db.get(Machine, machine_id) is None:
-            raise HTTPException(404, f"unknown machine {machine_id!r}")
+            raise NotFound(f"unknown machine {machine_id!r}")
 
 
 def _delivered(db, username: str, action: str, machine_id: str, what: str, send, fleet: Fleet | None = None,
                sessions=None):
     """The runtime's ack of a signed command ``send()``; if it was not confirmed, the attempt is
-    audited as undelivered (action ``action``) and HTTPException 404 (unknown machine, checked
-    when ``fleet`` and ``sessions`` are given) or 503 names ``what``."""
+    audited as undelivered (action ``action``) and NotFound (unknown machine, checked when
+    ``fleet`` and ``sessions`` are given) or Unavailable names ``what``."""
     try:
         return send()
     except (RuntimeUnavailable, ValueError) as e:
@@ -188,13 +199,12 @@ def _delivered(db, username: str, action: str, machine_id: str, what: str, send,
         db.commit()
         if fleet is not None and sessions is not None:
             _404_if_unknown(fleet, sessions, machine_id)
-        raise HTTPException(503, f"{what} of {machine_id} not confirmed: {_sentence(e)}") from e
+        raise Unavailable(f"{what} of {machine_id} not confirmed: {_sentence(e)}") from e
 
 
 @router.post("/{machine_id}/estop/reset", response_model=EstopResetOut,
-             responses={404: {"description": "unknown machine"},
-                        409: {"description": "the runtime refused the reset (its reason)"},
-                        503: {"description": "the runtime did not answer, or no command key"}})
+             responses=errors((404, "unknown machine"), (409, "the runtime refused the reset (its reason)"),
+                              (503, "the runtime did not answer, or no command key")))
 def estop_reset(machine_id: str, db: SessionDep, sessions: SessionsDep, fleet: FleetDep, user: OperatorDep) -> EstopResetOut:
     """Release the runtime's latched E-STOP (a signed EstopReset in the operator's name); audited."""
     ack = _delivered(db, user.username, "estop_reset", machine_id, "E-STOP reset",
@@ -203,7 +213,7 @@ def estop_reset(machine_id: str, db: SessionDep, sessions: SessionsDep, fleet: F
     db.commit()
     if not ack.reset:
         clock = clock_warning(fleet.clock_offset_s(machine_id))
-        raise HTTPException(409, f"the runtime of {machine_id} kept E-STOP latched: {ack.reason}" + (f"; {clock}" if clock else ""))
+        raise Conflict(f"the runtime of {machine_id} kept E-STOP latched: {ack.reason}" + (f"; {clock}" if clock else ""))
     return EstopResetOut(machine_id=machine_id, reset=True, reason=ack.reason)
 
 
@@ -214,9 +224,8 @@ class ReturnToReadyOut(BaseModel):
 
 
 @router.post("/{machine_id}/return-to-ready", response_model=ReturnToReadyOut,
-             responses={404: {"description": "unknown machine"},
-                        409: {"description": "the runtime refused (its reason: E-STOP latched, a throw runs, ...)"},
-                        503: {"description": "the runtime did not answer, or no command key"}})
+             responses=errors((404, "unknown machine"), (409, "the runtime refused (its reason: E-STOP latched, a throw runs, ...)"),
+                              (503, "the runtime did not answer, or no command key")))
 def return_to_ready(machine_id: str, db: SessionDep, sessions: SessionsDep, fleet: FleetDep,
                     user: OperatorDep) -> ReturnToReadyOut:
     """Recovery action: the runtime drives the arm back to its ready pose (a signed ReturnToReady
@@ -227,5 +236,22 @@ def return_to_ready(machine_id: str, db: SessionDep, sessions: SessionsDep, flee
     audit(db, user.username, "return_to_ready", machine_id, delivered=True, accepted=ack.accepted, reason=ack.reason)
     db.commit()
     if not ack.accepted:
-        raise HTTPException(409, f"the runtime of {machine_id} refused to return to the ready pose: {ack.reason}")
+        raise Conflict(f"the runtime of {machine_id} refused to return to the ready pose: {ack.reason}")
     return ReturnToReadyOut(machine_id=machine_id, accepted=True)
+
+
+@router.post("/{machine_id}/drift/ack", response_model=DriftAlertOut, responses=errors(
+    (403, "needs the operator role"), (404, "the machine has no drift alert")))
+def acknowledge_drift(machine_id: str, drift: DriftDep, sessions: SessionsDep, user: ViewerDep) -> dict[str, Any]:
+    """Acknowledge the machine's drift alert (server.drift.DriftWatch.acknowledge): it stays on
+    record as acknowledged, and every open console clears its drift alarm (a ``drift`` event on
+    /api/live). Operators and admins; audited as ``drift_ack`` (refusals too). Returns the alert."""
+    authorised_or_audited(user, "operator", lambda reason: record_audit(
+        sessions, user.username, "drift_ack", machine_id[:64], acknowledged=False, reason=reason),
+        "acknowledging a drift alert")
+    alert = drift.acknowledge(machine_id, user.username)
+    if alert is None:
+        raise NotFound(f"{machine_id} has no drift alert to acknowledge")
+    record_audit(sessions, user.username, "drift_ack", machine_id, acknowledged=True, raised_at=alert.get("raised_at"),
+                 alert=alert.get("text"))
+    return alert

@@ -6,16 +6,18 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Literal
 
-from fastapi import APIRouter, File, Form, HTTPException, Path, Query, UploadFile
+from fastapi import APIRouter, File, Form, Path, Query, UploadFile
 from pydantic import BaseModel, Field
 from sqlalchemy import select
 
 from server.accuracy import accuracy
-from server.api.deps import AdminDep, PoliciesDep, SessionDep, SessionsDep, ViewerDep
-from server.api.schemas import COORD_LIMIT_M, MAX_DB_ID, DbId, Problem
+from server.api.deps import AdminDep, PoliciesDep, SessionDep, SessionsDep, ViewerDep, authorised_or_audited
+from server.api.report_schemas import PolicyComparisonOut, RollbackTargetOut
+from server.api.responses import errors
+from server.api.schemas import COORD_LIMIT_M, MAX_DB_ID, DbId
 from server.auth import record_audit
 from server.db.models import PolicyDeployment, PolicyVersion
-from server.errors import DomainError
+from server.errors import DomainError, found
 from server.history import ThrowFilter
 from server.policies import expire_stale_offers
 
@@ -77,7 +79,7 @@ def list_policies(db: SessionDep, _user: ViewerDep) -> list[PolicyOut]:
 
 
 @router.post("", status_code=201, response_model=PolicyOut,
-             responses={409: {"description": "already a version"}, 422: {"description": "rejected, with the reason"}})
+             responses=errors((409, "already a version"), (422, "rejected, with the reason")))
 async def upload_policy(
     policies: PoliciesDep, user: AdminDep,
     file: UploadFile = File(..., description="the ONNX file (obs -> actions)"),
@@ -113,14 +115,12 @@ def deployments(db: SessionDep, _user: ViewerDep, machine_id: str | None = None,
     return [deployment_out(d, n) for d, n in db.execute(stmt)]
 
 
-@router.get("/compare", responses={404: {"model": Problem, "description": "no such policy version"}})
+@router.get("/compare", response_model=list[PolicyComparisonOut], responses=errors((404, "no such policy version")))
 def compare(db: SessionDep, _user: ViewerDep, ids: list[DbId] = Query(..., min_length=1, max_length=10)) -> list[dict]:
     """Per version: the twin evaluation per target distance and the logged throws' accuracy."""
     out = []
     for pid in ids:
-        p = db.get(PolicyVersion, pid)
-        if p is None:
-            raise HTTPException(404, f"no policy version {pid}")
+        p = found(db.get(PolicyVersion, pid), f"no policy version {pid}")
         logged = accuracy(db, ThrowFilter(mode=p.mode, policy_sha256=p.sha256))
         out.append({"id": p.id, "name": p.name, "mode": p.mode, "sha256": p.sha256,
                     "evaluation_status": p.evaluation_status,
@@ -128,7 +128,7 @@ def compare(db: SessionDep, _user: ViewerDep, ids: list[DbId] = Query(..., min_l
     return out
 
 
-@router.get("/rollback-targets")
+@router.get("/rollback-targets", response_model=dict[Literal["2d", "3d"], RollbackTargetOut | None])
 def rollback_targets(policies: PoliciesDep, _user: ViewerDep,
                      machine_id: str = Query(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")) -> dict:
     """Per mode, the version a rollback of ``machine_id`` would go back to ({"id", "name"}), or
@@ -140,24 +140,20 @@ def rollback_targets(policies: PoliciesDep, _user: ViewerDep,
     return out
 
 
-@router.get("/{policy_id}", response_model=PolicyOut, responses={404: {"model": Problem}})
+@router.get("/{policy_id}", response_model=PolicyOut, responses=errors((404, "no such policy version")))
 def get_policy(db: SessionDep, _user: ViewerDep, policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> PolicyOut:
-    p = db.get(PolicyVersion, policy_id)
-    if p is None:
-        raise HTTPException(404, f"no policy version {policy_id}")
-    return policy_out(p)
+    return policy_out(found(db.get(PolicyVersion, policy_id), f"no policy version {policy_id}"))
 
 
-@router.post("/{policy_id}/evaluate", response_model=PolicyOut, responses={
-    404: {"model": Problem, "description": "no such version"}, 409: {"model": Problem, "description": "its evaluation runs"}})
+@router.post("/{policy_id}/evaluate", response_model=PolicyOut, responses=errors(
+    (404, "no such version"), (409, "its evaluation runs")))
 def evaluate(policies: PoliciesDep, user: AdminDep, policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> PolicyOut:
     """Evaluate a stored version in the twin (again): any version, deployed ones included."""
     return policy_out(policies.evaluate(policy_id, user.username))
 
 
-@router.post("/{policy_id}/promote", response_model=list[DeploymentOut], responses={
-    404: {"model": Problem, "description": "no such policy version"},
-    409: {"model": Problem, "description": "no file of the version, or it has not passed its validation"}})
+@router.post("/{policy_id}/promote", response_model=list[DeploymentOut], responses=errors(
+    (404, "no such policy version"), (409, "no file of the version, or it has not passed its validation")))
 def promote(body: PromoteIn, policies: PoliciesDep, sessions: SessionsDep, user: AdminDep,
             policy_id: int = Path(ge=1, le=MAX_DB_ID)) -> list[DeploymentOut]:
     """Offer the version to the machines; each runtime fetches it, checks it, loads it between
@@ -168,9 +164,14 @@ def promote(body: PromoteIn, policies: PoliciesDep, sessions: SessionsDep, user:
     return [deployment_out(d, name) for d in deps]
 
 
-@router.post("/rollback", response_model=DeploymentOut, responses={409: {"description": "nothing to roll back to"}})
-def rollback(body: RollbackIn, policies: PoliciesDep, sessions: SessionsDep, user: AdminDep) -> DeploymentOut:
-    """Go back to the version the machine ran before its last promotion for that mode."""
+@router.post("/rollback", response_model=DeploymentOut, responses=errors(
+    (403, "needs the admin role"), (409, "nothing to roll back to")))
+def rollback(body: RollbackIn, policies: PoliciesDep, sessions: SessionsDep, user: ViewerDep) -> DeploymentOut:
+    """Go back to the version the machine ran before its last promotion for that mode (admins).
+    Every attempt is audited: done ones as ``rollback``, refused ones (a role below admin
+    included) as ``rollback_refused`` with the reason."""
+    authorised_or_audited(user, "admin", lambda reason: record_audit(
+        sessions, user.username, "rollback_refused", body.machine_id[:64], mode=body.mode, reason=reason))
     try:
         d = policies.rollback(body.machine_id, body.mode, user.username)
     except DomainError as e:  # a refused attempt is audited too (a done one by server.policies)

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 from datetime import datetime
 
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, ConfigDict
 
 from server.api.deps import FleetDep, JobWatcherDep, OperatorDep, PreviewsDep, SettingsDep, ViewerDep
 from server.api.preview_schemas import PreviewCreate, PreviewOut
-from server.api.schemas import Problem, Vec3
+from server.api.responses import errors
+from server.api.schemas import Vec3
 from server.db.types import utcnow
 from server.throw_gate import preview_refusal
 
@@ -20,13 +21,14 @@ router = APIRouter(prefix="/api/previews", tags=["previews"])
 @router.post(
     "",
     response_model=PreviewOut,
-    responses={
-        404: {"model": Problem, "description": "unknown machine"},
-        409: {"model": Problem, "description": "the server has no file of the machine's policy, or it does not load"},
-        422: {"model": Problem, "description": "a target the mode cannot serve (the reason)"},
-        429: {"model": Problem, "description": "the user has their limit of previews queued or running"},
-        503: {"model": Problem, "description": "runtime offline, no machine state, or no worker answered in 3 s"},
-    },
+    responses=errors(
+        (404, "unknown machine"),
+        (409, "the server has no file of the machine's policy, or it does not load"),
+        (422, "a target the mode cannot serve (the reason)"),
+        (429, "the user has their limit of previews queued or running"),
+        (500, "the preview job failed"),
+        (503, "runtime offline, no machine state, or no worker answered in 3 s"),
+    ),
 )
 async def create_preview(body: PreviewCreate, service: PreviewsDep, settings: SettingsDep, watcher: JobWatcherDep,
                          user: OperatorDep) -> PreviewOut:
@@ -46,12 +48,9 @@ async def create_preview(body: PreviewCreate, service: PreviewsDep, settings: Se
     return PreviewOut(**summary)
 
 
-@router.get("/{preview_id}", response_model=PreviewOut, responses={404: {"model": Problem}})
+@router.get("/{preview_id}", response_model=PreviewOut, responses=errors((404, "no such preview, or no longer kept")))
 def get_preview(preview_id: str, service: PreviewsDep, _user: ViewerDep) -> PreviewOut:
-    summary = service.get(preview_id)
-    if summary is None:
-        raise HTTPException(404, f"no preview {preview_id} (previews are kept for a while only)")
-    return PreviewOut(**summary)
+    return PreviewOut(**service.require(preview_id))
 
 
 class PreviewCheckIn(BaseModel):

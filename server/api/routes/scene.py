@@ -3,17 +3,22 @@
 ``POST /api/consoles`` opens a console for the page (one per page load); the page embeds the 3D
 view bound to it and changes it with ``PUT /api/consoles/{id}``. A click in the view changes only
 that console; the page hears it over live push (``GET /api/live?console=<id>``). A console belongs
-to the user who opened it (403 for anyone else).
+to the user who opened it (403 for anyone else). ``PUT /api/consoles/{id}/replay`` replays a
+recorded throw in its view at a time of the recording (the History page's timeline).
 """
 
 from __future__ import annotations
 
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter
 
-from server.api.console_schemas import ConsoleOut, ConsoleShowPreview, ConsoleUpdate, SceneInfo
-from server.api.deps import CurrentUser, OperatorDep, PreviewsDep, SceneDep, ViewerDep
-from server.api.schemas import Problem
-from server.scene import ConsoleScene
+from server.api.console_schemas import ConsoleOut, ConsoleReplay, ConsoleShowPreview, ConsoleUpdate, SceneInfo
+from server.api.deps import CurrentUser, OperatorDep, PreviewsDep, SceneDep, SessionDep, StoreDep, ViewerDep
+from server.api.responses import errors
+from server.db.models import Throw
+from server.errors import Conflict, Denied, NotFound, Refused
+from server.scene import ConsoleScene, enabled
+from server.scene_replay import Replay
+from server.web_guard import contained_file
 
 router = APIRouter(tags=["scene"])
 
@@ -28,63 +33,86 @@ def _out(scene, con) -> ConsoleOut:
     return ConsoleOut(**con.public(), viser_port=scene.port, viser_path=f"/c/{con.console_id}")
 
 
-def _enabled(scene: ConsoleScene | None) -> ConsoleScene:
-    """The console scene; HTTP 409 when the 3D view is disabled."""
-    if scene is None:
-        raise HTTPException(409, "the 3D view is disabled")
-    return scene
-
-
-def _console(scene, console_id: str, user):
-    con = _enabled(scene).get_console(console_id)
-    if con is None:
-        raise HTTPException(404, f"no console {console_id} (reload the page)")
-    if con.username != user.username:
-        raise HTTPException(403, "this console belongs to another user")
-    return con
+def _console(scene: ConsoleScene | None, console_id: str, user):
+    return enabled(scene).owned_console(console_id, user.username)
 
 
 @router.post("/api/consoles", response_model=ConsoleOut, status_code=201,
-             responses={409: {"model": Problem, "description": "the 3D view is disabled"},
-                        429: {"model": Problem, "description": "the server holds its limit of consoles"}})
+             responses=errors((409, "the 3D view is disabled"), (429, "the server holds its limit of consoles")))
 def open_console(scene: SceneDep, user: ViewerDep) -> ConsoleOut:
     """Open a console (one per page load): its own machine, mode, target and 3D view. A user who
     holds server.scene.MAX_CONSOLES_PER_USER consoles loses their own least recently used one."""
-    if scene is None:
-        raise HTTPException(409, "the 3D view is disabled")
+    scene = enabled(scene)
     return _out(scene, scene.open_console(user.username))  # ConsoleLimit is a Limited: 429
 
 
-@router.get("/api/consoles/{console_id}", response_model=ConsoleOut, responses={404: {"model": Problem},
-                                                                                 409: {"model": Problem, "description": "the 3D view is disabled"}})
+@router.get("/api/consoles/{console_id}", response_model=ConsoleOut, responses=errors(
+    (403, "the console belongs to another user"), (404, "no such console"), (409, "the 3D view is disabled")))
 def get_console(console_id: str, scene: SceneDep, user: CurrentUser) -> ConsoleOut:
     return _out(scene, _console(scene, console_id, user))
 
 
 @router.put("/api/consoles/{console_id}", response_model=ConsoleOut,
-            responses={403: {"model": Problem}, 404: {"model": Problem}, 409: {"model": Problem, "description": "the 3D view is disabled"}})
+            responses=errors((403, "another user's console, or a viewer setting a target"), (404, "no such console"),
+                             (409, "the 3D view is disabled")))
 def update_console(console_id: str, update: ConsoleUpdate, scene: SceneDep, user: ViewerDep) -> ConsoleOut:
     """Pick the machine or mode shown (viewers too), or type a target (operators). A target in 2D
     snaps to the throwing line; ``target_reason`` says why it cannot be served."""
-    scene = _enabled(scene)
+    scene = enabled(scene)
     con = _console(scene, console_id, user)
     if update.target is not None and user.role == "viewer":
-        raise HTTPException(403, "needs the operator role to set a target (you are viewer)")
+        raise Denied("needs the operator role to set a target (you are viewer)")
     scene.update_console(con, update.machine_id, update.mode, update.target)
     return _out(scene, con)
 
 
 @router.post("/api/consoles/{console_id}/preview", response_model=ConsoleOut,
-             responses={404: {"model": Problem}, 409: {"model": Problem, "description": "the 3D view is disabled"}, 422: {"model": Problem}})
+             responses=errors((404, "no such console or preview"), (409, "the 3D view is disabled"),
+                              (422, "the preview is of another machine")))
 def show_preview(console_id: str, body: ConsoleShowPreview, previews: PreviewsDep, scene: SceneDep,
                  user: OperatorDep) -> ConsoleOut:
     """Draw a preview (POST /api/previews) in this console's 3D view."""
-    scene = _enabled(scene)
+    scene = enabled(scene)
     con = _console(scene, console_id, user)
-    summary = previews.get(body.preview_id)
-    if summary is None:
-        raise HTTPException(404, f"no preview {body.preview_id} (previews are kept for a while only)")
+    summary = previews.require(body.preview_id)
     if summary["machine_id"] != con.machine_id:
-        raise HTTPException(422, f"the preview is of {summary['machine_id']}, this console shows {con.machine_id}")
+        raise Refused(f"the preview is of {summary['machine_id']}, this console shows {con.machine_id}")
     scene.show_preview(con, summary)
+    return _out(scene, con)
+
+
+@router.put("/api/consoles/{console_id}/replay", response_model=ConsoleOut,
+            responses=errors((403, "another user's console"), (404, "no such console or throw"),
+                             (409, "the 3D view is disabled, or the throw has no usable telemetry")))
+def seek_replay(console_id: str, body: ConsoleReplay, scene: SceneDep, db: SessionDep, store: StoreDep,
+                user: ViewerDep) -> ConsoleOut:
+    """Show the recorded throw in this console's 3D view (viewers too: the view is the page's
+    own), its machine posed from the recording at ``t_s`` (clamped to the recording) and drawn
+    before the answer; the first call for a throw loads its telemetry and draws its paths.
+    ``replay.t_s`` in the answer is the time the view shows."""
+    scene = enabled(scene)
+    con = _console(scene, console_id, user)
+    if con.replay is None or con.replay.throw_id != body.throw_id:
+        row = db.get(Throw, body.throw_id)
+        if row is None:
+            raise NotFound(f"no throw {body.throw_id}")
+        path = contained_file(store.data_dir / "telemetry", store.telemetry_file(row))
+        if path is None:
+            raise Conflict(f"throw {body.throw_id} has no telemetry to replay")
+        try:
+            replay = Replay.load(row.id, row.machine_id, path, row.impact_m, row.target_m)
+        except ValueError as e:
+            raise Conflict(str(e)) from e
+        scene.start_replay(con, replay)
+    scene.seek_replay(con, body.t_s)
+    return _out(scene, con)
+
+
+@router.delete("/api/consoles/{console_id}/replay", response_model=ConsoleOut,
+               responses=errors((403, "another user's console"), (404, "no such console"), (409, "the 3D view is disabled")))
+def stop_replay(console_id: str, scene: SceneDep, user: ViewerDep) -> ConsoleOut:
+    """Back to the live machine in this console's 3D view."""
+    scene = enabled(scene)
+    con = _console(scene, console_id, user)
+    scene.stop_replay(con)
     return _out(scene, con)

@@ -7,14 +7,18 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, HTTPException, Query, Response
+from fastapi import APIRouter, Depends, Query, Response
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 
 from server.accuracy import accuracy
 from server.api.deps import OperatorDep, SceneDep, SessionDep, StoreDep, ThrowServiceDep, ViewerDep
-from server.api.schemas import DISTANCE_LIMIT_M, Problem, ThrowCreate, ThrowCreated, ThrowOut, ThrowStatusName, UtcTime
+from server.api.report_schemas import AccuracyGroupOut, TrajectoryOut
+from server.api.responses import errors
+from server.api.schemas import DISTANCE_LIMIT_M, ThrowCreate, ThrowCreated, ThrowOut, ThrowStatusName, UtcTime
 from server.db.models import Throw
+from server.errors import found
 from server.history import SORTS, ThrowFilter, page, to_csv
+from server.scene import enabled
 from server.throws import ThrowOrder
 from server.web_guard import contained_file
 
@@ -44,14 +48,14 @@ def throw_filter(
     "",
     status_code=202,
     response_model=ThrowCreated,
-    responses={
-        404: {"model": Problem, "description": "unknown machine"},
-        409: {"model": Problem, "description": "the preview is stale, the policy changed or the machine moved since "
-                                               "(condition in the X-Refused-Condition header)"},
-        422: {"description": "malformed request, target the mode cannot serve, no/failed/other preview "
-                             "(X-Refused-Condition), unconfirmed 3D throw, or the runtime refused"},
-        503: {"model": Problem, "description": "runtime offline or not answering, or no command key"},
-    },
+    responses=errors(
+        (404, "unknown machine"),
+        (409, "the preview is stale, the policy changed or the machine moved since (condition in the "
+              "X-Refused-Condition header)"),
+        (422, "malformed request, target the mode cannot serve, no/failed/other preview (X-Refused-Condition), "
+              "unconfirmed 3D throw, or the runtime refused"),
+        (503, "runtime offline or not answering, or no command key"),
+    ),
 )
 def create_throw(body: ThrowCreate, service: ThrowServiceDep, user: OperatorDep) -> ThrowCreated:
     """Throw at ``target`` ([x, y, z], machine frame, m) with ``machine_id`` in ``mode``, as
@@ -94,7 +98,7 @@ def export_csv(db: SessionDep, _user: ViewerDep, flt: ThrowFilter = Depends(thro
                     headers={"Content-Disposition": 'attachment; filename="throws.csv"'})
 
 
-@router.get("/accuracy", response_model=list[dict])
+@router.get("/accuracy", response_model=list[AccuracyGroupOut])
 def get_accuracy(db: SessionDep, _user: ViewerDep, flt: ThrowFilter = Depends(throw_filter)) -> JSONResponse:
     """Accuracy of the landed throws matching the filters, per mode, policy version (SHA-256) and
     target distance (0.5 m bins): mean impact distance, bias, 1 sigma downrange/crossrange, error
@@ -110,13 +114,16 @@ def get_accuracy(db: SessionDep, _user: ViewerDep, flt: ThrowFilter = Depends(th
 
 
 def _row(db, throw_id: str) -> Throw:
-    row = db.get(Throw, throw_id)
-    if row is None:
-        raise HTTPException(404, f"no throw {throw_id}")
-    return row
+    return found(db.get(Throw, throw_id), f"no throw {throw_id}")
 
 
-@router.get("/{throw_id}", response_model=ThrowOut, responses={404: {"model": Problem}})
+def _telemetry(store, row: Throw):
+    """The path of the throw's telemetry file (inside the data folder); NotFound without one."""
+    return found(contained_file(store.data_dir / "telemetry", store.telemetry_file(row)),
+                 f"throw {row.id} has no telemetry")
+
+
+@router.get("/{throw_id}", response_model=ThrowOut, responses=errors((404, "no such throw")))
 def get_throw(throw_id: str, db: SessionDep, _user: ViewerDep) -> ThrowOut:
     return ThrowOut.of(_row(db, throw_id))
 
@@ -124,18 +131,15 @@ def get_throw(throw_id: str, db: SessionDep, _user: ViewerDep) -> ThrowOut:
 @router.get(
     "/{throw_id}/telemetry",
     response_class=FileResponse,
-    responses={200: {"content": {"application/x-mcap": {}}}, 404: {"model": Problem}},
+    responses={200: {"content": {"application/x-mcap": {}}}, **errors((404, "no such throw, or no telemetry"))},
 )
 def get_telemetry(throw_id: str, db: SessionDep, store: StoreDep, _user: ViewerDep) -> FileResponse:
     """The throw's 100 Hz telemetry as an MCAP file."""
-    row = _row(db, throw_id)
-    path = contained_file(store.data_dir / "telemetry", store.telemetry_file(row))
-    if path is None:
-        raise HTTPException(404, f"throw {throw_id} has no telemetry")
+    path = _telemetry(store, _row(db, throw_id))
     return FileResponse(path, media_type="application/x-mcap", filename=f"throw-{throw_id}.mcap")
 
 
-@router.get("/{throw_id}/trajectory", responses={404: {"model": Problem}})
+@router.get("/{throw_id}/trajectory", response_model=TrajectoryOut, responses=errors((404, "no such throw, or no telemetry")))
 def get_trajectory(throw_id: str, db: SessionDep, store: StoreDep, _user: ViewerDep) -> dict:
     """The recorded trajectory (from the MCAP telemetry, at most 300 points): time, gripper-centre
     path (forward kinematics of the joints), joint velocities ``qd`` (N, 6) and their references
@@ -145,10 +149,7 @@ def get_trajectory(throw_id: str, db: SessionDep, store: StoreDep, _user: Viewer
     from runtime.telemetry import read_telemetry
 
     row = _row(db, throw_id)
-    path = contained_file(store.data_dir / "telemetry", store.telemetry_file(row))
-    if path is None:
-        raise HTTPException(404, f"throw {throw_id} has no telemetry")
-    tel = read_telemetry(path)
+    tel = read_telemetry(_telemetry(store, row))
     n = len(tel["t_s"])
     idx = np.unique(np.linspace(0, n - 1, min(n, 300)).astype(int)) if n else np.array([], dtype=int)
     gripper = [forward_kinematics(np, tel["q"][i], tel["qd"][i]).gripper_centre.round(4).tolist() for i in idx]
@@ -170,12 +171,10 @@ def get_trajectory(throw_id: str, db: SessionDep, store: StoreDep, _user: Viewer
 
 
 @router.post("/{throw_id}/replay", status_code=204,
-             responses={403: {"model": Problem}, 404: {"model": Problem}, 409: {"model": Problem}})
+             responses=errors((404, "no such throw"), (409, "the 3D view is disabled")))
 def replay(throw_id: str, db: SessionDep, store: StoreDep, scene: SceneDep, _user: OperatorDep) -> Response:
     """Draw the throw's recorded trajectory and impact in the 3D view (operators: the view is
     shared by every console, a viewer may not change it)."""
     row = _row(db, throw_id)
-    if scene is None:
-        raise HTTPException(409, "the 3D view is disabled")
-    scene.show_throw(row.machine_id, store.telemetry_file(row), row.impact_m, row.target_m)
+    enabled(scene).show_throw(row.machine_id, store.telemetry_file(row), row.impact_m, row.target_m)
     return Response(status_code=204)

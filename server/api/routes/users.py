@@ -4,15 +4,17 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Query
+from fastapi import APIRouter, Query
 from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy import delete, select
 
 from server.api.account_schemas import AuditOut, UserCreate, UserOut, UserUpdate
 from server.api.deps import AdminDep, SessionDep, ViewerDep
+from server.api.responses import errors
 from server.api.routes.auth import user_out
-from server.auth import MAX_PASSWORD_LENGTH, MIN_PASSWORD_LENGTH, AuthError, audit, check_password, create_user, hash_password, verify_password
+from server.auth import MAX_PASSWORD_LENGTH, MIN_PASSWORD_LENGTH, audit, check_password, create_user, hash_password, verify_password
 from server.db.models import AuditEntry, AuthSession, User
+from server.errors import Denied, NotFound, Refused
 
 router = APIRouter(prefix="/api", tags=["users"])
 
@@ -22,35 +24,29 @@ def list_users(db: SessionDep, _admin: AdminDep) -> list[UserOut]:
     return [user_out(u) for u in db.scalars(select(User).order_by(User.username))]
 
 
-@router.post("/users", status_code=201, response_model=UserOut, responses={409: {"description": "exists"}})
+@router.post("/users", status_code=201, response_model=UserOut, responses=errors((409, "exists"), (422, "a weak password, an unknown role or a malformed name")))
 def add_user(body: UserCreate, db: SessionDep, admin: AdminDep) -> UserOut:
-    try:
-        user = create_user(db, body.username, body.password, body.role)
-    except AuthError as e:
-        raise HTTPException(409 if "exists" in str(e) else 422, str(e)) from e
+    user = create_user(db, body.username, body.password, body.role)  # AuthError: 422, UserExists: 409
     audit(db, admin.username, "user_add", body.username, role=body.role)
     db.commit()
     return user_out(user)
 
 
-@router.patch("/users/{username}", response_model=UserOut, responses={404: {"description": "no such user"}})
+@router.patch("/users/{username}", response_model=UserOut, responses=errors((404, "no such user"), (422, "a weak password, or demoting oneself")))
 def update_user(username: str, body: UserUpdate, db: SessionDep, admin: AdminDep) -> UserOut:
     """Change a user's role, deactivate them (ends their sessions) or set a new password."""
     user = db.scalar(select(User).where(User.username == username))
     if user is None:
-        raise HTTPException(404, f"no user {username!r}")
+        raise NotFound(f"no user {username!r}")
     if user.id == admin.id and (body.active is False or (body.role and body.role != "admin")):
-        raise HTTPException(422, "you cannot demote or deactivate yourself")
+        raise Refused("you cannot demote or deactivate yourself")
     changes: dict[str, object] = {}
     if body.role is not None:
         user.role = changes["role"] = body.role
     if body.active is not None:
         user.active = changes["active"] = body.active
     if body.password is not None:
-        try:
-            user.password_hash = hash_password(check_password(body.password))
-        except AuthError as e:
-            raise HTTPException(422, str(e)) from e
+        user.password_hash = hash_password(check_password(body.password))  # AuthError: 422
         changes["password"] = "changed"
     if body.active is False or body.password is not None:
         db.execute(delete(AuthSession).where(AuthSession.user_id == user.id))
@@ -69,7 +65,7 @@ class PasswordChange(BaseModel):
 
 
 @router.post("/account/password", status_code=204,
-             responses={403: {"description": "the current password is wrong"}, 422: {"description": "the new one is too weak"}})
+             responses=errors((403, "the current password is wrong"), (422, "the new one is too weak")))
 def change_own_password(body: PasswordChange, db: SessionDep, user: ViewerDep) -> None:
     """Change one's own password (any role). Ends every session of the user, this one included:
     log in again with the new password. Audited (``password_change``), failed attempts too."""
@@ -77,11 +73,8 @@ def change_own_password(body: PasswordChange, db: SessionDep, user: ViewerDep) -
     if row is None or not verify_password(row.password_hash, body.current_password):
         audit(db, user.username, "password_change", user.username, changed=False, reason="wrong current password")
         db.commit()
-        raise HTTPException(403, "the current password is wrong")
-    try:
-        row.password_hash = hash_password(check_password(body.new_password))
-    except AuthError as e:
-        raise HTTPException(422, str(e)) from e
+        raise Denied("the current password is wrong")
+    row.password_hash = hash_password(check_password(body.new_password))  # AuthError: 422
     db.execute(delete(AuthSession).where(AuthSession.user_id == row.id))
     audit(db, user.username, "password_change", user.username, changed=True)
     db.commit()
