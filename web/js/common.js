@@ -18,12 +18,16 @@ async function api(method, path, body, isForm = false) {
     return new Promise(() => {});
   }
   const data = await res.json().catch(() => null);
-  if (!res.ok) {
-    let detail = data && data.detail;
-    if (Array.isArray(detail)) detail = detail.map((d) => `${(d.loc || []).join(".")}: ${d.msg}`).join("; ");
-    throw apiError(res.status, detail || res.statusText, res.headers.get("X-Refused-Condition"));
-  }
+  if (!res.ok) throw responseError(res, data);
   return data;
+}
+
+/** The error of a refused response ``res`` with its parsed JSON body ``data`` (or null): the
+ *  server's detail as a sentence (a validation list joined), its status and gate condition. */
+function responseError(res, data) {
+  let detail = data && data.detail;
+  if (Array.isArray(detail)) detail = detail.map((d) => `${(d.loc || []).join(".")}: ${d.msg}`).join("; ");
+  return apiError(res.status, detail || res.statusText, res.headers.get("X-Refused-Condition"));
 }
 
 /** The server's reason as a sentence an operator reads (never "409: ..."): capital first letter,

@@ -22,9 +22,9 @@ async function load() {
   $("csv").href = `/api/throws/export.csv?${p}`;
   p.set("sort", hist.sort); p.set("order", hist.order); p.set("limit", hist.limit); p.set("offset", hist.offset);
   const res = await fetch(`/api/throws?${p}`);
-  if (res.status === 401) { location.href = "/console/login.html?next=/console/history.html"; return; }
-  const rows = await res.json();
-  if (!res.ok) { $("page-info").textContent = `error: ${JSON.stringify(rows.detail)}`; return; }
+  if (res.status === 401) { location.href = `/console/login.html?next=${encodeURIComponent(location.pathname + location.search)}`; return; }
+  const rows = await res.json().catch(() => null);
+  if (!res.ok) { $("page-info").textContent = responseError(res, rows).message; return; }
   hist.total = parseInt(res.headers.get("X-Total-Count") || "0", 10);
   $("throws-empty").hidden = hist.total > 0;
   const body = $("throws").querySelector("tbody");
