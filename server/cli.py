@@ -187,13 +187,16 @@ def _delegate(module_name: str, rest: list[str], prog: str) -> int:
             print(f"slinger: '{prog}' needs the missing package {e.name!r} (for training: pip install -e '.[train]')",
                   file=sys.stderr)
         return 2
+    # The module's own main first: it is what `python -m <module>` runs, and it may do more than
+    # parse and run (sim_twin.train re-launches itself under torchrun for --gpus N; the
+    # diagnosis CLI parses options between positional arguments).
+    if hasattr(module, "main"):
+        return int(module.main(rest) or 0)
     if hasattr(module, "build_parser") and hasattr(module, "run"):
         parser = argparse.ArgumentParser(prog=f"slinger {prog}", description=(module.__doc__ or "").splitlines()[0] if module.__doc__ else None)
         module.build_parser(parser)
         return int(module.run(parser.parse_args(rest)) or 0)
-    if hasattr(module, "main"):
-        return int(module.main(rest) or 0)
-    print(f"slinger: {module_name} has neither build_parser/run nor main", file=sys.stderr)
+    print(f"slinger: {module_name} has neither main nor build_parser/run", file=sys.stderr)
     return 2
 
 

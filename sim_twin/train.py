@@ -318,11 +318,23 @@ def _export(checkpoint: Path, cfg: dict, out: Path, name: str, card: dict | None
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``slinger train`` / ``python -m sim_twin.train``: with ``--gpus N`` > 1 (and not already a
+    torchrun worker) re-launch under torchrun, one process per GPU; otherwise train here.
+    Returns the exit code; 2 with a message when the host has fewer GPUs than asked for."""
     argv = list(sys.argv[1:] if argv is None else argv)
     p = argparse.ArgumentParser(add_help=False)
     p.add_argument("--gpus", type=int, default=1)
     known, _ = p.parse_known_args(argv)
+    if known.gpus < 1:
+        print(f"slinger train: --gpus must be at least 1, not {known.gpus}", file=sys.stderr)
+        return 2
     if known.gpus > 1 and "WORLD_SIZE" not in os.environ:
+        import torch
+
+        have = torch.cuda.device_count()
+        if have < known.gpus:
+            print(f"slinger train: --gpus {known.gpus} asks for {known.gpus} CUDA GPUs; this host has {have}", file=sys.stderr)
+            return 2
         logging.basicConfig(level=logging.INFO)
         return _launch_torchrun(known, argv)
     return module_main('slinger train', __doc__, build_parser, run, argv)
