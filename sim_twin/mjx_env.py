@@ -66,7 +66,15 @@ from sim_twin.hydraulics import cylinder_step, dead_band_flow, lag_step
 from sim_twin.initial_pose import pose_from_uniform, pose_is_valid
 from sim_twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
 from sim_twin.physics import ballistic_impact_time, ballistic_position, passive_friction_force
-from sim_twin.privileged import GAIN_ERROR_DEFAULT, RELEASE_DELAY_DEFAULTS, configured_range, normalisation_ranges, privileged_observation
+from sim_twin.privileged import (
+    GAIN_ERROR_DEFAULT,
+    PRIVILEGED_RANGE_KEYS,
+    RELEASE_DELAY_DEFAULTS,
+    check_randomization,
+    configured_range,
+    normalisation_ranges,
+    privileged_observation,
+)
 from sim_twin.rewards import RewardInputs, RewardScales, reward_terms, total_reward
 
 MAX_VALVE_DELAY_STEPS = 30  # longest valve transport delay the training env can model (0.30 s)
@@ -138,7 +146,9 @@ class EnvConfig:
         """From the config file's ``env`` mapping.
 
         Raises:
-            ValueError: unknown keys, a missing reward weight, or a mode other than 2d / 3d.
+            ValueError: unknown keys (randomisation entries included:
+                sim_twin.privileged.check_randomization), a missing reward weight, or a mode
+                other than 2d / 3d.
         """
         d = dict(d)
         if d.get("mode", "2d") not in ("2d", "3d"):
@@ -149,6 +159,8 @@ class EnvConfig:
             d["rewards"] = RewardScales.from_dict(d["rewards"])
         if "forced_release" in d:
             d["forced_release"] = _typed(ForcedRelease, d["forced_release"], "forced_release")
+        check_randomization(d.get("randomization", {}))
+        check_randomization(d.get("privileged_ranges", {}), "env.privileged_ranges", PRIVILEGED_RANGE_KEYS)
         if "far_targets" in d:
             far = dict(d["far_targets"])
             if "range_m" in far:

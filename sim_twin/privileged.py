@@ -99,6 +99,40 @@ PRIVILEGED_RANGE_KEYS: tuple[str, ...] = (
 )
 """The ``randomization`` entries :func:`privileged_observation` normalises over."""
 
+OTHER_RANDOMIZATION_KEYS = ("actuation", "obs_noise", "velocity_noise", "valve_spread")
+"""The ``randomization`` entries the environment reads besides ``PRIVILEGED_RANGE_KEYS``
+(sim_twin.mjx_env: actuation "lag" or "hydraulic", observation-noise stds, velocity-reference
+noise, machine-wide valve slowness spread)."""
+OBS_NOISE_KEYS = ("q_active", "qd_active", "q_passive", "qd_passive")
+
+
+def check_randomization(rand: dict, where: str = "env.randomization", keys: tuple[str, ...] | None = None) -> None:
+    """Refuse a ``randomization`` mapping (or ``privileged_ranges`` with ``keys``) that the
+    environment would read wrongly: a key it does not know (a typo would otherwise fall back to a
+    default silently), a range that is not [lo, hi] with lo <= hi, a negative std or spread, an
+    unknown actuation or observation-noise entry.
+
+    Raises:
+        ValueError: naming the entry and what is wrong.
+    """
+    known = keys if keys is not None else (*PRIVILEGED_RANGE_KEYS, *OTHER_RANDOMIZATION_KEYS)
+    unknown = sorted(set(rand) - set(known))
+    if unknown:
+        raise ValueError(f"{where}: unknown entries {unknown} (known: {sorted(known)})")
+    for name in RANDOMIZATION_DEFAULTS:
+        if name in rand:
+            r = rand[name]
+            if not (isinstance(r, (list, tuple)) and len(r) == 2 and all(isinstance(x, (int, float)) for x in r) and r[0] <= r[1]):
+                raise ValueError(f"{where}.{name} must be a range [lo, hi] with lo <= hi, not {r!r}")
+    for name in ("gain_error", *RELEASE_DELAY_DEFAULTS, "velocity_noise", "valve_spread"):
+        if name in rand and not (isinstance(rand[name], (int, float)) and rand[name] >= 0):
+            raise ValueError(f"{where}.{name} must be a number >= 0, not {rand[name]!r}")
+    if rand.get("actuation", "lag") not in ("lag", "hydraulic"):
+        raise ValueError(f"{where}.actuation must be 'lag' or 'hydraulic', not {rand['actuation']!r}")
+    noise = rand.get("obs_noise", {})
+    if not isinstance(noise, dict) or set(noise) - set(OBS_NOISE_KEYS):
+        raise ValueError(f"{where}.obs_noise must map {list(OBS_NOISE_KEYS)} to stds, not {noise!r}")
+
 
 def trained_ranges(rand: dict) -> dict:
     """The entries of ``rand`` (a config's ``randomization``) that the privileged normalisation

@@ -67,6 +67,29 @@ def test_typed_config_refuses_unknown_and_missing_settings():
         EnvConfig.from_dict({**env, "far_targets": {"fraction": 1.5}})
 
 
+def test_every_committed_config_loads_and_a_wrong_randomization_entry_is_refused():
+    """A typo in a randomisation entry would otherwise fall back to its default silently."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    configs = [*CONFIG_DIR.glob("*.json"), *(root / "policies" / "training").glob("*/config.json")]
+    assert len(configs) >= 4
+    for path in configs:
+        EnvConfig.from_dict(json.loads(path.read_text())["env"])
+    env = json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]
+    rand = env["randomization"]
+    for bad, match in (({**rand, "lag_S": [0.1, 0.2]}, r"unknown entries \['lag_S'\]"),
+                       ({**rand, "lag_s": [0.3, 0.1]}, r"lag_s must be a range \[lo, hi\]"),
+                       ({**rand, "dead_band": 0.05}, "dead_band must be a range"),
+                       ({**rand, "release_delay_std_s": -0.01}, "release_delay_std_s must be a number >= 0"),
+                       ({**rand, "actuation": "valve"}, "actuation must be 'lag' or 'hydraulic'"),
+                       ({**rand, "obs_noise": {"q": 0.1}}, "obs_noise must map")):
+        with pytest.raises(ValueError, match=match):
+            EnvConfig.from_dict({**env, "randomization": bad})
+    with pytest.raises(ValueError, match=r"env.privileged_ranges: unknown entries \['obs_noise'\]"):
+        EnvConfig.from_dict({**env, "privileged_ranges": {"obs_noise": {}}})
+
+
 def test_far_targets_weight_the_target_distance():
     """With far_targets.fraction f, a fraction f of episodes draws from the far range on top of the
     uniform draw over target_range_m (the 2D target lies on the arm's plane, so |target| = distance)."""
