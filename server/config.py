@@ -64,6 +64,9 @@ class Settings(BaseSettings):
             (more: 429 at once).
         keep_out_zones: ground circles no target may lie in, e.g.
             ``SLINGER_KEEP_OUT_ZONES='[{"name": "truck", "center_m": [7, 3], "radius_m": 1.5}]'``.
+        keep_out_scatter_sigmas / keep_out_margin_m: the preview's scatter ellipse at this many
+            sigma (or, without an ellipse, its nominal impact plus the margin, m) must stay out of
+            every keep-out zone (server.targets.scatter_refusal; the gate's ``keep_out_scatter``).
         clearance_radius_m: the swing must stay within this horizontal distance of the turn
             axis (the machine's clearance zone), m.
         release_check_radius_m: the release check's radius, m, or None ("off"): given to the
@@ -152,6 +155,8 @@ class Settings(BaseSettings):
     preview_target_tolerance_m: float = Field(0.05, ge=0)
     preview_max_active_joint_delta: float = Field(0.05, gt=0)
     preview_max_passive_joint_delta: float = Field(0.3, gt=0)
+    keep_out_scatter_sigmas: float = Field(3.0, gt=0)
+    keep_out_margin_m: float = Field(0.6, ge=0)
     reconcile_period_s: float = Field(2.0, gt=0)
     result_grace_s: float = Field(15.0, gt=0)
     runtime_gone_s: float = Field(30.0, gt=0)
@@ -183,7 +188,8 @@ class Settings(BaseSettings):
         if not self.require_preview:
             return None
         return GateLimits(self.preview_max_age_s, self.preview_target_tolerance_m,
-                          self.preview_max_active_joint_delta, self.preview_max_passive_joint_delta)
+                          self.preview_max_active_joint_delta, self.preview_max_passive_joint_delta,
+                          self.keep_out_scatter_sigmas, self.keep_out_margin_m)
 
     def validation_limits(self, upload: bool = False):
         """server.policy_validation.ValidationLimits from these settings; ``upload``: the quick

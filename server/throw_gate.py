@@ -13,6 +13,9 @@ Conditions, in the order checked (status code):
 ``preview_failed``   422  the preview's twin swing failed (its reason)
 ``preview_other``    422  made for another machine or mode
 ``preview_target``   422  made for a target further than ``target_tolerance_m`` from this one
+``keep_out_scatter`` 422  the preview's ``scatter_sigmas`` ellipse (or, without one, its nominal
+                          impact plus ``nominal_margin_m``) reaches a keep-out zone
+                          (server.targets.scatter_refusal)
 ``preview_stale``    409  older than ``max_age_s``
 ``policy_changed``   409  the runtime's policy for the mode (SHA-256) is not the previewed one
 ``machine_moved``    409  an active joint moved more than ``max_active_joint_delta`` (rad or m,
@@ -24,11 +27,13 @@ Conditions, in the order checked (status code):
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
 
 from runtime.machine import JOINT_NAMES
 from server.errors import Conflict, DomainError, Refused
+from server.targets import scatter_refusal
 
 
 @dataclass(frozen=True)
@@ -45,12 +50,19 @@ class GateLimits:
             ~9 m arm by ~0.45 m, the scale at which the predicted impact shifts visibly (CHOSEN).
         max_passive_joint_delta: same for the passive gripper joints, rad; larger, because the
             hanging gripper keeps swaying a little after the machine stops (CHOSEN).
+        scatter_sigmas: the preview's Monte Carlo ellipse, scaled to this many sigma, must stay
+            out of every keep-out zone; 3 sigma holds 98.9 % of a 2-D Gaussian's impacts (CHOSEN).
+        nominal_margin_m: without an ellipse (a nominal-only preview) the predicted impact must
+            lie this far outside every zone, m; 3 x the 3D site-matrix sigma bar of 0.20 m
+            (CHOSEN; docs/training.md).
     """
 
     max_age_s: float = 60.0
     target_tolerance_m: float = 0.05
     max_active_joint_delta: float = 0.05
     max_passive_joint_delta: float = 0.3
+    scatter_sigmas: float = 3.0
+    nominal_margin_m: float = 0.6
 
 
 @dataclass(frozen=True)
@@ -65,7 +77,7 @@ class Refusal:
 
 def preview_refusal(preview: dict | None, preview_id: str | None, machine_id: str, mode: str,
                     target_m: list[float], current_q: list[float], policy_sha256: str | None,
-                    now: datetime, limits: GateLimits) -> Refusal | None:
+                    now: datetime, limits: GateLimits, zones: Sequence = ()) -> Refusal | None:
     """Why the preview does not allow this throw now, or None if it does.
 
     Args:
@@ -76,6 +88,7 @@ def preview_refusal(preview: dict | None, preview_id: str | None, machine_id: st
         current_q: (6,) the machine's current joint positions (JOINT_NAMES order).
         policy_sha256: SHA-256 of the policy the runtime runs for ``mode`` now (None: unknown).
         now: UTC-aware current time.
+        zones: the site's keep-out zones (server.config.KeepOutZone).
     """
     again = "preview again"
     if preview_id is None:
@@ -92,6 +105,9 @@ def preview_refusal(preview: dict | None, preview_id: str | None, machine_id: st
     if off_m > limits.target_tolerance_m:
         return Refusal(Refused, "preview_target", f"the preview was made for another target ({off_m:.2f} m away, "
                                               f"tolerance {limits.target_tolerance_m:.2f} m): {again}")
+    scatter = scatter_refusal(preview, zones, limits.scatter_sigmas, limits.nominal_margin_m)
+    if scatter is not None:
+        return Refusal(Refused, "keep_out_scatter", scatter)
     age_s = (now - datetime.fromisoformat(preview["created_at"])).total_seconds()
     if age_s > limits.max_age_s:
         return Refusal(Conflict, "preview_stale", f"the preview is {age_s:.0f} s old (at most {limits.max_age_s:.0f} s): {again}")

@@ -184,7 +184,7 @@ class ThrowService:
             info = self.fleet.fresh_info(body.machine_id, max_age_s=2.0, timeout_s=1.0)
             sha = next((q.sha256 for q in (info.policies if info else []) if q.mode == body.mode), None)
             refusal = preview_refusal(p, body.preview_id, body.machine_id, body.mode, body.target, state.q, sha,
-                                      utcnow(), self.gate)
+                                      utcnow(), self.gate, self.keep_out_zones)
             if refusal is not None:
                 raise refusal.error(refusal.message, refusal.condition)
         elif body.preview_id is not None:

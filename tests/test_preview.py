@@ -14,6 +14,7 @@ from runtime.executor import ThrowExecutor
 from runtime.policy import PolicyRunner
 from runtime.protocol.messages import PolicyInfo, ThrowRequest
 from server.config import KeepOutZone
+from server.throw_gate import GateLimits
 from sim_twin.plant import TwinMachine
 from sim_twin.preview import PreviewRequest, preview_throw
 from sim_twin.profile import RealityProfile, SensorParams
@@ -163,6 +164,27 @@ def test_preview_refuses_targets_with_reason(client, machine, target, reason):
     r = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": target})
     assert r.status_code == 422 and reason in r.json()["detail"]
     assert machine.requests == []
+
+
+def test_a_preview_whose_scatter_reaches_a_keep_out_zone_cannot_be_thrown(client, machine):
+    """The target is 0.5 m from a zone's centre, outside its 0.45 m radius; the preview's 3 sigma
+    ellipse (and, without an ellipse, the 0.6 m margin) reaches into it."""
+    client.app.state.throws.gate = GateLimits()  # the fixture's settings switch the gate off
+    client.app.state.throws.keep_out_zones = [KeepOutZone(name="truck", center_m=[TARGET[0] + 0.5, TARGET[1]], radius_m=0.45)]
+    for rollouts in (50, 0):
+        r = client.post("/api/previews", json={"machine_id": "m1", "mode": "2d", "target": TARGET, "rollouts": rollouts})
+        assert r.status_code == 200 and r.json()["status"] == "ok", r.text
+        pid = r.json()["id"]
+        c = client.post(f"/api/previews/{pid}/check", json={"machine_id": "m1", "mode": "2d", "target": TARGET}).json()
+        assert c["valid"] is False and c["condition"] == "keep_out_scatter" and "'truck'" in c["reason"], c
+        r = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET, "preview_id": pid})
+        assert r.status_code == 422 and r.headers["X-Refused-Condition"] == "keep_out_scatter", r.text
+        assert ("scatter ellipse" if rollouts else "without a scatter ellipse") in r.json()["detail"]
+    assert machine.requests == []
+    client.app.state.throws.keep_out_zones = [KeepOutZone(name="truck", center_m=[TARGET[0] + 3.0, TARGET[1]], radius_m=0.45)]
+    r = client.post("/api/previews", json={"machine_id": "m1", "mode": "2d", "target": TARGET, "rollouts": 50})
+    c = client.post(f"/api/previews/{r.json()['id']}/check", json={"machine_id": "m1", "mode": "2d", "target": TARGET}).json()
+    assert c["valid"] is True, c
 
 
 def test_preview_bad_input_and_roles(client, machine):

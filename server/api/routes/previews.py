@@ -8,7 +8,7 @@ from fastapi import APIRouter
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, ConfigDict
 
-from server.api.deps import FleetDep, JobWatcherDep, OperatorDep, PreviewsDep, SettingsDep, ViewerDep
+from server.api.deps import FleetDep, JobWatcherDep, OperatorDep, PreviewsDep, SettingsDep, ThrowServiceDep, ViewerDep
 from server.api.preview_schemas import PreviewCreate, PreviewOut
 from server.api.responses import errors
 from server.api.schemas import Vec3
@@ -77,13 +77,13 @@ class PreviewCheckOut(BaseModel):
 
 
 @router.post("/{preview_id}/check", response_model=PreviewCheckOut)
-def check_preview(preview_id: str, body: PreviewCheckIn, previews: PreviewsDep, settings: SettingsDep, fleet: FleetDep,
-                  _user: ViewerDep) -> PreviewCheckOut:
+def check_preview(preview_id: str, body: PreviewCheckIn, previews: PreviewsDep, fleet: FleetDep,
+                  throws: ThrowServiceDep, _user: ViewerDep) -> PreviewCheckOut:
     """Would a throw with this preview pass the gate now? The console asks while a preview is on
     screen, so Throw is enabled only with a valid one. Reads the fleet's latest state and cached
     runtime info only (no query to the machine); the throw itself checks again."""
     summary = previews.get(preview_id)
-    limits = settings.gate_limits()
+    limits = throws.gate  # the gate the throw itself passes (Settings.gate_limits, None when off)
     now = utcnow()
     age = (now - datetime.fromisoformat(summary["created_at"])).total_seconds() if summary else None
     max_age = limits.max_age_s if limits else None
@@ -99,7 +99,7 @@ def check_preview(preview_id: str, body: PreviewCheckIn, previews: PreviewsDep, 
     info = fleet.cached_info(body.machine_id)
     sha = next((p.sha256 for p in (info.policies if info else []) if p.mode == body.mode), None)
     refusal = preview_refusal(summary, preview_id, body.machine_id, body.mode, list(body.target), list(state.q), sha,
-                              now, limits)
+                              now, limits, throws.keep_out_zones)
     if refusal is None:
         return PreviewCheckOut(valid=True, age_s=age, max_age_s=max_age)
     return PreviewCheckOut(valid=False, condition=refusal.condition, reason=refusal.message, age_s=age, max_age_s=max_age)
