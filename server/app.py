@@ -17,6 +17,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 from sqlalchemy.exc import SQLAlchemyError
+from sqlalchemy.orm import Session, sessionmaker
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
 from server.adaptation import AdaptationRuns
@@ -100,7 +101,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
                                            per_user_address=settings.login_failures_per_user_address)
         app.state.throws = throws = ThrowService(fleet, sessions, settings.keep_out_zones,
                                                  gate=settings.gate_limits(), machine_status=live_hub.status)
-        scene_obj = _make_scene(fleet, throws, live_hub, settings) if settings.viser_enabled else None
+        scene_obj = _make_scene(fleet, throws, live_hub, settings, sessions) if settings.viser_enabled else None
         app.state.settings, app.state.sessions, app.state.store = settings, sessions, store
         app.state.fleet, app.state.scene = fleet, scene_obj
         app.state.reconciler = Reconciler(fleet, sessions, store.mark_lost, settings.result_grace_s,
@@ -201,9 +202,12 @@ def _serve_api_docs(app: FastAPI) -> None:
                               redoc_favicon_url="/docs-static/favicon.png", with_google_fonts=False)
 
 
-def _make_scene(fleet: Fleet, throws: ThrowService, live_hub: LiveHub, settings: Settings) -> ConsoleScene:
+def _make_scene(fleet: Fleet, throws: ThrowService, live_hub: LiveHub, settings: Settings,
+                sessions: sessionmaker[Session]) -> ConsoleScene:
     """The 3D view, judging clicked targets like a throw request would (mode geometry, the
-    policy's trained range, keep-out zones) and pushing console changes live."""
+    policy's trained range, keep-out zones), pushing console changes live, and binding a view to a
+    console only for the console's owner (the session cookie of its websocket)."""
+    from server.auth import user_for_token
     from server.targets import serve_refusal
 
     def refusal(machine_id: str, mode: str, target) -> str | None:
@@ -215,8 +219,13 @@ def _make_scene(fleet: Fleet, throws: ThrowService, live_hub: LiveHub, settings:
     def console_changed(con: dict) -> None:
         live_hub.publish("console", con, console_id=con["console_id"])
 
+    def authorise(token: str | None) -> str | None:
+        with sessions() as db:
+            user = user_for_token(db, token)
+            return user.username if user is not None else None
+
     return ConsoleScene(fleet, settings.viser_host, settings.viser_port, refusal=refusal, band=throws.target_range,
-                        zones=settings.keep_out_zones, on_console_change=console_changed)
+                        zones=settings.keep_out_zones, on_console_change=console_changed, authorise=authorise)
 
 
 class ResultDrawer:

@@ -17,6 +17,7 @@ page seeks to, instead of the live state.
 
 from __future__ import annotations
 
+import http.cookies
 import logging
 import math
 import secrets
@@ -30,6 +31,7 @@ import numpy as np
 import viser
 
 from runtime.throw_geometry import MIN_TARGET_DISTANCE_M
+from server.auth import COOKIE_NAME as SESSION_COOKIE
 from server.errors import Conflict, Denied, Limited, NotFound
 from server.scene_replay import Replay, recorded_paths
 from server.scene_view import ClientView, MachineGeometry, snap_to_line
@@ -159,17 +161,24 @@ class ConsoleScene:
         band: (machine_id, mode) -> the policy's trained target range (lo, hi) m, or None.
         zones: keep-out zones (server.config.KeepOutZone) drawn in every view.
         on_console_change: called with Console.public() after a click changed a console.
+        authorise: session token (the ``slinger_session`` cookie the browser sends with the
+            view's websocket; None when it sent none) -> the user name it logs in, or None. When
+            given, a view is bound to its console only if that user owns the console: knowing a
+            console's id is not enough to aim its operator's throws. None: every view binds
+            (tests of the scene alone).
     """
 
     def __init__(self, fleet, host: str = "127.0.0.1", port: int = 8080, rate_hz: float = 20.0,
                  refusal: Callable | None = None, band: Callable | None = None, zones=(),
-                 on_console_change: Callable[[dict], None] | None = None):
+                 on_console_change: Callable[[dict], None] | None = None,
+                 authorise: Callable[[str | None], str | None] | None = None):
         self.fleet = fleet
         self.host, self.requested_port, self.rate_hz = host, port, rate_hz
         self.refusal = refusal or (lambda mid, mode, t: None)
         self.band = band or (lambda mid, mode: None)
         self.zones = list(zones)
         self.on_console_change = on_console_change
+        self.authorise = authorise
         self.server: viser.ViserServer | None = None
         self.port: int | None = None
         self.consoles: dict[str, Console] = {}
@@ -299,12 +308,12 @@ class ConsoleScene:
             view.draw_target(con.target, con.target_reason)
 
     # --- viser clients -------------------------------------------------------------------------
-    def _console_of_client(self, client) -> str | None:
-        """The console id in the client's websocket path (/c/<console_id>), or None (a view opened
-        outside a console page, or a viser whose internals moved).
+    def _request_of_client(self, client):
+        """The websocket handshake request of a viser client (``path``, ``headers``), or None (a
+        viser whose internals moved).
 
         The one private reach-in into viser, kept here alone: viser 1.1 has no public way to learn
-        which URL a client connected with. Its public client API is
+        which URL a client connected with, or with which headers. Its public client API is
         :meth:`viser.ViserServer.get_clients` / :meth:`~viser.ViserServer.on_client_connect`,
         which hand a :class:`viser.ClientHandle` whose public attributes are ``client_id``,
         ``scene``, ``gui``, ``camera`` and ``local_storage``; the websocket request, and with it
@@ -317,14 +326,34 @@ class ConsoleScene:
         if self.server is None:
             return None
         try:
-            request = self.server._websock_server._live_connections[client.client_id].request  # noqa: SLF001 (see the docstring)
+            return self.server._websock_server._live_connections[client.client_id].request  # noqa: SLF001 (see the docstring)
         except (AttributeError, KeyError):
             return None
+
+    def _console_of_client(self, client) -> str | None:
+        """The console id in the client's websocket path (/c/<console_id>), or None (a view opened
+        outside a console page), if the client may bind to it (:attr:`authorise`)."""
+        request = self._request_of_client(client)
         if request is None:
             return None
         path = request.path.split("?")[0]
         parts = [p for p in path.split("/") if p]
-        return parts[1] if len(parts) == 2 and parts[0] == "c" else None
+        cid = parts[1] if len(parts) == 2 and parts[0] == "c" else None
+        if cid is None or self.authorise is None:
+            return cid
+        cookie = http.cookies.SimpleCookie()
+        try:
+            cookie.load(request.headers.get("Cookie", ""))
+        except http.cookies.CookieError:
+            pass
+        morsel = cookie.get(SESSION_COOKIE)
+        user = self.authorise(morsel.value if morsel else None)
+        con = self.get_console(cid)
+        if con is None or user != con.username:
+            log.warning("3D view for console %s… not bound: its websocket %s", cid[:6],
+                        "carries no valid session" if user is None else f"is {user}'s, not the console owner's")
+            return None
+        return cid
 
     def _on_connect(self, client) -> None:
         if self._geometry is None:

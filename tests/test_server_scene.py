@@ -90,23 +90,30 @@ def scene():
     s.stop()
 
 
-def _view(scene, console_id):
-    """Open a viser client bound to ``console_id``: a websocket with viser's subprotocol that
-    reports its camera (viser counts a client as connected from its first camera message)."""
+def _view(scene, console_id, cookie: str | None = None, bound: bool = True):
+    """Open a viser client of ``console_id``: a websocket with viser's subprotocol (and the
+    ``Cookie`` header ``cookie``) that reports its camera (viser counts a client as connected
+    from its first camera message). Returns (websocket, view); with ``bound`` False, the view is
+    the client's own, which the scene did not bind to the console."""
     import msgspec
 
     from viser._messages import ViewerCameraMessage
 
+    before = set(scene._views)
     ws = connect(f"ws://127.0.0.1:{scene.port}/c/{console_id}", subprotocols=[f"viser-v{viser.__version__}"],
-                 max_size=None, max_queue=None)
+                 max_size=None, max_queue=None, additional_headers={"Cookie": cookie} if cookie else None)
     cam = ViewerCameraMessage(wxyz=(1.0, 0.0, 0.0, 0.0), position=(-5.0, 0.0, 8.0), fov=1.0, near=0.01, far=100.0,
                               image_height=600, image_width=800, look_at=(6.0, 0.0, 0.0), up_direction=(0.0, 0.0, 1.0))
     ws.send(msgspec.msgpack.encode(cam.as_serializable_dict()))
 
-    def bound():
+    if not bound:  # (cid, view) of the new client
+        (key,) = wait_for(lambda: tuple(set(scene._views) - before) or None, 10, "a view connected")  # ids start at 0
+        return ws, scene._views[key]
+
+    def bound_view():
         return next((v for cid, v in scene._views.values() if cid == console_id), None)
 
-    return ws, wait_for(bound, 10, f"a view bound to {console_id}")
+    return ws, wait_for(bound_view, 10, f"a view bound to {console_id}")
 
 
 def _names(view):
@@ -206,6 +213,36 @@ def test_a_replay_poses_the_console_machine_from_the_recording_at_the_seeked_tim
     finally:
         ws_a.close()
         ws_b.close()
+
+
+def test_a_view_binds_to_its_console_only_with_the_owners_session(scene):
+    """With ``authorise`` (the app's: the session cookie of the view's websocket), the console id
+    alone does not bind a view: without a session, or with another user's, clicks do nothing."""
+    scene.authorise = {"tok-ann": "ann", "tok-bob": "bob"}.get
+    a = scene.open_console("ann")
+    scene.update_console(a, machine_id="m1", mode="2d")
+
+    class Click:
+        ray_origin, ray_direction = (0.0, 0.0, 10.0), (0.6, 0.0, -0.8)
+
+    opened = []
+    try:
+        for cookie in (None, "slinger_session=tok-bob", "slinger_session=forged", "x=1; slinger_session"):
+            ws, view = _view(scene, a.console_id, cookie, bound=False)
+            opened.append(ws)
+            cid, _ = view
+            assert cid is None, cookie
+            client_id = next(k for k, v in scene._views.items() if v is view)
+            scene._on_click(client_id, Click())
+            assert scene.get_console(a.console_id).target is None, cookie
+        ws, _ = _view(scene, a.console_id, "theme=dark; slinger_session=tok-ann")
+        opened.append(ws)
+        client_id = next(k for k, (cid, _) in scene._views.items() if cid == a.console_id)
+        scene._on_click(client_id, Click())
+        assert scene.get_console(a.console_id).target is not None
+    finally:
+        for ws in opened:
+            ws.close()
 
 
 def test_scene_reports_the_port_viser_really_uses():
