@@ -176,7 +176,10 @@ function renderPreviewAge() {
   const age = state.check && state.check.age_s !== null && state.check.age_s !== undefined
     ? state.check.age_s + (Date.now() - state.checkAt) / 1000 : (Date.now() - state.previewAt) / 1000;
   const max = state.check && state.check.max_age_s;
-  if (state.check && !state.check.valid) {
+  if (state.check && !state.check.valid && state.check.condition === "keep_out_scatter") {
+    el.textContent = sentence(state.check.reason); // another preview would not help: another target does
+    el.className = "preview-age error";
+  } else if (state.check && !state.check.valid) {
     el.textContent = `${gateWords(state.check)}: ${state.busy ? "previewing again…" : "preview again."}`;
     el.className = "preview-age error";
   } else {
