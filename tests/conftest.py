@@ -576,9 +576,11 @@ class SlingerUp:
     are set afterwards. Attributes: base_url, viser_port, data_dir.
     """
 
-    def __init__(self, tmp_path: Path, machines: int = 1, create_admin: bool = True, real_policies: bool = False):
+    def __init__(self, tmp_path: Path, machines: int = 1, create_admin: bool = True, real_policies: bool = False,
+                 env: dict[str, str] | None = None):
         """real_policies: run the repository's deployed policies (both modes) with the runtime's release
-        check ON, as the main job does, instead of the non-throwing test policy."""
+        check ON, as the main job does, instead of the non-throwing test policy. env: more
+        environment variables for the stack (settings as SLINGER_*)."""
         from server.stack import slinger_command
         from tests.fixtures import write_test_policy
 
@@ -590,6 +592,8 @@ class SlingerUp:
             policy = write_test_policy(tmp_path / "policies", "2d", release_after_bias=2.0)
             # no 3D runtime policy (a missing file keeps the repo's throw3d.onnx out)
             extra = ["--policy-2d", str(policy), "--policy-3d", str(tmp_path / "no-3d-policy.onnx")]
+        if env:
+            self.env = {**(self.env if self.env is not None else os.environ), **env}
         self.port, self.viser_port, zport = free_port(), free_port(), free_port()
         self.data_dir = tmp_path / "var"
         self.base_url = f"http://127.0.0.1:{self.port}"
