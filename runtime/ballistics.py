@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from types import ModuleType
 
+import numpy as np
+
 GRAVITY_MPS2 = 9.81
 PAYLOAD_RADIUS_M = 0.12
 """Size 7 basketball, 0.24 m diameter (machine-spec.md): the payload's centre is this high when
@@ -30,3 +32,13 @@ def ballistic_position(xp: ModuleType, p0, v0, t):
     """Drag-free projectile position (3,) at time t after leaving p0 with v0."""
     g = xp.asarray([0.0, 0.0, -GRAVITY_MPS2], dtype=p0.dtype)
     return p0 + v0 * t + 0.5 * g * t * t
+
+
+def ground_impact(p0: np.ndarray, v0: np.ndarray) -> tuple[np.ndarray, float]:
+    """Where and when (numpy) a payload freed at p0 (3,) with v0 (3,) touches the ground in
+    drag-free flight: the ground point under its centre (3,), z = 0, m, and the flight time, s
+    (its centre PAYLOAD_RADIUS_M high at the touch)."""
+    t = float(ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
+    hit = ballistic_position(np, p0, v0, t)
+    hit[2] = 0.0
+    return hit, t

@@ -72,7 +72,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from runtime.ballistics import PAYLOAD_RADIUS_M, ballistic_impact_time, ballistic_position
+from runtime.ballistics import ground_impact
 from runtime.machine import JOINT_LOWER, JOINT_UPPER, NUM_ACTIVE, NUM_JOINTS, forward_kinematics
 
 OPENING_DELAY_MEAN_S = 0.258
@@ -159,8 +159,7 @@ class ReleasePredictor:
             mj.mj_step(self.model, d)
         pts = forward_kinematics(np, d.qpos.copy(), d.qvel.copy())
         p0, v0 = np.asarray(pts.gripper_centre, dtype=float), np.asarray(pts.gripper_centre_vel, dtype=float)
-        hit = ballistic_position(np, p0, v0, ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
-        hit[2] = 0.0
+        hit, _ = ground_impact(p0, v0)
         if not np.all(np.isfinite(hit)):
             raise ValueError("impact prediction diverged")
         return hit

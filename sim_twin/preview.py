@@ -112,14 +112,6 @@ class PreviewRequest:
     release_check_radius_m: float | None = DEFAULT_RADIUS_M
 
 
-def _flight(p0: np.ndarray, v0: np.ndarray) -> tuple[np.ndarray, float]:
-    """Impact point (z = 0) and flight time of a payload freed at p0 with v0 (as the twin)."""
-    t = float(ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
-    hit = ballistic_position(np, p0, v0, t)
-    hit[2] = 0.0
-    return hit, t
-
-
 def _downsample(points: np.ndarray, n: int = PATH_POINTS) -> list[list[float]]:
     if len(points) == 0:
         return []

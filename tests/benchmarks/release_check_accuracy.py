@@ -37,7 +37,7 @@ CELLS = [  # (policy, mode, target m, index in the matrix's target list, profile
 def release_errors(policy_path: str, mode: str, distance_m: float, seeds: list[int], profile_path: str | None) -> list[dict]:
     """Worker: one throw per seed with the check off; per landed throw the predictor's and the
     naive prediction's horizontal error (m) and the prediction's wall time (s)."""
-    from runtime.ballistics import PAYLOAD_RADIUS_M, ballistic_impact_time, ballistic_position
+    from runtime.ballistics import ground_impact
     from runtime.executor import ExecutorConfig, ThrowExecutor
     from runtime.machine import forward_kinematics
     from runtime.policy import PolicyRunner
@@ -75,7 +75,7 @@ def release_errors(policy_path: str, mode: str, distance_m: float, seeds: list[i
         hit, dt, const = rec.hit, rec.dt, predictor.predict(q, qd)
         pts = forward_kinematics(np, q, qd)
         p0, v0 = np.asarray(pts.gripper_centre), np.asarray(pts.gripper_centre_vel)
-        naive = ballistic_position(np, p0, v0, ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
+        naive, _ = ground_impact(p0, v0)
         actual, target = np.asarray(outcome.impact_m), np.asarray(req.target_m)
         rows.append({"seed": seed, "error_m": float(np.hypot(*(hit - actual)[:2])), "const_error_m": float(np.hypot(*(const - actual)[:2])),
                      "naive_error_m": float(np.hypot(*(naive - actual)[:2])), "predict_s": dt,

@@ -50,12 +50,11 @@ VARIANTS = {  # name -> profile dict (None = the nominal twin)
 def _ground_range(q: np.ndarray, qd: np.ndarray) -> float:
     """Horizontal distance from the turn axis (m) at which the gripper centre, released in state
     (q, qd) (rad, m; machine frame), lands in drag-free flight (runtime.ballistics)."""
-    from runtime.ballistics import PAYLOAD_RADIUS_M, ballistic_impact_time, ballistic_position
+    from runtime.ballistics import ground_impact
     from runtime.machine import forward_kinematics
 
     pts = forward_kinematics(np, q, qd)
-    p0, v0 = np.asarray(pts.gripper_centre), np.asarray(pts.gripper_centre_vel)
-    hit = ballistic_position(np, p0, v0, ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
+    hit, _ = ground_impact(np.asarray(pts.gripper_centre, dtype=float), np.asarray(pts.gripper_centre_vel, dtype=float))
     return float(np.hypot(hit[0], hit[1]))
 
 
