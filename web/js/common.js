@@ -14,12 +14,17 @@ async function api(method, path, body, isForm = false) {
   if (res.status === 401 && !path.startsWith("/api/auth/login")) {
     // The page is leaving for the log-in page: the call never settles, so no caller shows a stale
     // error and no unhandled rejection is reported while the page unloads.
-    location.href = `/console/login.html?next=${encodeURIComponent(location.pathname + location.search)}`;
+    toLogIn();
     return new Promise(() => {});
   }
   const data = await res.json().catch(() => null);
   if (!res.ok) throw responseError(res, data);
   return data;
+}
+
+/** Leave for the log-in page, which comes back to this page (path and query) afterwards. */
+function toLogIn() {
+  location.href = `/console/login.html?next=${encodeURIComponent(location.pathname + location.search)}`;
 }
 
 /** The error of a refused response ``res`` with its parsed JSON body ``data`` (or null): the

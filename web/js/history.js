@@ -22,7 +22,7 @@ async function load() {
   $("csv").href = `/api/throws/export.csv?${p}`;
   p.set("sort", hist.sort); p.set("order", hist.order); p.set("limit", hist.limit); p.set("offset", hist.offset);
   const res = await fetch(`/api/throws?${p}`);
-  if (res.status === 401) { location.href = `/console/login.html?next=${encodeURIComponent(location.pathname + location.search)}`; return; }
+  if (res.status === 401) { toLogIn(); return; }
   const rows = await res.json().catch(() => null);
   if (!res.ok) { $("page-info").textContent = responseError(res, rows).message; return; }
   hist.total = parseInt(res.headers.get("X-Total-Count") || "0", 10);
