@@ -93,8 +93,8 @@ def scene():
 def _view(scene, console_id, cookie: str | None = None, bound: bool = True):
     """Open a viser client of ``console_id``: a websocket with viser's subprotocol (and the
     ``Cookie`` header ``cookie``) that reports its camera (viser counts a client as connected
-    from its first camera message). Returns (websocket, view); with ``bound`` False, the view is
-    the client's own, which the scene did not bind to the console."""
+    from its first camera message). Returns (websocket, the view bound to the console), or with
+    ``bound`` False (websocket, the new client's id), whatever the scene bound it to."""
     import msgspec
 
     from viser._messages import ViewerCameraMessage
@@ -106,9 +106,9 @@ def _view(scene, console_id, cookie: str | None = None, bound: bool = True):
                               image_height=600, image_width=800, look_at=(6.0, 0.0, 0.0), up_direction=(0.0, 0.0, 1.0))
     ws.send(msgspec.msgpack.encode(cam.as_serializable_dict()))
 
-    if not bound:  # (cid, view) of the new client
-        (key,) = wait_for(lambda: tuple(set(scene._views) - before) or None, 10, "a view connected")  # ids start at 0
-        return ws, scene._views[key]
+    if not bound:
+        (client_id,) = wait_for(lambda: tuple(set(scene._views) - before) or None, 10, "a view connected")  # ids start at 0
+        return ws, client_id
 
     def bound_view():
         return next((v for cid, v in scene._views.values() if cid == console_id), None)
@@ -228,16 +228,14 @@ def test_a_view_binds_to_its_console_only_with_the_owners_session(scene):
     opened = []
     try:
         for cookie in (None, "slinger_session=tok-bob", "slinger_session=forged", "x=1; slinger_session"):
-            ws, view = _view(scene, a.console_id, cookie, bound=False)
+            ws, client_id = _view(scene, a.console_id, cookie, bound=False)
             opened.append(ws)
-            cid, _ = view
-            assert cid is None, cookie
-            client_id = next(k for k, v in scene._views.items() if v is view)
+            assert scene._views[client_id][0] is None, cookie  # bound to no console
             scene._on_click(client_id, Click())
             assert scene.get_console(a.console_id).target is None, cookie
-        ws, _ = _view(scene, a.console_id, "theme=dark; slinger_session=tok-ann")
+        ws, client_id = _view(scene, a.console_id, "theme=dark; slinger_session=tok-ann", bound=False)
         opened.append(ws)
-        client_id = next(k for k, (cid, _) in scene._views.items() if cid == a.console_id)
+        assert scene._views[client_id][0] == a.console_id
         scene._on_click(client_id, Click())
         assert scene.get_console(a.console_id).target is not None
     finally:
