@@ -1,0 +1,73 @@
+#!/bin/bash
+# Several `slinger train` runs side by side on one lent GPU machine, detached from the device call so
+# that they outlive it (setsid) while the machine is held, with a call that watches them and brings
+# their state back. Each run resumes from runs/state/<name>.tar when that is present (a previous
+# machine's state: carry `runs/state` in the device call).
+#
+#   bash tests/benchmarks/device_runs.sh install        # wheels from .whl/base (and .whl/extra if carried)
+#   bash tests/benchmarks/device_runs.sh start NAME MODE CONFIG WORKERS [more slinger train args]
+#   bash tests/benchmarks/device_runs.sh watch MINUTES  # progress every minute, then collect
+#   bash tests/benchmarks/device_runs.sh collect        # $OUT/<name>.tar and $OUT/train_<name>.log.gz per run
+#
+# The runs work in a copy of the tree (/tmp/slinger-runs): every device call copies the working tree
+# anew, and a file missing for that moment broke a site matrix running from the tree itself.
+#
+# The GPU is shared by the runs and the CPU cores by their site-matrix gates (WORKERS processes each):
+# training wall times measured this way are upper bounds of a run alone on the GPU.
+set -u
+WORK=/tmp/slinger-runs
+export PYTHONPATH=/tmp/site:$WORK PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+
+install() {
+  for d in .whl/base .whl/extra; do
+    ls $d/*.whl >/dev/null 2>&1 && [ ! -f /tmp/site/.${d#.whl/} ] || continue
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site $d/*.whl || exit 1
+    touch /tmp/site/.${d#.whl/}
+  done
+  mkdir -p $WORK && tar cf - --exclude=./.whl --exclude=./.git . | tar xf - -C $WORK
+  nvidia-smi -L
+  python3 -c "import mujoco, jax, rsl_rl, torch; print('mujoco', mujoco.__version__, 'jax', jax.__version__, jax.devices(), 'torch', torch.__version__)"
+}
+
+start() {
+  local name=$1 mode=$2 config=$3 workers=$4; shift 4
+  local run=runs/$name resume=""
+  [ -f runs/state/$name.tar ] && [ ! -d $run ] && tar xf runs/state/$name.tar  # the whole run or only what resuming needs
+  [ -f $run/checkpoint.pt ] && resume="--resume $run/checkpoint.pt"
+  mkdir -p $run
+  setsid nohup python3 -m sim_twin.train --mode $mode --config $config --log-dir $run --gate-workers $workers \
+    --max-minutes 600 $resume "$@" >> $run/train.log 2>&1 < /dev/null &
+  echo "started $name (pid $!) $resume"
+}
+
+progress() {
+  for run in runs/*/; do
+    [ -f $run/curve.csv ] || continue
+    echo "$(basename $run): $(tail -n 1 $run/curve.csv | cut -d, -f1-9)"
+    grep -h "site matrix of" $run/train.log 2>/dev/null | tail -n 2
+  done
+}
+
+collect() {
+  for run in runs/*/; do
+    local name=$(basename $run)
+    [ "$name" = state ] || [ ! -f $run/train.log ] && continue
+    # a checkpoint being written is skipped: wait until it has been still for 3 s
+    for _ in $(seq 20); do
+      [ $(( $(date +%s) - $(stat -c %Y $run/checkpoint.pt 2>/dev/null || echo 0) )) -ge 3 ] && break; sleep 1
+    done
+    tar cf $OUT/$name.tar --exclude="$run/candidates/*.pt" --exclude="$run/train.log" $run
+    gzip -c $run/train.log > $OUT/train_$name.log.gz
+  done
+  ls -la $OUT
+}
+
+watch() {
+  local end=$(( $(date +%s) + ${1%.*} * 60 ))
+  while [ $(date +%s) -lt $end ]; do sleep 60; date +%T; progress; nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader; done
+  collect
+}
+
+cmd=$1; shift
+[ "$cmd" = install ] || cd $WORK 2>/dev/null || { echo "run install first"; exit 1; }
+$cmd "$@"
