@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import platform
 import subprocess
 from pathlib import Path
@@ -19,14 +20,17 @@ def config_sha256(cfg: dict) -> str:
 
 
 def git_commit(repo: Path | None = None) -> str:
-    """The repository's HEAD commit (with ``-dirty`` when the tree has changes), or "unknown"."""
+    """The repository's HEAD commit (with ``-dirty`` when the tree has changes); in a copy of the
+    tree without git (a lent GPU machine) the commit named by the environment variable
+    ``SLINGER_GIT_COMMIT``; else "unknown"."""
+    given = os.environ.get("SLINGER_GIT_COMMIT", "").strip()
     try:
         cwd = str(repo or Path(__file__).resolve().parent)
         head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=10, check=True).stdout.strip()
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=cwd, capture_output=True, text=True, timeout=10).stdout.strip()
         return head + ("-dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
+        return given or "unknown"
 
 
 def accelerator() -> str:

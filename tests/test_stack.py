@@ -51,6 +51,15 @@ def _landed_throw(http, post, attempts: int = 4):
     return row, stored
 
 
+def _wait_ready(http, machine_id: str = "m1", timeout_s: float = 60.0) -> None:
+    """Wait until the machine reports ready, as the console's Throw button does: after a landing
+    the simulated machine loads the next payload RELOAD_AFTER_LANDING_S of simulated time later,
+    which on a loaded host takes longer in wall time."""
+    def ready():
+        return any(m["id"] == machine_id and m.get("ready") for m in http.get("/api/machines").json())
+    wait_for(ready, timeout_s, f"{machine_id} ready")
+
+
 def _landed_or_final(get_row):
     row = get_row()
     return row if row["status"] in ("landed", "failed", "aborted") else None
@@ -130,6 +139,7 @@ def test_slinger_up_end_to_end_and_ctrl_c(tmp_path):
         r = http.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D})
         assert r.status_code == 422 and r.headers["x-refused-condition"] == "preview_missing"  # the server gates
         def previewed_throw():
+            _wait_ready(http)
             p = http.post("/api/previews", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D, "rollouts": 1})
             assert p.status_code == 200 and p.json()["status"] == "ok", p.text
             return http.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D,
@@ -160,6 +170,7 @@ def test_slinger_up_throws_with_the_deployed_policies_and_the_release_check_on(t
         for mode, target, bound_m in (("2d", TARGET_2D, 0.5), ("3d", [6.0, 5.0, 0.0], 1.2)):
             def previewed_throw():
                 for _ in range(20):  # after a throw the gripper swings on: preview again until it has settled
+                    _wait_ready(http)  # the next payload loaded, the machine at rest
                     p = http.post("/api/previews", json={"machine_id": "m1", "mode": mode, "target": target, "rollouts": 1})
                     assert p.status_code == 200 and p.json()["status"] == "ok", p.text
                     r = http.post("/api/throws", json={"machine_id": "m1", "mode": mode, "target": target,

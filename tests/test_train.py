@@ -109,3 +109,14 @@ def test_std_schedule_caps_the_learned_std():
     assert std[-1].item() == pytest.approx(0.25, rel=1e-5) and std[0].item() == pytest.approx(0.2 * 2.718281828**-1, rel=1e-4)
     with pytest.raises(ValueError, match="release_floor"):
         train.StdSchedule.from_dict({"start": 0.6, "end": 0.1, "iterations": 100, "release_floor": 0.3})
+
+
+def test_model_card_commit_outside_git_comes_from_the_environment(tmp_path, monkeypatch):
+    """A copy of the tree without git (as on a lent GPU machine) records the commit it was given."""
+    from sim_twin.model_card import git_commit
+
+    monkeypatch.delenv("SLINGER_GIT_COMMIT", raising=False)
+    assert git_commit(tmp_path) == "unknown"
+    monkeypatch.setenv("SLINGER_GIT_COMMIT", "8cb5ce7")
+    assert git_commit(tmp_path) == "8cb5ce7"
+    assert git_commit().split("-")[0] != "8cb5ce7"  # inside the repository git's own answer wins
