@@ -67,9 +67,9 @@ def throw_batch(policy_path: str | Path, mode: str, distance_m: float, seeds: li
     from runtime.policy import PolicyRunner
     from runtime.protocol.messages import ThrowRequest
     from runtime.release_check import ReleaseCheck
-    from sim_twin.plant import TwinMachine, run_throw
     from sim_twin.profile import RealityProfile
     from sim_twin.simulated_machine import SimulatedMachine
+    from sim_twin.twin_machine import TwinMachine, run_throw
 
     policy = PolicyRunner.load(policy_path)
     profile = RealityProfile.load(profile_path) if profile_path else RealityProfile()

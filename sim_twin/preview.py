@@ -48,9 +48,9 @@ from sim_twin.effects.payload import FLIGHT_DT_S, grasp_point, integrate_flight
 from sim_twin.effects.release import ReleaseDelay
 from sim_twin.model import PAYLOAD_RADIUS_M
 from sim_twin.physics import ballistic_impact_time, ballistic_position
-from sim_twin.plant import TwinMachine
 from sim_twin.profile import RealityProfile
 from sim_twin.simulated_machine import SimulatedMachine
+from sim_twin.twin_machine import TwinMachine
 from sim_twin.uncertainty import NO_START_UNCERTAINTY, StartUncertainty, parse, sample_profile, unit_points
 
 DELAY_SIGMAS = 4.0

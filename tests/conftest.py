@@ -86,6 +86,7 @@ SLOW_TESTS = {
     "tests/test_matrix.py::test_tiny_matrix_writes_table_json_and_figure": "processes",
     "tests/test_matrix_gate.py": "processes",
     "tests/test_pools.py": "processes",
+    "tests/test_plant.py::test_the_in_process_twin_runs_without_zenoh": "processes",
     "tests/test_diagnosis_benchmark.py::test_stopping_the_workers_ends_running_cases_at_once": "processes",
     "tests/test_jobs.py::test_bad_queue_and_job_input_is_refused": "processes",
     "tests/test_web_hygiene.py::test_request_body_size_limit": "processes",

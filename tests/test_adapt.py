@@ -20,7 +20,7 @@ from sim_twin import adapt as ad
 from sim_twin.hydraulics import NOMINAL_LAG_S
 from sim_twin.profile import RealityProfile
 from sim_twin.simulated_machine import SimulatedMachine
-from sim_twin.plant import TwinMachine
+from sim_twin.twin_machine import TwinMachine
 from tests.fixtures import finished_diagnosis_run, write_test_policy
 
 TABLE = {"format": AIM_FORMAT, "distances_m": [7.0, 9.0], "downrange_offset_m": [-0.2, -0.4], "crossrange_offset_m": [0.1, 0.3]}

@@ -8,9 +8,10 @@ import pytest
 
 from runtime.protocol.messages import GripperCommand, SimReset, ValidationError, ValveCommand, encode
 from sim_twin.initial_pose import pose_is_valid
-from sim_twin.plant import RELOAD_AFTER_LANDING_S, VALVE_WATCHDOG_S, PlantInbox, TwinMachine, plant_tick, run_throw
+from sim_twin.plant import VALVE_WATCHDOG_S, PlantInbox, plant_tick
 from sim_twin.realtime import BEHIND_FAULT_S, RECOVER_S, RealTimeGuard
 from sim_twin.simulated_machine import SimulatedMachine
+from sim_twin.twin_machine import RELOAD_AFTER_LANDING_S, TwinMachine, run_throw
 
 
 def _sample(msg) -> object:
@@ -166,3 +167,23 @@ def test_a_machine_at_rest_outside_the_envelope_stays_there():
         st, _ = plant_tick(twin, inbox, 0.01 * k)
     assert twin.reset_count == 0 and st.payload_attached and not st.gripper_open
     assert st.q[3] == pytest.approx(1.8, abs=0.01) and inbox.resting
+
+
+def test_the_in_process_twin_runs_without_zenoh():
+    """Evaluation, site matrices and previews drive the twin in process: they import nothing of
+    Zenoh (a GPU machine training with its site-matrix gate beside it has no Zenoh installed)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "class Block:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] == 'zenoh': raise ImportError('zenoh is not installed here')\n"
+        "sys.meta_path.insert(0, Block())\n"
+        "from sim_twin.twin_machine import TwinMachine, run_throw\n"
+        "import sim_twin.evaluate, sim_twin.matrix, sim_twin.preview\n"
+        "print('ok')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]

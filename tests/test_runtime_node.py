@@ -41,8 +41,8 @@ from runtime.service import RuntimeService
 from runtime.telemetry import read_telemetry
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
 from runtime.zenoh_session import open_session
-from sim_twin.plant import TwinMachine
 from sim_twin.simulated_machine import SimulatedMachine
+from sim_twin.twin_machine import TwinMachine
 from tests.conftest import free_port, wait_for
 from tests.fixtures import write_test_policy
 

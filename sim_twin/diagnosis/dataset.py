@@ -205,9 +205,9 @@ def _throw_worker(args) -> tuple[dict, bytes] | None:
     from runtime.policy import PolicyRunner
     from runtime.protocol.messages import ThrowRequest
     from sim_twin.evaluate import target_on_axis
-    from sim_twin.plant import TwinMachine, run_throw
     from sim_twin.profile import RealityProfile
     from sim_twin.simulated_machine import SimulatedMachine
+    from sim_twin.twin_machine import TwinMachine, run_throw
 
     policy = _policy_cache.get(policy_path) or _policy_cache.setdefault(policy_path, PolicyRunner.load(policy_path))
     sim = SimulatedMachine(RealityProfile.from_dict(profile_dict), seed=seed)

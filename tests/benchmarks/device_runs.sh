@@ -53,6 +53,7 @@ progress() {
 
 collect() {
   for run in runs/*/; do
+    run=${run%/}
     local name=$(basename $run)
     [ "$name" = state ] || [ ! -f $run/train.log ] && continue
     # a checkpoint being written is skipped: wait until it has been still for 3 s
