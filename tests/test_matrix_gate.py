@@ -54,3 +54,24 @@ def test_gate_reports_a_crashed_matrix_and_goes_on(tmp_path):
     assert gate.wait(60) is None and not gate.busy and gate.results == []
     assert gate.submit(2, "y.onnx", 0.0)  # idle again: the next candidate starts
     gate.stop()
+
+
+def test_the_matrix_runs_at_a_lower_priority_than_the_training(tmp_path):
+    """The matrix process (and the pool it starts) runs GATE_NICENESS below the training process,
+    which keeps the cores it launches its GPU work from."""
+    import os
+
+    from sim_twin.matrix_gate import GATE_NICENESS
+
+    seen = tmp_path / "niceness"
+
+    class Probe(FakeGate):
+        def command(self, onnx, seed, out):
+            rep = {"pass": True, "profiles": []}
+            return [sys.executable, "-c", f"import json, os, time; time.sleep(0.5); open({str(seen)!r}, 'w').write(str(os.nice(0))); "
+                                          f"open({out!r}, 'w').write(json.dumps({rep!r}))"]
+
+    gate = Probe(tmp_path, "2d", seeds=[0], workers=1)
+    assert gate.submit(1, "cand/checkpoint_1.onnx", 0.0)
+    gate.wait(60)
+    assert int(seen.read_text()) == min(19, os.nice(0) + GATE_NICENESS)
