@@ -9,7 +9,8 @@ import pytest
 
 from runtime.machine import JOINT_LOWER, JOINT_UPPER, forward_kinematics
 from sim_twin.hydraulics import cylinder_step
-from sim_twin.plant import PlantInbox, TwinMachine, plant_tick
+from sim_twin.plant import PlantInbox, plant_tick
+from sim_twin.twin_machine import TwinMachine
 from sim_twin.simulated_machine import SimulatedMachine
 
 POSES = {

@@ -11,7 +11,8 @@ import numpy as np
 
 import sim_twin.plant as plant
 from runtime.protocol.messages import GripperCommand, MachineState, ValveCommand, decode
-from sim_twin.plant import PlantInbox, TwinMachine
+from sim_twin.plant import PlantInbox
+from sim_twin.twin_machine import TwinMachine
 from sim_twin.simulated_machine import SimulatedMachine
 from tests.conftest import wait_for
 from tests.test_plant import _sample

@@ -8,7 +8,8 @@ import time
 import numpy as np
 
 from runtime.protocol.messages import GripperCommand, ValveCommand, encode
-from sim_twin.plant import REST_TICKS, PlantInbox, TwinMachine, plant_tick
+from sim_twin.plant import REST_TICKS, PlantInbox, plant_tick
+from sim_twin.twin_machine import TwinMachine
 from sim_twin.simulated_machine import SimulatedMachine
 
 

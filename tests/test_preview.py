@@ -15,7 +15,7 @@ from runtime.policy import PolicyRunner
 from runtime.protocol.messages import PolicyInfo, ThrowRequest
 from server.config import KeepOutZone
 from server.throw_gate import GateLimits
-from sim_twin.plant import TwinMachine
+from sim_twin.twin_machine import TwinMachine
 from sim_twin.preview import PreviewRequest, preview_throw
 from sim_twin.profile import RealityProfile, SensorParams
 from sim_twin.simulated_machine import SimulatedMachine

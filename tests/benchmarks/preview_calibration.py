@@ -57,7 +57,7 @@ def one_throw(policy_path: str, profile_path: str, mode: str, distance_m: float,
     from runtime.protocol.messages import ThrowRequest
     from sim_twin.evaluate import target_on_axis
     from sim_twin.initial_pose import sample_pose
-    from sim_twin.plant import TwinMachine, run_throw
+    from sim_twin.twin_machine import TwinMachine, run_throw
     from sim_twin.preview import PreviewRequest, preview_throw
     from sim_twin.profile import RealityProfile
     from sim_twin.simulated_machine import SimulatedMachine

@@ -68,7 +68,7 @@ def throws(policy_path: str, distance_m: float, seeds: list[int], profile: dict 
     from runtime.protocol.messages import ThrowRequest
     from runtime.release_check import ReleaseCheck
     from sim_twin.evaluate import target_on_axis
-    from sim_twin.plant import TwinMachine, run_throw
+    from sim_twin.twin_machine import TwinMachine, run_throw
     from sim_twin.profile import RealityProfile
     from sim_twin.simulated_machine import SimulatedMachine
 
