@@ -10,8 +10,9 @@ token keys.machine_alive(id).
 
 What only the simulated machine does stays here, behind the machine interface:
 
-* reloading: RELOAD_AFTER_LANDING_S after its payload landed (or RELOAD_UNLOADED_S after it
-  was lost without a landing) the plant loads a fresh payload at a random collision-free pose
+* reloading (sim_twin.twin_machine.TwinMachine.reload_if_due, called every period of the loop):
+  RELOAD_AFTER_LANDING_S after its payload landed (or RELOAD_UNLOADED_S after it was lost
+  without a landing) the plant loads a fresh payload at a random collision-free pose
   keeping the cabin angle, gripper closed, at rest. This stands for the operator picking up
   the next object; the machine then waits loaded, so a preview from its current state
   predicts the next throw. A loaded machine that comes to rest where no throw can start (a

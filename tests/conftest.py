@@ -45,9 +45,9 @@ from runtime.throw_geometry import impact_errors
 from runtime.zenoh_session import open_session
 
 # JAX's persistent compilation cache for every test and the processes they start: the tiny CPU
-# trainings, their resumes and the MJX parity tests compile the same programs again and again
-# (on a 2-core host a train-resume-export test took 173 s without it, 109 s from an empty cache, 45 s warm). Keyed by
-# the program and the jaxlib version, so a changed environment simply compiles anew.
+# trainings, their resumes and the MJX parity tests compile the same programs again and again (on
+# a 2-core host a train-resume-export test took 173 s without it, 109 s from an empty cache, 45 s
+# warm). Keyed by the program and the jaxlib version, so a changed environment compiles anew.
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(tempfile.gettempdir()) / f"slinger-tests-jax-cache-{os.getuid()}"))
 
 

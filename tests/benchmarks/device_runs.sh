@@ -9,8 +9,8 @@
 #   bash tests/benchmarks/device_runs.sh watch MINUTES  # progress every minute, then collect
 #   bash tests/benchmarks/device_runs.sh collect        # $OUT/<name>.tar and $OUT/train_<name>.log.gz per run
 #
-# The copy has no git: set SLINGER_GIT_COMMIT=<commit> on each call (`start` passes it on) so that
-# the model card of an exported policy names the commit it was trained at.
+# The copy has no git: export SLINGER_GIT_COMMIT=<commit> in the call that starts a run (the run
+# inherits it) so that the model card of an exported policy names the commit it was trained at.
 #
 # The runs work in a copy of the tree (/tmp/slinger-runs): every device call copies the working tree
 # anew, and a file missing for that moment broke a site matrix running from the tree itself.
