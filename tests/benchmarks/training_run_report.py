@@ -5,16 +5,23 @@ reads ``<run>/matrices/matrix_gate.json`` and the matrices beside it and writes 
 ``<name>.json`` and ``<name>.png`` (cells missing a bar against training wall time). For every
 profile it gives the first checkpoint (training wall time) at which that profile met all its bars
 on the gate's first seed, and whether it kept meeting them after.
+
+``--after-run <run>/matrices/site_matrix_<mode>_it<N>[_seed<S>].json ...`` adds site matrices of
+later checkpoints run after the training stopped (``slinger evaluate --policy ... --matrix --seed
+S``, another host): their rows are marked "after the run", their training wall time is the one
+``curve.csv`` gives for iteration N, and they count for no verdict of the gate.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import hashlib
 import json
 import platform
+import re
 import subprocess
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 
@@ -24,9 +31,12 @@ def main() -> None:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--gpu", default="one NVIDIA H100 80GB HBM3")
     p.add_argument("--command", default="slinger train --mode 2d")
+    p.add_argument("--after-run", type=Path, nargs="*", default=[],
+                   help="site matrices of later checkpoints run after the training (site_matrix_<mode>_it<N>[_seed<S>].json)")
     a = p.parse_args()
     gate = json.loads((a.run / "matrices" / "matrix_gate.json").read_text())
-    rows = sorted(gate["results"], key=lambda r: (r["iteration"], r["seed"]))
+    rows = [dict(r, after_run=False) for r in gate["results"]] + [after_run_row(a.run, m) for m in a.after_run]
+    rows.sort(key=lambda r: (r["iteration"], r["seed"]))
     first_seed = gate["seeds"][0]
     per_profile: dict[str, list[tuple[float, int, bool]]] = {}
     for r in rows:
@@ -43,7 +53,7 @@ def main() -> None:
     ckpt = a.run / "checkpoint.pt"
     commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     out = {
-        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
         "commit": commit,
         "host": platform.node(),
         "gpu": a.gpu,
@@ -52,7 +62,7 @@ def main() -> None:
         "checkpoint_sha256": hashlib.sha256(ckpt.read_bytes()).hexdigest() if ckpt.exists() else None,
         "seeds": gate["seeds"],
         "passed": gate["passed"],
-        "results": [{k: r[k] for k in ("iteration", "seed", "passed", "missing_cells", "train_wall_s", "misses")} for r in rows],
+        "results": [{k: r[k] for k in ("iteration", "seed", "passed", "missing_cells", "train_wall_s", "misses", "after_run")} for r in rows],
         "first_met_per_profile": first_met,
     }
     a.out.parent.mkdir(parents=True, exist_ok=True)
@@ -64,7 +74,8 @@ def main() -> None:
           "| iteration | training wall time [min] | seed | cells missing a bar (of 66) | misses |", "|---|---|---|---|---|"]
     for r in rows:
         miss = "; ".join(r["misses"]) if r["missing_cells"] <= 6 else f"{r['missing_cells']} cells"
-        md.append(f"| {r['iteration']} | {r['train_wall_s'] / 60:.1f} | {r['seed']} | {r['missing_cells']} | {miss} |")
+        it = f"{r['iteration']} (after the run)" if r["after_run"] else str(r["iteration"])
+        md.append(f"| {it} | {r['train_wall_s'] / 60:.1f} | {r['seed']} | {r['missing_cells']} | {miss} |")
     md += ["", f"First checkpoint at which each profile met all its bars (seed {first_seed}):", "",
            "| profile | training wall time [min] | iteration | met at every later checkpoint |", "|---|---|---|---|"]
     for name, f in first_met.items():
@@ -86,6 +97,26 @@ def main() -> None:
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(a.out.with_suffix(".png"), dpi=110)
+
+
+def after_run_row(run: Path, matrix: Path) -> dict:
+    """A report row for a site matrix run after the training: iteration and seed from the file's
+    name, training wall time [s] from the run's curve.csv. Raises ValueError on a name that is not
+    site_matrix_<mode>_it<N>[_seed<S>].json or an iteration the curve lacks."""
+    from sim_twin.matrix_gate import summarise_matrix
+
+    m = re.fullmatch(r"site_matrix_[23]d_it(\d+)(?:_seed(\d+))?\.json", matrix.name)
+    if not m:
+        raise ValueError(f"{matrix}: expected site_matrix_<mode>_it<N>[_seed<S>].json")
+    iteration, seed = int(m.group(1)), int(m.group(2) or 0)
+    with open(run / "curve.csv", newline="") as f:
+        wall = {int(float(r["iteration"])): float(r["wall_s"]) for r in csv.DictReader(f)}
+    if iteration not in wall:
+        raise ValueError(f"{matrix}: iteration {iteration} is not in {run / 'curve.csv'}")
+    rep = json.loads(matrix.read_text())
+    n_miss, misses = summarise_matrix(rep)
+    return {"iteration": iteration, "seed": seed, "passed": bool(rep["pass"]), "missing_cells": n_miss, "matrix_path": str(matrix),
+            "train_wall_s": wall[iteration], "misses": misses, "after_run": True}
 
 
 if __name__ == "__main__":

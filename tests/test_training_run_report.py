@@ -1,0 +1,57 @@
+"""The training-run report reads site matrices run after a training (tests/benchmarks/training_run_report.py):
+iteration and seed from the file's name, training wall time from the run's curve.csv, and a clear
+error for a name or an iteration it cannot place."""
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from sim_twin.matrix_gate import summarise_matrix
+from tests.benchmarks.training_run_report import after_run_row
+
+ROOT = Path(__file__).resolve().parents[1]
+MATRIX = ROOT / "policies" / "training" / "throw2d-scratch-m" / "matrices" / "site_matrix_2d_it450.json"
+
+
+def _run(tmp_path: Path) -> Path:
+    run = tmp_path / "run"
+    (run / "matrices").mkdir(parents=True)
+    (run / "curve.csv").write_text("iteration,wall_s\n425.0,390.5\n450.0,412.25\n")
+    return run
+
+
+def test_a_later_matrix_takes_its_wall_time_from_the_curve_and_its_seed_from_the_name(tmp_path):
+    run = _run(tmp_path)
+    m = run / "matrices" / "site_matrix_2d_it450_seed1.json"
+    shutil.copy(MATRIX, m)
+    row = after_run_row(run, m)
+    n_miss, misses = summarise_matrix(json.loads(MATRIX.read_text()))
+    assert (row["iteration"], row["seed"], row["train_wall_s"]) == (450, 1, 412.25)
+    assert (row["missing_cells"], row["misses"], row["after_run"]) == (n_miss, misses, True)
+    assert n_miss > 0 and row["passed"] is False
+
+
+def test_seed_0_has_no_suffix(tmp_path):
+    run = _run(tmp_path)
+    m = run / "matrices" / "site_matrix_2d_it425.json"
+    shutil.copy(MATRIX, m)
+    assert after_run_row(run, m)["seed"] == 0
+
+
+@pytest.mark.parametrize("name", ["matrix_450.json", "site_matrix_2d_itX.json", "site_matrix_4d_it450.json"])
+def test_a_name_it_cannot_read_is_refused(tmp_path, name):
+    run = _run(tmp_path)
+    m = run / "matrices" / name
+    shutil.copy(MATRIX, m)
+    with pytest.raises(ValueError, match="expected site_matrix"):
+        after_run_row(run, m)
+
+
+def test_an_iteration_the_curve_lacks_is_refused(tmp_path):
+    run = _run(tmp_path)
+    m = run / "matrices" / "site_matrix_2d_it500.json"
+    shutil.copy(MATRIX, m)
+    with pytest.raises(ValueError, match="iteration 500 is not in"):
+        after_run_row(run, m)
