@@ -68,8 +68,9 @@ def main() -> None:
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.with_suffix(".json").write_text(json.dumps(out, indent=2) + "\n")
     md = [f"# Training run {a.run.name}: wall time to the site-matrix bars", "",
-          f"Date {out['date']}, commit `{commit}`, {a.gpu}; checkpoint SHA-256 `{out['checkpoint_sha256']}`; "
-          f"command `{a.command}`. Gate seeds {gate['seeds']}; every bar met on every seed: "
+          f"Date {out['date']}, commit `{commit}`, {a.gpu}; "
+          + (f"checkpoint SHA-256 `{out['checkpoint_sha256']}`; " if out["checkpoint_sha256"] else "checkpoint not kept; ")
+          + f"command `{a.command}`. Gate seeds {gate['seeds']}; every bar met on every seed: "
           f"**{'yes, iteration ' + str(gate['passed']['iteration']) if gate['passed'] else 'no'}**.", "",
           "| iteration | training wall time [min] | seed | cells missing a bar (of 66) | misses |", "|---|---|---|---|---|"]
     for r in rows:
