@@ -8,6 +8,9 @@
 #   bash tests/benchmarks/device_runs.sh start NAME MODE CONFIG WORKERS [more slinger train args]
 #   bash tests/benchmarks/device_runs.sh watch MINUTES  # progress every minute, then collect
 #   bash tests/benchmarks/device_runs.sh collect        # $OUT/<name>.tar and $OUT/train_<name>.log.gz per run
+#   bash tests/benchmarks/device_runs.sh state RUN_DIR NAME  # here, not on the device: runs/state/NAME.tar
+#                                                       # (gzip) from RUN_DIR's checkpoint, config, curve and
+#                                                       # gate verdicts, so that `start NAME` resumes it
 #
 # The copy has no git: export SLINGER_GIT_COMMIT=<commit> in the call that starts a run (the run
 # inherits it) so that the model card of an exported policy names the commit it was trained at.
@@ -72,6 +75,20 @@ watch() {
   collect
 }
 
+state() {
+  # What resuming needs and nothing else (TensorBoard events and candidate checkpoints stay behind:
+  # the tree and the carried paths of a device call share 64 MiB), under runs/NAME/ as `start` expects.
+  local src=${1%/} name=$2 tmp
+  [ -f "$src/checkpoint.pt" ] && [ -f "$src/config.json" ] || { echo "state: $src has no checkpoint.pt and config.json" >&2; return 1; }
+  tmp=$(mktemp -d)
+  mkdir -p "$tmp/runs/$name" runs/state
+  cp "$src/checkpoint.pt" "$src/config.json" "$tmp/runs/$name/"
+  for f in curve.csv matrices; do [ -e "$src/$f" ] && cp -r "$src/$f" "$tmp/runs/$name/"; done
+  tar cf - -C "$tmp" "runs/$name" | gzip -9 > "runs/state/$name.tar"
+  rm -rf "$tmp"
+  ls -la "runs/state/$name.tar"
+}
+
 cmd=$1; shift
-[ "$cmd" = install ] || cd $WORK 2>/dev/null || { echo "run install first"; exit 1; }
+case $cmd in install|state) ;; *) cd $WORK 2>/dev/null || { echo "run install first"; exit 1; } ;; esac
 $cmd "$@"

@@ -1,0 +1,43 @@
+"""`tests/benchmarks/device_runs.sh state RUN_DIR NAME` packs what resuming a run needs into
+runs/state/NAME.tar (gzip), laid out as `device_runs.sh start NAME` unpacks it, and nothing else;
+a directory without a checkpoint is refused and writes nothing."""
+
+import subprocess
+import tarfile
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[1] / "tests" / "benchmarks" / "device_runs.sh"
+
+
+def _state(cwd: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["bash", str(SCRIPT), "state", *args], cwd=cwd, capture_output=True, text=True, timeout=60)
+
+
+def test_state_keeps_what_resuming_needs_under_the_run_name(tmp_path):
+    src = tmp_path / "policies" / "training" / "throw2d-old"
+    for rel in ["checkpoint.pt", "config.json", "curve.csv", "matrices/matrix_gate.json", "tb/events.1",
+                "candidates/checkpoint_25.pt", "README.md"]:
+        (src / rel).parent.mkdir(parents=True, exist_ok=True)
+        (src / rel).write_text(rel)
+    r = _state(tmp_path, str(src) + "/", "throw2d-new")
+    assert r.returncode == 0, r.stderr
+    tar = tmp_path / "runs" / "state" / "throw2d-new.tar"
+    with tarfile.open(tar) as t:  # gzip, read as `tar xf` reads it
+        files = sorted(m.name for m in t.getmembers() if m.isfile())
+        assert t.extractfile("runs/throw2d-new/checkpoint.pt").read() == b"checkpoint.pt"
+    assert files == ["runs/throw2d-new/checkpoint.pt", "runs/throw2d-new/config.json", "runs/throw2d-new/curve.csv",
+                     "runs/throw2d-new/matrices/matrix_gate.json"]
+    out = tmp_path / "unpacked"
+    out.mkdir()
+    subprocess.run(["tar", "xf", str(tar)], cwd=out, check=True)
+    assert (out / "runs" / "throw2d-new" / "config.json").read_text() == "config.json"
+
+
+def test_state_refuses_a_directory_without_a_checkpoint(tmp_path):
+    src = tmp_path / "run"
+    src.mkdir()
+    (src / "config.json").write_text("{}")
+    r = _state(tmp_path, str(src), "x")
+    assert r.returncode == 1
+    assert "has no checkpoint.pt" in r.stderr
+    assert not (tmp_path / "runs" / "state" / "x.tar").exists()
