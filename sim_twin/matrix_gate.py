@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import subprocess
 import sys
 import time
@@ -49,6 +50,20 @@ def summarise_matrix(report: dict) -> tuple[int, list[str]]:
             if bad:
                 misses.append(f"{p['name']}@{t['target_m']:g}: {','.join(bad)}")
     return len(misses), misses
+
+
+def matrix_file_name(mode: str, iteration: int, seed: int) -> str:
+    """The gate's name for the site matrix of ``iteration`` on ``seed``:
+    ``site_matrix_<mode>_it<iteration>[_seed<seed>].json`` (no suffix for seed 0)."""
+    return f"site_matrix_{mode}_it{iteration}" + (f"_seed{seed}" if seed else "") + ".json"
+
+
+def parse_matrix_file_name(name: str) -> tuple[int, int]:
+    """(iteration, seed) of a :func:`matrix_file_name`. Raises ValueError on any other name."""
+    m = re.fullmatch(r"site_matrix_[23]d_it(\d+)(?:_seed(\d+))?\.json", name)
+    if not m:
+        raise ValueError(f"{name}: expected site_matrix_<mode>_it<N>[_seed<S>].json")
+    return int(m.group(1)), int(m.group(2) or 0)
 
 
 GATE_NICENESS = 10
@@ -118,7 +133,7 @@ class MatrixGate:
         return self._cand
 
     def _out(self, it: int, seed: int) -> Path:
-        return self.out_dir / (f"site_matrix_{self.mode}_it{it}" + (f"_seed{seed}" if seed else "") + ".json")
+        return self.out_dir / matrix_file_name(self.mode, it, seed)
 
     def command(self, onnx: str, seed: int, out: str) -> list[str]:
         """The child process that writes the site matrix of ``onnx`` on ``seed`` to ``out``."""

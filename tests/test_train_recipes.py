@@ -3,6 +3,7 @@
 sim_twin/configs/throw_<mode>.json but for the free-text ``notes``. Runs of an earlier recipe must
 differ from the committed one by exactly the settings the docs say changed."""
 
+import functools
 import json
 from pathlib import Path
 
@@ -38,20 +39,13 @@ def test_the_committed_recipe_is_the_one_the_from_scratch_run_used(mode, run_nam
 
 @pytest.mark.parametrize("run_name", sorted(EARLIER_2D))
 def test_earlier_2d_runs_differ_from_the_recipe_by_what_the_docs_name(run_name):
+    recipe = _without_notes(ROOT / "sim_twin" / "configs" / "throw_2d.json")
     run = _without_notes(ROOT / "policies" / "training" / run_name / "config.json")
-    for path, value in EARLIER_2D[run_name].items():
-        node = run
-        for key in path[:-1]:
-            node = node[key]
-        assert node[path[-1]] == value
-        node[path[-1]] = _lookup(_without_notes(ROOT / "sim_twin" / "configs" / "throw_2d.json"), path)
-    assert run == _without_notes(ROOT / "sim_twin" / "configs" / "throw_2d.json")
-
-
-def _lookup(cfg: dict, path: tuple[str, ...]):
-    for key in path:
-        cfg = cfg[key]
-    return cfg
+    for (*parents, leaf), value in EARLIER_2D[run_name].items():
+        node = functools.reduce(dict.__getitem__, parents, run)
+        assert node[leaf] == value
+        node[leaf] = functools.reduce(dict.__getitem__, parents, recipe)[leaf]
+    assert run == recipe
 
 
 def test_a_changed_recipe_would_be_caught():

@@ -55,3 +55,10 @@ def test_an_iteration_the_curve_lacks_is_refused(tmp_path):
     shutil.copy(MATRIX, m)
     with pytest.raises(ValueError, match="iteration 500 is not in"):
         after_run_row(run, m)
+
+
+def test_the_report_reads_the_names_the_gate_writes():
+    from sim_twin.matrix_gate import matrix_file_name, parse_matrix_file_name
+
+    for mode, it, seed in [("2d", 25, 0), ("3d", 1253, 1), ("2d", 701, 2)]:
+        assert parse_matrix_file_name(matrix_file_name(mode, it, seed)) == (it, seed)

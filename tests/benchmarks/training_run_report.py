@@ -15,11 +15,9 @@ S``, another host): their rows are marked "after the run", their training wall t
 from __future__ import annotations
 
 import argparse
-import csv
 import hashlib
 import json
 import platform
-import re
 import subprocess
 from datetime import UTC, datetime
 from pathlib import Path
@@ -104,14 +102,14 @@ def after_run_row(run: Path, matrix: Path) -> dict:
     """A report row for a site matrix run after the training: iteration and seed from the file's
     name, training wall time [s] from the run's curve.csv. Raises ValueError on a name that is not
     site_matrix_<mode>_it<N>[_seed<S>].json or an iteration the curve lacks."""
-    from sim_twin.matrix_gate import summarise_matrix
+    from sim_twin.matrix_gate import parse_matrix_file_name, summarise_matrix
+    from sim_twin.training_curve import TrainingCurve
 
-    m = re.fullmatch(r"site_matrix_[23]d_it(\d+)(?:_seed(\d+))?\.json", matrix.name)
-    if not m:
-        raise ValueError(f"{matrix}: expected site_matrix_<mode>_it<N>[_seed<S>].json")
-    iteration, seed = int(m.group(1)), int(m.group(2) or 0)
-    with open(run / "curve.csv", newline="") as f:
-        wall = {int(float(r["iteration"])): float(r["wall_s"]) for r in csv.DictReader(f)}
+    try:
+        iteration, seed = parse_matrix_file_name(matrix.name)
+    except ValueError as e:
+        raise ValueError(f"{matrix.parent}/{e}") from None
+    wall = {int(r["iteration"]): r["wall_s"] for r in TrainingCurve.load_or_new(run / "curve.csv").rows}
     if iteration not in wall:
         raise ValueError(f"{matrix}: iteration {iteration} is not in {run / 'curve.csv'}")
     rep = json.loads(matrix.read_text())
