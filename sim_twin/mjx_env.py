@@ -428,14 +428,18 @@ class ThrowEnvCore:
         failed = ground | cabin | limit | ~jnp.all(jnp.isfinite(data.qpos))
         impact = ballistic_position(jnp, s["ball_p0"], s["ball_v0"], s["t_flight"])
         impact_err = jnp.sqrt(jnp.sum((impact[:2] - s["target"][:2]) ** 2))
+        step = s["step"] + 1
+        at_limit = (step >= self.cfg.max_steps) & ~failed & ~landed
+        unreleased = at_limit & ~s["release_cmd"]
         terms = reward_terms(
-            RewardInputs(err2, err3, s["err2_min"], s["err3_min"], action, s["prev_action"], s["opened"], failed, landed, impact_err),
+            RewardInputs(err2, err3, s["err2_min"], s["err3_min"], action, s["prev_action"], s["opened"], failed, landed,
+                         impact_err, unreleased),
             w,
         )
         reward = total_reward(terms, w.failure)
-        step = s["step"] + 1
-        time_out = (step >= self.cfg.max_steps) & ~failed & ~landed
-        terminated = failed | landed
+        # an episode that never released ends as a failure when the recipe punishes it (no bootstrap)
+        terminated = failed | landed | (unreleased if w.no_release else jnp.zeros_like(unreleased))
+        time_out = at_limit & ~terminated
         q_meas, qd_meas = self._measure(s, k_obs)
         q_hist = jnp.concatenate([q_meas[None], s["q_hist"][:3]])
         qd_hist = jnp.concatenate([qd_meas[None], s["qd_hist"][:3]])

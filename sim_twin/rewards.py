@@ -40,6 +40,11 @@ class RewardScales:
         landing_precise: terminal weight of exp(-b4 impact_err^2) on landing (0: off).
         b4: width of the precise landing kernel [1/m^2] (100: half reward at 8 cm, a gradient
             that still separates a 0.12 m from a 0.10 m spread, where exp(-16 e^2) is nearly flat).
+        no_release: terminal reward of an episode that reaches its time limit without the gripper
+            having been commanded open (negative; 0: off, and such an episode is a time-out whose
+            value is bootstrapped). The site matrix counts a throw without release as a failure
+            (sim_twin.matrix, "no release within 10 s"); with a long discount horizon (gamma
+            0.998) an unpunished time-out made waiting cheap (policies/training/throw2d-scratch-p).
     """
 
     delta_err: float
@@ -54,6 +59,7 @@ class RewardScales:
     b3: float = 4.0
     landing_precise: float = 0.0
     b4: float = 100.0
+    no_release: float = 0.0
 
     @classmethod
     def from_dict(cls, d: dict) -> RewardScales:
@@ -79,7 +85,9 @@ class RewardInputs(NamedTuple):
     err2_min_m, err3_min_m: their minima over the episode so far, before this step [m];
     action, prev_action: (num_actions,) policy outputs of this and the previous step;
     opened: the gripper has opened; failed: collision, joint limit or non-finite state;
-    landed: the payload reached the ground this step; impact_err_m: horizontal impact error [m].
+    landed: the payload reached the ground this step; impact_err_m: horizontal impact error [m];
+    unreleased_at_limit: the episode reached its time limit this step and the gripper was never
+    commanded open.
     """
 
     err2_m: jnp.ndarray
@@ -92,6 +100,7 @@ class RewardInputs(NamedTuple):
     failed: jnp.ndarray
     landed: jnp.ndarray
     impact_err_m: jnp.ndarray
+    unreleased_at_limit: jnp.ndarray
 
 
 def reward_delta_err(x: RewardInputs, w: RewardScales) -> jnp.ndarray:
@@ -135,6 +144,11 @@ def reward_landing_precise(x: RewardInputs, w: RewardScales) -> jnp.ndarray:
     return jnp.where(x.landed & ~x.failed, jnp.exp(-w.b4 * x.impact_err_m**2), 0.0)
 
 
+def reward_no_release(x: RewardInputs, w: RewardScales) -> jnp.ndarray:
+    """1 when the episode ends at its time limit without a release command, else 0; the scale is negative."""
+    return x.unreleased_at_limit.astype(jnp.float32)
+
+
 REWARD_TERMS = {
     "delta_err": reward_delta_err,
     "err_3d": reward_err_3d,
@@ -144,6 +158,7 @@ REWARD_TERMS = {
     "landing": reward_landing,
     "landing_fine": reward_landing_fine,
     "landing_precise": reward_landing_precise,
+    "no_release": reward_no_release,
 }
 """Term name (= its scale's name in RewardScales) -> unscaled term function."""
 

@@ -22,7 +22,7 @@ def _inputs(rng, n):
     f = lambda lo, hi: jnp.asarray(rng.uniform(lo, hi, n), jnp.float32)  # noqa: E731
     b = lambda p: jnp.asarray(rng.random(n) < p)  # noqa: E731
     return RewardInputs(f(0, 12), f(0, 12), f(0, 12), f(0, 12), jnp.asarray(rng.normal(0, 1, (n, 4)), jnp.float32),
-                        jnp.asarray(rng.normal(0, 1, (n, 4)), jnp.float32), b(0.5), b(0.2), b(0.3), f(0, 3))
+                        jnp.asarray(rng.normal(0, 1, (n, 4)), jnp.float32), b(0.5), b(0.2), b(0.3), f(0, 3), b(0.05))
 
 
 def test_terms_sum_to_reward_and_have_their_signs():
@@ -119,3 +119,30 @@ def test_vec_env_logs_every_term_and_their_sum_is_the_mean_reward():
         assert total == pytest.approx(float(rew.mean()), rel=1e-5, abs=1e-5)
     means = env.read_term_means()
     assert set(means) == {f"reward_{k}" for k in REWARD_TERMS}
+
+
+@pytest.mark.parametrize("scale", [0.0, -5.0])
+def test_an_episode_that_never_releases_ends_as_a_failure_when_the_recipe_punishes_it(scale):
+    """At the time limit without a release command: with no_release < 0 the episode terminates with
+    that reward (no bootstrap); with 0 it is a time-out, as before."""
+    import torch
+
+    from sim_twin.vec_env import MjxThrowVecEnv
+
+    env_d = json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]
+    env_d = {**env_d, "episode_length_s": 0.4, "forced_release": {**env_d["forced_release"], "probability": 0.0},
+             "rewards": {**env_d["rewards"], "no_release": scale}}
+    env = MjxThrowVecEnv(EnvConfig.from_dict(env_d), 4, seed=3)
+    assert EnvConfig.from_dict(env_d).max_steps == 5
+    hold = torch.zeros(4, env.num_actions)  # zero velocity, release output below its threshold
+    for _ in range(4):
+        _, _, dones, extras = env.step(hold)
+        assert not dones.any()
+    _, rew, dones, extras = env.step(hold)
+    assert dones.all()
+    log = extras["log"]
+    if scale:
+        assert not extras["time_outs"].any()
+        assert float(log["Reward/no_release"]) == pytest.approx(scale)
+    else:
+        assert extras["time_outs"].all() and float(log["Reward/no_release"]) == 0.0
