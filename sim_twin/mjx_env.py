@@ -191,14 +191,26 @@ class ThrowEnvCore:
 
     Args:
         cfg: EnvConfig.
+        impl: MJX implementation, "jax" or "warp".
+        reset_slots: None (default) resets the whole batch in every
+            :meth:`step_autoreset_batch` and keeps the fresh state where an episode ended; a
+            fraction in (0, 1) resets only the environments that finished, gathered into that
+            fraction of the batch (falling back to the whole batch on a step where more finish).
+            Both give the same states (a reset depends only on its key).
 
     Methods ``reset(key)`` and ``step(state, action)`` are jit/vmap friendly.
     Shapes: action (num_actions(mode),); observation (observation_size(mode),).
+
+    Raises:
+        ValueError: ``reset_slots`` outside (0, 1).
     """
 
-    def __init__(self, cfg: EnvConfig, impl: str = "jax"):
+    def __init__(self, cfg: EnvConfig, impl: str = "jax", reset_slots: float | None = None):
+        if reset_slots is not None and not 0.0 < reset_slots < 1.0:
+            raise ValueError(f"reset_slots must be a fraction in (0, 1) or None, got {reset_slots!r}")
         self.cfg = cfg
         self.impl = impl
+        self.reset_slots = reset_slots
         self.mode = cfg.mode
         self.num_obs = observation_size(cfg.mode)
         self.num_act = num_actions(cfg.mode)
@@ -471,12 +483,37 @@ class ThrowEnvCore:
         done = term | tout
         keys = jax.vmap(jax.random.split)(s1["key"])
         s1 = EnvState(s1, key=keys[:, 0])
-        s_new, obs_new = jax.vmap(self.reset)(keys[:, 1])
+        n = done.shape[0]
 
-        def pick(new, old):
-            if new.ndim == 0 or new.shape != old.shape or new.shape[:1] != done.shape:
-                return old
-            return jnp.where(done.reshape(done.shape + (1,) * (new.ndim - 1)), new, old)
+        def batched(leaf) -> bool:
+            return leaf.ndim > 0 and leaf.shape[:1] == done.shape
 
-        s_out = jax.tree_util.tree_map(pick, s_new, s1)
-        return s_out, pick(obs_new, obs), rew, done, tout, info
+        def full_reset():
+            s_new, obs_new = jax.vmap(self.reset)(keys[:, 1])
+
+            def pick(new, old):
+                if new.shape != old.shape or not batched(new):
+                    return old
+                return jnp.where(done.reshape(done.shape + (1,) * (new.ndim - 1)), new, old)
+
+            return jax.tree_util.tree_map(pick, s_new, s1), pick(obs_new, obs)
+
+        slots = 0 if self.reset_slots is None else max(1, int(n * self.reset_slots))
+        if not slots:
+            s_out, obs_out = full_reset()
+            return s_out, obs_out, rew, done, tout, info
+
+        def partial_reset():
+            # the finished environments' indices, padded with n (out of range: dropped by the scatter)
+            idx = jnp.nonzero(done, size=slots, fill_value=n)[0]
+            s_new, obs_new = jax.vmap(self.reset)(keys[jnp.minimum(idx, n - 1), 1])
+
+            def put(new, old):
+                if not batched(old) or new.shape[1:] != old.shape[1:]:
+                    return old
+                return old.at[idx].set(new, mode="drop")
+
+            return jax.tree_util.tree_map(put, s_new, s1), put(obs_new, obs)
+
+        s_out, obs_out = jax.lax.cond(jnp.sum(done) <= slots, partial_reset, full_reset)
+        return s_out, obs_out, rew, done, tout, info

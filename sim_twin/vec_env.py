@@ -40,14 +40,18 @@ class MjxThrowVecEnv(VecEnv):
         num_envs: number of parallel environments.
         seed: PRNG seed.
         device: torch device of the returned tensors ("cuda" or "cpu"); must be where JAX runs.
+        impl: MJX implementation, "jax" or "warp".
+        reset_slots: see :class:`sim_twin.mjx_env.ThrowEnvCore` (None: reset the whole batch each
+            step; a fraction: reset only the finished environments).
 
     Shapes: observations ``policy`` (num_envs, observation_size(mode)), ``privileged``
     (num_envs, PRIVILEGED_SIZE); actions (num_envs, num_actions(mode));
     rewards and dones (num_envs,).
     """
 
-    def __init__(self, cfg: EnvConfig, num_envs: int, seed: int = 0, device: str = "cpu", impl: str = "jax"):
-        self.core = ThrowEnvCore(cfg, impl=impl)
+    def __init__(self, cfg: EnvConfig, num_envs: int, seed: int = 0, device: str = "cpu", impl: str = "jax",
+                 reset_slots: float | None = None):
+        self.core = ThrowEnvCore(cfg, impl=impl, reset_slots=reset_slots)
         self.cfg = {"env": cfg.as_dict()}
         self.num_envs = num_envs
         self.num_actions = self.core.num_act

@@ -118,14 +118,20 @@ def _per_env_autoreset(core, s, action):
     return s_out, jnp.where(done, obs_new, obs), rew, done, tout, info
 
 
-def test_batch_autoreset_equals_the_vmapped_autoreset():
+@pytest.mark.parametrize(("reset_slots", "n_left"), [(None, [2, 0, 2, 1]), (0.5, [2, 0, 2, 1]), (0.5, [2, 2, 2, 1]), (0.25, [0, 0, 1, 2])])
+def test_batch_autoreset_equals_the_vmapped_autoreset(reset_slots, n_left):
     """step_autoreset_batch (the form MuJoCo Warp can trace) gives what the vmapped per-env
-    autoreset gives: finished episodes replaced by fresh ones drawn with the same keys. Checked on
-    a small stand-in environment (the method only calls ``step`` and ``reset``), which keeps the
-    test free of compiling the physics twice."""
+    autoreset gives: finished episodes replaced by fresh ones drawn with the same keys, whether
+    the whole batch is reset (``reset_slots`` None) or only the finished environments gathered
+    into a fraction of it (0.5 of 4: two slots; two finish, then three finish and it falls back to
+    the whole batch; 0.25: one slot, one finishes). Checked on a small stand-in environment (the
+    method only calls ``step`` and ``reset``), which keeps the test free of compiling the physics."""
     from sim_twin.mjx_env import EnvState
 
     class Toy:
+        def __init__(self, slots):
+            self.reset_slots = slots
+
         def reset(self, key):
             x = jax.random.uniform(key, (3,))
             return EnvState(key=key, x=x, n=jnp.zeros((), jnp.int32)), x * 2
@@ -138,13 +144,18 @@ def test_batch_autoreset_equals_the_vmapped_autoreset():
 
         step_autoreset_batch = ThrowEnvCore.step_autoreset_batch
 
-    toy = Toy()
+    toy = Toy(reset_slots)
     state, _ = jax.vmap(toy.reset)(jax.random.split(jax.random.PRNGKey(5), 4))
-    state["n"] = jnp.asarray([2, 0, 2, 1], jnp.int32)  # envs 0 and 2 finish on this step
+    state["n"] = jnp.asarray(n_left, jnp.int32)
     action = jnp.ones((4, 3))
     a = jax.jit(jax.vmap(lambda s, act: _per_env_autoreset(toy, s, act)))(state, action)
     b = jax.jit(toy.step_autoreset_batch)(state, action)
-    assert np.asarray(b[3]).tolist() == [True, False, True, False]
+    assert np.asarray(b[3]).tolist() == [n == 2 for n in n_left]
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-    assert np.asarray(b[0]["n"]).tolist() == [0, 1, 0, 2]
+    assert np.asarray(b[0]["n"]).tolist() == [0 if n == 2 else n + 1 for n in n_left]
+
+
+def test_reset_slots_outside_a_fraction_are_refused():
+    with pytest.raises(ValueError, match="reset_slots"):
+        ThrowEnvCore(EnvConfig.from_dict(json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]), reset_slots=1.5)

@@ -3,6 +3,7 @@
 Run on a GPU machine::
 
     python tests/benchmarks/bench_training_throughput.py --impls jax,warp --envs 4096,16384,65536 --out bench.json
+    python tests/benchmarks/bench_training_throughput.py --envs 4096,16384 --reset-slots all,0.125 --out reset.json
 
 For each MJX implementation (``jax``: MJX's JAX physics; ``warp``: MJX calling MuJoCo Warp) and
 environment count it measures, in one process on one GPU:
@@ -15,6 +16,10 @@ environment count it measures, in one process on one GPU:
   (DLPack hand-over) + rollout storage, 32 steps per iteration;
 * ``learn_steps_per_s``: rsl_rl's full PPO iteration (rollout + update), and the seconds per
   iteration spent in the rollout and in the update.
+
+``--reset-slots`` compares the auto-reset of the whole batch at every step (``all``) with resetting
+only the finished environments gathered into a fraction of the batch (``ThrowEnvCore``'s
+``reset_slots``), side by side in one run.
 
 All rates count control steps (one policy decision of one environment) except
 ``physics_steps_per_s`` (one 10 ms physics step of one world). Prints a table and writes JSON.
@@ -67,7 +72,7 @@ def physics_rate(impl: str, n: int, steps: int) -> float:
     return n * steps / (time.perf_counter() - t0)
 
 
-def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int) -> dict:
+def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int, reset_slots: float | None = None) -> dict:
     import jax
     import torch
     from rsl_rl.runners import OnPolicyRunner
@@ -76,16 +81,17 @@ def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int) -
     from sim_twin.train import load_config
     from sim_twin.vec_env import MjxThrowVecEnv
 
-    row = {"mode": mode, "impl": impl, "num_envs": n}
+    row = {"mode": mode, "impl": impl, "num_envs": n, "reset_slots": reset_slots}
     try:
-        row["physics_steps_per_s"] = physics_rate(impl, n, physics_steps)
+        if physics_steps:
+            row["physics_steps_per_s"] = physics_rate(impl, n, physics_steps)
     except Exception as e:  # noqa: BLE001 - reported, the benchmark goes on
         row["physics_error"] = f"{type(e).__name__}: {e}"[:400]
     try:
         cfg = load_config(mode, None)
         device = "cuda" if torch.cuda.is_available() else "cpu"
         t0 = time.perf_counter()
-        env = MjxThrowVecEnv(EnvConfig.from_dict(cfg["env"]), n, seed=0, device=device, impl=impl)
+        env = MjxThrowVecEnv(EnvConfig.from_dict(cfg["env"]), n, seed=0, device=device, impl=impl, reset_slots=reset_slots)
         a = jax.numpy.zeros((n, env.num_actions), jax.numpy.float32)
         out = env._step(env.state, a)
         jax.block_until_ready(out)
@@ -149,19 +155,23 @@ def main() -> None:
     p.add_argument("--envs", default="4096,16384,65536")
     p.add_argument("--iterations", type=int, default=5)
     p.add_argument("--physics-steps", type=int, default=200)
+    p.add_argument("--reset-slots", default="all", help="comma-separated: 'all' and/or fractions in (0, 1)")
     p.add_argument("--out", default=None)
     a = p.parse_args()
+    slots = [None if x == "all" else float(x) for x in a.reset_slots.split(",")]
     rows = []
     for impl in a.impls.split(","):
         for n in a.envs.split(","):
-            rows.append(measure(a.mode, impl, int(n), a.iterations, a.physics_steps))
+            for i, sl in enumerate(slots):  # the bare physics rate does not depend on the reset: once
+                rows.append(measure(a.mode, impl, int(n), a.iterations, a.physics_steps if i == 0 else 0, sl))
             print(json.dumps(rows[-1]), flush=True)
             if a.out:
                 with open(a.out, "w") as f:
                     json.dump(rows, f, indent=2)
-    print("impl   envs   physics M/s  env M/s  step+infer M/s  +PPO M/s  rollout s  update s")
+    print("impl   envs  reset  physics M/s  env M/s  step+infer M/s  +PPO M/s  rollout s  update s")
     for r in rows:
-        print(f"{r['impl']:5} {r['num_envs']:6} {_f(r.get('physics_steps_per_s'))}     {_f(r.get('env_steps_per_s'))} "
+        reset = "all" if r["reset_slots"] is None else f"{r['reset_slots']:g}"
+        print(f"{r['impl']:5} {r['num_envs']:6} {reset:>6} {_f(r.get('physics_steps_per_s'))}     {_f(r.get('env_steps_per_s'))} "
               f"{_f(r.get('step_infer_steps_per_s'))}       {_f(r.get('learn_steps_per_s'))}  {_f(r.get('rollout_s'), 1)}  "
               f"{_f(r.get('update_s'), 1)}  {r.get('error', '') or r.get('physics_error', '')}")
 
