@@ -96,19 +96,36 @@ def throws(policy_path: str, distance_m: float, seeds: list[int], profile: dict 
     return rows
 
 
+FIRST_SWING_S = 2.0
+"""Release commands up to this long after the swing starts are first-swing throws (s): the 2D
+policies release either at 0.9-1.6 s or after 2.8 s (reports/spread_sources_2d_scratch.png)."""
+
+
+def _sigma(e: np.ndarray) -> float | None:
+    return float(e.std(ddof=1)) if len(e) > 1 else None
+
+
+def _fmt(x: float | None) -> str:
+    return "-" if x is None else f"{x:.3f}"
+
+
 def cell(rows: list[dict]) -> dict:
     """Summary of one cell: landed count, bias and sigma of the downrange error (m), the median
     time from the swing's start to the release command (s) and the sigma of the throws released
-    up to it and after it (m), the median absolute release sensitivity (m/s), the spread it implies with the nominal 15 ms
-    release-delay sigma (m) and every row of :func:`throws`."""
+    up to it and after it (m), the number of first-swing throws (released within FIRST_SWING_S)
+    and the sigma of those and of the later ones (m; None for fewer than two), the median absolute
+    release sensitivity (m/s), the spread it implies with the nominal 15 ms release-delay sigma (m)
+    and every row of :func:`throws`."""
     landed = [r for r in rows if r["status"] == "landed"]
     e = np.array([r["downrange_error_m"] for r in landed])
     s = np.abs(np.array([r["release_sensitivity_mps"] for r in landed]))
     t = np.array([r["release_after_s"] for r in landed])
     early = t <= np.median(t)
+    first = t <= FIRST_SWING_S
     return {"throws": len(rows), "landed": len(landed), "bias_m": float(e.mean()), "sigma_downrange_m": float(e.std(ddof=1)),
             "release_after_s_median": float(np.median(t)),
             "sigma_early_half_m": float(e[early].std(ddof=1)), "sigma_late_half_m": float(e[~early].std(ddof=1)),
+            "first_swing_throws": int(first.sum()), "sigma_first_swing_m": _sigma(e[first]), "sigma_later_m": _sigma(e[~first]),
             "release_sensitivity_mps_median": float(np.median(s)), "jitter_spread_m": float(np.median(s) * 0.015),
             "rows": [_rounded(r) for r in rows]}
 
@@ -213,7 +230,8 @@ def main() -> None:
                 print(f"{Path(pol).name:24s} {v:18s} {d:4.1f} m  landed {c['landed']:3d}/{c['throws']}  bias {c['bias_m']:+.3f}  "
                       f"sigma {c['sigma_downrange_m']:.3f} m  release at {c['release_after_s_median']:.2f} s (median; sigma before "
                       f"{c['sigma_early_half_m']:.3f}, after {c['sigma_late_half_m']:.3f} m)  release sensitivity {c['release_sensitivity_mps_median']:.2f} m/s "
-                      f"(x 15 ms = {c['jitter_spread_m']:.3f} m)", flush=True)
+                      f"(x 15 ms = {c['jitter_spread_m']:.3f} m)  first swing {c['first_swing_throws']} throws, sigma "
+                      f"{_fmt(c['sigma_first_swing_m'])}, later {_fmt(c['sigma_later_m'])} m", flush=True)
     print(f"wall {time.time() - t0:.0f} s")
     tmp.cleanup()
     if args.out:
