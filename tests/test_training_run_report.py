@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from sim_twin.matrix_gate import summarise_matrix
-from tests.benchmarks.training_run_report import after_run_row
+from tests.benchmarks.training_run_report import after_run_row, train_wall_s
 
 ROOT = Path(__file__).resolve().parents[1]
 MATRIX = ROOT / "policies" / "training" / "throw2d-scratch-m" / "matrices" / "site_matrix_2d_it450.json"
@@ -26,7 +26,7 @@ def test_a_later_matrix_takes_its_wall_time_from_the_curve_and_its_seed_from_the
     run = _run(tmp_path)
     m = run / "matrices" / "site_matrix_2d_it450_seed1.json"
     shutil.copy(MATRIX, m)
-    row = after_run_row(run, m)
+    row = after_run_row(run, m, train_wall_s(run))
     n_miss, misses = summarise_matrix(json.loads(MATRIX.read_text()))
     assert (row["iteration"], row["seed"], row["train_wall_s"]) == (450, 1, 412.25)
     assert (row["missing_cells"], row["misses"], row["after_run"]) == (n_miss, misses, True)
@@ -37,7 +37,7 @@ def test_seed_0_has_no_suffix(tmp_path):
     run = _run(tmp_path)
     m = run / "matrices" / "site_matrix_2d_it425.json"
     shutil.copy(MATRIX, m)
-    assert after_run_row(run, m)["seed"] == 0
+    assert after_run_row(run, m, train_wall_s(run))["seed"] == 0
 
 
 @pytest.mark.parametrize("name", ["matrix_450.json", "site_matrix_2d_itX.json", "site_matrix_4d_it450.json"])
@@ -46,7 +46,7 @@ def test_a_name_it_cannot_read_is_refused(tmp_path, name):
     m = run / "matrices" / name
     shutil.copy(MATRIX, m)
     with pytest.raises(ValueError, match="expected site_matrix"):
-        after_run_row(run, m)
+        after_run_row(run, m, train_wall_s(run))
 
 
 def test_an_iteration_the_curve_lacks_is_refused(tmp_path):
@@ -54,7 +54,7 @@ def test_an_iteration_the_curve_lacks_is_refused(tmp_path):
     m = run / "matrices" / "site_matrix_2d_it500.json"
     shutil.copy(MATRIX, m)
     with pytest.raises(ValueError, match="iteration 500 is not in"):
-        after_run_row(run, m)
+        after_run_row(run, m, train_wall_s(run))
 
 
 def test_the_report_reads_the_names_the_gate_writes():

@@ -164,10 +164,10 @@ def main() -> None:
         for n in a.envs.split(","):
             for i, sl in enumerate(slots):  # the bare physics rate does not depend on the reset: once
                 rows.append(measure(a.mode, impl, int(n), a.iterations, a.physics_steps if i == 0 else 0, sl))
-            print(json.dumps(rows[-1]), flush=True)
-            if a.out:
-                with open(a.out, "w") as f:
-                    json.dump(rows, f, indent=2)
+                print(json.dumps(rows[-1]), flush=True)
+                if a.out:
+                    with open(a.out, "w") as f:
+                        json.dump(rows, f, indent=2)
     print("impl   envs  reset  physics M/s  env M/s  step+infer M/s  +PPO M/s  rollout s  update s")
     for r in rows:
         reset = "all" if r["reset_slots"] is None else f"{r['reset_slots']:g}"

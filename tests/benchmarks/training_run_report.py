@@ -33,7 +33,8 @@ def main() -> None:
                    help="site matrices of later checkpoints run after the training (site_matrix_<mode>_it<N>[_seed<S>].json)")
     a = p.parse_args()
     gate = json.loads((a.run / "matrices" / "matrix_gate.json").read_text())
-    rows = [dict(r, after_run=False) for r in gate["results"]] + [after_run_row(a.run, m) for m in a.after_run]
+    wall = train_wall_s(a.run) if a.after_run else {}
+    rows = [dict(r, after_run=False) for r in gate["results"]] + [after_run_row(a.run, m, wall) for m in a.after_run]
     rows.sort(key=lambda r: (r["iteration"], r["seed"]))
     first_seed = gate["seeds"][0]
     per_profile: dict[str, list[tuple[float, int, bool]]] = {}
@@ -98,18 +99,23 @@ def main() -> None:
     fig.savefig(a.out.with_suffix(".png"), dpi=110)
 
 
-def after_run_row(run: Path, matrix: Path) -> dict:
-    """A report row for a site matrix run after the training: iteration and seed from the file's
-    name, training wall time [s] from the run's curve.csv. Raises ValueError on a name that is not
-    site_matrix_<mode>_it<N>[_seed<S>].json or an iteration the curve lacks."""
-    from sim_twin.matrix_gate import parse_matrix_file_name, summarise_matrix
+def train_wall_s(run: Path) -> dict[int, float]:
+    """Training wall time [s] per iteration, from the run's curve.csv."""
     from sim_twin.training_curve import TrainingCurve
+
+    return {int(r["iteration"]): r["wall_s"] for r in TrainingCurve.load_or_new(run / "curve.csv").rows}
+
+
+def after_run_row(run: Path, matrix: Path, wall: dict[int, float]) -> dict:
+    """A report row for a site matrix run after the training: iteration and seed from the file's
+    name, training wall time [s] from ``wall`` (:func:`train_wall_s` of the run). Raises ValueError
+    on a name that is not site_matrix_<mode>_it<N>[_seed<S>].json or an iteration the curve lacks."""
+    from sim_twin.matrix_gate import parse_matrix_file_name, summarise_matrix
 
     try:
         iteration, seed = parse_matrix_file_name(matrix.name)
     except ValueError as e:
         raise ValueError(f"{matrix.parent}/{e}") from None
-    wall = {int(r["iteration"]): r["wall_s"] for r in TrainingCurve.load_or_new(run / "curve.csv").rows}
     if iteration not in wall:
         raise ValueError(f"{matrix}: iteration {iteration} is not in {run / 'curve.csv'}")
     rep = json.loads(matrix.read_text())
