@@ -66,15 +66,7 @@ from sim_twin.hydraulics import cylinder_step, dead_band_flow, lag_step
 from sim_twin.initial_pose import pose_from_uniform, pose_is_valid
 from sim_twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
 from sim_twin.physics import ballistic_impact_time, ballistic_position, passive_friction_force
-from sim_twin.privileged import (
-    GAIN_ERROR_DEFAULT,
-    PRIVILEGED_RANGE_KEYS,
-    RELEASE_DELAY_DEFAULTS,
-    check_randomization,
-    configured_range,
-    normalisation_ranges,
-    privileged_observation,
-)
+from sim_twin.privileged import PRIVILEGED_RANGE_KEYS, Randomization, check_randomization, privileged_observation
 from sim_twin.rewards import RewardInputs, RewardScales, reward_terms, total_reward
 
 MAX_VALVE_DELAY_STEPS = 30  # longest valve transport delay the training env can model (0.30 s)
@@ -119,10 +111,11 @@ def _typed(cls, d: dict, what: str):
 class EnvConfig:
     """Task, reward and randomisation settings (see configs/*.json).
 
-    ``rewards``, ``forced_release`` and ``far_targets`` are typed (RewardScales, ForcedRelease,
-    FarTargets); ``randomization``
-    stays the config mapping that sim_twin.privileged normalises over (its defaults are
-    sim_twin.privileged.RANDOMIZATION_DEFAULTS).
+    ``rewards``, ``forced_release``, ``far_targets`` and ``randomization`` are typed
+    (RewardScales, ForcedRelease, FarTargets, sim_twin.privileged.Randomization).
+    ``privileged_ranges`` stays the config's (checked) partial mapping: the entries that override
+    the randomisation's ranges where the critic's privileged inputs are normalised
+    (``randomization.with_ranges(privileged_ranges)``).
     """
 
     mode: str = "2d"
@@ -132,7 +125,7 @@ class EnvConfig:
         delta_err=1.0, err_3d=0.05, b1=0.1, act_diff=0.01, act=0.002, failure=-5.0, landing=10.0, b2=0.5))
     forced_release: ForcedRelease = field(default_factory=ForcedRelease)
     far_targets: FarTargets = field(default_factory=FarTargets)
-    randomization: dict[str, Any] = field(default_factory=dict)
+    randomization: Randomization = field(default_factory=Randomization)
     privileged_ranges: dict[str, Any] = field(default_factory=dict)
     """Ranges the critic's privileged inputs are normalised over where they differ from
     ``randomization`` (a fine-tuning config's base ranges; see sim_twin.privileged)."""
@@ -159,7 +152,8 @@ class EnvConfig:
             d["rewards"] = RewardScales.from_dict(d["rewards"])
         if "forced_release" in d:
             d["forced_release"] = _typed(ForcedRelease, d["forced_release"], "forced_release")
-        check_randomization(d.get("randomization", {}))
+        if "randomization" in d:
+            d["randomization"] = Randomization.from_dict(d["randomization"])
         check_randomization(d.get("privileged_ranges", {}), "env.privileged_ranges", PRIVILEGED_RANGE_KEYS)
         if "far_targets" in d:
             far = dict(d["far_targets"])
@@ -222,9 +216,9 @@ class ThrowEnvCore:
         self.vmax = jnp.asarray(ACTIVE_VELOCITY_LIMITS, dtype=jnp.float32)
         self.w = cfg.rewards
         self.rand = cfg.randomization
-        self.priv_ranges = normalisation_ranges(cfg.randomization, cfg.privileged_ranges)
+        self.priv_ranges = cfg.randomization.with_ranges(cfg.privileged_ranges)
         self.forced = cfg.forced_release
-        self.hydraulic = self.rand.get("actuation", "lag") == "hydraulic"
+        self.hydraulic = self.rand.hydraulic
         self.gains = ControllerGains()
         self.lower = jnp.asarray(JOINT_LOWER[:NUM_ACTIVE], dtype=jnp.float32)
         self.upper = jnp.asarray(JOINT_UPPER[:NUM_ACTIVE], dtype=jnp.float32)
@@ -266,22 +260,17 @@ class ThrowEnvCore:
         q = self._sample_pose(ks[0])
         target = self._sample_target(ks[1], q[0])
         rd = self.rand
-        delay_s = rd.get("release_delay_mean_s", RELEASE_DELAY_DEFAULTS["release_delay_mean_s"]) + rd.get(
-            "release_delay_std_s", RELEASE_DELAY_DEFAULTS["release_delay_std_s"]
-        ) * jax.random.normal(ks[2])
-        delay_s = delay_s + jax.random.uniform(ks[7], (), minval=-1.0, maxval=1.0) * rd.get("release_delay_shift_s", 0.0)
-        lg = configured_range(rd, "lag_s")
-        g = rd.get("gain_error", GAIN_ERROR_DEFAULT)
-        gain = 1.0 + jax.random.uniform(ks[4], (4,), minval=-g, maxval=g)
-        fr = configured_range(rd, "friction_scale")
+        delay_s = rd.release_delay_mean_s + rd.release_delay_std_s * jax.random.normal(ks[2])
+        delay_s = delay_s + jax.random.uniform(ks[7], (), minval=-1.0, maxval=1.0) * rd.release_delay_shift_s
+        lg = rd.lag_s
+        gain = 1.0 + jax.random.uniform(ks[4], (4,), minval=-rd.gain_error, maxval=rd.gain_error)
+        fr = rd.friction_scale
         fric = jax.random.uniform(ks[5], (), minval=fr[0], maxval=fr[1])
         kh = jax.random.split(ks[6], 8)
-        db = configured_range(rd, "dead_band")
-        dl = configured_range(rd, "valve_delay_s")
-        vs = configured_range(rd, "velocity_scale")
+        db, dl, vs = rd.dead_band, rd.valve_delay_s, rd.velocity_scale
         # valve speed: independent per joint, or (valve_spread < 1) one machine-wide slowness
         # g ~ U(0, 1) (one pump and pilot circuit) with per-joint spread around it, for delay and lag alike
-        spread = rd.get("valve_spread", 1.0)
+        spread = rd.valve_spread
         g = jax.random.uniform(kh[7], ())
         frac_d = jnp.clip(g + spread * jax.random.uniform(kh[1], (4,), minval=-1.0, maxval=1.0), 0.0, 1.0)
         frac_l = jnp.clip(g + spread * jax.random.uniform(ks[3], (4,), minval=-1.0, maxval=1.0), 0.0, 1.0)
@@ -289,10 +278,10 @@ class ThrowEnvCore:
             frac_d, frac_l = jax.random.uniform(kh[1], (4,)), jax.random.uniform(ks[3], (4,))
         tau = lg[0] + frac_l * (lg[1] - lg[0])
         valve_delay = jnp.round((dl[0] + frac_d * (dl[1] - dl[0])) / PHYSICS_PERIOD_S)
-        lat = [configured_range(rd, "encoder_latency_s"), configured_range(rd, "imu_latency_s")]
+        lat = [rd.encoder_latency_s, rd.imu_latency_s]
         sensor_lag = jnp.stack([jax.random.uniform(k, (), minval=lo, maxval=hi) for k, (lo, hi) in zip(kh[4:6], lat)])
         sensor_lag = jnp.clip(jnp.round(sensor_lag / PHYSICS_PERIOD_S), 0, MAX_SENSOR_LAG_STEPS).astype(jnp.int32)
-        gm = configured_range(rd, "gripper_mass_scale")
+        gm = rd.gripper_mass_scale
         zeros6 = jnp.zeros(6)
         data = self.data0.replace(qpos=q, qvel=zeros6, ctrl=jnp.zeros(4), qfrc_applied=zeros6, time=jnp.zeros(()))
         pts = forward_kinematics(jnp, q, zeros6)
@@ -398,9 +387,9 @@ class ThrowEnvCore:
         lag = jnp.concatenate([jnp.full(4, s["sensor_lag"][0]), jnp.full(2, s["sensor_lag"][1])])
         cols = jnp.arange(6)
         q, qd = s["phys_q"][lag, cols], s["phys_qd"][lag, cols]
-        n = self.rand.get("obs_noise", {})
-        q_std = jnp.asarray([n.get("q_active", 0.0)] * 4 + [n.get("q_passive", 0.0)] * 2)
-        qd_std = jnp.asarray([n.get("qd_active", 0.0)] * 4 + [n.get("qd_passive", 0.0)] * 2)
+        n = self.rand.obs_noise
+        q_std = jnp.asarray([n.q_active] * 4 + [n.q_passive] * 2)
+        qd_std = jnp.asarray([n.qd_active] * 4 + [n.qd_passive] * 2)
         k1, k2 = jax.random.split(key)
         return q + q_std * jax.random.normal(k1, (6,)), qd + qd_std * jax.random.normal(k2, (6,))
 
@@ -424,7 +413,7 @@ class ThrowEnvCore:
             countdown=jnp.where(do_release, s["delay_steps"], s["countdown"]),
             release_cmd=s["release_cmd"] | do_release,
         )
-        noise = jax.random.normal(k_noise, (4,)) * self.rand.get("velocity_noise", 0.02) * self.vmax
+        noise = jax.random.normal(k_noise, (4,)) * self.rand.velocity_noise * self.vmax
         target_v = (qd_ref if self.hydraulic else qd_ref * s["gain"]) + noise
         s = jax.lax.fori_loop(0, SUBSTEPS, lambda _, st: self._substep(st, target_v), s)
 

@@ -40,8 +40,9 @@ scaling is fixed rather than learned because rsl_rl's empirical normaliser, resu
 count of ~1e9, barely moves for newly added inputs (sim_twin.critic_surgery starts them at mean 0,
 std 1).
 
-Ranges not given in the config take the defaults of ``RANDOMIZATION_DEFAULTS``, which the
-environment's reset draws from as well (one table for both).
+The config's ``env.randomization`` mapping is checked and typed once, into :class:`Randomization`
+(ranges not given take the defaults of ``RANDOMIZATION_DEFAULTS``), which the environment's reset
+draws from and this module normalises over (one table for both).
 
 The normalisation ranges are those the critic was *trained* with, which are not always the ranges
 the episode is drawn from: fine-tuning on a site (sim_twin.adapt.finetune_config) narrows the
@@ -55,6 +56,8 @@ else from the randomisation. Configs without it (normal training) are unchanged.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import jax.numpy as jnp
 
@@ -74,6 +77,7 @@ RANDOMIZATION_DEFAULTS: dict[str, tuple[float, float]] = {
 
 RELEASE_DELAY_DEFAULTS = {"release_delay_mean_s": 0.258, "release_delay_std_s": 0.015, "release_delay_shift_s": 0.0}
 GAIN_ERROR_DEFAULT = 0.1
+VELOCITY_NOISE_DEFAULT = 0.02
 PASSIVE_ANGLE_SCALE_RAD = math.pi
 PASSIVE_RATE_SCALE_RADPS = 4.0
 
@@ -134,25 +138,114 @@ def check_randomization(rand: dict, where: str = "env.randomization", keys: tupl
         raise ValueError(f"{where}.obs_noise must map {list(OBS_NOISE_KEYS)} to stds, not {noise!r}")
 
 
+Range = tuple[float, float]
+
+
+@dataclass(frozen=True)
+class ObsNoise:
+    """Standard deviations of the white noise on the sensed joint state (sim_twin.mjx_env's
+    ``_measure``): angles [rad] and rates [rad/s] of the active and the passive joints. CHOSEN
+    values in configs/*.json (about twice the nominal sensing of sim_twin/profile.py SensorParams)."""
+
+    q_active: float = 0.0
+    qd_active: float = 0.0
+    q_passive: float = 0.0
+    qd_passive: float = 0.0
+
+
+@dataclass(frozen=True)
+class Randomization:
+    """The per-episode domain randomisation of the training environment (config ``env.randomization``),
+    checked and typed: every entry the environment reads, with its default where the config lacks it.
+
+    Ranges are [lo, hi] drawn uniformly per episode (per active joint where the privileged layout
+    has 4 values): ``lag_s`` valve / velocity lag time constant [s], ``valve_delay_s`` valve
+    transport delay [s], ``dead_band`` valve dead band [fraction of full opening],
+    ``velocity_scale`` full-open speed factor, ``friction_scale`` passive friction factor,
+    ``gripper_mass_scale`` gripper mass and inertia factor, ``encoder_latency_s`` and
+    ``imu_latency_s`` sensor latencies [s]. Scalars: ``actuation`` "lag" (first-order velocity lag
+    with gain error ±``gain_error``) or "hydraulic" (the runtime's PID + FF law on the valve model);
+    the release delay [s] ~ N(``release_delay_mean_s``, ``release_delay_std_s``) plus a uniform
+    episode shift of ±``release_delay_shift_s`` (mean 258 ms: machine-spec.md); ``velocity_noise``
+    std of the velocity-reference noise [fraction of the joint's velocity limit]; ``valve_spread``
+    per-joint spread of the valve speed around one machine-wide slowness (1: independent per joint);
+    ``obs_noise`` (:class:`ObsNoise`). Defaults: ``RANDOMIZATION_DEFAULTS``,
+    ``RELEASE_DELAY_DEFAULTS``, ``GAIN_ERROR_DEFAULT``, ``VELOCITY_NOISE_DEFAULT`` (CHOSEN).
+    """
+
+    actuation: str = "lag"
+    lag_s: Range = RANDOMIZATION_DEFAULTS["lag_s"]
+    friction_scale: Range = RANDOMIZATION_DEFAULTS["friction_scale"]
+    dead_band: Range = RANDOMIZATION_DEFAULTS["dead_band"]
+    valve_delay_s: Range = RANDOMIZATION_DEFAULTS["valve_delay_s"]
+    velocity_scale: Range = RANDOMIZATION_DEFAULTS["velocity_scale"]
+    encoder_latency_s: Range = RANDOMIZATION_DEFAULTS["encoder_latency_s"]
+    imu_latency_s: Range = RANDOMIZATION_DEFAULTS["imu_latency_s"]
+    gripper_mass_scale: Range = RANDOMIZATION_DEFAULTS["gripper_mass_scale"]
+    gain_error: float = GAIN_ERROR_DEFAULT
+    release_delay_mean_s: float = RELEASE_DELAY_DEFAULTS["release_delay_mean_s"]
+    release_delay_std_s: float = RELEASE_DELAY_DEFAULTS["release_delay_std_s"]
+    release_delay_shift_s: float = RELEASE_DELAY_DEFAULTS["release_delay_shift_s"]
+    velocity_noise: float = VELOCITY_NOISE_DEFAULT
+    valve_spread: float = 1.0
+    obs_noise: ObsNoise = field(default_factory=ObsNoise)
+
+    @classmethod
+    def from_dict(cls, rand: dict, where: str = "env.randomization") -> Randomization:
+        """From a config's ``randomization`` mapping, checked by :func:`check_randomization`.
+
+        Raises:
+            ValueError: an unknown entry, a range that is not [lo, hi], a negative std or spread,
+                an unknown actuation or observation-noise entry.
+        """
+        check_randomization(rand, where)
+        return cls(**_typed_entries(rand))
+
+    @property
+    def hydraulic(self) -> bool:
+        """The actuation model is the runtime's controller on the valve model (else the lag model)."""
+        return self.actuation == "hydraulic"
+
+    def range(self, name: str) -> Range:
+        """The [lo, hi] range of randomisation ``name`` (a key of ``RANDOMIZATION_DEFAULTS``)."""
+        if name not in RANDOMIZATION_DEFAULTS:
+            raise KeyError(f"{name!r} is not a randomisation range (known: {sorted(RANDOMIZATION_DEFAULTS)})")
+        return getattr(self, name)
+
+    def with_ranges(self, privileged_ranges: dict | None) -> Randomization:
+        """This randomisation with the entries of a config's ``env.privileged_ranges`` (keys of
+        ``PRIVILEGED_RANGE_KEYS``) in place of its own: the ranges the critic's privileged inputs
+        are normalised over (see the module docstring); itself when there are none.
+
+        Raises:
+            ValueError: an entry that :func:`check_randomization` refuses for ``privileged_ranges``.
+        """
+        if not privileged_ranges:
+            return self
+        check_randomization(privileged_ranges, "env.privileged_ranges", PRIVILEGED_RANGE_KEYS)
+        return replace(self, **_typed_entries(privileged_ranges))
+
+
+def _typed_entries(rand: dict) -> dict:
+    """A checked ``randomization`` mapping's entries as :class:`Randomization` field values."""
+    out: dict[str, Any] = {}
+    for name, value in rand.items():
+        if name in RANDOMIZATION_DEFAULTS:
+            out[name] = (float(value[0]), float(value[1]))
+        elif name == "obs_noise":
+            out[name] = ObsNoise(**{k: float(v) for k, v in value.items()})
+        elif name == "actuation":
+            out[name] = value
+        else:
+            out[name] = float(value)
+    return out
+
+
 def trained_ranges(rand: dict) -> dict:
     """The entries of ``rand`` (a config's ``randomization``) that the privileged normalisation
     reads (``PRIVILEGED_RANGE_KEYS``), copied (lists as new lists): what a derived config stores
     as ``env.privileged_ranges`` so that its critic inputs stay on the base training's scale."""
     return {k: list(rand[k]) if isinstance(rand[k], (list, tuple)) else rand[k] for k in PRIVILEGED_RANGE_KEYS if k in rand}
-
-
-def normalisation_ranges(rand: dict, privileged_ranges: dict | None) -> dict:
-    """The dict :func:`privileged_observation` normalises over: ``rand`` (the config's
-    ``randomization``) with each entry of ``privileged_ranges`` (the config's
-    ``env.privileged_ranges``, ranges the critic was trained with) taking precedence; ``rand``
-    itself when ``privileged_ranges`` is None or empty."""
-    return {**rand, **privileged_ranges} if privileged_ranges else rand
-
-
-def configured_range(rand: dict, name: str) -> tuple[float, float]:
-    """The [lo, hi] range of randomisation ``name`` from the config dict, else its default."""
-    lo, hi = rand.get(name, RANDOMIZATION_DEFAULTS[name])
-    return float(lo), float(hi)
 
 
 def _normalise(x, lo: float, hi: float, used: bool = True):
@@ -162,12 +255,12 @@ def _normalise(x, lo: float, hi: float, used: bool = True):
     return (x - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
 
 
-def privileged_observation(rand: dict, hydraulic: bool, s) -> jnp.ndarray:
+def privileged_observation(rand: Randomization, hydraulic: bool, s) -> jnp.ndarray:
     """The privileged vector of one environment (layout in the module docstring).
 
     Args:
-        rand: the ranges to normalise over: the config's ``randomization`` dict, or
-            :func:`normalisation_ranges` of it when the config has ``privileged_ranges``.
+        rand: the ranges to normalise over: the config's randomisation, or
+            ``randomization.with_ranges(privileged_ranges)`` when the config has ``privileged_ranges``.
         hydraulic: the actuation model is "hydraulic" (else the first-order lag model).
         s: sim_twin.mjx_env.EnvState of one environment.
 
@@ -175,12 +268,10 @@ def privileged_observation(rand: dict, hydraulic: bool, s) -> jnp.ndarray:
         (PRIVILEGED_SIZE,) float32.
     """
     dt = PHYSICS_PERIOD_S
-    g = float(rand.get("gain_error", GAIN_ERROR_DEFAULT))
-    mean = float(rand.get("release_delay_mean_s", RELEASE_DELAY_DEFAULTS["release_delay_mean_s"]))
-    half = 2.0 * float(rand.get("release_delay_std_s", RELEASE_DELAY_DEFAULTS["release_delay_std_s"])) + float(
-        rand.get("release_delay_shift_s", RELEASE_DELAY_DEFAULTS["release_delay_shift_s"])
-    )
-    rng = lambda name: configured_range(rand, name)  # noqa: E731
+    g = rand.gain_error
+    mean = rand.release_delay_mean_s
+    half = 2.0 * rand.release_delay_std_s + rand.release_delay_shift_s
+    rng = rand.range
     lat = s["sensor_lag"] * dt
     parts = [
         _normalise(s["valve_delay"] * dt, *rng("valve_delay_s"), used=hydraulic),

@@ -193,12 +193,12 @@ def test_finetune_config_keeps_the_trained_normalisation(mode):
 def test_normal_config_privileged_values_unchanged():
     """No ``privileged_ranges`` (normal training), or ones equal to the randomisation: the
     randomisation ranges, bit for bit."""
-    from sim_twin.privileged import privileged_observation, trained_ranges
+    from sim_twin.privileged import Randomization, privileged_observation, trained_ranges
 
     env = _deployed_cfg("2d")["env"]
     state, obs, priv = _reset_priv(env)
     hydraulic = env["randomization"]["actuation"] == "hydraulic"
-    direct = np.asarray(jax.vmap(lambda s: privileged_observation(env["randomization"], hydraulic, s))(state))
+    direct = np.asarray(jax.vmap(lambda s: privileged_observation(Randomization.from_dict(env["randomization"]), hydraulic, s))(state))
     np.testing.assert_array_equal(priv, direct)
     _, obs_same, priv_same = _reset_priv({**env, "privileged_ranges": trained_ranges(env["randomization"])})
     np.testing.assert_array_equal(priv_same, priv)

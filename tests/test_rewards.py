@@ -90,6 +90,29 @@ def test_every_committed_config_loads_and_a_wrong_randomization_entry_is_refused
         EnvConfig.from_dict({**env, "privileged_ranges": {"obs_noise": {}}})
 
 
+def test_randomization_is_typed_with_defaults_and_privileged_overrides():
+    """The environment reads typed fields, not the config mapping: entries the config gives,
+    defaults for the rest, and ``privileged_ranges`` replacing only the ranges it names."""
+    from sim_twin.privileged import RANDOMIZATION_DEFAULTS, Randomization
+
+    env = json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]
+    rand = EnvConfig.from_dict(env).randomization
+    assert isinstance(rand, Randomization) and rand.hydraulic
+    assert rand.valve_delay_s == tuple(env["randomization"]["valve_delay_s"])
+    assert rand.obs_noise.q_passive == env["randomization"]["obs_noise"]["q_passive"]
+    bare = EnvConfig.from_dict({**env, "randomization": {}}).randomization
+    assert bare == Randomization() and not bare.hydraulic
+    assert bare.range("lag_s") == RANDOMIZATION_DEFAULTS["lag_s"] and bare.velocity_noise == 0.02
+    with pytest.raises(KeyError, match="not a randomisation range"):
+        bare.range("gain_error")
+    narrowed = rand.with_ranges({"valve_delay_s": [0.1, 0.1], "gain_error": 0.2})
+    assert narrowed.valve_delay_s == (0.1, 0.1) and narrowed.gain_error == 0.2
+    assert narrowed.lag_s == rand.lag_s and rand.valve_delay_s != (0.1, 0.1)  # the original is unchanged
+    assert rand.with_ranges({}) is rand
+    with pytest.raises(ValueError, match="env.privileged_ranges.lag_s must be a range"):
+        rand.with_ranges({"lag_s": [0.3, 0.1]})
+
+
 def test_far_targets_weight_the_target_distance():
     """With far_targets.fraction f, a fraction f of episodes draws from the far range on top of the
     uniform draw over target_range_m (the 2D target lies on the arm's plane, so |target| = distance)."""
