@@ -312,14 +312,12 @@ def host_description() -> str:
 
 def git_commit(root: Path = REPO) -> str:
     """Short hash of HEAD, with "+uncommitted changes" when the work tree differs; "not recorded" outside git."""
-    try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
-                              check=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root, capture_output=True,
-                               text=True, check=True, timeout=30).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
+    from sim_twin.model_card import head_commit
+
+    state = head_commit(root)
+    if state is None:
         return "not recorded"
-    return head + (" +uncommitted changes" if dirty else "")
+    return state[0][:7] + (" +uncommitted changes" if state[1] else "")
 
 
 def policy_entry(onnx: Path, root: Path = REPO) -> dict:
