@@ -56,7 +56,7 @@ else from the randomisation. Configs without it (normal training) are unchanged.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import jax.numpy as jnp
@@ -107,7 +107,22 @@ OTHER_RANDOMIZATION_KEYS = ("actuation", "obs_noise", "velocity_noise", "valve_s
 """The ``randomization`` entries the environment reads besides ``PRIVILEGED_RANGE_KEYS``
 (sim_twin.mjx_env: actuation "lag" or "hydraulic", observation-noise stds, velocity-reference
 noise, machine-wide valve slowness spread)."""
-OBS_NOISE_KEYS = ("q_active", "qd_active", "q_passive", "qd_passive")
+
+
+@dataclass(frozen=True)
+class ObsNoise:
+    """Standard deviations of the white noise on the sensed joint state (sim_twin.mjx_env's
+    ``_measure``): angles [rad] and rates [rad/s] of the active and the passive joints. CHOSEN
+    values in configs/*.json (about twice the nominal sensing of sim_twin/profile.py SensorParams)."""
+
+    q_active: float = 0.0
+    qd_active: float = 0.0
+    q_passive: float = 0.0
+    qd_passive: float = 0.0
+
+
+OBS_NOISE_KEYS = tuple(f.name for f in fields(ObsNoise))
+"""The entries of ``randomization.obs_noise`` (the fields of :class:`ObsNoise`)."""
 
 
 def check_randomization(rand: dict, where: str = "env.randomization", keys: tuple[str, ...] | None = None) -> None:
@@ -139,18 +154,6 @@ def check_randomization(rand: dict, where: str = "env.randomization", keys: tupl
 
 
 Range = tuple[float, float]
-
-
-@dataclass(frozen=True)
-class ObsNoise:
-    """Standard deviations of the white noise on the sensed joint state (sim_twin.mjx_env's
-    ``_measure``): angles [rad] and rates [rad/s] of the active and the passive joints. CHOSEN
-    values in configs/*.json (about twice the nominal sensing of sim_twin/profile.py SensorParams)."""
-
-    q_active: float = 0.0
-    qd_active: float = 0.0
-    q_passive: float = 0.0
-    qd_passive: float = 0.0
 
 
 @dataclass(frozen=True)
