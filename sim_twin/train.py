@@ -153,10 +153,9 @@ def _launch_torchrun(args: argparse.Namespace, argv: list[str]) -> int:
     """Re-run this command under torchrun with one process per GPU."""
     import subprocess
 
-    i = argv.index("--gpus") if "--gpus" in argv else None
-    rest = [a for k, a in enumerate(argv) if i is None or k not in (i, i + 1)]
-    rest = [a for a in rest if not a.startswith("--gpus=")]
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={args.gpus}", "-m", "sim_twin.train", *rest]
+    # The workers get the same arguments, --gpus included (a torchrun worker does not re-launch), so
+    # that the model card names the command as it was given.
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={args.gpus}", "-m", "sim_twin.train", *argv]
     log.info("launching %s", shlex.join(cmd))
     return subprocess.call(cmd)
 
@@ -278,6 +277,8 @@ def run(args: argparse.Namespace) -> int:
             torch.distributed.broadcast(stop, src=0)
         if stop[0] > 0:
             break
+    if world > 1:
+        torch.distributed.destroy_process_group()  # rsl_rl's runner made it; NCCL warns at exit otherwise
     if not main_rank:
         return 0
     if gate and not passed and args.gate_wait_minutes > 0:
@@ -292,23 +293,24 @@ def run(args: argparse.Namespace) -> int:
     if out:
         ckpt = Path(passed["onnx"]).with_suffix(".pt") if passed else log_dir / "checkpoint.pt"
         it = passed["iteration"] if passed else runner.current_learning_iteration
-        _export(ckpt, cfg, out, args.name or out.stem, card=dict(
+        _export(ckpt, cfg, out, args.name or out.stem, command=getattr(args, "command", None), card=dict(
             iteration=it, train_wall_s=passed["train_wall_s"] if passed else clock(),
             verdict_wall_s=passed["verdict_wall_s"] if passed else None, world_size=world,
             matrices=[r.__dict__ for r in gate.results if r.iteration == it] if gate else [], bars_met=bool(passed)))
     return 0
 
 
-def _export(checkpoint: Path, cfg: dict, out: Path, name: str, card: dict | None = None) -> Path:
-    """Export ``checkpoint`` to ONNX + manifest; with ``card`` also write the model card and put
-    it into the manifest's ``training`` section."""
+def _export(checkpoint: Path, cfg: dict, out: Path, name: str, card: dict | None = None, command: str | None = None) -> Path:
+    """Export ``checkpoint`` to ONNX + manifest; with ``card`` also write the model card (naming
+    ``command``, by default this process's command line) and put it into the manifest's
+    ``training`` section."""
     from runtime.policy import sha256_of, write_manifest
     from sim_twin import model_card
     from sim_twin.export import export_checkpoint
 
     export_checkpoint(checkpoint, cfg, out, name=name)
     if card is not None:
-        c = model_card.build_card(command=shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]), cfg=cfg, gpus=model_card.accelerator(),
+        c = model_card.build_card(command=command or shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]), cfg=cfg, gpus=model_card.accelerator(),
                                   policy_sha256=sha256_of(out), **card)
         model_card.write_card(out, c)
         manifest = json.loads(out.with_suffix(".json").read_text())
@@ -337,7 +339,12 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         logging.basicConfig(level=logging.INFO)
         return _launch_torchrun(known, argv)
-    return module_main('slinger train', __doc__, build_parser, run, argv)
+
+    def run_as_given(args: argparse.Namespace) -> int:
+        args.command = shlex.join(["slinger", "train", *argv])  # for the model card
+        return run(args)
+
+    return module_main('slinger train', __doc__, build_parser, run_as_given, argv)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,8 @@ def test_slinger_train_with_gpus_relaunches_under_torchrun_one_process_per_gpu(m
     assert cli.main(["train", "--mode", "2d", *gpus, "--max-minutes", "3"]) == 0
     (cmd,) = launches
     i = cmd.index("torch.distributed.run")
-    assert cmd[i + 1:] == ["--standalone", "--nproc_per_node=4", "-m", "sim_twin.train", "--mode", "2d", "--max-minutes", "3"]
+    # the workers get the command as given, --gpus included, so that the model card names it
+    assert cmd[i + 1:] == ["--standalone", "--nproc_per_node=4", "-m", "sim_twin.train", "--mode", "2d", *gpus, "--max-minutes", "3"]
 
 
 def test_more_gpus_than_the_host_has_is_refused_before_anything_starts(monkeypatch, launches, capsys):
@@ -44,9 +45,10 @@ def test_zero_gpus_is_refused(launches, capsys):
 
 def test_a_torchrun_worker_does_not_relaunch(monkeypatch, launches):
     """Inside torchrun (WORLD_SIZE set) --gpus is not acted on again: the worker trains (here the
-    run itself is replaced, so only the dispatch is checked)."""
+    run itself is replaced, so only the dispatch is checked) and knows the command for its model
+    card."""
     monkeypatch.setenv("WORLD_SIZE", "2")
     ran = []
-    monkeypatch.setattr(train, "run", lambda args: ran.append(args.mode) or 0)
+    monkeypatch.setattr(train, "run", lambda args: ran.append((args.mode, args.command)) or 0)
     assert train.main(["--mode", "3d", "--gpus", "2"]) == 0
-    assert ran == ["3d"] and launches == []
+    assert ran == [("3d", "slinger train --mode 3d --gpus 2")] and launches == []
