@@ -62,3 +62,18 @@ def test_the_report_reads_the_names_the_gate_writes():
 
     for mode, it, seed in [("2d", 25, 0), ("3d", 1253, 1), ("2d", 701, 2)]:
         assert parse_matrix_file_name(matrix_file_name(mode, it, seed)) == (it, seed)
+
+
+def test_the_curve_summary_spaces_its_rows_keeps_the_last_and_counts_time_outs(tmp_path):
+    from tests.benchmarks.training_run_report import curve_summary, curve_table
+
+    run = tmp_path / "run"
+    run.mkdir()
+    lines = ["iteration,wall_s,mean_reward,mean_episode_length,landed_per_done,failed_per_done,impact_err_m,action_std"]
+    lines += [f"{25 * (k + 1)},{60.0 * (k + 1)},{k},{40 + k},0.9,0.02,0.5,0.3" for k in range(30)]
+    (run / "curve.csv").write_text("\n".join(lines) + "\n")
+    rows = curve_summary(run, rows=4)
+    assert [r["iteration"] for r in rows] == [25, 275, 500, 750]
+    assert rows[-1]["wall_min"] == 30.0 and rows[0]["timeouts_per_done"] == pytest.approx(0.08)
+    assert len(curve_table(rows)) == 2 + 4 and "| 750 | 30.0 | 90.0% | 2.00% | 8.00% |" in curve_table(rows)[-1]
+    assert curve_summary(tmp_path / "no-run") == []

@@ -6,6 +6,10 @@ reads ``<run>/matrices/matrix_gate.json`` and the matrices beside it and writes 
 profile it gives the first checkpoint (training wall time) at which that profile met all its bars
 on the gate's first seed, and whether it kept meeting them after.
 
+The report also summarises the run's ``curve.csv`` at up to ``CURVE_ROWS`` checkpoints (evenly
+spaced, the last included): landings, failures and time-outs per finished episode, mean impact
+error, return, episode length and action std.
+
 ``--after-run <run>/matrices/site_matrix_<mode>_it<N>[_seed<S>].json ...`` adds site matrices of
 later checkpoints run after the training stopped (``slinger evaluate --policy ... --matrix --seed
 S``, another host): their rows are marked "after the run", their training wall time is the one
@@ -21,6 +25,40 @@ import platform
 import subprocess
 from datetime import UTC, datetime
 from pathlib import Path
+
+
+CURVE_ROWS = 14
+
+
+def curve_summary(run: Path, rows: int = CURVE_ROWS) -> list[dict]:
+    """Up to ``rows`` checkpoints of ``run/curve.csv``, evenly spaced with the last included, each
+    {iteration, wall_min, landed_per_done, failed_per_done, timeouts_per_done (the rest of the
+    finished episodes: time limit reached without a landing or failure), impact_err_m [m],
+    mean_reward, mean_episode_length [control steps], action_std}; [] without a curve."""
+    from sim_twin.training_curve import TrainingCurve
+
+    curve = TrainingCurve.load_or_new(run / "curve.csv").rows
+    if not curve:
+        return []
+    picks = sorted({round(k * (len(curve) - 1) / max(rows - 1, 1)) for k in range(min(rows, len(curve)))})
+    out = []
+    for r in (curve[i] for i in picks):
+        landed, failed = r.get("landed_per_done", float("nan")), r.get("failed_per_done", float("nan"))
+        out.append({"iteration": int(r["iteration"]), "wall_min": round(r["wall_s"] / 60, 1),
+                    "landed_per_done": landed, "failed_per_done": failed, "timeouts_per_done": 1.0 - landed - failed,
+                    **{k: r.get(k, float("nan")) for k in ("impact_err_m", "mean_reward", "mean_episode_length", "action_std")}})
+    return out
+
+
+def curve_table(summary: list[dict]) -> list[str]:
+    """Markdown lines of :func:`curve_summary`'s rows."""
+    md = ["| iteration | training wall time [min] | landed | failed | timed out | mean impact error [m] | mean return | "
+          "mean episode length | action std |", "|---|---|---|---|---|---|---|---|---|"]
+    for c in summary:
+        md.append(f"| {c['iteration']} | {c['wall_min']} | {c['landed_per_done']:.1%} | {c['failed_per_done']:.2%} | "
+                  f"{c['timeouts_per_done']:.2%} | {c['impact_err_m']:.3f} | {c['mean_reward']:.1f} | "
+                  f"{c['mean_episode_length']:.0f} | {c['action_std']:.3f} |")
+    return md
 
 
 def main() -> None:
@@ -63,6 +101,7 @@ def main() -> None:
         "passed": gate["passed"],
         "results": [{k: r[k] for k in ("iteration", "seed", "passed", "missing_cells", "train_wall_s", "misses", "after_run")} for r in rows],
         "first_met_per_profile": first_met,
+        "curve": curve_summary(a.run),
     }
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.with_suffix(".json").write_text(json.dumps(out, indent=2) + "\n")
@@ -80,6 +119,9 @@ def main() -> None:
            "| profile | training wall time [min] | iteration | met at every later checkpoint |", "|---|---|---|---|"]
     for name, f in first_met.items():
         md.append(f"| {name} | {f['wall_min'] if f['wall_min'] is not None else 'not met'} | {f['iteration'] or '-'} | {'yes' if f['kept'] else 'no'} |")
+    if out["curve"]:
+        md += ["", "Training curve (`curve.csv`; per finished episode: landed, failed, or timed out without either):", "",
+               *curve_table(out["curve"])]
     a.out.with_suffix(".md").write_text("\n".join(md) + "\n")
 
     import matplotlib
