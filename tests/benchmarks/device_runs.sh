@@ -8,6 +8,7 @@
 #   bash tests/benchmarks/device_runs.sh start NAME MODE CONFIG WORKERS [more slinger train args]
 #   bash tests/benchmarks/device_runs.sh watch MINUTES  # progress every minute, then collect
 #   bash tests/benchmarks/device_runs.sh collect        # $OUT/<name>.tar and $OUT/train_<name>.log.gz per run
+#                                                       # (candidate checkpoints left out but the exported one's)
 #   bash tests/benchmarks/device_runs.sh state RUN_DIR NAME  # here, not on the device: runs/state/NAME.tar
 #                                                       # (gzip) from RUN_DIR's checkpoint, config, curve and
 #                                                       # gate verdicts, so that `start NAME` resumes it
@@ -64,6 +65,12 @@ collect() {
       [ $(( $(date +%s) - $(stat -c %Y $run/checkpoint.pt 2>/dev/null || echo 0) )) -ge 3 ] && break; sleep 1
     done
     tar cf $OUT/$name.tar --exclude="$run/candidates/*.pt" --exclude="$run/train.log" $run
+    # but the checkpoint of the exported policy (a run that met the bars), which adapting it needs
+    local card=$(ls $run/throw*.card.json 2>/dev/null | head -n 1) it
+    if [ -n "$card" ]; then
+      it=$(python3 -c "import json, sys; print(json.load(open(sys.argv[1]))['iteration'])" "$card")
+      [ -f $run/candidates/checkpoint_$it.pt ] && tar rf $OUT/$name.tar $run/candidates/checkpoint_$it.pt
+    fi
     gzip -c $run/train.log > $OUT/train_$name.log.gz
   done
   ls -la $OUT
