@@ -41,3 +41,33 @@ def test_state_refuses_a_directory_without_a_checkpoint(tmp_path):
     assert r.returncode == 1
     assert "has no checkpoint.pt" in r.stderr
     assert not (tmp_path / "runs" / "state" / "x.tar").exists()
+
+
+def _collect(work: Path, out: Path) -> subprocess.CompletedProcess:
+    env = {"PATH": "/usr/bin:/bin", "SLINGER_RUNS_WORK": str(work), "OUT": str(out)}
+    return subprocess.run(["bash", str(SCRIPT), "collect"], env=env, capture_output=True, text=True, timeout=120)
+
+
+def _run_dir(work: Path, name: str, card_iteration: int | None) -> None:
+    run = work / "runs" / name
+    for rel in ["checkpoint.pt", "curve.csv", "train.log", "candidates/checkpoint_25.pt", "candidates/checkpoint_50.pt",
+                "candidates/checkpoint_50.onnx"]:
+        (run / rel).parent.mkdir(parents=True, exist_ok=True)
+        (run / rel).write_text(rel)
+    if card_iteration is not None:
+        (run / "throw2d.card.json").write_text(f'{{"iteration": {card_iteration}}}')
+
+
+def test_collect_leaves_candidate_checkpoints_behind_but_the_exported_ones(tmp_path):
+    work, out = tmp_path / "work", tmp_path / "out"
+    out.mkdir()
+    _run_dir(work, "passed", card_iteration=50)
+    _run_dir(work, "running", card_iteration=None)
+    r = _collect(work, out)
+    assert r.returncode == 0, r.stderr
+    for name, kept_pt in [("passed", ["runs/passed/candidates/checkpoint_50.pt"]), ("running", [])]:
+        with tarfile.open(out / f"{name}.tar") as t:
+            files = {m.name for m in t.getmembers() if m.isfile()}
+        assert sorted(f for f in files if f.startswith(f"runs/{name}/candidates/") and f.endswith(".pt")) == kept_pt
+        assert f"runs/{name}/candidates/checkpoint_50.onnx" in files and f"runs/{name}/train.log" not in files
+        assert (out / f"train_{name}.log.gz").exists()

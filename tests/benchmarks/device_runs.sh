@@ -22,7 +22,7 @@
 # The GPU is shared by the runs and the CPU cores by their site-matrix gates (WORKERS processes each):
 # training wall times measured this way are upper bounds of a run alone on the GPU.
 set -u
-WORK=/tmp/slinger-runs
+WORK=${SLINGER_RUNS_WORK:-/tmp/slinger-runs}  # the copy the runs work in (tests set another)
 export PYTHONPATH=/tmp/site:$WORK PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
 
 install() {
