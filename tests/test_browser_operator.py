@@ -369,3 +369,25 @@ def test_a_preview_with_its_ellipse_is_in_view_at_both_sizes(tmp_path, module_br
             assert not take_errors(page)
         finally:
             ctx.close()
+
+
+def test_throw_waits_for_the_gates_judgement_of_a_new_preview(up, ann):
+    """A preview alone does not enable Throw: the page asks the server's throw gate to judge it
+    against the machine as it is now, and Throw stays disabled until that answer comes (here the
+    gate's answers are held back, then let through). A machine that moved while the preview was
+    made is thus never offered a Throw the server will refuse."""
+    held = []
+    ann.route("**/api/previews/*/check", lambda route: held.append(route))
+    ann.goto(f"{up.base_url}/console/index.html")
+    ann.locator("#machine-state", has_text="m1 READY").wait_for()
+    box = _viser_canvas_box(ann)
+    ann.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    ann.locator("#target", has_text="from the turn axis").wait_for()
+    ann.locator("#preview:not([disabled])").wait_for()
+    press(ann, "#preview")
+    ann.locator("#pv-sigma", has_text="rollouts").wait_for(timeout=120_000)  # the full preview is on screen
+    wait_for(lambda: ann.wait_for_timeout(200) or bool(held), 30, "the page asks the gate about the new preview")
+    ann.wait_for_timeout(1500)
+    assert ann.locator("#throw").is_disabled()
+    ann.unroute("**/api/previews/*/check")  # the held requests go on to the server, and later checks too
+    ann.locator("#throw:not([disabled])").wait_for(timeout=30_000)

@@ -252,7 +252,10 @@ async function doPreview(auto = false) {
   try {
     const quick = await api("POST", "/api/previews", { ...body, rollouts: 1 });
     state.preview = quick; state.previewKey = key; state.previewAt = Date.now();
-    state.check = { valid: quick.status === "ok", age_s: 0, previewId: quick.id }; state.checkAt = Date.now();
+    // Throw waits for the server's gate to judge this preview against the machine as it is now
+    // (checkPreview): a machine still settling after a throw, or scatter into a keep-out zone,
+    // must not leave Throw enabled on the preview's own word
+    state.check = null;
     showPreview(quick);
     await api("POST", `/api/consoles/${state.consoleId}/preview`, { preview_id: quick.id }).then(applyConsole).catch(() => {});
     if (quick.status === "ok") {
@@ -263,7 +266,7 @@ async function doPreview(auto = false) {
       }
       if (full && state.previewKey === key) {
         state.preview = full; state.previewAt = Date.now();
-        state.check = { valid: full.status === "ok", age_s: 0, previewId: full.id }; state.checkAt = Date.now();
+        state.check = null;
         showPreview(full);
         await api("POST", `/api/consoles/${state.consoleId}/preview`, { preview_id: full.id }).then(applyConsole).catch(() => {});
         setStatus(`Preview ready: ${fmt(full.downrange_error_m)} m downrange, ${fmt(full.crossrange_error_m)} m crossrange. Press Throw to send it.`);
@@ -276,6 +279,7 @@ async function doPreview(auto = false) {
   } finally {
     state.busy = false; updateButtons();
   }
+  checkPreview(); // at once, not at the next tick: Throw enables when the gate says so
 }
 
 // --- throw ------------------------------------------------------------------------------------------
