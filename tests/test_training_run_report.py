@@ -69,11 +69,13 @@ def test_the_curve_summary_spaces_its_rows_keeps_the_last_and_counts_time_outs(t
 
     run = tmp_path / "run"
     run.mkdir()
-    lines = ["iteration,wall_s,mean_reward,mean_episode_length,landed_per_done,failed_per_done,impact_err_m,action_std"]
-    lines += [f"{25 * (k + 1)},{60.0 * (k + 1)},{k},{40 + k},0.9,0.02,0.5,0.3" for k in range(30)]
+    lines = ["iteration,wall_s,mean_reward,mean_episode_length,landed_per_done,failed_per_done,impact_err_m,action_std,"
+             "control_steps_per_s"]
+    lines += [f"{25 * (k + 1)},{60.0 * (k + 1)},{k},{40 + k},0.9,0.02,0.5,0.3,600000" for k in range(30)]
     (run / "curve.csv").write_text("\n".join(lines) + "\n")
     rows = curve_summary(run, rows=4)
     assert [r["iteration"] for r in rows] == [25, 275, 500, 750]
     assert rows[-1]["wall_min"] == 30.0 and rows[0]["timeouts_per_done"] == pytest.approx(0.08)
     assert len(curve_table(rows)) == 2 + 4 and "| 750 | 30.0 | 90.0% | 2.00% | 8.00% |" in curve_table(rows)[-1]
+    assert curve_table(rows)[-1].endswith("| 0.300 | 0.60 |")
     assert curve_summary(tmp_path / "no-run") == []

@@ -8,7 +8,7 @@ on the gate's first seed, and whether it kept meeting them after.
 
 The report also summarises the run's ``curve.csv`` at up to ``CURVE_ROWS`` checkpoints (evenly
 spaced, the last included): landings, failures and time-outs per finished episode, mean impact
-error, return, episode length and action std.
+error, return, episode length, action std and control steps per second with learning.
 
 ``--after-run <run>/matrices/site_matrix_<mode>_it<N>[_seed<S>].json ...`` adds site matrices of
 later checkpoints run after the training stopped (``slinger evaluate --policy ... --matrix --seed
@@ -34,7 +34,8 @@ def curve_summary(run: Path, rows: int = CURVE_ROWS) -> list[dict]:
     """Up to ``rows`` checkpoints of ``run/curve.csv``, evenly spaced with the last included, each
     {iteration, wall_min, landed_per_done, failed_per_done, timeouts_per_done (the rest of the
     finished episodes: time limit reached without a landing or failure), impact_err_m [m],
-    mean_reward, mean_episode_length [control steps], action_std}; [] without a curve."""
+    mean_reward, mean_episode_length [control steps], action_std, control_steps_per_s (with
+    learning, all processes)}; [] without a curve."""
     from sim_twin.training_curve import TrainingCurve
 
     curve = TrainingCurve.load_or_new(run / "curve.csv").rows
@@ -46,18 +47,19 @@ def curve_summary(run: Path, rows: int = CURVE_ROWS) -> list[dict]:
         landed, failed = r.get("landed_per_done", float("nan")), r.get("failed_per_done", float("nan"))
         out.append({"iteration": int(r["iteration"]), "wall_min": round(r["wall_s"] / 60, 1),
                     "landed_per_done": landed, "failed_per_done": failed, "timeouts_per_done": 1.0 - landed - failed,
-                    **{k: r.get(k, float("nan")) for k in ("impact_err_m", "mean_reward", "mean_episode_length", "action_std")}})
+                    **{k: r.get(k, float("nan")) for k in ("impact_err_m", "mean_reward", "mean_episode_length", "action_std",
+                                                                "control_steps_per_s")}})
     return out
 
 
 def curve_table(summary: list[dict]) -> list[str]:
     """Markdown lines of :func:`curve_summary`'s rows."""
     md = ["| iteration | training wall time [min] | landed | failed | timed out | mean impact error [m] | mean return | "
-          "mean episode length | action std |", "|---|---|---|---|---|---|---|---|---|"]
+          "mean episode length | action std | M control steps/s |", "|---|---|---|---|---|---|---|---|---|---|"]
     for c in summary:
         md.append(f"| {c['iteration']} | {c['wall_min']} | {c['landed_per_done']:.1%} | {c['failed_per_done']:.2%} | "
                   f"{c['timeouts_per_done']:.2%} | {c['impact_err_m']:.3f} | {c['mean_reward']:.1f} | "
-                  f"{c['mean_episode_length']:.0f} | {c['action_std']:.3f} |")
+                  f"{c['mean_episode_length']:.0f} | {c['action_std']:.3f} | {c['control_steps_per_s'] / 1e6:.2f} |")
     return md
 
 
