@@ -78,4 +78,5 @@ def test_the_curve_summary_spaces_its_rows_keeps_the_last_and_counts_time_outs(t
     assert rows[-1]["wall_min"] == 30.0 and rows[0]["timeouts_per_done"] == pytest.approx(0.08)
     assert len(curve_table(rows)) == 2 + 4 and "| 750 | 30.0 | 90.0% | 2.00% | 8.00% |" in curve_table(rows)[-1]
     assert curve_table(rows)[-1].endswith("| 0.300 | 0.60 |")
+    assert [r["iteration"] for r in curve_summary(run, rows=40)] == [25 * (k + 1) for k in range(30)]  # fewer rows: all
     assert curve_summary(tmp_path / "no-run") == []

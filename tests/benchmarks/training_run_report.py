@@ -41,7 +41,8 @@ def curve_summary(run: Path, rows: int = CURVE_ROWS) -> list[dict]:
     curve = TrainingCurve.load_or_new(run / "curve.csv").rows
     if not curve:
         return []
-    picks = sorted({round(k * (len(curve) - 1) / max(rows - 1, 1)) for k in range(min(rows, len(curve)))})
+    n = min(rows, len(curve))
+    picks = sorted({round(k * (len(curve) - 1) / max(n - 1, 1)) for k in range(n)})
     out = []
     for r in (curve[i] for i in picks):
         landed, failed = r.get("landed_per_done", float("nan")), r.get("failed_per_done", float("nan"))
