@@ -27,6 +27,9 @@ EARLIER = {
     "throw2d-scratch-o": ("2d", {_GAMMA: 0.995, **_NO_TERM}),
     "throw2d-scratch-p": ("2d", _NO_TERM),
     "throw3d-scratch-2gpu-g998": ("3d", {_GAMMA: 0.998, ("env", "rewards", "no_release"): -5.0}),
+    # the committed recipes with `--num-envs 32768` on one GPU
+    "throw2d-scratch-r": ("2d", {("num_envs",): 32768}),
+    "throw3d-scratch-r": ("3d", {("num_envs",): 32768}),
 }
 EXPORTED_2D = ["throw2d-scratch-l", "throw2d-scratch-2gpu"]
 """The from-scratch 2D runs whose gate met every bar on two seeds and exported their policy."""
