@@ -50,10 +50,11 @@ _FRAME_SCRIPT = (
     " e.preventDefault(); window.parent.postMessage({ slinger: 'estop' }, '*'); } }, true);"
     # a short one-finger tap on the canvas: replay it as a mouse click, which viser turns into a ray
     " var tap = null;"
+    # (timed by the events' own time stamps: a busy page that handles them late still sees a tap)
     " window.addEventListener('touchstart', function (e) { var t = e.touches[0];"
-    " tap = e.touches.length === 1 ? { x: t.clientX, y: t.clientY, at: Date.now() } : null; }, true);"
+    " tap = e.touches.length === 1 ? { x: t.clientX, y: t.clientY, at: e.timeStamp } : null; }, true);"
     " window.addEventListener('touchend', function (e) { var t = e.changedTouches[0]; var s = tap; tap = null;"
-    " if (!s || Math.hypot(t.clientX - s.x, t.clientY - s.y) > 10 || Date.now() - s.at > 600) return;"
+    " if (!s || Math.hypot(t.clientX - s.x, t.clientY - s.y) > 10 || e.timeStamp - s.at > 600) return;"
     " var c = document.elementFromPoint(t.clientX, t.clientY); if (!c || c.tagName !== 'CANVAS') return;"
     " ['pointerdown', 'mousedown', 'pointerup', 'mouseup', 'click'].forEach(function (type) {"
     " var init = { bubbles: true, cancelable: true, clientX: t.clientX, clientY: t.clientY, button: 0,"
