@@ -655,8 +655,10 @@ class SlingerUp:
                 ms = self.http.get("/api/machines", timeout=2).json()
             except httpx.HTTPError:
                 return None
+            # online, its state heard and its RuntimeInfo answered (a query that timed out on a
+            # loaded host lists the machine online with no policies and busy None)
             return next((m for m in ms if m["id"] == machine_id and m["online"]
-                         and m["cabin_turn_rad"] is not None), None)
+                         and m["cabin_turn_rad"] is not None and m["busy"] is not None), None)
 
         return wait_for(online, timeout_s, f"slinger up: {machine_id} online")
 
