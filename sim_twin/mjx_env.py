@@ -186,6 +186,8 @@ class ThrowEnvCore:
     Args:
         cfg: EnvConfig.
         impl: MJX implementation, "jax" or "warp".
+        unroll_substeps: unroll the 8 physics substeps of a control step into straight-line code
+            (``jax.lax.fori_loop(..., unroll=True)``) instead of a loop; the same arithmetic.
         reset_slots: None (default) resets the whole batch in every
             :meth:`step_autoreset_batch` and keeps the fresh state where an episode ended; a
             fraction in (0, 1) resets only the environments that finished, gathered into that
@@ -199,12 +201,13 @@ class ThrowEnvCore:
         ValueError: ``reset_slots`` outside (0, 1).
     """
 
-    def __init__(self, cfg: EnvConfig, impl: str = "jax", reset_slots: float | None = None):
+    def __init__(self, cfg: EnvConfig, impl: str = "jax", reset_slots: float | None = None, unroll_substeps: bool = False):
         if reset_slots is not None and not 0.0 < reset_slots < 1.0:
             raise ValueError(f"reset_slots must be a fraction in (0, 1) or None, got {reset_slots!r}")
         self.cfg = cfg
         self.impl = impl
         self.reset_slots = reset_slots
+        self.unroll_substeps = unroll_substeps
         self.mode = cfg.mode
         self.num_obs = observation_size(cfg.mode)
         self.num_act = num_actions(cfg.mode)
@@ -415,7 +418,7 @@ class ThrowEnvCore:
         )
         noise = jax.random.normal(k_noise, (4,)) * self.rand.velocity_noise * self.vmax
         target_v = (qd_ref if self.hydraulic else qd_ref * s["gain"]) + noise
-        s = jax.lax.fori_loop(0, SUBSTEPS, lambda _, st: self._substep(st, target_v), s)
+        s = jax.lax.fori_loop(0, SUBSTEPS, lambda _, st: self._substep(st, target_v), s, unroll=self.unroll_substeps)
 
         data = s["data"]
         pts = forward_kinematics(jnp, data.qpos, data.qvel)

@@ -43,6 +43,7 @@ class MjxThrowVecEnv(VecEnv):
         impl: MJX implementation, "jax" or "warp".
         reset_slots: see :class:`sim_twin.mjx_env.ThrowEnvCore` (None: reset the whole batch each
             step; a fraction: reset only the finished environments).
+        unroll_substeps: see :class:`sim_twin.mjx_env.ThrowEnvCore`.
 
     Shapes: observations ``policy`` (num_envs, observation_size(mode)), ``privileged``
     (num_envs, PRIVILEGED_SIZE); actions (num_envs, num_actions(mode));
@@ -50,8 +51,8 @@ class MjxThrowVecEnv(VecEnv):
     """
 
     def __init__(self, cfg: EnvConfig, num_envs: int, seed: int = 0, device: str = "cpu", impl: str = "jax",
-                 reset_slots: float | None = None):
-        self.core = ThrowEnvCore(cfg, impl=impl, reset_slots=reset_slots)
+                 reset_slots: float | None = None, unroll_substeps: bool = False):
+        self.core = ThrowEnvCore(cfg, impl=impl, reset_slots=reset_slots, unroll_substeps=unroll_substeps)
         self.cfg = {"env": cfg.as_dict()}
         self.num_envs = num_envs
         self.num_actions = self.core.num_act

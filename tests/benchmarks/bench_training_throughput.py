@@ -17,6 +17,13 @@ environment count it measures, in one process on one GPU:
 * ``learn_steps_per_s``: rsl_rl's full PPO iteration (rollout + update), and the seconds per
   iteration spent in the rollout and in the update.
 
+``--unroll off,on`` compares the 8 physics substeps of a control step as a loop with the same
+substeps unrolled (``ThrowEnvCore``'s ``unroll_substeps``); ``--xla-flags`` runs each given set of
+XLA flags in its own process (``default`` for none), e.g. command buffers (CUDA graphs) that also
+capture loops and conditionals, and joins the rows into one table. ``env_step_only_per_s`` and
+``env_reset_only_per_s`` time the batch's control step without the auto-reset and the batch's
+reset alone, so that the environment's time splits into physics, its own work and the reset.
+
 ``--reset-slots`` compares the auto-reset of the whole batch at every step (``all``) with resetting
 only the finished environments gathered into a fraction of the batch (``ThrowEnvCore``'s
 ``reset_slots``), side by side in one run.
@@ -72,7 +79,21 @@ def physics_rate(impl: str, n: int, steps: int) -> float:
     return n * steps / (time.perf_counter() - t0)
 
 
-def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int, reset_slots: float | None = None) -> dict:
+def _rate(fn, args, n: int, k: int = 32) -> float:
+    """Control steps per second of ``k`` chained calls of the jitted ``fn`` (state first) over ``n`` environments."""
+    import jax
+
+    out = fn(*args)
+    jax.block_until_ready(out)
+    t0 = time.perf_counter()
+    for _ in range(k):
+        out = fn(out[0], *args[1:])
+    jax.block_until_ready(out)
+    return n * k / (time.perf_counter() - t0)
+
+
+def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int, reset_slots: float | None = None,
+            unroll: bool = False, xla_flags: str = "default") -> dict:
     import jax
     import torch
     from rsl_rl.runners import OnPolicyRunner
@@ -81,7 +102,7 @@ def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int, r
     from sim_twin.train import load_config
     from sim_twin.vec_env import MjxThrowVecEnv
 
-    row = {"mode": mode, "impl": impl, "num_envs": n, "reset_slots": reset_slots}
+    row = {"mode": mode, "impl": impl, "num_envs": n, "reset_slots": reset_slots, "unroll": unroll, "xla_flags": xla_flags}
     try:
         if physics_steps:
             row["physics_steps_per_s"] = physics_rate(impl, n, physics_steps)
@@ -91,19 +112,17 @@ def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int, r
         cfg = load_config(mode, None)
         device = "cuda" if torch.cuda.is_available() else "cpu"
         t0 = time.perf_counter()
-        env = MjxThrowVecEnv(EnvConfig.from_dict(cfg["env"]), n, seed=0, device=device, impl=impl, reset_slots=reset_slots)
+        env = MjxThrowVecEnv(EnvConfig.from_dict(cfg["env"]), n, seed=0, device=device, impl=impl, reset_slots=reset_slots,
+                             unroll_substeps=unroll)
         a = jax.numpy.zeros((n, env.num_actions), jax.numpy.float32)
         out = env._step(env.state, a)
         jax.block_until_ready(out)
         row["env_compile_s"] = time.perf_counter() - t0
-        st = out[0]
-        k = 32
-        t0 = time.perf_counter()
-        for _ in range(k):
-            out = env._step(st, a)
-            st = out[0]
-        jax.block_until_ready(out)
-        row["env_steps_per_s"] = n * k / (time.perf_counter() - t0)
+        row["env_steps_per_s"] = _rate(env._step, (out[0], a), n)
+        row["env_step_only_per_s"] = _rate(jax.jit(jax.vmap(env.core.step)), (out[0], a), n)
+        keys = jax.random.split(jax.random.PRNGKey(1), n)
+        reset = jax.jit(jax.vmap(env.core.reset))
+        row["env_reset_only_per_s"] = _rate(lambda _s, k: (reset(k)[0],), (None, keys), n)
 
         runner = OnPolicyRunner(env, copy.deepcopy(cfg["runner"]), log_dir=None, device=device)
         T = cfg["runner"]["num_steps_per_env"]
@@ -156,24 +175,75 @@ def main() -> None:
     p.add_argument("--iterations", type=int, default=5)
     p.add_argument("--physics-steps", type=int, default=200)
     p.add_argument("--reset-slots", default="all", help="comma-separated: 'all' and/or fractions in (0, 1)")
+    p.add_argument("--unroll", default="off", help="comma-separated: off and/or on (unrolled physics substeps)")
+    p.add_argument("--xla-flags", default="default",
+                   help="';'-separated sets of XLA flags, one process each ('default': none)")
     p.add_argument("--out", default=None)
+    p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args()
+    flag_sets = a.xla_flags.split(";")
+    rows = []
+    if len(flag_sets) > 1 and not a.child:
+        for fs in flag_sets:  # XLA reads its flags once per process
+            rows += _child(fs)
+    else:
+        rows = _measure_all(a, flag_sets[0])
+    if a.out:
+        with open(a.out, "w") as f:
+            json.dump(rows, f, indent=2)
+    if a.child:
+        print("ROWS " + json.dumps(rows), flush=True)
+        return
+    print("impl   envs  reset unroll  physics M/s  env M/s  step-only  reset-only  step+infer M/s  +PPO M/s  rollout s  update s  XLA flags")
+    for r in rows:
+        reset = "all" if r["reset_slots"] is None else f"{r['reset_slots']:g}"
+        print(f"{r['impl']:5} {r['num_envs']:6} {reset:>6} {'on' if r.get('unroll') else 'off':>6} {_f(r.get('physics_steps_per_s'))}     "
+              f"{_f(r.get('env_steps_per_s'))} {_f(r.get('env_step_only_per_s'))}  {_f(r.get('env_reset_only_per_s'))}   "
+              f"{_f(r.get('step_infer_steps_per_s'))}       {_f(r.get('learn_steps_per_s'))}  {_f(r.get('rollout_s'), 1)}  "
+              f"{_f(r.get('update_s'), 1)}  {r.get('xla_flags', '')} {r.get('error', '') or r.get('physics_error', '')}")
+
+
+def _measure_all(a, xla_flags: str) -> list[dict]:
+    """Every implementation x environment count x reset x unroll of the arguments, in this process."""
     slots = [None if x == "all" else float(x) for x in a.reset_slots.split(",")]
+    unrolls = [u == "on" for u in a.unroll.split(",")]
     rows = []
     for impl in a.impls.split(","):
         for n in a.envs.split(","):
-            for i, sl in enumerate(slots):  # the bare physics rate does not depend on the reset: once
-                rows.append(measure(a.mode, impl, int(n), a.iterations, a.physics_steps if i == 0 else 0, sl))
-                print(json.dumps(rows[-1]), flush=True)
-                if a.out:
-                    with open(a.out, "w") as f:
-                        json.dump(rows, f, indent=2)
-    print("impl   envs  reset  physics M/s  env M/s  step+infer M/s  +PPO M/s  rollout s  update s")
-    for r in rows:
-        reset = "all" if r["reset_slots"] is None else f"{r['reset_slots']:g}"
-        print(f"{r['impl']:5} {r['num_envs']:6} {reset:>6} {_f(r.get('physics_steps_per_s'))}     {_f(r.get('env_steps_per_s'))} "
-              f"{_f(r.get('step_infer_steps_per_s'))}       {_f(r.get('learn_steps_per_s'))}  {_f(r.get('rollout_s'), 1)}  "
-              f"{_f(r.get('update_s'), 1)}  {r.get('error', '') or r.get('physics_error', '')}")
+            first = True
+            for sl in slots:
+                for un in unrolls:  # the bare physics rate depends on neither the reset nor the unroll: once
+                    rows.append(measure(a.mode, impl, int(n), a.iterations, a.physics_steps if first else 0, sl, un, xla_flags))
+                    first = False
+                    print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def _child(flags: str) -> list[dict]:
+    """Run this benchmark with one set of XLA flags in a new process; its rows."""
+    import subprocess
+    import sys
+
+    env = dict(os.environ)
+    if flags != "default":
+        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + flags).strip()
+    args, skip = [], False
+    for x in sys.argv[1:]:  # the parent's arguments but its flag sets and output file
+        if skip or x.startswith(("--xla-flags=", "--out=")):
+            skip = False
+            continue
+        if x in ("--xla-flags", "--out"):
+            skip = True
+            continue
+        args.append(x)
+    proc = subprocess.run([sys.executable, __file__, *args, "--child", f"--xla-flags={flags}"], env=env,
+                          capture_output=True, text=True)
+    sys.stderr.write(proc.stderr[-4000:])
+    for line in proc.stdout.splitlines():
+        if line.startswith("ROWS "):
+            return json.loads(line[5:])
+        print(line, flush=True)
+    return [{"xla_flags": flags, "impl": "-", "num_envs": 0, "reset_slots": None, "error": f"child exited {proc.returncode}"}]
 
 
 if __name__ == "__main__":
