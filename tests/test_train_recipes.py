@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-RUNS = {"2d": "throw2d-scratch-q", "3d": "throw3d-scratch-l"}
-ALL_RUNS = [("2d", "throw2d-scratch-q"), ("2d", "throw2d-scratch-2gpu"), ("3d", "throw3d-scratch-l")]
+RUNS = {"2d": "throw2d-scratch-q", "3d": "throw3d-scratch-t"}
+ALL_RUNS = [("2d", "throw2d-scratch-q"), ("2d", "throw2d-scratch-2gpu"), ("3d", "throw3d-scratch-t")]
 """Every committed from-scratch run of the committed recipes (RUNS: the one per mode the docs quote first)."""
 ABSENT = object()
 """An EARLIER value: the run's config lacks a setting the committed recipe has."""
@@ -26,10 +26,13 @@ EARLIER = {
     "throw2d-scratch-n": ("2d", {_GAMMA: 0.995, ("num_envs",): 65536, **_NO_TERM}),
     "throw2d-scratch-o": ("2d", {_GAMMA: 0.995, **_NO_TERM}),
     "throw2d-scratch-p": ("2d", _NO_TERM),
-    "throw3d-scratch-2gpu-g998": ("3d", {_GAMMA: 0.998, ("env", "rewards", "no_release"): -5.0}),
+    "throw3d-scratch-2gpu-g998": ("3d", {_GAMMA: 0.998, ("num_envs",): 16384}),
+    "throw3d-scratch-l": ("3d", {("num_envs",): 16384, **_NO_TERM}),
+    "throw3d-scratch-s": ("3d", _NO_TERM),
     # the committed recipes with `--num-envs 32768` on one GPU
     "throw2d-scratch-r": ("2d", {("num_envs",): 32768}),
-    "throw3d-scratch-r": ("3d", {("num_envs",): 32768}),
+    "throw2d-scratch-s": ("2d", {("num_envs",): 32768}),
+    "throw3d-scratch-r": ("3d", {("num_envs",): 32768, **_NO_TERM}),
 }
 EXPORTED_2D = ["throw2d-scratch-l", "throw2d-scratch-2gpu"]
 """The from-scratch 2D runs whose gate met every bar on two seeds and exported their policy."""
