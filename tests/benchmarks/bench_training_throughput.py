@@ -186,11 +186,9 @@ def main() -> None:
     if len(flag_sets) > 1 and not a.child:
         for fs in flag_sets:  # XLA reads its flags once per process
             rows += _child(fs)
+            _save(a.out, rows)
     else:
         rows = _measure_all(a, flag_sets[0])
-    if a.out:
-        with open(a.out, "w") as f:
-            json.dump(rows, f, indent=2)
     if a.child:
         print("ROWS " + json.dumps(rows), flush=True)
         return
@@ -216,7 +214,16 @@ def _measure_all(a, xla_flags: str) -> list[dict]:
                     rows.append(measure(a.mode, impl, int(n), a.iterations, a.physics_steps if first else 0, sl, un, xla_flags))
                     first = False
                     print(json.dumps(rows[-1]), flush=True)
+                    _save(a.out, rows)
     return rows
+
+
+def _save(out: str | None, rows: list[dict]) -> None:
+    """Write the rows so far to ``out`` (if given) after each measurement, so that a run stopped
+    at a time limit keeps what it measured."""
+    if out:
+        with open(out, "w") as f:
+            json.dump(rows, f, indent=2)
 
 
 def _child(flags: str) -> list[dict]:
