@@ -6,7 +6,7 @@
 #
 #   bash tests/benchmarks/device_runs.sh install        # wheels from .whl/base (and .whl/extra if carried)
 #   bash tests/benchmarks/device_runs.sh start NAME MODE CONFIG WORKERS [more slinger train args]
-#   bash tests/benchmarks/device_runs.sh watch MINUTES  # progress every minute, then collect
+#   bash tests/benchmarks/device_runs.sh watch MINUTES  # progress every minute (ends early once no run trains), then collect
 #   bash tests/benchmarks/device_runs.sh collect        # $OUT/<name>.tar and $OUT/train_<name>.log.gz per run
 #                                                       # (candidate checkpoints left out but the exported one's)
 #   bash tests/benchmarks/device_runs.sh state RUN_DIR NAME  # here, not on the device: runs/state/NAME.tar
@@ -78,7 +78,10 @@ collect() {
 
 watch() {
   local end=$(( $(date +%s) + ${1%.*} * 60 ))
-  while [ $(date +%s) -lt $end ]; do sleep 60; date +%T; progress; nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader; done
+  while [ $(date +%s) -lt $end ]; do
+    sleep 60; date +%T; progress; nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader
+    pgrep -f "sim_twin.train" >/dev/null || { echo "no run is training: collecting now"; break; }  # e.g. bars met
+  done
   collect
 }
 
