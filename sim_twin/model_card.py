@@ -63,6 +63,7 @@ def build_card(*, command: str, cfg: dict, iteration: int, train_wall_s: float, 
         "accelerator": gpus,
         "processes": world_size,
         "num_envs_per_process": cfg.get("num_envs"),
+        "training_seed": cfg.get("training", {}).get("seed"),
         "iteration": iteration,
         "training_wall_s": round(train_wall_s, 1),
         "wall_s_to_verdict": None if verdict_wall_s is None else round(verdict_wall_s, 1),
@@ -83,7 +84,8 @@ def write_card(onnx_path: Path, card: dict) -> tuple[Path, Path]:
         f"* bars met on every seed: **{'yes' if card['bars_met'] else 'no'}**",
         f"* command: `{card['command']}`",
         f"* config SHA-256: `{card['config_sha256']}`; commit `{card['git_commit']}`",
-        f"* accelerator: {card['accelerator']}, {card['processes']} process(es) x {card['num_envs_per_process']} environments",
+        f"* accelerator: {card['accelerator']}, {card['processes']} process(es) x {card['num_envs_per_process']} environments,"
+        f" training seed {card.get('training_seed')}",
         f"* iteration {card['iteration']}, training wall time {card['training_wall_s'] / 60:.1f} min"
         + ("" if card["wall_s_to_verdict"] is None else f" (matrix verdict at {card['wall_s_to_verdict'] / 60:.1f} min)"),
         f"* ONNX SHA-256: `{card['onnx_sha256']}`", "",

@@ -95,7 +95,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--log-dir", type=Path, default=None, help="default runs/throw_<mode>")
     parser.add_argument("--tb-dir", type=Path, default=None, help="TensorBoard dir (default <log-dir>/tb)")
     parser.add_argument("--resume", type=Path, default=None, help="checkpoint.pt to resume from")
-    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=None,
+                        help="training seed (default: the recipe's training.seed, that of the run its docs quote)")
     parser.add_argument("--keep-every", type=int, default=0, help="also keep checkpoint_<iter>.pt every N iterations")
     parser.add_argument("--export", type=Path, default=None,
                         help="ONNX to write (default with the gate: <log-dir>/throw<mode>.onnx once the bars are met)")
@@ -116,6 +117,22 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
 def load_config(mode: str, path: Path | None) -> dict:
     """The training config (env + runner + num_envs [+ training]) as a dict."""
     return json.loads((path or CONFIG_DIR / f"throw_{mode}.json").read_text())
+
+
+def training_seed(cfg: dict, override: int | None) -> int:
+    """The run's training seed (it seeds the environments' start poses and randomisation; rank r of a
+    multi-GPU run adds 1000 r): ``override`` (``--seed``) where given, else the recipe's
+    ``training.seed``. It is written into ``cfg["training"]["seed"]`` so that the run's config.json
+    and model card record the seed actually used. Raises ValueError when neither gives one."""
+    training = cfg.setdefault("training", {})
+    if override is None:
+        if "seed" not in training:
+            raise ValueError("the config has no training.seed: pass --seed")
+        override = training["seed"]
+    if isinstance(override, bool) or not isinstance(override, int):
+        raise ValueError(f"training.seed must be an integer, not {override!r}")
+    training["seed"] = override
+    return override
 
 
 def apply_std_cap(runner, cap: float, release_floor: float = 0.0) -> None:
@@ -181,6 +198,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.mode, args.config)
     if args.num_envs:
         cfg["num_envs"] = args.num_envs
+    seed = training_seed(cfg, args.seed)
     env_cfg = EnvConfig.from_dict(cfg["env"])
     if env_cfg.mode != args.mode:
         raise ValueError(f"config is for mode {env_cfg.mode}, asked for {args.mode}")
@@ -203,7 +221,7 @@ def run(args: argparse.Namespace) -> int:
         log_dir.mkdir(parents=True, exist_ok=True)
         (log_dir / "config.json").write_text(json.dumps(cfg, indent=2))
 
-    env = MjxThrowVecEnv(env_cfg, cfg["num_envs"], seed=args.seed + 1000 * rank, device=device,
+    env = MjxThrowVecEnv(env_cfg, cfg["num_envs"], seed=seed + 1000 * rank, device=device,
                          impl=getattr(args, "physics", "jax"))
     runner_cfg = copy.deepcopy(cfg["runner"])
     tb_dir = (args.tb_dir or log_dir / "tb") if main_rank else None

@@ -74,6 +74,10 @@ def test_one_command_with_gate_model_card_and_term_logs(tmp_path):
     assert (run / "matrices" / f"site_matrix_2d_it{gate['results'][0]['iteration']}.md").exists()
     card = json.loads((tmp_path / "p.card.json").read_text())
     assert card["bars_met"] is False and len(card["config_sha256"]) == 64 and card["command"]
+    # no --seed: the recipe's training seed, recorded in the card and in the run's config
+    recipe = train.load_config("2d", None)
+    assert card["training_seed"] == recipe["training"]["seed"]
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["training"]["seed"] == recipe["training"]["seed"]
     assert json.loads(onnx.with_suffix(".json").read_text())["training"]["model_card"]["onnx_sha256"] == card["onnx_sha256"]
     header = (run / "curve.csv").read_text().splitlines()[0].split(",")
     assert {f"reward_{k}" for k in REWARD_TERMS} <= set(header) and "action_std" in header
@@ -120,3 +124,14 @@ def test_model_card_commit_outside_git_comes_from_the_environment(tmp_path, monk
     monkeypatch.setenv("SLINGER_GIT_COMMIT", "8cb5ce7")
     assert git_commit(tmp_path) == "8cb5ce7"
     assert git_commit().split("-")[0] != "8cb5ce7"  # inside the repository git's own answer wins
+
+
+def test_training_seed_from_the_flag_else_the_recipe_else_a_clear_error():
+    cfg = {"training": {"seed": 2}}
+    assert train.training_seed(cfg, None) == 2
+    assert train.training_seed(cfg, 5) == 5 and cfg["training"]["seed"] == 5  # recorded as used
+    with pytest.raises(ValueError, match="training.seed"):
+        train.training_seed({"training": {}}, None)
+    with pytest.raises(ValueError, match="integer"):
+        train.training_seed({"training": {"seed": "0"}}, None)
+    assert train.training_seed({}, 3) == 3  # a config without a training section takes the flag
