@@ -187,6 +187,25 @@ def test_a_preview_whose_scatter_reaches_a_keep_out_zone_cannot_be_thrown(client
     assert c["valid"] is True, c
 
 
+def test_no_throw_button_while_the_runtime_is_not_ready(client, machine, monkeypatch):
+    """Between a landing and the next load the runtime is not ready ("no payload loaded") and the
+    machine is about to be moved (reloaded): the check says so, whatever the preview's pose, and
+    is valid again once the runtime is ready."""
+    client.app.state.throws.gate = GateLimits()
+    r = client.post("/api/previews", json={"machine_id": "m1", "mode": "2d", "target": TARGET, "rollouts": 0})
+    assert r.status_code == 200 and r.json()["status"] == "ok", r.text
+    pid = r.json()["id"]
+    fleet = client.app.state.fleet
+    ready_info = fleet.cached_info("m1")
+    assert ready_info is not None and ready_info.ready
+    monkeypatch.setattr(fleet, "cached_info", lambda _mid: ready_info.model_copy(update={"ready": False, "not_ready_reason": "no payload loaded"}))
+    c = client.post(f"/api/previews/{pid}/check", json={"machine_id": "m1", "mode": "2d", "target": TARGET}).json()
+    assert c == {**c, "valid": False, "condition": "machine_not_ready"} and "no payload loaded" in c["reason"], c
+    monkeypatch.setattr(fleet, "cached_info", lambda _mid: ready_info)
+    c = client.post(f"/api/previews/{pid}/check", json={"machine_id": "m1", "mode": "2d", "target": TARGET}).json()
+    assert c["valid"] is True, c
+
+
 def test_preview_bad_input_and_roles(client, machine):
     for body in ({"machine_id": "m1", "mode": "2d"}, {"machine_id": "m1", "mode": "2d", "target": TARGET, "rollouts": -1},
                  {"machine_id": "m1", "mode": "5d", "target": TARGET}):

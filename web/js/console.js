@@ -166,6 +166,7 @@ function gateWords(check) {
     case "policy_changed": return "The machine's policy changed since the preview";
     case "preview_target": case "preview_other": return "The preview was made for another target";
     case "no_state": return "No state from the machine";
+    case "machine_not_ready": return sentence(check.reason || "The machine is not ready").replace(/\.$/, "");
     default: return sentence(check.reason || "The preview is no longer valid").replace(/\.$/, "");
   }
 }
@@ -178,6 +179,9 @@ function renderPreviewAge() {
   const max = state.check && state.check.max_age_s;
   if (state.check && !state.check.valid && state.check.condition === "keep_out_scatter") {
     el.textContent = sentence(state.check.reason); // another preview would not help: another target does
+    el.className = "preview-age error";
+  } else if (state.check && !state.check.valid && state.check.condition === "machine_not_ready") {
+    el.textContent = `${gateWords(state.check)}: waiting for it.`; // previews again by itself once it is ready
     el.className = "preview-age error";
   } else if (state.check && !state.check.valid) {
     el.textContent = `${gateWords(state.check)}: ${state.busy ? "previewing again…" : "preview again."}`;

@@ -66,8 +66,11 @@ class PreviewCheckIn(BaseModel):
 class PreviewCheckOut(BaseModel):
     """Whether a throw with this preview would pass the preview gate now (server.throw_gate).
 
-    ``condition``/``reason``: the failed gate condition and its message (None when valid);
-    ``age_s``: the preview's age, s; ``max_age_s``: the age at which it goes stale, s."""
+    ``condition``/``reason``: the failed gate condition and its message (None when valid); besides
+    server.throw_gate's conditions, ``no_state`` (no MachineState heard) and ``machine_not_ready``
+    (the runtime's last RuntimeInfo says it would refuse a throw now, e.g. "no payload loaded"
+    between a landing and the next load: a preview made then starts from a pose the machine
+    is about to leave); ``age_s``: the preview's age, s; ``max_age_s``: the age at which it goes stale, s."""
 
     valid: bool
     condition: str | None = None
@@ -97,6 +100,12 @@ def check_preview(preview_id: str, body: PreviewCheckIn, previews: PreviewsDep, 
         return PreviewCheckOut(valid=False, condition="no_state", reason=f"no state from machine {body.machine_id}",
                                age_s=age, max_age_s=max_age)
     info = fleet.cached_info(body.machine_id)
+    if info is not None and not info.ready and not (info.throw_id or info.phase):
+        # judged before the preview itself: a machine that cannot throw now gets no Throw button,
+        # whatever its pose (the runtime would refuse; a reload may move it, sim_twin.twin_machine)
+        why = info.not_ready_reason or "not ready"
+        return PreviewCheckOut(valid=False, condition="machine_not_ready", reason=f"the machine is not ready ({why})",
+                               age_s=age, max_age_s=max_age)
     sha = next((p.sha256 for p in (info.policies if info else []) if p.mode == body.mode), None)
     refusal = preview_refusal(summary, preview_id, body.machine_id, body.mode, list(body.target), list(state.q), sha,
                               now, limits, throws.keep_out_zones)
