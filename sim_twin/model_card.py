@@ -85,7 +85,7 @@ def write_card(onnx_path: Path, card: dict) -> tuple[Path, Path]:
         f"* command: `{card['command']}`",
         f"* config SHA-256: `{card['config_sha256']}`; commit `{card['git_commit']}`",
         f"* accelerator: {card['accelerator']}, {card['processes']} process(es) x {card['num_envs_per_process']} environments,"
-        f" training seed {card.get('training_seed')}",
+        f" training seed {card['training_seed']}",
         f"* iteration {card['iteration']}, training wall time {card['training_wall_s'] / 60:.1f} min"
         + ("" if card["wall_s_to_verdict"] is None else f" (matrix verdict at {card['wall_s_to_verdict'] / 60:.1f} min)"),
         f"* ONNX SHA-256: `{card['onnx_sha256']}`", "",

@@ -166,7 +166,6 @@ function gateWords(check) {
     case "policy_changed": return "The machine's policy changed since the preview";
     case "preview_target": case "preview_other": return "The preview was made for another target";
     case "no_state": return "No state from the machine";
-    case "machine_not_ready": return sentence(check.reason || "The machine is not ready").replace(/\.$/, "");
     default: return sentence(check.reason || "The preview is no longer valid").replace(/\.$/, "");
   }
 }
