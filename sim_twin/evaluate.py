@@ -101,11 +101,16 @@ def throw_batch(policy_path: str | Path, mode: str, distance_m: float, seeds: li
     return rows
 
 
-def summarise(distance_m: float, rows: list[dict]) -> dict:
+def summarise(distance_m: float, rows: list[dict], per_throw: bool = False) -> dict:
     """Per-target statistics: success rate (released, landed, no collision), mean impact
     distance, bias (mean downrange error), sigma downrange / crossrange, mean crossrange,
     mean throw duration (swing start to impact), the failure reasons and how many throws had a
-    release held by the release check (runtime.executor)."""
+    release held by the release check (runtime.executor).
+
+    With ``per_throw`` also ``"per_throw"``: ``{"seed": [n], "downrange_error_m": [n],
+    "crossrange_error_m": [n]}`` ordered by seed, errors in m (0.1 mm resolution) and None for a
+    throw that did not land. A throw's seed fixes its start pose and the profile's randomness, so
+    two policies' throws of one seed are a matched pair (sim_twin.matrix_compare pairs them)."""
     landed = [r for r in rows if r["status"] == "landed"]
     dr = np.array([r["downrange_error_m"] for r in landed])
     cr = np.array([r["crossrange_error_m"] for r in landed])
@@ -132,7 +137,18 @@ def summarise(distance_m: float, rows: list[dict]) -> dict:
         "mean_duration_s": stat(np.mean, dur),
         "failures": reasons,
         "held_throws": sum(1 for r in rows if r.get("held_releases")),
-    }
+    } | ({"per_throw": _per_throw(rows)} if per_throw else {})
+
+
+def _per_throw(rows: list[dict]) -> dict[str, list]:
+    """Seeds and landing errors of ``rows`` ordered by seed (see :func:`summarise`)."""
+    rows = sorted(rows, key=lambda r: r["seed"])
+
+    def err(r: dict, key: str) -> float | None:
+        return round(float(r[key]), 4) if r["status"] == "landed" else None
+
+    return {"seed": [int(r["seed"]) for r in rows], "downrange_error_m": [err(r, "downrange_error_m") for r in rows],
+            "crossrange_error_m": [err(r, "crossrange_error_m") for r in rows]}
 
 
 def evaluate(

@@ -71,7 +71,7 @@ def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profi
 
     Returns:
         {"policy", "mode", "throws_per_target", "seed", "wall_s", "profiles": [{"name",
-        "shifts_mean", "targets": [summarise() + "bars"], "pass"}], "pass"}.
+        "shifts_mean", "targets": [summarise(per_throw=True) + "bars"], "pass"}], "pass"}.
 
     Raises:
         FileNotFoundError: a profile file is missing.
@@ -101,7 +101,7 @@ def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profi
     for name, shifts in profiles:
         cells = []
         for d in targets:
-            t = summarise(d, results[(name, d)])
+            t = summarise(d, results[(name, d)], per_throw=True)
             t["bars"] = cell_bars(mode, name, shifts, t)
             cells.append(t)
         rows.append({"name": name, "shifts_mean": shifts, "targets": cells, "pass": all(all(c["bars"].values()) for c in cells)})

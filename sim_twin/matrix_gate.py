@@ -5,8 +5,11 @@ One candidate at a time: when the gate is idle, the training hands it its newest
 checkpoint (older ones that came while a matrix ran are skipped). The candidate's matrix runs seed
 by seed (``slinger evaluate --matrix --seed s``, sim_twin.matrix, in a child process with its own
 worker pool); a seed that misses a bar ends that candidate. A candidate that meets every bar on
-every seed has *passed*. The state (every verdict) is saved to ``<dir>/matrix_gate.json`` after
-every change so a resumed training keeps it.
+every seed has *passed*. By default the gate judges nothing after the first candidate that passed
+(the training stops there); with ``judge_after_pass`` it goes on judging newer checkpoints, for a
+training that runs past the bars (``slinger train --no-stop-at-bars``), and ``passes`` lists every
+candidate that passed. The state (every verdict) is saved to ``<dir>/matrix_gate.json`` after every
+change so a resumed training keeps it.
 """
 
 from __future__ import annotations
@@ -83,13 +86,14 @@ class MatrixGate:
         workers: processes of the matrix's pool (default all cores but ``reserve_cores``).
         reserve_cores: cores left to the training process when ``workers`` is not given.
         clock: function returning the training wall time now [s].
+        judge_after_pass: keep judging new candidates after one passed (see module doc).
 
     Raises:
         ValueError: no seeds or fewer than 1 throw.
     """
 
     def __init__(self, out_dir: Path, mode: str, seeds: list[int], throws: int = 100, targets: str | None = None,
-                 workers: int | None = None, reserve_cores: int = 3, clock=None):
+                 workers: int | None = None, reserve_cores: int = 3, clock=None, judge_after_pass: bool = False):
         if not seeds:
             raise ValueError("the gate needs at least one seed")
         if throws < 1:
@@ -102,12 +106,15 @@ class MatrixGate:
         self.state_path = self.out_dir / "matrix_gate.json"
         self.results: list[MatrixResult] = []
         self.passed: dict | None = None  # {"iteration", "onnx", "train_wall_s"} of the first candidate that passed
+        self.passes: list[dict] = []  # every candidate that passed, oldest first (the same dicts)
+        self.judge_after_pass = judge_after_pass
         self._proc: subprocess.Popen | None = None
         self._cand: dict | None = None  # {"iteration", "onnx", "train_wall_s", "seed_index", "out"}
         if self.state_path.exists():
             st = json.loads(self.state_path.read_text())
             self.results = [MatrixResult(**r) for r in st.get("results", [])]
             self.passed = st.get("passed")
+            self.passes = st.get("passes", [self.passed] if self.passed else [])
 
     @property
     def busy(self) -> bool:
@@ -116,7 +123,7 @@ class MatrixGate:
 
     def submit(self, iteration: int, onnx: Path, train_wall_s: float) -> bool:
         """Start the matrix of this candidate if the gate is idle; returns whether it started."""
-        if self.busy or self.passed:
+        if self.busy or (self.passed and not self.judge_after_pass):
             return False
         self._cand = {"iteration": int(iteration), "onnx": str(onnx), "train_wall_s": float(train_wall_s), "seed_index": 0}
         self._start_seed()
@@ -189,8 +196,9 @@ class MatrixGate:
             self._start_seed()
         else:
             if res.passed:
-                self.passed = {"iteration": c["iteration"], "onnx": c["onnx"], "train_wall_s": c["train_wall_s"],
-                               "verdict_wall_s": res.verdict_wall_s}
+                self.passes.append({"iteration": c["iteration"], "onnx": c["onnx"], "train_wall_s": c["train_wall_s"],
+                                    "verdict_wall_s": res.verdict_wall_s})
+                self.passed = self.passed or self.passes[-1]
             self._cand = None
         self.save()
         return self.passed
@@ -215,5 +223,5 @@ class MatrixGate:
 
     def save(self) -> None:
         self.state_path.write_text(json.dumps(
-            {"mode": self.mode, "seeds": self.seeds, "throws": self.throws, "passed": self.passed,
+            {"mode": self.mode, "seeds": self.seeds, "throws": self.throws, "passed": self.passed, "passes": self.passes,
              "results": [asdict(r) for r in self.results]}, indent=2) + "\n")

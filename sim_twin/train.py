@@ -108,6 +108,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gate-targets", default=None, help="matrix targets (default the matrix's)")
     parser.add_argument("--gate-workers", type=int, default=None, help="matrix processes (default cores - 3)")
     parser.add_argument("--gate-every", type=int, default=1, help="offer every N-th checkpoint to the gate")
+    parser.add_argument("--stop-at-bars", action=argparse.BooleanOptionalAction, default=True,
+                        help="stop at the first checkpoint that meets every bar (default); with --no-stop-at-bars "
+                             "train on to --iterations / --max-minutes, the gate judging newer checkpoints, and "
+                             "export the newest one that met every bar")
     parser.add_argument("--gate-wait-minutes", type=float, default=0.0,
                         help="at the end, wait this long for a running matrix")
     parser.add_argument("--physics", choices=["jax", "warp"], default="jax", help="MJX implementation")
@@ -194,6 +198,7 @@ def run(args: argparse.Namespace) -> int:
     from sim_twin.vec_env import MjxThrowVecEnv
 
     gate_on = getattr(args, "gate", False)
+    stop_at_bars = getattr(args, "stop_at_bars", True)
     log_dir = args.log_dir or Path("runs") / f"throw_{args.mode}"
     cfg = load_config(args.mode, args.config)
     if args.num_envs:
@@ -238,11 +243,12 @@ def run(args: argparse.Namespace) -> int:
     gate = None
     if gate_on and main_rank:
         gate = MatrixGate(log_dir / "matrices", args.mode, [int(s) for s in str(args.gate_seeds).split(",")],
-                          throws=args.gate_throws, targets=args.gate_targets, workers=args.gate_workers, clock=clock)
+                          throws=args.gate_throws, targets=args.gate_targets, workers=args.gate_workers, clock=clock,
+                          judge_after_pass=not stop_at_bars)
     done_iters, chunks = 0, 0
     stop_reason = "iterations"
     passed = gate.passed if gate else None
-    while done_iters < args.iterations and not passed:
+    while done_iters < args.iterations and not (passed and stop_at_bars):
         if schedule:
             apply_std_cap(runner, schedule.cap(runner.current_learning_iteration), schedule.release_floor)
         n = min(args.chunk, args.iterations - done_iters)
@@ -280,13 +286,13 @@ def run(args: argparse.Namespace) -> int:
             log.info("checkpoint at iteration %d (%.1f min): %s, std %.3f", it, clock() / 60, stats, std)
             if gate:
                 passed = gate.poll()
-                if not passed and not gate.busy and chunks % max(args.gate_every, 1) == 0:
+                if not (passed and stop_at_bars) and not gate.busy and chunks % max(args.gate_every, 1) == 0:
                     cand = log_dir / "candidates" / f"checkpoint_{it}.pt"
                     cand.parent.mkdir(exist_ok=True)
                     runner.save(str(cand))
                     onnx = _export(cand, cfg, cand.with_suffix(".onnx"), f"throw{args.mode}-it{it}")
                     gate.submit(it, onnx, clock())
-            if passed:
+            if passed and stop_at_bars:
                 stop_reason = "bars met"
             elif args.max_minutes and (time.time() - start) / 60.0 > args.max_minutes:
                 stop_reason = "time budget"
@@ -299,12 +305,13 @@ def run(args: argparse.Namespace) -> int:
         torch.distributed.destroy_process_group()  # rsl_rl's runner made it; NCCL warns at exit otherwise
     if not main_rank:
         return 0
-    if gate and not passed and args.gate_wait_minutes > 0:
+    if gate and not (passed and stop_at_bars) and args.gate_wait_minutes > 0:
         log.info("waiting up to %.1f min for the running site matrix", args.gate_wait_minutes)
         passed = gate.wait(args.gate_wait_minutes * 60)
     if gate:
         gate.stop()
-    log.info("training stopped (%s) at iteration %d after %.1f min", "bars met" if passed else stop_reason,
+        passed = gate.passes[-1] if gate.passes and not stop_at_bars else passed  # the newest that met every bar
+    log.info("training stopped (%s) at iteration %d after %.1f min", "bars met" if passed and stop_at_bars else stop_reason,
              runner.current_learning_iteration, clock() / 60)
     curve.plot(log_dir / "training_curve.png", title=f"PPO, {args.mode}, {world} x {cfg['num_envs']} envs")
     out = args.export or (log_dir / f"throw{args.mode}.onnx" if passed else None)

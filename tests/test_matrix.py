@@ -41,6 +41,12 @@ def test_tiny_matrix_writes_table_json_and_figure(tmp_path, fixture_policy):
     rep = matrix.run_matrix(fixture_policy("2d"), "2d", [8.5], 2, profiles=[("nominal", False), ("friction_x3", False)], workers=1)
     assert [p["name"] for p in rep["profiles"]] == ["nominal", "friction_x3"]
     assert all(p["targets"][0]["throws"] == 2 for p in rep["profiles"])
+    # per-throw landing errors by seed (the same seeds in every profile: matched pairs across policies)
+    for p in rep["profiles"]:
+        c = p["targets"][0]
+        assert c["per_throw"]["seed"] == [0, 1]
+        landed = [e for e in c["per_throw"]["downrange_error_m"] if e is not None]
+        assert len(landed) == c["landed"] and (not landed or abs(sum(landed) / len(landed) - c["bias_m"]) < 1e-3)
     matrix.write(rep, tmp_path / "m.json")
     assert json.loads((tmp_path / "m.json").read_text())["mode"] == "2d"
     assert "| friction_x3 | no | 8.5 |" in (tmp_path / "m.md").read_text()

@@ -75,3 +75,18 @@ def test_the_matrix_runs_at_a_lower_priority_than_the_training(tmp_path):
     assert gate.submit(1, "cand/checkpoint_1.onnx", 0.0)
     gate.wait(60)
     assert int(seen.read_text()) == min(19, os.nice(0) + GATE_NICENESS)
+
+
+def test_gate_judges_on_after_a_pass_for_a_run_past_the_bars(tmp_path):
+    """judge_after_pass (slinger train --no-stop-at-bars): newer candidates are judged after the
+    first pass; ``passes`` lists every candidate that passed and survives a restart, ``passed``
+    stays the first."""
+    FakeGate.passing = {3, 5}
+    gate = FakeGate(tmp_path, "2d", seeds=[0], workers=1, clock=lambda: 1.0, judge_after_pass=True)
+    assert _run(gate, 3)["iteration"] == 3
+    assert _run(gate, 4)["iteration"] == 3  # judged (and missed) after the pass
+    _run(gate, 5)
+    assert [p["iteration"] for p in gate.passes] == [3, 5] and gate.passed["iteration"] == 3
+    assert [(r.iteration, r.passed) for r in gate.results] == [(3, True), (4, False), (5, True)]
+    again = FakeGate(tmp_path, "2d", seeds=[0], workers=1, judge_after_pass=True)
+    assert [p["iteration"] for p in again.passes] == [3, 5]
