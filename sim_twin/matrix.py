@@ -18,6 +18,7 @@ process pool.
 from __future__ import annotations
 
 import json
+import re
 import logging
 import time
 from concurrent.futures import as_completed
@@ -161,9 +162,16 @@ def plot(reports: list[dict], out: Path) -> None:
     plt.close(fig)
 
 
+def dumps(report: dict) -> str:
+    """JSON of a report, indented, with every list of plain values (the per-throw data) on one
+    line: a third of the size of fully indented JSON."""
+    return re.sub(r"\[\s+([^\[\]{}]*?)\s+\]", lambda m: "[" + re.sub(r",\s+", ", ", m.group(1)) + "]",
+                  json.dumps(report, indent=1))
+
+
 def write(report: dict, out: Path) -> None:
     """``out``.json, .md and .png."""
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(report, indent=1) + "\n")
+    out.with_suffix(".json").write_text(dumps(report) + "\n")
     out.with_suffix(".md").write_text(markdown(report))
     plot([report], out.with_suffix(".png"))
