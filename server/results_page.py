@@ -225,6 +225,16 @@ def _safety_bounds(report: dict) -> list[str]:
     return _figures(report) + ["", "Constants in the code: " + ", ".join(f"`{k}` = {_num(v)}" for k, v in report["bounds"].items()) + "."]
 
 
+def _deploy_comparison(report: dict) -> list[str]:
+    null = [[f"{n['seeds'][0]} vs {n['seeds'][1]}", f"{n['paired_test_worse']} of {n['cells']}", f"{n['old_rule_worse']} of {n['cells']}"]
+            for n in report["null_check"]]
+    cands = [[c["name"], ", ".join(map(str, c["seeds"])), f"{c['worse_cells']} of {c['cells']}", c["better_mean_miss_cells"],
+              "; ".join(sorted({w["profile"] for w in c["worse"]})) or "-"] for c in report["candidates"]]
+    return (["Null check, the deployed policy against itself on another seed's throws (cells called worse):", ""]
+            + _table(["seeds", "paired test", "earlier 5 mm rule"], null) + ["", "Candidates:", ""]
+            + _table(["candidate", "seeds", "cells worse", "cells with a lower mean miss", "worse on"], cands))
+
+
 def _body(rel: str, report: dict) -> list[str]:
     """The figures of one report as Markdown lines, by the report's kind."""
     name = Path(rel).name
@@ -246,6 +256,8 @@ def _body(rel: str, report: dict) -> list[str]:
         return _release_check_accuracy(report)
     if name.startswith("release_check_matrix"):
         return _release_check_matrix(report)
+    if "null_check" in report and "candidates" in report:
+        return _deploy_comparison(report)
     if "outcome" in report and "machines" in report:
         return _fleet_load(report)
     return ["(no summary renderer for this report; read the JSON)"]

@@ -17,7 +17,8 @@ The p-values of every test of the comparison (cells x 2) are corrected together 
 step-down procedure (Holm 1979) at a family-wise error rate ``alpha`` (default 0.05, CHOSEN): a
 cell is *worse* when one of its tests is rejected. The earlier rule (worse where success is lower
 or |bias| or sigma is larger by more than 5 mm) called the deployed policy worse than itself on
-29-48 of 66 cells between two start-pose seeds: its differences were sampling noise.
+25-49 of 66 cells between two start-pose seeds (reports/deploy_comparison_2d.md, _3d.md): its
+differences were sampling noise.
 
 ``python -m sim_twin.matrix_compare --deployed D0.json D1.json --candidate C0.json C1.json``
 prints the table and exits 1 when the candidate is worse on any cell.
