@@ -18,8 +18,8 @@ process pool.
 from __future__ import annotations
 
 import json
-import re
 import logging
+import re
 import time
 from concurrent.futures import as_completed
 from pathlib import Path
