@@ -23,7 +23,7 @@ def _args(tmp_path, **kw):
     if not kw.pop("gate", False):
         argv.append("--no-gate")
     for k, v in kw.items():
-        argv += [f"--{k.replace('_', '-')}", str(v)]
+        argv += [f"--{k.replace('_', '-')}"] + ([] if v is True else [str(v)])
     return p.parse_args(argv)
 
 
@@ -84,6 +84,39 @@ def test_one_command_with_gate_model_card_and_term_logs(tmp_path):
     tags = _tb_tags(run / "tb")
     assert {f"Reward/{k}" for k in REWARD_TERMS} <= tags and "Policy/mean_std" in tags
     assert not list((run / "tb").glob("model_*.pt"))
+
+
+@pytest.mark.parametrize("stop_at_bars", [True, False])
+def test_the_run_stops_at_the_bars_or_trains_past_them(tmp_path, monkeypatch, stop_at_bars):
+    """Every candidate meets the bars here (a matrix that always passes): by default the run stops
+    at the first and exports it; with --no-stop-at-bars it trains every iteration, the gate judging
+    on, and exports the newest candidate that met the bars."""
+    import json
+    import sys
+
+    from sim_twin.matrix_gate import MatrixGate
+
+    def passing(self, onnx, seed, out):
+        rep = {"pass": True, "profiles": []}
+        return [sys.executable, "-c", f"import json; open({out!r}, 'w').write(json.dumps({rep!r}))"]
+
+    monkeypatch.setattr(MatrixGate, "command", passing)
+    extra = {} if stop_at_bars else {"no_stop_at_bars": True}
+    args = _args(tmp_path, gate=True, iterations=4, gate_seeds="0", gate_workers=1, gate_wait_minutes=5, **extra)
+    if not stop_at_bars:
+        assert args.stop_at_bars is False
+    assert train.run(args) == 0
+    run = tmp_path / "run"
+    gate = json.loads((run / "matrices" / "matrix_gate.json").read_text())
+    card = json.loads((run / "throw2d.card.json").read_text())
+    iterations = [int(line.split(",")[0].split(".")[0]) for line in (run / "curve.csv").read_text().splitlines()[1:]]
+    assert card["bars_met"] is True
+    if stop_at_bars:
+        assert card["iteration"] == gate["passed"]["iteration"] and len(gate["passes"]) == 1
+        assert len(iterations) < 4  # stopped before its 4 iterations were done
+    else:
+        assert len(iterations) == 4 and len(gate["passes"]) >= 2
+        assert card["iteration"] == gate["passes"][-1]["iteration"] > gate["passed"]["iteration"]
 
 
 def test_std_schedule_caps_the_learned_std():
