@@ -7,7 +7,10 @@ first checkpoint that meets every site-matrix bar on every ``--gate-seeds`` seed
 is exported to ONNX (``--export``, default ``<log-dir>/throw<mode>.onnx``) with its model card
 (sim_twin.model_card: command, config hash, GPU, wall time, matrices). If no checkpoint met the bars
 when ``--iterations`` or ``--max-minutes`` run out, nothing is exported unless ``--export`` is given
-(then the last checkpoint, its card saying the bars were not met).
+(then the last checkpoint, its card saying the bars were not met). With ``--no-stop-at-bars`` the
+training runs on to ``--iterations`` / ``--max-minutes``, the gate judging newer checkpoints, and the
+newest checkpoint that met every bar is exported (its matrices feed the deploy comparison,
+sim_twin.matrix_compare).
 
 Training runs in chunks of ``--chunk`` iterations; after every chunk the checkpoint (policy,
 critic, optimiser state, iteration) is written to ``<log-dir>/checkpoint.pt`` with the resolved
