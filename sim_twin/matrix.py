@@ -164,8 +164,10 @@ def plot(reports: list[dict], out: Path) -> None:
 
 def dumps(report: dict) -> str:
     """JSON of a report, indented, with every list of plain values (the per-throw data) on one
-    line: a third of the size of fully indented JSON."""
-    return re.sub(r"\[\s+([^\[\]{}]*?)\s+\]", lambda m: "[" + re.sub(r",\s+", ", ", m.group(1)) + "]",
+    line: a third of the size of fully indented JSON. Only the line breaks and indents that
+    ``json.dumps`` put between items go (a JSON string holds no raw line break), so the data
+    read back are the same."""
+    return re.sub(r"\[\n\s*([^\[\]{}]*?)\n\s*\]", lambda m: "[" + re.sub(r",\n\s*", ", ", m.group(1)) + "]",
                   json.dumps(report, indent=1))
 
 

@@ -51,3 +51,10 @@ def test_tiny_matrix_writes_table_json_and_figure(tmp_path, fixture_policy):
     assert json.loads((tmp_path / "m.json").read_text())["mode"] == "2d"
     assert "| friction_x3 | no | 8.5 |" in (tmp_path / "m.md").read_text()
     assert (tmp_path / "m.png").stat().st_size > 1000
+
+
+def test_report_json_puts_value_lists_on_one_line_and_reads_back_the_same():
+    rep = {"a": [1, None, -0.0123], "b": ["x,  y", "[z]"], "c": [{"d": [2, 3]}], "e": []}
+    text = matrix.dumps(rep)
+    assert json.loads(text) == rep
+    assert '"a": [1, null, -0.0123]' in text and '"d": [2, 3]' in text

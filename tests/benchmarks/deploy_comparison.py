@@ -20,7 +20,7 @@ import json
 from itertools import permutations
 from pathlib import Path
 
-from sim_twin.matrix_compare import compare
+from sim_twin.matrix_compare import ALPHA, compare
 
 OLD_TOL_M = 0.005  # the earlier rule's tolerance
 
@@ -72,11 +72,11 @@ def main() -> None:
                                  "p_success": c.p_success, "p_miss": c.p_miss} for c in comp.cells if c.worse],
                       "better_mean_miss_cells": sum(1 for c in comp.cells if c.mean_miss_candidate_m is not None
                                                     and c.mean_miss_candidate_m < c.mean_miss_deployed_m)})
-    body = {"mode": args.mode, "deployed": [str(f) for f in args.deployed], "alpha": 0.05, "null_check": null, "candidates": cands}
+    body = {"mode": args.mode, "deployed": [str(f) for f in args.deployed], "alpha": ALPHA, "null_check": null, "candidates": cands}
     args.out.with_suffix(".json").write_text(json.dumps(body, indent=1) + "\n")
     md = [f"# Deploy comparison, {args.mode}: from-scratch candidates against the deployed policy", "",
           "Paired tests per cell (sim_twin.matrix_compare: exact McNemar on success, Wilcoxon signed-rank on the miss "
-          "distance), Holm-corrected over the comparison at a family-wise error rate of 0.05.", "",
+          f"distance), Holm-corrected over the comparison at a family-wise error rate of {ALPHA:g}.", "",
           "## Null check: the deployed policy against itself on another seed's throws", "",
           "| seeds | cells called worse, paired test | cells called worse, earlier 5 mm rule |", "|---|---|---|"]
     md += [f"| {n['seeds'][0]} vs {n['seeds'][1]} | {n['paired_test_worse']} of {n['cells']} | {n['old_rule_worse']} of {n['cells']} |" for n in null]
