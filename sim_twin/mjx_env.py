@@ -268,7 +268,10 @@ class ThrowEnvCore:
         lg = rd.lag_s
         gain = 1.0 + jax.random.uniform(ks[4], (4,), minval=-rd.gain_error, maxval=rd.gain_error)
         fr = rd.friction_scale
-        fric = jax.random.uniform(ks[5], (), minval=fr[0], maxval=fr[1])
+        if rd.friction_sampling == "log_uniform":
+            fric = jnp.exp(jax.random.uniform(ks[5], (), minval=jnp.log(fr[0]), maxval=jnp.log(fr[1])))
+        else:
+            fric = jax.random.uniform(ks[5], (), minval=fr[0], maxval=fr[1])
         kh = jax.random.split(ks[6], 8)
         db, dl, vs = rd.dead_band, rd.valve_delay_s, rd.velocity_scale
         # valve speed: independent per joint, or (valve_spread < 1) one machine-wide slowness

@@ -22,7 +22,9 @@ modes; ``PRIVILEGED_LAYOUT`` lists (name, size)):
                               ``velocity_scale``; 0 unless hydraulic
     gain                4     velocity gain factor per active joint, over 1 +- ``gain_error``;
                               0 when hydraulic (the lag model's only)
-    friction_scale      1     passive friction factor, over ``friction_scale``
+    friction_scale      1     passive friction factor, over ``friction_scale`` (its logarithm
+                              over the range's logarithms when ``friction_sampling`` is
+                              "log_uniform")
     gripper_mass_scale  1     gripper mass / inertia factor, over ``gripper_mass_scale``
     release_delay       1     the episode's release delay (whole steps, s): (x - mean) /
                               (shift + 2 std) of ``release_delay_*``
@@ -103,10 +105,15 @@ PRIVILEGED_RANGE_KEYS: tuple[str, ...] = (
 )
 """The ``randomization`` entries :func:`privileged_observation` normalises over."""
 
-OTHER_RANDOMIZATION_KEYS = ("actuation", "obs_noise", "velocity_noise", "valve_spread")
+OTHER_RANDOMIZATION_KEYS = ("actuation", "obs_noise", "velocity_noise", "valve_spread", "friction_sampling")
 """The ``randomization`` entries the environment reads besides ``PRIVILEGED_RANGE_KEYS``
 (sim_twin.mjx_env: actuation "lag" or "hydraulic", observation-noise stds, velocity-reference
-noise, machine-wide valve slowness spread)."""
+noise, machine-wide valve slowness spread, how the passive friction factor is drawn)."""
+
+FRICTION_SAMPLINGS = ("uniform", "log_uniform")
+"""How ``friction_scale`` is drawn: uniformly, or uniformly in its logarithm (a range spanning
+more than a decade, e.g. a worn gripper's tenfold viscous friction, without most episodes at
+its top)."""
 
 
 @dataclass(frozen=True)
@@ -146,6 +153,10 @@ def check_randomization(rand: dict, where: str = "env.randomization", keys: tupl
     for name in ("gain_error", *RELEASE_DELAY_DEFAULTS, "velocity_noise", "valve_spread"):
         if name in rand and not (isinstance(rand[name], (int, float)) and rand[name] >= 0):
             raise ValueError(f"{where}.{name} must be a number >= 0, not {rand[name]!r}")
+    if rand.get("friction_sampling", "uniform") not in FRICTION_SAMPLINGS:
+        raise ValueError(f"{where}.friction_sampling must be one of {list(FRICTION_SAMPLINGS)}, not {rand['friction_sampling']!r}")
+    if rand.get("friction_sampling") == "log_uniform" and rand.get("friction_scale", RANDOMIZATION_DEFAULTS["friction_scale"])[0] <= 0:
+        raise ValueError(f"{where}.friction_scale must be > 0 to be drawn log-uniformly, not {rand.get('friction_scale')!r}")
     if rand.get("actuation", "lag") not in ("lag", "hydraulic"):
         raise ValueError(f"{where}.actuation must be 'lag' or 'hydraulic', not {rand['actuation']!r}")
     noise = rand.get("obs_noise", {})
@@ -166,7 +177,8 @@ class Randomization:
     transport delay [s], ``dead_band`` valve dead band [fraction of full opening],
     ``velocity_scale`` full-open speed factor, ``friction_scale`` passive friction factor,
     ``gripper_mass_scale`` gripper mass and inertia factor, ``encoder_latency_s`` and
-    ``imu_latency_s`` sensor latencies [s]. Scalars: ``actuation`` "lag" (first-order velocity lag
+    ``imu_latency_s`` sensor latencies [s]; ``friction_sampling`` "log_uniform" draws the friction
+    factor uniformly in its logarithm instead (FRICTION_SAMPLINGS). Scalars: ``actuation`` "lag" (first-order velocity lag
     with gain error ±``gain_error``) or "hydraulic" (the runtime's PID + FF law on the valve model);
     the release delay [s] ~ N(``release_delay_mean_s``, ``release_delay_std_s``) plus a uniform
     episode shift of ±``release_delay_shift_s`` (mean 258 ms: machine-spec.md); ``velocity_noise``
@@ -191,6 +203,7 @@ class Randomization:
     release_delay_shift_s: float = RELEASE_DELAY_DEFAULTS["release_delay_shift_s"]
     velocity_noise: float = VELOCITY_NOISE_DEFAULT
     valve_spread: float = 1.0
+    friction_sampling: str = "uniform"
     obs_noise: ObsNoise = field(default_factory=ObsNoise)
 
     @classmethod
@@ -237,7 +250,7 @@ def _typed_entries(rand: dict) -> dict:
             out[name] = (float(value[0]), float(value[1]))
         elif name == "obs_noise":
             out[name] = ObsNoise(**{k: float(v) for k, v in value.items()})
-        elif name == "actuation":
+        elif name in ("actuation", "friction_sampling"):
             out[name] = value
         else:
             out[name] = float(value)
@@ -256,6 +269,15 @@ def _normalise(x, lo: float, hi: float, used: bool = True):
     if not used or hi <= lo:
         return jnp.zeros_like(jnp.asarray(x, dtype=jnp.float32))
     return (x - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
+
+
+def _friction_input(rand: Randomization, fric):
+    """The friction factor's privileged input: normalised over ``friction_scale``, in log space
+    when it is drawn log-uniformly (so that the input is uniform in [-1, 1] either way)."""
+    lo, hi = rand.range("friction_scale")
+    if rand.friction_sampling == "log_uniform" and lo > 0:
+        return _normalise(jnp.log(fric), math.log(lo), math.log(hi))
+    return _normalise(fric, lo, hi)
 
 
 def privileged_observation(rand: Randomization, hydraulic: bool, s) -> jnp.ndarray:
@@ -282,7 +304,7 @@ def privileged_observation(rand: Randomization, hydraulic: bool, s) -> jnp.ndarr
         _normalise(s["dead_band"], *rng("dead_band"), used=hydraulic),
         _normalise(s["vscale"], *rng("velocity_scale"), used=hydraulic),
         _normalise(s["gain"], 1.0 - g, 1.0 + g, used=not hydraulic),
-        _normalise(s["fric"], *rng("friction_scale"))[None],
+        _friction_input(rand, s["fric"])[None],
         _normalise(s["gripper_scale"], *rng("gripper_mass_scale"))[None],
         _normalise(s["delay_steps"] * dt, mean - half, mean + half)[None],
         _normalise(lat[0], *rng("encoder_latency_s"))[None],

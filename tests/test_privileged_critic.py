@@ -72,6 +72,30 @@ def test_unrandomised_parameters_read_zero():
         assert priv[:, sl[name]].std() > 0.1, name
 
 
+def test_friction_drawn_log_uniformly_and_read_in_log_space():
+    env = _cfg("2d")["env"]
+    env["randomization"] = {**env["randomization"], "friction_scale": [0.5, 10.0], "friction_sampling": "log_uniform"}
+    core = ThrowEnvCore(EnvConfig.from_dict(env))
+    state, _ = jax.jit(jax.vmap(core.reset))(jax.random.split(jax.random.PRNGKey(5), 4096))
+    fric = np.asarray(state["fric"])
+    assert fric.min() >= 0.5 - 1e-6 and fric.max() <= 10.0 + 1e-5
+    # log-uniform: the median is the geometric mean (2.24), where uniform would put it at 5.25
+    assert abs(np.median(fric) - np.sqrt(0.5 * 10.0)) < 0.15
+    assert abs(np.mean(fric <= 3.5) - np.log(7) / np.log(20)) < 0.03
+    priv = np.asarray(jax.jit(jax.vmap(core.privileged))(state))[:, _slices()["friction_scale"]][:, 0]
+    np.testing.assert_allclose(priv, (np.log(fric) - np.log(np.sqrt(5.0))) / (0.5 * np.log(20.0)), atol=1e-4)
+    assert abs(priv.mean()) < 0.05 and priv.min() >= -1.0001 and priv.max() <= 1.0001
+
+
+@pytest.mark.parametrize("bad, match", [({"friction_sampling": "normal"}, "friction_sampling must be one of"),
+                                         ({"friction_sampling": "log_uniform", "friction_scale": [0.0, 3.0]}, "must be > 0")])
+def test_friction_sampling_refuses_bad_input(bad, match):
+    env = _cfg("2d")["env"]
+    env["randomization"] = {**env["randomization"], **bad}
+    with pytest.raises(ValueError, match=match):
+        EnvConfig.from_dict(env)
+
+
 def _critic_value(critic_state: dict, obs, groups: list[str], runner_cfg: dict) -> torch.Tensor:
     from rsl_rl.models import MLPModel
 
