@@ -67,8 +67,10 @@ def cell_bars(mode: str, profile: str, shifts_mean: bool, t: dict) -> dict[str, 
     return ok
 
 
-def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profiles=None, seed: int = 0, workers: int | None = None, batch: int = 10) -> dict:
-    """Evaluate ``policy`` on every profile of ``profiles`` (default MATRIX_PROFILES).
+def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profiles=None, seed: int = 0, workers: int | None = None, batch: int = 10,
+               profile_dir: Path = PROFILE_DIR) -> dict:
+    """Evaluate ``policy`` on every profile of ``profiles`` (default MATRIX_PROFILES), read from
+    ``profile_dir`` (default sim_twin/profiles).
 
     Returns:
         {"policy", "mode", "throws_per_target", "seed", "wall_s", "profiles": [{"name",
@@ -80,7 +82,7 @@ def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profi
     profiles = profiles or MATRIX_PROFILES
     paths: dict[str, str | None] = {}
     for name, _ in profiles:
-        path = paths[name] = None if name == "nominal" else str(PROFILE_DIR / f"{name}.json")
+        path = paths[name] = None if name == "nominal" else str(Path(profile_dir) / f"{name}.json")
         if path and not Path(path).is_file():
             raise FileNotFoundError(path)
     jobs = []
