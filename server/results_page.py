@@ -235,6 +235,19 @@ def _deploy_comparison(report: dict) -> list[str]:
             + _table(["candidate", "seeds", "cells worse", "cells with a lower mean miss", "worse on"], cands))
 
 
+def _site_coverage(report: dict) -> list[str]:
+    names = list(report["policies"])
+    rows = []
+    for part in report["parts"]:
+        row: list = [part]
+        for n in names:
+            v = [c["mean_miss_m"] for c in report["cells"] if c["profile"] == part and c["policy"] == n and c["mean_miss_m"] is not None]
+            row.append(f"{_num(min(v))}-{_num(max(v))}" if v else "none landed")
+        rows.append(row)
+    return ([f"Mean miss [m] over the targets, {report['throws_per_target']} throws per cell, start-pose seed {report['seed']} "
+             "(`<profile>__<effect>`: that effect alone):", ""] + _table(["profile part", *names], rows))
+
+
 def _body(rel: str, report: dict) -> list[str]:
     """The figures of one report as Markdown lines, by the report's kind."""
     name = Path(rel).name
@@ -258,6 +271,8 @@ def _body(rel: str, report: dict) -> list[str]:
         return _release_check_matrix(report)
     if "null_check" in report and "candidates" in report:
         return _deploy_comparison(report)
+    if "parts" in report and "cells" in report:
+        return _site_coverage(report)
     if "outcome" in report and "machines" in report:
         return _fleet_load(report)
     return ["(no summary renderer for this report; read the JSON)"]

@@ -21,8 +21,9 @@ the joints as the machine measures them, per episode ``encoder_latency_s`` / ``i
 old (whole 10 ms steps, active joints / passive joints) plus white noise of the std's in
 ``obs_noise`` (q_active, qd_active, q_passive, qd_passive); rewards and terminations use the true
 state. Per episode the gripper's mass and inertia are scaled by ``gripper_mass_scale``
-(sim_twin.effects.machine.HangingMass does the same on the CPU twin); the valve parameters are
-drawn per joint. ``privileged(state)`` gives the critic those per-episode parameters and the true
+(sim_twin.effects.machine.HangingMass does the same on the CPU twin) and the passive friction by
+``friction_scale`` (uniformly, or log-uniformly with ``friction_sampling``); the valve parameters
+are drawn per joint. ``privileged(state)`` gives the critic those per-episode parameters and the true
 passive joint state (asymmetric actor-critic; layout in sim_twin.privileged).
 
 Payload (paper Sec. III-B): held at the gripper centre; the release command opens the gripper

@@ -141,3 +141,16 @@ def test_stamp_refuses_a_missing_policy_or_title(tmp_path):
     assert results.main(["--root", str(root), "--stamp", str(report), "--title", "t", "--command", "c",
                          "--policy", str(root / "policies" / "nope.onnx")]) == 2
     assert json.loads(report.read_text())["provenance"]["title"] == "T"  # unchanged
+
+
+def test_site_coverage_report_renders_each_part_per_policy():
+    report = {"mode": "2d", "throws_per_target": 100, "seed": 0, "policies": {"a": "a.onnx", "b": "b.onnx"},
+              "parts": ["worn_gripper", "worn_gripper__release_delay"],
+              "cells": [{"policy": "a", "profile": "worn_gripper", "target_m": 7.5, "mean_miss_m": 0.05},
+                        {"policy": "a", "profile": "worn_gripper", "target_m": 10.0, "mean_miss_m": 0.2},
+                        {"policy": "b", "profile": "worn_gripper", "target_m": 7.5, "mean_miss_m": 0.07},
+                        {"policy": "a", "profile": "worn_gripper__release_delay", "target_m": 7.5, "mean_miss_m": 0.04},
+                        {"policy": "b", "profile": "worn_gripper__release_delay", "target_m": 7.5, "mean_miss_m": None}]}
+    lines = results._body("reports/site_coverage_diagnosis_2d.json", report)
+    assert "| worn_gripper | 0.05-0.2 | 0.07-0.07 |" in lines
+    assert "| worn_gripper__release_delay | 0.04-0.04 | none landed |" in lines
