@@ -91,6 +91,7 @@ SLOW_TESTS = {
     "tests/test_adapt.py::test_console_flow_diagnosis_to_adapted_version": "processes",
     "tests/test_default_policy.py::test_diagnose_generate_outside_the_repo": "processes",
     "tests/test_matrix.py::test_tiny_matrix_writes_table_json_and_figure": "processes",
+    "tests/test_site_coverage_diagnosis.py::test_a_split_profile_is_thrown_at_from_its_own_directory": "processes",
     "tests/test_matrix_gate.py": "processes",
     "tests/test_pools.py": "processes",
     "tests/test_plant.py::test_the_in_process_twin_runs_without_zenoh": "processes",

@@ -39,3 +39,15 @@ def test_mean_miss_is_the_ground_distance_of_landed_throws():
     cell = {"per_throw": {"seed": [0, 1, 2], "downrange_error_m": [0.3, None, -0.6], "crossrange_error_m": [0.4, None, 0.8]}}
     assert mean_miss(cell) == pytest.approx(0.75)
     assert mean_miss({"per_throw": {"seed": [0], "downrange_error_m": [None], "crossrange_error_m": [None]}}) is None
+
+
+def test_a_split_profile_is_thrown_at_from_its_own_directory(tmp_path: Path, fixture_policy):
+    from sim_twin.matrix import run_matrix
+
+    split_profile("worn_gripper", tmp_path)
+    rep = run_matrix(fixture_policy("2d"), "2d", [8.5], 2, profiles=[("worn_gripper__release_delay", True)], workers=1, profile_dir=tmp_path)
+    cell = rep["profiles"][0]["targets"][0]
+    assert rep["profiles"][0]["name"] == "worn_gripper__release_delay" and cell["throws"] == 2
+    assert cell["per_throw"]["seed"] == [0, 1]
+    with pytest.raises(FileNotFoundError):  # not looked up in sim_twin/profiles
+        run_matrix(fixture_policy("2d"), "2d", [8.5], 1, profiles=[("worn_gripper", True)], profile_dir=tmp_path / "empty")
