@@ -1,6 +1,6 @@
 """The site-coverage diagnosis (tests/benchmarks/site_coverage_diagnosis.py) splits a committed site
-profile into one profile per effect that a simulated machine loads, measures a cell's mean miss
-from its per-throw errors, and refuses a profile with nothing to split."""
+profile into one profile per effect that a simulated machine loads, and refuses a profile with
+nothing to split."""
 
 import json
 from pathlib import Path
@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from sim_twin.profile import RealityProfile
-from tests.benchmarks.site_coverage_diagnosis import mean_miss, split_profile
+from tests.benchmarks.site_coverage_diagnosis import split_profile
 
 
 def test_worn_gripper_splits_into_loadable_single_effect_profiles(tmp_path: Path):
@@ -33,12 +33,6 @@ def test_a_plugin_effect_part_is_named_by_its_class(tmp_path: Path):
 def test_nothing_to_split_is_refused(tmp_path: Path, name, error):
     with pytest.raises(error):
         split_profile(name, tmp_path)
-
-
-def test_mean_miss_is_the_ground_distance_of_landed_throws():
-    cell = {"per_throw": {"seed": [0, 1, 2], "downrange_error_m": [0.3, None, -0.6], "crossrange_error_m": [0.4, None, 0.8]}}
-    assert mean_miss(cell) == pytest.approx(0.75)
-    assert mean_miss({"per_throw": {"seed": [0], "downrange_error_m": [None], "crossrange_error_m": [None]}}) is None
 
 
 def test_a_split_profile_is_thrown_at_from_its_own_directory(tmp_path: Path, fixture_policy):

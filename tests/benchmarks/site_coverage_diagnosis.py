@@ -5,7 +5,8 @@
 --out reports/site_coverage_diagnosis_2d`` throws every policy at the profile as committed
 (sim_twin/profiles) and at one profile per effect of it, that effect alone, on the site matrix's
 targets and start poses (sim_twin.matrix.run_matrix, seed 0), and writes ``<out>.json``,
-``<out>.md`` (mean miss distance [m] and success per cell, the policies side by side) and
+``<out>.md`` (mean miss distance [m], sim_twin.evaluate.summarise's ``mean_abs_error_m`` over the landed
+throws, and success per cell, the policies side by side) and
 ``<out>.png`` (mean miss against target, one panel per profile part).
 
 Why: a from-scratch policy that loses to the deployed one on a site profile may lose on a part that
@@ -51,16 +52,6 @@ def split_profile(name: str, out_dir: Path) -> list[str]:
     return names
 
 
-def mean_miss(cell: dict) -> float | None:
-    """Mean landing distance from the target [m] of one site-matrix cell's landed throws (ground
-    frame: hypot of the downrange and crossrange errors); None when none landed."""
-    pt = cell.get("per_throw") or {}
-    d = np.array(pt.get("downrange_error_m", []), dtype=float)
-    c = np.array(pt.get("crossrange_error_m", []), dtype=float)
-    ok = np.isfinite(d) & np.isfinite(c)
-    return float(np.mean(np.hypot(d[ok], c[ok]))) if ok.any() else None
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--mode", choices=sorted(TARGETS), required=True)
@@ -82,7 +73,7 @@ def main() -> None:
             for prof in rep["profiles"]:
                 for t in prof["targets"]:
                     rows.append({"policy": pname, "profile": prof["name"], "target_m": t["target_m"],
-                                 "mean_miss_m": mean_miss(t), "success_rate": t["success_rate"], "bias_m": t["bias_m"]})
+                                 "mean_miss_m": t["mean_abs_error_m"], "success_rate": t["success_rate"], "bias_m": t["bias_m"]})
                 logging.info("%s %s done", pname, prof["name"])
     body = {"mode": args.mode, "throws_per_target": args.throws, "seed": 0, "policies": policies, "parts": parts, "cells": rows}
     args.out.with_suffix(".json").write_text(json.dumps(body, indent=1) + "\n")
