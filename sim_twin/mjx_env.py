@@ -26,10 +26,12 @@ state. Per episode the gripper's mass and inertia are scaled by ``gripper_mass_s
 are drawn per joint. ``privileged(state)`` gives the critic those per-episode parameters and the true
 passive joint state (asymmetric actor-critic; layout in sim_twin.privileged).
 
-Payload (paper Sec. III-B): held at the gripper centre; the release command opens the gripper
-after the release delay (sampled per episode around the identified 258 ms); the payload then
-leaves with the gripper centre's velocity and flies ballistically (analytic) until it reaches the
-ground, which ends the episode with the positive terminal reward.
+Payload (paper Sec. III-B): held at the gripper centre, or, with ``randomization.grasp_forward_m``
+/ ``grasp_up_m``, at a per-episode random offset from it along the gripper's x and z axes (the CPU
+twin's ``grasp_offset`` effect; a payload gripped off-centre); the release command opens the
+gripper after the release delay (sampled per episode around the identified 258 ms); the payload
+then leaves from where it is held with that point's velocity and flies ballistically (analytic)
+until it reaches the ground, which ends the episode with the positive terminal reward.
 
 Rewards (paper Sec. III-E): one function per term in sim_twin.rewards, weights in the config's
 ``env.rewards`` (typed: sim_twin.rewards.RewardScales); ``step`` returns every scaled term in
@@ -63,6 +65,7 @@ from runtime.observation import (
     observation_size,
 )
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
+from sim_twin.effects.payload import GRIPPER_CENTRE_LOCAL_M, gripper_frame_point
 from sim_twin.hydraulics import cylinder_step, dead_band_flow, lag_step
 from sim_twin.initial_pose import pose_from_uniform, pose_is_valid
 from sim_twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
@@ -226,6 +229,9 @@ class ThrowEnvCore:
         self.gains = ControllerGains()
         self.lower = jnp.asarray(JOINT_LOWER[:NUM_ACTIVE], dtype=jnp.float32)
         self.upper = jnp.asarray(JOINT_UPPER[:NUM_ACTIVE], dtype=jnp.float32)
+        # a config constant: without an offset range the payload leaves from the gripper centre
+        # as forward_kinematics gives it, the same arithmetic as before the option existed
+        self.grasp_on = self.rand.grasp_forward_m != (0.0, 0.0) or self.rand.grasp_up_m != (0.0, 0.0)
 
     # --- reset ------------------------------------------------------------------------------
     def _sample_pose(self, key):
@@ -289,6 +295,9 @@ class ThrowEnvCore:
         sensor_lag = jnp.stack([jax.random.uniform(k, (), minval=lo, maxval=hi) for k, (lo, hi) in zip(kh[4:6], lat)])
         sensor_lag = jnp.clip(jnp.round(sensor_lag / PHYSICS_PERIOD_S), 0, MAX_SENSOR_LAG_STEPS).astype(jnp.int32)
         gm = rd.gripper_mass_scale
+        kg = jax.random.split(jax.random.fold_in(key, 2))
+        grasp = jnp.stack([jax.random.uniform(kg[0], (), minval=rd.grasp_forward_m[0], maxval=rd.grasp_forward_m[1]), 0.0,
+                           jax.random.uniform(kg[1], (), minval=rd.grasp_up_m[0], maxval=rd.grasp_up_m[1])])
         zeros6 = jnp.zeros(6)
         data = self.data0.replace(qpos=q, qvel=zeros6, ctrl=jnp.zeros(4), qfrc_applied=zeros6, time=jnp.zeros(()))
         pts = forward_kinematics(jnp, q, zeros6)
@@ -320,6 +329,7 @@ class ThrowEnvCore:
             gain=gain,
             delay_steps=jnp.maximum(1, jnp.round(delay_s / PHYSICS_PERIOD_S)).astype(jnp.int32),
             fric=fric,
+            grasp=grasp,
             key=kh[0],
             integral=jnp.zeros(4),
             prev_err=jnp.zeros(4),
@@ -377,9 +387,9 @@ class ThrowEnvCore:
         countdown = s["countdown"]
         open_now = (countdown == 1) & ~s["opened"]
         countdown = jnp.where(countdown > 0, countdown - 1, countdown)
-        pts = forward_kinematics(jnp, data.qpos, data.qvel)
-        p0 = jnp.where(open_now, pts.gripper_centre, s["ball_p0"])
-        v0 = jnp.where(open_now, pts.gripper_centre_vel, s["ball_v0"])
+        p_held, v_held = self._held_payload(data.qpos, data.qvel, s["grasp"])
+        p0 = jnp.where(open_now, p_held, s["ball_p0"])
+        v0 = jnp.where(open_now, v_held, s["ball_v0"])
         t_flight = jnp.where(open_now, ballistic_impact_time(jnp, p0, v0, PAYLOAD_RADIUS_M), s["t_flight"])
         t_open = jnp.where(s["opened"], s["t_open"] + dt, s["t_open"])
         return EnvState(
@@ -388,6 +398,16 @@ class ThrowEnvCore:
             phys_q=jnp.concatenate([data.qpos[None], s["phys_q"][:-1]]),
             phys_qd=jnp.concatenate([data.qvel[None], s["phys_qd"][:-1]]),
         )
+
+    def _held_payload(self, q, qd, grasp) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """Position (3,) and velocity (3,) of the held payload, machine frame, m and m/s: the
+        gripper centre, or the point ``grasp`` (3,) m from it in the gripper frame when the config
+        randomises the grasp offset (velocity by forward-mode differentiation along ``qd``)."""
+        if not self.grasp_on:
+            pts = forward_kinematics(jnp, q, qd)
+            return pts.gripper_centre, pts.gripper_centre_vel
+        local = jnp.asarray(GRIPPER_CENTRE_LOCAL_M, dtype=q.dtype) + grasp.astype(q.dtype)
+        return jax.jvp(lambda qq: gripper_frame_point(jnp, qq, local), (q,), (qd,))
 
     def _measure(self, s: EnvState, key) -> tuple[jnp.ndarray, jnp.ndarray]:
         """(q (6,), qd (6,)) as the sensors give them: latency per joint group, white noise."""

@@ -6,7 +6,7 @@ see what the machine never measures -- here the episode's randomised dynamics pa
 true (latency- and noise-free) passive joint state. The actor, the exported ONNX policy and the
 runtime keep the ``policy`` observation of runtime.observation unchanged.
 
-Layout of the ``privileged`` group (float32, per environment; ``PRIVILEGED_SIZE`` = 29 in both
+Layout of the ``privileged`` group (float32, per environment; ``PRIVILEGED_SIZE`` = 31 in both
 modes; ``PRIVILEGED_LAYOUT`` lists (name, size)):
 
     ==================  ====  ===============================================================
@@ -32,6 +32,8 @@ modes; ``PRIVILEGED_LAYOUT`` lists (name, size)):
                               ``encoder_latency_s``, ``imu_latency_s``
     passive_q           2     true passive joint angles now, rad / pi
     passive_qd          2     true passive joint rates now, (rad/s) / 4
+    grasp_offset        2     the payload's offset from the gripper centre along the gripper's
+                              x and z axes, m, over ``grasp_forward_m``, ``grasp_up_m``
     ==================  ====  ===============================================================
 
 Active joints in ACTIVE_JOINTS order (cabin turn, boom, stick, tilt). "Normalised over [lo, hi]"
@@ -74,6 +76,8 @@ RANDOMIZATION_DEFAULTS: dict[str, tuple[float, float]] = {
     "encoder_latency_s": (0.0, 0.0),
     "imu_latency_s": (0.0, 0.0),
     "gripper_mass_scale": (1.0, 1.0),
+    "grasp_forward_m": (0.0, 0.0),
+    "grasp_up_m": (0.0, 0.0),
 }
 """Ranges [lo, hi] the environment draws from when the config's ``randomization`` lacks them."""
 
@@ -95,6 +99,7 @@ PRIVILEGED_LAYOUT: tuple[tuple[str, int], ...] = (
     ("sensor_latency", 2),
     ("passive_q", 2),
     ("passive_qd", 2),
+    ("grasp_offset", 2),
 )
 PRIVILEGED_SIZE = sum(n for _, n in PRIVILEGED_LAYOUT)
 
@@ -102,13 +107,15 @@ PRIVILEGED_RANGE_KEYS: tuple[str, ...] = (
     *RANDOMIZATION_DEFAULTS,
     "gain_error",
     *RELEASE_DELAY_DEFAULTS,
+    "friction_sampling",
 )
-"""The ``randomization`` entries :func:`privileged_observation` normalises over."""
+"""The ``randomization`` entries :func:`privileged_observation` normalises over (with
+``friction_sampling``, whether the friction factor is read on a linear or a log scale)."""
 
-OTHER_RANDOMIZATION_KEYS = ("actuation", "obs_noise", "velocity_noise", "valve_spread", "friction_sampling")
+OTHER_RANDOMIZATION_KEYS = ("actuation", "obs_noise", "velocity_noise", "valve_spread")
 """The ``randomization`` entries the environment reads besides ``PRIVILEGED_RANGE_KEYS``
 (sim_twin.mjx_env: actuation "lag" or "hydraulic", observation-noise stds, velocity-reference
-noise, machine-wide valve slowness spread, how the passive friction factor is drawn)."""
+noise, machine-wide valve slowness spread)."""
 
 FRICTION_SAMPLINGS = ("uniform", "log_uniform")
 """How ``friction_scale`` is drawn: uniformly, or uniformly in its logarithm (a range spanning
@@ -177,7 +184,9 @@ class Randomization:
     transport delay [s], ``dead_band`` valve dead band [fraction of full opening],
     ``velocity_scale`` full-open speed factor, ``friction_scale`` passive friction factor,
     ``gripper_mass_scale`` gripper mass and inertia factor, ``encoder_latency_s`` and
-    ``imu_latency_s`` sensor latencies [s]; ``friction_sampling`` "log_uniform" draws the friction
+    ``imu_latency_s`` sensor latencies [s], ``grasp_forward_m`` and ``grasp_up_m`` the payload's
+    offset from the gripper centre along the gripper's x and z axes [m] (the CPU twin's
+    ``grasp_offset`` effect, sim_twin.effects.payload.GraspOffset); ``friction_sampling`` "log_uniform" draws the friction
     factor uniformly in its logarithm instead (FRICTION_SAMPLINGS). Scalars: ``actuation`` "lag" (first-order velocity lag
     with gain error ±``gain_error``) or "hydraulic" (the runtime's PID + FF law on the valve model);
     the release delay [s] ~ N(``release_delay_mean_s``, ``release_delay_std_s``) plus a uniform
@@ -197,6 +206,8 @@ class Randomization:
     encoder_latency_s: Range = RANDOMIZATION_DEFAULTS["encoder_latency_s"]
     imu_latency_s: Range = RANDOMIZATION_DEFAULTS["imu_latency_s"]
     gripper_mass_scale: Range = RANDOMIZATION_DEFAULTS["gripper_mass_scale"]
+    grasp_forward_m: Range = RANDOMIZATION_DEFAULTS["grasp_forward_m"]
+    grasp_up_m: Range = RANDOMIZATION_DEFAULTS["grasp_up_m"]
     gain_error: float = GAIN_ERROR_DEFAULT
     release_delay_mean_s: float = RELEASE_DELAY_DEFAULTS["release_delay_mean_s"]
     release_delay_std_s: float = RELEASE_DELAY_DEFAULTS["release_delay_std_s"]
@@ -311,5 +322,7 @@ def privileged_observation(rand: Randomization, hydraulic: bool, s) -> jnp.ndarr
         _normalise(lat[1], *rng("imu_latency_s"))[None],
         s["data"].qpos[4:6] / PASSIVE_ANGLE_SCALE_RAD,
         s["data"].qvel[4:6] / PASSIVE_RATE_SCALE_RADPS,
+        _normalise(s["grasp"][0], *rng("grasp_forward_m"))[None],
+        _normalise(s["grasp"][2], *rng("grasp_up_m"))[None],
     ]
     return jnp.concatenate([jnp.reshape(jnp.asarray(p, dtype=jnp.float32), (-1,)) for p in parts])

@@ -23,6 +23,13 @@ Exploration: the config's ``training.std_schedule`` caps the actor's learned act
 value that falls from ``start`` to ``end`` over ``iterations`` (exponentially), applied at every
 chunk boundary; below the cap the std is learned (rsl_rl's GaussianDistribution).
 
+Curriculum over the randomisation width: the config's ``training.randomization_stage`` (see
+:class:`RandomizationStage`) widens ``env.randomization`` once, at the first chunk boundary at or
+after its ``iteration``; the critic's privileged inputs are normalised over the widened ranges from
+the start (``env.privileged_ranges``), so their scale does not change at the switch.
+``training.gate_from_iteration`` (default 0) offers the gate only checkpoints from that iteration
+on (a recipe that widens its randomisation judges the policies trained on the wide ranges).
+
 Several GPUs: ``--gpus N`` re-launches the command under torchrun (one process per GPU, each with
 ``--num-envs`` environments, rsl_rl's multi-GPU mode: gradients all-reduced, rank 0 logs,
 checkpoints and runs the gate; the stop decision is broadcast to every rank).
@@ -86,6 +93,51 @@ class StdSchedule:
         if not 0.0 <= s.release_floor <= s.end:
             raise ValueError(f"std_schedule.release_floor must be in [0, end], got {s.release_floor}")
         return s
+
+
+@dataclass(frozen=True)
+class RandomizationStage:
+    """A widening of the domain randomisation during training (config
+    ``training.randomization_stage``): from ``iteration`` on, new episodes draw from
+    ``env.randomization`` with the entries of ``randomization`` in place of its own (CHOSEN values
+    in configs/*.json). A curriculum over randomisation width: the policy first learns to throw on
+    the narrower ranges, then becomes robust on the wider ones.
+
+    Raises (from_dict):
+        ValueError: unknown keys, a negative iteration, or widened entries that
+            sim_twin.privileged.check_randomization refuses.
+    """
+
+    iteration: int
+    randomization: dict
+
+    @classmethod
+    def from_dict(cls, d: dict) -> RandomizationStage:
+        from sim_twin.privileged import check_randomization
+
+        unknown = set(d) - {"iteration", "randomization"}
+        if unknown or "iteration" not in d or "randomization" not in d:
+            raise ValueError(f"training.randomization_stage needs exactly 'iteration' and 'randomization', got {sorted(d)}")
+        if isinstance(d["iteration"], bool) or not isinstance(d["iteration"], int) or d["iteration"] < 0:
+            raise ValueError(f"training.randomization_stage.iteration must be an integer >= 0, not {d['iteration']!r}")
+        check_randomization(d["randomization"], "training.randomization_stage.randomization")
+        return cls(d["iteration"], dict(d["randomization"]))
+
+    def env_dicts(self, env: dict) -> tuple[dict, dict]:
+        """(before, after): the ``env`` mappings of the config before and after the widening. Both
+        normalise the critic's privileged inputs over the widened ranges (``privileged_ranges``,
+        an explicit entry of the config kept), so the critic's inputs keep their scale.
+
+        Raises:
+            ValueError: the merged randomisation is refused (sim_twin.privileged.Randomization).
+        """
+        from sim_twin.privileged import Randomization, trained_ranges
+
+        wide = {**env.get("randomization", {}), **self.randomization}
+        Randomization.from_dict(wide, "training.randomization_stage (merged)")
+        priv = {**trained_ranges(wide), **env.get("privileged_ranges", {})}
+        before = {**env, "privileged_ranges": priv}
+        return before, {**before, "randomization": wide}
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
@@ -207,9 +259,15 @@ def run(args: argparse.Namespace) -> int:
     if args.num_envs:
         cfg["num_envs"] = args.num_envs
     seed = training_seed(cfg, args.seed)
-    env_cfg = EnvConfig.from_dict(cfg["env"])
+    stage_d = cfg.get("training", {}).get("randomization_stage")
+    stage = RandomizationStage.from_dict(stage_d) if stage_d is not None else None
+    env_before, env_after = stage.env_dicts(cfg["env"]) if stage else (cfg["env"], cfg["env"])
+    env_cfg = EnvConfig.from_dict(env_before)
     if env_cfg.mode != args.mode:
         raise ValueError(f"config is for mode {env_cfg.mode}, asked for {args.mode}")
+    gate_from = cfg.get("training", {}).get("gate_from_iteration", 0)
+    if isinstance(gate_from, bool) or not isinstance(gate_from, int) or gate_from < 0:
+        raise ValueError(f"training.gate_from_iteration must be an integer >= 0, not {gate_from!r}")
     actor_groups = cfg["runner"].get("obs_groups", {}).get("actor", ["policy"])
     if actor_groups != ["policy"]:
         raise ValueError(f"runner.obs_groups.actor must be ['policy'] (the exported policy's input), not {actor_groups}")
@@ -251,7 +309,12 @@ def run(args: argparse.Namespace) -> int:
     done_iters, chunks = 0, 0
     stop_reason = "iterations"
     passed = gate.passed if gate else None
+    widened = False
     while done_iters < args.iterations and not (passed and stop_at_bars):
+        if stage and not widened and runner.current_learning_iteration >= stage.iteration:
+            env.reconfigure(EnvConfig.from_dict(env_after))
+            widened = True
+            log.info("randomisation widened at iteration %d: %s", runner.current_learning_iteration, stage.randomization)
         if schedule:
             apply_std_cap(runner, schedule.cap(runner.current_learning_iteration), schedule.release_floor)
         n = min(args.chunk, args.iterations - done_iters)
@@ -289,7 +352,7 @@ def run(args: argparse.Namespace) -> int:
             log.info("checkpoint at iteration %d (%.1f min): %s, std %.3f", it, clock() / 60, stats, std)
             if gate:
                 passed = gate.poll()
-                if not (passed and stop_at_bars) and not gate.busy and chunks % max(args.gate_every, 1) == 0:
+                if not (passed and stop_at_bars) and not gate.busy and chunks % max(args.gate_every, 1) == 0 and it >= gate_from:
                     cand = log_dir / "candidates" / f"checkpoint_{it}.pt"
                     cand.parent.mkdir(exist_ok=True)
                     runner.save(str(cand))

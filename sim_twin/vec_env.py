@@ -69,6 +69,24 @@ class MjxThrowVecEnv(VecEnv):
         self.log_keys = [f"Reward/{k}" for k in REWARD_TERMS] + ["Throw/landed_per_done", "Throw/failed_per_done", "Throw/impact_err_m"]
         self.reset_stats()
 
+    def reconfigure(self, cfg: EnvConfig) -> None:
+        """Step with another config from now on (a curriculum stage, sim_twin.train): episodes in
+        flight keep what they drew, new episodes draw from ``cfg``. The state's layout does not
+        depend on the config, so the batch carries on; the step is compiled again.
+
+        Raises:
+            ValueError: ``cfg`` is for another mode or episode length.
+        """
+        if cfg.mode != self.core.mode or cfg.max_steps != self.max_episode_length:
+            raise ValueError(f"reconfigure keeps mode and episode length ({self.core.mode}, {self.max_episode_length} steps); "
+                             f"got {cfg.mode}, {cfg.max_steps}")
+        self.core = ThrowEnvCore(cfg, impl=self.core.impl, reset_slots=self.core.reset_slots, unroll_substeps=self.core.unroll_substeps)
+        self.cfg = {"env": cfg.as_dict()}
+        self._reset = jax.jit(jax.vmap(self.core.reset))
+        self._step = jax.jit(self._batched_step)
+        self._privileged = jax.jit(jax.vmap(self.core.privileged))
+        self._priv = self._privileged(self.state)
+
     def _batched_step(self, state, actions):
         """step_autoreset_batch plus the per-step means that are logged, in one jit."""
         state, obs, rew, done, tout, info = self.core.step_autoreset_batch(state, actions)

@@ -12,6 +12,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 jax = pytest.importorskip("jax")
+jnp = jax.numpy
 pytestmark = pytest.mark.torch
 
 from runtime.observation import build_observation, observation_size  # noqa: E402
@@ -43,7 +44,7 @@ def test_privileged_group_layout_and_range(mode):
     core = ThrowEnvCore(EnvConfig.from_dict(cfg["env"]))
     state, obs = jax.jit(jax.vmap(core.reset))(jax.random.split(jax.random.PRNGKey(11), 256))
     priv = np.asarray(jax.jit(jax.vmap(core.privileged))(state))
-    assert priv.shape == (256, PRIVILEGED_SIZE) == (256, 29) and priv.dtype == np.float32
+    assert priv.shape == (256, PRIVILEGED_SIZE) == (256, 31) and priv.dtype == np.float32
     assert np.all(np.abs(priv) <= 1.5)
     sl = _slices()
     # hydraulic actuation: the lag model's gain is unused -> 0; the randomised ones spread out
@@ -52,6 +53,7 @@ def test_privileged_group_layout_and_range(mode):
                  "release_delay", "sensor_latency"):
         assert priv[:, sl[name]].std(axis=0).min() > 0.2, name
     assert np.all(priv[:, sl["passive_qd"]] == 0.0)  # episodes start at rest
+    assert np.all(priv[:, sl["grasp_offset"]] == 0.0)  # the recipes hold the payload at the gripper centre
     # the policy observation is still runtime.observation's, from the measured history
     s0 = jax.tree_util.tree_map(lambda x: np.asarray(x[0], dtype=np.float64), state)
     ref = build_observation(np, mode, s0["q_hist"], s0["qd_hist"], s0["prev_action"], s0["target"], float(s0["opened"]))
@@ -85,6 +87,58 @@ def test_friction_drawn_log_uniformly_and_read_in_log_space():
     priv = np.asarray(jax.jit(jax.vmap(core.privileged))(state))[:, _slices()["friction_scale"]][:, 0]
     np.testing.assert_allclose(priv, (np.log(fric) - np.log(np.sqrt(5.0))) / (0.5 * np.log(20.0)), atol=1e-4)
     assert abs(priv.mean()) < 0.05 and priv.min() >= -1.0001 and priv.max() <= 1.0001
+
+
+def test_grasp_offset_drawn_read_and_released_from():
+    """A randomised grasp offset: drawn per episode in its ranges, read by the critic, and the
+    payload leaves from that point of the gripper with its velocity (the CPU twin's grasp_point)."""
+    from sim_twin.effects.payload import grasp_point
+
+    env = _cfg("3d")["env"]
+    env["randomization"] = {**env["randomization"], "grasp_forward_m": [-0.2, 0.2], "grasp_up_m": [-0.15, 0.05]}
+    core = ThrowEnvCore(EnvConfig.from_dict(env))
+    assert core.grasp_on
+    state, _ = jax.jit(jax.vmap(core.reset))(jax.random.split(jax.random.PRNGKey(7), 2048))
+    g = np.asarray(state["grasp"])
+    assert g[:, 0].min() >= -0.2 and g[:, 0].max() <= 0.2 and g[:, 0].std() > 0.1 and np.all(g[:, 1] == 0.0)
+    assert g[:, 2].min() >= -0.15 and g[:, 2].max() <= 0.05 + 1e-7 and abs(g[:, 2].mean() + 0.05) < 0.01
+    priv = np.asarray(jax.jit(jax.vmap(core.privileged))(state))[:, _slices()["grasp_offset"]]
+    np.testing.assert_allclose(priv[:, 0], g[:, 0] / 0.2, atol=1e-5)
+    np.testing.assert_allclose(priv[:, 1], (g[:, 2] + 0.05) / 0.1, atol=1e-5)
+    # the held payload of a moving state against the CPU twin's kinematics, float32 against float64
+    rng = np.random.default_rng(3)
+    for k in range(4):
+        q = np.array([rng.uniform(-3, 3), rng.uniform(-0.5, 0.5), rng.uniform(-2, -1), rng.uniform(0, 1.5),
+                      rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3)])
+        qd = rng.uniform(-1.5, 1.5, 6)
+        p, v = core._held_payload(jnp.asarray(q, jnp.float32), jnp.asarray(qd, jnp.float32), state["grasp"][k])
+        p_ref, v_ref = grasp_point(q, qd, g[k])
+        np.testing.assert_allclose(np.asarray(p), p_ref, atol=2e-5)
+        np.testing.assert_allclose(np.asarray(v), v_ref, atol=2e-5)
+        # and it is not the gripper centre: the offset moves the release point by its length
+        c, _ = grasp_point(q, qd)
+        assert abs(np.linalg.norm(p_ref - c) - np.linalg.norm(g[k].astype(np.float64))) < 1e-9
+
+
+def test_without_grasp_offset_the_payload_leaves_from_the_gripper_centre():
+    from runtime.machine import forward_kinematics
+
+    core = ThrowEnvCore(EnvConfig.from_dict(_cfg("2d")["env"]))
+    assert not core.grasp_on
+    q = jnp.asarray([0.3, 0.1, -1.4, 0.6, 0.2, 0.0], jnp.float32)
+    qd = jnp.asarray([0.2, 0.5, -0.7, 0.3, 1.0, 0.1], jnp.float32)
+    p, v = core._held_payload(q, qd, jnp.zeros(3))
+    pts = forward_kinematics(jnp, q, qd)
+    assert np.array_equal(np.asarray(p), np.asarray(pts.gripper_centre)) and np.array_equal(np.asarray(v), np.asarray(pts.gripper_centre_vel))
+
+
+@pytest.mark.parametrize("bad, match", [({"grasp_up_m": [0.1, -0.1]}, "grasp_up_m must be a range"),
+                                         ({"grasp_offset_m": [0.0, 0.1]}, "unknown entries")])
+def test_grasp_offset_refuses_bad_input(bad, match):
+    env = _cfg("2d")["env"]
+    env["randomization"] = {**env["randomization"], **bad}
+    with pytest.raises(ValueError, match=match):
+        EnvConfig.from_dict(env)
 
 
 @pytest.mark.parametrize("bad, match", [({"friction_sampling": "normal"}, "friction_sampling must be one of"),
@@ -122,7 +176,7 @@ def test_resume_old_checkpoint_widens_critic_then_trains_and_exports(tmp_path):
     runner = OnPolicyRunner(env, copy.deepcopy(cfg["runner"]), log_dir=None, device="cpu")
     notes = critic_surgery.resume(runner, CKPT_2D, "cpu")
     assert runner.current_learning_iteration == old["iter"]
-    assert any("critic input 56 -> 85" in n for n in notes)
+    assert any("critic input 56 -> 87" in n for n in notes)
     saved = runner.alg.save()
     for k, v in old["actor_state_dict"].items():  # the actor is untouched but for its std's parameterisation
         if k == "distribution.std_param":
@@ -135,7 +189,7 @@ def test_resume_old_checkpoint_widens_critic_then_trains_and_exports(tmp_path):
     assert torch.all(crit["mlp.0.weight"][:, 56:] == 0)
     assert torch.equal(crit["obs_normalizer.count"], old["critic_state_dict"]["obs_normalizer.count"])
     adam = saved["optimizer_state_dict"]["state"]
-    first = [i for i, st in adam.items() if st["exp_avg"].shape == (256, 85)]
+    first = [i for i, st in adam.items() if st["exp_avg"].shape == (256, 87)]
     assert len(first) == 1 and torch.all(adam[first[0]]["exp_avg_sq"][:, 56:] == 0)
     assert torch.equal(adam[first[0]]["exp_avg"][:, :56], old["optimizer_state_dict"]["state"][first[0]]["exp_avg"])
 

@@ -168,3 +168,74 @@ def test_training_seed_from_the_flag_else_the_recipe_else_a_clear_error():
     with pytest.raises(ValueError, match="integer"):
         train.training_seed({"training": {"seed": "0"}}, None)
     assert train.training_seed({}, 3) == 3  # a config without a training section takes the flag
+
+
+def test_randomization_stage_widens_once_and_the_gate_judges_from_its_iteration(tmp_path, monkeypatch):
+    """training.randomization_stage: the environment is reconfigured once, at the first chunk
+    boundary at or after its iteration, to the widened ranges, with the critic's normalisation
+    over the widened ranges from the start; training.gate_from_iteration keeps earlier
+    checkpoints from the gate (which passes everything here)."""
+    import json
+    import sys
+
+    from sim_twin.matrix_gate import MatrixGate
+    from sim_twin.vec_env import MjxThrowVecEnv
+
+    def passing(self, onnx, seed, out):
+        rep = {"pass": True, "profiles": []}
+        return [sys.executable, "-c", f"import json; open({out!r}, 'w').write(json.dumps({rep!r}))"]
+
+    monkeypatch.setattr(MatrixGate, "command", passing)
+    seen = []
+    orig_init, orig_reconf = MjxThrowVecEnv.__init__, MjxThrowVecEnv.reconfigure
+
+    def init(self, cfg, *a, **kw):
+        seen.append(("init", cfg.randomization, cfg.privileged_ranges))
+        orig_init(self, cfg, *a, **kw)
+
+    def reconf(self, cfg):
+        seen.append(("widen", cfg.randomization, cfg.privileged_ranges))
+        orig_reconf(self, cfg)
+
+    monkeypatch.setattr(MjxThrowVecEnv, "__init__", init)
+    monkeypatch.setattr(MjxThrowVecEnv, "reconfigure", reconf)
+    cfg = train.load_config("2d", None)
+    wide = {"friction_scale": [0.5, 10.0], "friction_sampling": "log_uniform", "grasp_forward_m": [-0.2, 0.2]}
+    cfg["training"]["randomization_stage"] = {"iteration": 2, "randomization": wide}
+    cfg["training"]["gate_from_iteration"] = 3
+    path = tmp_path / "staged.json"
+    path.write_text(json.dumps(cfg))
+    args = _args(tmp_path, gate=True, iterations=5, gate_seeds="0", gate_workers=1, gate_wait_minutes=5, config=path)
+    assert train.run(args) == 0
+    assert [s[0] for s in seen] == ["init", "widen"]
+    (_, before, priv0), (_, after, priv1) = seen
+    assert before.friction_scale == (0.5, 3.5) and before.friction_sampling == "uniform" and before.grasp_forward_m == (0.0, 0.0)
+    assert after.friction_scale == (0.5, 10.0) and after.friction_sampling == "log_uniform" and after.grasp_forward_m == (-0.2, 0.2)
+    assert after.lag_s == before.lag_s  # entries the stage does not name stay the recipe's
+    assert priv0 == priv1 and priv0["friction_scale"] == [0.5, 10.0] and priv0["friction_sampling"] == "log_uniform"
+    gate = json.loads((tmp_path / "run" / "matrices" / "matrix_gate.json").read_text())
+    assert gate["passed"]["iteration"] >= 3  # iterations 1 and 2 were trained but not judged
+
+
+@pytest.mark.parametrize("stage, match", [
+    ({"iteration": -1, "randomization": {}}, "integer >= 0"),
+    ({"iteration": 5}, "exactly 'iteration' and 'randomization'"),
+    ({"iteration": 5, "randomization": {}, "when": 3}, "exactly"),
+    ({"iteration": 5, "randomization": {"friction_scal": [1, 2]}}, "unknown entries"),
+    ({"iteration": 5, "randomization": {"grasp_up_m": [0.1, -0.1]}}, "must be a range"),
+])
+def test_randomization_stage_refuses_bad_input(stage, match):
+    with pytest.raises(ValueError, match=match):
+        train.RandomizationStage.from_dict(stage)
+
+
+def test_gate_from_iteration_refuses_bad_input(tmp_path):
+    import json
+
+    cfg = train.load_config("2d", None)
+    cfg["training"]["gate_from_iteration"] = "600"
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(cfg))
+    with pytest.raises(ValueError, match="gate_from_iteration must be an integer"):
+        train.run(_args(tmp_path, config=path))
+    assert not (tmp_path / "run" / "checkpoint.pt").exists()

@@ -27,45 +27,49 @@ AIR_DENSITY_KG_M3 = 1.225  # ISA sea level
 FLIGHT_DT_S = 0.005  # RK4 step; drag varies slowly, error < 1 mm over a 2 s flight
 
 
-def _point(q: np.ndarray, local: np.ndarray) -> np.ndarray:
+def gripper_frame_point(xp, q, local):
     """Machine-frame position (..., 3) of a point given in the gripper frame (origin on the
-    pitch/roll axes), for joint positions q (..., 6). Same chain as runtime.machine.forward_kinematics."""
-    c0, s0 = np.cos(q[..., 0]), np.sin(q[..., 0])
+    pitch/roll axes; x along the jaws, z up when the gripper hangs plumb), for joint positions
+    q (..., 6) in JOINT_NAMES order (rad, m). ``xp`` is ``numpy`` or ``jax.numpy``; ``local`` (3,)
+    in m. Same chain as runtime.machine.forward_kinematics (tests/test_payload_effects.py)."""
+    c0, s0 = xp.cos(q[..., 0]), xp.sin(q[..., 0])
 
     def rz(v):
-        return np.stack([c0 * v[..., 0] - s0 * v[..., 1], s0 * v[..., 0] + c0 * v[..., 1], v[..., 2]], axis=-1)
+        return xp.stack([c0 * v[..., 0] - s0 * v[..., 1], s0 * v[..., 0] + c0 * v[..., 1], v[..., 2]], axis=-1)
 
     def ry(a, v):
-        c, s = np.cos(a), np.sin(a)
-        return np.stack([c * v[..., 0] + s * v[..., 2], v[..., 1], -s * v[..., 0] + c * v[..., 2]], axis=-1)
+        c, s = xp.cos(a), xp.sin(a)
+        return xp.stack([c * v[..., 0] + s * v[..., 2], v[..., 1], -s * v[..., 0] + c * v[..., 2]], axis=-1)
 
     def rx(a, v):
-        c, s = np.cos(a), np.sin(a)
-        return np.stack([v[..., 0], c * v[..., 1] - s * v[..., 2], s * v[..., 1] + c * v[..., 2]], axis=-1)
+        c, s = xp.cos(a), xp.sin(a)
+        return xp.stack([v[..., 0], c * v[..., 1] - s * v[..., 2], s * v[..., 1] + c * v[..., 2]], axis=-1)
 
-    shape = q.shape[:-1] + (3,)
-    z = np.zeros(shape)
-    o = z + np.array([0.0, 0.0, CHASSIS_HEIGHT_M + CABIN_OFFSET_M[2]])
-    o = o + rz(z + np.array(BOOM_OFFSET_M))
-    o = o + rz(ry(q[..., 1], z + np.array(DIPPER_OFFSET_M)))
+    z = xp.zeros(q.shape[:-1] + (3,), dtype=q.dtype)
+    o = z + xp.asarray([0.0, 0.0, CHASSIS_HEIGHT_M + CABIN_OFFSET_M[2]], dtype=q.dtype)
+    o = o + rz(z + xp.asarray(BOOM_OFFSET_M, dtype=q.dtype))
+    o = o + rz(ry(q[..., 1], z + xp.asarray(DIPPER_OFFSET_M, dtype=q.dtype)))
     a12 = q[..., 1] + q[..., 2]
-    o = o + rz(ry(a12, z + np.array(TELESCOPE_OFFSET_M)))
-    tele = z.copy()
-    tele[..., 0] = q[..., 3] + HANGER_OFFSET_M[0]
+    o = o + rz(ry(a12, z + xp.asarray(TELESCOPE_OFFSET_M, dtype=q.dtype)))
+    tele = xp.stack([q[..., 3] + HANGER_OFFSET_M[0], z[..., 1], z[..., 2]], axis=-1)
     o = o + rz(ry(a12, tele))
     return o + rz(ry(a12 + q[..., 4], rx(q[..., 5], z + local)))
+
+
+GRIPPER_CENTRE_LOCAL_M = (0.0, 0.0, -GRIPPER_CENTRE_DROP_M)
+"""The gripper centre in the gripper frame, m (runtime.machine's gripper-centre drop below the pitch axis)."""
 
 
 def grasp_point(q, qd, offset_m=None) -> tuple[np.ndarray, np.ndarray]:
     """Position and velocity (..., 3) of the payload held at ``offset_m`` (3,) from the gripper
     centre, in the gripper frame (None: the centre). Velocity by central differences along qd."""
     q, qd = np.asarray(q, dtype=float), np.asarray(qd, dtype=float)
-    local = np.array([0.0, 0.0, -GRIPPER_CENTRE_DROP_M])
+    local = np.array(GRIPPER_CENTRE_LOCAL_M)
     if offset_m is not None:
         local = local + np.asarray(offset_m, dtype=float)
     h = 1e-6
-    p = _point(q, local)
-    v = (_point(q + h * qd, local) - _point(q - h * qd, local)) / (2 * h)
+    p = gripper_frame_point(np, q, local)
+    v = (gripper_frame_point(np, q + h * qd, local) - gripper_frame_point(np, q - h * qd, local)) / (2 * h)
     return p, v
 
 
