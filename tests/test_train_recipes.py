@@ -108,3 +108,38 @@ def test_the_2d_run_exported_a_policy_that_met_every_bar_on_two_seeds(run_name):
     assert card["bars_met"] is True
     passing = {(r["iteration"], r["seed"]) for r in gate["results"] if r["passed"]}
     assert {(card["iteration"], 0), (card["iteration"], 1)} <= passing
+
+
+CANDIDATES = {"throw2d-scratch-y": "2d", "throw3d-scratch-y": "3d"}
+"""Recipes written for a GPU run that has not been made yet (policies/training/<run>/recipe.json):
+the committed recipe plus a randomisation stage and the iteration the gate starts judging at."""
+_STAGE_KEYS = {"randomization_stage", "gate_from_iteration"}
+
+
+@pytest.mark.parametrize(("run_name", "mode"), sorted(CANDIDATES.items()))
+def test_candidate_recipes_are_the_committed_recipe_with_a_valid_randomisation_stage(run_name, mode):
+    pytest.importorskip("jax")
+    from sim_twin.privileged import Randomization
+    from sim_twin.train import RandomizationStage
+
+    cand = _without_notes(ROOT / "policies" / "training" / run_name / "recipe.json")
+    recipe = _without_notes(ROOT / "sim_twin" / "configs" / f"throw_{mode}.json")
+    training = cand["training"]
+    assert set(training) - set(recipe["training"]) == _STAGE_KEYS
+    stage = RandomizationStage.from_dict(training["randomization_stage"])
+    # the gate judges only policies trained on the widened ranges
+    assert training["gate_from_iteration"] > stage.iteration
+    for key in _STAGE_KEYS:
+        del training[key]
+    assert cand == recipe
+    before, after = stage.env_dicts(cand["env"])
+    assert before["privileged_ranges"] == after["privileged_ranges"]  # the critic's scale does not change
+    # the widened ranges cover the site profiles the from-scratch policies lose on
+    # (docs/training.md): the worn gripper's tenfold viscous friction and the heavy load's grasp
+    # offset (sim_twin/profiles/worn_gripper.json, heavy_load.json)
+    wide = Randomization.from_dict(after["randomization"], run_name)
+    heavy = json.loads((ROOT / "sim_twin" / "profiles" / "heavy_load.json").read_text())
+    offset = next(e["params"] for e in heavy["effects"] if e["effect"] == "grasp_offset")
+    assert wide.grasp_forward_m[0] <= offset["forward_m"] <= wide.grasp_forward_m[1]
+    assert wide.grasp_up_m[0] <= offset["up_m"] <= wide.grasp_up_m[1]
+    assert wide.friction_scale[1] >= 10.0
