@@ -8,6 +8,7 @@ closed by its fixture (sessions with Python callbacks left open hang the interpr
 from __future__ import annotations
 
 import base64
+import contextlib
 import os
 import socket
 import sys
@@ -61,6 +62,12 @@ def pytest_configure(config) -> None:
     # runtimes `slinger up` starts; runtimes a test starts itself get TEST_POLICY_CHECK. In-process
     # executors keep ExecutorConfig's default; tests that need it off say so.
     os.environ.setdefault("SLINGER_RELEASE_CHECK_RADIUS_M", "off")
+    # MuJoCo's first import, with MUJOCO_GL unset or "glfw", imports pyGLFW, which reads each libglfw's
+    # version in a `python -c` child. Imported here, before the watch, so that this one-off child is not
+    # charged to whichever test happens to import MuJoCo first (a test run alone failed; in the tier a
+    # module imported it at collection). A broken MuJoCo is left to the tests that use it.
+    with contextlib.suppress(Exception):
+        import mujoco  # noqa: F401
     _watch_process_starts()
 
 
