@@ -52,16 +52,12 @@ class MjxThrowVecEnv(VecEnv):
 
     def __init__(self, cfg: EnvConfig, num_envs: int, seed: int = 0, device: str = "cpu", impl: str = "jax",
                  reset_slots: float | None = None, unroll_substeps: bool = False):
-        self.core = ThrowEnvCore(cfg, impl=impl, reset_slots=reset_slots, unroll_substeps=unroll_substeps)
-        self.cfg = {"env": cfg.as_dict()}
+        self._build(ThrowEnvCore(cfg, impl=impl, reset_slots=reset_slots, unroll_substeps=unroll_substeps))
         self.num_envs = num_envs
         self.num_actions = self.core.num_act
         self.max_episode_length = cfg.max_steps
         self.device = device
         keys = jax.random.split(jax.random.PRNGKey(seed), num_envs)
-        self._reset = jax.jit(jax.vmap(self.core.reset))
-        self._step = jax.jit(self._batched_step)
-        self._privileged = jax.jit(jax.vmap(self.core.privileged))
         self.state, obs = self._reset(keys)
         self._obs = obs
         self._priv = self._privileged(self.state)
@@ -80,12 +76,16 @@ class MjxThrowVecEnv(VecEnv):
         if cfg.mode != self.core.mode or cfg.max_steps != self.max_episode_length:
             raise ValueError(f"reconfigure keeps mode and episode length ({self.core.mode}, {self.max_episode_length} steps); "
                              f"got {cfg.mode}, {cfg.max_steps}")
-        self.core = ThrowEnvCore(cfg, impl=self.core.impl, reset_slots=self.core.reset_slots, unroll_substeps=self.core.unroll_substeps)
-        self.cfg = {"env": cfg.as_dict()}
-        self._reset = jax.jit(jax.vmap(self.core.reset))
-        self._step = jax.jit(self._batched_step)
-        self._privileged = jax.jit(jax.vmap(self.core.privileged))
+        self._build(ThrowEnvCore(cfg, impl=self.core.impl, reset_slots=self.core.reset_slots, unroll_substeps=self.core.unroll_substeps))
         self._priv = self._privileged(self.state)
+
+    def _build(self, core: ThrowEnvCore) -> None:
+        """Take ``core`` and compile the batched reset, step and privileged observation on it."""
+        self.core = core
+        self.cfg = {"env": core.cfg.as_dict()}
+        self._reset = jax.jit(jax.vmap(core.reset))
+        self._step = jax.jit(self._batched_step)
+        self._privileged = jax.jit(jax.vmap(core.privileged))
 
     def _batched_step(self, state, actions):
         """step_autoreset_batch plus the per-step means that are logged, in one jit."""
