@@ -38,6 +38,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
+from tests.benchmarks.site_coverage_diagnosis import effect_parts  # noqa: E402
 from tests.benchmarks.spread_sources import FIRST_SWING_S, TARGETS_2D, throws  # noqa: E402
 
 SITE_PROFILE = "worn_gripper"
@@ -46,16 +47,17 @@ EFFECT = "passive_friction"
 
 def friction_profile() -> dict:
     """The worn gripper's passive-friction effect alone as a RealityProfile dict
-    (sim_twin/profiles/worn_gripper.json; its release-delay effect left out).
+    (sim_twin/profiles/worn_gripper.json split by site_coverage_diagnosis.effect_parts; its
+    release-delay effect left out).
 
     Raises:
         ValueError: the committed profile has no passive-friction effect.
     """
-    spec = json.loads((ROOT / "sim_twin" / "profiles" / f"{SITE_PROFILE}.json").read_text())
-    effects = [e for e in spec["effects"] if e["effect"] == EFFECT]
-    if not effects:
-        raise ValueError(f"sim_twin/profiles/{SITE_PROFILE}.json has no {EFFECT} effect")
-    return {"name": f"{SITE_PROFILE}__{EFFECT}", "effects": effects}
+    _, parts = effect_parts(SITE_PROFILE)
+    for part in parts:
+        if part["effects"][0]["effect"] == EFFECT:
+            return part
+    raise ValueError(f"sim_twin/profiles/{SITE_PROFILE}.json has no {EFFECT} effect")
 
 
 def paired(nominal: list[dict], worn: list[dict]) -> list[dict]:
@@ -187,6 +189,7 @@ def main() -> None:
         if not sep or not name or not Path(path).is_file():
             ap.error(f"--policy wants NAME=path.onnx with an existing file, not {spec!r}")
         pols[name] = path
+    sha = {name: sha256_of(path) for name, path in pols.items()}
     targets = [float(x) for x in args.targets.split(",")]
     if bad := [d for d in targets if d not in TARGETS_2D]:
         ap.error(f"unknown targets {bad} (the site matrix's 2D targets are {TARGETS_2D})")
@@ -213,7 +216,7 @@ def main() -> None:
             nom, wrn = results[(name, d, "nominal")], results[(name, d, "worn")]
             pairs = paired(nom, wrn)
             s = summary(pairs, sum(r["status"] == "landed" for r in nom), sum(r["status"] == "landed" for r in wrn), args.throws)
-            cells.append({"policy": name, "policy_sha256": sha256_of(pols[name]), "target_m": d, **s, "pairs": pairs})
+            cells.append({"policy": name, "policy_sha256": sha[name], "target_m": d, **s, "pairs": pairs})
             print(f"{name:10s} {d:4.1f} m  paired {s['paired']:3d}  first swing {s['first_swing']:3d}  miss nominal "
                   f"{s['mean_miss_nominal_m']} worn {s['mean_miss_worn_m']} m  shift first {s['mean_shift_first_swing_m']} "
                   f"later {s['mean_shift_later_m']} m", flush=True)

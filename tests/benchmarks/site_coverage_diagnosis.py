@@ -30,10 +30,9 @@ TARGETS = {"2d": [7.5, 8.0, 8.5, 9.0, 9.5, 10.0], "3d": [7.0, 7.5, 8.0, 8.5, 9.0
 """The site matrix's targets [m] per mode (sim_twin.evaluate_cli defaults)."""
 
 
-def split_profile(name: str, out_dir: Path) -> list[str]:
-    """Write ``<name>__<effect>.json`` (the profile with only that effect) into ``out_dir`` for each
-    effect of sim_twin/profiles/<name>.json, and a copy of the profile itself; returns the profile
-    names, the whole profile first.
+def effect_parts(name: str) -> tuple[dict, list[dict]]:
+    """The committed profile sim_twin/profiles/<name>.json and one profile dict per effect of it,
+    that effect alone, named ``<name>__<effect>`` (a plugin effect by its class name).
 
     Raises:
         FileNotFoundError: no such committed profile.
@@ -43,13 +42,23 @@ def split_profile(name: str, out_dir: Path) -> list[str]:
     effects = spec.get("effects", [])
     if len(effects) < 2:
         raise ValueError(f"profile {name!r} has {len(effects)} effect(s): nothing to split")
+    return spec, [{**spec, "name": f"{name}__{e['effect'].split(':')[-1]}", "effects": [e]} for e in effects]
+
+
+def split_profile(name: str, out_dir: Path) -> list[str]:
+    """Write ``<name>__<effect>.json`` (the profile with only that effect, :func:`effect_parts`) into
+    ``out_dir`` for each effect of sim_twin/profiles/<name>.json, and a copy of the profile itself;
+    returns the profile names, the whole profile first.
+
+    Raises:
+        FileNotFoundError: no such committed profile.
+        ValueError: the profile has fewer than two effects (nothing to split).
+    """
+    spec, parts = effect_parts(name)
     (out_dir / f"{name}.json").write_text(json.dumps(spec))
-    names = [name]
-    for e in effects:
-        part = f"{name}__{e['effect'].split(':')[-1]}"
-        (out_dir / f"{part}.json").write_text(json.dumps({**spec, "name": part, "effects": [e]}))
-        names.append(part)
-    return names
+    for part in parts:
+        (out_dir / f"{part['name']}.json").write_text(json.dumps(part))
+    return [name, *(part["name"] for part in parts)]
 
 
 def main() -> None:
