@@ -136,7 +136,9 @@ def test_each_console_has_its_own_view_target_and_machine(scene, tmp_path):
         wait_for(lambda: np.allclose(va.client.scene._handle_from_node_name["/machine/gripper"].position,
                                      data.geom_xpos[gid], atol=1e-5), 10, "gripper of m1 posed")
         assert {"/machine/cabin", "/machine/boom", "/machine/dipper", "/machine/telescope", "/machine/rotator"} <= _names(va)
-        assert va.label.text == "SIMULATED machine m1" and vb.label.text == "SIMULATED machine m2"
+        # each view is drawn by the scene's own refresh: m2's view may be drawn a beat after m1's
+        wait_for(lambda: va.label.text == "SIMULATED machine m1" and vb.label.text == "SIMULATED machine m2",
+                 10, "each view labelled with its own machine")
         wait_for(lambda: "/band/area" in _names(va) and "/band/area" in _names(vb), 10, "valid bands drawn")
         assert "/band/line" in _names(va) and "/band/line" not in _names(vb)  # the 2D line only in 2D
         assert "/rings" in _names(va)
@@ -200,6 +202,7 @@ def test_a_replay_poses_the_console_machine_from_the_recording_at_the_seeked_tim
             assert va.label.text == f"REPLAY of throw th-1 on m1: t = {shown:.2f} s"
             assert va.payload.visible == (shown >= 1.5)  # the payload flies after the release
         assert a.public()["replay"] == {"throw_id": "th-1", "t_s": 2.0, "duration_s": 2.0}
+        wait_for(lambda: vb.last_q is not None and np.allclose(vb.last_q, Q1), 10, "the other console posed live")
         time.sleep(0.2)  # the drawing thread keeps the replayed pose, not the live one
         assert va.last_q == pytest.approx(q[-1]) and vb.last_q == pytest.approx(Q1)
         scene.stop_replay(a)
