@@ -23,7 +23,8 @@ old (whole 10 ms steps, active joints / passive joints) plus white noise of the 
 state. Per episode the gripper's mass and inertia are scaled by ``gripper_mass_scale``
 (sim_twin.effects.machine.HangingMass does the same on the CPU twin) and the passive friction by
 ``friction_scale`` (uniformly, or log-uniformly with ``friction_sampling``); the valve parameters
-are drawn per joint. ``privileged(state)`` gives the critic those per-episode parameters and the true
+are drawn per joint, delay and lag around one machine-wide slowness (``valve_spread``), with
+``valve_coupling`` "all" the dead band and full-open speed too (sim_twin.privileged.VALVE_COUPLINGS). ``privileged(state)`` gives the critic those per-episode parameters and the true
 passive joint state (asymmetric actor-critic; layout in sim_twin.privileged).
 
 Payload (paper Sec. III-B): held at the gripper centre, or, with ``randomization.grasp_forward_m``
@@ -285,12 +286,20 @@ class ThrowEnvCore:
         # g ~ U(0, 1) (one pump and pilot circuit) with per-joint spread around it, for delay and lag alike
         spread = rd.valve_spread
         g = jax.random.uniform(kh[7], ())
-        frac_d = jnp.clip(g + spread * jax.random.uniform(kh[1], (4,), minval=-1.0, maxval=1.0), 0.0, 1.0)
-        frac_l = jnp.clip(g + spread * jax.random.uniform(ks[3], (4,), minval=-1.0, maxval=1.0), 0.0, 1.0)
-        if spread >= 1.0:
-            frac_d, frac_l = jax.random.uniform(kh[1], (4,)), jax.random.uniform(ks[3], (4,))
+
+        def fraction(k, centre, coupled: bool):
+            """Per-joint fractions (4,) of a valve range: within ``spread`` of ``centre`` (clipped to
+            [0, 1]) where coupled to the machine-wide slowness, else independent U(0, 1)."""
+            if coupled:
+                return jnp.clip(centre + spread * jax.random.uniform(k, (4,), minval=-1.0, maxval=1.0), 0.0, 1.0)
+            return jax.random.uniform(k, (4,))
+
+        coupled = spread < 1.0
+        frac_d, frac_l = fraction(kh[1], g, coupled), fraction(ks[3], g, coupled)
         tau = lg[0] + frac_l * (lg[1] - lg[0])
         valve_delay = jnp.round((dl[0] + frac_d * (dl[1] - dl[0])) / PHYSICS_PERIOD_S)
+        all_four = coupled and rd.valve_coupling == "all"  # the slowness also sets dead band and (inversely) speed
+        frac_b, frac_v = fraction(kh[2], g, all_four), fraction(kh[3], 1.0 - g, all_four)
         lat = [rd.encoder_latency_s, rd.imu_latency_s]
         sensor_lag = jnp.stack([jax.random.uniform(k, (), minval=lo, maxval=hi) for k, (lo, hi) in zip(kh[4:6], lat)])
         sensor_lag = jnp.clip(jnp.round(sensor_lag / PHYSICS_PERIOD_S), 0, MAX_SENSOR_LAG_STEPS).astype(jnp.int32)
@@ -336,8 +345,8 @@ class ThrowEnvCore:
             peaks=jnp.zeros((2, 4)),
             valve_buf=jnp.zeros((MAX_VALVE_DELAY_STEPS + 1, 4)),
             valve_delay=jnp.clip(valve_delay, 0, MAX_VALVE_DELAY_STEPS).astype(jnp.int32),
-            dead_band=jax.random.uniform(kh[2], (4,), minval=db[0], maxval=db[1]),
-            vscale=jax.random.uniform(kh[3], (4,), minval=vs[0], maxval=vs[1]),
+            dead_band=db[0] + frac_b * (db[1] - db[0]),
+            vscale=vs[0] + frac_v * (vs[1] - vs[0]),
         )
         return state, self.observe(state)
 

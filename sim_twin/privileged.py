@@ -112,10 +112,18 @@ PRIVILEGED_RANGE_KEYS: tuple[str, ...] = (
 """The ``randomization`` entries :func:`privileged_observation` normalises over (with
 ``friction_sampling``, whether the friction factor is read on a linear or a log scale)."""
 
-OTHER_RANDOMIZATION_KEYS = ("actuation", "obs_noise", "velocity_noise", "valve_spread")
+OTHER_RANDOMIZATION_KEYS = ("actuation", "obs_noise", "velocity_noise", "valve_spread", "valve_coupling")
 """The ``randomization`` entries the environment reads besides ``PRIVILEGED_RANGE_KEYS``
 (sim_twin.mjx_env: actuation "lag" or "hydraulic", observation-noise stds, velocity-reference
-noise, machine-wide valve slowness spread)."""
+noise, machine-wide valve slowness spread, which valve parameters that slowness sets)."""
+
+VALVE_COUPLINGS = ("delay_lag", "all")
+"""Which hydraulic parameters the machine-wide slowness g ~ U(0, 1) sets (with ``valve_spread``
+per joint around it): "delay_lag" the valve delay and lag only (dead band and full-open speed drawn
+independently), "all" also the dead band (at fraction g of its range) and the full-open speed (at
+fraction 1 - g: a slow machine is also a weak one). "all" puts episodes in the range's corners,
+where the site matrix's slow- and fast-hydraulics profiles lie (all four parameters near their
+slow or fast ends); independent draws seldom go there."""
 
 FRICTION_SAMPLINGS = ("uniform", "log_uniform")
 """How ``friction_scale`` is drawn: uniformly, or uniformly in its logarithm (a range spanning
@@ -164,6 +172,8 @@ def check_randomization(rand: dict, where: str = "env.randomization", keys: tupl
         raise ValueError(f"{where}.friction_sampling must be one of {list(FRICTION_SAMPLINGS)}, not {rand['friction_sampling']!r}")
     if rand.get("friction_sampling") == "log_uniform" and rand.get("friction_scale", RANDOMIZATION_DEFAULTS["friction_scale"])[0] <= 0:
         raise ValueError(f"{where}.friction_scale must be > 0 to be drawn log-uniformly, not {rand.get('friction_scale')!r}")
+    if rand.get("valve_coupling", "delay_lag") not in VALVE_COUPLINGS:
+        raise ValueError(f"{where}.valve_coupling must be one of {list(VALVE_COUPLINGS)}, not {rand['valve_coupling']!r}")
     if rand.get("actuation", "lag") not in ("lag", "hydraulic"):
         raise ValueError(f"{where}.actuation must be 'lag' or 'hydraulic', not {rand['actuation']!r}")
     noise = rand.get("obs_noise", {})
@@ -193,6 +203,7 @@ class Randomization:
     episode shift of ±``release_delay_shift_s`` (mean 258 ms: machine-spec.md); ``velocity_noise``
     std of the velocity-reference noise [fraction of the joint's velocity limit]; ``valve_spread``
     per-joint spread of the valve speed around one machine-wide slowness (1: independent per joint);
+    ``valve_coupling`` which valve parameters that slowness sets (VALVE_COUPLINGS);
     ``obs_noise`` (:class:`ObsNoise`). Defaults: ``RANDOMIZATION_DEFAULTS``,
     ``RELEASE_DELAY_DEFAULTS``, ``GAIN_ERROR_DEFAULT``, ``VELOCITY_NOISE_DEFAULT`` (CHOSEN).
     """
@@ -215,6 +226,7 @@ class Randomization:
     velocity_noise: float = VELOCITY_NOISE_DEFAULT
     valve_spread: float = 1.0
     friction_sampling: str = "uniform"
+    valve_coupling: str = "delay_lag"
     obs_noise: ObsNoise = field(default_factory=ObsNoise)
 
     @classmethod
@@ -261,7 +273,7 @@ def _typed_entries(rand: dict) -> dict:
             out[name] = (float(value[0]), float(value[1]))
         elif name == "obs_noise":
             out[name] = ObsNoise(**{k: float(v) for k, v in value.items()})
-        elif name in ("actuation", "friction_sampling"):
+        elif name in ("actuation", "friction_sampling", "valve_coupling"):
             out[name] = value
         else:
             out[name] = float(value)

@@ -52,7 +52,7 @@ import shlex
 import statistics
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 from runtime.entrypoint import module_main
@@ -60,6 +60,14 @@ from runtime.entrypoint import module_main
 log = logging.getLogger(__name__)
 
 CONFIG_DIR = Path(__file__).parent / "configs"
+
+
+def _check_integer(value, name: str, at_least: int | None = None) -> None:
+    """Raises ValueError unless ``value`` is an int (not a bool) and, with ``at_least``, >= it; the
+    message names the config entry ``name``."""
+    if isinstance(value, bool) or not isinstance(value, int) or (at_least is not None and value < at_least):
+        bound = f" >= {at_least}" if at_least is not None else ""
+        raise ValueError(f"{name} must be an integer{bound}, not {value!r}")
 
 
 @dataclass(frozen=True)
@@ -118,8 +126,7 @@ class RandomizationStage:
         unknown = set(d) - {"iteration", "randomization"}
         if unknown or "iteration" not in d or "randomization" not in d:
             raise ValueError(f"training.randomization_stage needs exactly 'iteration' and 'randomization', got {sorted(d)}")
-        if isinstance(d["iteration"], bool) or not isinstance(d["iteration"], int) or d["iteration"] < 0:
-            raise ValueError(f"training.randomization_stage.iteration must be an integer >= 0, not {d['iteration']!r}")
+        _check_integer(d["iteration"], "training.randomization_stage.iteration", at_least=0)
         check_randomization(d["randomization"], "training.randomization_stage.randomization")
         return cls(d["iteration"], dict(d["randomization"]))
 
@@ -138,6 +145,43 @@ class RandomizationStage:
         priv = {**trained_ranges(wide), **env.get("privileged_ranges", {})}
         before = {**env, "privileged_ranges": priv}
         return before, {**before, "randomization": wide}
+
+
+@dataclass(frozen=True)
+class TrainingSection:
+    """The config's ``training`` section, typed: what the run does beside the environment and PPO.
+
+    ``seed`` (int or None: then ``--seed`` must give one, :func:`training_seed`), ``std_schedule``
+    (:class:`StdSchedule` or None: the learned std is only clamped by rsl_rl),
+    ``randomization_stage`` (:class:`RandomizationStage` or None: no widening) and
+    ``gate_from_iteration`` (int >= 0, default 0: the first iteration whose checkpoint the site-matrix
+    gate judges).
+
+    Raises (from_dict):
+        ValueError: an unknown key (a misspelt setting would otherwise be ignored), a seed or
+            ``gate_from_iteration`` that is not an integer (>= 0), or what StdSchedule.from_dict and
+            RandomizationStage.from_dict refuse.
+    """
+
+    seed: int | None = None
+    std_schedule: StdSchedule | None = None
+    randomization_stage: RandomizationStage | None = None
+    gate_from_iteration: int = 0
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainingSection:
+        known = [f.name for f in fields(cls)]
+        unknown = set(d) - set(known)
+        if unknown:
+            raise ValueError(f"unknown training settings {sorted(unknown)}; known: {known}")
+        seed = d.get("seed")
+        if seed is not None:
+            _check_integer(seed, "training.seed")
+        gate_from = d.get("gate_from_iteration", 0)
+        _check_integer(gate_from, "training.gate_from_iteration", at_least=0)
+        schedule = StdSchedule.from_dict(d["std_schedule"]) if "std_schedule" in d else None
+        stage = RandomizationStage.from_dict(d["randomization_stage"]) if "randomization_stage" in d else None
+        return cls(seed, schedule, stage, gate_from)
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
@@ -182,16 +226,14 @@ def training_seed(cfg: dict, override: int | None) -> int:
     """The run's training seed (it seeds the environments' start poses and randomisation; rank r of a
     multi-GPU run adds 1000 r): ``override`` (``--seed``) where given, else the recipe's
     ``training.seed``. It is written into ``cfg["training"]["seed"]`` so that the run's config.json
-    and model card record the seed actually used. Raises ValueError when neither gives one."""
+    and model card record the seed actually used. Raises ValueError when neither gives one, when the
+    seed is not an integer, or on what :meth:`TrainingSection.from_dict` refuses in the section."""
     training = cfg.setdefault("training", {})
-    if override is None:
-        if "seed" not in training:
-            raise ValueError("the config has no training.seed: pass --seed")
-        override = training["seed"]
-    if isinstance(override, bool) or not isinstance(override, int):
-        raise ValueError(f"training.seed must be an integer, not {override!r}")
-    training["seed"] = override
-    return override
+    seed = TrainingSection.from_dict({**training, "seed": override if override is not None else training.get("seed")}).seed
+    if seed is None:
+        raise ValueError("the config has no training.seed: pass --seed")
+    training["seed"] = seed
+    return seed
 
 
 def apply_std_cap(runner, cap: float, release_floor: float = 0.0) -> None:
@@ -259,19 +301,15 @@ def run(args: argparse.Namespace) -> int:
     if args.num_envs:
         cfg["num_envs"] = args.num_envs
     seed = training_seed(cfg, args.seed)
-    stage_d = cfg.get("training", {}).get("randomization_stage")
-    stage = RandomizationStage.from_dict(stage_d) if stage_d is not None else None
+    training = TrainingSection.from_dict(cfg["training"])
+    stage, schedule, gate_from = training.randomization_stage, training.std_schedule, training.gate_from_iteration
     env_before, env_after = stage.env_dicts(cfg["env"]) if stage else (cfg["env"], cfg["env"])
     env_cfg = EnvConfig.from_dict(env_before)
     if env_cfg.mode != args.mode:
         raise ValueError(f"config is for mode {env_cfg.mode}, asked for {args.mode}")
-    gate_from = cfg.get("training", {}).get("gate_from_iteration", 0)
-    if isinstance(gate_from, bool) or not isinstance(gate_from, int) or gate_from < 0:
-        raise ValueError(f"training.gate_from_iteration must be an integer >= 0, not {gate_from!r}")
     actor_groups = cfg["runner"].get("obs_groups", {}).get("actor", ["policy"])
     if actor_groups != ["policy"]:
         raise ValueError(f"runner.obs_groups.actor must be ['policy'] (the exported policy's input), not {actor_groups}")
-    schedule = StdSchedule.from_dict(cfg["training"]["std_schedule"]) if "std_schedule" in cfg.get("training", {}) else None
     if torch.cuda.is_available():
         device = f"cuda:{local_rank}" if world > 1 else "cuda"
         if world > 1:  # JAX on this process's GPU too (DLPack hands arrays over without a copy)

@@ -71,3 +71,25 @@ def test_collect_leaves_candidate_checkpoints_behind_but_the_exported_ones(tmp_p
         assert sorted(f for f in files if f.startswith(f"runs/{name}/candidates/") and f.endswith(".pt")) == kept_pt
         assert f"runs/{name}/candidates/checkpoint_50.onnx" in files and f"runs/{name}/train.log" not in files
         assert (out / f"train_{name}.log.gz").exists()
+
+
+def test_collect_brings_back_the_state_that_resumes_each_run_in_one_file(tmp_path):
+    work, out = tmp_path / "work", tmp_path / "out"
+    out.mkdir()
+    _run_dir(work, "resumable", card_iteration=None)
+    (work / "runs" / "resumable" / "config.json").write_text("{}")
+    (work / "runs" / "resumable" / "matrices").mkdir()
+    (work / "runs" / "resumable" / "matrices" / "site_matrix_2d_it25.png").write_text("plot")
+    (work / "runs" / "resumable" / "matrices" / "site_matrix_2d_it25.json").write_text("{}")
+    _run_dir(work, "no-config", card_iteration=None)  # not resumable: no state for it
+    r = _collect(work, out)
+    assert r.returncode == 0, r.stderr
+    here = tmp_path / "here"
+    here.mkdir()
+    subprocess.run(["tar", "xf", str(out / "state.tar")], cwd=here, check=True)
+    assert sorted(p.name for p in (here / "runs" / "state").iterdir()) == ["resumable.tar"]
+    with tarfile.open(here / "runs" / "state" / "resumable.tar") as t:
+        files = sorted(m.name for m in t.getmembers() if m.isfile())
+    assert files == ["runs/resumable/checkpoint.pt", "runs/resumable/config.json", "runs/resumable/curve.csv",
+                     "runs/resumable/matrices/site_matrix_2d_it25.json"]
+    assert not (work / ".state").exists()

@@ -150,6 +150,45 @@ def test_friction_sampling_refuses_bad_input(bad, match):
         EnvConfig.from_dict(env)
 
 
+def _valve_draws(coupling: str | None) -> dict[str, np.ndarray]:
+    env = _cfg("2d")["env"]
+    if coupling is not None:
+        env["randomization"] = {**env["randomization"], "valve_coupling": coupling}
+    core = ThrowEnvCore(EnvConfig.from_dict(env))
+    state, _ = jax.jit(jax.vmap(core.reset))(jax.random.split(jax.random.PRNGKey(7), 4096))
+    return {k: np.asarray(state[k]) for k in ("valve_delay", "tau", "dead_band", "vscale")}
+
+
+def test_valve_coupling_all_sets_dead_band_and_speed_from_the_machine_slowness():
+    """With valve_coupling "all" a slow machine (long lag) also has a wide dead band and a low
+    full-open speed, so the slow-hydraulics corner of the ranges is drawn; by default the two are
+    independent of the lag, and the default draws are those of a config without the entry."""
+    rand = _cfg("2d")["env"]["randomization"]
+    coupled, default, absent = _valve_draws("all"), _valve_draws("delay_lag"), _valve_draws(None)
+    for k in default:
+        np.testing.assert_array_equal(default[k], absent[k])
+    for draws in (coupled, default):  # within the ranges either way
+        assert draws["dead_band"].min() >= rand["dead_band"][0] - 1e-6 and draws["dead_band"].max() <= rand["dead_band"][1] + 1e-6
+        assert draws["vscale"].min() >= rand["velocity_scale"][0] - 1e-6 and draws["vscale"].max() <= rand["velocity_scale"][1] + 1e-6
+    slow = lambda d: d["tau"].mean(axis=1)  # noqa: E731
+    assert np.corrcoef(slow(coupled), coupled["dead_band"].mean(axis=1))[0, 1] > 0.8
+    assert np.corrcoef(slow(coupled), coupled["vscale"].mean(axis=1))[0, 1] < -0.8
+    assert abs(np.corrcoef(slow(default), default["dead_band"].mean(axis=1))[0, 1]) < 0.1
+    assert abs(np.corrcoef(slow(default), default["vscale"].mean(axis=1))[0, 1]) < 0.1
+
+    def corner(d):  # every joint near the slow-hydraulics profile (dead band 0.10, lag 0.30, speed x0.85)
+        return np.mean(np.all((d["dead_band"] >= 0.09) & (d["tau"] >= 0.26) & (d["vscale"] <= 0.88), axis=1))
+
+    assert corner(coupled) > 0.05 and corner(default) < 0.001
+
+
+def test_valve_coupling_refuses_bad_input():
+    env = _cfg("2d")["env"]
+    env["randomization"] = {**env["randomization"], "valve_coupling": "everything"}
+    with pytest.raises(ValueError, match="valve_coupling must be one of"):
+        EnvConfig.from_dict(env)
+
+
 def _critic_value(critic_state: dict, obs, groups: list[str], runner_cfg: dict) -> torch.Tensor:
     from rsl_rl.models import MLPModel
 

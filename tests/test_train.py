@@ -239,3 +239,14 @@ def test_gate_from_iteration_refuses_bad_input(tmp_path):
     with pytest.raises(ValueError, match="gate_from_iteration must be an integer"):
         train.run(_args(tmp_path, config=path))
     assert not (tmp_path / "run" / "checkpoint.pt").exists()
+
+
+def test_the_training_section_is_typed_and_refuses_a_misspelt_setting():
+    cfg = train.load_config("2d", None)
+    section = train.TrainingSection.from_dict(cfg["training"])
+    assert section.seed == cfg["training"]["seed"] and isinstance(section.std_schedule, train.StdSchedule)
+    assert section.randomization_stage is None and section.gate_from_iteration == 0
+    with pytest.raises(ValueError, match=r"unknown training settings \['gate_from_iteratoin'\]"):
+        train.TrainingSection.from_dict({**cfg["training"], "gate_from_iteratoin": 600})
+    with pytest.raises(ValueError, match="unknown training settings"):
+        train.training_seed({"training": {"seed": 1, "sed": 2}}, None)

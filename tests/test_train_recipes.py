@@ -143,3 +143,32 @@ def test_candidate_recipes_are_the_committed_recipe_with_a_valid_randomisation_s
     assert wide.grasp_forward_m[0] <= offset["forward_m"] <= wide.grasp_forward_m[1]
     assert wide.grasp_up_m[0] <= offset["up_m"] <= wide.grasp_up_m[1]
     assert wide.friction_scale[1] >= 10.0
+
+
+Z_ENTRIES = {"2d": {"friction_scale": [0.5, 10.0], "friction_sampling": "log_uniform", "release_delay_shift_s": 0.06,
+                    "valve_coupling": "all"},
+             "3d": {"valve_coupling": "all"}}
+"""What policies/training/throw<mode>-scratch-z/recipe.json changes in the committed recipe's randomisation."""
+
+
+@pytest.mark.parametrize("mode", sorted(Z_ENTRIES))
+def test_candidate_z_is_the_committed_recipe_with_the_site_hydraulics_inside_training(mode):
+    pytest.importorskip("jax")
+    from sim_twin.privileged import Randomization
+
+    entries = Z_ENTRIES[mode]
+    cand = _without_notes(ROOT / "policies" / "training" / f"throw{mode}-scratch-z" / "recipe.json")
+    recipe = _without_notes(ROOT / "sim_twin" / "configs" / f"throw_{mode}.json")
+    rand = cand["env"]["randomization"]
+    assert {k: rand[k] for k in entries} == entries
+    cand["env"]["randomization"] = {k: v for k, v in rand.items() if k not in entries}
+    recipe["env"]["randomization"] = {k: v for k, v in recipe["env"]["randomization"].items() if k not in entries}
+    assert cand == recipe
+    wide = Randomization.from_dict(rand, f"throw{mode}-scratch-z")
+    # the slow-hydraulics profile's four parameters lie inside the ranges the coupling draws together
+    slow = {e["effect"]: e["params"] for e in json.loads((ROOT / "sim_twin" / "profiles" / "slow_hydraulics.json").read_text())["effects"]}
+    assert wide.dead_band[0] <= slow["valve_dead_band"]["dead_band"] <= wide.dead_band[1]
+    assert wide.valve_delay_s[0] <= slow["valve_delay"]["delay_s"] <= wide.valve_delay_s[1]
+    assert wide.lag_s[0] <= slow["valve_lag"]["lag_s"] <= wide.lag_s[1]
+    assert wide.velocity_scale[0] <= slow["joint_rate_limit"]["fraction"] <= wide.velocity_scale[1]
+    assert wide.hydraulic and wide.valve_spread < 1.0  # the coupling acts only around one machine-wide slowness

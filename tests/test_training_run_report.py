@@ -80,3 +80,14 @@ def test_the_curve_summary_spaces_its_rows_keeps_the_last_and_counts_time_outs(t
     assert curve_table(rows)[-1].endswith("| 0.300 | 0.60 |")
     assert [r["iteration"] for r in curve_summary(run, rows=40)] == [25 * (k + 1) for k in range(30)]  # fewer rows: all
     assert curve_summary(tmp_path / "no-run") == []
+
+
+def test_a_gate_matrix_without_its_verdict_is_marked_as_such_and_not_as_after_the_run(tmp_path):
+    from tests.benchmarks.training_run_report import UNRECORDED
+
+    run = _run(tmp_path)
+    m = run / "matrices" / "site_matrix_2d_it450.json"
+    shutil.copy(MATRIX, m)
+    row = after_run_row(run, m, train_wall_s(run), note=UNRECORDED)
+    assert (row["iteration"], row["train_wall_s"], row["after_run"], row["note"]) == (450, 412.25, False, UNRECORDED)
+    assert after_run_row(run, m, train_wall_s(run))["note"] == "after the run"

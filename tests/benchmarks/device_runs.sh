@@ -8,10 +8,15 @@
 #   bash tests/benchmarks/device_runs.sh start NAME MODE CONFIG WORKERS [more slinger train args]
 #   bash tests/benchmarks/device_runs.sh watch MINUTES  # progress every minute (ends early once no run trains), then collect
 #   bash tests/benchmarks/device_runs.sh collect        # $OUT/<name>.tar and $OUT/train_<name>.log.gz per run
-#                                                       # (candidate checkpoints left out but the exported one's)
-#   bash tests/benchmarks/device_runs.sh state RUN_DIR NAME  # here, not on the device: runs/state/NAME.tar
-#                                                       # (gzip) from RUN_DIR's checkpoint, config, curve and
+#                                                       # (candidate checkpoints left out but the exported one's),
+#                                                       # and $OUT/state.tar: every run's runs/state/<name>.tar
+#   bash tests/benchmarks/device_runs.sh state RUN_DIR NAME [DIR]  # runs/state/NAME.tar (or DIR/NAME.tar),
+#                                                       # gzip, from RUN_DIR's checkpoint, config, curve and
 #                                                       # gate verdicts, so that `start NAME` resumes it
+#
+# To resume on the next machine, here: `tar xf <files_at>/state.tar` (it unpacks runs/state/<name>.tar)
+# and carry `runs/state` in the call that starts the runs again. Have it ready before the call that
+# collects returns: a machine goes back 30 s after a call ends.
 #
 # The copy has no git: export SLINGER_GIT_COMMIT=<commit> in the call that starts a run (the run
 # inherits it) so that the model card of an exported policy names the commit it was trained at.
@@ -72,7 +77,9 @@ collect() {
       [ -f $run/candidates/checkpoint_$it.pt ] && tar rf $OUT/$name.tar $run/candidates/checkpoint_$it.pt
     fi
     gzip -c $run/train.log > $OUT/train_$name.log.gz
+    [ -f $run/checkpoint.pt ] && [ -f $run/config.json ] && state $run $name $WORK/.state/runs/state >/dev/null
   done
+  [ -d $WORK/.state ] && tar cf $OUT/state.tar -C $WORK/.state runs && rm -rf $WORK/.state
   ls -la $OUT
 }
 
@@ -88,15 +95,16 @@ watch() {
 state() {
   # What resuming needs and nothing else (TensorBoard events and candidate checkpoints stay behind:
   # the tree and the carried paths of a device call share 64 MiB), under runs/NAME/ as `start` expects.
-  local src=${1%/} name=$2 tmp
+  local src=${1%/} name=$2 dest=${3:-runs/state} tmp
   [ -f "$src/checkpoint.pt" ] && [ -f "$src/config.json" ] || { echo "state: $src has no checkpoint.pt and config.json" >&2; return 1; }
   tmp=$(mktemp -d)
-  mkdir -p "$tmp/runs/$name" runs/state
+  mkdir -p "$tmp/runs/$name" "$dest"
   cp "$src/checkpoint.pt" "$src/config.json" "$tmp/runs/$name/"
   for f in curve.csv matrices; do [ -e "$src/$f" ] && cp -r "$src/$f" "$tmp/runs/$name/"; done
-  tar cf - -C "$tmp" "runs/$name" | gzip -9 > "runs/state/$name.tar"
+  # the gate's plots stay behind: their JSON and tables carry the same figures
+  tar cf - -C "$tmp" --exclude="*.png" "runs/$name" | gzip -9 > "$dest/$name.tar"
   rm -rf "$tmp"
-  ls -la "runs/state/$name.tar"
+  ls -la "$dest/$name.tar"
 }
 
 cmd=$1; shift

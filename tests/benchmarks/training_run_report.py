@@ -26,8 +26,8 @@ import subprocess
 from datetime import UTC, datetime
 from pathlib import Path
 
-
 CURVE_ROWS = 14
+CELL_TICKS = (0, 1, 2, 3, 4, 6, 10, 20, 40, 66)  # labelled counts of cells missing a bar
 
 
 def curve_summary(run: Path, rows: int = CURVE_ROWS) -> list[dict]:
@@ -72,10 +72,14 @@ def main() -> None:
     p.add_argument("--command", default="slinger train --mode 2d")
     p.add_argument("--after-run", type=Path, nargs="*", default=[],
                    help="site matrices of later checkpoints run after the training (site_matrix_<mode>_it<N>[_seed<S>].json)")
+    p.add_argument("--gate-unrecorded", type=Path, nargs="*", default=[],
+                   help="site matrices the gate ran during the training whose verdict matrix_gate.json lacks")
     a = p.parse_args()
     gate = json.loads((a.run / "matrices" / "matrix_gate.json").read_text())
-    wall = train_wall_s(a.run) if a.after_run else {}
-    rows = [dict(r, after_run=False) for r in gate["results"]] + [after_run_row(a.run, m, wall) for m in a.after_run]
+    wall = train_wall_s(a.run) if a.after_run or a.gate_unrecorded else {}
+    rows = ([dict(r, after_run=False, note=None) for r in gate["results"]]
+            + [after_run_row(a.run, m, wall) for m in a.after_run]
+            + [after_run_row(a.run, m, wall, note=UNRECORDED) for m in a.gate_unrecorded])
     rows.sort(key=lambda r: (r["iteration"], r["seed"]))
     first_seed = gate["seeds"][0]
     per_profile: dict[str, list[tuple[float, int, bool]]] = {}
@@ -102,7 +106,8 @@ def main() -> None:
         "checkpoint_sha256": hashlib.sha256(ckpt.read_bytes()).hexdigest() if ckpt.exists() else None,
         "seeds": gate["seeds"],
         "passed": gate["passed"],
-        "results": [{k: r[k] for k in ("iteration", "seed", "passed", "missing_cells", "train_wall_s", "misses", "after_run")} for r in rows],
+        "results": [{k: r[k] for k in ("iteration", "seed", "passed", "missing_cells", "train_wall_s", "misses", "after_run", "note")}
+                    for r in rows],
         "first_met_per_profile": first_met,
         "curve": curve_summary(a.run),
     }
@@ -116,7 +121,7 @@ def main() -> None:
           "| iteration | training wall time [min] | seed | cells missing a bar (of 66) | misses |", "|---|---|---|---|---|"]
     for r in rows:
         miss = "; ".join(r["misses"]) if r["missing_cells"] <= 6 else f"{r['missing_cells']} cells"
-        it = f"{r['iteration']} (after the run)" if r["after_run"] else str(r["iteration"])
+        it = f"{r['iteration']} ({r['note']})" if r["note"] else str(r["iteration"])
         md.append(f"| {it} | {r['train_wall_s'] / 60:.1f} | {r['seed']} | {r['missing_cells']} | {miss} |")
     md += ["", f"First checkpoint at which each profile met all its bars (seed {first_seed}):", "",
            "| profile | training wall time [min] | iteration | met at every later checkpoint |", "|---|---|---|---|"]
@@ -128,6 +133,7 @@ def main() -> None:
     a.out.with_suffix(".md").write_text("\n".join(md) + "\n")
 
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -136,6 +142,11 @@ def main() -> None:
     s0 = [r for r in rows if r["seed"] == first_seed]
     ax.plot([r["train_wall_s"] / 60 for r in s0], [r["missing_cells"] for r in s0], "o-")
     ax.set_yscale("symlog", linthresh=1)
+    # symlog labels only decades: runs whose counts stay within one (3-6 cells, say) got no labels
+    top = max([r["missing_cells"] for r in s0], default=1)
+    ax.set_yticks([v for v in CELL_TICKS if v <= max(top, 1)])
+    ax.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+    ax.yaxis.set_minor_locator(matplotlib.ticker.NullLocator())
     ax.set_xlabel("training wall time [min]")
     ax.set_ylabel("site-matrix cells missing a bar")
     ax.set_title(f"{a.run.name}: cells missing a bar (seed {first_seed}, 66 cells)", fontsize=10)
@@ -151,10 +162,16 @@ def train_wall_s(run: Path) -> dict[int, float]:
     return {int(r["iteration"]): r["wall_s"] for r in TrainingCurve.load_or_new(run / "curve.csv").rows}
 
 
-def after_run_row(run: Path, matrix: Path, wall: dict[int, float]) -> dict:
-    """A report row for a site matrix run after the training: iteration and seed from the file's
-    name, training wall time [s] from ``wall`` (:func:`train_wall_s` of the run). Raises ValueError
-    on a name that is not site_matrix_<mode>_it<N>[_seed<S>].json or an iteration the curve lacks."""
+AFTER_RUN = "after the run"
+UNRECORDED = "the gate's matrix, its verdict not recorded"
+
+
+def after_run_row(run: Path, matrix: Path, wall: dict[int, float], note: str = AFTER_RUN) -> dict:
+    """A report row for a site matrix that ``matrix_gate.json`` does not hold: one run after the
+    training (``note`` AFTER_RUN, the default) or one the gate ran whose verdict was not recorded
+    (UNRECORDED). Iteration and seed come from the file's name, training wall time [s] from ``wall``
+    (:func:`train_wall_s` of the run). Raises ValueError on a name that is not
+    site_matrix_<mode>_it<N>[_seed<S>].json or an iteration the curve lacks."""
     from sim_twin.matrix_gate import parse_matrix_file_name, summarise_matrix
 
     try:
@@ -166,7 +183,7 @@ def after_run_row(run: Path, matrix: Path, wall: dict[int, float]) -> dict:
     rep = json.loads(matrix.read_text())
     n_miss, misses = summarise_matrix(rep)
     return {"iteration": iteration, "seed": seed, "passed": bool(rep["pass"]), "missing_cells": n_miss, "matrix_path": str(matrix),
-            "train_wall_s": wall[iteration], "misses": misses, "after_run": True}
+            "train_wall_s": wall[iteration], "misses": misses, "after_run": note == AFTER_RUN, "note": note}
 
 
 if __name__ == "__main__":
