@@ -10,6 +10,10 @@ every seed has *passed*. By default the gate judges nothing after the first cand
 training that runs past the bars (``slinger train --no-stop-at-bars``), and ``passes`` lists every
 candidate that passed. The state (every verdict) is saved to ``<dir>/matrix_gate.json`` after every
 change so a resumed training keeps it.
+
+:meth:`MatrixGate.watch` collects verdicts on a thread of its own as soon as a matrix process ends,
+so a verdict is on disk even when the training is stopped (or its machine taken away) before its next
+checkpoint; the training loop then only reads ``passed`` and hands over candidates.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import os
 import re
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -110,6 +115,9 @@ class MatrixGate:
         self.judge_after_pass = judge_after_pass
         self._proc: subprocess.Popen | None = None
         self._cand: dict | None = None  # {"iteration", "onnx", "train_wall_s", "seed_index", "out"}
+        self._lock = threading.RLock()  # the training's thread and the watch thread share the state
+        self._watcher: threading.Thread | None = None
+        self._unwatch = threading.Event()
         if self.state_path.exists():
             st = json.loads(self.state_path.read_text())
             self.results = [MatrixResult(**r) for r in st.get("results", [])]
@@ -123,11 +131,12 @@ class MatrixGate:
 
     def submit(self, iteration: int, onnx: Path, train_wall_s: float) -> bool:
         """Start the matrix of this candidate if the gate is idle; returns whether it started."""
-        if self.busy or (self.passed and not self.judge_after_pass):
-            return False
-        self._cand = {"iteration": int(iteration), "onnx": str(onnx), "train_wall_s": float(train_wall_s), "seed_index": 0}
-        self._start_seed()
-        return True
+        with self._lock:
+            if self.busy or (self.passed and not self.judge_after_pass):
+                return False
+            self._cand = {"iteration": int(iteration), "onnx": str(onnx), "train_wall_s": float(train_wall_s), "seed_index": 0}
+            self._start_seed()
+            return True
 
     def _candidate(self) -> dict:
         """The checkpoint under test (only called while one is).
@@ -173,21 +182,32 @@ class MatrixGate:
 
     def poll(self) -> dict | None:
         """Collect a finished matrix, start the candidate's next seed if it passed; returns
-        ``self.passed`` (the first candidate that met every bar on every seed) or None."""
+        ``self.passed`` (the first candidate that met every bar on every seed) or None.
+
+        A matrix process that failed or wrote no readable report ends its candidate with no verdict
+        (logged with the path of ``matrix_gate.log``); the gate is idle again."""
+        with self._lock:
+            return self._poll()
+
+    def _poll(self) -> dict | None:
         if self._proc is None or self._proc.poll() is None:
             return self.passed
         c, rc = self._candidate(), self._proc.returncode
         self._proc = None
         seed = self.seeds[c["seed_index"]]
         out = Path(c["out"])
-        if rc != 0 or not out.exists():
-            log.error("site matrix of iteration %d seed %d failed (exit %s); see %s", c["iteration"], seed, rc,
+        try:
+            if rc != 0:
+                raise ValueError(f"exit {rc}")
+            rep = json.loads(out.read_text())
+            n_miss, misses = summarise_matrix(rep)
+            passed = bool(rep["pass"])
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            log.error("site matrix of iteration %d seed %d failed (%s); see %s", c["iteration"], seed, e,
                       self.out_dir / "matrix_gate.log")
             self._cand = None
             return self.passed
-        rep = json.loads(out.read_text())
-        n_miss, misses = summarise_matrix(rep)
-        res = MatrixResult(c["iteration"], seed, bool(rep["pass"]), n_miss, str(out), c["train_wall_s"], float(self.clock()), misses)
+        res = MatrixResult(c["iteration"], seed, passed, n_miss, str(out), c["train_wall_s"], float(self.clock()), misses)
         self.results.append(res)
         log.info("site matrix of iteration %d seed %d: %s (%d cells miss a bar)", c["iteration"], seed,
                  "every bar met" if res.passed else "missed", n_miss)
@@ -203,6 +223,21 @@ class MatrixGate:
         self.save()
         return self.passed
 
+    def watch(self, interval_s: float = 1.0) -> None:
+        """Poll on a daemon thread every ``interval_s`` seconds until :meth:`stop`, so that each
+        verdict is recorded (and the next seed started) when its matrix process ends rather than
+        when the training next calls :meth:`poll`. Calling it again while watching does nothing."""
+        if self._watcher is not None:
+            return
+        self._unwatch.clear()
+
+        def loop() -> None:
+            while not self._unwatch.wait(interval_s):
+                self.poll()
+
+        self._watcher = threading.Thread(target=loop, name="matrix-gate-watch", daemon=True)
+        self._watcher.start()
+
     def wait(self, timeout_s: float) -> dict | None:
         """Poll until the gate is idle or ``timeout_s`` passed; returns ``self.passed``."""
         end = time.time() + timeout_s
@@ -212,16 +247,26 @@ class MatrixGate:
         return self.passed
 
     def stop(self) -> None:
-        """Terminate a running matrix (its result is dropped)."""
-        if self._proc is not None and self._proc.poll() is None:
-            self._proc.terminate()
-            try:
-                self._proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self._proc.kill()
-        self._proc, self._cand = None, None
+        """Stop watching and terminate a running matrix (its result is dropped)."""
+        if self._watcher is not None:
+            self._unwatch.set()
+            self._watcher.join()
+            self._watcher = None
+        with self._lock:
+            if self._proc is not None and self._proc.poll() is None:
+                self._proc.terminate()
+                try:
+                    self._proc.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    self._proc.kill()
+            self._proc, self._cand = None, None
 
     def save(self) -> None:
-        self.state_path.write_text(json.dumps(
-            {"mode": self.mode, "seeds": self.seeds, "throws": self.throws, "passed": self.passed, "passes": self.passes,
-             "results": [asdict(r) for r in self.results]}, indent=2) + "\n")
+        """Write every verdict, ``passed`` and ``passes`` to ``matrix_gate.json`` (whole file, replaced
+        atomically so a reader never sees half of it)."""
+        with self._lock:
+            tmp = self.state_path.with_suffix(".json.tmp")
+            tmp.write_text(json.dumps(
+                {"mode": self.mode, "seeds": self.seeds, "throws": self.throws, "passed": self.passed, "passes": self.passes,
+                 "results": [asdict(r) for r in self.results]}, indent=2) + "\n")
+            tmp.replace(self.state_path)

@@ -344,6 +344,7 @@ def run(args: argparse.Namespace) -> int:
         gate = MatrixGate(log_dir / "matrices", args.mode, [int(s) for s in str(args.gate_seeds).split(",")],
                           throws=args.gate_throws, targets=args.gate_targets, workers=args.gate_workers, clock=clock,
                           judge_after_pass=not stop_at_bars)
+        gate.watch()  # verdicts are recorded when each matrix ends, not at the next checkpoint
     done_iters, chunks = 0, 0
     stop_reason = "iterations"
     passed = gate.passed if gate else None

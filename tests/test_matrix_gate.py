@@ -90,3 +90,38 @@ def test_gate_judges_on_after_a_pass_for_a_run_past_the_bars(tmp_path):
     assert [(r.iteration, r.passed) for r in gate.results] == [(3, True), (4, False), (5, True)]
     again = FakeGate(tmp_path, "2d", seeds=[0], workers=1, judge_after_pass=True)
     assert [p["iteration"] for p in again.passes] == [3, 5]
+
+
+def test_a_watched_gate_records_each_verdict_when_its_matrix_ends(tmp_path):
+    """watch(): the verdict of every seed is on disk when its matrix ends, with no poll() from the
+    training (whose machine may be taken away before its next checkpoint), and the next seed starts
+    on its own; stop() ends the thread."""
+    import time
+
+    FakeGate.passing = {7}
+    gate = FakeGate(tmp_path, "2d", seeds=[0, 1], workers=1, clock=lambda: 42.0)
+    gate.watch(interval_s=0.05)
+    assert gate.submit(7, "cand/checkpoint_7.onnx", train_wall_s=30.0)
+    deadline = time.time() + 60
+    while gate.busy and time.time() < deadline:
+        time.sleep(0.05)
+    state = json.loads((tmp_path / "matrix_gate.json").read_text())
+    assert [(r["seed"], r["passed"], r["verdict_wall_s"]) for r in state["results"]] == [(0, True, 42.0), (1, True, 42.0)]
+    assert state["passed"]["iteration"] == 7 and gate.passed["iteration"] == 7
+    gate.stop()
+    assert gate._watcher is None
+
+
+def test_an_unreadable_matrix_report_ends_its_candidate_without_a_verdict(tmp_path):
+    """A matrix process that exits 0 but leaves a report that is not JSON, or JSON without the
+    matrix's keys, is logged as failed and leaves no verdict; the gate is idle again."""
+    for body in ("not json", '{"profiles": []}', '{"pass": true, "profiles": [{"targets": 3}]}'):
+        class Garbled(MatrixGate):
+            def command(self, onnx, seed, out, body=body):
+                return [sys.executable, "-c", f"open({out!r}, 'w').write({body!r})"]
+
+        gate = Garbled(tmp_path, "2d", seeds=[0], workers=1)
+        assert gate.submit(1, "x.onnx", 0.0)
+        assert gate.wait(60) is None and not gate.busy and gate.results == []
+        assert gate.submit(2, "y.onnx", 0.0)
+        gate.stop()
