@@ -151,7 +151,8 @@ def check_randomization(rand: dict, where: str = "env.randomization", keys: tupl
     """Refuse a ``randomization`` mapping (or ``privileged_ranges`` with ``keys``) that the
     environment would read wrongly: a key it does not know (a typo would otherwise fall back to a
     default silently), a range that is not [lo, hi] with lo <= hi, a negative std or spread, an
-    unknown actuation or observation-noise entry.
+    unknown actuation or observation-noise entry, ``valve_coupling`` "all" without the machine-wide
+    slowness it acts through (``valve_spread`` < 1).
 
     Raises:
         ValueError: naming the entry and what is wrong.
@@ -174,6 +175,9 @@ def check_randomization(rand: dict, where: str = "env.randomization", keys: tupl
         raise ValueError(f"{where}.friction_scale must be > 0 to be drawn log-uniformly, not {rand.get('friction_scale')!r}")
     if rand.get("valve_coupling", "delay_lag") not in VALVE_COUPLINGS:
         raise ValueError(f"{where}.valve_coupling must be one of {list(VALVE_COUPLINGS)}, not {rand['valve_coupling']!r}")
+    if rand.get("valve_coupling") == "all" and rand.get("valve_spread", 1.0) >= 1.0:
+        raise ValueError(f"{where}.valve_coupling 'all' couples the valves through the machine-wide slowness, which "
+                         f"valve_spread >= 1 turns off (valve_spread {rand.get('valve_spread', 1.0)!r}): set valve_spread < 1")
     if rand.get("actuation", "lag") not in ("lag", "hydraulic"):
         raise ValueError(f"{where}.actuation must be 'lag' or 'hydraulic', not {rand['actuation']!r}")
     noise = rand.get("obs_noise", {})

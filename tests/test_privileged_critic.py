@@ -187,6 +187,13 @@ def test_valve_coupling_refuses_bad_input():
     env["randomization"] = {**env["randomization"], "valve_coupling": "everything"}
     with pytest.raises(ValueError, match="valve_coupling must be one of"):
         EnvConfig.from_dict(env)
+    # "all" acts through the machine-wide slowness: without it (valve_spread >= 1, the default) it
+    # would be silently inert
+    for spread in ({"valve_spread": 1.0}, {}):
+        rand = {k: v for k, v in env["randomization"].items() if k != "valve_spread"}
+        env["randomization"] = {**rand, "valve_coupling": "all", **spread}
+        with pytest.raises(ValueError, match="valve_spread >= 1 turns off"):
+            EnvConfig.from_dict(env)
 
 
 def _critic_value(critic_state: dict, obs, groups: list[str], runner_cfg: dict) -> torch.Tensor:
