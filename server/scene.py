@@ -442,24 +442,26 @@ class ConsoleScene:
                     log.exception("drawing a console view failed")
 
     def _draw(self, con: Console | None, view: ClientView) -> None:
-        replay = con.replay if con is not None else None
-        mid = replay.machine_id if replay is not None else con.machine_id if con is not None else None
-        if mid is None:
-            ids = sorted(self.fleet.latest_states())
-            mid = ids[0] if ids else None
-        if replay is not None:
-            q, payload = replay.pose()
-            label = f"REPLAY of throw {replay.throw_id[:8]} on {mid}: t = {replay.shown_t_s:.2f} s"
-        else:
-            state = self.fleet.latest_state(mid) if mid else None
-            if state is None:
-                return
-            online = self.fleet.is_online(mid) if hasattr(self.fleet, "is_online") else True
-            kind = "SIMULATED machine" if state.simulated else "machine"
-            label = f"{kind} {mid}" + ("" if online else " (runtime OFFLINE: last known pose)")
-            flying = state.payload_pos_m is not None and state.payload_attached is False
-            q, payload = state.q, state.payload_pos_m if flying else None
+        # Decided and drawn under one hold of the lock: a drawing-thread pass that read "live" before
+        # a replay started (or was sought) must not draw its live pose over the replayed one.
         with self._lock:
+            replay = con.replay if con is not None else None
+            mid = replay.machine_id if replay is not None else con.machine_id if con is not None else None
+            if mid is None:
+                ids = sorted(self.fleet.latest_states())
+                mid = ids[0] if ids else None
+            if replay is not None:
+                q, payload = replay.pose()
+                label = f"REPLAY of throw {replay.throw_id[:8]} on {mid}: t = {replay.shown_t_s:.2f} s"
+            else:
+                state = self.fleet.latest_state(mid) if mid else None
+                if state is None:
+                    return
+                online = self.fleet.is_online(mid) if hasattr(self.fleet, "is_online") else True
+                kind = "SIMULATED machine" if state.simulated else "machine"
+                label = f"{kind} {mid}" + ("" if online else " (runtime OFFLINE: last known pose)")
+                flying = state.payload_pos_m is not None and state.payload_attached is False
+                q, payload = state.q, state.payload_pos_m if flying else None
             view.draw_machine(label, q, payload)
             mode = con.mode if con is not None else "2d"
             band = self.band(mid, mode) or DEFAULT_BAND_M

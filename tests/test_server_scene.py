@@ -218,6 +218,58 @@ def test_a_replay_poses_the_console_machine_from_the_recording_at_the_seeked_tim
         ws_b.close()
 
 
+def test_a_drawing_pass_in_flight_does_not_draw_a_stale_pose_over_a_sought_replay(scene, tmp_path):
+    """The drawing thread computes the replay's pose while the operator seeks: the pose it computed
+    must not land over the sought one after seek_replay has drawn it (it did while the pose was taken
+    outside the scene's lock: a CI run saw another time's pose right after seek_replay returned)."""
+    import threading
+
+    from server.scene_replay import Replay
+    from tests.fixtures import write_swing_telemetry
+
+    t, q = write_swing_telemetry(tmp_path / "swing.mcap")
+    a = scene.open_console("ann")
+    scene.update_console(a, machine_id="m1")
+    ws_a, va = _view(scene, a.console_id)
+    replay = Replay.load("th-1", "m1", tmp_path / "swing.mcap")
+    entered, go = threading.Event(), threading.Event()
+    plain_pose, plain_draw = replay.pose, va.draw_machine
+    drawn: list[tuple[str, np.ndarray]] = []
+
+    def held_pose(t_s=None):  # the drawing thread is held once it has computed its pose
+        pose = plain_pose(t_s)
+        if threading.current_thread() is scene._thread and not go.is_set():
+            entered.set()
+            go.wait(10)
+        return pose
+
+    def logged_draw(label, q_, payload=None):
+        drawn.append((threading.current_thread().name, np.array(q_, dtype=float)))
+        plain_draw(label, q_, payload)
+
+    try:
+        scene.start_replay(a, replay)  # shows t = 0
+        va.draw_machine = logged_draw
+        replay.pose = held_pose
+        assert entered.wait(10), "the drawing thread computed a pose"
+        sought = []
+        seeker = threading.Thread(target=lambda: sought.append(scene.seek_replay(a, 1.234)), name="seeker")
+        seeker.start()
+        time.sleep(0.3)  # sought and drawn by now, or waiting for the drawing pass
+        go.set()
+        seeker.join(10)
+        time.sleep(0.2)  # later drawing passes
+        assert sought == [pytest.approx(1.234)]
+        want = np.array([np.interp(1.234, t, q[:, j]) for j in range(6)])
+        names = [name for name, _ in drawn]
+        assert "seeker" in names, names
+        after_seek = drawn[names.index("seeker"):]
+        assert all(np.allclose(p, want, atol=1e-9) for _, p in after_seek), [(n, p[0]) for n, p in after_seek]
+    finally:
+        go.set()
+        ws_a.close()
+
+
 def test_a_view_binds_to_its_console_only_with_the_owners_session(scene):
     """With ``authorise`` (the app's: the session cookie of the view's websocket), the console id
     alone does not bind a view: without a session, or with another user's, clicks do nothing."""
