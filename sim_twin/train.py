@@ -52,136 +52,13 @@ import shlex
 import statistics
 import sys
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 from runtime.entrypoint import module_main
+from sim_twin.training_config import load_config, resolve_training
 
 log = logging.getLogger(__name__)
-
-CONFIG_DIR = Path(__file__).parent / "configs"
-
-
-def _check_integer(value, name: str, at_least: int | None = None) -> None:
-    """Raises ValueError unless ``value`` is an int (not a bool) and, with ``at_least``, >= it; the
-    message names the config entry ``name``."""
-    if isinstance(value, bool) or not isinstance(value, int) or (at_least is not None and value < at_least):
-        bound = f" >= {at_least}" if at_least is not None else ""
-        raise ValueError(f"{name} must be an integer{bound}, not {value!r}")
-
-
-@dataclass(frozen=True)
-class StdSchedule:
-    """Cap on the actor's action std: ``start`` -> ``end`` exponentially over ``iterations``,
-    ``end`` after (config ``training.std_schedule``; CHOSEN values in configs/*.json).
-
-    ``release_floor`` (0: none) is a lower bound on the std of the release flag (the last action):
-    with a learned std the flag's std can shrink before the release is timed, after which the flag
-    never crosses its 0.9 threshold and the policy stops throwing (seen from scratch in 3D)."""
-
-    start: float
-    end: float
-    iterations: int
-    release_floor: float = 0.0
-
-    def cap(self, iteration: int) -> float:
-        """The cap at ``iteration`` (>= 0)."""
-        f = min(max(iteration, 0) / max(self.iterations, 1), 1.0)
-        return float(self.start * (self.end / self.start) ** f)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> StdSchedule:
-        """Raises ValueError on unknown keys or non-positive values."""
-        unknown = set(d) - {"start", "end", "iterations", "release_floor"}
-        if unknown:
-            raise ValueError(f"unknown std_schedule settings {sorted(unknown)}")
-        s = cls(float(d["start"]), float(d["end"]), int(d["iterations"]), float(d.get("release_floor", 0.0)))
-        if s.start <= 0 or s.end <= 0 or s.iterations < 1:
-            raise ValueError(f"std_schedule needs start, end > 0 and iterations >= 1, got {d}")
-        if not 0.0 <= s.release_floor <= s.end:
-            raise ValueError(f"std_schedule.release_floor must be in [0, end], got {s.release_floor}")
-        return s
-
-
-@dataclass(frozen=True)
-class RandomizationStage:
-    """A widening of the domain randomisation during training (config
-    ``training.randomization_stage``): from ``iteration`` on, new episodes draw from
-    ``env.randomization`` with the entries of ``randomization`` in place of its own (CHOSEN values
-    in configs/*.json). A curriculum over randomisation width: the policy first learns to throw on
-    the narrower ranges, then becomes robust on the wider ones.
-
-    Raises (from_dict):
-        ValueError: unknown keys, a negative iteration, or widened entries that
-            sim_twin.privileged.check_randomization refuses.
-    """
-
-    iteration: int
-    randomization: dict
-
-    @classmethod
-    def from_dict(cls, d: dict) -> RandomizationStage:
-        from sim_twin.privileged import check_randomization
-
-        unknown = set(d) - {"iteration", "randomization"}
-        if unknown or "iteration" not in d or "randomization" not in d:
-            raise ValueError(f"training.randomization_stage needs exactly 'iteration' and 'randomization', got {sorted(d)}")
-        _check_integer(d["iteration"], "training.randomization_stage.iteration", at_least=0)
-        check_randomization(d["randomization"], "training.randomization_stage.randomization")
-        return cls(d["iteration"], dict(d["randomization"]))
-
-    def env_dicts(self, env: dict) -> tuple[dict, dict]:
-        """(before, after): the ``env`` mappings of the config before and after the widening. Both
-        normalise the critic's privileged inputs over the widened ranges (``privileged_ranges``,
-        an explicit entry of the config kept), so the critic's inputs keep their scale.
-
-        Raises:
-            ValueError: the merged randomisation is refused (sim_twin.privileged.Randomization).
-        """
-        from sim_twin.privileged import Randomization, trained_ranges
-
-        wide = {**env.get("randomization", {}), **self.randomization}
-        Randomization.from_dict(wide, "training.randomization_stage (merged)")
-        priv = {**trained_ranges(wide), **env.get("privileged_ranges", {})}
-        before = {**env, "privileged_ranges": priv}
-        return before, {**before, "randomization": wide}
-
-
-@dataclass(frozen=True)
-class TrainingSection:
-    """The config's ``training`` section, typed: what the run does beside the environment and PPO.
-
-    ``seed`` (int or None: then ``--seed`` must give one, :func:`training_seed`), ``std_schedule``
-    (:class:`StdSchedule` or None: the learned std is only clamped by rsl_rl),
-    ``randomization_stage`` (:class:`RandomizationStage` or None: no widening) and
-    ``gate_from_iteration`` (int >= 0, default 0: the first iteration whose checkpoint the site-matrix
-    gate judges).
-
-    Raises (from_dict):
-        ValueError: an unknown key (a misspelt setting would otherwise be ignored), a seed or
-            ``gate_from_iteration`` that is not an integer (>= 0), or what StdSchedule.from_dict and
-            RandomizationStage.from_dict refuse.
-    """
-
-    seed: int | None = None
-    std_schedule: StdSchedule | None = None
-    randomization_stage: RandomizationStage | None = None
-    gate_from_iteration: int = 0
-
-    @classmethod
-    def from_dict(cls, d: dict) -> TrainingSection:
-        known = [f.name for f in fields(cls)]
-        unknown = set(d) - set(known)
-        if unknown:
-            raise ValueError(f"unknown training settings {sorted(unknown)}; known: {known}")
-        seed = d.get("seed")
-        if seed is not None:
-            _check_integer(seed, "training.seed")
-        gate_from = d.get("gate_from_iteration", 0)
-        _check_integer(gate_from, "training.gate_from_iteration", at_least=0)
-        schedule = StdSchedule.from_dict(d["std_schedule"]) if "std_schedule" in d else None
-        stage = RandomizationStage.from_dict(d["randomization_stage"]) if "randomization_stage" in d else None
-        return cls(seed, schedule, stage, gate_from)
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:
@@ -215,25 +92,6 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="at the end, wait this long for a running matrix")
     parser.add_argument("--physics", choices=["jax", "warp"], default="jax", help="MJX implementation")
     parser.add_argument("--gpus", type=int, default=1, help="GPUs of this host to train on (torchrun, one process each)")
-
-
-def load_config(mode: str, path: Path | None) -> dict:
-    """The training config (env + runner + num_envs [+ training]) as a dict."""
-    return json.loads((path or CONFIG_DIR / f"throw_{mode}.json").read_text())
-
-
-def training_seed(cfg: dict, override: int | None) -> int:
-    """The run's training seed (it seeds the environments' start poses and randomisation; rank r of a
-    multi-GPU run adds 1000 r): ``override`` (``--seed``) where given, else the recipe's
-    ``training.seed``. It is written into ``cfg["training"]["seed"]`` so that the run's config.json
-    and model card record the seed actually used. Raises ValueError when neither gives one, when the
-    seed is not an integer, or on what :meth:`TrainingSection.from_dict` refuses in the section."""
-    training = cfg.setdefault("training", {})
-    seed = TrainingSection.from_dict({**training, "seed": override if override is not None else training.get("seed")}).seed
-    if seed is None:
-        raise ValueError("the config has no training.seed: pass --seed")
-    training["seed"] = seed
-    return seed
 
 
 def apply_std_cap(runner, cap: float, release_floor: float = 0.0) -> None:
@@ -278,155 +136,252 @@ def _launch_torchrun(args: argparse.Namespace, argv: list[str]) -> int:
     return subprocess.call(cmd)
 
 
-def run(args: argparse.Namespace) -> int:
-    """Train; returns 0. Raises on configuration errors."""
-    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    rank = int(os.environ.get("RANK", "0"))
-    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    import jax
-    import torch
-    from rsl_rl.runners import OnPolicyRunner
+@dataclass(frozen=True)
+class _Process:
+    """This process's place in the run: ``world`` processes (one per GPU under torchrun, else 1),
+    its ``rank`` and the torch ``device`` it trains on ("cuda", "cuda:<local rank>" or "cpu")."""
 
-    from sim_twin import critic_surgery
-    from sim_twin.matrix_gate import MatrixGate
-    from sim_twin.mjx_env import EnvConfig
-    from sim_twin.training_curve import TrainingCurve
-    from sim_twin.vec_env import MjxThrowVecEnv
+    world: int
+    rank: int
+    device: str
 
-    gate_on = getattr(args, "gate", False)
-    stop_at_bars = getattr(args, "stop_at_bars", True)
-    log_dir = args.log_dir or Path("runs") / f"throw_{args.mode}"
-    cfg = load_config(args.mode, args.config)
-    if args.num_envs:
-        cfg["num_envs"] = args.num_envs
-    seed = training_seed(cfg, args.seed)
-    training = TrainingSection.from_dict(cfg["training"])
-    stage, schedule, gate_from = training.randomization_stage, training.std_schedule, training.gate_from_iteration
-    env_before, env_after = stage.env_dicts(cfg["env"]) if stage else (cfg["env"], cfg["env"])
-    env_cfg = EnvConfig.from_dict(env_before)
-    if env_cfg.mode != args.mode:
-        raise ValueError(f"config is for mode {env_cfg.mode}, asked for {args.mode}")
-    actor_groups = cfg["runner"].get("obs_groups", {}).get("actor", ["policy"])
-    if actor_groups != ["policy"]:
-        raise ValueError(f"runner.obs_groups.actor must be ['policy'] (the exported policy's input), not {actor_groups}")
-    if torch.cuda.is_available():
-        device = f"cuda:{local_rank}" if world > 1 else "cuda"
-        if world > 1:  # JAX on this process's GPU too (DLPack hands arrays over without a copy)
-            jax.config.update("jax_default_device", jax.devices("gpu")[local_rank])
-    else:
+    @property
+    def main(self) -> bool:
+        """Rank 0: the process that logs, checkpoints, runs the gate and exports."""
+        return self.rank == 0
+
+    @classmethod
+    def here(cls) -> _Process:
+        """From torchrun's environment (WORLD_SIZE, RANK, LOCAL_RANK; absent: one process). Under
+        torchrun JAX is put on this process's GPU too (DLPack hands arrays over without a copy).
+
+        Raises:
+            ValueError: more than one process without CUDA GPUs.
+        """
+        import jax
+        import torch
+
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        rank = int(os.environ.get("RANK", "0"))
+        local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+        if torch.cuda.is_available():
+            if world > 1:
+                jax.config.update("jax_default_device", jax.devices("gpu")[local_rank])
+                return cls(world, rank, f"cuda:{local_rank}")
+            return cls(world, rank, "cuda")
         if world > 1:
             raise ValueError("more than one process needs CUDA GPUs")
-        device = "cpu"
-    main_rank = rank == 0
-    if main_rank:
-        log.info("training %s on %s: %d process(es) x %d envs, physics %s", args.mode, device, world, cfg["num_envs"],
-                 getattr(args, "physics", "jax"))
-        log_dir.mkdir(parents=True, exist_ok=True)
-        (log_dir / "config.json").write_text(json.dumps(cfg, indent=2))
+        return cls(world, rank, "cpu")
 
-    env = MjxThrowVecEnv(env_cfg, cfg["num_envs"], seed=seed + 1000 * rank, device=device,
-                         impl=getattr(args, "physics", "jax"))
-    runner_cfg = copy.deepcopy(cfg["runner"])
-    tb_dir = (args.tb_dir or log_dir / "tb") if main_rank else None
-    runner = OnPolicyRunner(env, runner_cfg, log_dir=str(tb_dir) if tb_dir else None, device=device)
-    curve = TrainingCurve.load_or_new(log_dir / "curve.csv")
-    wall_offset = curve.last_wall_s()
-    if args.resume:
-        critic_surgery.resume(runner, args.resume, device)  # widens an older critic (privileged inputs)
-        runner.current_learning_iteration += 1
-        log.info("resumed from %s at iteration %d", args.resume, runner.current_learning_iteration)
 
-    start = time.time()
-    clock = lambda: wall_offset + time.time() - start  # noqa: E731
-    gate = None
-    if gate_on and main_rank:
-        gate = MatrixGate(log_dir / "matrices", args.mode, [int(s) for s in str(args.gate_seeds).split(",")],
-                          throws=args.gate_throws, targets=args.gate_targets, workers=args.gate_workers, clock=clock,
-                          judge_after_pass=not stop_at_bars)
-        gate.watch()  # verdicts are recorded when each matrix ends, not at the next checkpoint
-    done_iters, chunks = 0, 0
-    stop_reason = "iterations"
-    passed = gate.passed if gate else None
-    widened = False
-    while done_iters < args.iterations and not (passed and stop_at_bars):
-        if stage and not widened and runner.current_learning_iteration >= stage.iteration:
-            env.reconfigure(EnvConfig.from_dict(env_after))
-            widened = True
+class TrainingRun:
+    """One process of ``slinger train`` (see the module docstring): the config read and checked,
+    the MJX environments, rsl_rl's runner, the training curve and, on rank 0 with ``--gate``, the
+    site-matrix gate. :meth:`train` runs chunks of PPO iterations until the iterations, the time
+    budget or (with ``--stop-at-bars``) the bars end it; :meth:`finish` exports the result.
+
+    Raises (constructor):
+        ValueError: a config the run refuses (mode, training section, actor observation groups,
+            randomisation), before anything is written.
+    """
+
+    def __init__(self, args: argparse.Namespace):
+        from rsl_rl.runners import OnPolicyRunner
+
+        from sim_twin import critic_surgery
+        from sim_twin.matrix_gate import MatrixGate
+        from sim_twin.mjx_env import EnvConfig
+        from sim_twin.training_curve import TrainingCurve
+        from sim_twin.vec_env import MjxThrowVecEnv
+
+        self.args = args
+        self.stop_at_bars = getattr(args, "stop_at_bars", True)
+        self.log_dir = args.log_dir or Path("runs") / f"throw_{args.mode}"
+        cfg = self.cfg = load_config(args.mode, args.config)
+        if args.num_envs:
+            cfg["num_envs"] = args.num_envs
+        self.training = resolve_training(cfg, args.seed)
+        stage = self.training.randomization_stage
+        env_before, env_after = stage.env_dicts(cfg["env"]) if stage else (cfg["env"], cfg["env"])
+        self.env_after: dict = env_after
+        env_cfg = EnvConfig.from_dict(env_before)
+        if env_cfg.mode != args.mode:
+            raise ValueError(f"config is for mode {env_cfg.mode}, asked for {args.mode}")
+        actor_groups = cfg["runner"].get("obs_groups", {}).get("actor", ["policy"])
+        if actor_groups != ["policy"]:
+            raise ValueError(f"runner.obs_groups.actor must be ['policy'] (the exported policy's input), not {actor_groups}")
+        proc = self.proc = _Process.here()
+        physics = getattr(args, "physics", "jax")
+        if proc.main:
+            log.info("training %s on %s: %d process(es) x %d envs, physics %s", args.mode, proc.device, proc.world,
+                     cfg["num_envs"], physics)
+            self.log_dir.mkdir(parents=True, exist_ok=True)
+            (self.log_dir / "config.json").write_text(json.dumps(cfg, indent=2))
+
+        seed = self.training.seed or 0  # resolve_training refuses a config without one
+        self.env = MjxThrowVecEnv(env_cfg, cfg["num_envs"], seed=seed + 1000 * proc.rank, device=proc.device, impl=physics)
+        self.tb_dir = (args.tb_dir or self.log_dir / "tb") if proc.main else None
+        self.runner = OnPolicyRunner(self.env, copy.deepcopy(cfg["runner"]),
+                                     log_dir=str(self.tb_dir) if self.tb_dir else None, device=proc.device)
+        self.curve = TrainingCurve.load_or_new(self.log_dir / "curve.csv")
+        self._wall_offset = self.curve.last_wall_s()
+        if args.resume:
+            critic_surgery.resume(self.runner, args.resume, proc.device)  # widens an older critic (privileged inputs)
+            self.runner.current_learning_iteration += 1
+            log.info("resumed from %s at iteration %d", args.resume, self.runner.current_learning_iteration)
+
+        self._start = time.time()
+        self.gate = None
+        if getattr(args, "gate", False) and proc.main:
+            self.gate = MatrixGate(self.log_dir / "matrices", args.mode, [int(s) for s in str(args.gate_seeds).split(",")],
+                                   throws=args.gate_throws, targets=args.gate_targets, workers=args.gate_workers,
+                                   clock=self.clock, judge_after_pass=not self.stop_at_bars)
+            self.gate.watch()  # verdicts are recorded when each matrix ends, not at the next checkpoint
+        self.passed: dict | None = self.gate.passed if self.gate else None
+        self.stop_reason = "iterations"
+        self._widened = False
+        self._chunks = 0
+
+    def clock(self) -> float:
+        """Training wall time of the run, s, resumed runs included (the curve's last wall_s on)."""
+        return self._wall_offset + time.time() - self._start
+
+    @property
+    def _bars_end_it(self) -> bool:
+        return bool(self.passed) and self.stop_at_bars
+
+    def train(self) -> None:
+        """Chunks of ``--chunk`` PPO iterations until ``--iterations`` are done or rank 0 decides to
+        stop (bars met, time budget); that decision is broadcast to every rank."""
+        import torch
+
+        done = 0
+        while done < self.args.iterations and not self._bars_end_it:
+            n = min(self.args.chunk, self.args.iterations - done)
+            self._train_chunk(n)
+            done += n
+            stop = torch.zeros(1, device=self.proc.device)
+            if self.proc.main:
+                self._after_chunk(n)
+                stop[0] = 1.0 if self.stop_reason != "iterations" else 0.0
+            if self.proc.world > 1:
+                torch.distributed.broadcast(stop, src=0)
+            if stop[0] > 0:
+                break
+        if self.proc.world > 1:
+            torch.distributed.destroy_process_group()  # rsl_rl's runner made it; NCCL warns at exit otherwise
+
+    def _train_chunk(self, n: int) -> None:
+        """Widen the randomisation and cap the std where the recipe says, then ``n`` iterations."""
+        import torch
+
+        from sim_twin.mjx_env import EnvConfig
+
+        runner, stage, schedule = self.runner, self.training.randomization_stage, self.training.std_schedule
+        if stage and not self._widened and runner.current_learning_iteration >= stage.iteration:
+            self.env.reconfigure(EnvConfig.from_dict(self.env_after))
+            self._widened = True
             log.info("randomisation widened at iteration %d: %s", runner.current_learning_iteration, stage.randomization)
         if schedule:
             apply_std_cap(runner, schedule.cap(runner.current_learning_iteration), schedule.release_floor)
-        n = min(args.chunk, args.iterations - done_iters)
-        env.reset_stats()
-        t_chunk = time.time()
+        self.env.reset_stats()
+        t = time.time()
         runner.learn(num_learning_iterations=n)
-        if device.startswith("cuda"):
+        if self.proc.device.startswith("cuda"):
             torch.cuda.synchronize()
-        chunk_s = time.time() - t_chunk
+        self._chunk_s = time.time() - t
         runner.current_learning_iteration += 1
-        done_iters += n
-        chunks += 1
-        it = runner.current_learning_iteration
-        stop = torch.zeros(1, device=device)
-        if main_rank:
-            buf = runner.logger.rewbuffer
-            stats = env.read_stats()
-            std = current_std(runner)
-            curve.append(
-                iteration=it,
-                wall_s=clock(),
-                mean_reward=statistics.mean(buf) if buf else float("nan"),
-                mean_episode_length=statistics.mean(runner.logger.lenbuffer) if runner.logger.lenbuffer else float("nan"),
-                action_std=std,
-                control_steps_per_s=cfg["num_envs"] * world * cfg["runner"]["num_steps_per_env"] * n / chunk_s,
-                **stats,
-                **env.read_term_means(),
-            )
-            runner.save(str(log_dir / "checkpoint.pt"))
-            for stale in (Path(tb_dir).glob("model_*.pt") if tb_dir else ()):  # rsl_rl saves one per learn() call; checkpoint.pt is ours
-                stale.unlink()
-            if args.keep_every and it % args.keep_every == 0:
-                runner.save(str(log_dir / f"checkpoint_{it}.pt"))
-            curve.save()
-            log.info("checkpoint at iteration %d (%.1f min): %s, std %.3f", it, clock() / 60, stats, std)
-            if gate:
-                passed = gate.poll()
-                if not (passed and stop_at_bars) and not gate.busy and chunks % max(args.gate_every, 1) == 0 and it >= gate_from:
-                    cand = log_dir / "candidates" / f"checkpoint_{it}.pt"
-                    cand.parent.mkdir(exist_ok=True)
-                    runner.save(str(cand))
-                    onnx = _export(cand, cfg, cand.with_suffix(".onnx"), f"throw{args.mode}-it{it}")
-                    gate.submit(it, onnx, clock())
-            if passed and stop_at_bars:
-                stop_reason = "bars met"
-            elif args.max_minutes and (time.time() - start) / 60.0 > args.max_minutes:
-                stop_reason = "time budget"
-            stop[0] = 1.0 if stop_reason != "iterations" else 0.0
-        if world > 1:
-            torch.distributed.broadcast(stop, src=0)
-        if stop[0] > 0:
-            break
-    if world > 1:
-        torch.distributed.destroy_process_group()  # rsl_rl's runner made it; NCCL warns at exit otherwise
-    if not main_rank:
-        return 0
-    if gate and not (passed and stop_at_bars) and args.gate_wait_minutes > 0:
-        log.info("waiting up to %.1f min for the running site matrix", args.gate_wait_minutes)
-        passed = gate.wait(args.gate_wait_minutes * 60)
-    if gate:
-        gate.stop()
-        passed = gate.passes[-1] if gate.passes and not stop_at_bars else passed  # the newest that met every bar
-    log.info("training stopped (%s) at iteration %d after %.1f min", "bars met" if passed and stop_at_bars else stop_reason,
-             runner.current_learning_iteration, clock() / 60)
-    curve.plot(log_dir / "training_curve.png", title=f"PPO, {args.mode}, {world} x {cfg['num_envs']} envs")
-    out = args.export or (log_dir / f"throw{args.mode}.onnx" if passed else None)
-    if out:
-        ckpt = Path(passed["onnx"]).with_suffix(".pt") if passed else log_dir / "checkpoint.pt"
-        it = passed["iteration"] if passed else runner.current_learning_iteration
-        _export(ckpt, cfg, out, args.name or out.stem, command=getattr(args, "command", None), card=dict(
-            iteration=it, train_wall_s=passed["train_wall_s"] if passed else clock(),
-            verdict_wall_s=passed["verdict_wall_s"] if passed else None, world_size=world,
+        self._chunks += 1
+
+    def _after_chunk(self, n: int) -> None:
+        """Rank 0 after a chunk of ``n`` iterations: curve row, checkpoint, gate, stop reason."""
+        it = self.runner.current_learning_iteration
+        self._record(it, n)
+        if self.gate:
+            self.passed = self.gate.poll()
+            self._offer_to_gate(it)
+        if self._bars_end_it:
+            self.stop_reason = "bars met"
+        elif self.args.max_minutes and (time.time() - self._start) / 60.0 > self.args.max_minutes:
+            self.stop_reason = "time budget"
+
+    def _record(self, it: int, n: int) -> None:
+        """Append the curve row of iteration ``it`` and write the checkpoint(s)."""
+        runner, cfg = self.runner, self.cfg
+        stats = self.env.read_stats()
+        std = current_std(runner)
+        rewards, lengths = runner.logger.rewbuffer, runner.logger.lenbuffer
+        self.curve.append(
+            iteration=it,
+            wall_s=self.clock(),
+            mean_reward=statistics.mean(rewards) if rewards else float("nan"),
+            mean_episode_length=statistics.mean(lengths) if lengths else float("nan"),
+            action_std=std,
+            control_steps_per_s=cfg["num_envs"] * self.proc.world * cfg["runner"]["num_steps_per_env"] * n / self._chunk_s,
+            **stats,
+            **self.env.read_term_means(),
+        )
+        runner.save(str(self.log_dir / "checkpoint.pt"))
+        for stale in (Path(self.tb_dir).glob("model_*.pt") if self.tb_dir else ()):  # rsl_rl saves one per learn() call; checkpoint.pt is ours
+            stale.unlink()
+        if self.args.keep_every and it % self.args.keep_every == 0:
+            runner.save(str(self.log_dir / f"checkpoint_{it}.pt"))
+        self.curve.save()
+        log.info("checkpoint at iteration %d (%.1f min): %s, std %.3f", it, self.clock() / 60, stats, std)
+
+    def _offer_to_gate(self, it: int) -> None:
+        """Export the checkpoint of iteration ``it`` and hand it to the gate, unless the bars are
+        already met (and end the run), the gate is busy, this is not a ``--gate-every``-th chunk or
+        ``it`` is before the recipe's ``gate_from_iteration``."""
+        assert self.gate is not None
+        if self._bars_end_it or self.gate.busy or self._chunks % max(self.args.gate_every, 1) != 0:
+            return
+        if it < self.training.gate_from_iteration:
+            return
+        cand = self.log_dir / "candidates" / f"checkpoint_{it}.pt"
+        cand.parent.mkdir(exist_ok=True)
+        self.runner.save(str(cand))
+        onnx = _export(cand, self.cfg, cand.with_suffix(".onnx"), f"throw{self.args.mode}-it{it}")
+        self.gate.submit(it, onnx, self.clock())
+
+    def finish(self) -> Path | None:
+        """Rank 0: wait for a running matrix (``--gate-wait-minutes``), stop the gate, plot the curve
+        and export the checkpoint that met the bars (with ``--no-stop-at-bars`` the newest such),
+        else, where ``--export`` asks, the last one with a card saying the bars were not met.
+        Returns the ONNX written or None. Other ranks return None at once."""
+        if not self.proc.main:
+            return None
+        args, gate = self.args, self.gate
+        if gate and not self._bars_end_it and args.gate_wait_minutes > 0:
+            log.info("waiting up to %.1f min for the running site matrix", args.gate_wait_minutes)
+            self.passed = gate.wait(args.gate_wait_minutes * 60)
+        if gate:
+            gate.stop()
+            if gate.passes and not self.stop_at_bars:
+                self.passed = gate.passes[-1]  # the newest that met every bar
+        passed = self.passed
+        log.info("training stopped (%s) at iteration %d after %.1f min", "bars met" if self._bars_end_it else self.stop_reason,
+                 self.runner.current_learning_iteration, self.clock() / 60)
+        self.curve.plot(self.log_dir / "training_curve.png",
+                        title=f"PPO, {args.mode}, {self.proc.world} x {self.cfg['num_envs']} envs")
+        out = args.export or (self.log_dir / f"throw{args.mode}.onnx" if passed else None)
+        if not out:
+            return None
+        ckpt = Path(passed["onnx"]).with_suffix(".pt") if passed else self.log_dir / "checkpoint.pt"
+        it = passed["iteration"] if passed else self.runner.current_learning_iteration
+        return _export(ckpt, self.cfg, out, args.name or out.stem, command=getattr(args, "command", None), card=dict(
+            iteration=it, train_wall_s=passed["train_wall_s"] if passed else self.clock(),
+            verdict_wall_s=passed["verdict_wall_s"] if passed else None, world_size=self.proc.world,
             matrices=[r.__dict__ for r in gate.results if r.iteration == it] if gate else [], bars_met=bool(passed)))
+
+
+def run(args: argparse.Namespace) -> int:
+    """Train (:class:`TrainingRun`); returns 0. Raises ValueError on configuration errors, before
+    anything is written."""
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    training = TrainingRun(args)
+    training.train()
+    training.finish()
     return 0
 
 

@@ -19,7 +19,7 @@ from runtime.observation import build_observation, observation_size  # noqa: E40
 from sim_twin import critic_surgery  # noqa: E402
 from sim_twin.mjx_env import EnvConfig, ThrowEnvCore  # noqa: E402
 from sim_twin.privileged import PRIVILEGED_LAYOUT, PRIVILEGED_SIZE  # noqa: E402
-from sim_twin.train import CONFIG_DIR  # noqa: E402
+from sim_twin.training_config import CONFIG_DIR  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 CKPT_2D = REPO / "policies/training/throw2d-robust-f/checkpoint.pt"

@@ -13,7 +13,7 @@ import jax.numpy as jnp  # noqa: E402
 
 from sim_twin.mjx_env import EnvConfig  # noqa: E402
 from sim_twin.rewards import REWARD_TERMS, RewardInputs, RewardScales, reward_terms, total_reward  # noqa: E402
-from sim_twin.train import CONFIG_DIR  # noqa: E402
+from sim_twin.training_config import CONFIG_DIR  # noqa: E402
 
 SCALES = RewardScales.from_dict(json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]["rewards"])
 

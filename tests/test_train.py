@@ -13,7 +13,7 @@ pytest.importorskip("jax")
 pytestmark = pytest.mark.torch
 
 from runtime.policy import PolicyRunner  # noqa: E402
-from sim_twin import train  # noqa: E402
+from sim_twin import train, training_config  # noqa: E402
 
 
 def _args(tmp_path, **kw):
@@ -75,7 +75,7 @@ def test_one_command_with_gate_model_card_and_term_logs(tmp_path):
     card = json.loads((tmp_path / "p.card.json").read_text())
     assert card["bars_met"] is False and len(card["config_sha256"]) == 64 and card["command"]
     # no --seed: the recipe's training seed, recorded in the card and in the run's config
-    recipe = train.load_config("2d", None)
+    recipe = training_config.load_config("2d", None)
     assert card["training_seed"] == recipe["training"]["seed"]
     assert json.loads((tmp_path / "run" / "config.json").read_text())["training"]["seed"] == recipe["training"]["seed"]
     assert json.loads(onnx.with_suffix(".json").read_text())["training"]["model_card"]["onnx_sha256"] == card["onnx_sha256"]
@@ -120,12 +120,12 @@ def test_the_run_stops_at_the_bars_or_trains_past_them(tmp_path, monkeypatch, st
 
 
 def test_std_schedule_caps_the_learned_std():
-    s = train.StdSchedule.from_dict({"start": 0.6, "end": 0.06, "iterations": 100})
+    s = training_config.StdSchedule.from_dict({"start": 0.6, "end": 0.06, "iterations": 100})
     assert s.cap(0) == pytest.approx(0.6) and s.cap(50) == pytest.approx(0.6 * 0.1**0.5) and s.cap(500) == pytest.approx(0.06)
     with pytest.raises(ValueError):
-        train.StdSchedule.from_dict({"start": 0.6, "end": 0.0, "iterations": 100})
+        training_config.StdSchedule.from_dict({"start": 0.6, "end": 0.0, "iterations": 100})
     with pytest.raises(ValueError):
-        train.StdSchedule.from_dict({"start": 0.6, "end": 0.1, "iters": 100})
+        training_config.StdSchedule.from_dict({"start": 0.6, "end": 0.1, "iters": 100})
     from rsl_rl.modules.distribution import GaussianDistribution
 
     dist = GaussianDistribution(3, init_std=0.6, std_range=(0.02, 0.6), std_type="log")
@@ -145,7 +145,7 @@ def test_std_schedule_caps_the_learned_std():
     std = dist.log_std_param.exp()
     assert std[-1].item() == pytest.approx(0.25, rel=1e-5) and std[0].item() == pytest.approx(0.2 * 2.718281828**-1, rel=1e-4)
     with pytest.raises(ValueError, match="release_floor"):
-        train.StdSchedule.from_dict({"start": 0.6, "end": 0.1, "iterations": 100, "release_floor": 0.3})
+        training_config.StdSchedule.from_dict({"start": 0.6, "end": 0.1, "iterations": 100, "release_floor": 0.3})
 
 
 def test_model_card_commit_outside_git_comes_from_the_environment(tmp_path, monkeypatch):
@@ -161,13 +161,13 @@ def test_model_card_commit_outside_git_comes_from_the_environment(tmp_path, monk
 
 def test_training_seed_from_the_flag_else_the_recipe_else_a_clear_error():
     cfg = {"training": {"seed": 2}}
-    assert train.training_seed(cfg, None) == 2
-    assert train.training_seed(cfg, 5) == 5 and cfg["training"]["seed"] == 5  # recorded as used
+    assert training_config.resolve_training(cfg, None).seed == 2
+    assert training_config.resolve_training(cfg, 5).seed == 5 and cfg["training"]["seed"] == 5  # recorded as used
     with pytest.raises(ValueError, match="training.seed"):
-        train.training_seed({"training": {}}, None)
+        training_config.resolve_training({"training": {}}, None)
     with pytest.raises(ValueError, match="integer"):
-        train.training_seed({"training": {"seed": "0"}}, None)
-    assert train.training_seed({}, 3) == 3  # a config without a training section takes the flag
+        training_config.resolve_training({"training": {"seed": "0"}}, None)
+    assert training_config.resolve_training({}, 3).seed == 3  # a config without a training section takes the flag
 
 
 def test_randomization_stage_widens_once_and_the_gate_judges_from_its_iteration(tmp_path, monkeypatch):
@@ -199,7 +199,7 @@ def test_randomization_stage_widens_once_and_the_gate_judges_from_its_iteration(
 
     monkeypatch.setattr(MjxThrowVecEnv, "__init__", init)
     monkeypatch.setattr(MjxThrowVecEnv, "reconfigure", reconf)
-    cfg = train.load_config("2d", None)
+    cfg = training_config.load_config("2d", None)
     wide = {"friction_scale": [0.5, 10.0], "friction_sampling": "log_uniform", "grasp_forward_m": [-0.2, 0.2]}
     cfg["training"]["randomization_stage"] = {"iteration": 2, "randomization": wide}
     cfg["training"]["gate_from_iteration"] = 3
@@ -226,13 +226,13 @@ def test_randomization_stage_widens_once_and_the_gate_judges_from_its_iteration(
 ])
 def test_randomization_stage_refuses_bad_input(stage, match):
     with pytest.raises(ValueError, match=match):
-        train.RandomizationStage.from_dict(stage)
+        training_config.RandomizationStage.from_dict(stage)
 
 
 def test_gate_from_iteration_refuses_bad_input(tmp_path):
     import json
 
-    cfg = train.load_config("2d", None)
+    cfg = training_config.load_config("2d", None)
     cfg["training"]["gate_from_iteration"] = "600"
     path = tmp_path / "bad.json"
     path.write_text(json.dumps(cfg))
@@ -242,11 +242,11 @@ def test_gate_from_iteration_refuses_bad_input(tmp_path):
 
 
 def test_the_training_section_is_typed_and_refuses_a_misspelt_setting():
-    cfg = train.load_config("2d", None)
-    section = train.TrainingSection.from_dict(cfg["training"])
-    assert section.seed == cfg["training"]["seed"] and isinstance(section.std_schedule, train.StdSchedule)
+    cfg = training_config.load_config("2d", None)
+    section = training_config.TrainingSection.from_dict(cfg["training"])
+    assert section.seed == cfg["training"]["seed"] and isinstance(section.std_schedule, training_config.StdSchedule)
     assert section.randomization_stage is None and section.gate_from_iteration == 0
     with pytest.raises(ValueError, match=r"unknown training settings \['gate_from_iteratoin'\]"):
-        train.TrainingSection.from_dict({**cfg["training"], "gate_from_iteratoin": 600})
+        training_config.TrainingSection.from_dict({**cfg["training"], "gate_from_iteratoin": 600})
     with pytest.raises(ValueError, match="unknown training settings"):
-        train.training_seed({"training": {"seed": 1, "sed": 2}}, None)
+        training_config.resolve_training({"training": {"seed": 1, "sed": 2}}, None)

@@ -120,7 +120,7 @@ _STAGE_KEYS = {"randomization_stage", "gate_from_iteration"}
 def test_candidate_recipes_are_the_committed_recipe_with_a_valid_randomisation_stage(run_name, mode):
     pytest.importorskip("jax")
     from sim_twin.privileged import Randomization
-    from sim_twin.train import RandomizationStage
+    from sim_twin.training_config import RandomizationStage
 
     cand = _without_notes(ROOT / "policies" / "training" / run_name / "recipe.json")
     recipe = _without_notes(ROOT / "sim_twin" / "configs" / f"throw_{mode}.json")

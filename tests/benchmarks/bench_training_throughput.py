@@ -99,7 +99,7 @@ def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int, r
     from rsl_rl.runners import OnPolicyRunner
 
     from sim_twin.mjx_env import EnvConfig
-    from sim_twin.train import load_config
+    from sim_twin.training_config import load_config
     from sim_twin.vec_env import MjxThrowVecEnv
 
     row = {"mode": mode, "impl": impl, "num_envs": n, "reset_slots": reset_slots, "unroll": unroll, "xla_flags": xla_flags}
