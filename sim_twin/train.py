@@ -76,7 +76,7 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--keep-every", type=int, default=0, help="also keep checkpoint_<iter>.pt every N iterations")
     parser.add_argument("--export", type=Path, default=None,
                         help="ONNX to write (default with the gate: <log-dir>/throw<mode>.onnx once the bars are met)")
-    parser.add_argument("--name", default=None, help="policy version name for the export")
+    parser.add_argument("--name", default=None, help="policy version name for the export (default: the file stem and iteration, throw2d-it600)")
     parser.add_argument("--gate", action=argparse.BooleanOptionalAction, default=True,
                         help="site matrix of new checkpoints on the CPU beside the training; stop at the first that meets every bar")
     parser.add_argument("--gate-seeds", default="0,1", help="start-pose seeds every bar must be met on")
@@ -369,7 +369,8 @@ class TrainingRun:
             return None
         ckpt = Path(passed["onnx"]).with_suffix(".pt") if passed else self.log_dir / "checkpoint.pt"
         it = passed["iteration"] if passed else self.runner.current_learning_iteration
-        return _export(ckpt, self.cfg, out, args.name or out.stem, command=getattr(args, "command", None), card=dict(
+        name = args.name or f"{out.stem}-it{it}"  # the Policies page lists versions by name
+        return _export(ckpt, self.cfg, out, name, command=getattr(args, "command", None), card=dict(
             iteration=it, train_wall_s=passed["train_wall_s"] if passed else self.clock(),
             verdict_wall_s=passed["verdict_wall_s"] if passed else None, world_size=self.proc.world,
             matrices=[r.__dict__ for r in gate.results if r.iteration == it] if gate else [], bars_met=bool(passed)))

@@ -111,6 +111,8 @@ def test_the_run_stops_at_the_bars_or_trains_past_them(tmp_path, monkeypatch, st
     card = json.loads((run / "throw2d.card.json").read_text())
     iterations = [int(line.split(",")[0].split(".")[0]) for line in (run / "curve.csv").read_text().splitlines()[1:]]
     assert card["bars_met"] is True
+    manifest = json.loads((run / "throw2d.json").read_text())
+    assert manifest["name"] == f"throw2d-it{card['iteration']}"  # no --name: named by its iteration
     if stop_at_bars:
         assert card["iteration"] == gate["passed"]["iteration"] and len(gate["passes"]) == 1
         assert len(iterations) < 4  # stopped before its 4 iterations were done
