@@ -258,11 +258,11 @@ class TrainingRun:
         done = 0
         while done < self.args.iterations and not self._bars_end_it:
             n = min(self.args.chunk, self.args.iterations - done)
-            self._train_chunk(n)
+            chunk_s = self._train_chunk(n)
             done += n
             stop = torch.zeros(1, device=self.proc.device)
             if self.proc.main:
-                self._after_chunk(n)
+                self._after_chunk(n, chunk_s)
                 stop[0] = 1.0 if self.stop_reason != "iterations" else 0.0
             if self.proc.world > 1:
                 torch.distributed.broadcast(stop, src=0)
@@ -271,8 +271,9 @@ class TrainingRun:
         if self.proc.world > 1:
             torch.distributed.destroy_process_group()  # rsl_rl's runner made it; NCCL warns at exit otherwise
 
-    def _train_chunk(self, n: int) -> None:
-        """Widen the randomisation and cap the std where the recipe says, then ``n`` iterations."""
+    def _train_chunk(self, n: int) -> float:
+        """Widen the randomisation and cap the std where the recipe says, then ``n`` iterations;
+        returns their wall time, s."""
         import torch
 
         from sim_twin.mjx_env import EnvConfig
@@ -289,14 +290,16 @@ class TrainingRun:
         runner.learn(num_learning_iterations=n)
         if self.proc.device.startswith("cuda"):
             torch.cuda.synchronize()
-        self._chunk_s = time.time() - t
+        chunk_s = time.time() - t
         runner.current_learning_iteration += 1
         self._chunks += 1
+        return chunk_s
 
-    def _after_chunk(self, n: int) -> None:
-        """Rank 0 after a chunk of ``n`` iterations: curve row, checkpoint, gate, stop reason."""
+    def _after_chunk(self, n: int, chunk_s: float) -> None:
+        """Rank 0 after a chunk of ``n`` iterations that took ``chunk_s`` s: curve row, checkpoint,
+        gate, stop reason."""
         it = self.runner.current_learning_iteration
-        self._record(it, n)
+        self._record(it, n, chunk_s)
         if self.gate:
             self.passed = self.gate.poll()
             self._offer_to_gate(it)
@@ -305,8 +308,9 @@ class TrainingRun:
         elif self.args.max_minutes and (time.time() - self._start) / 60.0 > self.args.max_minutes:
             self.stop_reason = "time budget"
 
-    def _record(self, it: int, n: int) -> None:
-        """Append the curve row of iteration ``it`` and write the checkpoint(s)."""
+    def _record(self, it: int, n: int, chunk_s: float) -> None:
+        """Append the curve row of iteration ``it`` (``n`` iterations in ``chunk_s`` s) and write the
+        checkpoint(s)."""
         runner, cfg = self.runner, self.cfg
         stats = self.env.read_stats()
         std = current_std(runner)
@@ -317,7 +321,7 @@ class TrainingRun:
             mean_reward=statistics.mean(rewards) if rewards else float("nan"),
             mean_episode_length=statistics.mean(lengths) if lengths else float("nan"),
             action_std=std,
-            control_steps_per_s=cfg["num_envs"] * self.proc.world * cfg["runner"]["num_steps_per_env"] * n / self._chunk_s,
+            control_steps_per_s=cfg["num_envs"] * self.proc.world * cfg["runner"]["num_steps_per_env"] * n / chunk_s,
             **stats,
             **self.env.read_term_means(),
         )
