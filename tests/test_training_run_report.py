@@ -91,3 +91,16 @@ def test_a_gate_matrix_without_its_verdict_is_marked_as_such_and_not_as_after_th
     row = after_run_row(run, m, train_wall_s(run), note=UNRECORDED)
     assert (row["iteration"], row["train_wall_s"], row["after_run"], row["note"]) == (450, 412.25, False, UNRECORDED)
     assert after_run_row(run, m, train_wall_s(run))["note"] == "after the run"
+
+
+def test_the_report_names_the_exported_policy_by_its_model_cards_onnx_hash(tmp_path):
+    from tests.benchmarks.training_run_report import exported_policy_sha256
+
+    run = _run(tmp_path)
+    assert exported_policy_sha256(run) is None  # no checkpoint met the bars: nothing exported
+    card = ROOT / "policies" / "training" / "throw2d-scratch-aa" / "throw2d.card.json"
+    shutil.copy(card, run / "throw2d.card.json")
+    assert exported_policy_sha256(run) == json.loads(card.read_text())["onnx_sha256"]
+    (run / "throw2d.card.json").write_text("{}")
+    with pytest.raises(KeyError):
+        exported_policy_sha256(run)

@@ -30,6 +30,17 @@ CURVE_ROWS = 14
 CELL_TICKS = (0, 1, 2, 3, 4, 6, 10, 20, 40, 66)  # labelled counts of cells missing a bar
 
 
+def exported_policy_sha256(run: Path) -> str | None:
+    """The ONNX SHA-256 of the policy ``run`` exported (from its model card ``throw<mode>.card.json``,
+    written when a checkpoint met every bar), or None when the run exported none.
+
+    Raises:
+        KeyError: a model card without ``onnx_sha256``.
+    """
+    cards = sorted(run.glob("throw*.card.json"))
+    return json.loads(cards[0].read_text())["onnx_sha256"] if cards else None
+
+
 def curve_summary(run: Path, rows: int = CURVE_ROWS) -> list[dict]:
     """Up to ``rows`` checkpoints of ``run/curve.csv``, evenly spaced with the last included, each
     {iteration, wall_min, landed_per_done, failed_per_done, timeouts_per_done (the rest of the
@@ -95,6 +106,7 @@ def main() -> None:
         kept = bool(met) and all(ok for t, it, ok in hist if t >= met[0][0])
         first_met[name] = {"wall_min": round(met[0][0] / 60, 1) if met else None, "iteration": met[0][1] if met else None, "kept": kept}
     ckpt = a.run / "checkpoint.pt"
+    policy_sha256 = exported_policy_sha256(a.run)
     commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     out = {
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
@@ -104,6 +116,7 @@ def main() -> None:
         "command": a.command,
         "run": str(a.run),
         "checkpoint_sha256": hashlib.sha256(ckpt.read_bytes()).hexdigest() if ckpt.exists() else None,
+        "policy_sha256": policy_sha256,
         "seeds": gate["seeds"],
         "passed": gate["passed"],
         "results": [{k: r[k] for k in ("iteration", "seed", "passed", "missing_cells", "train_wall_s", "misses", "after_run", "note")}
@@ -116,6 +129,7 @@ def main() -> None:
     md = [f"# Training run {a.run.name}: wall time to the site-matrix bars", "",
           f"Date {out['date']}, commit `{commit}`, {a.gpu}; "
           + (f"checkpoint SHA-256 `{out['checkpoint_sha256']}`; " if out["checkpoint_sha256"] else "checkpoint not kept; ")
+          + (f"exported policy ONNX SHA-256 `{policy_sha256}`; " if policy_sha256 else "")
           + f"command `{a.command}`. Gate seeds {gate['seeds']}; every bar met on every seed: "
           f"**{'yes, iteration ' + str(gate['passed']['iteration']) if gate['passed'] else 'no'}**.", "",
           "| iteration | training wall time [min] | seed | cells missing a bar (of 66) | misses |", "|---|---|---|---|---|"]
