@@ -29,16 +29,22 @@ TARGET_2D = [8.0, -0.292, 0.0]
 LOAD_FAULT = "machine fault: behind real time"
 LOAD_FAILURES = (LOAD_FAULT, "machine link lost")
 """What a machine too loaded to keep real time makes of a throw (plant behind, states late)."""
+LOAD_REFUSALS = (LOAD_FAULT, "machine offline (no recent state)")
+"""What it makes of a throw request: the runtime's last state older than its link timeout (0.2 s)."""
 
 
-def _landed_throw(http, post, attempts: int = 4):
-    """``post()`` a throw and wait for its final row. On a loaded machine the simulated machine
-    may fall behind real time: the runtime then rightly refuses the throw (422) or fails it
-    (LOAD_FAILURES); wait for it to keep up and try again. Returns (the final row, throws stored)."""
+def _landed_throw(http, post, attempts: int = 4, machine_id: str = "m1"):
+    """``post()`` a throw for ``machine_id`` once the runtime reports it ready (as the console's
+    Throw button waits: the server seeing the machine's states does not mean the runtime does yet,
+    its link to the machine may still be forming), and wait for its final row. On a loaded machine
+    the simulated machine may fall behind real time: the runtime then rightly refuses the throw
+    (422) or fails it (LOAD_FAILURES); wait for it to keep up and try again. Returns (the final row,
+    throws stored)."""
     stored = 0
     for _ in range(attempts):
+        _wait_ready(http, machine_id)
         r = post()
-        if r.status_code == 422 and LOAD_FAULT in r.text:
+        if r.status_code == 422 and any(reason in r.text for reason in LOAD_REFUSALS):
             time.sleep(2.0)
             continue
         assert r.status_code == 202, r.text
