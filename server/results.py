@@ -21,7 +21,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from runtime.protocol.messages import PolicyInfo, ThrowResult, ThrowStatus
 from runtime.throw_geometry import impact_errors
 from server.db.models import FINAL_STATUSES, Machine, PolicyVersion, Throw
-from server.db.session import rowcount
+from server.db.session import insert_if_absent, rowcount
 from server.db.types import UTCDateTime, utcnow
 from server.errors import NotFound
 
@@ -58,8 +58,7 @@ class ResultStore:
         with self.sessions.begin() as db:
             ensure_machine(db, machine_id, simulated)
             for p in policies or []:
-                if db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == p.sha256)) is None:
-                    db.add(PolicyVersion(name=p.version, mode=p.mode, sha256=p.sha256, manifest={}))
+                insert_if_absent(db, PolicyVersion, ["sha256"], name=p.version, mode=p.mode, sha256=p.sha256, manifest={})
 
     def register_policy(self, manifest: dict, onnx_path: Path | None = None) -> None:
         """Record a policy version from its manifest (``slinger up`` registers what it deploys);
@@ -67,11 +66,12 @@ class ResultStore:
         at ``<data_dir>/policies/<sha256>.onnx`` with its manifest beside it."""
         rel = self.store_policy_file(manifest, onnx_path) if onnx_path is not None else None
         with self.sessions.begin() as db:
-            row = db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == manifest["onnx_sha256"]))
-            if row is None:
-                db.add(PolicyVersion(name=manifest["name"], mode=manifest["mode"],
-                                     sha256=manifest["onnx_sha256"], manifest=manifest, onnx_path=rel))
-            else:
+            sha = manifest["onnx_sha256"]
+            if not insert_if_absent(db, PolicyVersion, ["sha256"], name=manifest["name"], mode=manifest["mode"],
+                                    sha256=sha, manifest=manifest, onnx_path=rel):
+                # known (e.g. reported by its runtime first, without manifest or file): fill in what it lacks
+                row = db.scalars(select(PolicyVersion).where(PolicyVersion.sha256 == sha)
+                                 .execution_options(populate_existing=True)).one()
                 row.manifest = row.manifest or manifest
                 row.onnx_path = row.onnx_path or rel
 
@@ -248,12 +248,14 @@ def _apply_result(row: Throw, result: ThrowResult, telemetry: Path | None, now) 
 
 
 def ensure_machine(db: Session, machine_id: str, simulated: bool) -> Machine:
-    """Get or add the machine row inside ``db``'s transaction, refreshing last_seen_at."""
-    row = db.get(Machine, machine_id)
-    if row is None:
-        row = Machine(id=machine_id, simulated=simulated)
-        db.add(row)
-    else:
+    """Get or add the machine row inside ``db``'s transaction, refreshing last_seen_at. Safe
+    against a concurrent first sighting of the same machine (the fleet's thread and an API
+    request): :func:`server.db.session.insert_if_absent`."""
+    inserted = insert_if_absent(db, Machine, ["id"], id=machine_id, simulated=simulated)
+    row = db.get(Machine, machine_id, populate_existing=True)
+    if row is None:  # machine rows are never deleted: a row that conflicted is there once committed
+        raise RuntimeError(f"machine row {machine_id!r} neither inserted nor found")
+    if not inserted:
         row.last_seen_at = utcnow()
         row.simulated = simulated or row.simulated
     return row

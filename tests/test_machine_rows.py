@@ -1,0 +1,90 @@
+"""A machine's row and its runtime's policy versions are added on first sighting by whichever
+writer sees it first: the fleet's thread (runtime info) or an API request (a throw, a policy
+offer). Two first sightings at once must both commit and leave one row (a SELECT-then-add lets
+both see no row and fails the second commit on the unique key), on SQLite and PostgreSQL."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+from sqlalchemy import select
+
+from runtime.protocol.messages import PolicyInfo
+from server.db.migrate import upgrade
+from server.db.models import Machine, PolicyVersion, Throw
+from server.db.session import insert_if_absent, make_engine, make_sessionmaker
+from server.results import ResultStore, ensure_machine
+
+SHA = "c" * 64
+
+
+@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
+def sessions(request, tmp_path):
+    url = f"sqlite:///{tmp_path / 'rows.db'}" if request.param == "sqlite" else request.getfixturevalue("pg_url")
+    upgrade(url)
+    engine = make_engine(url)
+    yield make_sessionmaker(engine)
+    engine.dispose()
+
+
+MANIFEST = {"name": "v1", "mode": "2d", "onnx_sha256": SHA}
+
+
+@pytest.mark.parametrize("writer", ["runtime info", "policy registration"])
+def test_two_first_sightings_at_once_both_commit_one_row(sessions, tmp_path, writer):
+    """Writer A adds m1 and its policy version (as its runtime reports it: no manifest) and holds
+    its transaction open; writer B starts meanwhile: the fleet's upsert of the same runtime's
+    info, or ``slinger up`` registering the deployed policy. B waits for A, then commits without
+    error; one machine row (still marked simulated: B's False does not clear it) and one policy
+    version remain, with the registration's manifest where B registered it."""
+    held = threading.Event()
+    errors: list[BaseException] = []
+
+    def writer_a() -> None:
+        with sessions.begin() as db:
+            ensure_machine(db, "m1", simulated=True)
+            db.add(PolicyVersion(name="v1", mode="2d", sha256=SHA, manifest={}))
+            db.flush()
+            held.set()
+            threading.Event().wait(0.5)  # B's statements run now, against A's uncommitted rows
+
+    def writer_b() -> None:
+        held.wait(10)
+        try:
+            store = ResultStore(sessions, tmp_path)
+            if writer == "runtime info":
+                store.upsert_machine("m1", False, [PolicyInfo(mode="2d", version="v1", sha256=SHA)])
+            else:
+                store.register_policy(MANIFEST)
+        except BaseException as e:  # noqa: BLE001  reported by the assertion below
+            errors.append(e)
+
+    threads = [threading.Thread(target=writer_a), threading.Thread(target=writer_b)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert errors == []
+    with sessions() as db:
+        machines = db.scalars(select(Machine)).all()
+        assert [(m.id, m.simulated) for m in machines] == [("m1", True)]
+        assert machines[0].last_seen_at >= machines[0].first_seen_at
+        assert [(p.sha256, p.manifest) for p in db.scalars(select(PolicyVersion)).all()] == [
+            (SHA, MANIFEST if writer == "policy registration" else {})]
+
+
+def test_ensure_machine_refreshes_a_known_row_and_a_throw_can_reference_it(sessions):
+    with sessions.begin() as db:
+        first = ensure_machine(db, "m2", simulated=False)
+        seen = first.last_seen_at
+    with sessions.begin() as db:
+        again = ensure_machine(db, "m2", simulated=True)
+        assert again.simulated is True and again.last_seen_at >= seen
+        db.add(Throw(id="t1", machine_id="m2", mode="2d", status="requested", target_x_m=8.0, target_y_m=0.0,
+                     target_z_m=0.0, requested_by="test"))
+    with sessions() as db:
+        assert db.get(Throw, "t1").machine_id == "m2"
+        assert insert_if_absent(db, Machine, ["id"], id="m2", simulated=False) is False
+        assert insert_if_absent(db, Machine, ["id"], id="m3", simulated=False) is True
+        db.rollback()
