@@ -21,8 +21,9 @@ from sqlalchemy.orm import Session, sessionmaker
 from runtime.protocol.messages import PolicyInfo, ThrowResult, ThrowStatus
 from runtime.throw_geometry import impact_errors
 from server.db.models import FINAL_STATUSES, Machine, PolicyVersion, Throw
-from server.db.session import insert_if_absent, rowcount
+from server.db.session import rowcount
 from server.db.types import UTCDateTime, utcnow
+from server.db.upsert import insert_if_absent
 from server.errors import NotFound
 
 log = logging.getLogger(__name__)
@@ -250,7 +251,7 @@ def _apply_result(row: Throw, result: ThrowResult, telemetry: Path | None, now) 
 def ensure_machine(db: Session, machine_id: str, simulated: bool) -> Machine:
     """Get or add the machine row inside ``db``'s transaction, refreshing last_seen_at. Safe
     against a concurrent first sighting of the same machine (the fleet's thread and an API
-    request): :func:`server.db.session.insert_if_absent`."""
+    request): :func:`server.db.upsert.insert_if_absent`."""
     inserted = insert_if_absent(db, Machine, ["id"], id=machine_id, simulated=simulated)
     row = db.get(Machine, machine_id, populate_existing=True)
     if row is None:  # machine rows are never deleted: a row that conflicted is there once committed

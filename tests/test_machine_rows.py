@@ -13,7 +13,8 @@ from sqlalchemy import select
 from runtime.protocol.messages import PolicyInfo
 from server.db.migrate import upgrade
 from server.db.models import Machine, PolicyVersion, Throw
-from server.db.session import insert_if_absent, make_engine, make_sessionmaker
+from server.db.session import make_engine, make_sessionmaker
+from server.db.upsert import insert_if_absent
 from server.results import ResultStore, ensure_machine
 
 SHA = "c" * 64

@@ -28,12 +28,12 @@ from collections import defaultdict
 from datetime import UTC, date, datetime
 
 from sqlalchemy import delete, event, inspect, select
-from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 from sqlalchemy.orm.base import NO_VALUE
 
 from server.db.models import Throw, ThrowAccuracy
 from server.db.types import utcnow
+from server.db.upsert import dialect_insert
 
 DISTANCE_BIN_M = 0.5
 """Width of the target-distance bins, m (the accuracy view's bins)."""
@@ -111,14 +111,7 @@ def upsert(connection, deltas: dict[tuple, list]) -> None:
     """
     if not deltas:
         return
-    name = connection.dialect.name
-    stmt: postgresql.Insert | sqlite.Insert
-    if name == "postgresql":
-        stmt = postgresql.insert(ThrowAccuracy)
-    elif name == "sqlite":
-        stmt = sqlite.insert(ThrowAccuracy)
-    else:
-        raise NotImplementedError(f"accuracy aggregates on {name}: only SQLite and PostgreSQL")
+    stmt = dialect_insert(connection.dialect.name, ThrowAccuracy)
     table = ThrowAccuracy.__table__
     stmt = stmt.on_conflict_do_update(index_elements=list(KEY_COLUMNS),
                                       set_={c: table.c[c] + stmt.excluded[c] for c in SUM_COLUMNS})

@@ -1,14 +1,12 @@
-"""Engine and session factory, built from settings inside ``create_app`` (never at import), the
-typed row count of an executed UPDATE or DELETE, and an insert that a concurrent insert of the
-same key cannot fail."""
+"""Engine and session factory, built from settings inside ``create_app`` (never at import), and
+the typed row count of an executed UPDATE or DELETE."""
 
 from __future__ import annotations
 
 import math
-from typing import Any, cast
+from typing import cast
 
 from sqlalchemy import CursorResult, Engine, Result, create_engine, event
-from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session, sessionmaker
 
 import server.db.aggregates  # noqa: F401  (registers the listener that keeps the accuracy aggregates)
@@ -18,27 +16,6 @@ def rowcount(result: Result) -> int:
     """Rows an UPDATE or DELETE matched (``Session.execute`` types its result as a plain
     ``Result``; for those statements it is a ``CursorResult``)."""
     return cast(CursorResult, result).rowcount
-
-
-def insert_if_absent(db: Session, model: type, key: list[str], **values: Any) -> bool:
-    """``INSERT ... ON CONFLICT (key) DO NOTHING`` of one ``model`` row inside ``db``'s transaction:
-    the get-or-add that two writers racing for the same key cannot fail (a SELECT then an add
-    lets both see no row; the second commit then fails on the unique constraint). The database
-    serialises the two inserts: the second waits for the first's transaction and inserts nothing.
-    Column defaults apply as for an ORM add. Returns True when this call inserted the row
-    (read from ``RETURNING``: SQLite 3.35 or later, PostgreSQL 9.5 or later).
-
-    Raises:
-        ValueError: the database is neither SQLite nor PostgreSQL (the two Slinger supports).
-    """
-    dialect = db.get_bind().dialect.name
-    dialects = {"sqlite": sqlite, "postgresql": postgresql}
-    if dialect not in dialects:
-        raise ValueError(f"insert_if_absent: unsupported database {dialect!r} (SQLite or PostgreSQL)")
-    table = model.__table__  # type: ignore[attr-defined]
-    stmt = (dialects[dialect].insert(model).values(**values).on_conflict_do_nothing(index_elements=key)
-            .returning(*table.primary_key.columns))  # psycopg reports no row count for it: a row back = inserted
-    return db.execute(stmt).first() is not None
 
 
 def make_engine(database_url: str, busy_timeout_s: float = 10.0) -> Engine:
