@@ -31,6 +31,7 @@ from runtime.protocol.messages import (
 from server.auth import audit
 from server.db.models import PolicyDeployment, PolicyVersion
 from server.db.types import utcnow
+from server.db.upsert import insert_if_absent
 from server.errors import Conflict, NotFound, Refused
 from server.fleet import Fleet, RuntimeUnavailable
 from server.policy_validation import ValidationLimits, validate
@@ -108,20 +109,22 @@ class PolicyService:
         (server.adaptation) come in here.
 
         Raises:
-            Conflict: this file is already a version.
+            Conflict: this file is already a version (also when the same file is added twice at
+                once: the second insert waits for the first and adds nothing).
         """
+        sha, already = manifest["onnx_sha256"], "this ONNX file is already a policy version"
         with self.sessions() as db:
-            if db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == manifest["onnx_sha256"])) is not None:
-                raise Conflict("this ONNX file is already a policy version")
-        rel = self.store.store_policy_file(manifest, path)
+            if db.scalar(select(PolicyVersion).where(PolicyVersion.sha256 == sha)) is not None:
+                raise Conflict(already)  # before the file is written
+        rel = self.store.store_policy_file(manifest, path)  # named by its SHA-256: a second writer writes the same bytes
         name, mode = manifest["name"], manifest["mode"]
         with self.sessions.begin() as db:
-            row = PolicyVersion(name=name, mode=mode, sha256=manifest["onnx_sha256"], manifest=manifest,
-                                onnx_path=rel, notes=notes, uploaded_by=username,
-                                evaluation_status="pending" if evaluate else None)
-            db.add(row)
-            db.flush()
-            audit(db, username, action, str(row.id), name=name, mode=mode, sha256=row.sha256)
+            if not insert_if_absent(db, PolicyVersion, ["sha256"], name=name, mode=mode, sha256=sha, manifest=manifest,
+                                    onnx_path=rel, notes=notes, uploaded_by=username,
+                                    evaluation_status="pending" if evaluate else None):
+                raise Conflict(already)
+            row = db.scalars(select(PolicyVersion).where(PolicyVersion.sha256 == sha)).one()
+            audit(db, username, action, str(row.id), name=name, mode=mode, sha256=sha)
         if evaluate:
             self._submit_evaluation(row.id, manifest["target_range_m"], username)
         return row

@@ -1,7 +1,9 @@
-"""A machine's row and its runtime's policy versions are added on first sighting by whichever
-writer sees it first: the fleet's thread (runtime info) or an API request (a throw, a policy
-offer). Two first sightings at once must both commit and leave one row (a SELECT-then-add lets
-both see no row and fails the second commit on the unique key), on SQLite and PostgreSQL."""
+"""Rows that two writers may add at once. A machine's row and its runtime's policy versions are
+added on first sighting by whichever writer sees it first: the fleet's thread (runtime info) or
+an API request (a throw, a policy offer). Two first sightings at once must both commit and leave
+one row (a SELECT-then-add lets both see no row and fails the second commit on the unique key);
+two uploads of one policy file at once give one version and a clear conflict, not a server
+error. On SQLite and PostgreSQL."""
 
 from __future__ import annotations
 
@@ -12,9 +14,11 @@ from sqlalchemy import select
 
 from runtime.protocol.messages import PolicyInfo
 from server.db.migrate import upgrade
-from server.db.models import Machine, PolicyVersion, Throw
+from server.db.models import AuditEntry, Machine, PolicyVersion, Throw
 from server.db.session import make_engine, make_sessionmaker
 from server.db.upsert import insert_if_absent
+from server.errors import Conflict
+from server.policies import PolicyService
 from server.results import ResultStore, ensure_machine
 
 SHA = "c" * 64
@@ -89,3 +93,35 @@ def test_ensure_machine_refreshes_a_known_row_and_a_throw_can_reference_it(sessi
         assert insert_if_absent(db, Machine, ["id"], id="m2", simulated=False) is False
         assert insert_if_absent(db, Machine, ["id"], id="m3", simulated=False) is True
         db.rollback()
+
+
+def _hold_a_version(sessions, held: threading.Event) -> None:
+    """Writer A: adds the policy version SHA and holds its transaction open for 0.5 s."""
+    with sessions.begin() as db:
+        db.add(PolicyVersion(name="v1", mode="2d", sha256=SHA, manifest={}))
+        db.flush()
+        held.set()
+        threading.Event().wait(0.5)
+
+
+def test_an_upload_racing_another_of_the_same_file_is_a_conflict(sessions, tmp_path):
+    """B uploads (``PolicyService.add_version``) while A's insert of the same file is uncommitted:
+    B's early check sees nothing, then its insert waits for A and B answers Conflict (409), not
+    an integrity error (500). Afterwards one version; a second upload is refused before any write;
+    a fresh file is added with its audit entry."""
+    policies = PolicyService(None, sessions, ResultStore(sessions, tmp_path / "var"), settings=None, jobs=None)
+    onnx = tmp_path / "p.onnx"
+    onnx.write_bytes(b"policy bytes")
+    held = threading.Event()
+    a = threading.Thread(target=_hold_a_version, args=(sessions, held))
+    a.start()
+    held.wait(10)
+    with pytest.raises(Conflict, match="already a policy version"):
+        policies.add_version(MANIFEST, onnx, "op", evaluate=False)
+    a.join(30)
+    with pytest.raises(Conflict, match="already a policy version"):
+        policies.add_version(MANIFEST, onnx, "op", evaluate=False)
+    row = policies.add_version({**MANIFEST, "name": "v2", "onnx_sha256": "d" * 64}, onnx, "op", evaluate=False)
+    with sessions() as db:
+        assert sorted(p.name for p in db.scalars(select(PolicyVersion))) == ["v1", "v2"]
+        assert [(e.action, e.subject) for e in db.scalars(select(AuditEntry))] == [("policy_upload", str(row.id))]
