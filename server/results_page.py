@@ -374,7 +374,8 @@ def stamp(report: Path, title: str, command: str, policies: list[Path], root: Pa
         ReportError: the report is not a JSON object, or a policy file is missing.
     """
     try:
-        body = json.loads(Path(report).read_text())
+        text = Path(report).read_text()
+        body = json.loads(text)
     except (OSError, ValueError) as e:
         raise ReportError(f"{report}: not readable JSON: {e}") from e
     if not isinstance(body, dict):
@@ -386,8 +387,18 @@ def stamp(report: Path, title: str, command: str, policies: list[Path], root: Pa
     if note:
         block["note"] = note
     body = {"provenance": block, **{k: v for k, v in body.items() if k != "provenance"}}
-    Path(report).write_text(json.dumps(body, indent=1) + "\n")
+    Path(report).write_text(json.dumps(body, indent=json_indent(text)) + "\n")
     return block
+
+
+def json_indent(text: str) -> int | None:
+    """The indent of a JSON object's text (spaces before its second line's first key), None when
+    the object is on one line; a stamped report keeps its writer's layout, so a re-stamp changes
+    the provenance lines only and a compact report with per-throw lists stays compact."""
+    lines = text.strip().splitlines()
+    if len(lines) < 2:
+        return None
+    return len(lines[1]) - len(lines[1].lstrip(" "))
 
 
 def build_parser(parser: argparse.ArgumentParser) -> None:

@@ -134,6 +134,26 @@ def test_stamp_writes_a_complete_provenance_block_that_the_check_accepts(tmp_pat
     assert problems and all("reports/r.json" in p for p in problems)  # the stamped report itself is consistent
 
 
+@pytest.mark.parametrize("indent", [None, 1, 2])
+def test_stamp_keeps_the_reports_layout(tmp_path, indent):
+    """A compact report stays on one line; an indented one keeps its indent; a re-stamp changes
+    only the provenance block's lines."""
+    root = _fake_repo(tmp_path, "0" * 64)
+    report = root / "reports" / "new.json"
+    body = {"throws": [{"impact_m": [8.0 + k / 100, 0.1]} for k in range(50)]}
+    report.write_text(json.dumps(body, indent=indent) + "\n")
+    stamp = ["--root", str(root), "--stamp", str(report), "--title", "New", "--host", "a host", "--command", "do it"]
+    assert results.main(stamp) == 0
+    first = report.read_text()
+    assert json.loads(first)["throws"] == body["throws"]
+    assert (len(first.splitlines()) == 1) if indent is None else (len(first.splitlines()) > 150)
+    assert results.json_indent(first) == indent
+    assert results.main([*stamp[:-1], "do it again"]) == 0
+    changed = [a for a, b in zip(first.splitlines(), report.read_text().splitlines()) if a != b]
+    assert 1 <= len(changed) <= (1 if indent is None else 2)
+    assert all(c.strip().startswith(('"date"', '"command"')) for c in changed) or indent is None
+
+
 def test_stamp_refuses_a_missing_policy_or_title(tmp_path):
     root = _fake_repo(tmp_path, "0" * 64)
     report = root / "reports" / "r.json"
