@@ -46,10 +46,10 @@ def test_resting_loop_sleeps_between_publications_and_a_command_wakes_it(monkeyp
     twin, inbox, pub, ticks, stop, th = _running_loop(monkeypatch)
     try:
         wait_for(lambda: inbox.resting, 20, "plant at rest")
-        n0, s0 = len(ticks), len(pub.states)
-        time.sleep(1.0)
-        rest_ticks, rest_states = len(ticks) - n0, len(pub.states) - s0
-        assert rest_ticks <= 30, rest_ticks  # 20 per second (100 before)
+        t0, n0, s0 = time.monotonic(), len(ticks), len(pub.states)
+        time.sleep(1.0)  # on a loaded host this thread may wake late: the rate is per second of the real window
+        rest_ticks, rest_states, window_s = len(ticks) - n0, len(pub.states) - s0, time.monotonic() - t0
+        assert rest_ticks <= 30 * window_s, (rest_ticks, window_s)  # 20 per second (100 before)
         assert rest_states >= 3 and rest_states >= rest_ticks - 1  # each resting wake publishes
         inbox.on_valve(_sample(ValveCommand(machine_id="m1", stamp_s=0.0, u=[0.0] * 4)))
         assert not inbox.wake.is_set()  # neutral valves (the runtime's 20 Hz feed) leave it resting
