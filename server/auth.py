@@ -21,6 +21,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from server.db.models import ROLES, AuditEntry, AuthSession, User
 from server.db.types import utcnow
+from server.db.upsert import insert_if_absent
 from server.errors import Conflict, Refused, Unauthenticated
 
 log = logging.getLogger(__name__)
@@ -98,12 +99,14 @@ def create_user(db: Session, username: str, password: str, role: str) -> User:
     if not username or len(username) > 64 or not all(c.isalnum() or c in "._-@" for c in username):
         raise AuthError("user name must be 1-64 letters, digits or . _ - @")
     check_password(password)
+    taken = UserExists(f"user {username!r} exists")
     if db.scalar(select(User).where(User.username == username)) is not None:
-        raise UserExists(f"user {username!r} exists")
-    user = User(username=username, password_hash=hash_password(password), role=role, active=True)
-    db.add(user)
-    db.flush()
-    return user
+        raise taken  # before the (deliberately slow) password hash
+    # a concurrent add of the same name: this insert waits for it and adds nothing
+    if not insert_if_absent(db, User, ["username"], username=username, password_hash=hash_password(password),
+                            role=role, active=True):
+        raise taken
+    return db.scalars(select(User).where(User.username == username)).one()
 
 
 def user_count(db: Session) -> int:

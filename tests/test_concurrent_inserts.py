@@ -2,8 +2,8 @@
 added on first sighting by whichever writer sees it first: the fleet's thread (runtime info) or
 an API request (a throw, a policy offer). Two first sightings at once must both commit and leave
 one row (a SELECT-then-add lets both see no row and fails the second commit on the unique key);
-two uploads of one policy file at once give one version and a clear conflict, not a server
-error. On SQLite and PostgreSQL."""
+two uploads of one policy file, or two adds of one account name, at once give one row and a
+clear conflict, not a server error. On SQLite and PostgreSQL."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ from sqlalchemy import select
 
 from runtime.protocol.messages import PolicyInfo
 from server.db.migrate import upgrade
-from server.db.models import AuditEntry, Machine, PolicyVersion, Throw
+from server.auth import UserExists, create_user
+from server.db.models import AuditEntry, Machine, PolicyVersion, Throw, User
 from server.db.session import make_engine, make_sessionmaker
 from server.db.upsert import insert_if_absent
 from server.errors import Conflict
@@ -125,3 +126,28 @@ def test_an_upload_racing_another_of_the_same_file_is_a_conflict(sessions, tmp_p
     with sessions() as db:
         assert sorted(p.name for p in db.scalars(select(PolicyVersion))) == ["v1", "v2"]
         assert [(e.action, e.subject) for e in db.scalars(select(AuditEntry))] == [("policy_upload", str(row.id))]
+
+
+def test_an_account_added_twice_at_once_is_refused_as_taken(sessions):
+    """B adds the name while A's add of it is uncommitted: B waits, then is refused (UserExists,
+    the API's 409); A's account stands. An account added alone gets its defaults (a session key)."""
+    held = threading.Event()
+
+    def writer_a() -> None:
+        with sessions.begin() as db:
+            create_user(db, "ops", "a long enough password", "operator")
+            held.set()
+            threading.Event().wait(0.5)
+
+    a = threading.Thread(target=writer_a)
+    a.start()
+    held.wait(10)
+    with pytest.raises(UserExists, match="'ops' exists"), sessions.begin() as db:
+        create_user(db, "ops", "another long password", "viewer")
+    a.join(30)
+    with sessions.begin() as db:
+        alone = create_user(db, "ops2", "a long enough password", "viewer")
+        assert alone.id is not None and len(alone.session_key) == 64
+    with sessions() as db:
+        assert [(u.username, u.role) for u in db.scalars(select(User).order_by(User.username))] == [
+            ("ops", "operator"), ("ops2", "viewer")]
