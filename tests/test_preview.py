@@ -201,6 +201,13 @@ def test_no_throw_button_while_the_runtime_is_not_ready(client, machine, monkeyp
     monkeypatch.setattr(fleet, "cached_info", lambda _mid: ready_info.model_copy(update={"ready": False, "not_ready_reason": "no payload loaded"}))
     c = client.post(f"/api/previews/{pid}/check", json={"machine_id": "m1", "mode": "2d", "target": TARGET}).json()
     assert c == {**c, "valid": False, "condition": "machine_not_ready"} and "no payload loaded" in c["reason"], c
+    # the last info still names a running throw (its result came first): not ready either, though
+    # the machine stands at the preview's pose (a short swing), since the reload is yet to come
+    running = ready_info.model_copy(update={"ready": False, "busy": True, "not_ready_reason": "busy with throw t1",
+                                            "throw_id": "t1", "phase": "released"})
+    monkeypatch.setattr(fleet, "cached_info", lambda _mid: running)
+    c = client.post(f"/api/previews/{pid}/check", json={"machine_id": "m1", "mode": "2d", "target": TARGET}).json()
+    assert c == {**c, "valid": False, "condition": "machine_not_ready"} and "busy with throw t1" in c["reason"], c
     monkeypatch.setattr(fleet, "cached_info", lambda _mid: ready_info)
     c = client.post(f"/api/previews/{pid}/check", json={"machine_id": "m1", "mode": "2d", "target": TARGET}).json()
     assert c["valid"] is True, c

@@ -100,9 +100,12 @@ def check_preview(preview_id: str, body: PreviewCheckIn, previews: PreviewsDep, 
         return PreviewCheckOut(valid=False, condition="no_state", reason=f"no state from machine {body.machine_id}",
                                age_s=age, max_age_s=max_age)
     info = fleet.cached_info(body.machine_id)
-    if info is not None and not info.ready and not (info.throw_id or info.phase):
+    if info is not None and not info.ready:
         # judged before the preview itself: a machine that cannot throw now gets no Throw button,
-        # whatever its pose (the runtime would refuse; a reload may move it, sim_twin.twin_machine)
+        # whatever its pose (the runtime would refuse; a reload may move it, sim_twin.twin_machine).
+        # A throw still running in the last info counts too: the page may ask as soon as the
+        # throw's result is in, before the runtime's next info (no payload, about to be reloaded)
+        # arrives, and a short swing leaves the machine at the preview's pose
         why = info.not_ready_reason or "not ready"
         return PreviewCheckOut(valid=False, condition="machine_not_ready", reason=f"the machine is not ready ({why})",
                                age_s=age, max_age_s=max_age)
