@@ -251,7 +251,11 @@ def _apply_result(row: Throw, result: ThrowResult, telemetry: Path | None, now) 
 def ensure_machine(db: Session, machine_id: str, simulated: bool) -> Machine:
     """Get or add the machine row inside ``db``'s transaction, refreshing last_seen_at. Safe
     against a concurrent first sighting of the same machine (the fleet's thread and an API
-    request): :func:`server.db.upsert.insert_if_absent`."""
+    request): :func:`server.db.upsert.insert_if_absent`.
+
+    Raises:
+        RuntimeError: the row was neither inserted nor found (machine rows are never deleted).
+    """
     inserted = insert_if_absent(db, Machine, ["id"], id=machine_id, simulated=simulated)
     row = db.get(Machine, machine_id, populate_existing=True)
     if row is None:  # machine rows are never deleted: a row that conflicted is there once committed
