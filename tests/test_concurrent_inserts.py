@@ -13,8 +13,8 @@ import pytest
 from sqlalchemy import select
 
 from runtime.protocol.messages import PolicyInfo
-from server.db.migrate import upgrade
 from server.auth import UserExists, create_user
+from server.db.migrate import upgrade
 from server.db.models import AuditEntry, Machine, PolicyVersion, Throw, User
 from server.db.session import make_engine, make_sessionmaker
 from server.db.upsert import insert_if_absent
@@ -37,6 +37,29 @@ def sessions(request, tmp_path):
 MANIFEST = {"name": "v1", "mode": "2d", "onnx_sha256": SHA}
 
 
+def _writer_a(sessions, add) -> threading.Thread:
+    """Writer A, started: ``add(db)`` inside a transaction that it holds open (uncommitted) for
+    0.5 s before committing; returns once A's rows are flushed, so the caller's statements run
+    against them."""
+    held = threading.Event()
+
+    def run() -> None:
+        with sessions.begin() as db:
+            add(db)
+            db.flush()
+            held.set()
+            threading.Event().wait(0.5)
+
+    a = threading.Thread(target=run)
+    a.start()
+    assert held.wait(10), "writer A did not flush"
+    return a
+
+
+def _add_version(db) -> None:
+    db.add(PolicyVersion(name="v1", mode="2d", sha256=SHA, manifest={}))
+
+
 @pytest.mark.parametrize("writer", ["runtime info", "policy registration"])
 def test_two_first_sightings_at_once_both_commit_one_row(sessions, tmp_path, writer):
     """Writer A adds m1 and its policy version (as its runtime reports it: no manifest) and holds
@@ -44,34 +67,17 @@ def test_two_first_sightings_at_once_both_commit_one_row(sessions, tmp_path, wri
     info, or ``slinger up`` registering the deployed policy. B waits for A, then commits without
     error; one machine row (still marked simulated: B's False does not clear it) and one policy
     version remain, with the registration's manifest where B registered it."""
-    held = threading.Event()
-    errors: list[BaseException] = []
+    def add(db) -> None:
+        ensure_machine(db, "m1", simulated=True)
+        _add_version(db)
 
-    def writer_a() -> None:
-        with sessions.begin() as db:
-            ensure_machine(db, "m1", simulated=True)
-            db.add(PolicyVersion(name="v1", mode="2d", sha256=SHA, manifest={}))
-            db.flush()
-            held.set()
-            threading.Event().wait(0.5)  # B's statements run now, against A's uncommitted rows
-
-    def writer_b() -> None:
-        held.wait(10)
-        try:
-            store = ResultStore(sessions, tmp_path)
-            if writer == "runtime info":
-                store.upsert_machine("m1", False, [PolicyInfo(mode="2d", version="v1", sha256=SHA)])
-            else:
-                store.register_policy(MANIFEST)
-        except BaseException as e:  # noqa: BLE001  reported by the assertion below
-            errors.append(e)
-
-    threads = [threading.Thread(target=writer_a), threading.Thread(target=writer_b)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(30)
-    assert errors == []
+    a = _writer_a(sessions, add)  # B's statements run now, against A's uncommitted rows
+    store = ResultStore(sessions, tmp_path)
+    if writer == "runtime info":
+        store.upsert_machine("m1", False, [PolicyInfo(mode="2d", version="v1", sha256=SHA)])
+    else:
+        store.register_policy(MANIFEST)
+    a.join(30)
     with sessions() as db:
         machines = db.scalars(select(Machine)).all()
         assert [(m.id, m.simulated) for m in machines] == [("m1", True)]
@@ -96,15 +102,6 @@ def test_ensure_machine_refreshes_a_known_row_and_a_throw_can_reference_it(sessi
         db.rollback()
 
 
-def _hold_a_version(sessions, held: threading.Event) -> None:
-    """Writer A: adds the policy version SHA and holds its transaction open for 0.5 s."""
-    with sessions.begin() as db:
-        db.add(PolicyVersion(name="v1", mode="2d", sha256=SHA, manifest={}))
-        db.flush()
-        held.set()
-        threading.Event().wait(0.5)
-
-
 def test_an_upload_racing_another_of_the_same_file_is_a_conflict(sessions, tmp_path):
     """B uploads (``PolicyService.add_version``) while A's insert of the same file is uncommitted:
     B's early check sees nothing, then its insert waits for A and B answers Conflict (409), not
@@ -113,10 +110,7 @@ def test_an_upload_racing_another_of_the_same_file_is_a_conflict(sessions, tmp_p
     policies = PolicyService(None, sessions, ResultStore(sessions, tmp_path / "var"), settings=None, jobs=None)
     onnx = tmp_path / "p.onnx"
     onnx.write_bytes(b"policy bytes")
-    held = threading.Event()
-    a = threading.Thread(target=_hold_a_version, args=(sessions, held))
-    a.start()
-    held.wait(10)
+    a = _writer_a(sessions, _add_version)
     with pytest.raises(Conflict, match="already a policy version"):
         policies.add_version(MANIFEST, onnx, "op", evaluate=False)
     a.join(30)
@@ -131,17 +125,7 @@ def test_an_upload_racing_another_of_the_same_file_is_a_conflict(sessions, tmp_p
 def test_an_account_added_twice_at_once_is_refused_as_taken(sessions):
     """B adds the name while A's add of it is uncommitted: B waits, then is refused (UserExists,
     the API's 409); A's account stands. An account added alone gets its defaults (a session key)."""
-    held = threading.Event()
-
-    def writer_a() -> None:
-        with sessions.begin() as db:
-            create_user(db, "ops", "a long enough password", "operator")
-            held.set()
-            threading.Event().wait(0.5)
-
-    a = threading.Thread(target=writer_a)
-    a.start()
-    held.wait(10)
+    a = _writer_a(sessions, lambda db: create_user(db, "ops", "a long enough password", "operator"))
     with pytest.raises(UserExists, match="'ops' exists"), sessions.begin() as db:
         create_user(db, "ops", "another long password", "viewer")
     a.join(30)

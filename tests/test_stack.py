@@ -144,8 +144,7 @@ def test_slinger_up_end_to_end_and_ctrl_c(tmp_path):
         assert "Slinger" in http.get("/", follow_redirects=True).text
         r = http.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D})
         assert r.status_code == 422 and r.headers["x-refused-condition"] == "preview_missing"  # the server gates
-        def previewed_throw():
-            _wait_ready(http)
+        def previewed_throw():  # _landed_throw calls it once the machine is ready
             p = http.post("/api/previews", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D, "rollouts": 1})
             assert p.status_code == 200 and p.json()["status"] == "ok", p.text
             return http.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D,
