@@ -22,7 +22,9 @@ from sim_twin.privileged import PRIVILEGED_LAYOUT, PRIVILEGED_SIZE  # noqa: E402
 from sim_twin.training_config import CONFIG_DIR  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-CKPT_2D = REPO / "policies/training/throw2d-robust-f/checkpoint.pt"
+CKPT_2D = REPO / "tests/data/policy_only_critic_2d.pt"
+"""An rsl_rl checkpoint of a 2D policy trained with the policy-only critic (throw2d-robust-f, iteration 3585,
+critic input 56; the run is in the lab notebook, policies/training/ARCHIVE.md)."""
 
 
 def _cfg(mode: str) -> dict:
@@ -208,7 +210,6 @@ def _critic_value(critic_state: dict, obs, groups: list[str], runner_cfg: dict) 
         return model(obs)
 
 
-@pytest.mark.skipif(not CKPT_2D.exists(), reason="committed 2D checkpoint missing")
 def test_resume_old_checkpoint_widens_critic_then_trains_and_exports(tmp_path):
     from rsl_rl.runners import OnPolicyRunner
 
@@ -260,9 +261,7 @@ def test_resume_old_checkpoint_widens_critic_then_trains_and_exports(tmp_path):
 
 
 def test_surgery_refuses_to_narrow_and_is_a_no_op_when_shapes_match():
-    old = torch.load(CKPT_2D, map_location="cpu", weights_only=False) if CKPT_2D.exists() else None
-    if old is None:
-        pytest.skip("committed 2D checkpoint missing")
+    old = torch.load(CKPT_2D, map_location="cpu", weights_only=False)
     shapes = [v["exp_avg"].shape for _, v in sorted(old["optimizer_state_dict"]["state"].items())]
     same, notes = critic_surgery.widen_critic(old, old["critic_state_dict"], shapes)
     assert notes == [] and same["critic_state_dict"] is old["critic_state_dict"]

@@ -12,7 +12,7 @@ from sim_twin.matrix_gate import summarise_matrix
 from tests.benchmarks.training_run_report import after_run_row, train_wall_s
 
 ROOT = Path(__file__).resolve().parents[1]
-MATRIX = ROOT / "policies" / "training" / "throw2d-scratch-m" / "matrices" / "site_matrix_2d_it450.json"
+MATRIX = ROOT / "policies" / "training" / "throw2d-scratch-u" / "matrices" / "site_matrix_2d_it125.json"
 
 
 def _run(tmp_path: Path) -> Path:
