@@ -40,7 +40,7 @@ def target_on_axis(mode: str, distance_m: float) -> list[float]:
 
 
 def throw_batch(policy_path: str | Path, mode: str, distance_m: float, seeds: list[int],
-                profile_path: str | Path | None = None, executor_config: dict | None = None) -> list[dict]:
+                profile_path: str | Path | None = None, executor_config: dict | None = None, engine: str = "mujoco") -> list[dict]:
     """Throws at one target distance (:func:`target_on_axis`), one per seed, each from the seed's
     random start pose on a simulated machine of the profile, by the runtime's executor. Runs in
     the calling process (a process pool's worker: the arguments are plain, picklable values).
@@ -53,6 +53,7 @@ def throw_batch(policy_path: str | Path, mode: str, distance_m: float, seeds: li
         profile_path: reality profile JSON, or None for the nominal twin.
         executor_config: keyword arguments of runtime.executor.ExecutorConfig (default its
             defaults: the release check on at its default radius).
+        engine: physics engine of the simulated machine (sim_twin.engines: "mujoco", "drake").
 
     Returns:
         One dict per throw: ``seed``, ``status`` ("landed", a failure, or "refused" with the
@@ -67,8 +68,8 @@ def throw_batch(policy_path: str | Path, mode: str, distance_m: float, seeds: li
     from runtime.policy import PolicyRunner
     from runtime.protocol.messages import ThrowRequest
     from runtime.release_check import ReleaseCheck
+    from sim_twin.engines import make_machine
     from sim_twin.profile import RealityProfile
-    from sim_twin.simulated_machine import SimulatedMachine
     from sim_twin.twin_machine import TwinMachine, run_throw
 
     policy = PolicyRunner.load(policy_path)
@@ -77,7 +78,7 @@ def throw_batch(policy_path: str | Path, mode: str, distance_m: float, seeds: li
     check = ReleaseCheck.load() if config.release_check_radius_m is not None else None  # one for the batch
     rows = []
     for seed in seeds:
-        sim = SimulatedMachine(profile, seed=seed)
+        sim = make_machine(engine, profile, seed=seed)
         sim.reset(cabin_turn=0.0 if mode == "2d" else None)
         twin = TwinMachine(sim, "eval")
         executor = ThrowExecutor({mode: policy}, config=config, release_check=check)
