@@ -43,6 +43,12 @@ Phases (messages.ThrowPhase): preparing -> swinging -> released -> landed | fail
 * every tick of swinging/released: runtime.machine.clearance_violations (ground, cabin, joint
   limit), non-finite state, no release within ``release_timeout_s`` of swing start and no impact
   within ``impact_timeout_s`` of the release command each end the throw as failed.
+* finality: a throw that a watchdog stopped never resumes. Every tick of a throw (any phase)
+  fails it "machine link lost: ..." when two consecutive machine states lie more than
+  ``max_state_gap_s`` apart in machine time (the machine or its link stalled: the machine's
+  valve watchdog has put the valves neutral meanwhile), or when the machine reports that its
+  valve watchdog tripped since the throw started (``MachineState.watchdog_trips`` grew). The
+  runtime's own stalls are judged by runtime.service (monotonic time between its ticks).
 
 Once a throw ends the executor is idle: valves neutral (references zero), gripper command kept.
 Every tick of a throw is recorded (runtime.telemetry.TelemetryRecorder).
@@ -63,10 +69,12 @@ from runtime.observation import (
     build_observation,
     decode_action,
     num_actions,
+    observation_size,
 )
 from runtime.outcome import PhaseEvent, ThrowOutcome, TickOutput
 from runtime.policy import PolicyError, PolicyRunner
 from runtime.protocol.messages import ImpactReport, MachineState, ThrowRequest
+from runtime.recovery import READY_POSE
 from runtime.release_check import DEFAULT_RADIUS_M, ReleaseCheck
 from runtime.telemetry import TelemetryRecorder
 from runtime.throw_geometry import impact_errors, target_refusal
@@ -89,6 +97,11 @@ class ExecutorConfig:
             policies (p99 <= 0.55 m nominal, <= 0.8 m on slow_hydraulics but 2.3 m in its 3D
             9.5 m cell; the largest predicted distance of a throw that landed within 3 m was 1.2 m;
             runtime.release_check, reports/release_check_accuracy.json), far below the 5-21 m of the wild releases.
+        max_state_gap_s: two machine states of a running throw further apart than this (machine
+            time, s) fail it (finality, module docstring). CHOSEN 0.2 s: the runtime's link
+            timeout (runtime.service.LINK_TIMEOUT_S), twice the simulated machine's valve
+            watchdog (sim_twin.plant.VALVE_WATCHDOG_S) and four periods of a resting machine's
+            20 Hz states.
     """
 
     prepare_timeout_s: float = 20.0
@@ -96,6 +109,7 @@ class ExecutorConfig:
     release_timeout_s: float = 10.0
     impact_timeout_s: float = 6.0
     release_check_radius_m: float | None = DEFAULT_RADIUS_M
+    max_state_gap_s: float = 0.2
 
 
 @dataclass
@@ -113,6 +127,7 @@ class _Throw:
     qd_ref: np.ndarray = field(default_factory=lambda: np.zeros(NUM_ACTIVE))
     release_stamp_s: float | None = None
     opening_stamp_s: float | None = None
+    watchdog_trips: int | None = None  # the machine's valve-watchdog count at the start (None: not reported)
     recorder: TelemetryRecorder = field(default_factory=TelemetryRecorder)
 
 
@@ -175,6 +190,16 @@ class ThrowExecutor:
     def phase(self) -> str | None:
         return self._throw.phase if self._throw else None
 
+    def warm_up(self) -> None:
+        """Run each policy once on a zero observation and the release check's predictor once from
+        the ready pose, so that the first throw does not pay for the inference sessions' and
+        MuJoCo's first calls in its control loop (runtime.service: no throw before warm-up)."""
+        for mode, runner in self.policies.items():
+            runner.act(np.zeros(observation_size(mode), dtype=np.float32))
+        if self._predictor is not None:
+            q = np.array([0.0, *READY_POSE, 0.0, 0.0])
+            self._predictor.predict(q, np.zeros(6), np.zeros(NUM_ACTIVE))
+
     # --- commands ---------------------------------------------------------------------------
     def start(self, request: ThrowRequest, state: MachineState | None) -> str | None:
         """Begin a throw; returns the reason it is refused, or None when accepted.
@@ -205,7 +230,8 @@ class ThrowExecutor:
         refusal = target_refusal(request.mode, request.target_m, float(state.q[0]), policy.target_range_m)
         if refusal:
             return refusal
-        self._throw = _Throw(request=request, policy=policy, start_stamp_s=state.stamp_s, aim_m=policy.aim_target(request.target_m))
+        self._throw = _Throw(request=request, policy=policy, start_stamp_s=state.stamp_s, aim_m=policy.aim_target(request.target_m),
+                             watchdog_trips=state.watchdog_trips)
         self._last_stamp_s = state.stamp_s
         self._gripper_cmd = False
         self.controller.neutral()
@@ -215,11 +241,14 @@ class ThrowExecutor:
     def tick(self, state: MachineState) -> TickOutput:
         """Advance one 100 Hz machine state; returns the commands to send."""
         th = self._throw
-        self._last_stamp_s = state.stamp_s
+        last, self._last_stamp_s = self._last_stamp_s, state.stamp_s
         if th is None:
             return self._output(self.controller.neutral())
         if not _state_finite(state):
             return self._finish("failed", "non-finite machine state", state.stamp_s)
+        stopped = self._watchdog_stop(th, state, last)
+        if stopped:
+            return self._finish("failed", f"machine link lost: {stopped}", state.stamp_s)
         if th.phase == "preparing":
             return self._tick_preparing(th, state)
         return self._tick_swinging(th, state)
@@ -259,6 +288,17 @@ class ThrowExecutor:
         if self._throw is None:
             return self._output(self.controller.neutral())
         return self._finish("failed", reason, self._last_stamp_s)
+
+    def _watchdog_stop(self, th: _Throw, state: MachineState, last_stamp_s: float | None) -> str | None:
+        """Why a watchdog has stopped the running throw ``th`` before ``state`` (finality, module
+        docstring), or None."""
+        gap = None if last_stamp_s is None else state.stamp_s - last_stamp_s
+        if gap is not None and gap > self.config.max_state_gap_s:
+            return f"machine states {gap:.2f} s apart (a watchdog stopped the arm)"
+        trips = state.watchdog_trips
+        if trips is not None and (th.watchdog_trips is None or trips > th.watchdog_trips):
+            return "the machine's valve watchdog stopped the arm"
+        return None
 
     # --- phases -----------------------------------------------------------------------------
     def _tick_preparing(self, th: _Throw, state: MachineState) -> TickOutput:

@@ -25,7 +25,11 @@ Wiring (keys in runtime/protocol/README.md):
   the reason;
 * fault injection for tests only: ``SLINGER_CLOCK_OFFSET_S`` runs this runtime's wall clock
   (command freshness, RuntimeInfo.clock_unix_s) that many seconds off the host's;
-* a watchdog thread (every 50 ms): no valid state for 0.2 s during a throw -> failed;
+* warm-up: throws are refused "runtime warming up" until each policy, the release check and the
+  telemetry writer ran once (RuntimeService.warm_up), E-STOPs work from the start;
+* a watchdog thread (every 50 ms): no valid state for 0.2 s during a throw -> failed; a gap of
+  more than 0.2 s between the runtime's own ticks (it stalled) fails the throw and refuses what
+  was queued meanwhile (runtime.service: finality);
 * the outbox delivers finished ThrowResults to keys.THROW_RESULT until the server acks;
 * queryable keys.policy_offer (PolicyOffer -> PolicyOfferAck): runtime.policy_update fetches,
   checks and installs offered policy versions between throws, publishing keys.policy_status.
@@ -43,7 +47,6 @@ import threading
 import time
 from pathlib import Path
 
-from runtime import telemetry
 from runtime.command_auth import CommandVerifier, load_key
 from runtime.controller import JointVelocityController
 from runtime.entrypoint import module_main, stop_on_signals
@@ -190,7 +193,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         status_pub = session.declare_publisher(keys.policy_status(machine_id))
         service = RuntimeService(machine_id, executor, lambda k, data: pubs[k].put(data), outbox.put,
                                  verifier=verifier, link_timeout_s=args.link_timeout, epoch=epoch, latch=latch,
-                                 wall_clock=wall_clock)
+                                 wall_clock=wall_clock, warm_up=True)
         updater = PolicyUpdater(machine_id, getattr(args, "policy_dir", None) or Path(f"{outbox_dir}-policies"),
                                 zenoh_fetcher(session), lambda msg: status_pub.put(encode(msg)), authorize=service.authorize)
 
@@ -220,7 +223,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             *pubs.values(),
         ]
         outbox.start()
-        telemetry.warm()  # ROS 2 message types and URDF loaded before the first throw ends
+        service.warm_up()  # policies, release check, telemetry writer: throws refused until done
         log.info("runtime %s up: epoch %d, policies %s, outbox %s", machine_id, epoch, sorted(policies), outbox_dir)
         try:
             while not stop.wait(WATCHDOG_PERIOD_S):

@@ -24,6 +24,25 @@ only by a signed EstopReset. The server's E-STOP arrives as a put on keys.estop
 refuses throws and fails a running one. The runtime never asks whether the machine is simulated:
 what only the simulated machine does (reloading a payload) happens inside the plant.
 
+Finality (a throw that a watchdog stopped never resumes): every entry (a state, a query, the
+watchdog tick) measures the monotonic time since the previous one; a gap over
+``stall_timeout_s`` means this runtime's own loop stalled (SIGSTOP, swapping, a starved host),
+during which the machine's valve watchdog has put the valves neutral. The running throw then
+fails "machine link lost: runtime stalled 1.23 s" (a return to the ready pose stops) before
+anything queued during the stall is acted on; commands issued before the stall ended are refused
+(:data:`STALLED`), and machine states later than ``stale_state_s`` (judged by the state's stamp
+against its receive time, relative to the smallest such lag of the last :data:`LAG_WINDOW_S`,
+so the machine's clock need not be this host's) are dropped, failing a running throw. The
+executor fails a throw whose machine states lie too far apart or during which the machine's
+valve watchdog tripped (runtime.executor). A failed throw leaves the executor idle: READY again
+only at rest, and only a new signed ThrowRequest starts anything.
+
+E-STOP edges: a confirmed EstopReset ends the stops that reached the runtime before it: a queued
+put of such a stop (same ``request_id``, fresh per press) is logged and ignored, never
+re-latching; every other abort latches. Warm-up: with ``warm_up=True`` throws are refused
+"runtime warming up" (and RuntimeInfo is not ready with that reason) until :meth:`warm_up`
+has run each policy, the release check and the telemetry writer once.
+
 Recovery (:mod:`runtime.recovery`): a signed ReturnToReady drives the arm back to the ready pose
 with the same controller gains; refused while E-STOP is latched, a throw runs, the machine is
 offline or faulted; stopped by an abort (E-STOP), a machine fault or a silent machine link.
@@ -37,10 +56,12 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
 
+from runtime import telemetry
 from runtime.command_auth import CommandVerifier, sign, verify_mac
 from runtime.controller import JointVelocityController
 from runtime.estop_latch import EstopLatchFile
@@ -88,6 +109,26 @@ INFO_PERIOD_S = 0.5
 
 NO_KEY = "no command key configured"
 
+STALL_TIMEOUT_S = 0.2
+"""No entry into the runtime (machine state, query, watchdog tick every 50 ms) for this long: the
+runtime's own loop stalled; a running throw fails (module docstring: finality). CHOSEN 0.2 s: the
+link timeout; four watchdog periods, so a loaded host's late tick is not a stall, while the
+machine's 0.1 s valve watchdog has surely stopped the arm."""
+
+STALE_STATE_S = 0.2
+"""A machine state received this much later than the freshest lag of the last LAG_WINDOW_S is stale
+(queued during a stall): dropped, a running throw fails."""
+
+LAG_WINDOW_S = 10.0
+"""Window of the receive-minus-stamp baseline, s: long enough to span any stall the runtime survives
+to judge, short enough that clock-rate drift between the machine and this host (50 ppm: 0.5 ms
+per window) does not count."""
+
+STALLED = "issued before this runtime's stall ended: not acted on"
+WARMING = "runtime warming up"
+CLEARED_STOPS = 256
+"""How many E-STOP request ids ended by resets are remembered (queued repeats of them are ignored)."""
+
 Send = Callable[[str, bytes], None]
 
 
@@ -115,6 +156,10 @@ class RuntimeService(RecoveryHandling):
             a latch on disk at construction starts this runtime latched.
         wall_clock: this host's wall clock, Unix s, reported as RuntimeInfo.clock_unix_s
             (default: the verifier's, else time.time).
+        stall_timeout_s: see STALL_TIMEOUT_S.
+        stale_state_s: see STALE_STATE_S.
+        warm_up: refuse throws "runtime warming up" until :meth:`warm_up` ran (the node);
+            False (tests that drive the service directly): ready at once.
     """
 
     def __init__(
@@ -129,6 +174,9 @@ class RuntimeService(RecoveryHandling):
         epoch: int | None = None,
         latch: EstopLatchFile | None = None,
         wall_clock: Callable[[], float] | None = None,
+        stall_timeout_s: float = STALL_TIMEOUT_S,
+        stale_state_s: float = STALE_STATE_S,
+        warm_up: bool = False,
     ):
         self.machine_id = keys.validate_machine_id(machine_id)
         self.executor = executor
@@ -156,6 +204,15 @@ class RuntimeService(RecoveryHandling):
         self._recovery_ctrl = JointVelocityController(ctrl.gains, ctrl.velocity_limits, ctrl.dt_s)
         self.recovery: Recovery | None = None
         """The current or last return to the ready pose."""
+        self.stall_timeout_s, self.stale_state_s = float(stall_timeout_s), float(stale_state_s)
+        self._alive_s: float | None = None  # monotonic time of the last entry (None: none yet)
+        self._stall_wall_s: float | None = None  # this host's wall clock when the last stall was detected
+        self.stalls = 0
+        self.stale_states = 0  # machine states dropped as stale (for tests and diagnostics)
+        self._lags: deque[tuple[float, float]] = deque()  # (receive s, receive - stamp s), lags increasing
+        self._stops_latched: set[str] = set()  # request ids of the E-STOP puts since the last reset
+        self._stops_cleared: deque[str] = deque(maxlen=CLEARED_STOPS)
+        self.warming: str | None = WARMING if warm_up else None
 
     # --- command authentication ---------------------------------------------------------------
     def authorize(self, msg: Message) -> str | None:
@@ -163,7 +220,54 @@ class RuntimeService(RecoveryHandling):
         "unsigned", "bad signature", "wrong epoch: ...", "stale (...)", "replayed nonce")."""
         if self.verifier is None:
             return NO_KEY
-        return self.verifier.check(msg)
+        denied = self.verifier.check(msg)
+        if denied:
+            return denied
+        with self.lock:
+            self._note_alive()
+            return self._stall_refusal(msg)
+
+    # --- finality: stalls and stale messages ----------------------------------------------------
+    def _note_alive(self) -> None:
+        """An entry into the runtime (caller holds the lock): a gap since the previous one over
+        ``stall_timeout_s`` is a stall of this runtime (:meth:`_stalled`)."""
+        now = self.clock()
+        last, self._alive_s = self._alive_s, now
+        if last is not None and now - last > self.stall_timeout_s:
+            self._stalled(now - last)
+
+    def _stalled(self, gap_s: float) -> None:
+        """This runtime did not run for ``gap_s``: fail the running throw (stop a return) before
+        anything queued meanwhile is acted on; commands issued until now are refused (STALLED)."""
+        self.stalls += 1
+        self._stall_wall_s = self.wall_clock()
+        why = f"machine link lost: runtime stalled {gap_s:.2f} s"
+        if self.returning:
+            self._stop_return(why)
+        if self.executor.busy:
+            log.error("runtime stalled for %.0f ms: throw %s failed", gap_s * 1e3, self.executor.throw_id)
+            self._publish(self.executor.fail(why), self._stamp())
+        else:
+            log.warning("runtime stalled for %.0f ms (idle): commands issued before now are refused", gap_s * 1e3)
+
+    def _stall_refusal(self, msg: Message) -> str | None:
+        """STALLED if the signed ``msg`` was issued before the last stall was detected."""
+        auth = getattr(msg, "auth", None)
+        if self._stall_wall_s is not None and auth is not None and auth.issued_unix_s <= self._stall_wall_s:
+            return STALLED
+        return None
+
+    def _lateness(self, state: MachineState, now: float) -> float:
+        """How much later than the freshest of the last LAG_WINDOW_S ``state`` arrived, s:
+        receive time minus stamp, against the window's smallest (a sliding-window minimum; the
+        machine's stamps may run on another clock)."""
+        lag, lags = now - state.stamp_s, self._lags
+        while lags and lags[-1][1] >= lag:
+            lags.pop()
+        lags.append((now, lag))
+        while lags[0][0] < now - LAG_WINDOW_S:
+            lags.popleft()
+        return lag - lags[0][1]
 
     @staticmethod
     def _who(msg: Message) -> str:
@@ -190,13 +294,34 @@ class RuntimeService(RecoveryHandling):
         if state is None:
             return
         with self.lock:
-            self.latest_state, self._state_rx_s = state, self.clock()
+            self._note_alive()
+            now = self.clock()
+            late = self._lateness(state, now)
+            if late > self.stale_state_s:
+                self._drop_stale(late)
+                return
+            if self.executor.busy and now - self._state_rx_s > self.link_timeout_s:  # the watchdog did not run
+                self._publish(self.executor.fail("machine link lost"), self._stamp())
+            self.latest_state, self._state_rx_s = state, now
             if state.machine_fault and self.executor.busy:
                 log.error("machine fault during throw %s: %s", self.executor.throw_id, state.machine_fault)
                 self._publish(self.executor.fail(f"machine fault: {state.machine_fault}"), state.stamp_s)
             if state.machine_fault and self.returning:
                 self._stop_return(f"machine fault: {state.machine_fault}")
             self._publish(self._tick_return(state) if self.returning else self.executor.tick(state), state.stamp_s)
+            self.publish_info()
+
+    def _drop_stale(self, late_s: float) -> None:
+        """A machine state ``late_s`` late (queued during a stall): not acted on; a running throw
+        fails, a return to the ready pose stops. Caller holds the lock."""
+        self.stale_states += 1
+        why = f"machine link lost: machine state {late_s:.2f} s late"
+        if self.stale_states == 1 or self.executor.busy or self.returning:
+            log.warning("dropping a machine state %.0f ms late (queued during a stall)", late_s * 1e3)
+        if self.returning:
+            self._stop_return(why)
+        if self.executor.busy:
+            self._publish(self.executor.fail(why), self._stamp())
             self.publish_info()
 
     def on_impact(self, payload: bytes) -> None:
@@ -209,8 +334,13 @@ class RuntimeService(RecoveryHandling):
 
     def check_watchdog(self) -> bool:
         """Fail the running throw (stop a return to the ready pose) if the machine link is
-        silent; returns True if it did."""
+        silent or this runtime stalled (:meth:`_note_alive`); returns True if it did."""
         with self.lock:
+            busy = self.executor.busy or self.returning
+            self._note_alive()
+            if busy and not (self.executor.busy or self.returning):  # the stall ended it
+                self.publish_info()
+                return True
             if self.returning and self.clock() - self._state_rx_s > self.link_timeout_s:
                 self._stop_return("machine link lost")
                 self._publish(TickOutput(np.zeros(4), np.zeros(4), bool(self._gripper_sent), (), None), self._stamp())
@@ -236,6 +366,7 @@ class RuntimeService(RecoveryHandling):
             return encode(ThrowAck(throw_id=req.throw_id, accepted=False, reason=f"this runtime serves {self.machine_id!r}"))
         denied = self.authorize(req)
         with self.lock:
+            self._note_alive()
             state = self.latest_state if self._online(self.link_timeout_s) else None
             reason = denied or self._throw_refusal(state) or self.executor.start(req, state)
             policy = self.executor.policies.get(req.mode)
@@ -254,6 +385,8 @@ class RuntimeService(RecoveryHandling):
         """Why no throw may start now (E-STOP, machine fault, pose), before the executor's checks."""
         if self.estop_reason is not None:
             return f"E-STOP latched: {self.estop_reason}"
+        if self.warming is not None:
+            return self.warming
         if self.executor.busy:
             return None  # the executor says "busy"
         if self.returning:
@@ -289,15 +422,40 @@ class RuntimeService(RecoveryHandling):
     def handle_abort(self, payload: bytes) -> bytes:
         """AbortRequest -> AbortAck; latches E-STOP. Honoured signed or not (an empty or
         malformed payload aborts with a default reason); the log says who asked, if signed.
-        Valves go neutral first; the latch is written to disk before the ack is returned."""
+        Valves go neutral first; the latch is written to disk before the ack is returned.
+        A stop that a confirmed reset already ended (:meth:`_ended_stop`) is acked and ignored."""
+        req, signed = self._abort_request(payload)
+        if self._ended_stop(req):
+            return encode(AbortAck(machine_id=self.machine_id, request_id=req.request_id, latch_persisted=False))
+        return self._abort(req, signed)
+
+    def _abort_request(self, payload: bytes) -> tuple[AbortRequest, bool]:
+        """The AbortRequest in ``payload`` (a default one for an empty or malformed payload) and
+        whether its MAC holds under this runtime's key."""
         try:
             req = decode(AbortRequest, payload) if payload else AbortRequest(machine_id=self.machine_id)
         except ValidationError as e:
             self.dropped += 1
             log.warning("malformed AbortRequest (aborting anyway): %s", _short(e))
             req = AbortRequest(machine_id=self.machine_id, reason="abort (malformed request)")
-        signed = self.verifier is not None and verify_mac(req, self.verifier.key) is None
+        return req, self.verifier is not None and verify_mac(req, self.verifier.key) is None
+
+    def _ended_stop(self, req: AbortRequest) -> bool:
+        """True (logged) if ``req`` is a stop a confirmed reset already ended: a repeat of an
+        E-STOP put whose ``request_id`` (fresh per press, server.estop) reached this runtime before
+        the reset (a slowed runtime still had it queued). Requests without a request id, and every
+        new press, always stop: a stop is never dated by a clock, whose estimate may move."""
         with self.lock:
+            ended = req.request_id is not None and req.request_id in self._stops_cleared
+        if ended:
+            log.warning("ignoring E-STOP request %s (%s): a confirmed reset already ended it", req.request_id, req.reason)
+        return ended
+
+    def _abort(self, req: AbortRequest, signed: bool) -> bytes:
+        """Abort and latch for ``req`` (handle_abort's body)."""
+        with self.lock:
+            if req.request_id is not None:
+                self._stops_latched.add(req.request_id)
             throw_id = self.executor.throw_id
             self._publish(self.executor.abort(req.reason), self._stamp())
             if self.returning:
@@ -332,8 +490,12 @@ class RuntimeService(RecoveryHandling):
 
     def on_estop(self, payload: bytes) -> None:
         """An E-STOP put (keys.estop) arrived: :meth:`handle_abort`, then publish its AbortAck on
-        keys.estop_ack (the sender waits for it; repeated puts of one stop are acked each)."""
-        self.send(keys.estop_ack(self.machine_id), self.handle_abort(payload))
+        keys.estop_ack (the sender waits for it; repeated puts of one stop are acked each). A put
+        of a stop that a confirmed reset ended (:meth:`_ended_stop`) is ignored, unanswered."""
+        req, signed = self._abort_request(payload)
+        if self._ended_stop(req):
+            return
+        self.send(keys.estop_ack(self.machine_id), self._abort(req, signed))
 
     def _addressed(self, payload: bytes, command_type, refusal):
         """Decode a command query for this machine: ``(request, None)``, or ``(None, refusal(why))``
@@ -367,9 +529,27 @@ class RuntimeService(RecoveryHandling):
                     log.error("E-STOP reset by %s refused: %s", self._who(req), why)
                     return encode(EstopResetAck(machine_id=self.machine_id, reset=False, reason=why))
             was, self.estop_reason, self._latch_on_disk = self.estop_reason, None, False
+            self._stops_cleared.extend(self._stops_latched)
+            self._stops_latched.clear()
             self.publish_info()
         log.warning("E-STOP reset by %s (was latched: %s)", self._who(req), was)
         return encode(EstopResetAck(machine_id=self.machine_id, reset=True))
+
+    # --- warm-up -----------------------------------------------------------------------------
+    def warm_up(self) -> float:
+        """Run each policy, the release check and the telemetry writer once
+        (ThrowExecutor.warm_up, runtime.telemetry.warm), then accept throws; returns the seconds
+        it took. Throws are refused "runtime warming up" until it returns; E-STOPs work meanwhile."""
+        t0 = time.monotonic()
+        self.executor.warm_up()  # no lock: the executor is idle (throws refused) and the policies are read only
+        telemetry.warm()
+        with self.lock:
+            self.warming = None
+            self._alive_s = None  # the warm-up's own time is no stall
+            self.publish_info()
+        took = time.monotonic() - t0
+        log.info("warmed up in %.2f s: throws accepted", took)
+        return took
 
     # --- shutdown and RuntimeInfo ---------------------------------------------------------------
     def shutdown(self) -> None:
@@ -388,6 +568,8 @@ class RuntimeService(RecoveryHandling):
             why: str | None
             if self.estop_reason is not None:
                 why = "E-STOP latched"
+            elif self.warming is not None:
+                why = self.warming
             elif self.verifier is None:
                 why = NO_KEY
             elif ex.busy:

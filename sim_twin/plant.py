@@ -25,6 +25,12 @@ What only the simulated machine does stays here, behind the machine interface:
   ("machine m1 already has a plant").
 * one driver: it follows only the newest ValveCommand epoch it has seen (a runtime's claim
   epoch); commands of an older epoch are dropped and logged once per epoch.
+* the valve watchdog is final: when it puts moving valves neutral (no fresh ValveCommand for
+  VALVE_WATCHDOG_S) it counts a trip (MachineState.watchdog_trips: the runtime fails the running
+  throw) and disarms: valve commands are held neutral until a neutral one arrives (the runtime
+  sends neutral once its throw has ended). A non-neutral command whose stamp (the stamp of the
+  machine state it answers, this plant's monotonic clock) is older than VALVE_WATCHDOG_S was
+  queued somewhere (a stalled runtime) and is dropped.
 * real time: when a period starts more than 100 ms late (sim_twin.realtime.BEHIND_FAULT_S), the
   plant publishes ``machine_fault`` "behind real time by N ms" and holds the valves neutral
   until it has kept real time for 1 s (RECOVER_S, RealTimeGuard); the runtime refuses throws
@@ -43,6 +49,7 @@ import argparse
 import logging
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -59,9 +66,10 @@ from runtime.protocol.messages import (
     encode,
 )
 from runtime.zenoh_session import Claimed, add_session_arguments, claim_exclusive, open_session, session_options
+from sim_twin.drake_plant import plant_twin
+from sim_twin.engines import ENGINES
 from sim_twin.profile import RealityProfile
 from sim_twin.realtime import RealTimeGuard
-from sim_twin.simulated_machine import SimulatedMachine
 from sim_twin.twin_machine import TwinMachine
 
 log = logging.getLogger(__name__)
@@ -83,6 +91,12 @@ class PlantInbox:
         self.gripper_open = False
         self.resets: list[SimReset] = []
         self.watchdog_tripped = False
+        self.watchdog_trips = 0
+        """Times the watchdog put moving valves neutral (published as MachineState.watchdog_trips)."""
+        self.armed = True
+        """False after a trip until a neutral ValveCommand arrives: non-neutral ones are held neutral."""
+        self.stale_commands = 0
+        """Non-neutral ValveCommands dropped because their stamp was older than VALVE_WATCHDOG_S."""
         self.still_ticks = 0
         """Consecutive periods with neutral valves, no reset, the same gripper command and every
         joint slower than REST_QD_RADPS (plant loop state; see plant_tick)."""
@@ -108,10 +122,22 @@ class PlantInbox:
         msg = self._decode(ValveCommand, sample)
         if msg is None:
             return
+        u, now = np.asarray(msg.u, dtype=float), time.monotonic()
         with self.lock:
             if not self.fence.admit(msg):
                 return
-            self.valve_u, self.valve_rx_s = np.asarray(msg.u, dtype=float), time.monotonic()
+            if u.any() and now - msg.stamp_s > VALVE_WATCHDOG_S:
+                self.stale_commands += 1
+                if self.stale_commands == 1 or self.armed:
+                    log.warning("dropping a valve command %.0f ms old (queued at a stalled runtime)", (now - msg.stamp_s) * 1e3)
+                return
+            if not self.armed:
+                if u.any():
+                    u = np.zeros(4)  # disarmed by the watchdog: neutral until the runtime sends neutral
+                else:
+                    self.armed = True
+                    log.info("valve watchdog re-armed by a neutral command")
+            self.valve_u, self.valve_rx_s = u, now
         if self.valve_u.any():
             self.wake.set()  # (always: the loop may be deciding to rest right now)
 
@@ -136,9 +162,15 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--machine-id", required=True, help="machine id, [A-Za-z0-9_-]{1,64}")
     parser.add_argument("--profile", default=None, help="reality profile JSON (default: nominal machine)")
     parser.add_argument("--seed", type=int, default=None, help="seed of the start pose and release-delay jitter")
+    parser.add_argument("--engine", choices=ENGINES, default="mujoco",
+                        help="physics engine: mujoco (the twin) or drake (an independent engine, sim_twin.drake_machine; "
+                             "its states carry no payload tracking, like a real machine's)")
     parser.add_argument("--ros2", nargs="?", const="", default=None, metavar="CONFIG",
-                        help="speak ROS 2 (rmw_zenoh) with the ROS 2 bridge's mapping file (default: identity mapping); "
-                             "the runtime then reaches this plant through `slinger ros2-bridge` (sim_twin.ros2_plant)")
+                        help="be a ROS 2 driver node (rclpy; middleware by RMW_IMPLEMENTATION) with the ROS 2 bridge's mapping "
+                             "file (default: identity mapping); the runtime then reaches this plant through `slinger ros2-bridge` "
+                             "(sim_twin.ros2_plant)")
+    parser.add_argument("--domain-id", type=int, default=None,
+                        help="with --ros2: ROS_DOMAIN_ID (default: the mapping's, else the environment's ROS_DOMAIN_ID, else 0)")
     add_session_arguments(parser)
 
 
@@ -151,9 +183,12 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     except (ValueError, OSError) as e:
         log.error("cannot start plant: %s", e)
         return 2
+    try:  # random collision-free pose, cabin_turn 0, on the chosen physics engine (sim_twin.drake_plant)
+        twin = plant_twin(getattr(args, "engine", "mujoco"), profile, args.seed, machine_id, clock=time.monotonic)
+    except (ValueError, ImportError) as e:
+        log.error("cannot start plant: %s", e)
+        return 2
     stop = stop_on_signals(stop)
-    sim = SimulatedMachine(profile, seed=args.seed)  # random collision-free pose, cabin_turn 0
-    twin = TwinMachine(sim, machine_id, clock=time.monotonic)
     inbox = PlantInbox(machine_id)
     if getattr(args, "ros2", None) is not None:
         return _run_ros2(args, machine_id, zenoh_opts, twin, inbox, stop)
@@ -187,18 +222,21 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
 
 def _run_ros2(args, machine_id: str, zenoh_opts: dict, twin: TwinMachine, inbox: PlantInbox, stop: threading.Event) -> int:
     """The plant loop behind ROS 2 topics (sim_twin.ros2_plant) instead of the machine interface."""
-    from runtime.ros2.config import BridgeConfig, ConfigError, load
+    from runtime.ros2.bridge import load_config
+    from runtime.ros2.config import ConfigError
+    from runtime.ros2.node import DomainRefused, RosUnavailable
     from sim_twin.ros2_plant import RosPlantPorts
 
     try:
-        config = load(args.ros2) if args.ros2 else BridgeConfig()
-    except ConfigError as e:
+        config = load_config(Path(args.ros2) if args.ros2 else None, getattr(args, "domain_id", None))
+        ports = RosPlantPorts(config.model_copy(update={"simulated": True}), machine_id, inbox)
+    except (ConfigError, DomainRefused, RosUnavailable) as e:
         log.error("cannot start plant: %s", e)
         return 2
     with open_session(**zenoh_opts) as session:
-        ports = RosPlantPorts(session, config.model_copy(update={"simulated": True}), machine_id, inbox)
         reset_sub = session.declare_subscriber(keys.sim_reset(machine_id), inbox.on_reset)
-        log.info("plant %s up as ROS 2 node /%s (ROS_DOMAIN_ID %d)", machine_id, ports.node.name, config.domain_id)
+        log.info("plant %s up as ROS 2 node %s on ROS_DOMAIN_ID %d over %s, %s", machine_id,
+                 ports.node.node.get_fully_qualified_name(), ports.node.domain_id, ports.node.rmw, ports.node.discovery)
         try:
             _loop(twin, inbox, ports.state, ports.impact, stop)
         finally:
@@ -239,12 +277,18 @@ def plant_tick(twin: TwinMachine, inbox: PlantInbox, now_s: float) -> tuple[Mach
         gripper = inbox.gripper_open
         if not fresh and not inbox.watchdog_tripped and np.isfinite(inbox.valve_rx_s):
             log.warning("no valve command for %.0f ms: valves neutral", VALVE_WATCHDOG_S * 1e3)
+            if inbox.valve_u.any():  # it stopped a moving arm: final (module docstring)
+                inbox.watchdog_trips += 1
+                inbox.armed = False
+                inbox.valve_u = np.zeros(4)
         inbox.watchdog_tripped = not fresh
+        trips = inbox.watchdog_trips
     quiet = not resets and not u.any() and gripper == inbox.last_gripper
     inbox.last_gripper = gripper
     inbox.resting = quiet and inbox.still_ticks >= REST_TICKS and inbox.rest_state is not None
     if inbox.resting and inbox.rest_state is not None:  # resting implies a rest state
-        return inbox.rest_state.model_copy(update={"stamp_s": twin._clock(), "machine_fault": twin.fault}), None  # noqa: SLF001
+        return inbox.rest_state.model_copy(update={"stamp_s": twin._clock(), "machine_fault": twin.fault,  # noqa: SLF001
+                                                   "watchdog_trips": trips}), None
     for r in resets:
         q = twin.apply_reset(r)
         log.info("sim reset %d: q_active %s", twin.reset_count, np.round(q[:4], 3).tolist())
@@ -252,7 +296,7 @@ def plant_tick(twin: TwinMachine, inbox: PlantInbox, now_s: float) -> tuple[Mach
     if report is None and twin.reload_if_due():
         with inbox.lock:
             inbox.gripper_open = False  # the fresh payload sits in a closed gripper
-    state = twin.state()
+    state = twin.state().model_copy(update={"watchdog_trips": trips})
     # the true joint speeds: the simulated machine knows them (the measured ones carry sensor noise)
     still = quiet and twin.loaded and float(np.max(np.abs(twin.sim.data.qvel))) < REST_QD_RADPS
     inbox.still_ticks = inbox.still_ticks + 1 if still else 0

@@ -3,6 +3,8 @@ period (valve watchdog, resets, malformed commands)."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -48,7 +50,7 @@ def test_reset_keeps_the_cabin_angle_and_counts():
 
 def test_valve_watchdog_neutralises_stale_commands():
     twin, inbox = TwinMachine(SimulatedMachine(seed=0), "m1"), PlantInbox("m1")
-    inbox.on_valve(_sample(ValveCommand(machine_id="m1", stamp_s=0.0, u=[0.0, 0.0, 0.0, 1.0])))
+    inbox.on_valve(_sample(ValveCommand(machine_id="m1", stamp_s=time.monotonic(), u=[0.0, 0.0, 0.0, 1.0])))
     t0 = inbox.valve_rx_s
     for k in range(30):
         inbox.valve_rx_s = t0 + 0.01 * k - 0.09  # commands keep arriving, 90 ms old at worst
@@ -62,7 +64,7 @@ def test_valve_watchdog_neutralises_stale_commands():
 
 def test_commands_for_other_machines_or_malformed_are_dropped():
     inbox = PlantInbox("m1")
-    inbox.on_valve(_sample(ValveCommand(machine_id="m2", stamp_s=0.0, u=[1.0, 0.0, 0.0, 0.0])))
+    inbox.on_valve(_sample(ValveCommand(machine_id="m2", stamp_s=time.monotonic(), u=[1.0, 0.0, 0.0, 0.0])))
     inbox.on_valve(_sample(b'{"u": [NaN, 0, 0, 0]}'))
     inbox.on_gripper(_sample(b"nonsense"))
     assert not np.isfinite(inbox.valve_rx_s) and not inbox.gripper_open
@@ -118,7 +120,7 @@ def test_only_the_newest_runtime_epoch_drives_the_valves():
     inbox = PlantInbox("m1")
 
     def valve(u, epoch):
-        inbox.on_valve(_sample(ValveCommand(machine_id="m1", stamp_s=0.0, u=[u, 0.0, 0.0, 0.0], epoch=epoch)))
+        inbox.on_valve(_sample(ValveCommand(machine_id="m1", stamp_s=time.monotonic(), u=[u, 0.0, 0.0, 0.0], epoch=epoch)))
         return inbox.valve_u[0]
 
     assert valve(0.1, None) == 0.1  # before any epoch: tools without a claim may drive
@@ -126,7 +128,7 @@ def test_only_the_newest_runtime_epoch_drives_the_valves():
     assert valve(0.3, 7) == 0.3 and inbox.epoch == 7  # a newer runtime takes over
     assert valve(0.4, 5) == 0.3 and valve(0.5, None) == 0.3  # the old one is ignored
     with pytest.raises(ValidationError):
-        ValveCommand(machine_id="m1", stamp_s=0.0, u=[0.0] * 4, epoch=-1)
+        ValveCommand(machine_id="m1", stamp_s=time.monotonic(), u=[0.0] * 4, epoch=-1)
 
 
 def test_real_time_guard_faults_and_recovers():
@@ -144,7 +146,7 @@ def test_real_time_guard_faults_and_recovers():
 
 def test_a_faulted_plant_holds_the_valves_neutral_and_says_why():
     twin, inbox = TwinMachine(SimulatedMachine(seed=0), "m1"), PlantInbox("m1")
-    inbox.on_valve(_sample(ValveCommand(machine_id="m1", stamp_s=0.0, u=[0.0, 0.0, 0.0, 1.0])))
+    inbox.on_valve(_sample(ValveCommand(machine_id="m1", stamp_s=time.monotonic(), u=[0.0, 0.0, 0.0, 1.0])))
     speeds = []
     for fault in ("behind real time by 150 ms", None):
         twin.fault = fault

@@ -51,13 +51,13 @@ def test_resting_loop_sleeps_between_publications_and_a_command_wakes_it(monkeyp
         rest_ticks, rest_states, window_s = len(ticks) - n0, len(pub.states) - s0, time.monotonic() - t0
         assert rest_ticks <= 30 * window_s, (rest_ticks, window_s)  # 20 per second (100 before)
         assert rest_states >= 3 and rest_states >= rest_ticks - 1  # each resting wake publishes
-        inbox.on_valve(_sample(ValveCommand(machine_id="m1", stamp_s=0.0, u=[0.0] * 4)))
+        inbox.on_valve(_sample(ValveCommand(machine_id="m1", stamp_s=time.monotonic(), u=[0.0] * 4)))
         assert not inbox.wake.is_set()  # neutral valves (the runtime's 20 Hz feed) leave it resting
-        inbox.on_valve(_sample(ValveCommand(machine_id="m1", stamp_s=0.0, u=[0.0, 0.0, 0.0, 1.0])))
+        inbox.on_valve(_sample(ValveCommand(machine_id="m1", stamp_s=time.monotonic(), u=[0.0, 0.0, 0.0, 1.0])))
         wait_for(lambda: not inbox.resting, 5, "plant awake")
         n1 = len(ticks)
         while len(ticks) - n1 < 20:  # keep the command fresh (valve watchdog) while it moves
-            inbox.on_valve(_sample(ValveCommand(machine_id="m1", stamp_s=0.0, u=[0.0, 0.0, 0.0, 1.0])))
+            inbox.on_valve(_sample(ValveCommand(machine_id="m1", stamp_s=time.monotonic(), u=[0.0, 0.0, 0.0, 1.0])))
             time.sleep(0.01)
         assert not inbox.resting and abs(twin.sim.qd[3]) > 0.0
     finally:

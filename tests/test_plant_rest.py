@@ -27,7 +27,7 @@ def test_resting_machine_is_not_integrated_and_wakes_on_a_command():
     stamps = [plant_tick(twin, inbox, 1.0 + 0.01 * k)[0].stamp_s for k in range(30)]
     assert twin.sim.time_s == sim_t and np.array_equal(twin.sim.q, q)  # nothing integrated
     assert all(b > a for a, b in zip(stamps, stamps[1:]))  # but the state is fresh
-    inbox.on_valve(_Sample(ValveCommand(machine_id="m1", stamp_s=0.0, u=[0.0, 0.0, 0.0, 1.0])))
+    inbox.on_valve(_Sample(ValveCommand(machine_id="m1", stamp_s=time.monotonic(), u=[0.0, 0.0, 0.0, 1.0])))
     for k in range(30):
         inbox.valve_rx_s = 2.0 + 0.01 * k
         st, _ = plant_tick(twin, inbox, 2.0 + 0.01 * k)

@@ -72,6 +72,9 @@ class MachineState(Stamped):
         machine_fault: why the machine cannot be commanded now (e.g. the simulated machine
             "behind real time by 150 ms"), or None. The runtime refuses throws with this reason
             and fails a running one.
+        watchdog_trips: how often the machine's valve watchdog has put the valves neutral since
+            it started (no fresh ValveCommand for its bound), or None when the machine does not
+            report it. A running throw during which it grows fails (runtime.executor: finality).
     """
 
     q: Vec6
@@ -83,6 +86,7 @@ class MachineState(Stamped):
     simulated: bool = False
     reset_count: Annotated[int, Field(ge=0)] | None = None
     machine_fault: Annotated[str, Field(max_length=200)] | None = None
+    watchdog_trips: Annotated[int, Field(ge=0)] | None = None
 
 
 class ValveCommand(Stamped):
