@@ -150,7 +150,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 
             children.spawn("worker", worker_argv(settings), settings.data_dir / "logs")
             stack.spawn_machines(children, args.machines, hub, policies, settings.data_dir, site.root,
-                                 settings.release_check_radius_m)
+                                 settings.release_check_radius_m, engine=args.engine)
             children.supervise()
             log.info("child logs in %s", settings.data_dir / "logs")
             return _serve(settings, zenoh_session=session, on_started=_print_urls(settings))
@@ -201,6 +201,8 @@ def _delegate(module_name: str, rest: list[str], prog: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from sim_twin.engines import ENGINES
+
     parser = argparse.ArgumentParser(prog="slinger", description="Slinger: dynamic throwing with material handlers")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -211,6 +213,9 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--machines", type=int, default=1, help="number of simulated machines, ids m1..mN (default 1)")
     up.add_argument("--policy-2d", type=Path, default=None, help="2D policy ONNX (default policies/throw2d.onnx in the repo)")
     up.add_argument("--policy-3d", type=Path, default=None, help="3D policy ONNX (default policies/throw3d.onnx if present)")
+    up.add_argument("--engine", choices=ENGINES, default="mujoco",
+                    help="physics engine of the simulated machines: mujoco (the twin) or drake (an independent engine; "
+                         "needs the 'drake' extra)")
     up.set_defaults(func=cmd_up)
 
     srv = sub.add_parser("server", help="only the server: API, console, 3D view")

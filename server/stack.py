@@ -45,8 +45,9 @@ def machine_ids(n: int) -> list[str]:
 
 
 def spawn_machines(children: Children, n: int, hub: str, policies: dict[str, Path], data_dir: Path,
-                   site_dir: Path | None = None, release_check_radius_m: float | None = DEFAULT_RADIUS_M) -> None:
-    """Per machine: the simulated machine, and its runtime if any policy is given.
+                   site_dir: Path | None = None, release_check_radius_m: float | None = DEFAULT_RADIUS_M, engine: str = "mujoco") -> None:
+    """Per machine: the simulated machine, and its runtime if any policy is given. The simulated
+    machines run on the physics ``engine`` (sim_twin.engines: "mujoco", or "drake" for an independent one).
 
     With ``site_dir`` (server.certs.make_site) every child uses mutual TLS and the site's access
     control (``--tls-dir``; ``hub`` and the children's own listeners are then ``tls/``
@@ -57,9 +58,10 @@ def spawn_machines(children: Children, n: int, hub: str, policies: dict[str, Pat
     proto = "tls" if site_dir is not None else "tcp"
     tls = ["--tls-dir", str(site_dir), "--acl-machines", *ids] if site_dir is not None else []
     radius = ["--release-check-radius", "off" if release_check_radius_m is None else str(release_check_radius_m)]
+    engine_arg = ["--engine", engine]
     for i, mid in enumerate(ids):
         link = ["--connect", hub, "--listen", f"{proto}/127.0.0.1:0", *tls]
-        children.spawn(f"plant-{mid}", slinger_command("plant", "--machine-id", mid, "--seed", str(i), *link), log_dir)
+        children.spawn(f"plant-{mid}", slinger_command("plant", "--machine-id", mid, "--seed", str(i), *engine_arg, *link), log_dir)
         if not policies:
             continue
         pol = [a for mode, p in sorted(policies.items()) for a in (f"--policy-{mode}", str(p))]

@@ -43,7 +43,7 @@ Choices of ours (CHOSEN), each the paper's number or Drake's default where one e
   accelerations with the twin's effective inertias (runtime.dynamics.model.passive_inertia), so
   both engines get the same friction values. CHOSEN: the conversion, and tanh smoothing at
   0.01 rad/s as in the twin.
-* **contact**: the ground (a half-space at z = 0) and the gripper (a 0.9 x 0.9 x 1.0 m box, the
+* **contact**: the ground (a 60 x 60 m box with its top at z = 0) and the gripper (a 0.9 x 0.9 x 1.0 m box, the
   MJCF's gripper geom) collide, with Drake's default point-contact parameters (penetration
   allowance 1 mm) and Coulomb friction 0.5 (CHOSEN: steel on soil). The MuJoCo twin has no
   contact (its geoms do not collide): a gripper at the ground there is only a clearance
@@ -71,6 +71,8 @@ from sim_twin.simulated_machine import Impact
 
 GROUND_FRICTION = 0.5
 """Coulomb friction of the gripper on the ground (CHOSEN: steel on soil)."""
+GROUND_BOX_M = (60.0, 60.0, 1.0)
+"""The ground: a box with its top face at z = 0 (the MJCF's 60 x 60 m ground plane)."""
 GRIPPER_BOX_M = (0.9, 0.9, 1.0)
 """The gripper's collision box (the MJCF's gripper geom, half sizes 0.45, 0.45, 0.5), centred at
 the gripper centre."""
@@ -149,7 +151,7 @@ class DrakeMachine:
     """
 
     def __init__(self, profile: RealityProfile | None = None, seed: int | None = None):
-        from pydrake.geometry import Box, HalfSpace
+        from pydrake.geometry import Box
         from pydrake.math import RigidTransform
         from pydrake.multibody.parsing import Parser
         from pydrake.multibody.plant import AddMultibodyPlant, CoulombFriction, MultibodyPlantConfig
@@ -167,7 +169,8 @@ class DrakeMachine:
         Parser(plant).AddModelsFromString(machine_urdf(), "urdf")
         plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("machine"))
         friction = CoulombFriction(GROUND_FRICTION, GROUND_FRICTION)
-        plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform(), HalfSpace(), "ground", friction)
+        ground = RigidTransform(np.array([0.0, 0.0, -GROUND_BOX_M[2] / 2]))  # type: ignore[arg-type]  # pydrake stub
+        plant.RegisterCollisionGeometry(plant.world_body(), ground, Box(*GROUND_BOX_M), "ground", friction)
         gripper = plant.GetBodyByName("gripper")
         plant.RegisterCollisionGeometry(gripper, RigidTransform(np.array(GRIPPER_CENTRE_LOCAL_M)),  # type: ignore[arg-type]  # pydrake stub
                                         Box(*GRIPPER_BOX_M), "gripper", friction)

@@ -6,10 +6,11 @@ pick the machine here."""
 
 from __future__ import annotations
 
-from typing import cast
+from typing import TYPE_CHECKING, cast
 
-from sim_twin.profile import RealityProfile
-from sim_twin.simulated_machine import SimulatedMachine
+if TYPE_CHECKING:  # imported where a machine is made: the command line reads ENGINES without MuJoCo
+    from sim_twin.profile import RealityProfile
+    from sim_twin.simulated_machine import SimulatedMachine
 
 ENGINES = ("mujoco", "drake")
 """Engine names; ``mujoco`` is the default everywhere."""
@@ -36,6 +37,8 @@ def make_machine(engine: str, profile: RealityProfile | None = None, seed: int |
         ValueError: unknown engine, or a profile the engine cannot apply.
         ImportError: engine ``drake`` without pydrake installed.
     """
+    from sim_twin.simulated_machine import SimulatedMachine
+
     if check_engine(engine) == "mujoco":
         return SimulatedMachine(profile, seed=seed)
     from sim_twin.drake_machine import DrakeMachine
