@@ -21,9 +21,10 @@ from sqlalchemy.orm import Session, sessionmaker
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
 from server.adaptation import AdaptationRuns
+from server.alarms import AlarmService
 from server.api.errors import domain_error
 from server.api.responses import document_errors
-from server.api.routes import adaptation, auth, diagnosis, health, jobs, live, machines, policies, previews, scene, throws, users
+from server.api.routes import adaptation, alarms, auth, diagnosis, health, jobs, live, machines, policies, previews, scene, throws, users
 from server.command_signer import CommandSigner
 from server.config import Settings, get_settings
 from server.db.migrate import upgrade
@@ -47,10 +48,11 @@ from server.scene import ConsoleScene
 from server.storage import StorageFault, StorageMonitor, classify, storage_response
 from server.throws import ThrowService
 from server.web_guard import BodySizeLimit, SecurityHeaders, inline_script_hashes
+from server.web_pages import PageFiles
 
 log = logging.getLogger(__name__)
 
-ROUTE_MODULES = (health, auth, users, machines, throws, previews, policies, scene, live, diagnosis, adaptation, jobs)
+ROUTE_MODULES = (health, auth, users, machines, throws, previews, policies, scene, live, diagnosis, adaptation, jobs, alarms)
 
 WEB_DIR = next((d for d in (Path(__file__).resolve().parent / "web", Path(__file__).resolve().parent.parent / "web")
                 if d.is_dir()), Path(__file__).resolve().parent.parent / "web")
@@ -120,9 +122,18 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         app.state.diagnosis_runs = DiagnosisRuns(sessions, app.state.jobs, settings.data_dir)
         app.state.adaptation_runs = AdaptationRuns(app.state.diagnosis_runs, app.state.policies, app.state.previews,
                                                    app.state.jobs)
+        app.state.alarms = alarm_service = AlarmService(sessions, publish=live_hub.publish,
+                                                        simulated=lambda mid: _simulated(fleet, mid))
+
+        def publish_drift(event: str, data: dict) -> None:  # a drift alert is also an alarm
+            live_hub.publish(event, data)
+            alarm_service.on_drift(data)
+
         app.state.drift = live_hub.drift = DriftWatch(sessions, settings.data_dir, app.state.diagnosis_runs,
-                                                      webhook_url=settings.drift_webhook_url, publish=live_hub.publish)
+                                                      webhook_url=settings.drift_webhook_url, publish=publish_drift)
+        alarm_service.drift_ack = app.state.drift.acknowledge
         fleet.add_consumer(on_results(app.state.drift.on_result))
+        fleet.add_consumer(alarm_service.on_event)
         try:
             live_hub.start()  # a consumer before the fleet's subscribers exist: it hears every event
             fleet.start()
@@ -169,7 +180,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
     for module in ROUTE_MODULES:
         app.include_router(module.router)
     if WEB_DIR.is_dir():
-        app.mount("/console", StaticFiles(directory=WEB_DIR, html=True), name="console")
+        app.mount("/console", PageFiles(directory=WEB_DIR, html=True), name="console")  # one head: server.web_pages
 
         @app.get("/", include_in_schema=False)
         def _root() -> RedirectResponse:
@@ -241,6 +252,12 @@ class ResultDrawer:
             if row is None:
                 return
             self.scene.show_throw(row.machine_id, self.store.telemetry_file(row), row.impact_m, row.target_m)
+
+
+def _simulated(fleet: Fleet, machine_id: str) -> bool:
+    """Whether the fleet knows ``machine_id`` as a simulated machine (RuntimeInfo or MachineState)."""
+    info, state = fleet.last_info(machine_id), fleet.latest_state(machine_id)
+    return bool((info is not None and info.simulated) or (state is not None and state.simulated))
 
 
 def _migrate(database_url: str, storage: StorageMonitor) -> None:

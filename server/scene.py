@@ -60,13 +60,30 @@ _FRAME_SCRIPT = (
     " var init = { bubbles: true, cancelable: true, clientX: t.clientX, clientY: t.clientY, button: 0,"
     " buttons: /down/.test(type) ? 1 : 0, pointerId: 1, pointerType: 'mouse', isPrimary: true };"
     " c.dispatchEvent(/pointer/.test(type) ? new PointerEvent(type, init) : new MouseEvent(type, init)); }); }, true);"
+    # frame-rate cap: at most FAST_FPS while the operator orbits, zooms or taps (the last second),
+    # else IDLE_FPS: a view on software WebGL never takes the console page's main thread whole
+    " var raf = window.requestAnimationFrame.bind(window), caf = window.cancelAnimationFrame.bind(window);"
+    " var jobs = {}, nextId = 1, lastFrame = 0, lastInput = 0;"
+    " ['pointerdown', 'pointermove', 'wheel', 'touchstart', 'keydown'].forEach(function (type) {"
+    " window.addEventListener(type, function () { lastInput = performance.now(); }, { capture: true, passive: true }); });"
+    " window.requestAnimationFrame = function (cb) { var id = nextId++; var now = performance.now();"
+    " var gap = now - lastInput < 1000 ? 1000 / %(fast)d : 1000 / %(idle)d;"
+    " var run = function () { jobs[id] = { r: raf(function (t) { delete jobs[id]; lastFrame = performance.now(); cb(t); }) }; };"
+    " var wait = lastFrame + gap - now - 8; if (wait > 0) jobs[id] = { t: setTimeout(run, wait) }; else run(); return id; };"
+    " window.cancelAnimationFrame = function (id) { var j = jobs[id]; delete jobs[id];"
+    " if (j && j.t) clearTimeout(j.t); if (j && j.r) caf(j.r); };"
 )
+VIEW_FAST_FPS = 30
+"""The 3D view's frame-rate cap while the operator moves the camera or taps (the last second)."""
+VIEW_IDLE_FPS = 12
+"""The 3D view's frame-rate cap otherwise (the machine's pose arrives at ConsoleScene.rate_hz)."""
 ESTOP_KEY_FORWARD = ('<img alt="" src="data:," onerror="if (!window.__slingerKeys) { window.__slingerKeys = 1; '
-                     + _FRAME_SCRIPT + ' }">')
+                     + _FRAME_SCRIPT % {"fast": VIEW_FAST_FPS, "idle": VIEW_IDLE_FPS} + ' }">')
 """Injected into viser's page like OPERATOR_ONLY_CANVAS: Esc pressed while the focus is in the 3D
 view (another origin: the console page cannot hear its keys) is posted to the console page, whose
 status strip (web/js/strip.js) sends the E-STOP; a one-finger tap on a touch screen is replayed as
-a mouse click (viser turns clicks, not taps, into target rays). viser renders GUI HTML with
+a mouse click (viser turns clicks, not taps, into target rays); the view's animation frames are capped
+(VIEW_FAST_FPS / VIEW_IDLE_FPS). viser renders GUI HTML with
 innerHTML, where a <script> does not run but an image's error handler does (the empty data: URL is
 no image)."""
 MAX_CONSOLES = 500
@@ -144,6 +161,10 @@ class Console:
     preview_names: list[str] = field(default_factory=list)
     touched: float = field(default_factory=time.monotonic)
     replay: Replay | None = None
+    view_token: str = field(default_factory=lambda: secrets.token_urlsafe(18))
+    """The secret in the view's websocket path (/c/<console_id>/<view_token>) that binds the view
+    to this console without a session cookie: the console page serves the view from another host
+    name (its own renderer process), to which the browser sends no cookie of the console's."""
 
     def public(self) -> dict:
         return {"console_id": self.console_id, "machine_id": self.machine_id, "mode": self.mode,
@@ -266,10 +287,11 @@ class ConsoleScene:
         return con
 
     def update_console(self, con: Console, machine_id: str | None = None, mode: str | None = None,
-                       target=None) -> Console:
-        """Change what a console shows; a new machine or mode drops the old target, preview and throw."""
+                       target=None, clear: bool = False) -> Console:
+        """Change what a console shows; a new machine or mode, or ``clear`` (the page saw its
+        machine's runtime restart), drops the old target, preview and throw drawings."""
         with self._lock:
-            changed = (machine_id is not None and machine_id != con.machine_id) or (mode is not None and mode != con.mode)
+            changed = clear or (machine_id is not None and machine_id != con.machine_id) or (mode is not None and mode != con.mode)
             if machine_id is not None:
                 con.machine_id = machine_id
             if mode is not None:
@@ -332,15 +354,24 @@ class ConsoleScene:
             return None
 
     def _console_of_client(self, client) -> str | None:
-        """The console id in the client's websocket path (/c/<console_id>), or None (a view opened
-        outside a console page), if the client may bind to it (:attr:`authorise`)."""
+        """The console id in the client's websocket path (/c/<console_id>[/<view_token>]), or None
+        (a view opened outside a console page), if the client may bind to it: its path carries
+        the console's view token, or (:attr:`authorise`) its cookie logs in the console's owner."""
         request = self._request_of_client(client)
         if request is None:
             return None
         path = request.path.split("?")[0]
         parts = [p for p in path.split("/") if p]
-        cid = parts[1] if len(parts) == 2 and parts[0] == "c" else None
-        if cid is None or self.authorise is None:
+        cid = parts[1] if len(parts) in (2, 3) and parts[0] == "c" else None
+        if cid is None:
+            return None
+        if len(parts) == 3:
+            con = self.get_console(cid)
+            if con is not None and secrets.compare_digest(parts[2], con.view_token):
+                return cid
+            log.warning("3D view for console %s… not bound: its view token is not the console's", cid[:6])
+            return None
+        if self.authorise is None:
             return cid
         cookie = http.cookies.SimpleCookie()
         try:

@@ -5,7 +5,7 @@
   limit is small (JSON bodies); routes that take files get their own explicit, larger limit.
 - :class:`SecurityHeaders`: ``Content-Security-Policy`` (own scripts plus the console pages'
   inline scripts by hash, no ``unsafe-inline`` for scripts; the viser 3D view may be framed from
-  the same host on any port; this site may not be framed by anyone: ``frame-ancestors 'none'``),
+  the same host on any port, and on a loopback name from the other loopback name; this site may not be framed by anyone: ``frame-ancestors 'none'``),
   ``X-Frame-Options: DENY``, ``X-Content-Type-Options: nosniff``, ``Referrer-Policy:
   same-origin``. /docs and /redoc (server.app: Swagger UI and ReDoc from the server itself) run inline code: they get
   the other headers but no CSP.
@@ -26,6 +26,9 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 _INLINE_SCRIPT = re.compile(r"<script(?![^>]*\bsrc=)[^>]*>(.*?)</script>", re.DOTALL | re.IGNORECASE)
 _HOSTNAME = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]{1,253})$")
 NO_CSP_PATHS = ("/docs", "/redoc")
+LOOPBACK_NAMES = {"localhost": "127.0.0.1", "127.0.0.1": "localhost"}
+"""The two names of the loopback interface: a console page opened under one frames its 3D view
+under the other (another site, so Chromium draws the view in its own renderer process)."""
 
 
 def inline_script_hashes(web_dir: Path) -> list[str]:
@@ -40,6 +43,8 @@ def inline_script_hashes(web_dir: Path) -> list[str]:
 def content_security_policy(scheme: str, hostname: str | None, script_hashes: list[str]) -> str:
     """The console's CSP for a request to ``scheme://hostname``."""
     frame = f" {scheme}://{hostname}:*" if hostname and _HOSTNAME.match(hostname) else ""
+    if hostname in LOOPBACK_NAMES:  # the console serves its 3D view under the other name (web/js/common.js viewHost)
+        frame += f" {scheme}://{LOOPBACK_NAMES[hostname]}:*"
     return "; ".join([
         "default-src 'self'", "script-src " + " ".join(["'self'", *script_hashes]),
         "style-src 'self' 'unsafe-inline'", "img-src 'self' data: blob:", "connect-src 'self'",

@@ -45,6 +45,9 @@ class ConsoleUpdate(BaseModel):
     machine_id: str | None = Field(default=None, min_length=1, max_length=64)
     mode: Literal["2d", "3d"] | None = None
     target: Vec3 | None = None
+    clear: bool = False
+    """Drop the target, preview and drawn throw (the machine's runtime restarted: they are of
+    the world before it)."""
 
 
 class ConsoleShowPreview(BaseModel):

@@ -16,6 +16,7 @@ from fastapi import Depends, Request
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.adaptation import AdaptationRuns
+from server.alarms import AlarmService
 from server.auth import COOKIE_NAME, role_at_least, user_for_token
 from server.config import Settings
 from server.db.models import User
@@ -106,6 +107,10 @@ async def get_drift(request: Request) -> DriftWatch:
     return request.app.state.drift
 
 
+async def get_alarms(request: Request) -> AlarmService:
+    return request.app.state.alarms
+
+
 SessionDep = Annotated[Session, Depends(get_db)]
 SessionsDep = Annotated[sessionmaker[Session], Depends(get_sessions)]
 FleetDep = Annotated[Fleet, Depends(get_fleet)]
@@ -123,6 +128,7 @@ AdaptationRunsDep = Annotated[AdaptationRuns, Depends(get_adaptation_runs)]
 LoginGuardDep = Annotated[LoginGuard, Depends(get_login_guard)]
 StorageDep = Annotated[StorageMonitor, Depends(get_storage)]
 DriftDep = Annotated[DriftWatch, Depends(get_drift)]
+AlarmsDep = Annotated[AlarmService, Depends(get_alarms)]
 
 
 def session_token(request: Request) -> str | None:

@@ -300,3 +300,36 @@ class Job(Base):
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+
+
+ALARM_PRIORITIES = ("high", "medium", "low")
+ALARM_CAUSES = ("host_behind_real_time", "runtime_not_answering", "link_lost", "machine_fault", "drift")
+
+
+class Alarm(Base):
+    """One alarm (server.alarms, after ISA-18.2 / IEC 62682): raised by a condition, cleared
+    when the condition is gone, acknowledged by an operator (who, when), possibly shelved until
+    a time. It leaves the active list once it is both cleared and acknowledged; the row stays as
+    the alarm history. ``key`` names the condition (one active alarm per key)."""
+
+    __tablename__ = "alarms"
+    __table_args__ = (Index("ix_alarms_raised_at", "raised_at"), Index("ix_alarms_key", "key"))
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=lambda: str(uuid.uuid4()))
+    key: Mapped[str] = mapped_column(String(128))
+    machine_id: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    priority: Mapped[str] = mapped_column(db_enum(ALARM_PRIORITIES, "priority"))
+    cause: Mapped[str] = mapped_column(db_enum(ALARM_CAUSES, "cause", length=32))
+    title: Mapped[str] = mapped_column(String(200))
+    text: Mapped[str] = mapped_column(Text)
+    todo: Mapped[str] = mapped_column(Text)
+    subject: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    """What the alarm is about besides the machine: a throw id, a drift alert's raised_at."""
+    raised_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    cleared_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    acked_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    acked_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    shelved_until: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
+    shelved_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    active: Mapped[bool] = mapped_column(Boolean, default=True)
+    """False once cleared and acknowledged: history only."""

@@ -53,12 +53,21 @@ function apiError(status, detail, condition = null) {
   return err;
 }
 
+/** The host name the 3D view is served under for a console page at ``host``: the other name of
+ *  the loopback interface (localhost <-> 127.0.0.1), so the browser gives the view its own
+ *  renderer process (another site) and its WebGL drawing never holds up this page's E-STOP;
+ *  any other host name serves it as is (give a site's view its own name: docs/deployment.md). */
+function viewHost(host) {
+  return { localhost: "127.0.0.1", "127.0.0.1": "localhost" }[host] || host;
+}
+
 /** Show the 3D view (viser) of console ``c`` (POST /api/consoles' answer) in ``iframe``: its
- *  websocket path binds the view to the console (server.scene); the status strip hears Esc from
- *  the frame's origin. */
+ *  websocket path (with the console's view token) binds the view to the console (server.scene);
+ *  the status strip hears Esc from the frame's origin. */
 function embedViser(iframe, c) {
-  const ws = `${location.protocol === "https:" ? "wss" : "ws"}://${location.hostname}:${c.viser_port}${c.viser_path}`;
-  const origin = `${location.protocol}//${location.hostname}:${c.viser_port}`;
+  const host = viewHost(location.hostname);
+  const ws = `${location.protocol === "https:" ? "wss" : "ws"}://${host}:${c.viser_port}${c.viser_path}`;
+  const origin = `${location.protocol}//${host}:${c.viser_port}`;
   if (typeof Strip !== "undefined") Strip.setViserOrigin(origin); // Esc inside the 3D view arrives from there
   iframe.src = `${origin}/?websocket=${encodeURIComponent(ws)}`;
 }
@@ -71,7 +80,7 @@ const can = (role) => session.user && ROLE_RANK[session.user.role] >= ROLE_RANK[
 // The pages of the console, in the order of the navigation bar; [href, label, role needed].
 const SITE_PAGES = [
   ["index.html", "Console"], ["history.html", "History"], ["accuracy.html", "Accuracy"],
-  ["policies.html", "Policies"], ["fleet.html", "Fleet"], ["diagnosis.html", "Diagnosis"],
+  ["policies.html", "Policies"], ["fleet.html", "Fleet"], ["diagnosis.html", "Diagnosis"], ["alarms.html", "Alarms"],
   ["admin.html", "Users", "admin"], ["account.html", "My account"], ["/docs", "API"],
 ];
 
@@ -93,7 +102,10 @@ async function whoAmI() {
   return session.user;
 }
 
-/** Ask before a consequential action (promote, rollback, 3D throw): a modal dialog; resolves true on OK. */
+/** Ask before a consequential action (reset E-STOP, promote, rollback, delete, 3D throw): a
+ *  dialog that resolves true only on its OK button. Cancel has the focus (Enter or Space on it
+ *  cancels): a dangerous act is never one key press away. :func:`cancelConfirm` closes it as
+ *  cancelled (the page's state it asked about changed). */
 function confirmAction(title, text, okLabel = "Confirm") {
   let dlg = $("confirm-dialog");
   if (!dlg) {
@@ -101,7 +113,7 @@ function confirmAction(title, text, okLabel = "Confirm") {
     dlg.id = "confirm-dialog";
     dlg.setAttribute("aria-labelledby", "confirm-title");
     dlg.innerHTML = '<form method="dialog"><h2 id="confirm-title"></h2><p id="confirm-text"></p><div class="actions">' +
-      '<button value="cancel" type="submit">Cancel</button> <button id="confirm-ok" value="ok" type="submit" class="primary"></button></div></form>';
+      '<button id="confirm-cancel" value="cancel" type="submit">Cancel</button> <button id="confirm-ok" value="ok" type="submit" class="primary"></button></div></form>';
     document.body.appendChild(dlg);
   }
   $("confirm-title").textContent = title;
@@ -127,8 +139,14 @@ function confirmAction(title, text, okLabel = "Confirm") {
     }, { once: true });
     backdrop.hidden = false;
     dlg.show();
-    $("confirm-ok").focus();
+    $("confirm-cancel").focus();
   });
+}
+
+/** Close the open confirm dialog (if any) as cancelled: its promise resolves false. */
+function cancelConfirm() {
+  const dlg = $("confirm-dialog");
+  if (dlg && dlg.open) dlg.close("cancel");
 }
 
 async function logout() {

@@ -6,11 +6,21 @@
 // A preview on screen is re-checked against the throw gate every PREVIEW_CHECK_MS (POST
 // /api/previews/{id}/check): Throw is enabled only while it is valid, and when the machine is
 // ready and the preview went stale or the machine moved, the page previews again by itself.
+//
+// One target, one truth: state.target is the console's target on the server, the one the 3D view
+// marks. The x/y fields show it, except while the operator edits them (state.editing): then
+// automatic previews wait and Preview and Throw are disabled until Set makes the typed point the
+// target (or a click in the 3D view replaces it). A preview is drawn and used only while it is of
+// state.target; it never writes the target or the fields. Throw names what it sends ("Throw 2D at
+// 9.50 m") and sends state.target with the preview of it; the 3D confirm dialog names the target
+// and the preview, and closes (nothing sent) when either changes while it is open.
+// A runtime that restarted (its RuntimeInfo epoch changed) leaves no stale target, preview or
+// marker behind: the page clears them and says so.
 "use strict";
 
 const state = { consoleId: null, viserPort: null, machines: Strip.machines, machineId: null, mode: "2d", target: null,
   targetReason: null, preview: null, previewKey: null, busy: false, throwId: null, throwStarted: null,
-  check: null, checkAt: 0, checking: false, autoAt: 0, typed: null };
+  check: null, checkAt: 0, checking: false, autoAt: 0, typed: null, editing: false, confirming: null, epochs: new Map() };
 const PREVIEW_CHECK_MS = 1000;
 const AUTO_PREVIEW_MIN_MS = 4000; // at most one automatic preview per this interval
 const AUTO_PREVIEW_BEFORE_STALE_S = 10; // preview again this long before the gate calls it stale
@@ -81,7 +91,23 @@ function renderState() {
 }
 
 function onMachineEvent(m) {
+  const seen = state.epochs.get(m.machine_id);
+  if (m.epoch) state.epochs.set(m.machine_id, m.epoch);
+  if (m.machine_id === state.machineId && seen && m.epoch && m.epoch !== seen) onRestart(m);
   if (m.machine_id === state.machineId) renderState();
+}
+
+/** The selected machine's runtime restarted (a new RuntimeInfo epoch): the target, preview and
+ *  drawn throw are of the world before it; drop them here and in the 3D view, and say so. */
+async function onRestart(m) {
+  const at = new Date(m.epoch).toLocaleTimeString();
+  state.editing = false;
+  state.throwId = null; state.throwStarted = null;
+  dropPreview(null);
+  showLastResult("", "");
+  if (state.consoleId) await putConsole({ clear: true }).catch(() => {});
+  setStatus(`${m.machine_id} restarted (its runtime started at ${at}): the target, the preview and the drawn throw ` +
+    "were of the machine before the restart and are cleared. Set a new target.", true);
 }
 
 // --- console state on the server ------------------------------------------------------------------
@@ -93,15 +119,21 @@ async function openConsole() {
   if (state.machineId) await putConsole({ machine_id: state.machineId, mode: state.mode });
 }
 
-function applyConsole(c) {
+/** The console's state from the server (a PUT's answer, or a click in its 3D view: ``click``).
+ *  The fields follow the target unless the operator is editing them; a click ends the edit. A new
+ *  target drops the preview of the old one (and a confirm dialog showing it). */
+function applyConsole(c, click = false) {
   if (state.machineId && c.machine_id && c.machine_id !== state.machineId) return; // an answer to an older selection
+  const before = JSON.stringify(state.target);
   state.target = c.target;
   state.targetReason = c.target_reason;
+  if (click) state.editing = false;
+  if (JSON.stringify(c.target) !== before) dropPreview("the target changed");
   if (c.target) {
     const d = Math.hypot(c.target[0], c.target[1]);
     const typed = state.typed;
     const moved = typed ? Math.hypot(typed[0] - c.target[0], typed[1] - c.target[1]) : 0;
-    let text = `x ${fmt(c.target[0])}  y ${fmt(c.target[1])} m, ${fmt(d, 1)} m from the turn axis`;
+    let text = `x ${fmt(c.target[0])}  y ${fmt(c.target[1])} m, ${fmt(d)} m from the turn axis`;
     if (typed && moved > 0.005) {
       // never move a typed target silently: say what was typed and where the target is now
       text += ` (snapped onto the 2D line: you typed x ${fmt(typed[0])} y ${fmt(typed[1])} m, the target is ${fmt(moved)} m from it)`;
@@ -109,12 +141,12 @@ function applyConsole(c) {
       text += " (snapped onto the 2D line)";
     }
     $("target").textContent = text;
-    if (!typed) { // a click or tap in the 3D view: the point goes into the fields
-      $("target-x").value = fmt(c.target[0]);
-      $("target-y").value = fmt(c.target[1]);
-    }
   } else {
-    $("target").textContent = "No target yet: click the ground inside the green band.";
+    $("target").textContent = "No target yet: click the ground inside the green band, or type x and y and press Set.";
+  }
+  if (!state.editing) { // the fields show the target the view marks and Throw sends
+    $("target-x").value = c.target ? fmt(c.target[0]) : "";
+    $("target-y").value = c.target ? fmt(c.target[1]) : "";
   }
   state.typed = null;
   $("target-reason").textContent = c.target_reason ? `Cannot throw here: ${c.target_reason}` : "";
@@ -129,30 +161,51 @@ async function putConsole(body) {
 
 async function selectMachine(id) {
   state.machineId = id;
-  state.preview = null;
-  state.check = null;
-  $("preview-panel").hidden = true;
+  dropPreview("another machine was selected");
   $("throw-panel").hidden = true;
   if (state.consoleId) await putConsole({ machine_id: id, mode: state.mode }).catch((e) => setStatus(e.message, true));
   renderState();
   refreshHistory();
 }
 
+/** True while the target of preview ``p`` is the console's target (to the millimetre). */
+function previewOfTarget(p) {
+  const t = state.target, pt = p && p.target_m;
+  return !!(t && pt && Math.abs(t[0] - pt[0]) < 1e-3 && Math.abs(t[1] - pt[1]) < 1e-3);
+}
+
 function previewOnScreen() {
-  return !!(state.preview && state.preview.status === "ok" && state.previewKey === requestKey());
+  return !!(state.preview && state.preview.status === "ok" && state.previewKey === requestKey() && previewOfTarget(state.preview));
+}
+
+/** Forget the preview on screen (``why``: said in the status line when one was shown), and
+ *  close a confirm dialog that showed it. */
+function dropPreview(why) {
+  const had = !!state.preview;
+  state.preview = null; state.previewKey = null; state.check = null;
+  $("preview-panel").hidden = true;
+  if (state.confirming) closeConfirm(`${why}: nothing was sent`);
+  if (had && why) setStatus(`Preview dropped: ${why}. Press Preview for the target on screen.`);
+}
+
+/** The Throw button's words: what it would send now (mode and distance of the target). */
+function throwLabel() {
+  if (!state.target) return "Throw";
+  return `Throw ${state.mode.toUpperCase()} at ${fmt(Math.hypot(state.target[0], state.target[1]))} m`;
 }
 
 function updateButtons() {
   const m = selected();
   const ready = !!(m && m.state === "ready" && Live.isConnected() && state.target && !state.targetReason) && !state.busy &&
-    !state.typed; // a typed target the server has not answered yet
+    !state.typed && !state.editing; // a typed target the server has not answered yet, or fields being edited
   $("preview").disabled = !ready;
   // Throw only with a preview of this request that the gate judged valid a moment ago
   const fresh = state.check && state.check.previewId === (state.preview && state.preview.id) &&
     Date.now() - state.checkAt < 3 * PREVIEW_CHECK_MS + 2000;
   const valid = previewOnScreen() && fresh && state.check.valid;
   const confirmed = state.mode !== "3d" || $("confirm-clearance").checked;
-  $("throw").disabled = !(ready && valid && confirmed);
+  $("throw").disabled = !(ready && valid && confirmed) || !!state.confirming;
+  $("throw").textContent = throwLabel();
   $("confirm-box").hidden = state.mode !== "3d";
   $("preview-panel").classList.toggle("stale", !!state.preview && !(previewOnScreen() && (!state.check || state.check.valid)));
   renderPreviewAge();
@@ -217,7 +270,7 @@ async function checkPreview() {
   const ageing = c.valid && c.max_age_s && c.age_s > c.max_age_s - AUTO_PREVIEW_BEFORE_STALE_S;
   const restOk = m.state === "ready" && !state.busy && Date.now() - state.autoAt > AUTO_PREVIEW_MIN_MS;
   const refreshable = ["preview_stale", "machine_moved", "policy_changed", "preview_unknown"].includes(c.condition);
-  if (restOk && (ageing || (!c.valid && refreshable)) && !$("preview").disabled) {
+  if (restOk && !state.editing && (ageing || (!c.valid && refreshable)) && !$("preview").disabled) {
     state.autoAt = Date.now();
     doPreview(true);
   }
@@ -247,65 +300,92 @@ function showPreview(p) {
     ? `${fmt(p.mc.sigma_downrange_m, 3)} / ${fmt(p.mc.sigma_crossrange_m, 3)} m (${p.mc.rollouts} rollouts)` : "computing…";
 }
 
+/** Preview the console's target: the nominal rollout first (shown alone at once), then the
+ *  Monte Carlo ellipse. A preview whose target is no longer the console's is dropped, never drawn. */
 async function doPreview(auto = false) {
+  if (!state.target) return;
   state.busy = true; updateButtons();
   const body = { machine_id: state.machineId, mode: state.mode, target: state.target };
   const key = requestKey();
+  const current = () => state.previewKey === key && requestKey() === key && !state.editing;
   setStatus(auto ? "The machine or the preview changed: previewing again in the twin…" : "Previewing in the twin…");
   try {
     const quick = await api("POST", "/api/previews", { ...body, rollouts: 1 });
-    state.preview = quick; state.previewKey = key; state.previewAt = Date.now();
-    // Throw waits for the server's gate to judge this preview against the machine as it is now
-    // (checkPreview): a machine still settling after a throw, or scatter into a keep-out zone,
-    // must not leave Throw enabled on the preview's own word
-    state.check = null;
-    showPreview(quick);
-    await api("POST", `/api/consoles/${state.consoleId}/preview`, { preview_id: quick.id }).then(applyConsole).catch(() => {});
+    if (requestKey() !== key) return; // the target, mode or machine changed meanwhile: this preview is of another throw
+    setPreview(quick, key);
     if (quick.status === "ok") {
+      setStatus("Nominal preview shown; computing the 1σ scatter ellipse…");
       let full = null;
       try { full = await api("POST", "/api/previews", body); } catch (e) {
         $("pv-sigma").textContent = `unavailable (${e.message})`;
-        setStatus(`Preview ready (nominal rollout only; the 1σ ellipse failed: ${e.message}). Press Throw to send it.`);
+        if (current()) setStatus(`Preview of the nominal rollout only (the 1σ ellipse failed: ${e.message}).`);
       }
-      if (full && state.previewKey === key) {
-        state.preview = full; state.previewAt = Date.now();
-        state.check = null;
-        showPreview(full);
-        await api("POST", `/api/consoles/${state.consoleId}/preview`, { preview_id: full.id }).then(applyConsole).catch(() => {});
-        setStatus(`Preview ready: ${fmt(full.downrange_error_m)} m downrange, ${fmt(full.crossrange_error_m)} m crossrange. Press Throw to send it.`);
+      if (full && current()) {
+        setPreview(full, key);
+        setStatus(`Preview of x ${fmt(full.target_m[0])} y ${fmt(full.target_m[1])} m: ${fmt(full.downrange_error_m)} m downrange, ` +
+          `${fmt(full.crossrange_error_m)} m crossrange. Throw enables once the server judges it valid.`);
       }
     }
   } catch (e) {
-    state.preview = null;
-    $("preview-panel").hidden = true;
-    setStatus(`No preview: ${e.message}`, true);
+    if (requestKey() === key) {
+      dropPreview(null);
+      setStatus(`No preview: ${e.message}`, true);
+    }
   } finally {
     state.busy = false; updateButtons();
   }
   checkPreview(); // at once, not at the next tick: Throw enables when the gate says so
 }
 
+/** Make ``p`` (a preview of request ``key``) the preview on screen and draw it in the 3D view.
+ *  Throw waits for the server's gate to judge it against the machine as it is now (checkPreview):
+ *  a machine still settling after a throw, or scatter into a keep-out zone, must not leave Throw
+ *  enabled on the preview's own word. */
+function setPreview(p, key) {
+  if (state.confirming && (!state.preview || state.preview.id !== p.id)) closeConfirm("the preview changed: nothing was sent");
+  state.preview = p; state.previewKey = key; state.previewAt = Date.now();
+  state.check = null;
+  showPreview(p);
+  // the answer (the console) is not applied: a preview never changes the target or the fields
+  api("POST", `/api/consoles/${state.consoleId}/preview`, { preview_id: p.id }).catch(() => {});
+  updateButtons();
+}
+
 // --- throw ------------------------------------------------------------------------------------------
+/** Send the throw the page shows: the console's target with the preview of it. In 3D a dialog
+ *  confirms exactly that target and preview; it closes, and nothing is sent, if either changes. */
 async function doThrow() {
+  if (!previewOnScreen()) { setStatus("No valid preview of this target: press Preview first.", true); return; }
+  const p = state.preview, key = requestKey(), target = state.target.slice();
+  const where = `x ${fmt(target[0])} y ${fmt(target[1])} m (${fmt(Math.hypot(target[0], target[1]))} m)`;
   if (state.mode === "3d") {
-    const d = Math.hypot(state.target[0], state.target[1]);
-    const ok = await confirmAction("Throw in 3D?", `${state.machineId} will turn its cabin and throw at ${fmt(d, 1)} m. ` +
+    state.confirming = { previewId: p.id };
+    updateButtons();
+    const ok = await confirmAction(`Throw 3D at ${fmt(Math.hypot(target[0], target[1]))} m?`,
+      `${state.machineId} will turn its cabin and throw at ${where}, as previewed (preview ${p.id.slice(0, 8)}: ` +
+      `${fmt(p.downrange_error_m)} m downrange, ${fmt(p.crossrange_error_m)} m crossrange). ` +
       "Only confirm if the swept clearance zone (yellow) is clear of people and objects.", "Throw in 3D");
-    if (!ok) { setStatus("3D throw cancelled."); return; }
+    state.confirming = null;
+    updateButtons();
+    if (!ok) { if (!state.confirmClosedWhy) setStatus("3D throw cancelled."); state.confirmClosedWhy = null; return; }
+    if (state.preview !== p || requestKey() !== key || !previewOnScreen()) {
+      setStatus("The preview or the target changed while the dialog was open: nothing was sent. Press Throw again for the new one.", true);
+      return;
+    }
   }
   $("throw").disabled = true;
-  setStatus("Sending throw…");
+  setStatus(`Sending the throw at ${where}…`);
   try {
-    const body = { machine_id: state.machineId, mode: state.mode, target: state.target, preview_id: state.preview.id };
+    const body = { machine_id: state.machineId, mode: state.mode, target, preview_id: p.id };
     if (state.mode === "3d") body.confirm_clearance = $("confirm-clearance").checked;
     const r = await api("POST", "/api/throws", body);
     state.throwId = r.id; state.throwStarted = Date.now();
     // the gate's last judgement was of the machine before this throw: void until it judges again
     // (checkPreview, once the throw is over), so Throw never re-enables on a judgement the swing outdated
-    state.check = { valid: false, condition: "preview_used", reason: "the preview was used for this throw", previewId: state.preview.id };
+    state.check = { valid: false, condition: "preview_used", reason: "the preview was used for this throw", previewId: p.id };
     state.checkAt = Date.now();
     $("confirm-clearance").checked = false;
-    setStatus(`Throw ${r.id.slice(0, 8)} accepted (policy ${r.policy_version || "?"}): running…`);
+    setStatus(`Throw ${r.id.slice(0, 8)} at ${where} accepted (policy ${r.policy_version || "?"}): running…`);
     showLastResult(`Throw ${r.id.slice(0, 8)} running…`, "");
     startThrowPanel(r.id);
   } catch (e) {
@@ -313,6 +393,13 @@ async function doThrow() {
   } finally {
     updateButtons();
   }
+}
+
+/** Close the open confirm dialog as cancelled, saying ``why`` in the status line. */
+function closeConfirm(why) {
+  state.confirmClosedWhy = why;
+  cancelConfirm();
+  setStatus(`The confirm dialog closed: ${why}. Check the preview and press Throw again.`, true);
 }
 
 function startThrowPanel(throwId) {
@@ -434,13 +521,22 @@ async function setTypedTarget(e) {
   const x = parseFloat($("target-x").value), y = parseFloat($("target-y").value);
   if (!Number.isFinite(x) || !Number.isFinite(y)) { setStatus("Type x and y in metres.", true); return; }
   state.typed = [x, y];
+  state.editing = false; // the answer writes the target (snapped in 2D) into the fields
   updateButtons(); // no Preview of the old target while the typed one is on its way
-  try { await putConsole({ target: [x, y, 0] }); } catch (err) { state.typed = null; setStatus(err.message, true); updateButtons(); }
+  try { await putConsole({ target: [x, y, 0] }); } catch (err) { state.typed = null; state.editing = true; setStatus(err.message, true); updateButtons(); }
+}
+
+/** A field edited by hand: the target is what Set will make it, not what the fields show yet. */
+function onFieldEdit() {
+  if (state.editing) return;
+  state.editing = true;
+  setStatus("Editing the target: press Set (or Enter) to aim there. Preview and Throw wait until then.");
+  updateButtons();
 }
 
 function wireLive() {
   Live.on("machine", onMachineEvent);
-  Live.on("console", applyConsole);
+  Live.on("console", (c) => applyConsole(c, true)); // a click in this console's 3D view
   Live.on("throw", (ev) => {
     if (ev.machine_id !== state.machineId) return;
     if (ev.throw_id !== state.throwId && ["preparing", "swinging"].includes(ev.phase)) {
@@ -468,10 +564,12 @@ async function init() {
   $("preview").addEventListener("click", () => doPreview(false));
   $("return-ready").addEventListener("click", doReturnToReady);
   $("target-form").addEventListener("submit", setTypedTarget);
+  for (const id of ["target-x", "target-y"]) $(id).addEventListener("input", onFieldEdit);
   $("confirm-clearance").addEventListener("change", updateButtons);
   for (const r of document.querySelectorAll("input[name=mode]")) {
     r.addEventListener("change", async (e) => {
       state.mode = e.target.value;
+      dropPreview(`the mode is now ${state.mode.toUpperCase()}`);
       await putConsole({ mode: state.mode }).catch((err) => setStatus(err.message, true));
       renderState();
     });

@@ -1,5 +1,7 @@
 // Fleet page: every machine with its one state (live push), policies, last throw and recent
-// accuracy; admins roll a policy back (after a confirmation).
+// accuracy; admins roll a policy back (after a confirmation). The page follows /api/live: a
+// machine whose policies change (a promotion, a rollback confirmed by its runtime) has its
+// rollback targets fetched again, so the page offers only a rollback that is possible now.
 "use strict";
 
 const fleet = { rows: new Map(), live: new Map(), targets: new Map() };
@@ -38,7 +40,7 @@ function render() {
     const targets = fleet.targets.get(id) || {};
     for (const mode of ["2d", "3d"]) {
       const prev = targets[mode];
-      if (!policies[mode] || !prev) continue; // offered only where there is a version to go back to
+      if (!policies[mode] || !prev || prev.name === policies[mode]) continue; // only where there is another version to go back to
       const b = document.createElement("button");
       b.type = "button"; b.textContent = `${mode}: roll back to ${prev.name}`; b.className = `rollback-${mode}`;
       b.addEventListener("click", () => rollback(id, mode, policies[mode], prev.name));
@@ -56,6 +58,7 @@ async function rollback(id, mode, current, previous) {
     const d = await api("POST", "/api/policies/rollback", { machine_id: id, mode });
     $("fleet-status").textContent = `Rolling ${id} back to ${d.policy_version}: ${d.status} (the state above updates when the runtime confirms).`;
   } catch (e) { $("fleet-status").textContent = e.message; }
+  loadFleet();
 }
 
 async function loadFleet() {
@@ -69,7 +72,13 @@ async function loadFleet() {
 
 document.addEventListener("DOMContentLoaded", async () => {
   try { await whoAmI(); } catch (e) { return; }
-  Live.on("machine", (s) => { fleet.live.set(s.machine_id, s); render(); });
+  Live.on("machine", (s) => {
+    const before = fleet.live.get(s.machine_id);
+    fleet.live.set(s.machine_id, s);
+    if (before && JSON.stringify(before.policies) !== JSON.stringify(s.policies)) loadFleet(); // its rollback targets moved
+    else render();
+  });
+  Live.on("job", (j) => { if (j && j.kind !== "preview" && ["done", "failed"].includes(j.status)) loadFleet(); });
   Live.on("result", loadFleet);
   Live.on("connected", loadFleet);
   await loadFleet();

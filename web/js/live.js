@@ -1,5 +1,5 @@
 // Live push from the server (Server-Sent Events on GET /api/live, see server/live.py): machine
-// states, throw progress, live throw samples, stored results, job progress, drift alerts, heartbeats,
+// states, throw progress, live throw samples, stored results, job progress, drift alerts, alarms, heartbeats,
 // this console's changes.
 // No polling: the page reacts to events. The server-unreachable banner (#server-banner) shows when
 // the stream breaks or no heartbeat came for SILENT_MS, and hides again when events flow.
@@ -42,7 +42,7 @@ const Live = (() => {
   function open() {
     if (source) source.close();
     source = new EventSource(`/api/live${params}`);
-    for (const name of ["machine", "throw", "sample", "result", "heartbeat", "console", "job", "drift"]) listen(name);
+    for (const name of ["machine", "throw", "sample", "result", "heartbeat", "console", "job", "drift", "alarm"]) listen(name);
     source.addEventListener("open", () => { lastEventAt = Date.now(); setConnected(true); });
     source.addEventListener("error", () => {
       broke = true;

@@ -103,6 +103,7 @@ async function loadPolicies() {
             " · the Active column changes when the runtime confirms.";
           $("p-status").className = deps.some((d) => d.status === "failed") ? "error" : "";
         } catch (e) { $("p-status").textContent = e.message; $("p-status").className = "error"; }
+        loadPolicies(); // what the rows offer follows what the server now holds
       });
       td.append(sel, b);
     }
@@ -153,8 +154,11 @@ document.addEventListener("DOMContentLoaded", async () => {
   Live.on("machine", (m) => {
     const before = JSON.stringify(active.get(m.machine_id) || {});
     if (m.state !== "offline") active.set(m.machine_id, m.policies || {}); else active.delete(m.machine_id);
-    if (before !== JSON.stringify(active.get(m.machine_id) || {})) renderActive();
+    if (before !== JSON.stringify(active.get(m.machine_id) || {})) { renderActive(); loadPolicies(); }
   });
+  // an evaluation (or any job about policies) that ends changes a row: fetch the rows again, so no
+  // row says "pending" after its worker finished and every button offered is possible now
+  Live.on("job", (j) => { if (j && j.kind !== "preview" && ["done", "failed", "cancelled"].includes(j.status)) loadPolicies(); });
   Live.on("connected", loadPolicies);
   await loadPolicies();
   Live.start();

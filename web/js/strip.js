@@ -1,7 +1,11 @@
 // The status strip of every console page (included after common.js and live.js): the selected
 // machine's state with its reason, its active policies, the link to the server and the machine,
-// the E-STOP button (Esc anywhere, the 3D frame included) and alarms that stay until acknowledged
-// (a drift alarm is acknowledged on the server, which clears it on every open console).
+// the E-STOP button (Esc anywhere, the 3D frame included; it acts on pointerdown) and the alarm
+// banner. Alarms are kept on the server (server/alarms.py, GET /api/alarms, ``alarm`` events): an
+// acknowledgement, an acknowledge-all or a shelving in one console shows in every console. The
+// banner is one line (count, the most urgent alarm, Acknowledge all, Show all); the list it opens
+// scrolls inside at most a sixth of the viewport, so it never pushes the page's controls away.
+// Alarms this page alone knows (an E-STOP the server did not confirm) join the banner, marked local.
 // The strip is the first element of <body>, sticky at the top, so it never scrolls away. It owns
 // the machine selection of every page (kept in localStorage, so every page shows the same machine):
 // pages follow it with Strip.onSelect(fn) and read Strip.machines (machine_id -> live state).
@@ -9,8 +13,8 @@
 
 const Strip = (() => {
   const STORE_MACHINE = "slinger.machine";
-  const STORE_ALARMS = "slinger.alarms";
-  const MAX_ALARMS = 20;
+  const PRIORITY_RANK = { high: 0, medium: 1, low: 2 };
+  const SHELVE_MIN = 60;
   const RESET_CONFIRM_MS = 10000;
   const MESSAGE_MS = 20000;
   const STATE_WORDS = { ready: "READY", not_ready: "NOT READY", throwing: "THROWING", estopped: "E-STOPPED", offline: "OFFLINE" };
@@ -20,6 +24,9 @@ const Strip = (() => {
   let estopInFlight = null; // the E-STOP request on its way: presses while it flies join it
   let resetWait = null; // { machineId, timer } while a reset waits for the runtime's state
   let viserOrigin = null;
+  const alarms = new Map(); // alarm id -> the server's alarm (server.alarms.alarm_dict)
+  const localAlarms = new Map(); // key -> {key, title, text, todo, at}: what only this page knows
+  let alarmsOpen = false;
 
   const estopMarkup = `<button id="estop" class="estop" type="button" data-role="operator" aria-keyshortcuts="Escape"
       title="E-STOP: stop the selected machine now, valves to neutral (keyboard: Esc, anywhere on the page, the 3D view included)">E-STOP <kbd>Esc</kbd></button>`;
@@ -37,7 +44,14 @@ const Strip = (() => {
       <button id="estop-reset" type="button" data-role="operator">Reset E-STOP…</button>
     </div>
     <p id="strip-msg" class="strip-msg" role="status" aria-live="assertive" hidden></p>
-    <ul id="alarms" class="alarms" aria-label="alarms" hidden></ul>`;
+    <section id="alarm-banner" class="alarm-banner" aria-label="alarms" hidden>
+      <div class="alarm-head"><strong id="alarm-count" class="alarm-count"></strong>
+        <span id="alarm-top" class="alarm-top"></span>
+        <button id="alarm-ack-all" type="button" data-role="operator">Acknowledge all</button>
+        <button id="alarm-toggle" type="button" aria-expanded="false" aria-controls="alarms">Show all</button>
+        <a href="alarms.html">History</a></div>
+      <ul id="alarms" class="alarms" aria-label="active alarms" hidden></ul>
+    </section>`;
 
   function mount() {
     const strip = document.createElement("div");
@@ -64,124 +78,155 @@ const Strip = (() => {
     if (text && kind !== "error") sayTimer = setTimeout(() => { el.hidden = true; }, MESSAGE_MS);
   }
 
-  function loadAlarms() {
-    try { return JSON.parse(localStorage.getItem(STORE_ALARMS) || "[]"); } catch (e) { return []; }
+  /** The alarms the banner shows: active, not shelved, the page's own local ones included;
+   *  unacknowledged first, then by priority, newest first. */
+  function shownAlarms() {
+    const list = [...alarms.values()].filter((a) => a.active && !a.shelved)
+      .concat([...localAlarms.values()].map((a) => ({ ...a, id: a.key, local: true, priority: "high", state: "unacked",
+        raised_at: new Date(a.at).toISOString() })));
+    const unacked = (a) => (a.state === "unacked" || a.state === "rtn_unacked" ? 0 : 1);
+    return list.sort((a, b) => unacked(a) - unacked(b) || PRIORITY_RANK[a.priority] - PRIORITY_RANK[b.priority] ||
+      String(b.raised_at).localeCompare(String(a.raised_at)));
   }
 
-  function saveAlarms(list) {
-    try { localStorage.setItem(STORE_ALARMS, JSON.stringify(list.slice(-MAX_ALARMS))); } catch (e) { /* private mode */ }
-  }
-
-  function renderAlarms() {
-    const list = loadAlarms();
-    const ul = $("alarms");
-    ul.innerHTML = "";
-    ul.hidden = list.length === 0;
-    for (const a of list.slice().reverse()) { // newest first: the one in view on a small screen
-      const li = document.createElement("li");
-      li.className = "alarm";
-      li.dataset.key = a.key;
-      const text = document.createElement("span");
-      const head = document.createElement("strong");
-      head.textContent = `ALARM ${new Date(a.at).toLocaleTimeString()}: ${a.title}`;
-      const detail = document.createElement("span");
-      detail.className = "alarm-detail";
-      detail.textContent = ` ${a.text} `;
-      text.append(head, detail, " ");
-      const todo = document.createElement("em");
-      todo.textContent = a.todo;
-      text.append(todo);
+  function alarmItem(a) {
+    const li = document.createElement("li");
+    li.className = `alarm alarm-${a.priority} alarm-${a.state}`;
+    li.dataset.key = a.key;
+    li.dataset.id = a.id;
+    const head = document.createElement("strong");
+    const when = new Date(a.raised_at).toLocaleTimeString();
+    const status = { unacked: "", acked: " (acknowledged)", rtn_unacked: " (cleared, not acknowledged)" }[a.state] || "";
+    head.textContent = `${a.priority.toUpperCase()} ${when}: ${a.title}${status}${a.local ? " (this page)" : ""}`;
+    const detail = document.createElement("span");
+    detail.className = "alarm-detail";
+    detail.textContent = ` ${a.text} `;
+    const todo = document.createElement("em");
+    todo.textContent = a.todo;
+    li.append(head, detail, todo, " ");
+    if (a.state === "unacked" || a.state === "rtn_unacked") {
       const ack = document.createElement("button");
       ack.type = "button";
       ack.className = "alarm-ack";
       ack.textContent = "Acknowledge";
       ack.setAttribute("aria-label", `Acknowledge alarm: ${a.title}`);
-      ack.addEventListener("click", () => (a.drift ? acknowledgeDrift(a) : acknowledge(a.key)));
-      li.append(text, ack);
-      ul.append(li);
+      ack.addEventListener("click", () => acknowledge(a));
+      li.append(ack, " ");
     }
+    if (!a.local && can("operator")) {
+      const shelve = document.createElement("button");
+      shelve.type = "button";
+      shelve.className = "alarm-shelve quiet";
+      shelve.textContent = `Shelve ${SHELVE_MIN} min`;
+      shelve.setAttribute("aria-label", `Shelve alarm for ${SHELVE_MIN} minutes: ${a.title}`);
+      shelve.addEventListener("click", () => shelveAlarm(a));
+      li.append(shelve);
+    }
+    return li;
   }
 
-  /** Raise an alarm that stays (on every page, across reloads) until acknowledged; a second
-   *  alarm with the same ``key`` replaces the first. ``extra`` is kept with it (``drift``: the
-   *  machine whose drift alert the server acknowledges). */
-  function raise(key, title, text, todo, extra = {}) {
+  function renderAlarms() {
+    const list = shownAlarms();
+    const banner = $("alarm-banner");
+    banner.hidden = list.length === 0;
+    const unacked = list.filter((a) => a.state === "unacked" || a.state === "rtn_unacked").length;
+    const shelved = [...alarms.values()].filter((a) => a.active && a.shelved).length;
+    $("alarm-count").textContent = `ALARMS ${list.length}` + (unacked ? ` (${unacked} unacknowledged)` : "") +
+      (shelved ? ` · ${shelved} shelved` : "");
+    $("alarm-top").textContent = list.length ? `${list[0].priority.toUpperCase()}: ${list[0].title}` : "";
+    $("alarm-top").title = list.length ? `${list[0].text} ${list[0].todo}` : "";
+    $("alarm-ack-all").disabled = unacked === 0;
+    $("alarm-ack-all").hidden = !can("operator");
+    const ul = $("alarms");
+    ul.innerHTML = "";
+    for (const a of list) ul.append(alarmItem(a));
+    ul.hidden = !alarmsOpen || list.length === 0;
+    $("alarm-toggle").textContent = alarmsOpen ? "Hide" : `Show all`;
+    $("alarm-toggle").setAttribute("aria-expanded", String(alarmsOpen));
+  }
+
+  /** An alarm only this page knows (the server may be unreachable, e.g. an unconfirmed E-STOP):
+   *  in the banner until acknowledged here; a second with the same ``key`` replaces the first. */
+  function raise(key, title, text, todo) {
     if (!$("strip-msg").classList.contains("error")) say(""); // an alarm outranks a passing message: keep the strip short
-    const list = loadAlarms().filter((a) => a.key !== key);
-    list.push({ key, title, text, todo, at: Date.now(), ...extra });
-    saveAlarms(list);
+    localAlarms.set(key, { key, title, text, todo, at: Date.now() });
     renderAlarms();
   }
 
-  function acknowledge(key) {
-    saveAlarms(loadAlarms().filter((a) => a.key !== key));
+  function onAlarm(a) {
+    if (!a || !a.id) return;
+    if (a.active) alarms.set(a.id, a); else alarms.delete(a.id);
     renderAlarms();
   }
 
-  /** A drift alarm is acknowledged on the server (audited): its ``drift`` event then clears the
-   *  alarm on every open console, this one included. */
-  async function acknowledgeDrift(a) {
+  async function loadAlarms() {
     try {
-      await api("POST", `/api/machines/${encodeURIComponent(a.drift)}/drift/ack`);
+      const list = await api("GET", "/api/alarms");
+      alarms.clear();
+      for (const a of list) alarms.set(a.id, a);
+      renderAlarms();
+    } catch (e) { /* the live stream brings them */ }
+  }
+
+  /** Acknowledge one alarm (on the server: audited, every console follows; a local one here). */
+  async function acknowledge(a) {
+    if (a.local) { localAlarms.delete(a.key); renderAlarms(); return; }
+    try {
+      onAlarm(await api("POST", `/api/alarms/${encodeURIComponent(a.id)}/ack`));
     } catch (e) {
-      say(`Drift alert of ${a.drift} not acknowledged: ${sentence(e.message)}`, "error");
+      say(`Alarm not acknowledged: ${sentence(e.message)}`, "error");
       return;
     }
-    acknowledge(a.key);
-    say(`Drift alert of ${a.drift} acknowledged.`, "ok");
+    say(a.cause === "drift" ? `Drift alert of ${a.machine_id} acknowledged.` : `Alarm acknowledged: ${a.title}.`, "ok");
   }
 
-  /** The server's drift alert of a machine (server.drift; a ``drift`` event or a machine state's
-   *  ``drift_alert``): an open one is an alarm until someone acknowledges it, on any console; an
-   *  acknowledged one clears that alarm here. */
-  function onDrift(alert) {
-    if (!alert || !alert.machine_id) return;
-    const mid = alert.machine_id;
-    const key = `drift-${mid}-${alert.raised_at}`;
-    const m = machines.get(mid);
-    if (m) m.drift_alert = alert;
-    const mine = loadAlarms().filter((a) => a.key.startsWith(`drift-${mid}-`));
-    if (alert.status === "open") {
-      if (!mine.some((a) => a.key === key)) {
-        raise(key, `${mid}: accuracy drift`, alert.text || "The impacts drifted beyond what noise explains.",
-          "A diagnosis of the recent throws was started: read it on the Diagnosis page before throwing on.", { drift: mid });
-      }
-    } else if (mine.length) {
-      saveAlarms(loadAlarms().filter((a) => !a.key.startsWith(`drift-${mid}-`)));
-      renderAlarms();
+  async function acknowledgeAll() {
+    localAlarms.clear();
+    try {
+      const done = await api("POST", "/api/alarms/ack-all", {});
+      for (const a of done) onAlarm(a);
+      say(`${done.length} alarm${done.length === 1 ? "" : "s"} acknowledged.`, "ok");
+    } catch (e) {
+      say(`Alarms not acknowledged: ${sentence(e.message)}`, "error");
+    }
+    renderAlarms();
+  }
+
+  async function shelveAlarm(a) {
+    try {
+      onAlarm(await api("POST", `/api/alarms/${encodeURIComponent(a.id)}/shelve`, { minutes: SHELVE_MIN }));
+      say(`Alarm shelved for ${SHELVE_MIN} minutes (listed on the Alarms page until then): ${a.title}.`, "ok");
+    } catch (e) {
+      say(`Alarm not shelved: ${sentence(e.message)}`, "error");
     }
   }
 
-  /** What failed in a throw that did not land, in the operator's words: {what, text, todo}.
-   *  ``what`` is "computer" (the control computer fell behind real time), "link" (the machine
-   *  or its runtime stopped answering), "stop" (E-STOP or abort) or "machine". */
+  /** What failed in a throw that did not land, in the operator's words: {what, text, todo}, by
+   *  the same rules as the server's alarms (server.alarms.failure_cause). ``what`` is "computer"
+   *  (the control computer fell behind real time: its load, not the network), "runtime" (the
+   *  runtime did not answer), "link" (the link to the machine was lost), "stop" (the operator's
+   *  E-STOP or abort) or "machine". */
   function explainFailure(t) {
     const r = (t.failure_reason || "").toLowerCase();
     const sim = t.simulated ? "simulated " : "";
-    if (r.includes("real time")) {
-      return { what: "computer", text: `The ${sim}machine's control computer fell behind real time (${t.failure_reason}); the runtime stopped the swing and set the valves to neutral.`,
-        todo: "Reduce the load on that computer, wait until the state is READY, then preview and throw again." };
-    }
-    if (r.includes("link") || r.includes("offline") || r.includes("restarted") || r.includes("no result") || r.includes("not running the throw")) {
-      return { what: "link", text: `The link to ${t.machine_id} failed during the throw (${t.failure_reason}).`,
-        todo: "Check the machine's network and that its runtime runs (Fleet page); preview again once it is READY." };
-    }
     if (r.includes("e-stop") || r.includes("abort")) {
       return { what: "stop", text: `The throw was stopped (${t.failure_reason}).`,
         todo: "Reset the E-STOP when the area is safe, then preview again." };
     }
+    if (r.includes("real time")) {
+      return { what: "computer", text: `The ${sim}machine's control computer fell behind real time (${t.failure_reason}); the runtime stopped the swing and set the valves to neutral. This is the computer's load, not the network.`,
+        todo: "Reduce the load on that computer, wait until the state is READY, then preview and throw again." };
+    }
+    if (["not answering", "no result", "restarted", "not running the throw", "runtime"].some((w) => r.includes(w))) {
+      return { what: "runtime", text: `The runtime of ${t.machine_id} did not answer during the throw (${t.failure_reason}).`,
+        todo: "Check on the Fleet page that its runtime runs; preview again once the machine is READY." };
+    }
+    if (r.includes("link") || r.includes("offline")) {
+      return { what: "link", text: `The link between the runtime and the ${sim}machine ${t.machine_id} was lost during the throw (${t.failure_reason}).`,
+        todo: "Check the machine's network and its computer's load; preview again once it is READY." };
+    }
     return { what: "machine", text: `The machine ${t.machine_id} reported a fault (${t.failure_reason || "no reason given"}).`,
       todo: "Look at the machine; return it to the ready pose if offered, then preview again." };
-  }
-
-  async function onResult(ev) {
-    let t;
-    try { t = await api("GET", `/api/throws/${encodeURIComponent(ev.throw_id)}`); } catch (e) { return; }
-    if (t.status === "landed") return;
-    const m = machines.get(t.machine_id);
-    const why = explainFailure({ ...t, simulated: m && m.simulated });
-    const names = { computer: "the control computer", link: "the link", stop: "stopped", machine: "the machine" };
-    raise(`throw-${t.id}`, `throw ${t.id.slice(0, 8)} on ${t.machine_id} ${t.status.toUpperCase()} (${names[why.what]})`, why.text, why.todo);
   }
 
   // --- machine state --------------------------------------------------------------------------------
@@ -253,12 +298,6 @@ const Strip = (() => {
       const stored = localStorage.getItem(STORE_MACHINE);
       select(stored && machines.has(stored) ? stored : m.machine_id);
     }
-    if (before && before.state !== "offline" && m.state === "offline") {
-      raise(`offline-${m.machine_id}`, `${m.machine_id} OFFLINE (the link)`, `The runtime of ${m.machine_id} stopped answering: ${m.reason || "offline"}.`,
-        "Check the machine's computer and network; start its runtime again (slinger runtime).");
-    }
-    const drift = m.drift_alert;
-    if (drift && (!before || !before.drift_alert || before.drift_alert.raised_at !== drift.raised_at || before.drift_alert.status !== drift.status)) onDrift(drift);
     if (m.machine_id === machineId) render();
   }
 
@@ -287,7 +326,7 @@ const Strip = (() => {
       })
       .catch((e) => {
         say(`E-STOP NOT CONFIRMED for ${mid}: ${e.message} Use the machine's own emergency stop.`, "error");
-        raise(`estop-${mid}`, `E-STOP of ${mid} NOT CONFIRMED (the link)`, e.message, "Use the machine's own emergency stop now.");
+        raise(`estop-${mid}`, `E-STOP of ${mid} NOT CONFIRMED`, e.message, "Use the machine's own emergency stop now.");
       })
       .finally(() => { estopInFlight = null; $("estop").removeAttribute("aria-busy"); });
     return estopInFlight;
@@ -353,20 +392,29 @@ const Strip = (() => {
 
   mount();
   renderAlarms();
-  $("estop").addEventListener("click", () => estop("button"));
+  $("alarm-ack-all").addEventListener("click", acknowledgeAll);
+  $("alarm-toggle").addEventListener("click", () => { alarmsOpen = !alarmsOpen; renderAlarms(); });
+  // the stop acts on pointerdown (mouse, pen, touch), not on the click that follows the release:
+  // no wait for the finger to lift or for the page to settle; a keyboard press still clicks
+  let pointerAt = 0;
+  $("estop").addEventListener("pointerdown", (e) => {
+    if (e.button !== undefined && e.button > 0) return; // a right or middle button does not stop
+    pointerAt = performance.now();
+    estop(e.pointerType === "touch" ? "tap" : "button");
+  });
+  $("estop").addEventListener("click", () => { if (performance.now() - pointerAt > 1500) estop("button"); });
   $("estop-reset").addEventListener("click", resetEstop);
   $("machine").addEventListener("change", (e) => select(e.target.value));
   window.addEventListener("keydown", onKey, true); // capture: before any field or dialog sees it
   window.addEventListener("message", onFrameMessage);
-  window.addEventListener("storage", (e) => { if (e.key === STORE_ALARMS) renderAlarms(); });
   Live.on("machine", onMachine);
-  Live.on("result", onResult);
-  Live.on("drift", onDrift);
+  Live.on("alarm", onAlarm);
+  Live.on("connected", loadAlarms); // at the start and after a broken stream: what was missed
   for (const ev of ["connected", "resumed", "disconnected"]) Live.on(ev, render);
   document.addEventListener("DOMContentLoaded", init);
 
   return {
-    machines, estop, raise, acknowledge, select, say, explainFailure,
+    machines, estop, raise, select, say, explainFailure,
     get machineId() { return machineId; },
     onSelect: (fn) => selectHandlers.push(fn),
     setViserOrigin: (origin) => { viserOrigin = origin; },

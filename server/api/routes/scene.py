@@ -30,7 +30,7 @@ def get_scene(scene: SceneDep, _user: ViewerDep) -> SceneInfo:
 
 
 def _out(scene, con) -> ConsoleOut:
-    return ConsoleOut(**con.public(), viser_port=scene.port, viser_path=f"/c/{con.console_id}")
+    return ConsoleOut(**con.public(), viser_port=scene.port, viser_path=f"/c/{con.console_id}/{con.view_token}")
 
 
 def _console(scene: ConsoleScene | None, console_id: str, user):
@@ -57,26 +57,32 @@ def get_console(console_id: str, scene: SceneDep, user: CurrentUser) -> ConsoleO
                              (409, "the 3D view is disabled")))
 def update_console(console_id: str, update: ConsoleUpdate, scene: SceneDep, user: ViewerDep) -> ConsoleOut:
     """Pick the machine or mode shown (viewers too), or type a target (operators). A target in 2D
-    snaps to the throwing line; ``target_reason`` says why it cannot be served."""
+    snaps to the throwing line; ``target_reason`` says why it cannot be served. ``clear`` drops
+    the target, preview and drawn throw (after a runtime restart)."""
     scene = enabled(scene)
     con = _console(scene, console_id, user)
     if update.target is not None and user.role == "viewer":
         raise Denied("needs the operator role to set a target (you are viewer)")
-    scene.update_console(con, update.machine_id, update.mode, update.target)
+    scene.update_console(con, update.machine_id, update.mode, update.target, clear=update.clear)
     return _out(scene, con)
 
 
 @router.post("/api/consoles/{console_id}/preview", response_model=ConsoleOut,
              responses=errors((404, "no such console or preview"), (409, "the 3D view is disabled"),
-                              (422, "the preview is of another machine")))
+                              (422, "the preview is of another machine or another target than the console's")))
 def show_preview(console_id: str, body: ConsoleShowPreview, previews: PreviewsDep, scene: SceneDep,
                  user: OperatorDep) -> ConsoleOut:
-    """Draw a preview (POST /api/previews) in this console's 3D view."""
+    """Draw a preview (POST /api/previews) of the console's machine and target in its 3D view."""
     scene = enabled(scene)
     con = _console(scene, console_id, user)
     summary = previews.require(body.preview_id)
     if summary["machine_id"] != con.machine_id:
         raise Refused(f"the preview is of {summary['machine_id']}, this console shows {con.machine_id}")
+    t, pt = con.target, summary.get("target_m")
+    if t is None or pt is None or abs(t[0] - pt[0]) > 1e-3 or abs(t[1] - pt[1]) > 1e-3:
+        # one target on screen: a preview of another point is never drawn over the console's target
+        raise Refused("the preview is of another target than this console's" +
+                      (f" (x {pt[0]:.2f} y {pt[1]:.2f} m, the console aims at x {t[0]:.2f} y {t[1]:.2f} m)" if t and pt else ""))
     scene.show_preview(con, summary)
     return _out(scene, con)
 
