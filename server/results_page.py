@@ -215,10 +215,10 @@ def _release_check_matrix(report: dict) -> list[str]:
 
 def _fleet_load(report: dict) -> list[str]:
     o = report["outcome"]
-    rows = [["machines online (min of samples)", f"{report['online_min']} of {report['machines']}"],
-            ["throws accepted", o["requested"]], ["by status", ", ".join(f"{k} {v}" for k, v in o["by_status"].items())],
-            ["lost / stuck", f"{o['lost']} / {o['stuck']}"], ["host cores busy", report["host_busy_cores"]]]
-    return _table(["quantity", "value"], rows) + ["", f"{_num(report['minutes'], 1)} min, {report['clients']} throwing clients."]
+    return [f"{report['online_min']} of {report['machines']} machines online (least of the samples); "
+            f"{o['requested']} throws accepted ({', '.join(f'{k} {v}' for k, v in o['by_status'].items())}); "
+            f"lost / stuck {o['lost']} / {o['stuck']}; host cores busy {_num(report['host_busy_cores'])}; "
+            f"{_num(report['minutes'], 1)} min, {report['clients']} throwing clients."]
 
 
 def _safety_bounds(report: dict) -> list[str]:
@@ -226,12 +226,12 @@ def _safety_bounds(report: dict) -> list[str]:
 
 
 def _deploy_comparison(report: dict) -> list[str]:
-    null = [[f"{n['seeds'][0]} vs {n['seeds'][1]}", f"{n['paired_test_worse']} of {n['cells']}", f"{n['old_rule_worse']} of {n['cells']}"]
-            for n in report["null_check"]]
+    null = " · ".join(f"{n['seeds'][0]} vs {n['seeds'][1]}: {n['paired_test_worse']} ({n['old_rule_worse']}) of {n['cells']}"
+                      for n in report["null_check"])
     cands = [[c["name"], ", ".join(map(str, c["seeds"])), f"{c['worse_cells']} of {c['cells']}", c["better_mean_miss_cells"],
               "; ".join(sorted({w["profile"] for w in c["worse"]})) or "-"] for c in report["candidates"]]
-    return (["Null check, the deployed policy against itself on another seed's throws (cells called worse):", ""]
-            + _table(["seeds", "paired test", "earlier 5 mm rule"], null) + ["", "Candidates:", ""]
+    return ([f"Null check, the deployed policy against itself on another seed's throws, cells called worse by the paired "
+             f"test (by the earlier 5 mm rule): {null}.", "", "Candidates:", ""]
             + _table(["candidate", "seeds", "cells worse", "cells with a lower mean miss", "worse on"], cands))
 
 
@@ -275,35 +275,123 @@ def _body(rel: str, report: dict) -> list[str]:
         return _site_coverage(report)
     if "outcome" in report and "machines" in report:
         return _fleet_load(report)
-    return ["(no summary renderer for this report; read the JSON)"]
+    return []  # figures in the JSON (and the table or plot beside it)
 
 
-def _provenance(rel: str, report: dict) -> list[str]:
-    p = report["provenance"]
-    pols = "; ".join(
-        f"`{x['name']}` (SHA-256 `{x['sha256'][:12]}…`{', deployed as `' + x['deployed_as'] + '`' if x.get('deployed_as') else ''})"
+TOPICS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("Deployed policies on the site matrix", ("site_matrix_",)),
+    ("Other policies against the deployed ones", ("deploy_comparison_", "site_coverage_", "friction_release_", "spread_sources_")),
+    ("Adaptation to a site", ("adaptation",)),
+    ("Diagnosis", ("diagnosis_",)),
+    ("Preview", ("preview_",)),
+    ("Runtime and safety", ("estop_", "controller_", "release_check_", "safety_bounds", "soak_", "policy_validation", "telemetry_")),
+    ("Fleet and server", ("fleet_", "login_flood")),
+    ("Training", ("training_",)),
+    ("Tests", ("fast_tier",)),
+)
+"""The results page's sections: a report goes under the first topic one of whose prefixes its path
+under ``reports/`` starts with (``reports/fleet_load/…`` matches ``fleet_``); the rest under "Other"."""
+COMPANIONS = (".md", ".png", ".txt")
+"""Files beside a report's JSON (same stem) that the page links: its table, plot or log."""
+
+
+def topic_of(rel: str) -> str:
+    """The :data:`TOPICS` heading of the report at ``rel`` (``reports/…json``), "Other" when none matches."""
+    name = rel.removeprefix("reports/")
+    return next((title for title, prefixes in TOPICS if name.startswith(prefixes)), "Other")
+
+
+def _policies(p: dict) -> str:
+    return ", ".join(
+        f"`{x['name']}` (`{x['sha256'][:12]}…`{', deployed as `' + x['deployed_as'] + '`' if x.get('deployed_as') else ''})"
         if len(str(x.get("sha256", ""))) == 64 else f"`{x['name']}` (SHA-256 {x.get('sha256', 'not recorded')})"
-        for x in p["policies"]) or "none (no policy involved)"
-    lines = [f"- report: [`{rel}`](../{rel}) · date {p['date']} · commit `{p['commit']}`",
-             f"- policies: {pols}", f"- host: {p['host']}", f"- reproduce: `{p['command']}`", f"- provenance: {p['recorded']}"]
-    if p.get("note"):
-        lines.append(f"- note: {p['note']}")
-    return lines
+        for x in p["policies"]) or "none"
 
 
-def render(reports: list[tuple[str, dict]]) -> str:
-    """docs/results.md for ``reports`` (deterministic: depends on the reports only)."""
+def _provenance(rel: str, report: dict, root: Path = REPO) -> list[str]:
+    """One line: where the report is (with its table, plot or log beside it), when, on which commit,
+    for which policies, on which host, and the command that reproduces it. How the block was
+    recorded and its note stay in the JSON."""
+    p = report["provenance"]
+    stem = rel.removesuffix(".json")
+    beside = [f"[`{Path(stem).name}{ext}`](../{stem}{ext})" for ext in COMPANIONS if (root / f"{stem}{ext}").is_file()]
+    where = f"[`{rel}`](../{rel})" + (f" (with {', '.join(beside)})" if beside else "")
+    return [f"- {where} · {p['date'][:10]} · commit `{p['commit']}` · policies: {_policies(p)} · host: {p['host']} "
+            f"· reproduce: `{p['command']}`"]
+
+
+def _site_matrices(group: list[tuple[str, dict]]) -> list[str]:
+    """One table for a mode's site matrices on several start-pose seeds: each cell "seed 0 / seed 1 / …"."""
+    seeds = [r["seed"] for _, r in group]
+    names = [p["name"] for p in group[0][1]["profiles"]]
+    by_seed = [{p["name"]: p for p in r["profiles"]} for _, r in group]
+
+    def cell(name: str, fn) -> str:
+        return " / ".join(_num(fn(s[name])) if name in s else "-" for s in by_seed)
+
+    rows = [[n, _num(group[0][1]["profiles"][i]["shifts_mean"]),
+             cell(n, lambda p: f"{100 * min(c['success_rate'] for c in p['targets']):.0f} %"),
+             cell(n, lambda p: max(abs(c["bias_m"]) for c in p["targets"])),
+             cell(n, lambda p: max(c["sigma_downrange_m"] for c in p["targets"])),
+             cell(n, lambda p: max(c["sigma_crossrange_m"] for c in p["targets"])),
+             cell(n, lambda p: "met" if p["pass"] else "**missed**")] for i, n in enumerate(names)]
+    head = ["profile", "shifts mean", "min success", "max abs bias [m]", "max σ down [m]", "max σ cross [m]", "bars"]
+    met = " / ".join(f"**{_num(r['pass'])}**" for _, r in group)
+    throws = sorted({r["throws_per_target"] for _, r in group})
+    return _table(head, rows) + ["", f"Each cell: start-pose seed {' / '.join(map(str, seeds))}. Every bar met: {met} "
+                                     f"({' / '.join(map(str, throws))} throws per target and profile)."]
+
+
+def _sections(reports: list[tuple[str, dict]]) -> list[tuple[str, str, list[tuple[str, dict]]]]:
+    """``(topic, section title, reports)`` in page order: by topic, then path; a mode's site matrices
+    on several seeds (``site_matrix_<mode>[_seed<n>].json``) are one section."""
+    out: list[tuple[str, str, list[tuple[str, dict]]]] = []
+    matrices: dict[str, list[tuple[str, dict]]] = {}
+    order = [t for t, _ in TOPICS] + ["Other"]
+    for rel, report in sorted(reports, key=lambda x: (order.index(topic_of(x[0])), x[0])):
+        name = Path(rel).name
+        if name.startswith("site_matrix_") and "profiles" in report and "seed" in report:
+            mode = name.removeprefix("site_matrix_").split("_")[0].removesuffix(".json")
+            if mode not in matrices:
+                matrices[mode] = []
+                out.append((topic_of(rel), f"Site matrix, {mode.upper()}", matrices[mode]))
+            matrices[mode].append((rel, report))
+        else:
+            out.append((topic_of(rel), report["provenance"]["title"], [(rel, report)]))
+    for _, _, group in out:
+        if len(group) > 1:
+            group.sort(key=lambda x: x[1]["seed"])
+    return out
+
+
+def render(reports: list[tuple[str, dict]], root: Path = REPO) -> str:
+    """docs/results.md for ``reports`` (deterministic: depends on the reports and on which tables and
+    plots lie beside them under ``root``): a section per :data:`TOPICS` heading, in it a part per
+    report with its provenance and its figures."""
+    sections = _sections(reports)
+    topics = list(dict.fromkeys(t for t, _, _ in sections))
     lines = [HEADER, "", "# Results", "",
-             "Every figure in this documentation comes from one of the reports below. Each section names the",
-             "report file, when and on which commit it was made, the policy versions (SHA-256) it describes, the",
-             "host and the command that reproduces it. All accuracy figures are simulation results: the machine is",
-             "the simulated machine (MuJoCo twin with a hydraulic valve model), not hardware.", "",
-             "Reports that describe a deployed policy name its file (`deployed as`); `slinger results --check`",
-             "(and `tests/test_results.py`) fails when that file's SHA-256 has changed since.", "",
-             "## Contents", ""]
-    lines += [f"- [{r['provenance']['title']}](#{_anchor(r['provenance']['title'])})" for _, r in reports]
-    for rel, report in reports:
-        lines += ["", f"## {report['provenance']['title']}", ""] + _provenance(rel, report) + [""] + _body(rel, report)
+             "Every figure in this documentation comes from one of the reports below, each about a current version:",
+             "the deployed policies, the committed training recipes' reference runs, the current code. Each part names",
+             "the report file (with its table, plot or log where there is one), its date, commit and the policy",
+             "versions (SHA-256) it describes, the host and the command that reproduces it; how the provenance was",
+             "recorded and any note are in the JSON. All accuracy figures are simulation results: the machine is the",
+             "simulated machine (MuJoCo twin with a hydraulic valve model), not hardware. Reports that describe a",
+             "deployed policy name its file (`deployed as`); `slinger results --check` (and `tests/test_results.py`)",
+             "fails when that file's SHA-256 has changed since. Reports of superseded versions are in the lab",
+             "notebook ([reports/ARCHIVE.md](../reports/ARCHIVE.md)).", "",
+             "Contents: " + " · ".join(f"[{t}](#{_anchor(t)})" for t in topics)]
+    for topic in topics:
+        lines += ([""] if lines[-1] else []) + [f"## {topic}", ""]
+        for _, title, group in (s for s in sections if s[0] == topic):
+            lines.append(f"### {title}")
+            for rel, report in group:
+                lines += _provenance(rel, report, root)
+            body = _site_matrices(group) if len(group) > 1 else _body(*group[0])
+            if body:
+                lines += ["", *body, ""]
+    while lines[-1] == "":
+        lines.pop()
     return "\n".join(lines) + "\n"
 
 
@@ -436,7 +524,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"slinger results: {e}", file=sys.stderr)
         return 2
     problems = check_deployed(reports, args.root)
-    text = render(reports)
+    text = render(reports, args.root)
     if args.check:
         if not out.is_file() or out.read_text() != text:
             problems.append(f"{out} is stale: run `slinger results`")

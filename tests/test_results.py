@@ -174,3 +174,34 @@ def test_site_coverage_report_renders_each_part_per_policy():
     lines = results._body("reports/site_coverage_diagnosis_2d.json", report)
     assert "| worn_gripper | 0.05-0.2 | 0.07-0.07 |" in lines
     assert "| worn_gripper__release_delay | 0.04-0.04 | none landed |" in lines
+
+
+def test_results_page_lists_current_figures_in_at_most_400_lines_every_report_under_a_topic():
+    text = (ROOT / "docs" / "results.md").read_text()
+    assert len(text.splitlines()) <= 400, "docs/results.md is over 400 lines: move superseded reports to the lab notebook (reports/ARCHIVE.md)"
+    others = [rel for rel, _ in results.load_reports(ROOT) if results.topic_of(rel) == "Other"]
+    assert others == [], f"reports without a topic in server/results_page.TOPICS: {others}"
+
+
+def _matrix(seed: int, sigma: float, passed: bool) -> dict:
+    prov = {"title": f"Site matrix, 2D, start-pose seed {seed}", "date": "2026-01-01T00:00:00Z", "commit": "abc1234",
+            "host": "h", "command": f"slinger evaluate --matrix --seed {seed}", "recorded": "r", "policies": []}
+    cells = [{"success_rate": 1.0, "bias_m": -0.05, "sigma_downrange_m": sigma, "sigma_crossrange_m": 0.02}]
+    return {"provenance": prov, "seed": seed, "throws_per_target": 100, "pass": passed,
+            "profiles": [{"name": "nominal", "shifts_mean": False, "pass": passed, "targets": cells}]}
+
+
+def test_a_modes_site_matrices_on_several_seeds_are_one_section_seed_by_seed(tmp_path):
+    reports = [("reports/site_matrix_2d_seed1.json", _matrix(1, 0.12, False)), ("reports/site_matrix_2d.json", _matrix(0, 0.08, True)),
+               ("reports/login_flood.json", {"provenance": {**_matrix(0, 0, True)["provenance"], "title": "Log-in flood"},
+                                             "figures": [{"what": "p99", "value": 0.5, "unit": "s"}]})]
+    (tmp_path / "reports").mkdir()
+    (tmp_path / "reports" / "site_matrix_2d.png").write_bytes(b"png")
+    text = results.render(reports, tmp_path)
+    assert text.count("### Site matrix, 2D") == 1 and "### Log-in flood" in text
+    assert "| nominal | no | 100 % / 100 % | 0.05 / 0.05 | 0.08 / 0.12 | 0.02 / 0.02 | met / **missed** |" in text
+    assert "Every bar met: **yes** / **no**" in text
+    # the seed-0 report comes first, with the plot beside it linked; the topics order the page
+    assert text.index("reports/site_matrix_2d.json") < text.index("reports/site_matrix_2d_seed1.json")
+    assert "[`site_matrix_2d.png`](../reports/site_matrix_2d.png)" in text
+    assert text.index("## Deployed policies on the site matrix") < text.index("## Fleet and server")

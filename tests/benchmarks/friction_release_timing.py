@@ -7,6 +7,9 @@ throw's change of landing point against when the policy released it.
         --policy x=policies/training/throw2d-scratch-x/throw2d-it1451.onnx \
         --out reports/friction_release_timing_2d
 
+(``throw2d-scratch-x`` is in the lab notebook: ``git checkout lab-notebook-2026-11-25 --
+policies/training/throw2d-scratch-x`` first, policies/training/ARCHIVE.md.)
+
 writes ``<out>.json`` (per policy and target: landed throws, first-swing throws, the mean miss
 distance [m] nominal and with the friction, and the mean downrange shift the friction causes [m],
 for first-swing and later releases; ``figures`` for docs/results.md) and ``<out>.png`` (one panel
@@ -18,7 +21,7 @@ gripper's tenfold viscous friction (reports/site_coverage_diagnosis_2d.md). The 
 its passive joints until the release; a throw released in a later swing has spent longer under the
 wrong friction. A throw is "first swing" when its release command comes within
 ``spread_sources.FIRST_SWING_S`` of the swing's start (the 2D policies release either at 0.9-1.6 s or
-after 2.8 s, reports/spread_sources_2d_scratch.png).
+after 2.8 s; reports/spread_sources_2d_scratch.png in the lab notebook, reports/ARCHIVE.md).
 
 Throws: ``spread_sources.throws`` (the runtime's executor with its release check on, start poses
 ``i * 100_000 + k`` as the site matrix's seed 0, i the target's index in 7.5:10:0.5 m). A throw is

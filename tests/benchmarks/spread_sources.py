@@ -6,7 +6,8 @@ randomness removed at a time, and how sensitive the landing point is to the rele
         --out reports/spread_sources_2d.json
 
 (``--checkpoint`` exports an rsl_rl checkpoint of the 2D recipe to ONNX first; needs the training
-extra.)
+extra. ``throw2d-scratch-j`` is in the lab notebook: ``git checkout lab-notebook-2026-11-25 --
+policies/training/throw2d-scratch-j`` first, policies/training/ARCHIVE.md.)
 
 A nominal throw of the simulated machine has four sources of scatter: the random start pose, the
 gripper's opening delay (258 ms, sigma 15 ms: ``RealityProfile.release_delay_std_s``), the sensor
@@ -98,7 +99,7 @@ def throws(policy_path: str, distance_m: float, seeds: list[int], profile: dict 
 
 FIRST_SWING_S = 2.0
 """Release commands up to this long after the swing starts are first-swing throws (s): the 2D
-policies release either at 0.9-1.6 s or after 2.8 s (reports/spread_sources_2d_scratch.png)."""
+policies release either at 0.9-1.6 s or after 2.8 s (reports/spread_sources_2d_scratch.png, in the lab notebook: reports/ARCHIVE.md)."""
 
 
 def _sigma(e: np.ndarray) -> float | None:
