@@ -25,6 +25,7 @@ from server.alarms import AlarmService
 from server.api.errors import domain_error
 from server.api.responses import document_errors
 from server.api.routes import adaptation, alarms, auth, diagnosis, health, jobs, live, machines, policies, previews, scene, throws, users
+from server.auth import AuditBacklog, SessionMirror
 from server.command_signer import CommandSigner
 from server.config import Settings, get_settings
 from server.db.migrate import upgrade
@@ -51,6 +52,9 @@ from server.web_guard import BodySizeLimit, SecurityHeaders, inline_script_hashe
 from server.web_pages import PageFiles
 
 log = logging.getLogger(__name__)
+
+ESTOP_LATCH_FILE = "estop_latches.json"
+"""The server's E-STOP latches (server.estop), in the data directory."""
 
 ROUTE_MODULES = (health, auth, users, machines, throws, previews, policies, scene, live, diagnosis, adaptation, jobs, alarms)
 
@@ -93,10 +97,16 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
         engine = make_engine(settings.database_url, settings.database_busy_timeout_s)
         storage.guard(engine)
         sessions = make_sessionmaker(engine, before_use=storage.before_use)
+        # the E-STOP and the machine list authorise from memory and audit later (docs/safety.md)
+        app.state.audit_backlog = audit_backlog = AuditBacklog(sessions)
+        app.state.session_mirror = session_mirror = SessionMirror(sessions, on_tick=audit_backlog.flush)
+        session_mirror.watch(sessions)
+        session_mirror.start()
         store = ResultStore(sessions, settings.data_dir)
         own_session = zenoh_session is None
         zsession = zenoh_session if zenoh_session is not None else open_zenoh(settings)
-        fleet = Fleet(zsession, store, settings.query_timeout_s, signer=CommandSigner(settings.resolved_site_dir))
+        fleet = Fleet(zsession, store, settings.query_timeout_s, signer=CommandSigner(settings.resolved_site_dir),
+                      estop_latch_file=settings.data_dir / ESTOP_LATCH_FILE)
         app.state.live = live_hub = LiveHub(fleet)
         app.state.login_guard = LoginGuard(settings.login_failures_per_user, settings.login_failures_per_address,
                                            settings.login_workers, settings.login_max_pending,
@@ -155,6 +165,8 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
             if own_session:
                 zsession.close()
             app.state.login_guard.close()  # its pending audit entries are written first
+            session_mirror.stop()
+            audit_backlog.flush()
             storage.release(engine)  # disposes it, unless its files are unwritable (server.storage)
 
     app = FastAPI(

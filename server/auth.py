@@ -5,6 +5,13 @@ A log-in creates a random token (``secrets.token_urlsafe``); the client holds it
 The database stores only the token's SHA-256 and its expiry, so a leaked database does not leak
 sessions. Roles are ordered (server.db.models.ROLES): viewer < operator < admin; a route that
 needs a role accepts any higher one.
+
+Two parts keep the E-STOP and the machine list independent of storage (docs/safety.md):
+:class:`SessionMirror` is an in-memory copy of the valid sessions, loaded at start, refreshed
+after every commit that changes users or sessions and every ``refresh_s`` (changes made by other
+processes, e.g. ``slinger user``), and kept as it was while storage fails; :class:`AuditBacklog`
+queues audit entries that cannot be written and writes them, with their original time, once
+storage is back.
 """
 
 from __future__ import annotations
@@ -12,17 +19,22 @@ from __future__ import annotations
 import hashlib
 import logging
 import secrets
-from datetime import timedelta
+import threading
+from collections import deque
+from dataclasses import dataclass
+from datetime import datetime, timedelta
 
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatchError
-from sqlalchemy import delete, func, select
+from sqlalchemy import Delete, Update, delete, event, func, select
+from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.db.models import ROLES, AuditEntry, AuthSession, User
 from server.db.types import utcnow
 from server.db.upsert import insert_if_absent
 from server.errors import Conflict, Refused, Unauthenticated
+from server.storage import StorageFault
 
 log = logging.getLogger(__name__)
 
@@ -223,3 +235,210 @@ def ensure_admin(sessions: sessionmaker[Session], username: str = "admin") -> st
         create_user(db, username, password, "admin")
         audit(db, "system", "user_add", username, role="admin", reason="first local admin")
     return password
+
+
+AUDIT_BACKLOG_MAX = 10_000
+"""At most this many unwritten audit entries are kept in memory (the oldest are dropped, counted)."""
+MIRROR_REFRESH_S = 2.0
+"""The session mirror re-reads the sessions this often (changes made by other processes), s."""
+
+
+@dataclass(frozen=True)
+class SessionUser:
+    """The account behind a session as the :class:`SessionMirror` holds it (the attributes of
+    :class:`server.db.models.User` that authorisation and the routes read)."""
+
+    id: int
+    username: str
+    role: str
+    active: bool
+    created_at: datetime
+
+
+class AuditBacklog:
+    """Audit entries that could not be written (storage fault), kept in memory in order and
+    written with their original time by :meth:`flush` once storage is back.
+
+    Args:
+        sessions: the session factory.
+        max_entries: at most this many are kept; older ones are dropped and counted in ``dropped``.
+    """
+
+    def __init__(self, sessions: sessionmaker[Session], max_entries: int = AUDIT_BACKLOG_MAX):
+        self.sessions = sessions
+        self._queue: deque[tuple[datetime, str, str, str | None, dict]] = deque(maxlen=max_entries)
+        self._lock = threading.Lock()
+        self.dropped = 0
+        """Entries dropped because the backlog was full."""
+
+    def record(self, username: str, action: str, subject: str | None = None, **detail) -> bool:
+        """Write one audit entry now (after any queued ones); queue it if storage fails.
+
+        Returns:
+            True if it is written, False if it waits in the backlog.
+        """
+        at = utcnow()
+        if self.flush():
+            try:
+                with self.sessions.begin() as db:
+                    _add_audit(db, at, username, action, subject, detail)
+                return True
+            except (SQLAlchemyError, OSError, StorageFault) as e:
+                log.error("audit entry %s %s queued in memory: %s", action, subject or "", _first_line(e))
+        self._push(at, username, action, subject, detail)
+        return False
+
+    def _push(self, at, username, action, subject, detail) -> None:
+        with self._lock:
+            if len(self._queue) == self._queue.maxlen:
+                self.dropped += 1
+            self._queue.append((at, username, action, subject, detail))
+
+    def pending(self) -> int:
+        """Entries waiting to be written."""
+        with self._lock:
+            return len(self._queue)
+
+    def flush(self) -> bool:
+        """Write every queued entry (one transaction). Returns True if none is left; on a storage
+        error they stay queued (False)."""
+        with self._lock:
+            if not self._queue:
+                return True
+            batch = list(self._queue)
+        try:
+            with self.sessions.begin() as db:
+                for at, username, action, subject, detail in batch:
+                    _add_audit(db, at, username, action, subject, detail)
+        except (SQLAlchemyError, OSError, StorageFault) as e:
+            log.debug("audit backlog of %d not written yet: %s", len(batch), _first_line(e))
+            return False
+        with self._lock:
+            for _ in batch:
+                self._queue.popleft()
+        log.warning("wrote %d audit entries queued while storage was failing", len(batch))
+        return True
+
+
+def _add_audit(db: Session, at: datetime, username: str, action: str, subject: str | None, detail: dict) -> None:
+    audit(db, username, action, subject, **detail)
+    for obj in db.new:
+        if isinstance(obj, AuditEntry) and obj.at is None:
+            obj.at = at
+
+
+def _first_line(e: BaseException) -> str:
+    return (str(e).strip().splitlines() or [type(e).__name__])[0]
+
+
+class SessionMirror:
+    """The valid sessions in memory: token SHA-256 -> (:class:`SessionUser`, expiry), so that a
+    stop can be authorised without storage.
+
+    It holds exactly what :func:`user_for_token` accepts (unexpired session, existing active
+    account with the session's ``session_key``), read in one query. :meth:`watch` makes every
+    commit of the server's sessions that adds, changes or deletes users or sessions re-read it
+    before the commit's caller goes on (a log-out, a deleted or disabled account, a new role take
+    effect at once); a thread re-reads it every ``refresh_s`` for changes made by other processes.
+    A failed read (storage fault) keeps what it held; expiry is judged in memory.
+
+    Args:
+        sessions: the session factory.
+        refresh_s: see MIRROR_REFRESH_S.
+        on_tick: called after each periodic refresh (e.g. :meth:`AuditBacklog.flush`).
+    """
+
+    def __init__(self, sessions: sessionmaker[Session], refresh_s: float = MIRROR_REFRESH_S, on_tick=None):
+        self.sessions = sessions
+        self.refresh_s = refresh_s
+        self.on_tick = on_tick
+        self._map: dict[str, tuple[SessionUser, datetime]] = {}
+        self._lock = threading.Lock()
+        self._generation = 0
+        self.loaded = False
+        """True once a read succeeded (before that, a miss means "unknown", not "invalid")."""
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def user(self, token: str | None) -> SessionUser | None:
+        """The active user of an unexpired session ``token`` as last read, else None. No I/O."""
+        if not token:
+            return None
+        with self._lock:
+            entry = self._map.get(_digest(token))
+        if entry is None or entry[1] <= utcnow() or not entry[0].active:
+            return None
+        return entry[0]
+
+    def refresh(self) -> bool:
+        """Read the valid sessions now. Returns False (the mirror unchanged) on a storage error."""
+        with self._lock:
+            self._generation += 1
+            generation = self._generation
+        try:
+            with self.sessions() as db:
+                rows = db.execute(select(AuthSession.token_sha256, AuthSession.expires_at, User).join(
+                    User, User.id == AuthSession.user_id).where(
+                    AuthSession.expires_at > utcnow(), AuthSession.user_key == User.session_key, User.active.is_(True)
+                )).all()
+        except (SQLAlchemyError, OSError, StorageFault) as e:
+            log.debug("session mirror not refreshed: %s", _first_line(e))
+            return False
+        fresh = {digest: (SessionUser(u.id, u.username, u.role, u.active, u.created_at), expires)
+                 for digest, expires, u in rows}
+        with self._lock:
+            if generation == self._generation:  # a later refresh (after a newer commit) wins
+                self._map = fresh
+                self.loaded = True
+        return True
+
+    def drop(self, token: str | None) -> None:
+        """Forget ``token`` at once (the database said it is not valid)."""
+        if token:
+            with self._lock:
+                self._map.pop(_digest(token), None)
+
+    def watch(self, sessions: sessionmaker[Session]) -> None:
+        """Refresh after every commit of ``sessions`` that touched users or sessions (ORM
+        objects flushed, or bulk UPDATE/DELETE statements on their tables)."""
+
+        @event.listens_for(sessions, "after_flush")
+        def _flushed(db, _ctx) -> None:
+            if any(isinstance(o, (User, AuthSession)) for o in (*db.new, *db.dirty, *db.deleted)):
+                db.info["auth_changed"] = True
+
+        @event.listens_for(sessions, "do_orm_execute")
+        def _executed(state) -> None:
+            stmt = state.statement
+            if isinstance(stmt, (Update, Delete)) and \
+                    getattr(stmt.table, "name", None) in (User.__tablename__, AuthSession.__tablename__):
+                state.session.info["auth_changed"] = True
+
+        @event.listens_for(sessions, "after_commit")
+        def _committed(db) -> None:
+            if db.info.pop("auth_changed", False):
+                self.refresh()
+
+        @event.listens_for(sessions, "after_rollback")
+        def _rolled_back(db) -> None:
+            db.info.pop("auth_changed", None)
+
+    def start(self) -> None:
+        """Read once, then start the refresh thread."""
+        self.refresh()
+        self._thread = threading.Thread(target=self._loop, name="session-mirror", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.refresh_s):
+            self.refresh()
+            if self.on_tick is not None:
+                try:
+                    self.on_tick()
+                except Exception:
+                    log.exception("session mirror tick failed")

@@ -97,10 +97,12 @@ class Fleet(FleetCommands):
         store: writes statuses and results to the database and telemetry folder.
         query_timeout_s: timeout of queries to runtimes, s.
         signer: the site's command keys (default: none, so no command can be signed).
+        estop_latch_file: where the server keeps its E-STOP latches across restarts
+            (:class:`server.estop.EstopLine`; None: in memory only).
     """
 
     def __init__(self, session: zenoh.Session, store: ResultStore, query_timeout_s: float = 5.0,
-                 signer: CommandSigner | None = None):
+                 signer: CommandSigner | None = None, estop_latch_file: Path | None = None):
         self.session = session
         self.store = store
         self.query_timeout_s = query_timeout_s
@@ -109,7 +111,7 @@ class Fleet(FleetCommands):
         self._alive: set[str] = set()
         self._started_s = time.monotonic()
         self._offline_since: dict[str, float] = {}
-        self._estop = EstopLine(session, self._sign_abort)
+        self._estop = EstopLine(session, self._sign_abort, latch_file=estop_latch_file)
         self.refused_results: list[tuple[str, str]] = []
         """(throw id, reason) of the last refused results (bounded), for tests and diagnostics."""
         self._states: dict[str, MachineState] = {}
@@ -302,6 +304,7 @@ class Fleet(FleetCommands):
         elif isinstance(event, RuntimeOnline):
             log.info("runtime %s online", event.machine_id)
             self._set_alive(event.machine_id, True)
+            self._estop.runtime_online(event.machine_id)  # a held stop reaches it before anything else
             self._jobs.put(lambda: self._register(event.machine_id))
         elif isinstance(event, RuntimeOffline):
             log.info("runtime %s offline", event.machine_id)

@@ -33,13 +33,13 @@ from runtime.protocol.messages import (
     decode,
     encode,
 )
-from server.errors import Unavailable
+from server.errors import Conflict, Unavailable
 
 if TYPE_CHECKING:
     import zenoh
 
     from server.command_signer import CommandSigner
-    from server.estop import EstopLine
+    from server.estop import EstopLine, Latch
 
 log = logging.getLogger("server.fleet")  # the logger of server.fleet, as before the split
 
@@ -135,23 +135,55 @@ class FleetCommands:
         Raises:
             RuntimeUnavailable: offline, no reply within the timeout, an error reply or a malformed ack.
             ValueError: a malformed command key file.
+            Conflict: the server holds the machine's E-STOP latched (condition ``estop_latched``).
         """
+        self.refuse_if_latched(request.machine_id)
         return self._signed_query(keys.throw, request, request.machine_id, user, ThrowAck)
+
+    def estop_latch(self, machine_id: str) -> Latch | None:
+        """The E-STOP the server holds latched for ``machine_id`` (server.estop.Latch), or None."""
+        return self._estop.latch(machine_id)
+
+    def estop_latched_ids(self) -> set[str]:
+        """The machines whose E-STOP the server holds latched."""
+        return self._estop.latched_ids()
+
+    def release_unknown_estop(self, machine_id: str) -> None:
+        """Drop the server's latch of an id that names no machine (an E-STOP of an unknown id)."""
+        self._estop.release_unknown(machine_id)
+
+    def refuse_if_latched(self, machine_id: str) -> None:
+        """Raise Conflict (``estop_latched``) while the server holds ``machine_id``'s E-STOP."""
+        latch = self._estop.latch(machine_id)
+        if latch is not None:
+            raise Conflict(f"E-STOP latched on {machine_id} ({latch.reason}): reset it before throwing or moving",
+                           "estop_latched")
 
     def estop_reset(self, machine_id: str, user: str) -> EstopResetAck:
         """Ask the runtime to release its latched E-STOP (signed for ``user``).
 
+        The server's own latch of the machine (:meth:`estop_latch`) pauses its puts while the reset
+        is asked and is cleared only when the runtime confirms the reset.
+
         Raises:
             RuntimeUnavailable, ValueError: as :meth:`request_throw`.
         """
-        return self._state_command(keys.estop_reset, EstopReset(machine_id=machine_id), user, EstopResetAck)
+        self._estop.begin_reset(machine_id)
+        released = False
+        try:
+            ack = self._state_command(keys.estop_reset, EstopReset(machine_id=machine_id), user, EstopResetAck)
+            released = ack.reset
+            return ack
+        finally:
+            self._estop.end_reset(machine_id, released)
 
     def return_to_ready(self, machine_id: str, user: str) -> ReturnToReadyAck:
         """Ask the runtime to drive its arm back to the ready pose (signed for ``user``).
 
         Raises:
-            RuntimeUnavailable, ValueError: as :meth:`request_throw`.
+            RuntimeUnavailable, ValueError, Conflict: as :meth:`request_throw`.
         """
+        self.refuse_if_latched(machine_id)
         return self._state_command(keys.return_to_ready, ReturnToReady(machine_id=machine_id), user, ReturnToReadyAck)
 
     def _state_command(self, key_of, command, user: str, ack_type):

@@ -191,12 +191,17 @@ class LiveHub:
         """:func:`machine_status` of ``machine_id`` now, from the fleet's presence and RuntimeInfo
         cache, with ``simulated``, ``cabin_turn_rad`` (from its latest MachineState, rad, None if
         none), ``drift_alert`` (:meth:`server.drift.DriftWatch.alert`) and ``clock_warning``
-        (:func:`server.fleet.clock_warning`, None while the clocks agree) added."""
+        (:func:`server.fleet.clock_warning`, None while the clocks agree) added. An E-STOP the
+        server holds latched (:meth:`server.fleet.Fleet.estop_latch`) makes the state
+        ``estopped`` whatever the runtime says or whether it answers."""
         online = self.fleet.is_online(machine_id)
         with self._lock:
             throw = self._throws.get(machine_id)
         info = self.fleet.last_info(machine_id)
         st = machine_status(machine_id, online, info, self.fleet.silent_for_s(machine_id) if info else None, throw)
+        latch = self.fleet.estop_latch(machine_id)
+        if latch is not None:
+            st.update(state="estopped", reason=latch.describe(), estop_reason=latch.reason)
         state = self.fleet.latest_state(machine_id)
         st["simulated"] = st["simulated"] or bool(state is not None and state.simulated)
         st["cabin_turn_rad"] = float(state.q[0]) if state is not None else None
@@ -205,7 +210,7 @@ class LiveHub:
         return st
 
     def statuses(self) -> list[dict]:
-        ids = set(self.fleet.online_ids()) | set(self.fleet.latest_states())
+        ids = set(self.fleet.online_ids()) | set(self.fleet.latest_states()) | self.fleet.estop_latched_ids()
         with self._lock:
             ids |= set(self._last_status)
         return [self.status(mid) for mid in sorted(ids)]
@@ -270,7 +275,7 @@ class LiveHub:
         """Heartbeats, and re-judged states (a runtime gone silent shows offline after SILENT_AFTER_S)."""
         while not self._stop.wait(HEARTBEAT_S):
             self.publish("heartbeat", {"server_time_s": time.time()})
-            ids = set(self.fleet.online_ids())
+            ids = set(self.fleet.online_ids()) | self.fleet.estop_latched_ids()
             with self._lock:
                 ids |= set(self._last_status)
             for mid in ids:

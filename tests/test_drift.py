@@ -152,6 +152,9 @@ def test_listener_ignores_unknown_and_unlanded_throws_and_the_live_state_carries
         def latest_state(self, mid):
             return None
 
+        def estop_latch(self, mid):
+            return None
+
     hub = LiveHub(Fleet())
     assert hub.status("m2")["drift_alert"] is None
     hub.drift = watch

@@ -10,14 +10,14 @@ E-STOP route relies on that).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from typing import Annotated
+from typing import Annotated, TypeVar
 
 from fastapi import Depends, Request
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.adaptation import AdaptationRuns
 from server.alarms import AlarmService
-from server.auth import COOKIE_NAME, role_at_least, user_for_token
+from server.auth import COOKIE_NAME, AuditBacklog, SessionMirror, SessionUser, role_at_least, user_for_token
 from server.config import Settings
 from server.db.models import User
 from server.diagnosis import DiagnosisRuns
@@ -111,6 +111,10 @@ async def get_alarms(request: Request) -> AlarmService:
     return request.app.state.alarms
 
 
+async def get_audit_backlog(request: Request) -> AuditBacklog:
+    return request.app.state.audit_backlog
+
+
 SessionDep = Annotated[Session, Depends(get_db)]
 SessionsDep = Annotated[sessionmaker[Session], Depends(get_sessions)]
 FleetDep = Annotated[Fleet, Depends(get_fleet)]
@@ -128,6 +132,7 @@ AdaptationRunsDep = Annotated[AdaptationRuns, Depends(get_adaptation_runs)]
 LoginGuardDep = Annotated[LoginGuard, Depends(get_login_guard)]
 StorageDep = Annotated[StorageMonitor, Depends(get_storage)]
 DriftDep = Annotated[DriftWatch, Depends(get_drift)]
+AuditBacklogDep = Annotated[AuditBacklog, Depends(get_audit_backlog)]
 AlarmsDep = Annotated[AlarmService, Depends(get_alarms)]
 
 
@@ -139,7 +144,10 @@ def session_token(request: Request) -> str | None:
     return request.cookies.get(COOKIE_NAME)
 
 
-def authorised(user: User | None, role: str = "viewer") -> User:
+AnyUser = TypeVar("AnyUser", User, SessionUser)
+
+
+def authorised(user: AnyUser | None, role: str = "viewer") -> AnyUser:
     """``user`` if it is logged in with at least ``role``.
 
     Raises:
@@ -176,6 +184,28 @@ def get_current_user(request: Request) -> User:
     """The logged-in user; Unauthenticated (401) without a valid, unexpired session."""
     with request.app.state.sessions() as db:
         return authorised(user_for_token(db, session_token(request)))
+
+
+def user_from_memory(request: Request, role: str = "viewer") -> User | SessionUser:
+    """The logged-in user of ``request`` with at least ``role``, from the in-memory session
+    mirror (server.auth.SessionMirror: no storage touched); only a token the mirror does not hold
+    is looked up in the database (a session of another process since the last refresh, or an
+    invalid one). Used by the E-STOP and the machine list, which must answer during storage faults.
+
+    Raises:
+        Unauthenticated (401), Denied (403): as :func:`authorised`.
+        StorageFault: the token is not in the mirror and the database cannot be read (503).
+    """
+    token = session_token(request)
+    mirror: SessionMirror | None = getattr(request.app.state, "session_mirror", None)
+    user = mirror.user(token) if mirror is not None else None
+    if user is not None:
+        return authorised(user, role)
+    with request.app.state.sessions() as db:
+        row = user_for_token(db, token)
+    if row is None and mirror is not None:
+        mirror.drop(token)
+    return authorised(row, role)
 
 
 def require_role(role: str):

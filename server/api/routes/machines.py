@@ -14,25 +14,27 @@ from typing import Any
 from fastapi import APIRouter, Request
 from pydantic import BaseModel, Field
 from sqlalchemy import select
+from sqlalchemy.exc import SQLAlchemyError
 
 from server.api.deps import (
+    AuditBacklogDep,
     DriftDep,
     FleetDep,
     OperatorDep,
     SessionDep,
     SessionsDep,
     ViewerDep,
-    authorised,
     authorised_or_audited,
-    session_token,
+    user_from_memory,
 )
 from server.api.report_schemas import DriftAlertOut
 from server.api.responses import errors
 from server.api.schemas import MachineOut
-from server.auth import audit, record_audit, user_for_token
+from server.auth import AuditBacklog, audit, record_audit
 from server.db.models import Machine, Throw
 from server.errors import Conflict, NotFound, Unavailable
 from server.fleet import RUNTIME_SILENT_S, Fleet, RuntimeUnavailable, clock_warning
+from server.storage import StorageFault
 
 router = APIRouter(prefix="/api/machines", tags=["machines"])
 log = logging.getLogger(__name__)
@@ -42,16 +44,29 @@ INFO_MAX_AGE_S = 2.0  # busy flag and policies are at most this old
 """A runtime whose wall clock is further off the server's gets a clock warning in its row."""
 
 
-@router.get("", response_model=list[MachineOut])
-def list_machines(db: SessionDep, fleet: FleetDep, _user: ViewerDep) -> list[MachineOut]:
-    """All machines in the database plus any heard on Zenoh, sorted by id.
+STORAGE_ERRORS = (StorageFault, SQLAlchemyError, OSError)
+"""What a database read raises during a storage fault (server.storage)."""
 
-    ``simulated`` is True when the machine's own state says it is the simulated machine.
+
+@router.get("", response_model=list[MachineOut], responses=errors(401))
+def list_machines(request: Request, sessions: SessionsDep, fleet: FleetDep) -> list[MachineOut]:
+    """All machines in the database plus any heard on Zenoh or latched on the server, sorted by id.
+
+    ``simulated`` is True when the machine's own state says it is the simulated machine. The
+    session is checked in memory (server.auth.SessionMirror) and the machines' state comes from
+    the fleet link, so during a storage fault this still answers: from memory alone, without the
+    stored machines that are not heard now and without the latest throw and accuracy.
     """
-    rows = {m.id: m for m in db.scalars(select(Machine))}
+    user_from_memory(request, "viewer")
     states = fleet.latest_states()
-    ids = sorted(set(rows) | fleet.online_ids() | set(states))
-    return [_with_throws(db, _machine_out(mid, rows.get(mid), fleet)) for mid in ids]
+    heard = fleet.online_ids() | set(states) | fleet.estop_latched_ids()
+    try:
+        with sessions() as db:
+            rows = {m.id: m for m in db.scalars(select(Machine))}
+            return [_with_throws(db, _machine_out(mid, rows.get(mid), fleet)) for mid in sorted(set(rows) | heard)]
+    except STORAGE_ERRORS as e:
+        log.warning("machine list answered from memory: %s", _sentence(e))
+        return [_machine_out(mid, None, fleet) for mid in sorted(heard)]
 
 
 RECENT_THROWS = 20
@@ -74,6 +89,17 @@ def _with_throws(db, m: MachineOut) -> MachineOut:
 
 
 def _machine_out(mid: str, row: Machine | None, fleet: Fleet) -> MachineOut:
+    """The machine's row of the list; a server-held E-STOP (server.estop) shows it latched and
+    not ready whatever its runtime says."""
+    out = _runtime_out(mid, row, fleet)
+    latch = fleet.estop_latch(mid)
+    if latch is not None:
+        out.estop_latched, out.estop_reason = True, latch.reason
+        out.ready, out.not_ready_reason = False, latch.describe()
+    return out
+
+
+def _runtime_out(mid: str, row: Machine | None, fleet: Fleet) -> MachineOut:
     online = fleet.is_online(mid)
     silent_s = fleet.silent_for_s(mid)
     state = fleet.latest_state(mid)
@@ -116,33 +142,29 @@ class EstopResetOut(BaseModel):
     reason: str | None = None
 
 
-def _operator_or_raise(request: Request, sessions):
-    """The logged-in operator (or admin) of ``request``; Unauthenticated (401) / Denied (403)
-    otherwise. Runs on the event loop: one indexed read, so the E-STOP never waits for a free
-    request thread."""
-    with sessions() as db:
-        return authorised(user_for_token(db, session_token(request)), "operator")
-
-
 STOP_RESPONSES = errors(401, (403, "needs the operator role"), (404, "unknown machine"),
-                        (503, "the runtime did not confirm the stop, or storage does not answer"))
-"""The E-STOP checks its session itself (no dependency, see :func:`_operator_or_raise`): it lists 401/403."""
+                        (503, "the runtime did not confirm the stop (the server holds it latched and keeps sending "
+                              "it), or the session is unknown in memory and storage does not answer"))
+"""The E-STOP checks its session itself (server.api.deps.user_from_memory): it lists 401/403."""
 
 
 @router.post("/{machine_id}/estop", response_model=AbortOut, responses=STOP_RESPONSES)
 @router.post("/{machine_id}/abort", response_model=AbortOut, responses=STOP_RESPONSES)
-async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: SessionsDep,
+async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: SessionsDep, backlog: AuditBacklogDep,
                 body: AbortIn | None = None) -> AbortOut:
     """E-STOP: the runtime ends any throw as aborted, puts the valves to neutral and LATCHES
     (throws refused until POST .../estop/reset; the latch survives a runtime restart). Fast path:
     an async route that puts the stop for this machine at once (server.estop: fire-and-forget,
     repeated until the runtime confirms; presses of a machine whose stop is unconfirmed join it)
     and replies on the runtime's confirmation (AbortAck, sent after the latch is on disk), or 503
-    after the stop's deadline. No other machine, query, thread pool or database write is waited
-    for: the audit entry is written afterwards on the fleet's database thread, also when the
-    runtime does not confirm."""
+    after the stop's deadline; the server then holds the stop latched (server.estop: the machine
+    shows E-STOPPED, throws are refused, the stop is sent until a runtime confirms it, until a
+    deliberate reset). The operator's session is checked in memory (server.auth.SessionMirror) and
+    no other machine, query, thread pool or storage is waited for: the audit entry is written
+    afterwards on the fleet's database thread, also when the runtime does not confirm, and queued
+    in memory while storage fails (server.auth.AuditBacklog)."""
     t0 = time.perf_counter()
-    user = _operator_or_raise(request, sessions)
+    user = user_from_memory(request, "operator")
     reason = f"{(body or AbortIn()).reason} ({user.username})"
     try:
         t_auth = time.perf_counter()
@@ -151,24 +173,23 @@ async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: Se
                  (t_auth - t0) * 1e3, (time.perf_counter() - t_auth) * 1e3)
     except (RuntimeUnavailable, ValueError) as e:
         error = _sentence(e)
-        _audit_later(fleet, lambda: record_audit(sessions, user.username, "abort", machine_id[:64],
-                                                 reason=reason, delivered=False, error=error))
+        _audit_later(fleet, backlog, user.username, machine_id[:64], reason=reason, delivered=False, error=error)
         await asyncio.to_thread(_404_if_unknown, fleet, sessions, machine_id)
         raise Unavailable(f"abort of {machine_id} not confirmed: {error}") from e
     fleet.forget_info(machine_id)
-    _audit_later(fleet, lambda: record_audit(sessions, user.username, "abort", machine_id,
-                                             reason=reason, delivered=True, throw_id=ack.aborted_throw_id))
+    _audit_later(fleet, backlog, user.username, machine_id, reason=reason, delivered=True,
+                 throw_id=ack.aborted_throw_id)
     return AbortOut(machine_id=machine_id, aborted_throw_id=ack.aborted_throw_id)
 
 
-def _audit_later(fleet: Fleet, write) -> None:
-    """Queue an audit entry on the fleet's database thread (after the stop went out); a failure
-    is logged. The E-STOP reply never waits for the database."""
+def _audit_later(fleet: Fleet, backlog: AuditBacklog, username: str, subject: str, **detail) -> None:
+    """Audit an E-STOP (action ``abort``) on the fleet's database thread, after the stop went out;
+    while storage fails the entry waits in ``backlog``. The E-STOP reply never waits for it."""
     def logged(done) -> None:
         if done.exception() is not None:
             log.error("E-STOP audit entry not written: %s", done.exception())
 
-    fleet.submit_db_job(write).add_done_callback(logged)
+    fleet.submit_db_job(lambda: backlog.record(username, "abort", subject, **detail)).add_done_callback(logged)
 
 
 def _sentence(e: Exception) -> str:
@@ -179,12 +200,19 @@ def _sentence(e: Exception) -> str:
 
 def _404_if_unknown(fleet: Fleet, sessions, machine_id: str) -> None:
     """NotFound (404) if no machine ``machine_id`` was ever registered nor is online (checked
-    only after a command failed, so the E-STOP path never waits for the database)."""
+    only after a command failed, so the E-STOP path never waits for the database); the server's
+    latch of such an id is dropped. While storage fails the id counts as known (the latch holds)."""
     if fleet.is_online(machine_id) or fleet.latest_state(machine_id) is not None:
         return
-    with sessions() as db:
-        if db.get(Machine, machine_id) is None:
-            raise NotFound(f"unknown machine {machine_id!r}")
+    try:
+        with sessions() as db:
+            known = db.get(Machine, machine_id) is not None
+    except STORAGE_ERRORS as e:
+        log.warning("E-STOP of %s: cannot check that the machine exists (%s); its latch holds", machine_id, _sentence(e))
+        return
+    if not known:
+        fleet.release_unknown_estop(machine_id)
+        raise NotFound(f"unknown machine {machine_id!r}")
 
 
 def _delivered(db, username: str, action: str, machine_id: str, what: str, send, fleet: Fleet | None = None,
