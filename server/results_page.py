@@ -284,6 +284,7 @@ TOPICS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("Adaptation to a site", ("adaptation",)),
     ("Diagnosis", ("diagnosis_",)),
     ("Preview", ("preview_",)),
+    ("Twin and simulated machine", ("drake_", "twin_", "plant_", "physics_")),
     ("Runtime and safety", ("estop_", "controller_", "release_check_", "safety_bounds", "soak_", "policy_validation", "telemetry_")),
     ("Fleet and server", ("fleet_", "login_flood")),
     ("Training", ("training_",)),
