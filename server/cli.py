@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 import threading
 import time
@@ -39,7 +40,7 @@ DELEGATED = {
     "certs": ("server.certs", "a site's CA, TLS certificates and machine command keys"),
     "plant": ("sim_twin.plant", "the simulated machine"),
     "runtime": ("runtime.node", "the runtime of one machine"),
-    "ros2-bridge": ("runtime.ros2.bridge", "the ROS 2 machine bridge: a ROS 2 (rmw_zenoh) machine behind the machine interface"),
+    "ros2-bridge": ("runtime.ros2.bridge", "the ROS 2 machine bridge: a machine whose driver is a ROS 2 node, behind the machine interface"),
     "train": ("sim_twin.train", "train a throwing policy (needs the 'train' extra)"),
     "evaluate": ("sim_twin.evaluate_cli", "evaluate a policy version"),
     "diagnose": ("sim_twin.diagnosis.cli", "sim-to-real gap diagnosis of logged throws (and 'diagnose benchmark')"),
@@ -118,6 +119,16 @@ def cmd_up(args: argparse.Namespace) -> int:
     from server.certs import make_site
     from server.db.migrate import upgrade
 
+    if args.ros2 is not None:  # refuse a bad mapping or a ROS 2 domain open beyond this host before starting anything
+        from runtime.ros2.config import ConfigError
+        from runtime.ros2.node import DomainRefused, machine_local_environment
+
+        try:
+            stack.ros2_domains(args.ros2 or None, args.machines)
+            machine_local_environment(dict(os.environ))
+        except (ConfigError, DomainRefused) as e:
+            log.error("cannot start with --ros2: %s", e)
+            return 2
     hub = f"tls/127.0.0.1:{args.zenoh_port}"
     settings = _settings(args, zenoh_listen=[hub])
     ids = stack.machine_ids(args.machines)
@@ -150,7 +161,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 
             children.spawn("worker", worker_argv(settings), settings.data_dir / "logs")
             stack.spawn_machines(children, args.machines, hub, policies, settings.data_dir, site.root,
-                                 settings.release_check_radius_m, engine=args.engine)
+                                 settings.release_check_radius_m, engine=args.engine, ros2=False if args.ros2 is None else (args.ros2 or None))
             children.supervise()
             log.info("child logs in %s", settings.data_dir / "logs")
             return _serve(settings, zenoh_session=session, on_started=_print_urls(settings))
@@ -216,6 +227,10 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--engine", choices=ENGINES, default="mujoco",
                     help="physics engine of the simulated machines: mujoco (the twin) or drake (an independent engine; "
                          "needs the 'drake' extra)")
+    up.add_argument("--ros2", nargs="?", type=Path, const="", default=None, metavar="MAPPING",
+                    help="each simulated machine as a ROS 2 driver node behind a ROS 2 bridge (rclpy; RMW_IMPLEMENTATION, "
+                         "Fast DDS by default), with the bridge's mapping file (default: identity), machine i on ROS domain "
+                         "base + i - 1 (docs/ros2.md)")
     up.set_defaults(func=cmd_up)
 
     srv = sub.add_parser("server", help="only the server: API, console, 3D view")

@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import sys
 from pathlib import Path
+from typing import Literal
 
 from runtime.release_check import DEFAULT_RADIUS_M
 from server.supervise import Child, Children  # noqa: F401 (the stack's process supervision)
@@ -44,10 +45,39 @@ def machine_ids(n: int) -> list[str]:
     return [f"m{i}" for i in range(1, n + 1)]
 
 
+def ros2_domains(ros2: Path | None, n: int) -> list[int]:
+    """ROS_DOMAIN_IDs of machines m1..mN behind ROS 2: the mapping's domain_id (else the
+    environment's ROS_DOMAIN_ID, else 0) for m1, the next ones for the others (one domain per
+    machine: every machine's driver publishes the same topic names).
+
+    Raises:
+        runtime.ros2.config.ConfigError: an unusable mapping file or a domain beyond 232.
+    """
+    import os
+
+    from runtime.ros2.config import ConfigError, load
+
+    base = (load(ros2).domain_id if ros2 else None)
+    if base is None:
+        try:
+            base = int(os.environ.get("ROS_DOMAIN_ID", "").strip() or 0)
+        except ValueError as e:
+            raise ConfigError(f"ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']!r} is not a number") from e
+    if not 0 <= base <= 232 - (n - 1):
+        raise ConfigError(f"ROS domains {base}..{base + n - 1} of {n} machines: ROS_DOMAIN_ID must be 0..232")
+    return [base + i for i in range(n)]
+
+
 def spawn_machines(children: Children, n: int, hub: str, policies: dict[str, Path], data_dir: Path,
-                   site_dir: Path | None = None, release_check_radius_m: float | None = DEFAULT_RADIUS_M, engine: str = "mujoco") -> None:
+                   site_dir: Path | None = None, release_check_radius_m: float | None = DEFAULT_RADIUS_M,
+                   ros2: Path | None | Literal[False] = False, engine: str = "mujoco") -> None:
     """Per machine: the simulated machine, and its runtime if any policy is given. The simulated
     machines run on the physics ``engine`` (sim_twin.engines: "mujoco", or "drake" for an independent one).
+
+    With ``ros2`` (a mapping file, or None for the identity mapping; False: off) the simulated
+    machine is a ROS 2 driver node (``slinger plant --ros2``) and a ROS 2 bridge
+    (``slinger ros2-bridge``) stands between it and the runtime, each machine on its own ROS
+    domain (:func:`ros2_domains`).
 
     With ``site_dir`` (server.certs.make_site) every child uses mutual TLS and the site's access
     control (``--tls-dir``; ``hub`` and the children's own listeners are then ``tls/``
@@ -59,9 +89,17 @@ def spawn_machines(children: Children, n: int, hub: str, policies: dict[str, Pat
     tls = ["--tls-dir", str(site_dir), "--acl-machines", *ids] if site_dir is not None else []
     radius = ["--release-check-radius", "off" if release_check_radius_m is None else str(release_check_radius_m)]
     engine_arg = ["--engine", engine]
+    domains = ros2_domains(ros2 or None, n) if ros2 is not False else []
     for i, mid in enumerate(ids):
         link = ["--connect", hub, "--listen", f"{proto}/127.0.0.1:0", *tls]
-        children.spawn(f"plant-{mid}", slinger_command("plant", "--machine-id", mid, "--seed", str(i), *engine_arg, *link), log_dir)
+        if ros2 is False:
+            children.spawn(f"plant-{mid}", slinger_command("plant", "--machine-id", mid, "--seed", str(i), *engine_arg, *link), log_dir)
+        else:
+            mapping, domain = ([str(ros2)] if ros2 else []), ["--domain-id", str(domains[i])]
+            children.spawn(f"plant-{mid}", slinger_command("plant", "--machine-id", mid, "--seed", str(i), *engine_arg, "--ros2", *mapping,
+                                                           *domain, *link), log_dir)
+            children.spawn(f"ros2-bridge-{mid}", slinger_command("ros2-bridge", "--machine-id", mid, "--simulated",
+                                                                 *(["--config", str(ros2)] if ros2 else []), *domain, *link), log_dir)
         if not policies:
             continue
         pol = [a for mode, p in sorted(policies.items()) for a in (f"--policy-{mode}", str(p))]

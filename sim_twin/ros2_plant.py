@@ -1,22 +1,32 @@
-"""The simulated machine as a ROS 2 machine (``slinger plant --ros2 [CONFIG]``): the plant speaks
-ROS 2 over Zenoh in rmw_zenoh's format instead of Slinger's machine interface, as a machine whose
-controllers are ROS nodes would; the runtime reaches it through the ROS 2 bridge
-(runtime.ros2.bridge) with the same mapping file.
+"""The simulated machine as a ROS 2 machine (``slinger plant --ros2 [CONFIG]``): the plant is an
+rclpy driver node (runtime.ros2.node, the middleware ``RMW_IMPLEMENTATION`` names) instead of a
+peer of Slinger's machine interface, as a machine whose own control stack is ROS 2 would be; the
+runtime reaches it through the ROS 2 bridge (runtime.ros2.bridge) with the same mapping file.
 
-It publishes, per plant period (20 Hz at rest, as the plant does): ``sensor_msgs/JointState`` of
-the active joints (and the passive ones, on their own topic if the mapping names one, or as a
-gripper ``sensor_msgs/Imu``: runtime.ros2.imu.imu_from_joints; its linear acceleration is not
-simulated and reads zero), the
+Node ``simulated_machine`` publishes, per plant period (100 Hz while anything moves, 20 Hz at
+rest, as the plant does): ``sensor_msgs/JointState`` of the active joints (and the passive ones,
+on their own topic if the mapping names one, or as a gripper ``sensor_msgs/Imu``:
+runtime.ros2.imu.imu_from_joints; its linear acceleration is not simulated and reads zero), the
 gripper state (``std_msgs/Bool``, true = open), the payload (``nav_msgs/Odometry``) and the fault
-(``std_msgs/String``) where the mapping names topics for them, and one ``geometry_msgs/PointStamped``
-per landing on the impact topic (header stamp: the landing's wall-clock time). It subscribes the
-valve array and the gripper command. Units and names are the mapping's inverse. ``sim/reset``
-stays on Slinger's key (a tool of the simulated machine only); the machine's liveliness token is
-the bridge's.
+(``std_msgs/String``) where the mapping names topics for them, and one
+``geometry_msgs/PointStamped`` per landing on the impact topic (header stamp: the landing's
+wall-clock time). QoS: joint states, gripper state and fault reliable (as ros2_control's
+joint_state_broadcaster), IMU and odometry best effort (sensor data), the impact reliable.
+
+It takes valve commands (``std_msgs/Float64MultiArray``; QoS VALVE_QOS: a 0.1 s deadline and a
+0.5 s liveliness lease requested, so a silent or dead commander sets the valves neutral at once)
+and gripper commands (``std_msgs/Bool``) from one publisher only: a message from a publisher that
+is not the topic's only one (GID checked against the ROS graph) is dropped, and while a second
+publisher is on the graph, and FOREIGN_HOLD_S after, every valve command is refused, the valves
+are held neutral and the fault topic says why. Units and names are the mapping's inverse.
+``sim/reset`` stays on Slinger's Zenoh key (a tool of the simulated machine only); the machine's
+liveliness token is the bridge's.
 """
 
 from __future__ import annotations
 
+import logging
+import threading
 import time
 
 import numpy as np
@@ -33,9 +43,21 @@ from runtime.protocol.messages import (
 from runtime.ros2 import types as rt
 from runtime.ros2.config import BridgeConfig
 from runtime.ros2.imu import imu_from_joints
-from runtime.ros2.rmw_zenoh import RosNode
+from runtime.ros2.node import (
+    EVENT_QOS,
+    SENSOR_QOS,
+    STATE_QOS,
+    VALVE_QOS,
+    RosNode,
+    gid_of,
+    publishers_fault,
+)
+
+log = logging.getLogger(__name__)
 
 NODE_NAME = "simulated_machine"
+FOREIGN_HOLD_S = 2.0
+"""A second command publisher stays a fault this long (s) after it was last on the graph."""
 
 
 class _Payload:
@@ -55,32 +77,95 @@ class _Sample:
 
 class RosPlantPorts:
     """The plant's publishers (``state.put`` / ``impact.put`` take the encoded Slinger messages,
-    as sim_twin.plant's loop produces them) and command subscriptions over ROS 2.
+    as sim_twin.plant's loop produces them) and command subscriptions, as an rclpy node.
 
     Args:
-        session: the plant's Zenoh session; config: the bridge mapping; machine_id: the plant's
-        machine id; inbox: sim_twin.plant.PlantInbox that receives the commands.
+        config: the bridge mapping; machine_id: the plant's machine id; inbox:
+        sim_twin.plant.PlantInbox that receives the commands; domain_id: ROS_DOMAIN_ID (None:
+        the mapping's, else the environment's).
+
+    Raises:
+        runtime.ros2.node.DomainRefused / RosUnavailable: as RosNode.
     """
 
-    def __init__(self, session, config: BridgeConfig, machine_id: str, inbox):
+    def __init__(self, config: BridgeConfig, machine_id: str, inbox, domain_id: int | None = None):
         self.config, self.machine_id, self.inbox = config, machine_id, inbox
-        self.node = RosNode(session, NODE_NAME, config.namespace, config.domain_id)
+        self.node = RosNode(NODE_NAME, config.namespace, config.domain_id if domain_id is None else domain_id)
         t = config.topics
-        self._joints = self.node.publisher(t.joint_states, rt.JOINT_STATE)
-        self._imu = self.node.publisher(t.imu, rt.IMU) if t.imu else None
-        self._passive = self.node.publisher(t.passive_joint_states, rt.JOINT_STATE) if t.passive_joint_states and not t.imu else None
-        self._gripper = self.node.publisher(t.gripper_state, rt.BOOL)
-        self._payload = self.node.publisher(t.payload, rt.ODOMETRY) if t.payload else None
-        self._fault = self.node.publisher(t.fault, rt.STRING) if t.fault else None
-        self._impact = self.node.publisher(t.impact, rt.POINT_STAMPED) if t.impact else None
-        self.node.subscribe(t.valve_command, rt.FLOAT64_MULTI_ARRAY, self._on_valves)
-        self.node.subscribe(t.gripper_command, rt.BOOL, self._on_gripper)
+        self._joints = self.node.publisher(t.joint_states, rt.JOINT_STATE, STATE_QOS)
+        self._imu = self.node.publisher(t.imu, rt.IMU, SENSOR_QOS) if t.imu else None
+        self._passive = (self.node.publisher(t.passive_joint_states, rt.JOINT_STATE, STATE_QOS)
+                         if t.passive_joint_states and not t.imu else None)
+        self._gripper = self.node.publisher(t.gripper_state, rt.BOOL, STATE_QOS)
+        self._payload = self.node.publisher(t.payload, rt.ODOMETRY, SENSOR_QOS) if t.payload else None
+        self._fault = self.node.publisher(t.fault, rt.STRING, STATE_QOS) if t.fault else None
+        self._impact = self.node.publisher(t.impact, rt.POINT_STAMPED, EVENT_QOS) if t.impact else None
+        self._lock = threading.Lock()
+        self._command_gids: dict[str, set[bytes]] = {t.valve_command: set(), t.gripper_command: set()}
+        self.command_fault: str | None = None
+        self._command_fault_s = -np.inf
+        self.node.subscribe(t.valve_command, rt.FLOAT64_MULTI_ARRAY, self._on_valves, VALVE_QOS,
+                            on_deadline=lambda _e: self._commander_silent("valve commands missed their deadline"),
+                            on_liveliness=self._on_liveliness)
+        self.node.subscribe(t.gripper_command, rt.BOOL, self._on_gripper, EVENT_QOS)
         self.state, self.impact = _Put(self._put_state), _Put(self._put_impact)
 
     def _wall(self, stamp_s: float) -> float:
         return time.time() - (time.monotonic() - stamp_s)
 
+    def _check_commanders(self) -> None:
+        """Refresh the command topics' publisher GIDs from the ROS graph; a second publisher
+        starts (or prolongs) the fault, which holds the valves neutral."""
+        infos = {topic: self.node.publishers_of(topic) for topic in self._command_gids}
+        gids = {topic: {gid_of(i) for i in found} for topic, found in infos.items()}
+        fault = next((f for f in (publishers_fault(topic, found) for topic, found in infos.items()) if f), None)
+        now = time.monotonic()
+        with self._lock:
+            self._command_gids = gids
+            started = fault is not None and self.command_fault is None
+            if fault is not None:
+                self.command_fault, self._command_fault_s = fault, now
+            elif self.command_fault is not None and now - self._command_fault_s > FOREIGN_HOLD_S:
+                log.warning("command topics have one publisher again: taking commands")
+                self.command_fault = None
+        if started:
+            log.error("%s: valves neutral, commands refused", fault)
+            self._neutral()
+
+    def _neutral(self) -> None:
+        with self.inbox.lock:
+            self.inbox.valve_u, self.inbox.valve_rx_s = np.zeros(4), -np.inf
+
+    def _commander_silent(self, why: str) -> None:
+        if np.isfinite(self.inbox.valve_rx_s):
+            log.warning("%s: valves neutral", why)
+        self._neutral()
+
+    def _on_liveliness(self, event) -> None:
+        if event.alive_count == 0:
+            self._commander_silent("valve commander lost liveliness")
+
+    def _admit(self, topic: str, info) -> bool:
+        """A command from the topic's only publisher, with no command fault standing."""
+        gid = gid_of(info)
+        with self._lock:
+            known = gid in self._command_gids[topic]
+        if not known:  # a publisher the last graph check did not see: look again now
+            self._check_commanders()
+        with self._lock:
+            gids, fault = self._command_gids[topic], self.command_fault
+        if fault is None and gids != {gid}:
+            fault = f"a command on {topic} from a publisher that is not its only one"
+            with self._lock:
+                self.command_fault, self._command_fault_s = fault, time.monotonic()
+            log.error("%s: valves neutral, commands refused", fault)
+        if fault is not None:
+            self._neutral()
+            return False
+        return True
+
     def _put_state(self, data: bytes) -> None:
+        self._check_commanders()
         s = decode(MachineState, data)
         t = self._wall(s.stamp_s)
         both = not (self.config.topics.passive_joint_states or self.config.topics.imu)
@@ -99,7 +184,7 @@ class RosPlantPorts:
         if self._payload is not None and s.payload_pos_m is not None and s.payload_vel_mps is not None:
             self._payload.publish(rt.odometry(t, "machine", "payload", s.payload_pos_m, s.payload_vel_mps))
         if self._fault is not None:
-            self._fault.publish(rt.msg(rt.STRING, data=s.machine_fault or ""))
+            self._fault.publish(rt.msg(rt.STRING, data=self.command_fault or s.machine_fault or ""))
         self._joints.publish(rt.joint_state(t, names, q, qd))  # last: the bridge publishes a state on it
 
     def _put_impact(self, data: bytes) -> None:
@@ -107,14 +192,18 @@ class RosPlantPorts:
             r = decode(ImpactReport, data)
             self._impact.publish(rt.point_stamped(self._wall(r.impact_stamp_s), r.impact_pos_m, "machine"))
 
-    def _on_valves(self, msg) -> None:
+    def _on_valves(self, msg, info) -> None:
+        if not self._admit(self.config.topics.valve_command, info):
+            return
         u = self.config.valve_u(msg.data)
         if u is None:
             return
         u = [min(1.0, max(-1.0, v)) for v in u]
         self.inbox.on_valve(_Sample(encode(ValveCommand(machine_id=self.machine_id, stamp_s=time.monotonic(), u=u))))
 
-    def _on_gripper(self, msg) -> None:
+    def _on_gripper(self, msg, info) -> None:
+        if not self._admit(self.config.topics.gripper_command, info):
+            return
         self.inbox.on_gripper(_Sample(encode(GripperCommand(machine_id=self.machine_id, stamp_s=time.monotonic(), open=bool(msg.data)))))
 
     def undeclare(self) -> None:

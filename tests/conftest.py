@@ -593,10 +593,10 @@ class SlingerUp:
     """
 
     def __init__(self, tmp_path: Path, machines: int = 1, create_admin: bool = True, real_policies: bool = False,
-                 env: dict[str, str] | None = None):
+                 env: dict[str, str] | None = None, args: tuple[str, ...] = ()):
         """real_policies: run the repository's deployed policies (both modes) with the runtime's release
         check ON, as the main job does, instead of the non-throwing test policy. env: more
-        environment variables for the stack (settings as SLINGER_*)."""
+        environment variables for the stack (settings as SLINGER_*). args: more options of `slinger up`."""
         from server.stack import slinger_command
         from tests.fixtures import write_test_policy
 
@@ -616,7 +616,7 @@ class SlingerUp:
         self._log_path = tmp_path / "up.log"
         self.argv = slinger_command(
             "up", "--data-dir", str(self.data_dir), "--machines", str(machines),
-            "--port", str(self.port), "--zenoh-port", str(zport), "--viser-port", str(self.viser_port), *extra)
+            "--port", str(self.port), "--zenoh-port", str(zport), "--viser-port", str(self.viser_port), *extra, *args)
         self.cwd = tmp_path
         self.create_admin = create_admin
         self._http = None

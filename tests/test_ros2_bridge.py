@@ -1,20 +1,21 @@
-"""The ROS 2 machine bridge: rmw_zenoh's formats (checked against the examples of rmw_zenoh's
-docs/design.md), the mapping file, the bridge's translation and watchdog path, and the whole chain
-with the ROS 2 path in the middle (server API -> runtime -> bridge -> ROS 2 topics -> simulated
-machine), the bridge's traffic decoded from raw Zenoh samples by the rosbags CDR reader."""
+"""The ROS 2 machine bridge: the mapping file, the bridge's translation, watchdog and
+foreign-publisher path, the machine-local discovery rule, and, against real rclpy nodes on Fast
+DDS (the ROS 2 wheels), the bridge process and the whole chain `slinger up --ros2` (console API ->
+server -> runtime -> bridge -> the simulated machine as a ROS 2 driver node), watched by plain
+rclpy subscribers, a stranger's publisher and a recorder whose MCAP the diagnosis converts."""
 
 from __future__ import annotations
 
-import io
+import argparse
 import json
+import os
+import signal
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
-from mcap.reader import make_reader
-from mcap_ros2.decoder import DecoderFactory
-from rosbags.typesys import Stores, get_typestore
 
 from runtime.machine import JOINT_NAMES
 from runtime.protocol import keys
@@ -25,19 +26,13 @@ from runtime.protocol.messages import (
     decode,
     encode,
 )
-from runtime.ros2 import rmw_zenoh
 from runtime.ros2 import types as rt
-from runtime.ros2.bridge import MachineBridge
+from runtime.ros2.bridge import FOREIGN_HOLD_S, MachineBridge
 from runtime.ros2.config import BridgeConfig, ConfigError, load
-from runtime.telemetry import read_telemetry
+from runtime.ros2.node import RANGE_ENV, DomainRefused, machine_local_environment
 from runtime.zenoh_session import open_session
-from server.stack import Children, slinger_command
-from tests.conftest import free_port, wait_for, wait_online
-from tests.fixtures import write_test_policy
-from tests.test_stack import TARGET_2D, _landed_throw
-
-JAZZY = get_typestore(Stores.ROS2_JAZZY)
-STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+from tests.conftest import SlingerUp, free_port, wait_for
+from tests.test_stack import TARGET_2D, _landed_throw, _wait_ready
 
 MAPPING_TOML = """
 domain_id = 7
@@ -67,25 +62,6 @@ scale = 100.0
 """
 
 
-# --- rmw_zenoh formats --------------------------------------------------------------------------
-def test_keys_and_tokens_are_the_design_examples():
-    """rmw_zenoh docs/design.md, demo_nodes_cpp talker/listener on `chatter` (std_msgs/String)."""
-    assert rt.type_hash("std_msgs/msg/String") == STRING_HASH
-    assert rmw_zenoh.topic_key(0, "chatter", "std_msgs/msg/String") == f"0/chatter/std_msgs::msg::dds_::String_/{STRING_HASH}"
-    assert rmw_zenoh.topic_key(0, "chatter", "std_msgs/msg/String", "/robot1") == f"0/robot1/chatter/std_msgs::msg::dds_::String_/{STRING_HASH}"
-    assert rmw_zenoh.node_token(2, "aac3178e146ba6f1fc6e6a4085e77f21", 0, "listener") == "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
-    assert rmw_zenoh.entity_token(2, "8b20917502ee955ac4476e0266340d5c", 0, 10, "MP", "talker", "chatter", "std_msgs/msg/String",
-                                  qos="::,7:,:,:,,") == (
-        f"@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/std_msgs::msg::dds_::String_/{STRING_HASH}/::,7:,:,:,,")
-    a = rmw_zenoh.attachment(42, 1_700_000_000_000_000_000, bytes(range(16)))
-    assert len(a) == 33 and a[16] == 16 and rmw_zenoh.parse_attachment(a) == (42, 1_700_000_000_000_000_000, bytes(range(16)))
-    for bad in ("", "a//b", "1abc", "a b", "/x/"):
-        with pytest.raises(ValueError):
-            rmw_zenoh.topic_key(0, bad, "std_msgs/msg/String")
-    with pytest.raises(ValueError):
-        rmw_zenoh.parse_attachment(a[:-1])
-
-
 # --- mapping file -------------------------------------------------------------------------------
 def test_config_files_and_refusals(tmp_path):
     toml = tmp_path / "b.toml"
@@ -106,6 +82,12 @@ def test_config_files_and_refusals(tmp_path):
             load(tmp_path / name)
     with pytest.raises(ConfigError, match="missing"):
         load(tmp_path / "missing.toml")
+    from runtime.ros2.bridge import load_config
+
+    assert BridgeConfig().domain_id is None  # rclpy then takes ROS_DOMAIN_ID from the environment
+    assert load_config(toml, 9).domain_id == 9 and load_config(toml, None).domain_id == 7 and load_config(None, 4).domain_id == 4
+    with pytest.raises(ConfigError, match="--domain-id 300"):
+        load_config(toml, 300)
 
 
 # --- the translation, without I/O ---------------------------------------------------------------
@@ -206,130 +188,312 @@ def test_bridge_takes_the_passive_joints_from_a_gripper_imu_whatever_its_yaw():
     assert b.dropped == 1
 
 
-# --- the bridge process against a ROS 2 machine written here ------------------------------------
-def _session(endpoint: str, listen: bool = False):
-    return open_session("peer", listen=[endpoint] if listen else [], connect=[] if listen else [endpoint])
+
+def test_a_second_command_publisher_is_a_machine_fault_with_neutral_valves():
+    b, out, clock = _bridge(BridgeConfig())
+    js = rt.joint_state(0, JOINT_NAMES, [0.0, -0.5, 1.9, 0.7, -1.2, 0.0], np.zeros(6))
+
+    def tick() -> None:
+        b.on_gripper_state(rt.msg(rt.BOOL, data=False))
+        b.on_joint_state(js)
+
+    tick()
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.5, 0.0, 0.0, 0.0], epoch=1)))
+    assert out["state"][-1].machine_fault is None and list(out["valves"][-1].data) == [0.5, 0.0, 0.0, 0.0]
+    fault = "2 publishers of /valve_commands (/slinger_bridge, /stranger), one expected"
+    b.set_command_fault(fault)  # the graph check found a stranger: neutral at once, the fault in every state
+    assert not any(out["valves"][-1].data)
+    tick()
+    assert out["state"][-1].machine_fault == fault
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.5, 0.5, 0.0, 0.0], epoch=1)))
+    assert not any(out["valves"][-1].data)  # the runtime's commands go out neutral while the fault stands
+    clock.t += FOREIGN_HOLD_S / 2
+    b.set_command_fault(None)  # the stranger left: the fault holds FOREIGN_HOLD_S after it was last seen
+    tick()
+    assert out["state"][-1].machine_fault == fault
+    clock.t += FOREIGN_HOLD_S
+    b.set_command_fault(None)
+    tick()
+    assert out["state"][-1].machine_fault is None
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.5, 0.5, 0.0, 0.0], epoch=1)))
+    assert list(out["valves"][-1].data) == [0.5, 0.5, 0.0, 0.0]
 
 
-def test_bridge_process_reads_ros_topics_and_loses_the_link_when_they_stop(tmp_path):
-    import argparse
+def test_discovery_stays_on_this_host_unless_sros2_is_enforced(tmp_path):
+    env: dict[str, str] = {}
+    assert "localhost" in machine_local_environment(env) and env[RANGE_ENV] == "LOCALHOST"  # unset: machine-local
+    assert "off" in machine_local_environment({RANGE_ENV: "OFF"})
+    for wide in ({RANGE_ENV: "SUBNET"}, {RANGE_ENV: "SYSTEM_DEFAULT"}, {"ROS_STATIC_PEERS": "10.0.0.7"},
+                 {"FASTDDS_DEFAULT_PROFILES_FILE": "/etc/site.xml"}, {"ZENOH_SESSION_CONFIG_URI": "/etc/z.json5"}):
+        with pytest.raises(DomainRefused, match="SROS2"):
+            machine_local_environment(dict(wide))
+    with pytest.raises(DomainRefused, match="not one of"):
+        machine_local_environment({RANGE_ENV: "EVERYWHERE"})
+    sros2 = {"ROS_SECURITY_ENABLE": "true", "ROS_SECURITY_STRATEGY": "Enforce", "ROS_SECURITY_KEYSTORE": str(tmp_path)}
+    assert "SROS2 enforced" in machine_local_environment({RANGE_ENV: "SUBNET", **sros2})
+    for weaker in ({"ROS_SECURITY_STRATEGY": "Permissive"}, {"ROS_SECURITY_ENABLE": "false"},
+                   {"ROS_SECURITY_KEYSTORE": str(tmp_path / "none")}):
+        with pytest.raises(DomainRefused):
+            machine_local_environment({RANGE_ENV: "SUBNET", **sros2, **weaker})
 
+
+# --- the bridge process against plain rclpy nodes (Fast DDS) -------------------------------------
+@pytest.fixture
+def ros_env(monkeypatch):
+    """This test's own ROS_DOMAIN_ID, discovery on this host."""
+    from tests.ros2_nodes import free_domain
+
+    domain = free_domain()
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    monkeypatch.setenv(RANGE_ENV, "LOCALHOST")
+    for k in ("RMW_IMPLEMENTATION", "ROS_SECURITY_ENABLE", "ROS_STATIC_PEERS"):
+        monkeypatch.delenv(k, raising=False)
+    return domain
+
+
+def _bridge_thread(endpoint: str, *extra: str):
     from runtime.ros2.bridge import build_parser, run
+
+    p = argparse.ArgumentParser()
+    build_parser(p)
+    stop = threading.Event()
+    code: list[int] = []
+    th = threading.Thread(target=lambda: code.append(run(p.parse_args(["--machine-id", "m1", "--connect", endpoint, *extra]), stop)))
+    th.start()
+    return stop, th, code
+
+
+@pytest.mark.processes
+def test_bridge_node_on_fast_dds_reads_the_machine_and_stops_it_for_a_stranger(ros_env, caplog):
+    from std_msgs.msg import Bool, Float64MultiArray
+
+    from runtime.ros2.bridge import FOREIGN_HOLD_S
+    from tests.ros2_nodes import PlainNode, message_type
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     states: list[MachineState] = []
-    with _session(endpoint, listen=True) as session:
+    with open_session("peer", listen=[endpoint]) as session, PlainNode("machine_driver", ros_env) as machine:
         sub = session.declare_subscriber(keys.state("m1"), lambda s: states.append(decode(MachineState, s.payload.to_bytes())))
-        tokens: list[str] = []
-        node = rmw_zenoh.RosNode(session, "fake_machine")
-        js = node.publisher("/joint_states", rt.JOINT_STATE)
-        grip = node.publisher("/gripper/state", rt.BOOL)
-        p = argparse.ArgumentParser()
-        build_parser(p)
-        stop = threading.Event()
-        code: list[int] = []
-        th = threading.Thread(target=lambda: code.append(run(p.parse_args(["--machine-id", "m1", "--connect", endpoint]), stop)))
-        th.start()
+        js = machine.node.create_publisher(message_type(rt.JOINT_STATE), "/joint_states", 10)
+        grip = machine.node.create_publisher(Bool, "/gripper/state", 10)
+        valves = machine.echo("/valve_commands", rt.FLOAT64_MULTI_ARRAY)
+        stop, th, code = _bridge_thread(endpoint)
         try:
-            wait_for(lambda: any("/MS/" in str(r.result.key_expr) and "joint_states" in str(r.result.key_expr)
-                                 for r in session.liveliness().get("@ros2_lv/**", timeout=1.0) if r.ok), 10, "bridge subscription token")
-            for r in session.liveliness().get("@ros2_lv/**", timeout=1.0):
-                tokens.append(str(r.ok.key_expr) if r.ok else "")
-            for k in range(30):
-                grip.publish(rt.msg(rt.BOOL, data=False))
-                js.publish(rt.joint_state(time.time(), JOINT_NAMES, np.arange(6) * 0.1 + [0, 0, 1.0, 0, 0, 0], np.zeros(6)))
-                time.sleep(0.01)
-            wait_for(lambda: len(states) >= 20, 5, "machine states from the bridge")
-            np.testing.assert_allclose(states[-1].q, np.arange(6) * 0.1 + [0, 0, 1.0, 0, 0, 0])
+            wait_for(lambda: any(n == "slinger_bridge" for n, _ns in machine.node.get_node_names_and_namespaces()), 20, "the bridge node")
+            infos = machine.node.get_publishers_info_by_topic("/valve_commands")
+            assert [(i.node_name, i.topic_type) for i in infos] == [("slinger_bridge", "std_msgs/msg/Float64MultiArray")]
+            q = np.arange(6) * 0.1 + [0, 0, 1.0, 0, 0, 0]
+
+            def publish(n: int) -> None:
+                for _ in range(n):
+                    grip.publish(Bool(data=False))
+                    msg = message_type(rt.JOINT_STATE)(name=list(JOINT_NAMES), position=q.tolist(), velocity=[0.0] * 6)
+                    js.publish(msg)
+                    time.sleep(0.01)
+
+            publish(30)
+            wait_for(lambda: len(states) >= 20, 10, "machine states from the bridge")
+            np.testing.assert_allclose(states[-1].q, q)
+            assert states[-1].machine_fault is None
             n = len(states)
             time.sleep(0.4)  # the machine stops publishing: no more machine states (link lost)
             assert len(states) == n
+
+            # runtime commands reach the machine as Float64MultiArray
+            session.put(keys.valve_cmd("m1"), encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.1, 0.2, 0.3, 0.4], epoch=1)))
+            wait_for(lambda: any(list(m.data) == [0.1, 0.2, 0.3, 0.4] for _t, m in valves), 10, "valve command on ROS")
+
+            # a stranger publishes valve commands: a machine fault in the states, neutral valves
+            stranger = machine.node.create_publisher(Float64MultiArray, "/valve_commands", 10)
+            stranger.publish(Float64MultiArray(data=[0.0, 0.0, 0.0, 1.0]))
+            publish(1)
+            wait_for(lambda: (publish(1), states[-1].machine_fault)[1], 10, "the foreign publisher as a machine fault")
+            assert "2 publishers of /valve_commands" in states[-1].machine_fault and "/machine_driver" in states[-1].machine_fault
+            wait_for(lambda: list(valves[-1][1].data) == [0.0] * 4, 5, "neutral valves")
+            session.put(keys.valve_cmd("m1"), encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.5, 0.5, 0.5, 0.5], epoch=1)))
+            time.sleep(0.3)
+            m = valves[-1][1]
+            assert not any(m.data) and not any(list(m.data) == [0.5] * 4 for _t, m in valves)  # it went out neutral
+            machine.node.destroy_publisher(stranger)
+            t_gone = time.monotonic()
+            wait_for(lambda: (publish(1), states[-1].machine_fault is None)[1], 20, "the fault to clear")
+            assert time.monotonic() - t_gone >= FOREIGN_HOLD_S - 0.1
         finally:
             stop.set()
             th.join(10)
-            node.close()
             sub.undeclare()
     assert code == [0]
-    assert any("/NN/%/%/slinger_bridge" in t for t in tokens) and any("/MP/%/%/slinger_bridge/%valve_commands/" in t for t in tokens)
 
 
-# --- the whole chain ----------------------------------------------------------------------------
-@pytest.fixture
-def ros2_machine(tmp_path, zenoh_endpoint, settings):
-    """The simulated machine speaking ROS 2 (`slinger plant --ros2`), the ROS 2 bridge and the
-    runtime, all connecting to the server's endpoint with one mapping file (degrees, millimetres,
-    per-cent valves in another order, the passive joints from a gripper IMU)."""
-    from server.certs import make_site
-
-    site = make_site(settings.resolved_site_dir, ["m1"])
-    policy = write_test_policy(tmp_path / "policies", "2d", release_after_bias=2.0)
-    mapping = tmp_path / "bridge.toml"
-    mapping.write_text(MAPPING_TOML.replace('payload = "/payload/odom"', 'payload = "/payload/odom"\nimu = "/gripper/imu"'))
-    children = Children()
-    link = ["--connect", zenoh_endpoint, "--listen", "tcp/127.0.0.1:0"]
-    logs = tmp_path / "logs"
-    children.spawn("plant", slinger_command("plant", "--machine-id", "m1", "--seed", "3", "--ros2", str(mapping), *link), logs)
-    children.spawn("bridge", slinger_command("ros2-bridge", "--machine-id", "m1", "--config", str(mapping), *link), logs)
-    children.spawn("runtime", slinger_command("runtime", "--machine-id", "m1", "--policy-2d", str(policy), *link,
-                                              "--command-key", str(site.command_key("m1")), "--outbox-dir", str(tmp_path / "outbox")), logs)
-    yield logs
-    children.stop(grace_s=15)
-    for c in children.items:
-        assert c.proc.returncode is not None
+@pytest.mark.processes
+def test_bridge_refuses_a_wider_domain_and_sros2_without_middleware_security(ros_env, monkeypatch, tmp_path, caplog):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with open_session("peer", listen=[endpoint]):
+        monkeypatch.setenv(RANGE_ENV, "SUBNET")
+        stop, th, code = _bridge_thread(endpoint)
+        th.join(30)
+        assert code == [2] and "ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET" in caplog.text and "SROS2" in caplog.text
+        # SROS2 enforced with a keystore: accepted by the rule, but the Fast DDS of the PyPI wheels
+        # has no security plugins, so the middleware refuses to create the node (and says so)
+        (tmp_path / "keystore" / "enclaves").mkdir(parents=True)
+        for k, v in {"ROS_SECURITY_ENABLE": "true", "ROS_SECURITY_STRATEGY": "Enforce",
+                     "ROS_SECURITY_KEYSTORE": str(tmp_path / "keystore")}.items():
+            monkeypatch.setenv(k, v)
+        caplog.clear()
+        stop, th, code = _bridge_thread(endpoint)
+        th.join(30)
+        assert code == [2] and "could not create node" in caplog.text, caplog.text[-2000:]
+        assert "security" in caplog.text.lower()
 
 
-def _typename(dds: str) -> str:
-    """sensor_msgs::msg::dds_::JointState_ -> sensor_msgs/msg/JointState"""
-    pkg, kind, _dds, name = dds.split("::")
-    return f"{pkg}/{kind}/{name[:-1]}"
+# --- the whole chain: slinger up --ros2 -----------------------------------------------------------
+UP_MAPPING = """
+stale_after_s = 0.15
+[topics]
+imu = "/gripper/imu"
+payload = "/payload/odom"
+fault = "/machine/fault"
+valve_command = "/arm/valve_commands"
+[joints.boom]
+name = "boom_joint"
+scale = 0.017453292519943295
+[joints.dipper]
+name = "stick_joint"
+scale = 0.017453292519943295
+offset = 0.1
+[joints.telescope]
+name = "telescope_joint"
+scale = 0.001
+[valves.cabin_turn]
+index = 3
+scale = 100.0
+[valves.telescope]
+index = 0
+scale = 100.0
+"""
+RECORDED = {"/joint_states": rt.JOINT_STATE, "/gripper/imu": rt.IMU, "/gripper/state": rt.BOOL, "/arm/valve_commands": rt.FLOAT64_MULTI_ARRAY,
+            "/gripper/command": rt.BOOL, "/payload/odom": rt.ODOMETRY}
 
 
-def test_throw_lands_through_the_ros2_bridge(client, ros2_machine, zenoh_endpoint, settings):
-    raw: list[tuple[str, bytes, bytes | None]] = []
-    lock = threading.Lock()
-
-    def on_sample(s) -> None:
-        with lock:
-            if len(raw) < 20000:
-                raw.append((str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes() if s.attachment is not None else None))
-
-    with _session(zenoh_endpoint) as spy:
-        sub = spy.declare_subscriber("7/**", on_sample)
+def _child_pid(data_dir: Path, word: str) -> int:
+    """The pid of the stack's child whose command line has ``word`` (server.supervise marks its children)."""
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
         try:
-            m = wait_online(client, "m1", timeout_s=90)
-            assert m["simulated"] is True
-            row, _ = _landed_throw(client, lambda: client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D}))
-            assert row["status"] == "landed", (row, (ros2_machine / "bridge.log").read_text()[-3000:] if (ros2_machine / "bridge.log").exists() else "")
-            assert row["impact"] is not None and np.hypot(*row["impact"][:2]) > 2.0
-            # its telemetry is in ROS 2 form, with the measured impact as /impact
-            blob = (settings.data_dir / "telemetry" / f"{row['id']}.mcap").read_bytes()
-            assert client.get(row["telemetry_url"]).content == blob
-            assert read_telemetry(blob)["gripper_cmd"].any()
-            impacts = [m for _s, ch, _m, m in make_reader(io.BytesIO(blob), decoder_factories=[DecoderFactory()])
-                       .iter_decoded_messages(topics=["/impact"])]
-            assert [(p.point.x, p.point.y) for p in impacts] == [pytest.approx(tuple(row["impact"][:2]))]
-            tokens = [str(r.ok.key_expr) for r in spy.liveliness().get("@ros2_lv/**", timeout=2.0) if r.ok]
+            cmd = (d / "cmdline").read_bytes().split(b"\0")
+            env = (d / "environ").read_bytes()
+        except OSError:
+            continue
+        if word.encode() in cmd and f"SLINGER_STACK_DIR={data_dir.resolve()}".encode() in env:
+            return int(d.name)
+    raise AssertionError(f"no child {word} of the stack in {data_dir}")
+
+
+def _previewed(http, target=TARGET_2D):
+    def post():
+        p = http.post("/api/previews", json={"machine_id": "m1", "mode": "2d", "target": target, "rollouts": 1})
+        assert p.status_code == 200 and p.json()["status"] == "ok", p.text
+        return http.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": target, "preview_id": p.json()["id"]})
+    return post
+
+
+@pytest.mark.processes
+@pytest.mark.slow
+def test_slinger_up_ros2_throws_through_rclpy_nodes_and_stops_for_strangers_and_stale_topics(tmp_path, ros_env):
+    from std_msgs.msg import Float64MultiArray
+
+    from sim_twin.diagnosis import dataset
+    from sim_twin.diagnosis.cli import main as diagnose_main
+    from tests.ros2_nodes import PlainNode, Recorder
+
+    mapping = tmp_path / "bridge.toml"
+    mapping.write_text(UP_MAPPING)
+    with (SlingerUp(tmp_path, args=("--ros2", str(mapping))) as up, PlainNode("echo", ros_env) as echo,
+          Recorder(ros_env, RECORDED, best_effort=("/gripper/imu", "/payload/odom")) as rec):
+        joint_states = echo.echo("/joint_states", rt.JOINT_STATE)  # `ros2 topic echo /joint_states`
+        valves = echo.echo("/arm/valve_commands", rt.FLOAT64_MULTI_ARRAY)
+        m = up.wait_machine_online()
+        assert m["simulated"] is True
+        http = up.http
+        types = echo.topic_types()
+        assert types["/joint_states"] == ["sensor_msgs/msg/JointState"] and types["/gripper/imu"] == ["sensor_msgs/msg/Imu"]
+        assert types["/arm/valve_commands"] == ["std_msgs/msg/Float64MultiArray"]
+        nodes = {n for n, _ns in echo.node.get_node_names_and_namespaces()}
+        assert {"slinger_bridge", "simulated_machine"} <= nodes, nodes
+
+        # 1. a throw lands through the bridge and the driver node; a plain subscriber sees /joint_states at 100 Hz
+        rec.recording = True
+        row, _ = _landed_throw(http, _previewed(http))
+        rec.recording = False
+        assert row["status"] == "landed" and row["impact"] is not None and np.hypot(*row["impact"][:2]) > 2.0, row
+        with echo.lock:
+            msgs = [msg for _t, msg in joint_states]
+        assert list(msgs[-1].name) == ["cabin_turn", "boom_joint", "stick_joint", "telescope_joint"]
+        moving = [rt.stamp_s(msg.header.stamp) for msg in msgs if max(abs(v) for v in msg.velocity) > 0.05]
+        assert len(moving) > 50
+        assert np.median(np.diff(moving)) == pytest.approx(0.01, abs=1e-3)  # the machine's 100 Hz while it moves
+        assert -77.0 < msgs[-1].position[1] < 26.0 and 0.0 <= msgs[-1].position[3] <= 1800.0  # degrees, millimetres
+        with echo.lock:
+            assert max(abs(x) for _t, v in valves for x in v.data) > 1.0  # per cent
+
+        # 2. the recorded ROS 2 traffic (MCAP, CDR) converts into the diagnosis input
+        bag = tmp_path / "bags" / f"{row['id']}.mcap"
+        bag.parent.mkdir()
+        assert rec.write(bag) > 100
+        (tmp_path / "site.toml").write_text('machine_id = "m1"\nmode = "2d"\n' + UP_MAPPING)
+        (tmp_path / "impacts.csv").write_text("throw_id,target_x_m,target_y_m,impact_x_m,impact_y_m\n"
+                                              f"{row['id']},{TARGET_2D[0]},{TARGET_2D[1]},{row['impact'][0]},{row['impact'][1]}\n")
+        assert diagnose_main(["convert", str(bag), "--mapping", str(tmp_path / "site.toml"), "--impacts", str(tmp_path / "impacts.csv"),
+                              "--out", str(tmp_path / "ds")]) == 0
+        (th,), _index = dataset.load(tmp_path / "ds")
+        assert th.throw_id == row["id"] and th.cmd_row is not None and np.abs(th.valve_u).max() > 0.1
+        boom_deg = [msg.position[1] for msg in msgs]
+        assert min(boom_deg) - 1e-6 <= np.degrees(th.q[:, 1]).min() and np.degrees(th.q[:, 1]).max() <= max(boom_deg) + 1e-6
+        assert np.all((th.q[:, 3] >= 0.0) & (th.q[:, 3] <= 1.8))  # millimetres back to metres
+
+        # 3. a stranger publishes valve commands (cabin turn full open): the machine stops (the
+        # fault in the runtime's readiness, so throws are refused; valves neutral: nothing moves)
+        _wait_ready(http)
+        stranger = echo.node.create_publisher(Float64MultiArray, "/arm/valve_commands", 10)
+        with echo.lock:
+            n0, cabin0 = len(joint_states), joint_states[-1][1].position[0]
+        done = threading.Event()
+
+        def push() -> None:
+            while not done.wait(0.02):
+                stranger.publish(Float64MultiArray(data=[0.0, 0.0, 0.0, 100.0]))
+
+        pusher = threading.Thread(target=push)
+        pusher.start()
+        try:
+            m = wait_for(lambda: next((x for x in http.get("/api/machines").json()
+                                       if "publishers of /arm/valve_commands" in (x.get("not_ready_reason") or "")), None),
+                         30, "the stranger as the machine's fault")
+            assert m["ready"] is False and m["not_ready_reason"].startswith("machine fault: 2 publishers"), m
+            time.sleep(1.0)
         finally:
-            sub.undeclare()
-    # every sample on the ROS key space: rmw_zenoh's key, a type the Jazzy typestore knows with its
-    # hash, CDR the rosbags reader decodes, the 33-byte attachment
-    seen: dict[str, list] = {}
-    for key, payload, att in raw:
-        domain, *topic, dds, type_hash = key.split("/")
-        typename = _typename(dds)
-        assert domain == "7" and type_hash == JAZZY.hash_rihs01(typename), key
-        msg = JAZZY.deserialize_cdr(payload, typename)
-        assert att is not None and rmw_zenoh.parse_attachment(att)[0] >= 1
-        seen.setdefault("/" + "/".join(topic), []).append(msg)
-    assert set(seen) >= {"/arm/joint_states", "/gripper/imu", "/gripper/state", "/payload/odom", "/arm/valve_commands",
-                         "/gripper/command", "/payload/impact"}, sorted(seen)
-    js = seen["/arm/joint_states"][-1]
-    assert list(js.name) == ["cabin_turn", "boom_joint", "stick_joint", "telescope_joint"]
-    assert -77.0 < js.position[1] < 26.0 and 0.0 <= js.position[3] <= 1800.0  # degrees and millimetres on the ROS side
-    valves = [v for v in seen["/arm/valve_commands"] if np.any(v.data)]
-    assert valves and valves[0].layout.dim[0].label == "telescope,boom,dipper,cabin_turn"
-    assert max(abs(x) for v in valves for x in v.data) > 1.0  # per cent
-    assert [g.data for g in seen["/gripper/command"]][-1] is True
-    for node in ("slinger_bridge", "simulated_machine"):
-        assert any(f"/NN/%/%/{node}" in t for t in tokens), tokens
-    assert any("/MS/%/%/simulated_machine/%arm%valve_commands/std_msgs::msg::dds_::Float64MultiArray_/" in t for t in tokens)
+            done.set()
+            pusher.join(5)
+        with echo.lock:
+            cabin = [msg.position[0] for _t, msg in joint_states[n0:]]
+        assert cabin and max(abs(c - cabin0) for c in cabin) < 0.01  # the stranger moved nothing
+        echo.node.destroy_publisher(stranger)
+
+        # 4. a stale topic (the driver frozen mid-throw): the throw fails "machine link lost", valves neutral
+        _wait_ready(http, timeout_s=60)
+        r = _previewed(http)()
+        assert r.status_code == 202, r.text
+        wait_for(lambda: any(any(v.data) for _t, v in valves[-5:]), 30, "the swing's valve commands")
+        plant = _child_pid(up.data_dir, "plant")
+        os.kill(plant, signal.SIGSTOP)
+        try:
+            time.sleep(1.0)
+            with echo.lock:
+                assert not any(valves[-1][1].data), "the bridge's neutral command after the runtime fell silent"
+        finally:
+            os.kill(plant, signal.SIGCONT)
+        final = wait_for(lambda: (lambda t: t if t["status"] in ("landed", "failed", "aborted") else None)(
+            http.get(f"/api/throws/{r.json()['id']}").json()), 60, "the throw's end")
+        assert final["status"] == "failed" and "machine link lost" in (final.get("failure_reason") or ""), final
+    assert up.returncode == 0, up.output[-3000:]

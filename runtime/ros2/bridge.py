@@ -1,14 +1,14 @@
-"""The ROS 2 machine bridge: a machine that runs ROS 2 (rmw_zenoh) behind Slinger's machine interface.
+"""The ROS 2 machine bridge: a machine whose driver is a ROS 2 node, behind Slinger's machine interface.
 
-Machine side, beside the runtime (one per machine, runtime wheel)::
+Machine side, beside the runtime (one per machine, runtime wheel with the ``ros2`` extra)::
 
     slinger ros2-bridge --machine-id m1 --config bridge.toml --connect tcp/127.0.0.1:7447
     (slinger-ros2-bridge ... from the runtime wheel; python -m runtime.ros2.bridge ...)
 
-It joins the same Zenoh network as the runtime and the machine's ROS 2 nodes (run with
-``RMW_IMPLEMENTATION=rmw_zenoh_cpp``), shows itself as ROS 2 node ``slinger_bridge``
-(runtime.ros2.rmw_zenoh) and translates, with the topic, joint-name and unit mapping of its
-configuration (runtime.ros2.config):
+It is an rclpy node (runtime.ros2.node: ``RMW_IMPLEMENTATION`` picks the middleware, Fast DDS
+by default; discovery machine-local unless SROS2 is enforced) named ``slinger_bridge`` on the
+mapping's domain, and a Zenoh peer of Slinger's network. With the topic, joint-name and unit
+mapping of its configuration (runtime.ros2.config) it translates:
 
 * ROS -> Slinger: each ``sensor_msgs/JointState`` on the joint-states topic becomes one
   ``MachineState`` on keys.state(id) (stamped with this host's monotonic clock, which the runtime
@@ -26,8 +26,11 @@ Safety stays in the runtime (watchdog, E-STOP latch, signed commands). A require
 MachineStates: the runtime sees a machine-link loss (a running throw fails "machine link lost",
 throws are refused "machine offline"). When the runtime's valve commands stop for 0.1 s the bridge
 sends one neutral command (the machine must also hold its valves neutral on its own watchdog).
-The bridge holds the machine's liveliness token keys.machine_alive(id) (one bridge or plant per
-machine, runtime.zenoh_session.claim_exclusive); with TLS it uses the certificate ``plant-<id>``.
+A second publisher on the valve- or gripper-command topic (a stranger on the ROS domain) is a
+machine fault for as long as it is there and FOREIGN_HOLD_S after: the states carry it (the
+runtime fails a running throw and refuses throws with it) and only neutral valve commands go
+out. The bridge holds the machine's liveliness token keys.machine_alive(id) (one bridge or plant
+per machine, runtime.zenoh_session.claim_exclusive); with TLS it uses the certificate ``plant-<id>``.
 """
 
 from __future__ import annotations
@@ -67,6 +70,8 @@ log = logging.getLogger(__name__)
 
 VALVE_SILENCE_S = 0.1
 """Runtime silence (s) after which the bridge sends one neutral valve command."""
+FOREIGN_HOLD_S = 2.0
+"""A foreign command publisher stays a machine fault this long (s) after it was last seen."""
 EXIT_ALREADY_CLAIMED = 3
 
 
@@ -103,6 +108,8 @@ class MachineBridge:
         self.valves_neutral = True
         self.stale: str | None = None  # the stale topic, logged once per episode
         self.dropped = 0
+        self.command_fault: str | None = None  # a foreign command publisher (set_command_fault)
+        self.command_fault_s = -np.inf
 
     # --- ROS -> Slinger -------------------------------------------------------------------
     def on_joint_state(self, msg) -> None:
@@ -214,7 +221,7 @@ class MachineBridge:
         return MachineState(machine_id=self.machine_id, stamp_s=now, q=q, qd=qd, gripper_open=bool(self.gripper_open),
                             payload_attached=bool(attached), payload_pos_m=payload[0] if payload is not None else None,
                             payload_vel_mps=payload[1] if payload is not None else None, simulated=self.config.simulated,
-                            machine_fault=self.fault)
+                            machine_fault=self.command_fault or self.fault)
 
     def _drop(self, why: str) -> None:
         self.dropped += 1
@@ -230,13 +237,32 @@ class MachineBridge:
         with self.lock:
             if not self.fence.admit(msg):
                 return
-            self.valve_rx_s, self.valves_neutral = self.clock(), not any(msg.u)
-        self.send_valves(rt.float64_array(self.config.valve_array(msg.u), _valve_labels(self.config)))
+            u = [0.0] * 4 if self.command_fault else msg.u
+            self.valve_rx_s, self.valves_neutral = self.clock(), not any(u)
+        self.send_valves(rt.float64_array(self.config.valve_array(u), _valve_labels(self.config)))
 
     def on_gripper_command(self, payload: bytes) -> None:
         msg = decode_for(GripperCommand, payload, self.machine_id)
         if msg is not None:
             self.send_gripper(rt.msg(rt.BOOL, data=bool(msg.open)))
+
+    def set_command_fault(self, fault: str | None) -> None:
+        """The graph check's finding (runtime.ros2.node.RosNode.command_publishers_fault): a
+        fault starts at once (neutral valves sent, the fault in every state from now on) and
+        ends FOREIGN_HOLD_S after the last finding."""
+        now = self.clock()
+        with self.lock:
+            started = fault is not None and self.command_fault is None
+            if fault is not None:
+                self.command_fault, self.command_fault_s = fault, now
+            elif self.command_fault is not None and now - self.command_fault_s > FOREIGN_HOLD_S:
+                log.warning("command topics have one publisher again: fault cleared")
+                self.command_fault = None
+            if started:
+                self.valves_neutral = True
+        if started:
+            log.error("machine fault: %s: valves neutral, no command forwarded", fault)
+            self.send_valves(rt.float64_array(self.config.valve_array([0.0] * 4), _valve_labels(self.config)))
 
     def check(self) -> None:
         """Periodic: one neutral valve command when the runtime fell silent; log a silent machine."""
@@ -263,17 +289,38 @@ def _valve_labels(config: BridgeConfig) -> list[str]:
 def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--machine-id", required=True, help="machine id, [A-Za-z0-9_-]{1,64}")
     parser.add_argument("--config", type=Path, default=None, help="topic/joint/unit mapping (.toml, .json, .yaml); default: identity")
+    parser.add_argument("--domain-id", type=int, default=None,
+                        help="ROS_DOMAIN_ID, 0..232 (default: the mapping's domain_id, else the environment's ROS_DOMAIN_ID, else 0)")
+    parser.add_argument("--simulated", action="store_true",
+                        help="the machine behind is the simulated one (slinger plant --ros2): states say simulated (as the mapping's simulated = true)")
     add_session_arguments(parser)
+
+
+def load_config(path: Path | None, domain_id: int | None) -> BridgeConfig:
+    """The mapping at ``path`` (identity without), its domain id replaced by ``domain_id`` if given.
+
+    Raises:
+        ConfigError: an unusable file or domain id.
+    """
+    config = load(path) if path else BridgeConfig()
+    if domain_id is None:
+        return config
+    try:
+        return BridgeConfig.model_validate({**config.model_dump(), "domain_id": domain_id})
+    except ValueError as e:
+        raise ConfigError(f"--domain-id {domain_id}: must be 0..232") from e
 
 
 def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     """Run the bridge until SIGINT/SIGTERM (or ``stop``). Returns the exit code (2: bad
-    arguments or configuration, 3: the machine already has a bridge or plant)."""
-    from runtime.ros2.rmw_zenoh import RosNode
+    arguments, configuration or ROS 2 environment, 3: the machine already has a bridge or plant)."""
+    from runtime.ros2.node import EVENT_QOS, SENSOR_QOS, VALVE_QOS, DomainRefused, RosNode, RosUnavailable
 
     try:
         machine_id = keys.validate_machine_id(args.machine_id)
-        config = load(args.config) if args.config else BridgeConfig()
+        config = load_config(args.config, getattr(args, "domain_id", None))
+        if getattr(args, "simulated", False):
+            config = config.model_copy(update={"simulated": True})
         zenoh_opts = session_options(args, f"plant-{machine_id}", [machine_id])
     except (ValueError, OSError, ConfigError) as e:
         log.error("cannot start the ROS 2 bridge: %s", e)
@@ -285,30 +332,39 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         except Claimed as e:
             log.error("machine %s already has a bridge or plant (%s): not starting a second one", machine_id, e)
             return EXIT_ALREADY_CLAIMED
-        node = RosNode(session, config.node_name, config.namespace, config.domain_id)
+        try:
+            node = RosNode(config.node_name, config.namespace, config.domain_id)
+        except (DomainRefused, RosUnavailable) as e:
+            log.error("cannot start the ROS 2 bridge: %s", e)
+            token.undeclare()
+            claim_token.undeclare()
+            return 2
         t = config.topics
-        pub_valves = node.publisher(t.valve_command, rt.FLOAT64_MULTI_ARRAY)
-        pub_gripper = node.publisher(t.gripper_command, rt.BOOL)
+        pub_valves = node.publisher(t.valve_command, rt.FLOAT64_MULTI_ARRAY, VALVE_QOS)
+        pub_gripper = node.publisher(t.gripper_command, rt.BOOL, EVENT_QOS)
         pub_state = session.declare_publisher(keys.state(machine_id))
         pub_impact = session.declare_publisher(keys.impact(machine_id))
         bridge = MachineBridge(machine_id, config, lambda m: pub_state.put(encode(m)), lambda m: pub_impact.put(encode(m)),
                                pub_valves.publish, pub_gripper.publish)
-        node.subscribe(t.joint_states, rt.JOINT_STATE, bridge.on_joint_state)
+        node.subscribe(t.joint_states, rt.JOINT_STATE, bridge.on_joint_state, SENSOR_QOS)
         if t.imu:
-            node.subscribe(t.imu, rt.IMU, bridge.on_imu)
+            node.subscribe(t.imu, rt.IMU, bridge.on_imu, SENSOR_QOS)
         elif t.passive_joint_states:
-            node.subscribe(t.passive_joint_states, rt.JOINT_STATE, bridge.on_passive_joint_state)
-        node.subscribe(t.gripper_state, rt.BOOL, bridge.on_gripper_state)
-        for topic, typename, handler in ((t.payload_attached, rt.BOOL, bridge.on_payload_attached), (t.payload, rt.ODOMETRY, bridge.on_payload),
-                                         (t.fault, rt.STRING, bridge.on_fault), (t.impact, rt.POINT_STAMPED, bridge.on_impact)):
+            node.subscribe(t.passive_joint_states, rt.JOINT_STATE, bridge.on_passive_joint_state, SENSOR_QOS)
+        node.subscribe(t.gripper_state, rt.BOOL, bridge.on_gripper_state, SENSOR_QOS)
+        for topic, typename, handler, qos in ((t.payload_attached, rt.BOOL, bridge.on_payload_attached, SENSOR_QOS),
+                                              (t.payload, rt.ODOMETRY, bridge.on_payload, SENSOR_QOS),
+                                              (t.fault, rt.STRING, bridge.on_fault, SENSOR_QOS),
+                                              (t.impact, rt.POINT_STAMPED, bridge.on_impact, EVENT_QOS)):
             if topic:
-                node.subscribe(topic, typename, handler)
+                node.subscribe(topic, typename, handler, qos)
         subs = [session.declare_subscriber(keys.valve_cmd(machine_id), lambda s: bridge.on_valve_command(s.payload.to_bytes())),
                 session.declare_subscriber(keys.gripper_cmd(machine_id), lambda s: bridge.on_gripper_command(s.payload.to_bytes()))]
-        log.info("ROS 2 bridge %s up: node /%s on ROS_DOMAIN_ID %d, Zenoh keys %s", machine_id, config.node_name,
-                 config.domain_id, node.keys)
+        log.info("ROS 2 bridge %s up: node %s on ROS_DOMAIN_ID %d over %s, %s", machine_id, node.node.get_fully_qualified_name(),
+                 node.domain_id, node.rmw, node.discovery)
         try:
             while not stop.wait(0.02):
+                bridge.set_command_fault(node.command_publishers_fault((t.valve_command, t.gripper_command)))
                 bridge.check()
         finally:
             for s in subs:

@@ -2,7 +2,7 @@
 
 Example (TOML; every key has the default shown unless marked)::
 
-    domain_id = 0                       # ROS_DOMAIN_ID
+    domain_id = 0                       # ROS_DOMAIN_ID (default: none, i.e. the environment's ROS_DOMAIN_ID, else 0)
     namespace = ""                      # ROS namespace of the bridge node and of relative topic names
     node_name = "slinger_bridge"
     stale_after_s = 0.15                # a required topic older than this: machine link lost
@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import tomllib
 from pathlib import Path
 from typing import Annotated
@@ -52,7 +53,25 @@ from pydantic import (
 )
 
 from runtime.machine import ACTIVE_JOINTS, JOINT_NAMES, PASSIVE_JOINTS
-from runtime.ros2.rmw_zenoh import qualified_name
+
+_NAME = re.compile(r"^/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$")
+
+
+def qualified_name(name: str, namespace: str = "") -> str:
+    """The fully qualified ROS name ``/ns/name`` (a name starting with ``/`` is absolute).
+
+    Raises:
+        ValueError: not a valid ROS 2 topic or namespace name (letters, digits, ``_``, ``/``).
+    """
+    for part in (name, namespace):
+        if part and not _NAME.match(part):
+            raise ValueError(f"not a valid ROS 2 name: {part!r}")
+    if not name:
+        raise ValueError("empty ROS 2 name")
+    if name.startswith("/"):
+        return name
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    return f"{ns}/{name}"
 
 
 def _topic(name: str) -> str:
@@ -115,7 +134,7 @@ class Topics(_Strict):
 class BridgeConfig(_Strict):
     """The bridge's mapping (module doc)."""
 
-    domain_id: Annotated[int, Field(ge=0, le=232)] = 0
+    domain_id: Annotated[int, Field(ge=0, le=232)] | None = None
     namespace: str = ""
     node_name: Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")] = "slinger_bridge"
     stale_after_s: Annotated[float, Field(gt=0.0, le=5.0)] = 0.15
