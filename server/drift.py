@@ -30,6 +30,14 @@ On an alarm the watch
 4. offers the adaptation of that diagnosis's result once it is done (``adaptation`` in the
    alert: the diagnosis run to adapt from and its effects; the operator starts it).
 
+The alarm's "since which throw" and "how fast" come from the change test every diagnosis runs
+(:func:`sim_twin.diagnosis.stationarity.change_point`: the maximally selected two-sample t over
+the split points, permutation p-value) on the alarming axis's errors of the baseline and the
+throws since: its change point (when it falls after the baseline and the test gives p below
+CHANGE_P) picks the throws the diagnosis gets, else the CUSUM's own estimate; the alert records
+the test (``test.change``: p, change point, means before and after, step, slope per throw). The
+diagnosis it starts runs the same test again on every channel of those throws.
+
 The statistics then restart with a new baseline (the machine's new normal). The CUSUM state
 lives in memory (a restarted server takes a new baseline); alerts persist until acknowledged
 (:meth:`DriftWatch.acknowledge`, POST /api/machines/{id}/drift/ack: an operator or admin,
@@ -61,6 +69,10 @@ SIGMA_FLOOR_M = 0.05
 of a real machine's impact measurement, sim_twin.diagnosis.reallog.RealLogSpec); a baseline of a
 few tight throws must not make every later throw an outlier."""
 MIN_DIAGNOSIS_THROWS = 8
+CHANGE_P = 0.05
+"""The change test's change point replaces the CUSUM's estimate when its p is below this (CHOSEN:
+the CUSUM has already alarmed; the test only locates the change)."""
+CHANGE_PERMUTATIONS = 999
 MAX_RECENT = 500
 AXES = ("downrange", "crossrange")
 DIRECTIONS = {("downrange", 1): "long", ("downrange", -1): "short", ("crossrange", 1): "left", ("crossrange", -1): "right"}
@@ -88,6 +100,7 @@ class Cusum:
     last_zero_lo: np.ndarray = field(default_factory=lambda: np.full(2, -1))
     since: list = field(default_factory=list)
     errors: list = field(default_factory=list)
+    baseline_ids: list = field(default_factory=list)
 
     def update(self, throw_id: str, error_m: np.ndarray) -> dict | None:
         """Add one throw's (downrange, crossrange) error, m. Returns the alarm (dict) or None.
@@ -100,6 +113,7 @@ class Cusum:
             raise ValueError(f"impact error must be two finite numbers (downrange, crossrange), got {error_m!r}")
         if self.mu is None or self.sigma is None:  # set together once the baseline is full
             self.baseline.append(e)
+            self.baseline_ids.append(throw_id)
             if len(self.baseline) >= BASELINE_THROWS:
                 b = np.array(self.baseline)
                 self.mu, self.sigma = b.mean(axis=0), np.maximum(b.std(axis=0, ddof=1), SIGMA_FLOOR_M)
@@ -117,10 +131,14 @@ class Cusum:
             return None
         side, ax = np.unravel_index(int(np.argmax(stats)), stats.shape)
         start = int((self.last_zero_hi if side == 0 else self.last_zero_lo)[ax]) + 1
+        change = _change_test(np.array(self.baseline + self.errors)[:, ax], len(self.baseline), self.baseline_ids + self.since)
+        if change["p"] < CHANGE_P and change["change_at"] is not None and change["change_at"] >= len(self.baseline):
+            start = min(change["change_at"] - len(self.baseline), len(self.since) - 1)
+            change["used"] = True
         recent = np.array(self.errors[start:])
         mu, sigma = self.mu, self.sigma
         assert mu is not None and sigma is not None  # set with the baseline, before any test
-        return {"axis": AXES[ax], "direction": DIRECTIONS[(AXES[ax], 1 if side == 0 else -1)], "statistic": float(stats[side, ax]),
+        return {"axis": AXES[ax], "direction": DIRECTIONS[(AXES[ax], 1 if side == 0 else -1)], "statistic": float(stats[side, ax]), "change": change,
                 "change_after": self.since[start - 1] if start > 0 else None, "throw_ids": self.since[start:],
                 "recent": {"n": len(recent), "mean_downrange_m": float(recent[:, 0].mean()), "mean_crossrange_m": float(recent[:, 1].mean())},
                 "baseline": {"n": len(self.baseline), "mean_downrange_m": float(mu[0]), "mean_crossrange_m": float(mu[1]),
@@ -189,7 +207,7 @@ class DriftWatch:
             "text": (f"accuracy drift: the last {alarm['recent']['n']} landed throws land {abs(shift):.2f} m {alarm['direction']} "
                      f"of the baseline on average ({ax} sigma {b[f'sigma_{ax}_m']:.2f} m over {b['n']} throws)"),
             "test": {"method": "two-sided CUSUM (Page 1954)", "k": K, "h": H, "axis": ax, "direction": alarm["direction"],
-                     "statistic": alarm["statistic"], "shift_m": shift},
+                     "statistic": alarm["statistic"], "shift_m": shift, "change": alarm.get("change")},
             "baseline": b, "recent": alarm["recent"], "throw_ids": alarm["throw_ids"][-MAX_RECENT:],
             "diagnosis": None, "adaptation": None, "webhook": None,
         }
@@ -290,6 +308,20 @@ class DriftWatch:
         tmp = p.with_suffix(".json.tmp")
         tmp.write_text(json.dumps(alert, indent=1))
         tmp.replace(p)
+
+
+def _change_test(x: np.ndarray, n_baseline: int, ids: list[str]) -> dict:
+    """The diagnosis' change test (:func:`sim_twin.diagnosis.stationarity.change_point`) of one
+    axis's errors (m, throw order: the baseline, then the throws since), with the throw id after
+    the change (``since_throw``) and whether the alarm used its change point (``used``)."""
+    from sim_twin.diagnosis.stationarity import change_point
+
+    row = change_point(x, permutations=CHANGE_PERMUTATIONS)
+    k = row["change_at"]
+    return {"method": "max-t change point, permutation p (sim_twin.diagnosis.stationarity)", "p": row["p"], "change_at": k,
+            "since_throw": ids[k] if k is not None and k < len(ids) else None, "after_baseline": k is not None and k >= n_baseline,
+            "mean_before_m": row["mean_before"], "mean_after_m": row["mean_after"], "step_m": row["step"],
+            "slope_m_per_throw": row["slope_per_throw"], "shape": row["shape"], "used": False}
 
 
 def _post_json(url: str, data: dict) -> None:

@@ -242,7 +242,7 @@ DISTANCES_M = {"2d": (7.5, 8.0, 8.5, 9.0, 9.5), "3d": (7.0, 7.5, 8.0, 8.5, 9.0)}
 
 
 def generate(directory, profile_dict: dict, throws: int, policy_path: str | Path, distances_m=None, seed: int = 0, mode: str = "2d",
-             workers: int = 1, real_log=None) -> Path:
+             workers: int = 1, real_log=None, per_throw: list[dict] | None = None) -> Path:
     """Throw ``throws`` times with the simulated machine under ``profile_dict`` (targets cycle
     through ``distances_m``, default DISTANCES_M[mode]; seed ``seed * 10007 + i`` for throw i)
     and write a dataset.
@@ -252,19 +252,24 @@ def generate(directory, profile_dict: dict, throws: int, policy_path: str | Path
         real_log: a :class:`sim_twin.diagnosis.reallog.RealLogSpec` to make logs like a real
             machine's (sensor noise in the loop, channels dropped, impact noise, missing
             impacts), or None for the runtime's full telemetry.
+        per_throw: one profile dict per throw (in throw order; overrides ``profile_dict``): a
+            machine that changes during the log (the benchmark's ``drifting`` kind).
 
     Returns:
         the index path. Throws the policy fails are kept in the index with their status.
 
     Raises:
-        ValueError: unknown mode.
+        ValueError: unknown mode, or a per_throw list of another length.
     """
     if mode not in DISTANCES_M:
         raise ValueError(f"mode must be one of {sorted(DISTANCES_M)}, got {mode!r}")
     distances_m = distances_m or DISTANCES_M[mode]
+    if per_throw is not None and len(per_throw) != throws:
+        raise ValueError(f"per_throw must hold one profile per throw ({throws}), got {len(per_throw)}")
+    profiles = list(per_throw) if per_throw is not None else [profile_dict] * throws
     if real_log is not None:
-        profile_dict = {**profile_dict, "effects": list(profile_dict.get("effects", [])) + [real_log.noise_effect()]}
-    jobs = [(str(policy_path), profile_dict, seed * 10007 + i, float(distances_m[i % len(distances_m)]), mode, real_log) for i in range(throws)]
+        profiles = [{**p, "effects": list(p.get("effects", [])) + [real_log.noise_effect()]} for p in profiles]
+    jobs = [(str(policy_path), profiles[i], seed * 10007 + i, float(distances_m[i % len(distances_m)]), mode, real_log) for i in range(throws)]
     if workers > 1:
         from sim_twin.pools import process_pool
 

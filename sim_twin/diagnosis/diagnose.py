@@ -39,7 +39,8 @@ from sim_twin.diagnosis import noise as nz
 from sim_twin.diagnosis import replay as rp
 from sim_twin.diagnosis import scoring as sc
 from sim_twin.diagnosis import select as sel
-from sim_twin.diagnosis.verdict import verdict_of
+from sim_twin.diagnosis import stationarity as st
+from sim_twin.diagnosis.verdict import drift_of, verdict_of
 from sim_twin.effects import EFFECTS, Effect, EffectStack, effect_class
 from sim_twin.profile import RealityProfile
 
@@ -119,6 +120,24 @@ def _where(throws, S: np.ndarray, D: np.ndarray, noise: nz.NoiseModel, nominal, 
     }
 
 
+def stationarity(throws, M: np.ndarray, D: np.ndarray, seed: int = 0) -> dict[str, dict]:
+    """Change test of every channel's per-throw mean residual in throw order (:mod:`stationarity`):
+    channels with data in every throw, the target distance regressed out, Holm over the channels.
+
+    Args:
+        throws: the N logged throws in log order; M: (N, C) standardised mean residuals
+            (:meth:`scoring.Scorer.signed`); D: (N, C, P) degrees of freedom.
+
+    Returns:
+        channel -> :func:`stationarity.test_series` row (units: noise sigma of the per-throw mean).
+    """
+    has = D.sum(axis=2) > 0
+    series = {name: M[:, c] for c, name in enumerate(nz.CHANNELS) if has[:, c].all() and len(throws) >= st.MIN_THROWS}
+    if not series:
+        return {}
+    return st.test_series(series, covariates=np.array([t.distance_m for t in throws]), seed=seed)
+
+
 def _accuracy(throws: list, impacts: list[np.ndarray]) -> dict[str, dict]:
     from runtime.throw_geometry import impact_errors
 
@@ -133,8 +152,11 @@ def _accuracy(throws: list, impacts: list[np.ndarray]) -> dict[str, dict]:
     return out
 
 
-def _how_far(throws, train: np.ndarray, scorer: sc.Scorer, rounds: list[fw.Round], named: list[Effect], nominal: list) -> dict:
-    """Held-out throws, named effects fitted on the training throws only."""
+def _how_far(throws, train: np.ndarray, scorer: sc.Scorer, rounds: list[fw.Round], named: list[Effect], nominal: list,
+             carriers: tuple[str, ...] | list[str] = ()) -> dict:
+    """Held-out throws, named effects fitted on the training throws only. ``gap_shrink`` is the
+    smallest shrink over the gap channels (``carriers``, each on its own) and the impact RMS, with
+    the channel it comes from (``gap_shrink_channel``); ``shrink_by_channel`` lists each."""
     test = [t for t, m in zip(throws, train) if not m]
     test_scorer = sc.Scorer(test, scorer.noise)
     fits = {r.named: next(c for c in r.candidates if c.effect == r.named) for r in rounds if r.decision == "named"}
@@ -151,12 +173,28 @@ def _how_far(throws, train: np.ndarray, scorer: sc.Scorer, rounds: list[fw.Round
     for i, e in enumerate(named):
         shares[e.spec()] = (ex[i] - ex[i + 1]) / total if total > 0 else None
     const = _constant_shift(throws, train, test_scorer, reps[0], ex[0], rms[0], nominal)
+    # per channel, never pooled: a channel whose noise was over-estimated sits far below its
+    # degrees of freedom and would hide another's misfit in a pooled excess
+    by_channel = {}
+    for ch in carriers:
+        c = nz.CH_INDEX[ch]
+        dof = float(D[:, c].sum())
+        if dof <= 0:
+            continue
+        before, after = float(S[0][:, c].sum() - dof), float(S[-1][:, c].sum() - dof)
+        by_channel[ch] = {"excess_before": before, "excess_after": after,
+                          "shrink": (1 - max(after, 0.0) / before) if before > 0 else None}
+    shrinks = [(ch, v["shrink"]) for ch, v in by_channel.items() if v["shrink"] is not None]
+    if rms[0] > 0:
+        shrinks.append(("impact (RMS)", 1 - rms[-1] / rms[0]))
+    worst = min(shrinks, key=lambda cs: cs[1]) if shrinks and named else None
     return {
         "constant_shift": const,
         "test_throws": [t.throw_id for t in test],
         "named_fitted_on_train": [e.to_dict() for e in train_effects],
         "chi2_excess_before": ex[0], "chi2_excess_after": ex[-1], "dof": float(D.sum()),
-        "gap_shrink": (1 - max(ex[-1], 0.0) / ex[0]) if ex[0] > 0 and named else None,
+        "gap_shrink": worst[1] if worst else None, "gap_shrink_channel": worst[0] if worst else None,
+        "shrink_by_channel": by_channel,
         "impact_rms_m": {"before": rms[0], "after": rms[-1], "steps": rms},
         "impact_gap_shrink": (1 - rms[-1] / rms[0]) if rms[0] > 0 and named else None,
         "share_of_shrink": shares,
@@ -220,19 +258,32 @@ def diagnose(dataset_dir: str | Path, out_dir: str | Path | None = None, test_fr
     S0 = scorer.score(nominal)
     M0 = scorer.signed(nominal)
     where = _where(throws, S0, scorer.D, noise, nominal, M0, scorer.bias_margin)
+    where["stationarity"] = stationarity(throws, M0, scorer.D, seed)
     log.info("where: gap in %s (%.1f s)", where["carriers"] or "no channel", time.time() - t0)
     rounds, named = fw.select_effects(lambda base: sel.Evaluator(throws, scorer, base, cache), classes, scorer.D, train, seed, workers)
+    stat_fit = None
+    if named:  # is the residual the named effects leave the same early and late in the log?
+        fit_reps = rp.replay(throws, [EffectStack(named)], dynamics_cache=cache)[0]
+        stat_fit = stationarity(throws, scorer.signed(fit_reps), scorer.D, seed)
+    named_c = [next(c for c in r.candidates if c.effect == r.named) for r in rounds if r.decision == "named"]
+    drift = drift_of(where["stationarity"], stat_fit, named_c, [t.throw_id for t in throws])
     power = None
-    if not where["gap"]:
+    if not where["gap"] and not drift["drifting"]:
         from sim_twin.diagnosis.power import detectable
 
         power = detectable(throws, scorer, cache, M0, scorer.D)
-    verdict = verdict_of(where, rounds, named, power)
+    verdict = verdict_of(where, rounds, named, power, drift)
     log.info("which: %s (%.0f s)", verdict["text"], time.time() - t0)
-    how_far = _how_far(throws, train, scorer, rounds, named, nominal) if named else None
+    how_far = _how_far(throws, train, scorer, rounds, named, nominal, where["carriers"]) if named and verdict["answer"] != "drifting" else None
     if how_far and how_far.get("impact_gap_shrink") is not None and how_far["constant_shift"].get("impact_gap_shrink") is not None:
-        verdict["text"] += (f" [held-out throws: impact RMS {100 * how_far['impact_gap_shrink']:.0f}% smaller with the fit, "
-                            f"{100 * how_far['constant_shift']['impact_gap_shrink']:.0f}% with a constant impact shift]")
+        def pct(x: float) -> str:
+            return f"{100 * abs(x):.0f}% {'smaller' if x >= 0 else 'LARGER'}"
+
+        verdict["text"] += (f" [held-out throws: impact RMS {pct(how_far['impact_gap_shrink'])} with the fit, "
+                            f"{pct(how_far['constant_shift']['impact_gap_shrink'])} with a constant impact shift")
+        if how_far.get("gap_shrink_channel") and how_far["gap_shrink_channel"] != "impact (RMS)":
+            verdict["text"] += f"; least shrink in {how_far['gap_shrink_channel']}: {100 * how_far['gap_shrink']:.0f}%"
+        verdict["text"] += "]"
     fitted = RealityProfile(name="fitted-" + "+".join(e.name for e in named) if named else "fitted-none", effects=named)
     report = {
         "format": REPORT_FORMAT, "dataset": str(dataset_dir), "machine_id": index.get("machine_id"),
@@ -242,7 +293,8 @@ def diagnose(dataset_dir: str | Path, out_dir: str | Path | None = None, test_fr
         "which": [c.to_dict() for r in rounds for c in r.candidates if r.decision == "named" and c.effect == r.named],
         "effects_library": {name: cls.describe() for name, cls in EFFECTS.items()},
         "method": {"block_rows": nz.BLOCK_ROWS, "z_gap": nz.Z_GAP, "r_gap": nz.R_GAP, "bootstrap": sel.BOOTSTRAP,
-                   "win_freq": sel.WIN_FREQ, "ambiguous_freq": sel.AMBIGUOUS_FREQ, "penalty_per_param": sel.PENALTY_PER_PARAM},
+                   "win_freq": sel.WIN_FREQ, "ambiguous_freq": sel.AMBIGUOUS_FREQ, "penalty_per_param": sel.PENALTY_PER_PARAM,
+                   "stationarity": {"alpha": st.ALPHA, "permutations": st.PERMUTATIONS, "min_segment": st.MIN_SEGMENT, "z_split": fw.Z_SPLIT}},
         "wall_s": time.time() - t0, "workers": workers, "cpu_s": cpu_seconds() - c0,
     }
     if out_dir:

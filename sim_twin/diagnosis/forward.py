@@ -17,6 +17,7 @@ import numpy as np
 
 from sim_twin.diagnosis import noise as nz
 from sim_twin.diagnosis import select as sel
+from sim_twin.diagnosis import stationarity as st
 from sim_twin.effects import Effect
 
 log = logging.getLogger(__name__)
@@ -26,6 +27,12 @@ CONFIRM_CHI2 = 25.0
 """A candidate is confirmed by channels other than the impact when its fit lowers their summed
 chi-square by at least this much (a 5 sigma likelihood-ratio for one parameter; CHOSEN like
 noise.Z_GAP). Below it the candidate's only evidence is the measured impact."""
+Z_SPLIT = 4.0
+"""A candidate's fits on the early and the late half of the log (throw order) disagree when they
+differ by more than this many standard deviations of the difference (each half's 1 sigma taken
+as sqrt(2) times the all-throw one; CHOSEN: about 3.3 sigma two-sided after a Bonferroni
+correction over a handful of parameters, rounded up because the all-throw sigma is the largest
+of several estimates)."""
 
 
 @dataclass
@@ -70,11 +77,15 @@ class Round:
     named: str | None = None
     runner_up: str | None = None
     pair_tried: list[Candidate] = field(default_factory=list)  # second effects tried by the pair step (none named)
+    residual: dict = field(default_factory=dict)
+    """channel -> {"chi2", "dof", "gap"} of the round's base (the effects named before it) over all
+    throws, with the plain noise test (:func:`noise.gap_test`, no RESIDUAL_SHARE rule): what
+    "to within noise" is judged on."""
 
     def to_dict(self) -> dict:
         return {"gaps": self.gaps, "candidates": [c.to_dict() for c in self.candidates], "gated_out": self.gated_out,
                 "wins_none": self.wins_none, "decision": self.decision, "named": self.named, "runner_up": self.runner_up,
-                "pair_tried": [c.to_dict() for c in self.pair_tried]}
+                "pair_tried": [c.to_dict() for c in self.pair_tried], "residual": self.residual}
 
 
 def channel_gaps(S: np.ndarray, D: np.ndarray, S_ref: np.ndarray | None = None, M: np.ndarray | None = None,
@@ -250,13 +261,42 @@ def evaluate_candidate(ev: sel.Evaluator, sw: sel.Sweep, D: np.ndarray, train: n
             if (x < sel.BOUND_MARGIN and x_nom > sel.BOUND_MARGIN and p.lo != 0.0) or (x > 1 - sel.BOUND_MARGIN and x_nom < 1 - sel.BOUND_MARGIN):
                 at_bound.append(p.name)
     test = ~train
+    split = split_fits(ev, sw, fitted, sigma, N)
+    ev.fit(sw, np.ones(N))  # the per-joint identifiability flags of the all-throw fit again
     cand = Candidate(
         effect=sw.cls.spec(), params=params, params_train=params_train, sigma=sigma, k=k, at_bound=at_bound, worse=worse, not_identifiable=not_ident,
         sigma_parts={"bootstrap": boot, "profile": {n: (v if np.isfinite(v) else None) for n, v in prof.items()}, "scatter": scat},
         chi2_before=float(ev.S_base.sum()), chi2_after=float(S_all.sum()),
         test_excess_before=float(ev.S_base[test].sum() - D[test].sum()), test_excess_after=float(S_train[test].sum() - D[test].sum()),
-        joint_gain=dict(sw.joint_gain), wall_s=time.time() - t0, evidence=evidence_of(ev.S_base, S_all, D))
+        joint_gain=dict(sw.joint_gain), wall_s=time.time() - t0, evidence={**evidence_of(ev.S_base, S_all, D), "split": split})
     return cand, oob, S_all
+
+
+def split_fits(ev: sel.Evaluator, sw: sel.Sweep, fitted: list[str], sigma: dict[str, float], N: int) -> dict:
+    """The candidate fitted on the early and on the late half of the log (throw order,
+    :func:`stationarity.split_halves`), from the same grid (no replay).
+
+    Returns:
+        {"early": params, "late": params, "z": {param: (late - early) / (2 sigma)} (each half's
+        1 sigma taken as sqrt(2) sigma), "drifting": any |z| > Z_SPLIT, "halves": throws per half}.
+    """
+    early, late = st.split_halves(N)
+    pe, _ = ev.fit(sw, early)
+    pl, _ = ev.fit(sw, late)
+    z = {n: float((pl[n] - pe[n]) / (2.0 * sigma[n])) if sigma.get(n, 0.0) > 0 else 0.0 for n in fitted}
+    return {"early": {n: pe[n] for n in fitted}, "late": {n: pl[n] for n in fitted}, "z": z,
+            "drifting": bool(any(abs(v) > Z_SPLIT for v in z.values())), "halves": int(early.sum())}
+
+
+def residual_of(S: np.ndarray, D: np.ndarray) -> dict:
+    """channel -> {"chi2", "dof", "gap", "z"} of S (N, C, P) over all throws and phases (channels with data)."""
+    Sc, Dc = S.sum(axis=(0, 2)), D.sum(axis=(0, 2))
+    out = {}
+    for c, name in enumerate(nz.CHANNELS):
+        if Dc[c] > 0:
+            gap, z = nz.gap_test(Sc[c], Dc[c])
+            out[name] = {"chi2": float(Sc[c]), "dof": float(Dc[c]), "gap": gap, "z": z}
+    return out
 
 
 _POOL_EV: sel.Evaluator | None = None
@@ -339,7 +379,7 @@ def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train
         ev = ev_factory(named)
         S_nominal = ev.S_base if S_nominal is None else S_nominal
         gaps = channel_gaps(ev.S_base, D, S_nominal if named else None, getattr(ev, "M_base", None), getattr(ev, "bias_margin", None))  # an evaluator without signed residuals: no bias test
-        rnd = Round(gaps=sorted(gaps))
+        rnd = Round(gaps=sorted(gaps), residual=residual_of(ev.S_base, D))
         rounds.append(rnd)
         if not gaps:
             rnd.decision = "no gap left"
@@ -370,6 +410,7 @@ def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train
         rnd.wins_none = float(np.mean(winner == 0))
         for i, (cand, _) in enumerate(cands):
             cand.wins = float(np.mean(winner == i + 1))
+            cand.evidence["wins_all"] = cand.wins  # against every candidate and "none" (wins may be re-scored below)
             cand.beats_none = float(np.mean(L[i + 1] < L[0]))
             reasons = []
             if cand.at_bound:
@@ -530,6 +571,7 @@ def pair_step(ev_factory, classes, named: list[Effect], ev: sel.Evaluator, first
     passed.sort(key=lambda p: -p[0].wins)
     rnd.candidates.sort(key=lambda c: (not c.admissible, -c.wins))
     second, sw, _ = passed[0]
+    second.evidence["wins_all"] = second.wins  # the pair against "none", every single and the other pairs
     rnd.wins_none = float(1.0 - second.beats_none)
     if second.wins < sel.WIN_FREQ:
         rnd.decision, rnd.named, rnd.runner_up = "ambiguous", second.effect, passed[1][0].effect
@@ -566,6 +608,6 @@ def backfit(ev_factory, rounds: list[Round], named: list[Effect], D: np.ndarray,
         c_all.sigma_parts["backfit_shift"] = shift
         c.sigma = {n: float(np.hypot(c_all.sigma[n], shift[n])) for n in c_all.sigma}
         c.params, c.sigma_parts, c.at_bound, c.params_train, c.refit = c_all.params, c_all.sigma_parts, c_all.at_bound, c_train.params_train, True
-        c.evidence = c_all.evidence  # with the others in the model: what this effect alone adds
+        c.evidence = {**c_all.evidence, "wins_all": c.evidence.get("wins_all", c.wins)}  # with the others in the model: what this effect alone adds
         named[i] = cls(**c_all.params)
         log.info("backfit: %s %s (train %s)", c.effect, {k: round(v, 4) for k, v in c.params.items()}, {k: round(v, 4) for k, v in c.params_train.items()})
