@@ -130,12 +130,16 @@ def _table(head: list[str], rows: list[list]) -> list[str]:
 
 
 def _figures(report: dict) -> list[str]:
-    rows = []
+    """A report's ``figures`` as a list: "what: **value unit** (bar …: met); conditions"."""
+    lines = []
     for f in report["figures"]:
-        bar = f.get("bar", "")
-        met = {True: "met", False: "**not met**"}.get(f.get("met"), "")
-        rows.append([f["what"], f"{_num(f['value'])} {f.get('unit', '')}".strip(), bar, met, f.get("conditions", "")])
-    return _table(["figure", "value", "bar", "", "conditions"], rows)
+        line = f"* {f['what']}: **{_num(f['value'])} {f.get('unit', '')}".rstrip() + "**"
+        if f.get("bar"):
+            line += f" (bar {f['bar']}" + {True: ": met", False: ": **not met**"}.get(f.get("met"), "") + ")"
+        if f.get("conditions"):
+            line += f"; {f['conditions']}"
+        lines.append(line)
+    return lines
 
 
 def _site_matrix(report: dict) -> list[str]:
