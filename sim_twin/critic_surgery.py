@@ -18,7 +18,7 @@ value function exactly:
   ~lr within some ten updates. Any other entry whose shape does not match is dropped (Adam
   restarts it from zero); there are none for the widening above.
 
-rsl_rl 5.5 checkpoint keys (torch.load of policies/training/throw3d-robust/checkpoint.pt):
+rsl_rl 5.5 checkpoint keys (torch.load of tests/data/policy_only_critic_2d.pt):
 ``actor_state_dict``, ``critic_state_dict``, ``optimizer_state_dict`` (one Adam param group: the
 actor's parameters, then the critic's: std_param, mlp.{0,2,4}.{weight,bias} of each), ``iter``,
 ``infos``. Normaliser buffers: ``obs_normalizer._mean``, ``._var``, ``._std`` (1, n) and

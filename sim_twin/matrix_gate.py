@@ -173,7 +173,7 @@ class MatrixGate:
         """Raise the matrix process's niceness by GATE_NICENESS (its pool inherits it), so that the
         training process keeps the cores it launches its GPU work from: with 13 matrix processes
         at equal priority on a 16-core machine, training ran at 0.36-0.46 M control steps/s against
-        0.51-0.58 M/s before the gate started (policies/training/throw2d-scratch-m/README.md).
+        0.51-0.58 M/s before the gate started (throw2d-scratch-m's README, lab notebook: policies/training/ARCHIVE.md).
         The process is new (still starting Python), so its pool starts after this."""
         try:
             os.setpriority(os.PRIO_PROCESS, pid, os.getpriority(os.PRIO_PROCESS, 0) + GATE_NICENESS)

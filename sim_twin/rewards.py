@@ -44,7 +44,7 @@ class RewardScales:
             having been commanded open (negative; 0: off, and such an episode is a time-out whose
             value is bootstrapped). The site matrix counts a throw without release as a failure
             (sim_twin.matrix, "no release within 10 s"); with a long discount horizon (gamma
-            0.998) an unpunished time-out made waiting cheap (policies/training/throw2d-scratch-p).
+            0.998) an unpunished time-out made waiting cheap (throw2d-scratch-p, policies/training/ARCHIVE.md).
     """
 
     delta_err: float
