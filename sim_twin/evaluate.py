@@ -161,8 +161,12 @@ def evaluate(
     seed: int = 0,
     workers: int | None = None,
     batch: int = 10,
+    engine: str = "mujoco",
+    per_throw: bool = False,
 ) -> dict:
-    """Run the protocol; returns the report dict (see summarise). Logs progress."""
+    """Run the protocol; returns the report dict (see summarise; ``engine`` names the physics
+    engine of the simulated machine, sim_twin.engines; ``per_throw`` keeps each throw's errors by
+    seed in every target). Logs progress."""
     workers = workers or os.cpu_count() or 1
     jobs = []
     for i, d in enumerate(distances_m):
@@ -172,7 +176,7 @@ def evaluate(
     t0, done = time.time(), 0
     prof = str(profile_path) if profile_path else None
     with process_pool(workers) as pool:
-        futs = {pool.submit(throw_batch, str(policy_path), mode, d, s, prof): d for d, s in jobs}
+        futs = {pool.submit(throw_batch, str(policy_path), mode, d, s, prof, None, engine): d for d, s in jobs}
         for fut in as_completed(futs):
             results[futs[fut]] += fut.result()
             done += 1
@@ -185,8 +189,9 @@ def evaluate(
         "policy_version": PolicyRunner.load(policy_path).version,
         "mode": mode,
         "profile": prof or "nominal",
+        "engine": engine,
         "throws_per_target": throws,
         "seed": seed,
         "wall_s": time.time() - t0,
-        "targets": [summarise(d, results[d]) for d in distances_m],
+        "targets": [summarise(d, results[d], per_throw=per_throw) for d in distances_m],
     }

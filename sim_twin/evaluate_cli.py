@@ -3,7 +3,10 @@ site matrix (sim_twin.matrix), the paper's figure and the Markdown table of a re
 
 ``slinger evaluate --policy policies/throw2d.onnx --targets 7.5:10:0.5 --throws 200`` writes a
 JSON report and the paper's figure (mean impact with 1 sigma bars against the target);
-``--matrix`` runs the site matrix instead.
+``--matrix`` runs the site matrix instead. ``--engine drake`` throws at the machine in Drake
+(sim_twin.drake_machine) instead of the MuJoCo twin: the report names the engine, and a nominal
+Drake evaluation is paired throw by throw with the MuJoCo site matrix's nominal column
+(sim_twin.drake_evaluate): both engines in one figure, the nominal column's bars in each.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from runtime.entrypoint import module_main
+from sim_twin.engines import ENGINES
 from sim_twin.evaluate import evaluate
 
 log = logging.getLogger(__name__)
@@ -41,7 +45,8 @@ def plot_reports(reports: list[dict], out: Path) -> None:
         ax.set_xlabel("target distance [m]")
         ax.set_ylabel("impact distance [m]")
         name = rep.get("policy_version", rep["mode"])
-        ax.set_title(f"{rep['mode'].upper()} policy {name}, {rep['throws_per_target']} throws/target ({rep['profile']} twin)", fontsize=10)
+        ax.set_title(f"{rep['mode'].upper()} policy {name}, {rep['throws_per_target']} throws/target ({rep['profile']}, {rep.get('engine', 'mujoco')})",
+                     fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
@@ -91,6 +96,12 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--matrix", action="store_true",
                         help="run the site matrix (nominal + sim_twin/profiles site profiles, sim_twin.matrix) and write "
                              "reports/site_matrix_<mode>.json/.md/.png (or --out); default 100 throws per target")
+    parser.add_argument("--engine", choices=ENGINES, default="mujoco",
+                        help="physics engine of the simulated machine: mujoco (the twin the policies were trained on) or drake "
+                             "(an independent engine; default report reports/eval_<mode>_drake.json)")
+    parser.add_argument("--matrix-report", type=Path, default=None,
+                        help="--engine drake: the MuJoCo site matrix whose nominal column the evaluation is paired with "
+                             "(default reports/site_matrix_<mode>.json)")
     parser.add_argument("--combine", type=Path, nargs="+", default=None,
                         help="only draw the figure of these JSON reports side by side (e.g. 2D and 3D) to --plot")
 
@@ -100,6 +111,12 @@ def run(args: argparse.Namespace) -> int:
 
     if args.combine:
         reports = [json.loads(p.read_text()) for p in args.combine]
+        if all("engines" in r for r in reports):  # Drake evaluations paired with MuJoCo: both engines per panel
+            from sim_twin.drake_evaluate import markdown, plot_engines
+
+            plot_engines([r["engines"] for r in reports], args.plot or Path("reports/eval_engines.png"))
+            print("\n".join(markdown(r["engines"]) for r in reports))
+            return 0
         plot_reports(reports, args.plot or Path("reports/eval.png"))
         print("\n".join(markdown_table(r) for r in reports))
         return 0
@@ -115,11 +132,23 @@ def run(args: argparse.Namespace) -> int:
         matrix.write(rep, out)
         log.info("site matrix %s: all bars met: %s; %s", mode, rep["pass"], out.with_suffix(".md"))
         return 0
-    report = evaluate(args.policy, mode, targets, args.throws, args.profile, args.seed, args.workers)
-    out = args.out or Path("reports") / f"eval_{mode}.json"
+    drake = args.engine == "drake"
+    report = evaluate(args.policy, mode, targets, args.throws, args.profile, args.seed, args.workers, engine=args.engine, per_throw=drake)
+    out = args.out or Path("reports") / (f"eval_{mode}_drake.json" if drake else f"eval_{mode}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
+    from sim_twin.drake_evaluate import compare_engines, markdown, plot_engines
+
+    if drake and args.profile is None:
+        try:
+            report["engines"] = compare_engines(report, json.loads((args.matrix_report or Path("reports") / f"site_matrix_{mode}.json").read_text()))
+        except (OSError, ValueError) as e:  # e.g. other targets than the matrix's: the seeds differ
+            log.warning("Drake evaluation not paired with the MuJoCo site matrix: %s", e)
+    if "engines" in report:
+        plot_engines([report["engines"]], args.plot or out.with_suffix(".png"))
+        print(markdown(report["engines"]))
+    else:
+        plot_reports([report], args.plot or out.with_suffix(".png"))
     out.write_text(json.dumps(report, indent=2) + "\n")
-    plot_reports([report], args.plot or out.with_suffix(".png"))
     for t in report["targets"]:
         log.info(
             "target %.2f m: success %.0f%%, bias %s m, sigma down %s m, sigma cross %s m, mean |error| %s m",
