@@ -53,3 +53,45 @@ def test_preview_monte_carlo_in_a_pool_gives_the_same_impacts():
     assert alone["mc"]["param_rollouts"] == 4 and alone["mc"]["failed_rollouts"] == 0
     assert pooled["mc"]["impacts_m"] == alone["mc"]["impacts_m"]
     assert pooled["mc"]["sigma_downrange_m"] == alone["mc"]["sigma_downrange_m"]
+
+
+OWNER = r"""
+import os, sys, time
+from sim_twin.pools import process_pool
+pool = process_pool(2)
+pids = {pool.submit(os.getpid).result(timeout=120) for _ in range(8)}
+print(" ".join(map(str, sorted(pids))), flush=True)
+time.sleep(600)
+"""
+
+
+def _alive(pid: int) -> bool:
+    """True while ``pid`` runs (a zombie awaiting its reaper counts as gone)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def test_no_pool_process_outlives_a_kill_9_of_its_owner():
+    """kill -9 of the pool's owner (a job worker, a `slinger up` stack): its forkserver and every
+    pool worker end too (before: the workers waited on their task queue for ever)."""
+    import signal
+    import subprocess
+    import sys
+
+    from tests.conftest import wait_for
+
+    owner = subprocess.Popen([sys.executable, "-c", OWNER], stdout=subprocess.PIPE, text=True)
+    try:
+        workers = [int(p) for p in owner.stdout.readline().split()]
+        assert workers and all(_alive(p) for p in workers)
+        children = subprocess.run(["ps", "-o", "pid=", "--ppid", str(owner.pid)], capture_output=True,
+                                  text=True).stdout.split()
+        forkserver = [int(p) for p in children]
+    finally:
+        owner.send_signal(signal.SIGKILL)
+        owner.wait(timeout=10)
+    assert forkserver, "the pool's forkserver is the owner's child"
+    wait_for(lambda: not any(_alive(p) for p in workers + forkserver), 20, "pool processes gone")
