@@ -105,8 +105,8 @@ def _mac(msg: Message, key: bytes) -> str:
     return hmac.new(key, canonical_bytes(msg), hashlib.sha256).hexdigest()
 
 
-def sign(msg: M, key: bytes, user: str, epoch: int, now_unix_s: float | None = None) -> M:
-    """A copy of ``msg`` with a fresh ``auth`` (user, wall clock, nonce, epoch, MAC).
+def sign(msg: M, key: bytes, user: str, epoch: int, now_unix_s: float | None = None, server: str | None = None) -> M:
+    """A copy of ``msg`` with a fresh ``auth`` (user, wall clock, nonce, epoch, server, MAC).
 
     Args:
         msg: a message with an ``auth`` field (ThrowRequest, AbortRequest, EstopReset,
@@ -115,6 +115,7 @@ def sign(msg: M, key: bytes, user: str, epoch: int, now_unix_s: float | None = N
         user: who asks (1-64 chars); "runtime:<id>" for results.
         epoch: the runtime claim addressed (RuntimeInfo.epoch).
         now_unix_s: signing time, Unix s (default: time.time()).
+        server: the signing server's identity (CommandAuth.server), None for results.
 
     Raises:
         ValueError: the message has no ``auth`` field, or a bad key / user / epoch.
@@ -128,6 +129,7 @@ def sign(msg: M, key: bytes, user: str, epoch: int, now_unix_s: float | None = N
         issued_unix_s=time.time() if now_unix_s is None else now_unix_s,
         nonce=secrets.token_hex(16),
         epoch=epoch,
+        server=server,
     )
     signed = msg.model_copy(update={"auth": auth})
     return signed.model_copy(update={"auth": auth.model_copy(update={"mac": _mac(signed, key)})})

@@ -30,7 +30,12 @@ Wiring (keys in runtime/protocol/README.md):
 * a watchdog thread (every 50 ms): no valid state for 0.2 s during a throw -> failed; a gap of
   more than 0.2 s between the runtime's own ticks (it stalled) fails the throw and refuses what
   was queued meanwhile (runtime.service: finality);
-* the outbox delivers finished ThrowResults to keys.THROW_RESULT until the server acks;
+* the outbox delivers finished ThrowResults to keys.THROW_RESULT (every server's queryable: the
+  issuing one stores) until a server acks them stored; it survives a full disk and sets aside
+  results servers keep refusing (runtime.outbox);
+* one writer per machine: queryable keys.lease (LeaseRequest -> LeaseAck); every signed command
+  renews or takes the lease of its server, another server's commands are refused
+  (runtime.service);
 * queryable keys.policy_offer (PolicyOffer -> PolicyOfferAck): runtime.policy_update fetches,
   checks and installs offered policy versions between throws, publishing keys.policy_status.
 
@@ -193,7 +198,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         status_pub = session.declare_publisher(keys.policy_status(machine_id))
         service = RuntimeService(machine_id, executor, lambda k, data: pubs[k].put(data), outbox.put,
                                  verifier=verifier, link_timeout_s=args.link_timeout, epoch=epoch, latch=latch,
-                                 wall_clock=wall_clock, warm_up=True)
+                                 wall_clock=wall_clock, warm_up=True, undeliverable=lambda: outbox.undeliverable)
         updater = PolicyUpdater(machine_id, getattr(args, "policy_dir", None) or Path(f"{outbox_dir}-policies"),
                                 zenoh_fetcher(session), lambda msg: status_pub.put(encode(msg)), authorize=service.authorize)
 
@@ -217,6 +222,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             session.declare_queryable(keys.return_to_ready(machine_id), reply(service.handle_return_to_ready)),
             session.declare_queryable(keys.info(machine_id), reply(lambda _p: service.handle_info())),
             session.declare_queryable(keys.policy_offer(machine_id), reply(updater.handle_offer)),
+            session.declare_queryable(keys.lease(machine_id), reply(service.handle_lease)),
             status_pub,
             token,
             claim_token,

@@ -43,6 +43,18 @@ re-latching; every other abort latches. Warm-up: with ``warm_up=True`` throws ar
 "runtime warming up" (and RuntimeInfo is not ready with that reason) until :meth:`warm_up`
 has run each policy, the release check and the telemetry writer once.
 
+One writer per machine (the lease): the runtime obeys one server at a time, named by its signed
+``CommandAuth.server`` (servers that name none count as one unnamed server). Every signed
+command the runtime authorises (throw, E-STOP reset, return to the ready pose, policy offer, a
+LeaseRequest) gives its server the lease when nobody holds it or the holder's lease expired,
+and renews it for its holder; the lease expires after LEASE_S without an authorised command of
+its holder, never while the holder's throw or a return to the ready pose runs. Another server's
+command is refused with the reason (its ThrowAck / EstopResetAck / ReturnToReadyAck /
+PolicyOfferAck says "machine m1 is commanded by server ...") until then, or until it takes the
+lease over deliberately with a signed ``LeaseRequest(takeover=True)`` (refused while a throw
+runs). E-STOPs are never refused: any server, or none, stops the machine. Each result carries
+the server that issued its throw (``ThrowResult.server_id``); RuntimeInfo names the holder.
+
 Recovery (:mod:`runtime.recovery`): a signed ReturnToReady drives the arm back to the ready pose
 with the same controller gains; refused while E-STOP is latched, a throw runs, the machine is
 offline or faulted; stopped by an abort (E-STOP), a machine fault or a silent machine link.
@@ -75,6 +87,8 @@ from runtime.protocol.messages import (
     EstopResetAck,
     GripperCommand,
     ImpactReport,
+    LeaseAck,
+    LeaseRequest,
     MachineState,
     Message,
     PolicyInfo,
@@ -124,6 +138,11 @@ LAG_WINDOW_S = 10.0
 to judge, short enough that clock-rate drift between the machine and this host (50 ppm: 0.5 ms
 per window) does not count."""
 
+LEASE_S = 30.0
+"""A server's lease on this machine expires after this long without an authorised command of it
+(never during its throw), s. CHOSEN 30 s: longer than an operator's preview-then-throw, short
+enough that a replaced server takes over without a deliberate takeover within half a minute."""
+
 STALLED = "issued before this runtime's stall ended: not acted on"
 WARMING = "runtime warming up"
 CLEARED_STOPS = 256
@@ -160,6 +179,9 @@ class RuntimeService(RecoveryHandling):
         stale_state_s: see STALE_STATE_S.
         warm_up: refuse throws "runtime warming up" until :meth:`warm_up` ran (the node);
             False (tests that drive the service directly): ready at once.
+        lease_s: see LEASE_S.
+        undeliverable: how many results the outbox set aside (RuntimeInfo.undeliverable_results;
+            the node passes the outbox's count), None: 0.
     """
 
     def __init__(
@@ -177,6 +199,8 @@ class RuntimeService(RecoveryHandling):
         stall_timeout_s: float = STALL_TIMEOUT_S,
         stale_state_s: float = STALE_STATE_S,
         warm_up: bool = False,
+        lease_s: float = LEASE_S,
+        undeliverable: Callable[[], int] | None = None,
     ):
         self.machine_id = keys.validate_machine_id(machine_id)
         self.executor = executor
@@ -213,6 +237,12 @@ class RuntimeService(RecoveryHandling):
         self._stops_latched: set[str] = set()  # request ids of the E-STOP puts since the last reset
         self._stops_cleared: deque[str] = deque(maxlen=CLEARED_STOPS)
         self.warming: str | None = WARMING if warm_up else None
+        self.lease_s = float(lease_s)
+        self.lease_holder: str | None = None
+        """The server that commands this machine ("" an unnamed one), None before the first."""
+        self._lease_until_s = -np.inf
+        self._throw_server: str | None = None  # the server of the running (or last) throw
+        self.undeliverable = undeliverable or (lambda: 0)
 
     # --- command authentication ---------------------------------------------------------------
     def authorize(self, msg: Message) -> str | None:
@@ -225,7 +255,50 @@ class RuntimeService(RecoveryHandling):
             return denied
         with self.lock:
             self._note_alive()
-            return self._stall_refusal(msg)
+            return self._stall_refusal(msg) or self._lease(msg)
+
+    # --- one writer per machine: the lease -------------------------------------------------------
+    @staticmethod
+    def _server_of(msg: Message) -> str:
+        auth = getattr(msg, "auth", None)
+        return (auth.server or "") if auth is not None else ""
+
+    def _lease_free(self, now: float) -> bool:
+        """Nobody holds the lease, or its holder's expired (never while a throw or a return runs)."""
+        return self.lease_holder is None or (now > self._lease_until_s and not self.executor.busy and not self.returning)
+
+    def _lease(self, msg: Message, takeover: bool = False) -> str | None:
+        """Give (or renew) the lease to the server of the authorised ``msg``, or the refusal
+        reason when another server holds it (module docstring). Caller holds the lock."""
+        server, now, holder = self._server_of(msg), self.clock(), self.lease_holder
+        if holder is not None and holder != server and not self._lease_free(now):
+            if not takeover:
+                left = max(self._lease_until_s - now, 0.0)
+                return (f"machine {self.machine_id} is commanded by server {holder or '(unnamed)'}: another server's commands "
+                        f"are refused until it is silent for {self.lease_s:.0f} s ({left:.0f} s more) or takes over deliberately")
+            if self.executor.busy:
+                return f"takeover refused: throw {self.executor.throw_id} of server {holder or '(unnamed)'} runs"
+        if holder != server:
+            log.warning("server %s now commands machine %s%s", server or "(unnamed)", self.machine_id,
+                        f" (taken over from {holder or '(unnamed)'})" if holder is not None else "")
+        self.lease_holder, self._lease_until_s = server, now + self.lease_s
+        return None
+
+    def handle_lease(self, payload: bytes) -> bytes:
+        """LeaseRequest (signed) -> LeaseAck: the lease given, renewed or taken over, or why not."""
+        req, refused = self._addressed(payload, LeaseRequest, lambda why: encode(
+            LeaseAck(machine_id=self.machine_id, granted=False, holder=self.lease_holder, reason=why)))
+        if refused is not None:
+            return refused
+        denied = self.verifier.check(req) if self.verifier is not None else NO_KEY
+        with self.lock:
+            if not denied:
+                self._note_alive()
+                denied = self._stall_refusal(req) or self._lease(req, takeover=req.takeover)
+            left = max(self._lease_until_s - self.clock(), 0.0) if self.lease_holder is not None else None
+            self.publish_info()
+            return encode(LeaseAck(machine_id=self.machine_id, granted=denied is None, holder=self.lease_holder,
+                                   expires_in_s=left, reason=denied))
 
     # --- finality: stalls and stale messages ----------------------------------------------------
     def _note_alive(self) -> None:
@@ -373,6 +446,7 @@ class RuntimeService(RecoveryHandling):
             if reason is None:
                 if state is None:  # _throw_refusal refuses without a state
                     raise RuntimeError(f"throw {req.throw_id} accepted without a machine state")
+                self._throw_server = self._server_of(req)
                 log.info("throw %s accepted for %s: %s at %s", req.throw_id, self._who(req), req.mode, req.target_m)
                 self._publish(self.executor.drain(), state.stamp_s)  # the preparing status
                 self.publish_info()
@@ -599,6 +673,8 @@ class RuntimeService(RecoveryHandling):
                 returning=self.returning,
                 return_progress=self._return_progress() if self.recovery is not None else None,
                 return_result=self.recovery.status.result if self.recovery is not None else None,
+                lease_holder=self.lease_holder,
+                undeliverable_results=self.undeliverable(),
             )
 
     def handle_info(self) -> bytes:
@@ -637,7 +713,7 @@ class RuntimeService(RecoveryHandling):
             self.send(keys.status(mid), encode(status))
         if out.finished is not None:
             try:
-                result = out.finished.to_message(mid)
+                result = out.finished.to_message(mid).model_copy(update={"server_id": self._throw_server or None})
                 if self.verifier is not None:
                     result = sign(result, self.verifier.key, f"runtime:{mid}", self.epoch)
                 self.on_result(result)

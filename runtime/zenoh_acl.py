@@ -8,8 +8,8 @@ queries) are allowed. Data, queries, replies and liveliness tokens arriving are 
 
 | sender CN | may put | may query | may reply on | liveliness token |
 |---|---|---|---|---|
-| server | machine/*/sim/reset, runtime/*/estop | runtime/*/{throw,abort,estop_reset,return_to_ready,info,policy/offer} | server/throw_result, server/policy/* | - |
-| runtime-<id> | machine/<id>/{valve_cmd,gripper_cmd}, runtime/<id>/{status,runtime_state,policy/status,estop_ack} | server/throw_result, server/policy/* | runtime/<id>/{throw,abort,estop_reset,return_to_ready,info,policy/offer} | runtime/<id>/{alive,claim/*} |
+| server | machine/*/sim/reset, runtime/*/estop | runtime/*/{throw,abort,estop_reset,return_to_ready,info,policy/offer,lease} | server/throw_result, server/policy/* | - |
+| runtime-<id> | machine/<id>/{valve_cmd,gripper_cmd}, runtime/<id>/{status,runtime_state,policy/status,estop_ack} | server/throw_result, server/policy/* | runtime/<id>/{throw,abort,estop_reset,return_to_ready,info,policy/offer,lease} | runtime/<id>/{alive,claim/*} |
 | plant-<id> | machine/<id>/{state,impact} | - | - | machine/<id>/{alive,claim/*} |
 | router | everything (it forwards; it enforces these rules itself on its own links) |
 
@@ -28,7 +28,7 @@ from runtime.protocol import keys
 
 DATA = ("put", "delete", "query", "reply", "liveliness_token")
 DECLARATIONS = ("declare_subscriber", "declare_queryable", "declare_liveliness_subscriber", "liveliness_query")
-RUNTIME_QUERYABLES = ("throw", "abort", "estop_reset", "return_to_ready", "info", "policy/offer")
+RUNTIME_QUERYABLES = ("throw", "abort", "estop_reset", "return_to_ready", "info", "policy/offer", "lease")
 
 
 def _rule(rule_id: str, messages: Sequence[str], key_exprs: Sequence[str], flows: Sequence[str] = ("ingress",)) -> dict:

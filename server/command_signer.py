@@ -8,12 +8,22 @@ A machine without a key file gets unsigned commands (its runtime, which holds no
 cannot check them; a runtime with a key refuses them as "unsigned") and its results are accepted
 without a MAC, still only for throws the server issued. Each case is logged once per machine.
 Signing and checking follow the wire contract in runtime.command_auth (HMAC-SHA256 over the
-canonical JSON, user, wall-clock time, nonce, runtime epoch).
+canonical JSON, user, wall-clock time, nonce, runtime epoch, server).
+
+Every command names this server (``CommandAuth.server``, :func:`default_server_id`): a runtime
+obeys one server at a time (its lease, runtime.service) and tags each throw's result with the
+server that issued it. Two servers of one site (the same certificates and keys) are told apart
+by it, so each runs with its own: the environment's ``SLINGER_SERVER_ID``, else the host name
+and the site directory's path.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import os
+import re
+import socket
 import threading
 from pathlib import Path
 from typing import TypeVar
@@ -28,6 +38,27 @@ log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
 
 
+SERVER_ID_ENV = "SLINGER_SERVER_ID"
+
+
+def default_server_id(site_dir: Path | None) -> str:
+    """This server's identity in the commands it signs: ``SLINGER_SERVER_ID`` if set, else
+    ``<host name>-<8 hex digits of the SHA-256 of the site directory's absolute path>``
+    ([A-Za-z0-9_.:@-], at most 64 characters).
+
+    Raises:
+        ValueError: SLINGER_SERVER_ID is set but not 1-64 of those characters.
+    """
+    given = os.environ.get(SERVER_ID_ENV)
+    if given is not None:
+        if not re.fullmatch(r"[A-Za-z0-9_.:@-]{1,64}", given):
+            raise ValueError(f"{SERVER_ID_ENV} must be 1-64 of A-Z a-z 0-9 _ . : @ -, got {given!r}")
+        return given
+    where = str(Path(site_dir).resolve()) if site_dir is not None else ""
+    host = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname())[:55] or "server"
+    return f"{host}-{hashlib.sha256(where.encode()).hexdigest()[:8]}"
+
+
 class NoCommandKey(Unavailable, RuntimeError):
     """The server has no command key for a machine, so it cannot command it."""
 
@@ -37,10 +68,15 @@ class CommandSigner:
 
     Args:
         site_dir: the site directory (None: no keys; every signature attempt raises NoCommandKey).
+        server_id: this server's identity in its commands (default: :func:`default_server_id`).
+
+    Raises:
+        ValueError: a malformed SLINGER_SERVER_ID.
     """
 
-    def __init__(self, site_dir: Path | None):
+    def __init__(self, site_dir: Path | None, server_id: str | None = None):
         self.site_dir = Path(site_dir) if site_dir is not None else None
+        self.server_id = server_id or default_server_id(self.site_dir)
         self._keys: dict[str, bytes] = {}
         self._warned: set[str] = set()
         self._lock = threading.Lock()
@@ -87,7 +123,7 @@ class CommandSigner:
                 raise NoCommandKey(problem)
             self._warn_once(machine_id, f"{problem}: its commands go unsigned and its results unchecked")
             return msg
-        return sign(msg, key, user[:64], epoch, now_unix_s)
+        return sign(msg, key, user[:64], epoch, now_unix_s, server=self.server_id)
 
     def _warn_once(self, machine_id: str, text: str) -> None:
         with self._lock:

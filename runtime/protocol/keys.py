@@ -159,6 +159,11 @@ def runtime_state(machine_id: str) -> str:
     return runtime(machine_id, "runtime_state")
 
 
+def lease(machine_id: str) -> str:
+    """Queryable of the runtime: signed LeaseRequest -> LeaseAck (which server commands it)."""
+    return runtime(machine_id, "lease")
+
+
 def policy_offer(machine_id: str) -> str:
     return runtime(machine_id, "policy/offer")
 

@@ -142,6 +142,10 @@ class CommandAuth(Message):
         issued_unix_s: the signer's wall clock (Unix seconds) when it signed.
         nonce: 32 hex digits, fresh per message (replay protection).
         epoch: the runtime claim the command addresses (RuntimeInfo.epoch).
+        server: the signing server's identity (server.command_signer: SLINGER_SERVER_ID, else
+            its host name and site directory), or None (results; servers that name none, which
+            the runtime treats as one unnamed server). The runtime leases itself to one server
+            at a time (runtime.service: one writer per machine); it is covered by the MAC.
         mac: 64 hex digits, HMAC-SHA256 with the machine's command key over the canonical JSON
             of the whole message with ``mac`` = "" (command_auth.canonical_bytes).
     """
@@ -150,6 +154,7 @@ class CommandAuth(Message):
     issued_unix_s: float = Field(allow_inf_nan=False)
     nonce: Annotated[str, Field(pattern=r"^[0-9a-f]{32}$")]
     epoch: Annotated[int, Field(ge=0)]
+    server: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.:@-]{1,64}$")] | None = None
     mac: Annotated[str, Field(pattern=r"^([0-9a-f]{64})?$")] = ""
 
 
@@ -280,6 +285,10 @@ class RuntimeInfo(Message):
         clock_unix_s: the runtime host's wall clock (Unix s) when this was sent; the server
             measures the clock offset from it and signs commands in the runtime's time
             (freshness checks then hold under clock drift between hosts). None: not reported.
+        lease_holder: the server that commands this machine now (one writer per machine;
+            ``CommandAuth.server``, "" for an unnamed one), None while no lease is held.
+        undeliverable_results: throw results the outbox set aside after servers refused them
+            repeatedly (kept in the outbox's ``undeliverable/``; runtime.outbox).
     """
 
     machine_id: MachineId
@@ -299,6 +308,8 @@ class RuntimeInfo(Message):
     return_progress: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
     return_result: Annotated[str, Field(max_length=200)] | None = None
     clock_unix_s: float | None = Field(default=None, allow_inf_nan=False)
+    lease_holder: Annotated[str, Field(max_length=64)] | None = None
+    undeliverable_results: Annotated[int, Field(ge=0)] = 0
 
 
 class ThrowResult(Stamped):
@@ -310,6 +321,8 @@ class ThrowResult(Stamped):
         impact_m: (3,) first ground contact of the payload, or None.
         downrange_error_m / crossrange_error_m: see runtime.throw_geometry.impact_errors.
         telemetry_mcap_b64: the throw's 100 Hz telemetry as an MCAP file, base64-encoded.
+        server_id: the server that issued the throw (its ThrowRequest's ``auth.server``), or
+            None for an unnamed one: the result is that server's.
     """
 
     throw_id: str
@@ -326,12 +339,35 @@ class ThrowResult(Stamped):
     opening_stamp_s: float | None = None
     duration_s: float
     telemetry_mcap_b64: str | None = None
+    server_id: str | None = None
     auth: CommandAuth | None = None
 
 
 class ResultAck(Message):
     throw_id: str
     stored: bool
+
+
+class LeaseRequest(Message):
+    """Server -> runtime (query keys.lease): ask for this machine's lease (one writer per machine,
+    runtime.service), renewing it if held; ``takeover`` takes it from another server at once (a
+    deliberate, signed takeover). Must be signed; ``auth.server`` names the server."""
+
+    machine_id: MachineId
+    takeover: bool = False
+    auth: CommandAuth | None = None
+
+
+class LeaseAck(Message):
+    """Runtime -> server: ``granted`` True when the asking server holds the lease now, for
+    ``expires_in_s`` more seconds of silence; else False with the ``reason``; ``holder`` names the
+    server that holds it either way (None: nobody)."""
+
+    machine_id: MachineId
+    granted: bool
+    holder: str | None = None
+    expires_in_s: float | None = None
+    reason: str | None = None
 
 
 class PolicyOffer(Message):

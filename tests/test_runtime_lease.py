@@ -1,0 +1,202 @@
+"""One writer per machine, enforced by the machine (runtime.service's lease): a runtime obeys one
+server at a time, refuses another's commands with a reason that server can show, lets the lease
+expire only after its holder's silence (never during its throw) or go by a signed takeover, and
+tags each result with the server that issued the throw; the outbox delivers it to every server's
+queryable so the issuing one stores it (runtime.outbox.zenoh_deliverer)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+
+from runtime.command_auth import CommandVerifier, sign, verify_mac, write_key
+from runtime.executor import ExecutorConfig, ThrowExecutor
+from runtime.outbox import DeliveryRefused, Outbox, zenoh_deliverer
+from runtime.policy import PolicyRunner
+from runtime.protocol import keys
+from runtime.protocol.messages import (
+    AbortAck,
+    EstopReset,
+    EstopResetAck,
+    LeaseAck,
+    LeaseRequest,
+    ResultAck,
+    ReturnToReady,
+    ReturnToReadyAck,
+    RuntimeInfo,
+    ThrowAck,
+    ThrowRequest,
+    ThrowResult,
+    decode,
+    encode,
+)
+from runtime.service import LEASE_S, RuntimeService
+from runtime.throw_geometry import ARM_PLANE_OFFSET_M
+from runtime.zenoh_session import open_session
+from server.command_signer import SERVER_ID_ENV, CommandSigner, default_server_id
+from sim_twin.simulated_machine import SimulatedMachine
+from sim_twin.twin_machine import TwinMachine
+from tests.conftest import free_port, wait_for
+from tests.fixtures import write_test_policy
+
+KEY = bytes(range(32))
+EPOCH = 1_700_000_000_000
+TARGET = [8.0, ARM_PLANE_OFFSET_M, 0.0]
+
+
+@pytest.fixture(scope="module")
+def holding_path(tmp_path_factory) -> Path:
+    return write_test_policy(tmp_path_factory.mktemp("hold"), "2d", name="hold", release_after_bias=-2.0)
+
+
+class Machine:
+    """RuntimeService (fake clock) fed by a twin machine's states, 10 ms per tick."""
+
+    def __init__(self, policy: Path):
+        self.now = [100.0]
+        self.results: list[ThrowResult] = []
+        ex = ThrowExecutor({"2d": PolicyRunner.load(policy)}, config=ExecutorConfig(release_check_radius_m=None))
+        self.service = RuntimeService("m1", ex, lambda k, d: None, self.results.append,
+                                      verifier=CommandVerifier(KEY, EPOCH), clock=lambda: self.now[0])
+        self.twin = TwinMachine(SimulatedMachine(seed=1), "m1", clock=lambda: self.now[0])
+
+    def tick(self, n: int = 1) -> None:
+        for _ in range(n):
+            self.service.on_state(encode(self.twin.state()))
+            self.now[0] += 0.01
+
+    def wait(self, seconds: float) -> None:
+        """Time passes with the machine at rest (states keep coming)."""
+        self.tick(int(round(seconds / 0.01)))
+
+
+def _signed(msg, server: str | None) -> bytes:
+    return encode(sign(msg, KEY, "op", EPOCH, server=server))
+
+
+def _throw(m: Machine, throw_id: str, server: str | None) -> ThrowAck:
+    req = ThrowRequest(throw_id=throw_id, machine_id="m1", mode="2d", target_m=TARGET)
+    return decode(ThrowAck, m.service.handle_throw(_signed(req, server)))
+
+
+def _lease(m: Machine, server: str, takeover: bool = False) -> LeaseAck:
+    return decode(LeaseAck, m.service.handle_lease(_signed(LeaseRequest(machine_id="m1", takeover=takeover), server)))
+
+
+def test_one_server_commands_the_machine_another_is_refused_with_the_reason(holding_path):
+    m = Machine(holding_path)
+    m.tick()
+    assert _throw(m, "a1", "srv-a").accepted
+    assert m.service.info().lease_holder == "srv-a"
+    refused = _throw(m, "b1", "srv-b")
+    assert not refused.accepted and refused.reason.startswith("machine m1 is commanded by server srv-a: another server's commands are refused")
+    reset = decode(EstopResetAck, m.service.handle_estop_reset(_signed(EstopReset(machine_id="m1"), "srv-b")))
+    assert not reset.reset and "commanded by server srv-a" in reset.reason
+    back = decode(ReturnToReadyAck, m.service.handle_return_to_ready(_signed(ReturnToReady(machine_id="m1"), "srv-b")))
+    assert not back.accepted and "commanded by server srv-a" in back.reason
+    ask = _lease(m, "srv-b")
+    assert not ask.granted and ask.holder == "srv-a" and "commanded by server srv-a" in ask.reason
+    # an E-STOP is never refused: any server (or none) stops the machine
+    stop = decode(AbortAck, m.service.handle_abort(_signed_abort("srv-b")))
+    assert stop.aborted_throw_id == "a1" and m.service.info().estop_latched
+    assert m.results[-1].server_id == "srv-a" and verify_mac(m.results[-1], KEY) is None  # the result is a's
+    assert decode(EstopResetAck, m.service.handle_estop_reset(_signed(EstopReset(machine_id="m1"), "srv-a"))).reset
+
+
+def _signed_abort(server: str) -> bytes:
+    from runtime.protocol.messages import AbortRequest
+
+    return _signed(AbortRequest(machine_id="m1", reason="b's stop"), server)
+
+
+def test_the_lease_expires_after_the_holders_silence_never_during_its_throw(holding_path):
+    m = Machine(holding_path)
+    m.tick()
+    assert _throw(m, "a1", "srv-a").accepted
+    m.wait(LEASE_S + 2)  # a's throw still runs (a holding policy, no release yet... it fails at 10 s)
+    assert m.results and m.results[-1].throw_id == "a1"  # it ended (no release within 10 s)
+    m.service.handle_abort(b"")  # stop the arm, then reset by a (renews a's lease)
+    assert decode(EstopResetAck, m.service.handle_estop_reset(_signed(EstopReset(machine_id="m1"), "srv-a"))).reset
+    m.wait(LEASE_S - 1)
+    assert not _lease(m, "srv-b").granted  # a spoke 29 s ago
+    m.wait(2)
+    granted = _lease(m, "srv-b")  # a silent for 31 s: b may command
+    assert granted.granted and granted.holder == "srv-b" and granted.expires_in_s == pytest.approx(LEASE_S)
+    assert m.service.info().lease_holder == "srv-b"
+    assert "commanded by server srv-b" in _throw(m, "a2", "srv-a").reason
+
+
+def test_a_deliberate_signed_takeover_and_never_during_a_throw(holding_path):
+    m = Machine(holding_path)
+    m.tick()
+    assert _throw(m, "a1", "srv-a").accepted
+    m.tick(20)
+    taken = _lease(m, "srv-b", takeover=True)
+    assert not taken.granted and taken.reason == "takeover refused: throw a1 of server srv-a runs"
+    m.service.handle_abort(b"")
+    m.service.handle_estop_reset(_signed(EstopReset(machine_id="m1"), "srv-a"))
+    unsigned = decode(LeaseAck, m.service.handle_lease(encode(LeaseRequest(machine_id="m1", takeover=True))))
+    assert not unsigned.granted and unsigned.reason == "unsigned" and unsigned.holder == "srv-a"
+    taken = _lease(m, "srv-b", takeover=True)
+    assert taken.granted and taken.holder == "srv-b"
+    published = m.service.info()
+    assert isinstance(published, RuntimeInfo) and published.lease_holder == "srv-b"
+
+
+def test_the_server_names_itself_in_what_it_signs(tmp_path, monkeypatch):
+    monkeypatch.delenv(SERVER_ID_ENV, raising=False)
+    for site in (tmp_path / "a", tmp_path / "b"):
+        write_key(site / "machines" / "m1" / "command.key", KEY)
+    a, b = CommandSigner(tmp_path / "a"), CommandSigner(tmp_path / "b")
+    assert a.server_id != b.server_id and a.server_id == default_server_id(tmp_path / "a")  # stable per site copy
+    signed = a.sign(ThrowRequest(throw_id="t", machine_id="m1", mode="2d", target_m=TARGET), "m1", "op", EPOCH)
+    assert signed.auth.server == a.server_id and verify_mac(signed, KEY) is None
+    forged = signed.model_copy(update={"auth": signed.auth.model_copy(update={"server": "other"})})
+    assert verify_mac(forged, KEY) == "bad signature"  # the name is covered by the MAC
+    monkeypatch.setenv(SERVER_ID_ENV, "console-2")
+    assert CommandSigner(tmp_path / "a").server_id == "console-2"
+    monkeypatch.setenv(SERVER_ID_ENV, "bad id!")
+    with pytest.raises(ValueError, match=SERVER_ID_ENV):
+        CommandSigner(tmp_path / "a")
+
+
+def test_results_reach_the_issuing_server_beside_a_refusing_one(tmp_path):
+    """Two servers answer keys.THROW_RESULT (as two servers of one site do): the one that did not
+    issue the throws refuses them. Every result is stored by the issuing one, none is retried on."""
+    ends = [f"tcp/127.0.0.1:{free_port()}" for _ in range(2)]
+    stored: list[str] = []
+
+    def issuer(query):
+        res = decode(ThrowResult, query.payload.to_bytes())
+        assert res.server_id == "srv-a"
+        stored.append(res.throw_id)
+        query.reply(keys.THROW_RESULT, encode(ResultAck(throw_id=res.throw_id, stored=True)))
+
+    def stranger(query):
+        res = decode(ThrowResult, query.payload.to_bytes())
+        query.reply_err(f"result of throw {res.throw_id!r} refused: not a throw this server issued".encode())
+
+    with open_session(listen=[ends[0]]) as a, open_session(listen=[ends[1]]) as b, open_session(connect=ends) as rt:
+        queryables = [b.declare_queryable(keys.THROW_RESULT, stranger, complete=True),
+                      a.declare_queryable(keys.THROW_RESULT, issuer, complete=True)]
+        probe = ThrowResult(machine_id="m1", stamp_s=0.5, throw_id="probe", mode="2d", status="failed", target_m=TARGET,
+                            duration_s=1.0, server_id="srv-a")
+        deliver = zenoh_deliverer(rt, timeout_s=2.0)
+
+        def reached() -> bool:
+            try:
+                return deliver(encode(probe)) is not None
+            except DeliveryRefused:
+                return False  # only the stranger's link is up yet
+
+        wait_for(reached, 20, "the issuing server reachable")
+        box = Outbox(tmp_path / "outbox", deliver, reserve_bytes=0)
+        for i in range(8):
+            box.put(probe.model_copy(update={"throw_id": f"t{i}", "stamp_s": 1.0 + i}))
+        assert box.deliver_pending() == 8 and box.pending() == [] and box.undeliverable == 0
+        assert set(stored) >= {f"t{i}" for i in range(8)}
+        for q in queryables:
+            q.undeclare()
+        time.sleep(0.2)
