@@ -16,7 +16,9 @@ python -m pip install -q --upgrade pip
 # --no-compile: no bytecode for every file of every package at install (about 45 s on 2 cores);
 # Python compiles the modules the tests import on first use.
 python -m pip install -q --no-compile torch==2.13.0
-python -m pip install -q --no-compile -e ".[train,test,lint]"
+# the ros2 extra: ROS 2 (Kilted) as PyPI wheels, rclpy on Fast DDS, for the ROS 2 bridge's system
+# tests (tests/test_ros2_bridge.py); ros-wheels-bootstrapper sets their library path itself
+python -m pip install -q --no-compile -e ".[train,test,lint,ros2]"
 
 if [ ! -x /usr/bin/chromium ]; then
   export DEBIAN_FRONTEND=noninteractive

@@ -2,7 +2,8 @@
 when its path is taken: the preview's ``scipy`` once failed every preview of a plain
 ``pip install -e .``), comes from a distribution the base install declares, transitively;
 only the training extra's own packages (torch, jax, rsl_rl, ...) may be imported beyond it,
-and only by the training and fine-tuning paths that need the extra anyway.
+and only by the training and fine-tuning paths that need the extra anyway; likewise the ROS 2
+extra's (rclpy) by the ROS 2 nodes (runtime/ros2/node.py).
 
 The check does not need the training extra installed: a module that no installed distribution
 provides is looked up in :data:`TRAIN_MODULES` (the training extra's import names), and its
@@ -52,7 +53,8 @@ def _train_direct() -> set[str]:
 
 def test_every_imported_distribution_is_declared():
     base = closure(declared("root"))
-    train_direct = _train_direct() | {_norm(Requirement(r).name) for r in declared("root", "drake")}  # the Drake engine's extra too
+    train_direct = (_train_direct() | {_norm(Requirement(r).name) for r in declared("root", "drake")}  # the Drake engine's extra too
+                    | {_norm(Requirement(r).name) for r in declared("root", "ros2")})  # and the ROS 2 extra's (rclpy)
     owners = md.packages_distributions()
     missing: dict[str, set[str]] = {}
     for pkg in ("runtime", "server", "sim_twin"):

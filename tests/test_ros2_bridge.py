@@ -392,7 +392,7 @@ def _child_pid(data_dir: Path, word: str) -> int:
 
 def _previewed(http, target=TARGET_2D):
     def post():
-        p = http.post("/api/previews", json={"machine_id": "m1", "mode": "2d", "target": target, "rollouts": 1})
+        p = http.post("/api/previews", json={"machine_id": "m1", "mode": "2d", "target": target, "rollouts": 1}, timeout=90)
         assert p.status_code == 200 and p.json()["status"] == "ok", p.text
         return http.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": target, "preview_id": p.json()["id"]})
     return post
@@ -429,10 +429,11 @@ def test_slinger_up_ros2_throws_through_rclpy_nodes_and_stops_for_strangers_and_
         assert row["status"] == "landed" and row["impact"] is not None and np.hypot(*row["impact"][:2]) > 2.0, row
         with echo.lock:
             msgs = [msg for _t, msg in joint_states]
+            driven = [t for t, v in valves if any(v.data)]  # while the runtime drives the valves the machine runs at 100 Hz
+            swing = [rt.stamp_s(msg.header.stamp) for t, msg in joint_states if driven[0] + 0.05 <= t <= driven[-1]]
         assert list(msgs[-1].name) == ["cabin_turn", "boom_joint", "stick_joint", "telescope_joint"]
-        moving = [rt.stamp_s(msg.header.stamp) for msg in msgs if max(abs(v) for v in msg.velocity) > 0.05]
-        assert len(moving) > 50
-        assert np.median(np.diff(moving)) == pytest.approx(0.01, abs=1e-3)  # the machine's 100 Hz while it moves
+        assert len(swing) > 20, swing
+        assert np.median(np.diff(swing)) == pytest.approx(0.01, abs=1e-3)  # the machine's 100 Hz (its stamps) during the throw
         assert -77.0 < msgs[-1].position[1] < 26.0 and 0.0 <= msgs[-1].position[3] <= 1800.0  # degrees, millimetres
         with echo.lock:
             assert max(abs(x) for _t, v in valves for x in v.data) > 1.0  # per cent
