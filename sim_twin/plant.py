@@ -29,7 +29,7 @@ What only the simulated machine does stays here, behind the machine interface:
   VALVE_WATCHDOG_S) it counts a trip (MachineState.watchdog_trips: the runtime fails the running
   throw) and disarms: valve commands are held neutral until a neutral one arrives (the runtime
   sends neutral once its throw has ended). A non-neutral command whose stamp (the stamp of the
-  machine state it answers, this plant's monotonic clock) is older than VALVE_WATCHDOG_S was
+  machine state it answers, this plant's monotonic clock) is older than STALE_COMMAND_S was
   queued somewhere (a stalled runtime) and is dropped.
 * real time: when a period starts more than 100 ms late (sim_twin.realtime.BEHIND_FAULT_S), the
   plant publishes ``machine_fault`` "behind real time by N ms" and holds the valves neutral
@@ -76,6 +76,11 @@ log = logging.getLogger(__name__)
 
 VALVE_WATCHDOG_S = 0.1
 """Plant-side watchdog: valves go neutral when no ValveCommand arrived for this long (s)."""
+
+STALE_COMMAND_S = 0.2
+"""A non-neutral ValveCommand answering a machine state older than this (s) is dropped: it was
+queued at a stalled runtime. CHOSEN 0.2 s: the runtime's own bound for stale states and its link
+timeout; a healthy round trip (state out, command back) takes milliseconds."""
 
 EXIT_ALREADY_CLAIMED = 3
 
@@ -126,7 +131,7 @@ class PlantInbox:
         with self.lock:
             if not self.fence.admit(msg):
                 return
-            if u.any() and now - msg.stamp_s > VALVE_WATCHDOG_S:
+            if u.any() and now - msg.stamp_s > STALE_COMMAND_S:
                 self.stale_commands += 1
                 if self.stale_commands == 1 or self.armed:
                     log.warning("dropping a valve command %.0f ms old (queued at a stalled runtime)", (now - msg.stamp_s) * 1e3)

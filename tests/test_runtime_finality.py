@@ -38,7 +38,7 @@ from runtime.protocol.messages import (
 )
 from runtime.service import STALLED, RuntimeService
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
-from sim_twin.plant import VALVE_WATCHDOG_S, PlantInbox, plant_tick
+from sim_twin.plant import STALE_COMMAND_S, VALVE_WATCHDOG_S, PlantInbox, plant_tick
 from sim_twin.simulated_machine import SimulatedMachine
 from sim_twin.twin_machine import TwinMachine
 from tests.conftest import TEST_POLICY_CHECK, free_port, wait_for
@@ -251,7 +251,7 @@ def test_plant_valve_watchdog_is_final_and_stale_commands_are_dropped():
     assert inbox.armed
     inbox.on_valve(_cmd([0.0, 0.0, 0.0, 0.5], 50.2))
     assert inbox.valve_u[3] == 0.5
-    inbox.on_valve(_cmd([0.0, 0.0, 0.0, 1.0], 50.2 - VALVE_WATCHDOG_S - 0.05))  # answers a state 150 ms old
+    inbox.on_valve(_cmd([0.0, 0.0, 0.0, 1.0], 50.2 - STALE_COMMAND_S - 0.05))  # answers a state 250 ms old
     assert inbox.valve_u[3] == 0.5 and inbox.stale_commands == 1
     inbox.on_valve(_cmd([0.0] * 4, 40.0))  # an old neutral command is still obeyed (stopping is safe)
     assert not inbox.valve_u.any()
