@@ -208,29 +208,34 @@ def test_a_failed_throw_is_an_alarm_in_view_at_both_sizes(up, ann):
     press(ann, "#throw")
     assert stall.wait(120), "the throw never started"
     ann.locator("#result", has_text=re.compile("FAILED|ABORTED|LOST")).wait_for()
+    ann.locator("#alarm-banner").wait_for()  # kept on the server (server.alarms), named by its cause
+    press(ann, "#alarm-toggle")
     ann.locator("#alarms li").first.wait_for()
     text = ann.inner_text("#alarms")
-    assert re.search("computer|link|machine", text) and re.search("preview|Check|Reduce|Look", text), text
+    assert re.search("computer|runtime|link|machine", text) and re.search("preview|Check|Reduce|Look", text), text
     assert "FAILED" in ann.inner_text("#view-result") or "ABORTED" in ann.inner_text("#view-result")
     assert "watch it live" not in ann.inner_text("#status")
     for w, h in [(1440, 900), (390, 844)]:
         ann.set_viewport_size({"width": w, "height": h})
         ann.evaluate("scrollTo(0, 0); document.getElementById('panel').scrollTop = 0")
         ann.wait_for_timeout(300)
-        for sel in ("#alarms li", "#result", "#view-result", "#preview", "#throw", "#estop"):
+        for sel in ("#alarm-banner", "#result", "#view-result", "#preview", "#throw", "#estop"):
             assert _in_viewport(ann, sel), f"{sel} not in view at {w}x{h}"
         if SHOTS:
             ann.screenshot(path=f"{SHOTS}/alarm-failed-throw-{w}x{h}.png")
     ann.set_viewport_size({"width": 1440, "height": 900})
     # the alarm follows to the other pages until acknowledged
     ann.goto(f"{up.base_url}/console/history.html")
+    ann.locator("#alarm-banner").wait_for()
+    press(ann, "#alarm-toggle")
     ann.locator("#alarms li").first.wait_for()
-    n = ann.locator("#alarms li").count()
+    n = ann.locator("#alarms li .alarm-ack").count()
     press(ann, "#alarms li .alarm-ack")
-    wait_for(lambda: ann.locator("#alarms li").count() == n - 1, 10, "the alarm acknowledged")
+    wait_for(lambda: ann.locator("#alarms li .alarm-ack").count() == n - 1, 10, "the alarm acknowledged")
     ann.goto(f"{up.base_url}/console/index.html")
     ann.locator("#machine-state", has_text="m1").wait_for()
-    assert ann.locator("#alarms li").count() == n - 1
+    press(ann, "#alarm-toggle")
+    wait_for(lambda: ann.locator("#alarms li .alarm-ack").count() == n - 1, 10, "the acknowledgement kept on the server")
 
 
 def test_a_touch_tap_in_the_3d_view_sets_the_target_on_a_phone(up, module_browser):

@@ -203,16 +203,17 @@ def test_a_drift_alarm_shows_on_every_open_console_until_an_operator_acknowledge
     (admin_page, _), (viewer_page, _) = pages
     alert = raise_drift_alert(app.state.drift, "m1")
     for page, _ in pages:
-        page.locator("#alarms li.alarm", has_text="m1: accuracy drift").wait_for(timeout=20_000)
+        page.locator("#alarm-top", has_text="m1: accuracy drift").wait_for(timeout=20_000)
+        page.click("#alarm-toggle")
         assert alert["text"] in page.locator("#alarms li.alarm").first.inner_text()
     viewer_page.click("#alarms li.alarm button.alarm-ack")
     viewer_page.locator("#strip-msg", has_text="needs the operator role").wait_for(timeout=20_000)
     assert viewer_page.locator("#alarms li.alarm").count() == 1 and app.state.drift.alert("m1")["status"] == "open"
     viewer_page.reload()  # a console opened later gets the open alert too
-    viewer_page.locator("#alarms li.alarm", has_text="m1: accuracy drift").wait_for(timeout=20_000)
+    viewer_page.locator("#alarm-top", has_text="m1: accuracy drift").wait_for(timeout=20_000)
     admin_page.click("#alarms li.alarm button.alarm-ack")
     for page, _ in pages:
-        page.locator("#alarms").wait_for(state="hidden", timeout=20_000)
+        page.locator("#alarm-banner").wait_for(state="hidden", timeout=20_000)
     admin_page.locator("#strip-msg", has_text="Drift alert of m1 acknowledged.").wait_for(timeout=20_000)
     assert app.state.drift.alert("m1")["acknowledged_by"] == ADMIN[0]
     admin_page.goto(f"{base}/console/admin.html")  # the acknowledgement is in the audit log
@@ -223,7 +224,45 @@ def test_a_drift_alarm_shows_on_every_open_console_until_an_operator_acknowledge
         page.context.close()
 
 
-PAGES = ["history.html?throw=t29", "accuracy.html", "policies.html", "fleet.html", "admin.html", "diagnosis.html"]
+def test_alarms_on_a_phone_stay_within_a_sixth_and_hide_no_control(live, browser):  # noqa: F811
+    """Four alarms on a 390x844 phone: the banner (its list opened too) takes at most a sixth of
+    the viewport and covers none of the console's controls; acknowledge-all acknowledges them all
+    on the server (who, when), the Alarms page lists them with who acknowledged."""
+    from server.fleet_events import RuntimeOffline
+
+    base, app = live
+    _seed(app, n=3)
+    for mid in ("m1", "m2", "m3", "m4"):
+        app.state.alarms.on_event(RuntimeOffline(mid))
+    ctx = browser.new_context(viewport={"width": 390, "height": 844}, has_touch=True, is_mobile=True)
+    page = ctx.new_page()
+    log_in(page, base, ADMIN, "/console/index.html")
+    page.locator("#alarm-count", has_text="ALARMS 4").wait_for(timeout=30_000)
+    problems = []
+    for opened in (False, True):
+        if opened:
+            page.click("#alarm-toggle")
+            page.locator("#alarms li").nth(3).wait_for(state="attached")
+        h = page.evaluate("document.getElementById('alarm-banner').getBoundingClientRect().height")
+        if h > 844 / 6:
+            problems.append(f"banner {h:.0f} px tall (list {'open' if opened else 'closed'})")
+        for sel in ("#preview", "#throw", "#target-x", "#target-set", "#estop"):
+            hidden = page.evaluate("""(sel) => { const e = document.querySelector(sel); e.scrollIntoView({ block: 'center' });
+                const r = e.getBoundingClientRect(); const hit = document.elementFromPoint(r.left + r.width / 2, r.top + r.height / 2);
+                return !(hit === e || e.contains(hit)); }""", sel)
+            if hidden:
+                problems.append(f"{sel} covered (list {'open' if opened else 'closed'})")
+    assert problems == [], problems
+    page.click("#alarm-ack-all")
+    page.locator("#strip-msg", has_text="4 alarms acknowledged").wait_for(timeout=20_000)
+    assert all(a["acked_by"] == ADMIN[0] for a in app.state.alarms.active())
+    page.goto(f"{base}/console/alarms.html")
+    page.locator("#alarm-table tbody tr", has_text=f"by {ADMIN[0]}").nth(3).wait_for(timeout=20_000)
+    ctx.close()
+
+
+PAGES = ["history.html?throw=t29", "accuracy.html", "policies.html", "fleet.html", "admin.html", "diagnosis.html",
+         "alarms.html"]
 
 
 def test_every_page_is_accessible_and_fits_three_sizes(live, browser):  # noqa: F811

@@ -139,9 +139,18 @@ class ThrowPlots {
       playButton.textContent = "Pause";
       if (Number(input.value) >= Number(input.max)) input.value = 0;
       const t = this.data.t_s;
-      let now = t[Number(input.value)] || t[0];
+      // recorded time follows the wall clock (performance.now) at the chosen speed, not a count of
+      // ticks: a tick that comes late (a busy page) moves the cursor further, so 1x plays in real time
+      const start = t[Number(input.value)] || t[0];
+      const wallStart = performance.now();
+      let shownSpeed = Number(speed.value);
+      let base = start, baseWall = wallStart;
       this.playing = setInterval(() => {
-        now += (TICK_MS / 1000) * Number(speed.value); // recorded seconds per tick at the chosen speed
+        const wall = performance.now();
+        if (Number(speed.value) !== shownSpeed) { // a new speed applies from now on
+          base += ((wall - baseWall) / 1000) * shownSpeed; baseWall = wall; shownSpeed = Number(speed.value);
+        }
+        const now = base + ((wall - baseWall) / 1000) * shownSpeed;
         let i = Number(input.value);
         while (i < t.length - 1 && t[i + 1] <= now) i += 1;
         if (i >= Number(input.max)) { input.value = input.max; this.scrub(Number(input.max)); clearInterval(this.playing); this.playing = null; playButton.textContent = "Play"; return; }
