@@ -15,10 +15,10 @@ joint_state_broadcaster), IMU and odometry best effort (sensor data), the impact
 
 It takes valve commands (``std_msgs/Float64MultiArray``; QoS VALVE_QOS: a 0.1 s deadline and a
 0.5 s liveliness lease requested, so a silent or dead commander sets the valves neutral at once)
-and gripper commands (``std_msgs/Bool``) from one publisher only: a message from a publisher that
-is not the topic's only one (GID checked against the ROS graph) is dropped, and while a second
-publisher is on the graph, and FOREIGN_HOLD_S after, every valve command is refused, the valves
-are held neutral and the fault topic says why. Units and names are the mapping's inverse.
+and gripper commands (``std_msgs/Bool``) from the bridge alone: a message whose publisher (GID
+checked against the ROS graph) is not the topic's only publisher, or not the mapping's bridge
+node, is dropped; while a second publisher is on the graph, and FOREIGN_HOLD_S after, every
+command is refused, the valves are held neutral and the fault topic says why. Units and names are the mapping's inverse.
 ``sim/reset`` stays on Slinger's Zenoh key (a tool of the simulated machine only); the machine's
 liveliness token is the bridge's.
 """
@@ -102,8 +102,11 @@ class RosPlantPorts:
         self._impact = self.node.publisher(t.impact, rt.POINT_STAMPED, EVENT_QOS) if t.impact else None
         self._lock = threading.Lock()
         self._command_gids: dict[str, set[bytes]] = {t.valve_command: set(), t.gripper_command: set()}
+        """Per command topic: the GIDs of its publishers on the graph, when it has one only and
+        that one is the bridge's node (the mapping's node_name in its namespace); else empty."""
         self.command_fault: str | None = None
         self._command_fault_s = -np.inf
+        self.refused = 0  # commands dropped: not from the bridge's node alone
         self.node.subscribe(t.valve_command, rt.FLOAT64_MULTI_ARRAY, self._on_valves, VALVE_QOS,
                             on_deadline=lambda _e: self._commander_silent("valve commands missed their deadline"),
                             on_liveliness=self._on_liveliness)
@@ -113,11 +116,13 @@ class RosPlantPorts:
     def _wall(self, stamp_s: float) -> float:
         return time.time() - (time.monotonic() - stamp_s)
 
-    def _check_commanders(self) -> None:
+    def check_commanders(self) -> None:
         """Refresh the command topics' publisher GIDs from the ROS graph; a second publisher
         starts (or prolongs) the fault, which holds the valves neutral."""
         infos = {topic: self.node.publishers_of(topic) for topic in self._command_gids}
-        gids = {topic: {gid_of(i) for i in found} for topic, found in infos.items()}
+        bridge = (self.config.node_name, "/" + self.config.namespace.strip("/"))
+        gids = {topic: {gid_of(i) for i in found if (i.node_name, i.node_namespace) == bridge} if len(found) == 1 else set()
+                for topic, found in infos.items()}
         fault = next((f for f in (publishers_fault(topic, found) for topic, found in infos.items()) if f), None)
         now = time.monotonic()
         with self._lock:
@@ -146,26 +151,28 @@ class RosPlantPorts:
             self._commander_silent("valve commander lost liveliness")
 
     def _admit(self, topic: str, info) -> bool:
-        """A command from the topic's only publisher, with no command fault standing."""
+        """A command from the topic's only publisher, the bridge's node, with no command fault
+        standing; a command from any other publisher is dropped (and logged)."""
         gid = gid_of(info)
         with self._lock:
             known = gid in self._command_gids[topic]
-        if not known:  # a publisher the last graph check did not see: look again now
-            self._check_commanders()
+        if not known:  # a publisher the last graph check did not admit: look again now
+            self.check_commanders()
         with self._lock:
-            gids, fault = self._command_gids[topic], self.command_fault
-        if fault is None and gids != {gid}:
-            fault = f"a command on {topic} from a publisher that is not its only one"
-            with self._lock:
-                self.command_fault, self._command_fault_s = fault, time.monotonic()
-            log.error("%s: valves neutral, commands refused", fault)
+            admitted, fault = gid in self._command_gids[topic], self.command_fault
         if fault is not None:
             self._neutral()
+            return False
+        if not admitted:
+            self.refused += 1
+            if self.refused in (1, 10, 100) or self.refused % 1000 == 0:
+                log.error("dropped %d commands on %s from a publisher that is not the bridge node %r alone", self.refused, topic,
+                          self.config.node_name)
             return False
         return True
 
     def _put_state(self, data: bytes) -> None:
-        self._check_commanders()
+        self.check_commanders()
         s = decode(MachineState, data)
         t = self._wall(s.stamp_s)
         both = not (self.config.topics.passive_joint_states or self.config.topics.imu)

@@ -276,7 +276,13 @@ def test_bridge_node_on_fast_dds_reads_the_machine_and_stops_it_for_a_stranger(r
         sub = session.declare_subscriber(keys.state("m1"), lambda s: states.append(decode(MachineState, s.payload.to_bytes())))
         js = machine.node.create_publisher(message_type(rt.JOINT_STATE), "/joint_states", 10)
         grip = machine.node.create_publisher(Bool, "/gripper/state", 10)
-        valves = machine.echo("/valve_commands", rt.FLOAT64_MULTI_ARRAY)
+        from rclpy.duration import Duration
+        from rclpy.qos import LivelinessPolicy, QoSProfile, ReliabilityPolicy
+
+        # a driver that asks the valve commands' deadline and liveliness matches the bridge's offer
+        valves = machine.echo("/valve_commands", rt.FLOAT64_MULTI_ARRAY, QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE, deadline=Duration(seconds=0.1), liveliness=LivelinessPolicy.AUTOMATIC,
+            liveliness_lease_duration=Duration(seconds=0.5)))
         stop, th, code = _bridge_thread(endpoint)
         try:
             wait_for(lambda: any(n == "slinger_bridge" for n, _ns in machine.node.get_node_names_and_namespaces()), 20, "the bridge node")
@@ -323,6 +329,51 @@ def test_bridge_node_on_fast_dds_reads_the_machine_and_stops_it_for_a_stranger(r
             th.join(10)
             sub.undeclare()
     assert code == [0]
+
+
+@pytest.mark.processes
+def test_simulated_driver_takes_commands_from_the_bridge_alone(ros_env):
+    """The simulated machine's ROS 2 side (sim_twin.ros2_plant) as a driver should be: valve
+    commands only from the bridge's node as the topic's one publisher (GIDs against the graph),
+    the valve QoS' deadline watched, a second publisher a fault with neutral valves."""
+    from rclpy.duration import Duration
+    from rclpy.qos import LivelinessPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Float64MultiArray
+
+    from sim_twin.plant import PlantInbox
+    from sim_twin.ros2_plant import RosPlantPorts
+    from tests.ros2_nodes import PlainNode
+
+    valve_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, deadline=Duration(seconds=0.1),
+                           liveliness=LivelinessPolicy.AUTOMATIC, liveliness_lease_duration=Duration(seconds=0.5))
+    inbox = PlantInbox("m1")
+    ports = RosPlantPorts(BridgeConfig(), "m1", inbox)
+    try:
+        with PlainNode("stranger", ros_env) as stranger, PlainNode("slinger_bridge", ros_env) as bridge:
+            pub = stranger.node.create_publisher(Float64MultiArray, "/valve_commands", valve_qos)
+            wait_for(lambda: pub.get_subscription_count() == 1, 20, "the driver's subscription")
+            for _ in range(20):  # alone on the topic, but not the bridge's node: dropped
+                pub.publish(Float64MultiArray(data=[0.5, 0.0, 0.0, 0.0]))
+                time.sleep(0.01)
+            wait_for(lambda: ports.refused >= 5, 10, "dropped stranger commands")
+            assert not inbox.valve_u.any() and ports.command_fault is None
+            stranger.node.destroy_publisher(pub)
+            wait_for(lambda: (ports.check_commanders(), not ports.node.publishers_of("/valve_commands"))[1], 10, "the stranger gone")
+
+            ours = bridge.node.create_publisher(Float64MultiArray, "/valve_commands", valve_qos)
+            wait_for(lambda: (ours.publish(Float64MultiArray(data=[0.25, 0.0, 0.0, 0.0])), inbox.valve_u[0] == 0.25)[1], 20,
+                     "the bridge node's command taken")
+            time.sleep(0.4)  # the bridge falls silent: the requested deadline is missed, valves neutral at once
+            assert not np.isfinite(inbox.valve_rx_s) and not inbox.valve_u.any()
+
+            pub = stranger.node.create_publisher(Float64MultiArray, "/valve_commands", valve_qos)  # a second publisher: a fault
+            wait_for(lambda: (ports.check_commanders(), ports.command_fault)[1], 20, "the second publisher as a fault")
+            assert "2 publishers of /valve_commands" in ports.command_fault
+            ours.publish(Float64MultiArray(data=[0.25, 0.0, 0.0, 0.0]))
+            time.sleep(0.3)
+            assert not inbox.valve_u.any()  # even the bridge's commands are refused while the fault stands
+    finally:
+        ports.undeclare()
 
 
 @pytest.mark.processes
