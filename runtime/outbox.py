@@ -15,10 +15,11 @@ reserve is made again then). A landed throw is therefore delivered, never lost, 
 disk; only a runtime that dies while the disk is full and the server away loses what it held in
 memory (logged as an error when the result went to memory).
 
-Retries are bounded: a round that no server answers backs off (``retry_interval_s`` doubling up
+Retries are bounded: a round that no server answers, or whose server could not store the result
+now (``stored=False``: its database or disk failing), backs off (``retry_interval_s`` doubling up
 to MAX_BACKOFF_S, then once per MAX_BACKOFF_S: the outbox's purpose is to outlast a server that is
-away); a result that servers answer but refuse (an error reply such as "not a throw this server
-issued", or ``stored=False``) is tried MAX_REFUSALS times with the same back-off, then moved to
+away or faulted); a result that servers only refuse (error replies such as "not a throw this
+server issued" or a bad MAC) is tried MAX_REFUSALS times with the same back-off, then moved to
 ``undeliverable/`` in the outbox directory, kept there and counted (:attr:`Outbox.undeliverable`,
 RuntimeInfo.undeliverable_results), never retried without end; moving a file back into the
 outbox directory queues it again.
@@ -53,8 +54,10 @@ RESERVE_BYTES = 8 * 1024 * 1024
 them; far below any disk the runtime runs from."""
 MAX_BACKOFF_S = 60.0
 """Longest pause between delivery tries of one result, s."""
-MAX_REFUSALS = 5
-"""Tries of a result that servers answer and refuse before it is moved to ``undeliverable/``."""
+MAX_REFUSALS = 10
+"""Tries of a result that servers only refuse before it is moved to ``undeliverable/``. CHOSEN 10:
+with the back-off some 6 minutes, so the issuing server's restart beside a refusing second
+server does not set its results aside."""
 UNDELIVERABLE = "undeliverable"
 
 
@@ -264,7 +267,7 @@ class Outbox:
                     log.info("throw %s delivered", throw_id)
                     continue
                 if ack is not None:
-                    refused = f"ack {ack}"
+                    log.warning("server did not store throw %s (ack %s); will retry", throw_id, ack)
                 self._retry_later(name, path, throw_id, refused)
         return delivered
 

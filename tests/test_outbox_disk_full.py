@@ -36,6 +36,8 @@ class Server:
         result = decode(ThrowResult, payload)
         if self.mode == "away":
             return None
+        if self.mode == "faulted":  # answers, but its database cannot store it now
+            return ResultAck(throw_id=result.throw_id, stored=False)
         if self.mode == "refusing":
             raise DeliveryRefused(f"result of throw {result.throw_id!r} refused: not a throw this server issued")
         self.stored[result.throw_id] = result
@@ -95,6 +97,15 @@ def test_refused_results_are_retried_with_backoff_then_kept_as_undeliverable(tmp
         now[0] = 1000.0 + step * 0.5
         box2.deliver_pending(due_only=True)
     assert 20 < away.tries < 30 and len(box2.pending()) == 1
+    # a server that answers but cannot store now (stored=False: its disk or database failing) is
+    # waited for the same way: the result is not set aside
+    faulted = Server("faulted")
+    box3 = Outbox(tmp_path / "c", faulted, retry_interval_s=2.0, reserve_bytes=0, max_refusals=3, clock=lambda: now[0])
+    box3.put(_landed("t11", 11.0))
+    for step in range(2400):
+        now[0] = 3000.0 + step * 0.5
+        box3.deliver_pending(due_only=True)
+    assert faulted.tries > 3 and len(box3.pending()) == 1 and box3.undeliverable == 0
 
 
 @pytest.fixture
