@@ -283,7 +283,7 @@ def _body(rel: str, report: dict) -> list[str]:
 
 
 TOPICS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("Deployed policies on the site matrix", ("site_matrix_",)),
+    ("Accuracy of the deployed policies", ("site_matrix_", "eval_")),
     ("Other policies against the deployed ones", ("deploy_comparison_", "site_coverage_", "friction_release_", "spread_sources_")),
     ("Adaptation to a site", ("adaptation",)),
     ("Diagnosis", ("diagnosis_",)),
