@@ -204,4 +204,4 @@ def test_a_modes_site_matrices_on_several_seeds_are_one_section_seed_by_seed(tmp
     # the seed-0 report comes first, with the plot beside it linked; the topics order the page
     assert text.index("reports/site_matrix_2d.json") < text.index("reports/site_matrix_2d_seed1.json")
     assert "[`site_matrix_2d.png`](../reports/site_matrix_2d.png)" in text
-    assert text.index("## Deployed policies on the site matrix") < text.index("## Fleet and server")
+    assert text.index("## Accuracy of the deployed policies") < text.index("## Fleet and server")
