@@ -23,6 +23,8 @@ from runtime.protocol.messages import (
     AbortRequest,
     EstopReset,
     EstopResetAck,
+    LeaseAck,
+    LeaseRequest,
     PolicyOffer,
     PolicyOfferAck,
     ReturnToReady,
@@ -197,6 +199,16 @@ class FleetCommands:
         ack, _ = self._signed_query(key_of, command, command.machine_id, user, ack_type)
         self.forget_info(command.machine_id)
         return ack
+
+    def lease(self, machine_id: str, user: str, takeover: bool = False) -> LeaseAck:
+        """Ask the runtime for its lease (one writer per machine: runtime.service), renewing it
+        when this server holds it; ``takeover`` takes it from another server at once (a
+        deliberate takeover, signed for ``user``; the runtime refuses it while a throw runs).
+
+        Raises:
+            RuntimeUnavailable, ValueError: as :meth:`request_throw`.
+        """
+        return self._state_command(keys.lease, LeaseRequest(machine_id=machine_id, takeover=takeover), user, LeaseAck)
 
     def offer_policy(self, offer: PolicyOffer, user: str) -> PolicyOfferAck:
         """Offer a policy version to the runtime (signed for ``user``); returns its ack.

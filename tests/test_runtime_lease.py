@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -200,3 +201,60 @@ def test_results_reach_the_issuing_server_beside_a_refusing_one(tmp_path):
         for q in queryables:
             q.undeclare()
         time.sleep(0.2)
+
+
+def test_a_second_server_takes_over_deliberately_through_its_fleet_link(tmp_path, holding_path):
+    """server.fleet_commands.FleetCommands.lease over Zenoh: server b's throw is refused while a
+    holds the lease, b's signed takeover moves it, then a is refused with b named."""
+    from server.fleet_commands import FleetCommands
+
+    m = Machine(holding_path)
+    m.tick()
+    site = tmp_path / "site"
+    write_key(site / "machines" / "m1" / "command.key", KEY)
+
+    class Link(FleetCommands):
+        def __init__(self, session, server_id):
+            self.session, self.signer, self.query_timeout_s = session, CommandSigner(site, server_id), 5.0
+            self._estop = SimpleNamespace(latch=lambda machine_id: None)  # no E-STOP held by this server
+
+        def is_online(self, machine_id):
+            return True
+
+        def cached_info(self, machine_id):
+            return m.service.info()
+
+        def forget_info(self, machine_id):
+            pass
+
+        def clock_offset_s(self, machine_id):
+            return 0.0
+
+        def _note_info(self, info, published):
+            pass
+
+    end = f"tcp/127.0.0.1:{free_port()}"
+    with open_session(listen=[end]) as rt, open_session(connect=[end]) as sa, open_session(connect=[end]) as sb:
+        qs = [rt.declare_queryable(keys.throw("m1"), lambda q: q.reply(q.key_expr, m.service.handle_throw(q.payload.to_bytes()))),
+              rt.declare_queryable(keys.lease("m1"), lambda q: q.reply(q.key_expr, m.service.handle_lease(q.payload.to_bytes())))]
+        a, b = Link(sa, "srv-a"), Link(sb, "srv-b")
+        wait_for(lambda: _reachable(a), 20, "the runtime's queryables")
+        assert a.lease("m1", "alice").granted
+        ack, _ = b.request_throw(ThrowRequest(throw_id="b1", machine_id="m1", mode="2d", target_m=TARGET), "bob")
+        assert not ack.accepted and "commanded by server srv-a" in ack.reason
+        taken = b.lease("m1", "bob", takeover=True)
+        assert taken.granted and taken.holder == "srv-b"
+        ack, _ = a.request_throw(ThrowRequest(throw_id="a1", machine_id="m1", mode="2d", target_m=TARGET), "alice")
+        assert not ack.accepted and "commanded by server srv-b" in ack.reason
+        for q in qs:
+            q.undeclare()
+
+
+def _reachable(link) -> bool:
+    from server.fleet_commands import RuntimeUnavailable
+
+    try:
+        link.lease("m1", "probe")
+        return True
+    except RuntimeUnavailable:
+        return False
