@@ -18,35 +18,54 @@ Subcommands::
     slinger results     docs/results.md from the committed reports (server.results_page)
 
 Settings not given as options come from ``SLINGER_*`` environment variables (server.config).
-Modules behind subcommands are imported only when that subcommand runs.
+``up``, ``server``, ``db`` and ``user`` are built in; every other subcommand is provided by its
+package through the entry-point group ``slinger.commands`` (:data:`COMMANDS`: ``runtime.commands``,
+``sim_twin.commands``, ``server.commands``, declared in pyproject.toml and in each wheel's). Their
+modules are imported only when that subcommand runs.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
 import os
 import sys
 import threading
 import time
+from collections.abc import Callable
+from importlib.metadata import EntryPoint, distributions
 from pathlib import Path
+from types import ModuleType
 
 log = logging.getLogger("slinger")
 
-DELEGATED = {
-    "worker": ("server.jobs.worker", "a job worker: previews, evaluations, diagnoses, adaptations"),
-    "router": ("server.router", "the site's Zenoh router (fleets: every process connects to it as a client)"),
-    "certs": ("server.certs", "a site's CA, TLS certificates and machine command keys"),
-    "plant": ("sim_twin.plant", "the simulated machine"),
-    "runtime": ("runtime.node", "the runtime of one machine"),
-    "ros2-bridge": ("runtime.ros2.bridge", "the ROS 2 machine bridge: a machine whose driver is a ROS 2 node, behind the machine interface"),
-    "train": ("sim_twin.train", "train a throwing policy (needs the 'train' extra)"),
-    "evaluate": ("sim_twin.evaluate_cli", "evaluate a policy version"),
-    "diagnose": ("sim_twin.diagnosis.cli", "sim-to-real gap diagnosis of logged throws (and 'diagnose benchmark')"),
-    "adapt": ("sim_twin.adapt", "a policy version adapted to a site's (fitted) reality profile"),
-    "results": ("server.results_page", "docs/results.md from the committed reports (--check: fail when stale)"),
-}
+COMMANDS = "slinger.commands"
+"""Entry-point group of the subcommands that packages provide: each entry point is named after the
+subcommand and loads a function that imports and returns the command's module (``main(argv)``, or
+``build_parser``/``run``); the function's docstring is the help line."""
+
+
+def sub_commands() -> dict[str, EntryPoint]:
+    """The installed packages' subcommands (:data:`COMMANDS`), by name. Empty when Slinger is not
+    installed (``pip install -e .`` registers them). Every distribution on the path counts, not only
+    the first of a name: a checkout's build leftover ``slinger.egg-info`` in the working directory
+    would otherwise hide the installed metadata (importlib.metadata's ``entry_points`` keeps one
+    distribution per name)."""
+    found: dict[str, EntryPoint] = {}
+    for dist in distributions():
+        for ep in dist.entry_points.select(group=COMMANDS):
+            found.setdefault(ep.name, ep)
+    return found
+
+
+def load_command(ep: EntryPoint) -> tuple[Callable[[], ModuleType] | None, str]:
+    """``(loader, help line)`` of a subcommand's entry point; ``(None, why)`` when the entry point
+    does not load (a package's metadata names a function that is gone: reinstall)."""
+    try:
+        loader = ep.load()
+    except (ImportError, AttributeError) as e:
+        return None, f"unavailable: entry point {ep.value} does not load ({e}); reinstall Slinger"
+    return loader, ((loader.__doc__ or "").strip().splitlines() or [""])[0]
 
 
 def _settings(args: argparse.Namespace, **extra):
@@ -188,12 +207,16 @@ def cmd_db_upgrade(args: argparse.Namespace) -> int:
     return 0
 
 
-def _delegate(module_name: str, rest: list[str], prog: str) -> int:
+def _delegate(ep: EntryPoint, rest: list[str], prog: str) -> int:
+    loader, why = load_command(ep)
+    if loader is None:
+        print(f"slinger: '{prog}' is {why}", file=sys.stderr)
+        return 2
     try:
-        module = importlib.import_module(module_name)
+        module = loader()
     except ModuleNotFoundError as e:
-        if e.name and (module_name == e.name or module_name.startswith(e.name + ".")):
-            print(f"slinger: '{prog}' is not available: module {module_name} does not exist yet", file=sys.stderr)
+        if e.name and e.name.split(".")[0] == loader.__module__.split(".")[0]:
+            print(f"slinger: '{prog}' is unavailable: {ep.value} imports {e.name}, which does not exist", file=sys.stderr)
         else:
             print(f"slinger: '{prog}' needs the missing package {e.name!r} (for training: pip install -e '.[train]')",
                   file=sys.stderr)
@@ -207,7 +230,7 @@ def _delegate(module_name: str, rest: list[str], prog: str) -> int:
         parser = argparse.ArgumentParser(prog=f"slinger {prog}", description=(module.__doc__ or "").splitlines()[0] if module.__doc__ else None)
         module.build_parser(parser)
         return int(module.run(parser.parse_args(rest)) or 0)
-    print(f"slinger: {module_name} has neither main nor build_parser/run", file=sys.stderr)
+    print(f"slinger: {module.__name__} has neither main nor build_parser/run", file=sys.stderr)
     return 2
 
 
@@ -255,9 +278,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     build_user_parser(sub)
 
-    for name, (module, help_text) in DELEGATED.items():
-        p = sub.add_parser(name, help=help_text, add_help=False)
-        p.set_defaults(delegate=module)
+    for name, ep in sorted(sub_commands().items()):
+        if name in sub.choices:
+            continue  # a built-in command keeps its name
+        p = sub.add_parser(name, help=load_command(ep)[1], add_help=False)
+        p.set_defaults(delegate=ep)
     return parser
 
 

@@ -9,7 +9,6 @@ gone). For each ``slinger <command>`` on a line (``db``/``user`` with their subc
 from __future__ import annotations
 
 import argparse
-import importlib
 import re
 from pathlib import Path
 
@@ -36,11 +35,14 @@ def command_options() -> dict[str, set[str]]:
     from server import cli
 
     top = cli.build_parser()
+    delegated = cli.sub_commands()
     sub = next(a for a in top._actions if isinstance(a, argparse._SubParsersAction))  # noqa: SLF001 (as above)
     out: dict[str, set[str]] = {}
     for name, parser in sub.choices.items():
-        if name in cli.DELEGATED:
-            module = importlib.import_module(cli.DELEGATED[name][0])
+        if name in delegated:
+            loader, why = cli.load_command(delegated[name])
+            assert loader is not None, f"slinger {name}: {why}"
+            module = loader()
             parser = argparse.ArgumentParser()
             module.build_parser(parser)
         out[name] = _options(parser) | {"-h", "--help"}
@@ -51,7 +53,7 @@ def documented() -> list[tuple[str, str, str]]:
     """(page, command, option) for every option shown after ``slinger <command>``."""
     from server import cli
 
-    names = {a for a in cli.DELEGATED} | {"up", "server", "db", "user"}
+    names = set(cli.sub_commands()) | {"up", "server", "db", "user"}
     rows = []
     for page in PAGES:
         for line in page.read_text().splitlines():
