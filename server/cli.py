@@ -143,7 +143,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         from runtime.ros2.node import DomainRefused, machine_local_environment
 
         try:
-            stack.ros2_domains(args.ros2 or None, args.machines)
+            stack.ros2_domains(Path(args.ros2) if args.ros2 else None, args.machines)
             machine_local_environment(dict(os.environ))
         except (ConfigError, DomainRefused) as e:
             log.error("cannot start with --ros2: %s", e)
@@ -180,7 +180,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 
             children.spawn("worker", worker_argv(settings), settings.data_dir / "logs")
             stack.spawn_machines(children, args.machines, hub, policies, settings.data_dir, site.root,
-                                 settings.release_check_radius_m, engine=args.engine, ros2=False if args.ros2 is None else (args.ros2 or None))
+                                 settings.release_check_radius_m, engine=args.engine, ros2=False if args.ros2 is None else (Path(args.ros2) if args.ros2 else None))
             children.supervise()
             log.info("child logs in %s", settings.data_dir / "logs")
             return _serve(settings, zenoh_session=session, on_started=_print_urls(settings))
@@ -250,7 +250,7 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--engine", choices=ENGINES, default="mujoco",
                     help="physics engine of the simulated machines: mujoco (the twin) or drake (an independent engine; "
                          "needs the 'drake' extra)")
-    up.add_argument("--ros2", nargs="?", type=Path, const="", default=None, metavar="MAPPING",
+    up.add_argument("--ros2", nargs="?", const="", default=None, metavar="MAPPING",
                     help="each simulated machine as a ROS 2 driver node behind a ROS 2 bridge (rclpy; RMW_IMPLEMENTATION, "
                          "Fast DDS by default), with the bridge's mapping file (default: identity), machine i on ROS domain "
                          "base + i - 1 (docs/ros2.md)")

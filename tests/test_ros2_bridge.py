@@ -237,6 +237,21 @@ def test_discovery_stays_on_this_host_unless_sros2_is_enforced(tmp_path):
             machine_local_environment({RANGE_ENV: "SUBNET", **sros2, **weaker})
 
 
+def test_slinger_up_ros2_refuses_a_wider_domain_or_a_bad_mapping_before_starting(tmp_path, monkeypatch, caplog):
+    from server.cli import main
+
+    monkeypatch.delenv("ROS_DOMAIN_ID", raising=False)
+    monkeypatch.setenv(RANGE_ENV, "SUBNET")
+    assert main(["up", "--ros2", "--data-dir", str(tmp_path / "var")]) == 2
+    assert "SROS2" in caplog.text and not (tmp_path / "var").exists()
+    monkeypatch.setenv(RANGE_ENV, "LOCALHOST")
+    assert main(["up", "--ros2", str(tmp_path / "missing.toml"), "--data-dir", str(tmp_path / "var")]) == 2
+    assert "missing.toml" in caplog.text and not (tmp_path / "var").exists()
+    (tmp_path / "m.toml").write_text("domain_id = 232\n")
+    assert main(["up", "--ros2", str(tmp_path / "m.toml"), "--machines", "2", "--data-dir", str(tmp_path / "var")]) == 2
+    assert "232..233" in caplog.text and not (tmp_path / "var").exists()
+
+
 # --- the bridge process against plain rclpy nodes (Fast DDS) -------------------------------------
 @pytest.fixture
 def ros_env(monkeypatch):
