@@ -9,6 +9,10 @@ Written atomically (a temporary file in the same directory, ``fsync``, ``os.repl
 of the directory) before the runtime acknowledges the stop; removed (and the directory fsynced)
 by a signed EstopReset. At start the runtime reads it: a latch file means E-STOP latched. A
 file that cannot be read or parsed also means latched (fail safe), with the reason saying so.
+
+A full disk does not keep the latch off it: RESERVE_BYTES are held in ``.estop_latch.reserve``
+(made at start and after each reset, best effort); a latch write that fails gives the reserve
+back and is written again.
 """
 
 from __future__ import annotations
@@ -22,6 +26,10 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 FILE_NAME = "estop_latch.json"
+RESERVE_NAME = ".estop_latch.reserve"
+RESERVE_BYTES = 64 * 1024
+"""Space held for the latch file on a full disk, bytes (a latch file is some 100 bytes; a file
+system allocates whole blocks, and the temporary file and the directory entry need theirs)."""
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -47,7 +55,24 @@ class EstopLatchFile:
         self.dir = Path(state_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.path = self.dir / FILE_NAME
+        self.reserve = self.dir / RESERVE_NAME
         self.machine_id = machine_id
+        self._make_reserve()
+
+    def _make_reserve(self) -> None:
+        """Hold RESERVE_BYTES in the reserve file if it is missing (best effort, logged)."""
+        if self.reserve.exists():
+            return
+        try:
+            fd = os.open(self.reserve, os.O_WRONLY | os.O_CREAT, 0o600)
+            try:
+                os.posix_fallocate(fd, 0, RESERVE_BYTES)
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        except OSError as e:
+            self.reserve.unlink(missing_ok=True)
+            log.warning("E-STOP latch: no space reserved in %s (%s)", self.dir, e.strerror or e)
 
     def load(self) -> str | None:
         """The latched reason at start, or None when no latch is on disk. An unreadable or
@@ -76,6 +101,16 @@ class EstopLatchFile:
         """
         data = {"machine_id": self.machine_id, "reason": reason,
                 "latched_unix_s": time.time() if now_unix_s is None else now_unix_s}
+        try:
+            self._write(data)
+        except OSError as e:
+            if not self.reserve.exists():
+                raise
+            self.reserve.unlink()
+            log.error("E-STOP latch: write failed (%s): written from the reserved space", e.strerror or e)
+            self._write(data)
+
+    def _write(self, data: dict) -> None:
         tmp = self.path.with_name(f".{FILE_NAME}.{os.getpid()}.tmp")
         try:
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
@@ -100,3 +135,4 @@ class EstopLatchFile:
         except FileNotFoundError:
             return
         _fsync_dir(self.dir)
+        self._make_reserve()

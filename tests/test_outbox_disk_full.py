@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from runtime.estop_latch import EstopLatchFile
 from runtime.outbox import UNDELIVERABLE, DeliveryRefused, Outbox
 from runtime.protocol.messages import ResultAck, ThrowResult, decode
 
@@ -157,3 +158,16 @@ def test_a_full_disk_loses_no_landed_throw(small_disk):
     more.unlink()
     restarted = Outbox(small_disk / "outbox", Server())
     assert restarted.deliver_pending() == 1
+
+
+@pytest.mark.root
+def test_an_estop_latch_reaches_a_full_disk(small_disk):
+    """The runtime's E-STOP latch (runtime.estop_latch) is written from its reserved space when
+    the disk is full, so a runtime restarted then still comes up latched."""
+    latch = EstopLatchFile(small_disk / "state", "m1")
+    filler = _fill(small_disk)
+    latch.write("operator E-STOP (disk full)")
+    assert EstopLatchFile(small_disk / "state", "m1").load() == "operator E-STOP (disk full)"
+    filler.unlink()
+    latch.clear()
+    assert latch.load() is None and latch.reserve.exists()  # the reserve is held again
