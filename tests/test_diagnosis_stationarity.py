@@ -208,3 +208,68 @@ def test_a_generated_log_whose_valve_lag_changes_is_drifting(tmp_path: Path):
     assert v["since"] in ids
     order = sorted(ids)
     assert abs(order.index(v["since"]) - n // 2) <= 3
+
+
+# --- fits that converge off the grid --------------------------------------------------------------
+class _KinkWorld:
+    """A chi-square with a kink at the truth, steep below it and shallow above (a dead band's
+    hockey stick): the local quadratic through the grid predicts a negative chi-square there."""
+
+    def __init__(self, param: str, truth: float, span: float, channel: str = "q.gripper_pitch"):
+        from sim_twin.diagnosis import noise as nz
+
+        self.param, self.truth, self.span = param, truth, span
+        self.c = nz.CH_INDEX[channel]
+        self.D = np.zeros((30, len(nz.CHANNELS), len(nz.PHASES)))
+        self.D[:, self.c, 0] = 20
+        self.w = np.random.default_rng(2).uniform(0.8, 1.2, 30)
+
+    def S(self, effects):
+        vals = {}
+        for e in effects:
+            vals.update(e.values)
+        S = np.zeros(self.D.shape)
+        v = vals.get(self.param, None)
+        d = (v - self.truth) / self.span if v is not None else 0.05
+        S[:, self.c, 0] = 0.1 + self.w * (8000.0 * max(-d, 0.0) + 200.0 * max(d, 0.0))
+        return S
+
+
+class _KinkEffect(__import__("sim_twin.effects", fromlist=["Effect"]).Effect):
+    name = "test_kink"
+    footprint = ("passive",)
+    stage = "dynamics"
+    params = (__import__("sim_twin.effects.base", fromlist=["Param"]).Param("k", "-", 0.0, 0.0, 1.0, "synthetic", "test"),)
+
+
+def test_a_kinked_objective_is_fitted_off_the_grid_by_a_bounded_optimiser():
+    from sim_twin.diagnosis import select as sel
+    from tests.test_diagnosis_select import FakeEvaluator
+
+    world = _KinkWorld("k", 0.37, 1.0)
+    ev = FakeEvaluator(world, [])
+    sw = ev.sweep(_KinkEffect, np.ones(30, bool))
+    before, _ = ev.fit(sw, np.ones(30))
+    assert abs(before["k"] - 0.37) > 0.02  # the local quadratic misses a hockey stick's vertex
+    assert ev.polish(sw, force=True) and sw.polished == ["k"]
+    params, _ = ev.fit(sw, np.ones(30))
+    grid = np.linspace(0, 1, sel.COARSE_1D)
+    assert abs(params["k"] - 0.37) < 2e-3 and np.min(np.abs(grid - params["k"])) > 0.01  # off the coarse grid
+    cand, _, _ = fw.evaluate_candidate(ev, sw, world.D, np.ones(30, bool), fw.bootstrap_weights(30, 0)[:20])
+    iv = sel.profile_interval(sw.X, sw.S.sum(axis=(1, 2, 3)))
+    assert iv is not None and iv[1] - iv[0] < 1e-3  # the chi-square rises by 1 within a few 1e-4
+    assert cand.sigma["k"] >= (iv[1] - iv[0]) / 2 and abs(cand.params["k"] - 0.37) < 2 * cand.sigma["k"]  # with the optimiser's tolerance
+
+
+def test_a_per_joint_dead_band_between_grid_points_is_polished_on_its_own_channels():
+    from sim_twin.effects import effect_class
+    from tests.test_diagnosis_select import FakeEvaluator
+
+    cls = effect_class("valve_dead_band")
+    p = next(q for q in cls.params if q.name == "dead_band_boom")
+    world = _KinkWorld("dead_band_boom", 0.18, p.hi - p.lo, channel="q.boom")
+    ev = FakeEvaluator(world, [])
+    sw = ev.sweep(cls, np.ones(30, bool))
+    params, _ = ev.fit(sw, np.ones(30))
+    assert "dead_band_boom" in sw.polished and abs(params["dead_band_boom"] - 0.18) < 0.003
+    assert abs(params["dead_band_boom"] - 0.2) > 0.01  # not the grid point 0.200 the quadratic fell back to

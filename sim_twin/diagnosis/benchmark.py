@@ -17,7 +17,14 @@ only logs and impacts; the truth stays in the benchmark's record. Kinds of case:
 * ``multijoint``: a per-joint library effect on several joints at once, each its own value;
 * ``power``: a library effect below what the throws can show; right answer "no gap" with the
   detectable size stated (a correct name or "consistent" with the truth is not wrong either);
-* ``noise``: the nominal machine, noise only.
+* ``noise``: the nominal machine, noise only;
+* ``mimic``: an outside effect that mimics a library effect in some trajectory channels
+  (:mod:`unmodelled_mimic`: backlash, a valve gain error, sensor scale errors, compliance of
+  another joint); right answer: no library effect confirmed, not even as a part of the answer;
+* ``drifting``: an effect that changes during the log (a ramp from nominal, or a step half-way;
+  library and outside effects); right answer "drifting";
+* ``impact_pair``: a trajectory-visible library effect with an impact-only one; right answer:
+  the first confirmed and the second listed (consistent or ambiguous).
 
 Library effects that act only on the impact in a real machine's log (:data:`IMPACT_ONLY_LIBRARY`:
 no payload channel, no open flag) are right when named with a confirming channel or listed by a
@@ -113,9 +120,30 @@ HELD_OUT = [
     ("sim_twin.diagnosis.unmodelled_heldout:PumpDroop", "droop", (0.3, 0.8), False),
     ("sim_twin.diagnosis.unmodelled_heldout:PitchArmature", "armature_kgm2", (400.0, 1200.0), False),
 ]
-MIX = {"single": 24, "pair": 10, "outside": 8, "heldout": 8, "impact_only": 6, "multijoint": 6, "power": 6, "noise": 10}
-"""Cases per kind of the full benchmark (78)."""
-KINDS = ("single", "pair", "outside", "heldout", "impact_only", "multijoint", "power", "noise")
+MIMIC = [
+    ("sim_twin.diagnosis.unmodelled_mimic:BoomBacklash", "play", (0.15, 0.35), False),
+    ("sim_twin.diagnosis.unmodelled_mimic:ValveGain", "gain", (0.6, 0.8), False),
+    ("sim_twin.diagnosis.unmodelled_mimic:PitchImuScale", "scale", (0.08, 0.2), True),
+    ("sim_twin.diagnosis.unmodelled_mimic:DipperEncoderScale", "scale", (0.05, 0.12), True),
+    ("sim_twin.diagnosis.unmodelled_mimic:DipperCompliance", "coupling", (0.15, 0.35), True),
+]
+DRIFTING = [
+    # (effect, parameter, range of the value at the end of the log, random sign, shape): from nominal at the first throw
+    ("valve_lag", "lag_s_boom", (0.3, 0.45), False, "ramp"),
+    ("sim_twin.diagnosis.unmodelled_mimic:ValveGain", "gain", (0.55, 0.7), False, "step"),
+    ("impact_bias", "bias_x_m", (0.3, 0.45), True, "step"),
+]
+IMPACT_PAIRS = [
+    (("passive_friction", "viscous_per_s", (0.5, 1.2), False), ("release_delay", "mean_s", (0.42, 0.55), False)),
+    (("valve_lag", "lag_s", (0.22, 0.35), False), ("wind", "wind_x_mps", (5.0, 9.0), True)),
+    (("hanging_mass", "gripper_mass_kg", (1200.0, 1600.0), False), ("impact_bias", "bias_x_m", (0.2, 0.35), True)),
+]
+"""A trajectory-visible library effect with an impact-only library one (real-log-like logs)."""
+MIX = {"single": 24, "pair": 10, "outside": 8, "heldout": 8, "impact_only": 6, "multijoint": 6, "power": 6, "noise": 10,
+       "mimic": 10, "drifting": 6, "impact_pair": 6}
+"""Cases per kind of the full benchmark (100; the first 78 as before the last three kinds)."""
+KINDS = ("single", "pair", "outside", "heldout", "impact_only", "multijoint", "power", "noise", "mimic", "drifting", "impact_pair")
+OUTSIDE_KINDS = ("outside", "heldout", "impact_only", "mimic")
 
 
 def _draw(rng, spec) -> tuple[str, str, float]:
@@ -128,20 +156,25 @@ def draw_cases(mix: dict[str, int], seed: int, every_3d: int = 5) -> list[dict]:
     """The case list (seeded): kinds in ``mix`` order, every ``every_3d``-th case of a kind in 3D."""
     rng = np.random.default_rng(seed)
     pools: dict[str, list[Any]] = {"single": SINGLES, "pair": PAIRS, "outside": OUTSIDE, "heldout": HELD_OUT, "impact_only": IMPACT_ONLY,
-             "multijoint": MULTI_JOINT, "power": POWER_LIMITED, "noise": [None]}
+             "multijoint": MULTI_JOINT, "power": POWER_LIMITED, "noise": [None], "mimic": MIMIC, "drifting": DRIFTING,
+             "impact_pair": IMPACT_PAIRS}
     out: list[dict[str, Any]] = []
     for kind, n in mix.items():
         for i in range(n):
             spec = pools[kind][i % len(pools[kind])]
+            extra: dict[str, Any] = {}
             if kind == "noise":
                 truth = []
-            elif kind in ("pair", "multijoint"):
+            elif kind in ("pair", "multijoint", "impact_pair"):
                 truth = [_draw(rng, s) for s in spec]
+            elif kind == "drifting":
+                truth = [_draw(rng, spec[:4])]
+                extra = {"shape": spec[4]}
             else:
                 truth = [_draw(rng, spec)]
             mode = "3d" if i % every_3d == every_3d - 1 else "2d"
             out.append({"case": len(out), "kind": kind, "mode": mode, "seed": int(seed * 1000 + len(out)),
-                        "truth": [{"effect": e, "param": p, "value": v} for e, p, v in truth]})
+                        "truth": [{"effect": e, "param": p, "value": v, **extra} for e, p, v in truth]})
     return out
 
 
@@ -152,6 +185,24 @@ def profile_of(case: dict) -> dict:
     for t in case["truth"]:
         effects.setdefault(t["effect"], {})[t["param"]] = t["value"]
     return {"name": f"case-{case['case']}", "effects": [{"effect": e, "params": p} for e, p in effects.items()]}
+
+
+def per_throw_profiles(case: dict, throws: int) -> list[dict] | None:
+    """A drifting case's profile per throw (the truth's value reached at the last throw from the
+    nominal at the first: a straight ramp, or a step half-way); None for other kinds."""
+    if case["kind"] != "drifting":
+        return None
+    from sim_twin.effects import effect_class
+
+    out = []
+    for i in range(throws):
+        effects: dict[str, dict] = {}
+        for t in case["truth"]:
+            p0 = next(p.nominal for p in effect_class(t["effect"]).params if p.name == t["param"])
+            f = i / max(throws - 1, 1) if t.get("shape") == "ramp" else float(i >= throws // 2)
+            effects.setdefault(t["effect"], {})[t["param"]] = round(p0 + f * (t["value"] - p0), 6)
+        out.append({"name": f"case-{case['case']}-throw-{i}", "effects": [{"effect": e, "params": p} for e, p in effects.items()]})
+    return out
 
 
 def _compare(truth: dict, named: list[dict]) -> list[dict]:
@@ -181,7 +232,8 @@ def run_case(case: dict, throws: int, workdir: Path, keep: bool = False) -> dict
     t0 = time.time()
     c0 = time.process_time()
     data_dir = workdir / f"case{case['case']:03d}"
-    ds.generate(data_dir, profile_of(case), throws, POLICIES[case["mode"]], seed=case["seed"], mode=case["mode"], real_log=RealLogSpec())
+    ds.generate(data_dir, profile_of(case), throws, POLICIES[case["mode"]], seed=case["seed"], mode=case["mode"], real_log=RealLogSpec(),
+                per_throw=per_throw_profiles(case, throws))
     t_gen = time.time() - t0
     rep = diagnose(data_dir, None, seed=case["seed"], plots=False, workers=1)  # cases run in parallel already
     v = rep["verdict"]
@@ -189,10 +241,12 @@ def run_case(case: dict, throws: int, workdir: Path, keep: bool = False) -> dict
     row = {**case, "answer": v["answer"], "effects": v.get("effects", []), "between": v.get("between"), "text": v["text"],
            "throws_used": rep["throws"], "skipped": len(rep["skipped"]), "gen_s": t_gen}
     row["alternatives"] = [a for n in v.get("not_confirmed", []) for a in n.get("alternatives", [])]
+    row["confirmed"] = list(v.get("confirmed", []))
+    row["consistent"] = [n["effect"] for n in v.get("not_confirmed", [])]
     row["power_stated"] = bool(v.get("power") and v["power"].get("text"))
     score(row)
     kind = case["kind"]
-    row["params"] = [c for t in case["truth"] for c in _compare(t, named)] if kind in ("single", "pair", "multijoint") else []
+    row["params"] = [c for t in case["truth"] for c in _compare(t, named)] if kind in ("single", "pair", "multijoint", "impact_pair") else []
     hf = rep.get("how_far") or {}
     row["held_out"] = {k: hf.get(k) for k in ("gap_shrink", "impact_gap_shrink", "share_of_shrink", "impact_rms_m", "test_throws", "constant_shift")} if hf else None
     row["wall_s"] = time.time() - t0
@@ -219,7 +273,8 @@ def score(row: dict) -> dict:
     kind, ans = row["kind"], row["answer"]
     truth = [t["effect"] for t in row["truth"]]
     effects = list(row.get("effects") or [])
-    listed = set(effects) | set(row.get("alternatives") or []) | set(row.get("between") or [])
+    listed = set(effects) | set(row.get("alternatives") or []) | set(row.get("between") or []) | set(row.get("consistent") or [])
+    confirmed = list(row.get("confirmed") or [])  # rows of a run before "confirmed" was recorded: none
     stated = row.get("power_stated")
     if stated is None:  # rows of a run before power_stated was recorded
         stated = "would not be visible" in row.get("text", "")
@@ -236,9 +291,16 @@ def score(row: dict) -> dict:
     elif kind == "pair":
         row["correct"] = ans in ("named", "consistent", "ambiguous") and all(found(e) for e in truth) and (ans != "ambiguous" or any(e in IMPACT_ONLY_LIBRARY for e in truth))
         row["one_named"] = bool(set(truth) & set(effects))
-    elif kind in ("outside", "heldout", "impact_only"):
-        row["correct"] = ans in ("unexplained", "ambiguous", "consistent")
-        row["confidently_wrong"] = ans == "named"
+    elif kind == "impact_pair":
+        traj, imp = truth[0], truth[1]
+        row["correct"] = ans in ("consistent", "ambiguous") and traj in confirmed and imp in listed
+        row["one_named"] = bool(set(truth) & set(effects))
+    elif kind in OUTSIDE_KINDS:
+        # a library effect confirmed as a part of the answer is as wrong as one named for the whole
+        row["correct"] = ans in ("unexplained", "ambiguous", "consistent", "drifting") and not confirmed
+        row["confidently_wrong"] = ans == "named" or bool(confirmed)
+    elif kind == "drifting":
+        row["correct"] = ans == "drifting"
     elif kind == "power":
         row["no_gap"] = ans == "no_gap"
         row["correct"] = (row["no_gap"] and stated) or (ans in ("named", "consistent") and truth[0] in listed)
@@ -256,7 +318,7 @@ def _frac(xs) -> float | None:
 
 def summarise(rows: list[dict]) -> dict:
     by = {k: [r for r in rows if r["kind"] == k] for k in KINDS}
-    outside = by["outside"] + by["heldout"] + by["impact_only"]
+    outside = by["outside"] + by["heldout"] + by["impact_only"] + by["mimic"]
     lib = by["single"] + by["pair"] + by["multijoint"]
     params = [p for r in lib if r["correct"] for p in r["params"]]
     per_case_ok = [all(p["rel_error"] <= TOLERANCE for p in r["params"]) and bool(r["params"]) for r in lib if r["correct"]]
@@ -292,6 +354,11 @@ def summarise(rows: list[dict]) -> dict:
         "power_no_gap": _frac(r.get("no_gap") and r.get("power_stated") for r in by["power"]),
         "power_correct": _frac(r["correct"] for r in by["power"]),
         "noise_no_gap": _frac(r["correct"] for r in by["noise"]),
+        "false_drifting": _frac(r["answer"] == "drifting" for r in rows if r["kind"] not in ("drifting",)),
+        "mimic_not_confirmed": _frac(r["correct"] for r in by["mimic"]),
+        "drifting_found": _frac(r["correct"] for r in by["drifting"]),
+        "impact_pairs_listed": _frac(r["correct"] for r in by["impact_pair"]),
+        "wall_s_per_case": float(np.mean([r["wall_s"] for r in rows])) if rows else None,
         "held_out_gap_shrink_median": float(np.median(shrink)) if shrink else None,
         "held_out_impact_shrink_median": float(np.median(ishrink)) if ishrink else None,
         "held_out_impact_shrink_constant_shift_median": float(np.median(np.asarray(cshrink, dtype=float))) if cshrink else None,
@@ -303,7 +370,8 @@ def summarise(rows: list[dict]) -> dict:
 
 BARS: list[tuple[str, str, Any]] = [("singles_named", ">=", 0.9), ("multijoint_named", ">=", 0.9), ("pairs_both_named", ">=", 0.7),
         ("params_within_tolerance_cases", ">=", 0.8), ("outside_unexplained_or_ambiguous", ">=", 0.9), ("outside_confidently_wrong", "<=", 0.0),
-        ("impact_only_not_named", ">=", 1.0), ("power_no_gap", ">=", 0.9), ("noise_no_gap", ">=", 0.9), ("one_sigma_coverage", "in", (0.6, 0.75))]
+        ("impact_only_not_named", ">=", 1.0), ("power_no_gap", ">=", 0.9), ("noise_no_gap", ">=", 0.9), ("one_sigma_coverage", "in", (0.6, 0.75)),
+        ("mimic_not_confirmed", ">=", 1.0), ("drifting_found", ">=", 0.8), ("impact_pairs_listed", ">=", 0.7)]
 
 
 def format_summary(result: dict) -> str:
@@ -451,7 +519,8 @@ def load_done(out: Path, seed: int, throws: int, mix: dict[str, int]) -> list[di
     return list(prev.get("cases", []))
 
 
-COST_S = {"single": 44.0, "pair": 45.0, "outside": 88.0, "heldout": 141.0, "impact_only": 18.0, "multijoint": 65.0, "power": 5.0, "noise": 14.0}
+COST_S = {"single": 44.0, "pair": 45.0, "outside": 88.0, "heldout": 141.0, "impact_only": 18.0, "multijoint": 65.0, "power": 5.0, "noise": 14.0,
+          "mimic": 90.0, "drifting": 60.0, "impact_pair": 45.0}
 """Mean CPU seconds of one 30-throw case per kind (reports/diagnosis_benchmark.json, 2-core VM,
 2026-11-22): used only to start the long cases first, which shortens the wall time of a parallel
 run (longest-processing-time-first scheduling)."""
@@ -629,6 +698,7 @@ def merge(reports: list[Path], out: Path | None, plots: bool = True) -> dict:
     return res
 
 
-SMALL_MIX = {"single": 2, "pair": 1, "outside": 1, "heldout": 0, "impact_only": 1, "multijoint": 1, "power": 1, "noise": 1}
+SMALL_MIX = {"single": 2, "pair": 1, "outside": 1, "heldout": 0, "impact_only": 1, "multijoint": 1, "power": 1, "noise": 1,
+             "mimic": 1, "drifting": 1, "impact_pair": 1}
 SMALL_THROWS = 16
 """The CI version (tests/test_diagnosis.py runs a few of its cases)."""

@@ -156,6 +156,23 @@ def _profile_sigmas(sw: sel.Sweep, S_fit: np.ndarray, D: np.ndarray, fitted: lis
         out = {n: float(ps[i] * span[n] * birge) for i, n in enumerate(sw.names) if n in fitted}
     else:
         out = {n: float(v * birge) for n, v in _per_joint(sw, fitted, span, lambda X, S: sel.profile_sigma(X, S.sum(axis=(1, 2, 3)))[0]).items()}
+    for n in sw.polished:  # polished fits: the profile interval itself (chi-square up by Birge^2), not the local quadratic
+        if n not in fitted:
+            continue
+        if sw.joints is None:
+            X, T = sw.X, sw.S.sum(axis=(1, 2, 3))
+        else:
+            X, S = sw.grid_of(n)
+            T = S[:, :, dict(sw.joints)[n]].sum(axis=(1, 2, 3))
+        iv = sel.profile_interval(X, T, rise=birge**2)
+        if iv is not None:
+            # with how well the optimiser bracketed the minimum (it lies between the best point's
+            # evaluated neighbours; a quarter of that bracket) and the local fit's shift from the best point
+            xs = np.sort(X[:, 0])
+            xb = float(X[int(np.argmin(T)), 0])
+            bracket = float(xs[xs > xb].min(initial=1.0) - xs[xs < xb].max(initial=0.0)) / 4
+            shift = abs(float(sel.local_fit(X, T)[0][0]) - xb)
+            out[n] = float(np.sqrt(((iv[1] - iv[0]) / 2) ** 2 + bracket**2 + shift**2) * span[n])
     return {n: out.get(n, np.inf) for n in fitted}
 
 
@@ -451,6 +468,7 @@ def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train
                     if wins_a[order_a[0]] >= sel.WIN_FREQ and wins_a[order_a[0]] > float(np.mean(won == 0)):
                         rnd.decision, rnd.named = "named", a.effect
                         a.wins = wins_a[order_a[0]]
+                        polish_named(ev, a, a_sw, D, train, W)
                         named.append(a_sw.cls(**a.params))
                         continue
                     if len(order_a) > 1 and wins_a[order_a[1]] >= sel.AMBIGUOUS_FREQ and wins_a[order_a[0]] > float(np.mean(won == 0)):
@@ -463,6 +481,7 @@ def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train
                 raise RuntimeError("pair_step returned a pair without the round naming it")
             second, second_sw = pair
             rnd.decision, rnd.named, best.pair_with = "named", best.effect, rnd2.named
+            polish_named(ev, best, best_sw, D, train, W)
             named.append(best_sw.cls(**best.params))
             rounds.append(rnd2)
             if second is None:  # the first is named, the second ambiguous between two that complete it
@@ -480,10 +499,23 @@ def select_effects(ev_factory, classes: list[type[Effect]], D: np.ndarray, train
             break
         rnd.decision = "named"
         rnd.named = best.effect
+        polish_named(ev, best, best_sw, D, train, W)
         named.append(best_sw.cls(**best.params))
     if len(named) >= 2:
         backfit(ev_factory, rounds, named, D, train, W)
     return rounds, named
+
+
+def polish_named(ev: sel.Evaluator, cand: Candidate, sw: sel.Sweep, D: np.ndarray, train: np.ndarray, W: np.ndarray) -> None:
+    """A named effect's fit converged off the grid (:meth:`select.Evaluator.polish` with force) and
+    its parameters, 1 sigma (the profile part from the profile interval), prior-bound flags and
+    evidence re-evaluated on the polished grid, in place (its win frequencies stay the round's)."""
+    if not ev.polish(sw, force=True):
+        return
+    new, _, _ = evaluate_candidate(ev, sw, D, train, W)
+    cand.params, cand.params_train, cand.sigma, cand.sigma_parts, cand.at_bound = new.params, new.params_train, new.sigma, new.sigma_parts, new.at_bound
+    cand.evidence = {**new.evidence, "wins_all": cand.evidence.get("wins_all", cand.wins), "polished": list(sw.polished)}
+    log.info("polished %s: %s", cand.effect, {k: round(v, 5) for k, v in cand.params.items()})
 
 
 def pair_step(ev_factory, classes, named: list[Effect], ev: sel.Evaluator, first: Candidate, first_sw: sel.Sweep, L: np.ndarray,
@@ -598,7 +630,9 @@ def backfit(ev_factory, rounds: list[Round], named: list[Effect], D: np.ndarray,
         cls = type(e)
         others = named[:i] + named[i + 1:]
         ev = ev_factory(others)
-        c_all, _, _ = evaluate_candidate(ev, ev.sweep(cls, ones), D, train, W)
+        sw_all = ev.sweep(cls, ones)
+        ev.polish(sw_all, force=True)  # the reported fit converges off the grid (polish_named)
+        c_all, _, _ = evaluate_candidate(ev, sw_all, D, train, W)
         others_train = [type(o)(**cands[j].params_train) for j, o in enumerate(named) if j != i]
         ev_t = ev_factory(others_train)
         c_train, _, _ = evaluate_candidate(ev_t, ev_t.sweep(cls, train), D, train, W[:0])

@@ -71,6 +71,8 @@ sweep: a valve dead band on a joint that only gets small commands (the cabin tur
 leaves its channels flat from the nominal 0.05 to the prior's 0.3 but far worse at 0, and a fit
 on that plateau lands anywhere on it (seed-1 benchmark cases 7, 58, 61: at the prior bound, which
 made the right candidate inadmissible)."""
+POLISH_XTOL = 1.0 / 32  # polish: Brent's tolerance, a fraction of the grid's finest spacing
+POLISH_ITER = 10  # polish: at most this many replays per parameter
 ONE_SIDED_STEPS = 4  # per-joint sweeps: at most this many extra steps towards a joint's optimum (Evaluator._two_sided)
 JOINT_PASSES = 2  # per-joint effects fitted jointly: block coordinate passes (Evaluator._joint_refine)
 JOINT_STEPS = (-4.0, -2.0, -1.0, 0.0, 1.0, 2.0, 4.0)  # its grid around the current fit, in quarters of the coarse spacing
@@ -100,6 +102,8 @@ class Sweep:
     verify_S: np.ndarray | None = None
     resolution: float = 1.0 / (COARSE_1D - 1)
     identifiable: list[bool] = field(default_factory=list)
+    polished: list[str] = field(default_factory=list)
+    """Parameters whose fit a bounded scalar minimisation on real replays refined (:meth:`Evaluator.polish`)."""
     joint_grids: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     """Per-joint effects fitted jointly (:meth:`Evaluator._joint_refine`): joint parameter name ->
     (X (G_j, 1), S (G_j, N, C, P)), that joint's own sweep with the other joints at their fits."""
@@ -180,6 +184,40 @@ def local_fit(X: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # tolerance is rounding: a quadratic whose minimum is 0 evaluates to about -1e-15 there
         x, w = X[g].copy(), np.eye(G)[g]
     return x, w
+
+
+def quadratic_fails(X: np.ndarray, T: np.ndarray) -> bool:
+    """True where :func:`local_fit` falls back to the best grid point: the local quadratic through
+    the grid points nearest the best one predicts a negative chi-square at its minimum (the
+    objective is not quadratic there: a kink or a sharp minimum between grid points)."""
+    x, w = local_fit(X, T)
+    g = int(np.argmin(T))
+    return bool(w[g] == 1.0 and np.count_nonzero(w) == 1 and len(T) > 1)
+
+
+def profile_interval(X: np.ndarray, T: np.ndarray, rise: float = 1.0) -> tuple[float, float] | None:
+    """(lo, hi) where a 1-parameter chi-square T (G,) on X (G, 1) rises by ``rise`` above its
+    minimum (the likelihood-profile interval), by linear interpolation between the evaluated points
+    on either side of the best one; None unless T rises that far on both sides."""
+    if X.shape[1] != 1:
+        return None
+    o = np.argsort(X[:, 0], kind="stable")
+    x, t = X[o, 0], T[o]
+    g = int(np.argmin(t))
+    lim = t[g] + rise
+    ends = []
+    for idx in (range(g - 1, -1, -1), range(g + 1, len(t))):
+        prev = g
+        hit = None
+        for i in idx:
+            if t[i] >= lim:
+                hit = x[prev] + (lim - t[prev]) * (x[i] - x[prev]) / (t[i] - t[prev])
+                break
+            prev = i
+        if hit is None:
+            return None
+        ends.append(float(hit))
+    return ends[0], ends[1]
 
 
 def profile_sigma(X: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -320,6 +358,7 @@ class Evaluator:
             self._joint_refine(sw, w, x_j)
         else:
             self._refine_all(sw, train)
+        self.polish(sw)
         return sw
 
     def _refine_all(self, sw: Sweep, train: np.ndarray) -> None:
@@ -367,6 +406,7 @@ class Evaluator:
         sw.joint_gain = gains
         sw.held_nominal = [n for n in cls.joint_param_names() if n != sw.names[0]]
         self._refine_all(sw, train)
+        self.polish(sw)
         return sw
 
     def _joint_refine(self, sw: Sweep, w: np.ndarray, x_j: dict[str, float]) -> None:
@@ -432,6 +472,77 @@ class Evaluator:
                 if xg <= 0.0 or xg >= 1.0 or nb.min() < xg < nb.max():
                     break
                 self._add(sw, np.clip(np.array([[xg - h], [xg + h]]), 0, 1))
+
+    def polish(self, sw: Sweep, force: bool = False) -> bool:
+        """Fits that converge off the grid: where the local quadratic cannot describe the all-throw
+        chi-square near its minimum (:func:`quadratic_fails`: it would fall back to a grid point),
+        a bounded scalar minimisation on real replays (``scipy.optimize.minimize_scalar``,
+        method "bounded", Brent's method on the bracket of the best grid point's neighbours, to
+        POLISH_XTOL of the grid's finest spacing) adds its evaluations to the grid, so the fit,
+        its bootstrap and its profile interval (:func:`profile_interval`) use them. 1-parameter
+        sweeps on all channels; per-joint sweeps: each identifiable joint on its own channels,
+        the other joints at their fits (its grid joins :attr:`Sweep.joint_grids`). Sweeps of two
+        parameters are left to the quadratic. ``sw.polished`` lists the parameters polished.
+
+        ``force``: polish every fitted parameter (forward selection does so for each effect it
+        names: a kinked objective, a dead band's hockey stick, is fitted off its vertex by the
+        quadratic even where the quadratic stays positive). Returns whether anything was polished."""
+        from scipy.optimize import minimize_scalar
+
+        ones = np.ones(sw.S.shape[1])
+        if sw.joints is None:
+            if sw.X.shape[1] != 1:
+                return False
+            if sw.names[0] in sw.polished or not (force or quadratic_fails(sw.X, sw.S.sum(axis=(1, 2, 3)))):
+                return False
+            xs = np.sort(sw.X[:, 0])
+            g = float(sw.X[int(np.argmin(sw.S.sum(axis=(1, 2, 3)))), 0])
+            lo, hi = max(xs[xs < g].max(initial=0.0), 0.0), min(xs[xs > g].min(initial=1.0), 1.0)
+
+            def f1(x: float) -> float:
+                self._add(sw, np.array([[x]]))
+                i = int(np.argmin(np.abs(sw.X[:, 0] - x)))
+                return float(sw.S[i].sum())
+
+            minimize_scalar(f1, bounds=(lo, hi), method="bounded", options={"xatol": sw.resolution * POLISH_XTOL, "maxiter": POLISH_ITER})
+            sw.polished.append(sw.names[0])
+            return True
+        params, _ = self.fit(sw, ones)
+        idents = [ok for ok in sw.identifiable] if not sw.joint_grids else [n in sw.joint_grids for n, _ in sw.joints]
+        todo = []
+        for (name, ch), ok in zip(sw.joints, idents):
+            if not ok:
+                continue
+            X, S = sw.grid_of(name)
+            if name not in sw.polished and (force or quadratic_fails(X, S[:, :, ch].sum(axis=(1, 2, 3)))):
+                todo.append((name, ch))
+        if not todo:
+            return False
+        if not sw.joint_grids:  # from now on every identifiable joint is fitted on a grid of its own
+            for (name, _), ok in zip(sw.joints, idents):
+                if ok:
+                    sw.joint_grids[name] = (sw.X.copy(), sw.S.copy())
+        p0 = next(p for p in sw.cls.params if p.name == sw.joints[0][0])
+        span = p0.hi - p0.lo
+        for name, ch in todo:
+            X, S = sw.joint_grids[name]
+            T = S[:, :, ch].sum(axis=(1, 2, 3))
+            xs = np.sort(X[:, 0])
+            g = float(X[int(np.argmin(T)), 0])
+            lo, hi = max(xs[xs < g].max(initial=0.0), 0.0), min(xs[xs > g].min(initial=1.0), 1.0)
+            others = {n: v for n, v in params.items() if n != name}
+
+            def fj(x: float, name: str = name, ch: list[int] = ch, others: dict = others) -> float:
+                Sx = self.score([sw.cls(**{**others, name: float(p0.lo + x * span)})])
+                Xg, Sg = sw.joint_grids[name]
+                sw.joint_grids[name] = (np.vstack([Xg, [[x]]]), np.concatenate([Sg, Sx]))
+                return float(Sx[0][:, ch].sum())
+
+            minimize_scalar(fj, bounds=(lo, hi), method="bounded", options={"xatol": sw.resolution * POLISH_XTOL, "maxiter": POLISH_ITER})
+            sw.polished.append(name)
+            params, _ = self.fit(sw, ones)
+        sw.verify_S = self.score([sw.cls(**params)])[0]
+        return True
 
     def _add(self, sw: Sweep, X: np.ndarray) -> None:
         X = np.array([x for x in X if not np.any(np.all(np.abs(sw.X - x) < 1e-9, axis=1))]).reshape(-1, sw.X.shape[1])
