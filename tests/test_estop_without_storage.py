@@ -271,3 +271,47 @@ def test_the_audit_backlog_keeps_order_and_time_until_storage_is_back(client):
     assert [r.subject for r in rows] == [f"m{i}" for i in range(count)]
     for row, before, after in zip(rows, stamps, stamps[1:]):
         assert before <= row.at.timestamp() <= after  # the time of the event, not of the flush
+
+
+def test_an_unwritable_latch_file_keeps_the_latch_in_memory(tmp_path):
+    """The server's latch file cannot be written (its folder is a file): the latch holds in memory,
+    the stop is still put, and the file is written once it can be; a new line reads it back."""
+    from concurrent.futures import TimeoutError as FutureTimeout
+
+    from server.estop import EstopLine, EstopUnconfirmed
+
+    class Session:
+        def __init__(self):
+            self.puts: list[str] = []
+
+        def put(self, key, payload, **_kw):
+            self.puts.append(str(key))
+
+    blocker = tmp_path / "var"
+    blocker.write_text("not a folder")  # the data dir's place is taken: every write fails
+    latch_file = blocker / "estop_latches.json"
+    session = Session()
+    line = EstopLine(session, lambda request, *_a: request, resend_s=0.02, deadline_s=0.1, relatch_s=0.05,
+                     latch_file=latch_file)
+    try:
+        future = line.press("m1", "drill (op)", "op")
+        try:
+            future.result(timeout=5)
+            raise AssertionError("an unanswered stop was confirmed")
+        except EstopUnconfirmed:
+            pass
+        except FutureTimeout:
+            raise AssertionError("the press never failed") from None
+        assert line.latch("m1") is not None and line.latch("m1").reason == "drill (op)"
+        wait_for(lambda: not line.latches_persisted, 5, "the failed write noticed")
+        sent = len(session.puts)
+        wait_for(lambda: len(session.puts) > sent + 3, 5, "the latched stop put again")
+        blocker.unlink()
+        wait_for(lambda: line.latches_persisted and latch_file.exists(), 10, "the latch file written once it can be")
+    finally:
+        line.close()
+    again = EstopLine(Session(), lambda request, *_a: request, latch_file=latch_file)
+    try:
+        assert again.latch("m1") is not None and "drill" in again.latch("m1").reason
+    finally:
+        again.close()

@@ -178,21 +178,24 @@ def test_immutable_shm_file_gives_a_fault_state_not_a_sigbus(settings, zenoh_end
     assert rc == 0 and [o[1] for o in out] == [200, 200], out
 
 
-def test_shm_made_immutable_while_serving_is_503_not_a_sigbus(settings, zenoh_endpoint):
+def test_database_made_immutable_while_serving_is_503_not_a_sigbus(settings, zenoh_endpoint):
+    """The database file made immutable between requests: the next write is refused with the
+    condition. There is no memory-mapped ``-shm`` to die through (a rollback journal, not WAL:
+    server.db.session.SQLITE_JOURNAL_MODE)."""
     db = settings.data_dir / "slinger.db"
     upgrade(f"sqlite:///{db}")
     add_user_direct(db)
-    shm = db.with_name("slinger.db-shm")
     if os.geteuid() != 0 or not shutil.which("chattr"):
         pytest.skip("needs root and chattr")
     try:
-        rc, out = _serve_once(settings, zenoh_endpoint, freeze_shm=str(shm))
+        rc, out = _serve_once(settings, zenoh_endpoint, freeze_shm=str(db))
     finally:
-        subprocess.run(["chattr", "-i", str(shm)])
+        subprocess.run(["chattr", "-i", str(db)])
     assert rc == 0, out  # before: SIGBUS at the next write (exit 135)
     assert [o[:3] for o in out] == [["/api/health", 200, None], ["/api/auth/login", 200, None],
                                     ["/api/auth/login", 503, "database_read_only"],
                                     ["/api/health", 503, "database_read_only"]], out
+    assert not db.with_name("slinger.db-shm").exists()
 
 
 def add_user_direct(db: Path) -> None:
@@ -232,3 +235,58 @@ def test_storage_checks_keep_sqlite_locks(tmp_path):
     finally:
         conn.execute("ROLLBACK")
         conn.close()
+
+
+MID_WRITE = r"""
+import json, os, subprocess, sys
+from argon2 import PasswordHasher
+import server.auth
+server.auth._hasher = PasswordHasher(time_cost=1, memory_cost=1024, parallelism=1)
+from fastapi.testclient import TestClient
+from server.app import create_app
+from server.auth import audit
+from server.config import Settings
+args = json.loads(sys.argv[1])
+settings = Settings(data_dir=args["data_dir"], zenoh_listen=[args["zenoh"]], viser_enabled=False, auto_migrate=True,
+                    require_preview=False, job_queue_url="immediate", query_timeout_s=2.0)
+db = os.path.join(args["data_dir"], "slinger.db")
+files = lambda: [db + s for s in ("", "-wal", "-shm", "-journal") if os.path.exists(db + s)]
+out = []
+with TestClient(create_app(settings)) as c:
+    for i in range(3):
+        try:
+            with c.app.state.sessions.begin() as s:
+                for k in range(200):
+                    audit(s, "system", "probe", f"row{i}-{k}", pad="x" * 2000)
+                s.flush()  # the write is under way, past every check before it
+                subprocess.run(["chattr", "+i", *files()], check=True)
+            out.append("committed")
+        except Exception as e:
+            out.append(type(e).__name__)
+        finally:
+            subprocess.run(["chattr", "-i", *files()])
+        out.append(c.get("/api/health").status_code)
+print("RESULT " + json.dumps(out), flush=True)
+"""
+
+
+def test_database_files_made_immutable_mid_write_give_an_error_not_a_sigbus(settings, zenoh_endpoint):
+    """The database's files made immutable while a write transaction is under way (its rows
+    flushed, the commit next): the commit fails with an error and the server answers on; before,
+    the WAL index's memory-mapped ``-shm`` killed the process with SIGBUS (exit 135) at the commit
+    (server.db.session.SQLITE_JOURNAL_MODE)."""
+    if os.geteuid() != 0 or not shutil.which("chattr"):
+        pytest.skip("needs root and chattr")
+    settings.data_dir.mkdir(parents=True)
+    args = {"data_dir": str(settings.data_dir), "zenoh": zenoh_endpoint}
+    try:
+        p = subprocess.run([sys.executable, "-c", MID_WRITE, json.dumps(args)], capture_output=True, text=True,
+                           timeout=180, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    finally:
+        for f in settings.data_dir.glob("slinger.db*"):
+            subprocess.run(["chattr", "-i", str(f)])
+    assert p.returncode == 0, (p.returncode, p.stderr[-2000:])  # before: -7 / 135, a bus error
+    line = next(ln for ln in p.stdout.splitlines() if ln.startswith("RESULT "))
+    out = json.loads(line[7:])
+    assert out[1::2] == [200, 200, 200], out  # storage healthy again after each fault
+    assert all(o != "committed" for o in out[0::2]), out  # the write failed with an error instead

@@ -3,6 +3,7 @@ the typed row count of an executed UPDATE or DELETE."""
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import cast
 
@@ -10,6 +11,18 @@ from sqlalchemy import CursorResult, Engine, Result, create_engine, event
 from sqlalchemy.orm import Session, sessionmaker
 
 import server.db.aggregates  # noqa: F401  (registers the listener that keeps the accuracy aggregates)
+
+log = logging.getLogger(__name__)
+
+SQLITE_JOURNAL_MODE = "TRUNCATE"
+"""SQLite's journal: a rollback journal (https://sqlite.org/pragma.html#pragma_journal_mode), not
+WAL. WAL keeps its index in ``<db>-shm``, a file every connection maps into memory: if that file
+becomes unwritable (immutable, its disk gone) while a write is under way, the next store through
+the mapping kills the process with SIGBUS, whatever checks ran before. A rollback journal is
+written and read with plain system calls, so every storage fault is an error the server can
+answer (server.storage), and it keeps the locking of several processes on one file (the server,
+its job workers and ``slinger user``; unlike WAL with ``locking_mode=EXCLUSIVE``, which would
+leave one process alone). Its cost: a write waits for running reads to end (the busy timeout)."""
 
 
 def rowcount(result: Result) -> int:
@@ -21,8 +34,10 @@ def rowcount(result: Result) -> int:
 def make_engine(database_url: str, busy_timeout_s: float = 10.0) -> Engine:
     """An engine for ``database_url``.
 
-    SQLite: allow use from Zenoh callback threads and FastAPI's threadpool, enable foreign keys
-    and WAL, wait up to ``busy_timeout_s`` on a locked database instead of failing at once (then
+    SQLite: allow use from Zenoh callback threads and FastAPI's threadpool, enable foreign keys,
+    use the rollback journal of :data:`SQLITE_JOURNAL_MODE` and no memory-mapped I/O
+    (``mmap_size=0``: no file of the database is mapped, so a storage fault is an error, never a
+    SIGBUS), wait up to ``busy_timeout_s`` on a locked database instead of failing at once (then
     "database is locked": server.storage answers 503), and provide
     ``sqrt`` and ``floor`` where the SQLite build lacks its math functions (server.accuracy
     uses them).
@@ -36,7 +51,11 @@ def make_engine(database_url: str, busy_timeout_s: float = 10.0) -> Engine:
         def _sqlite_pragmas(dbapi_conn, _record):
             cur = dbapi_conn.cursor()
             cur.execute("PRAGMA foreign_keys=ON")
-            cur.execute("PRAGMA journal_mode=WAL")
+            cur.execute("PRAGMA mmap_size=0")
+            mode = cur.execute(f"PRAGMA journal_mode={SQLITE_JOURNAL_MODE}").fetchone()
+            if mode is None or str(mode[0]).upper() != SQLITE_JOURNAL_MODE:  # WAL left by another process still open
+                log.warning("SQLite journal mode is %s, not %s (another connection holds the database)",
+                            mode[0] if mode else "unknown", SQLITE_JOURNAL_MODE)
             try:
                 cur.execute("SELECT sqrt(1.0)")
             except Exception:  # noqa: BLE001  sqlite3.OperationalError: no such function
