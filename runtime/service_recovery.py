@@ -15,6 +15,8 @@ import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from runtime.outcome import TickOutput
 from runtime.protocol.messages import MachineState, Message, ReturnToReady, ReturnToReadyAck, encode
 from runtime.recovery import ReturnToReady as Recovery
@@ -78,6 +80,7 @@ class RecoveryHandling:
                 if state is None:  # _return_refusal refuses without a state
                     raise RuntimeError("return to the ready pose accepted without a machine state")
                 self.recovery = Recovery(state.q, state.stamp_s, self._recovery_ctrl)
+                self._return_trips = state.watchdog_trips
                 self.publish_info()
         log.log(logging.WARNING if reason else logging.INFO, "return to the ready pose %s for %s%s",
                 "refused" if reason else "started", self._who(req), f": {reason}" if reason else "")
@@ -104,8 +107,17 @@ class RecoveryHandling:
             raise RuntimeError("no return to the ready pose was started")
         return self.recovery
 
+    _return_trips: int | None = None
+    """The machine's valve-watchdog count when the current return started (None: not reported)."""
+
     def _tick_return(self, state: MachineState) -> TickOutput:
+        """One machine state of a return to the ready pose; a valve-watchdog trip of the machine
+        since it started stops it for good (finality, as for a throw)."""
         recovery = self._current_recovery()
+        trips = state.watchdog_trips
+        if trips is not None and (self._return_trips is None or trips > self._return_trips):
+            self._stop_return("machine link lost: the machine's valve watchdog stopped the arm")
+            return TickOutput(np.zeros(4), np.zeros(4), bool(self._gripper_sent), (), None)
         ctrl = recovery.tick(state.q, state.qd, state.stamp_s)
         if not recovery.status.active:
             log.info("return to the ready pose: %s", recovery.status.result)

@@ -353,3 +353,21 @@ def test_sigstop_of_the_runtime_mid_swing_fails_the_throw_for_good(tmp_path):
         for proc in (plant, runtime):
             if proc is not None:
                 _stop(proc)
+
+
+def test_a_valve_watchdog_trip_stops_a_return_to_the_ready_pose_for_good(holding_path):
+    from runtime.protocol.messages import ReturnToReady, ReturnToReadyAck
+
+    loop = Loop(holding_path)
+    _run(loop, 5)
+    ack = decode(ReturnToReadyAck, loop.service.handle_return_to_ready(encode(sign(ReturnToReady(machine_id="m1"), KEY, "op", EPOCH))))
+    assert ack.accepted, ack.reason
+    _run(loop, 10)
+    assert loop.service.returning
+    state = loop.machine_period().model_copy(update={"watchdog_trips": loop.inbox.watchdog_trips + 1})
+    mark = len(loop.sent)
+    loop.deliver(state)
+    assert not loop.service.returning
+    assert loop.service.recovery.status.result == "stopped: machine link lost: the machine's valve watchdog stopped the arm"
+    _run(loop, 20)
+    assert all(not any(v.u) for v in loop.of(keys.valve_cmd("m1"), ValveCommand, mark))
