@@ -4,10 +4,12 @@ simulated machine, runtime; the deployed 2D policy).
 
 Per throw, as the console: wait until the machine is READY, preview (one rollout), send the throw
 with that preview; a throw refused because the preview no longer matches the machine (409) is
-previewed again. Every minute the resident memory (VmRSS) of each process is sampled. Prints and
+previewed again. The resident memory (VmRSS) of each process is sampled every minute and every
+``--sample-every`` throws (the server's and the worker's are printed every 100 throws). Prints and
 writes (``--out``): throws per minute, previews needed per throw, final statuses, and memory per
 process over time (MiB; first sample after a warm-up of ``--warmup-min`` minutes, last sample,
-growth). Goal: memory flat after warm-up, one preview per throw.
+growth, and the least-squares slope of RSS against throws after warm-up in MiB per 100 throws).
+Goal: memory flat after warm-up, one preview per throw.
 
 Run: ``PYTHONPATH=. python tests/benchmarks/bench_soak.py --minutes 60 --out reports/soak``
 """
@@ -31,7 +33,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from tests.benchmarks.bench_estop_isolation import host_info  # noqa: E402
-from tests.fault_stack import FINAL, TARGET_2D, FaultStack, orphans  # noqa: E402
+from tests.fault_stack import TARGET_2D, FaultStack, orphans  # noqa: E402
 
 log = logging.getLogger("bench_soak")
 
@@ -80,20 +82,32 @@ def one_throw(stack: FaultStack, max_previews: int = 5) -> tuple[int, str, str |
     return max_previews, "refused", reason
 
 
-def run(minutes: float, warmup_min: float, policy: Path) -> dict:
+def run(minutes: float, warmup_min: float, policy: Path, sample_every: int = 25) -> dict:
     stop_at = time.monotonic() + 60.0 * minutes
     previews, statuses, refusals, memory = [], Counter(), Counter(), []
     t_start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="bench-soak-") as tmp:
         stack = FaultStack(Path(tmp), policy)
         stack.start_timeout_s = 400.0
+
+        def sample() -> dict:
+            row = {"t_min": round((time.monotonic() - t_start) / 60.0, 2), "throws": sum(statuses.values()),
+                   **{name: rss_mib(stack.procs[name].pid) for name in PROCESSES}}
+            memory.append(row)
+            return row
+
         with stack:
-            next_sample = time.monotonic()
+            next_sample, next_count = time.monotonic(), sample_every
             while time.monotonic() < stop_at:
                 if time.monotonic() >= next_sample:
-                    memory.append({"t_min": round((time.monotonic() - t_start) / 60.0, 2), "throws": sum(statuses.values()),
-                                   **{name: rss_mib(stack.procs[name].pid) for name in PROCESSES}})
+                    sample()
                     next_sample += 60.0
+                if sum(statuses.values()) >= next_count:
+                    row = sample()
+                    next_count += sample_every
+                    if row["throws"] % 100 == 0:
+                        print(f"{row['throws']:5d} throws, {row['t_min']:6.1f} min: server {row['server']:.1f} MiB, "
+                              f"worker {row['worker']:.1f} MiB, runtime {row['runtime']:.1f} MiB", flush=True)
                 if not _ready(stack, 60):
                     refusals["not ready within 60 s: " + str((stack.machine() or {}).get("not_ready_reason"))] += 1
                     continue
@@ -116,17 +130,30 @@ def run(minutes: float, warmup_min: float, policy: Path) -> dict:
             "refusals": dict(refusals.most_common(10)), "memory": memory, "orphans": left, "warmup_min": warmup_min}
 
 
+def _slope_per_100(points: list[tuple[int, float]]) -> float | None:
+    """Least-squares slope of RSS (MiB) against throws, per 100 throws; None without a spread of
+    throw counts."""
+    n = len(points)
+    mx = sum(x for x, _ in points) / n
+    my = sum(y for _, y in points) / n
+    sxx = sum((x - mx) ** 2 for x, _ in points)
+    if sxx == 0:
+        return None
+    return round(100.0 * sum((x - mx) * (y - my) for x, y in points) / sxx, 2)
+
+
 def summary(out: dict) -> dict:
     """Throws per minute, previews per throw and memory growth per process after warm-up."""
     throws = sum(out["statuses"].values())
     mem = [m for m in out["memory"] if m["t_min"] >= out["warmup_min"]] or out["memory"]
     growth = {}
     for name in PROCESSES:
-        vals = [(m["t_min"], m[name]) for m in mem if m[name] is not None]
+        vals = [(m["throws"], m[name]) for m in mem if m[name] is not None]
         if len(vals) >= 2:
-            (t0, a), (t1, b) = vals[0], vals[-1]
+            (_, a), (_, b) = vals[0], vals[-1]
             growth[name] = {"after_warmup_mib": round(a, 1), "last_mib": round(b, 1), "growth_mib": round(b - a, 1),
-                            "growth_mib_per_100_throws": round(100.0 * (b - a) / max(1, mem[-1]["throws"] - mem[0]["throws"]), 2)}
+                            "growth_mib_per_100_throws": round(100.0 * (b - a) / max(1, mem[-1]["throws"] - mem[0]["throws"]), 2),
+                            "slope_mib_per_100_throws": _slope_per_100(vals)}
     p = out["previews"]
     return {"throws": throws, "throws_per_min": round(throws / out["elapsed_min"], 2) if out["elapsed_min"] else None,
             "previews_per_throw_mean": round(sum(p) / len(p), 3) if p else None,
@@ -138,14 +165,15 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=60.0)
     parser.add_argument("--warmup-min", type=float, default=2.0, help="memory growth is measured from here on")
+    parser.add_argument("--sample-every", type=int, default=25, help="also sample memory every this many throws")
     parser.add_argument("--policy", type=Path, default=REPO / "policies" / "throw2d.onnx")
     parser.add_argument("--out", type=Path, default=None, help="write <out>.json and <out>.md")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)
-    started = dt.datetime.now(dt.timezone.utc)
+    started = dt.datetime.now(dt.UTC)
     host0 = host_info()
-    out = run(args.minutes, args.warmup_min, args.policy)
+    out = run(args.minutes, args.warmup_min, args.policy, args.sample_every)
     s = summary(out)
     report = {
         "benchmark": "soak: console-style preview and throw loop on one simulated machine",
@@ -164,7 +192,7 @@ def main() -> int:
     print(f"previews per throw: mean {s['previews_per_throw_mean']}, {s['throws_needing_more_than_one_preview']} throws needed more than one")
     for name, g in s["memory"].items():
         print(f"{name:8s} RSS {g['after_warmup_mib']} -> {g['last_mib']} MiB ({g['growth_mib']:+} MiB, "
-              f"{g['growth_mib_per_100_throws']:+} MiB / 100 throws)")
+              f"{g['growth_mib_per_100_throws']:+} MiB / 100 throws; slope {g['slope_mib_per_100_throws']} MiB / 100 throws)")
     print(f"orphaned processes: {len(out['orphans'])}")
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -177,9 +205,10 @@ def main() -> int:
                  f"* throws: {s['throws']} ({s['throws_per_min']} per minute), statuses {s['statuses']}",
                  f"* previews per throw: mean {s['previews_per_throw_mean']}; throws needing more than one: "
                  f"{s['throws_needing_more_than_one_preview']}", "",
-                 "| process | RSS after warm-up MiB | last MiB | growth MiB | MiB / 100 throws |", "|---|---|---|---|---|"]
-        lines += [f"| {n} | {g['after_warmup_mib']} | {g['last_mib']} | {g['growth_mib']:+} | {g['growth_mib_per_100_throws']:+} |"
-                  for n, g in s["memory"].items()]
+                 "| process | RSS after warm-up MiB | last MiB | growth MiB | MiB / 100 throws | slope MiB / 100 throws |",
+                 "|---|---|---|---|---|---|"]
+        lines += [f"| {n} | {g['after_warmup_mib']} | {g['last_mib']} | {g['growth_mib']:+} | {g['growth_mib_per_100_throws']:+} "
+                  f"| {g['slope_mib_per_100_throws']} |" for n, g in s["memory"].items()]
         lines += ["", f"Reproduce: `{report['command']}`", ""]
         args.out.with_suffix(".md").write_text("\n".join(lines))
     return 0

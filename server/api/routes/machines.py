@@ -48,7 +48,8 @@ STORAGE_ERRORS = (StorageFault, SQLAlchemyError, OSError)
 """What a database read raises during a storage fault (server.storage)."""
 
 
-@router.get("", response_model=list[MachineOut], responses=errors(401))
+@router.get("", response_model=list[MachineOut], responses=errors(
+    401, (503, "the session is not in memory and storage does not answer")))
 def list_machines(request: Request, sessions: SessionsDep, fleet: FleetDep) -> list[MachineOut]:
     """All machines in the database plus any heard on Zenoh or latched on the server, sorted by id.
 
