@@ -30,7 +30,7 @@ What only the simulated machine does stays here, behind the machine interface:
   throw) and disarms: valve commands are held neutral until a neutral one arrives (the runtime
   sends neutral once its throw has ended). A non-neutral command whose stamp (the stamp of the
   machine state it answers, this plant's monotonic clock) is older than STALE_COMMAND_S was
-  queued somewhere (a stalled runtime) and is dropped.
+  queued somewhere (a stalled runtime) and is dropped; so is such a gripper open command.
 * real time: when a period starts more than 100 ms late (sim_twin.realtime.BEHIND_FAULT_S), the
   plant publishes ``machine_fault`` "behind real time by N ms" and holds the valves neutral
   until it has kept real time for 1 s (RECOVER_S, RealTimeGuard); the runtime refuses throws
@@ -147,7 +147,13 @@ class PlantInbox:
             self.wake.set()  # (always: the loop may be deciding to rest right now)
 
     def on_gripper(self, sample) -> None:
+        """The gripper command; an open (release) command answering a state older than
+        STALE_COMMAND_S is dropped (queued at a stalled runtime: a late release)."""
         msg = self._decode(GripperCommand, sample)
+        if msg is not None and msg.open and time.monotonic() - msg.stamp_s > STALE_COMMAND_S:
+            log.warning("dropping a gripper open command %.0f ms old (queued at a stalled runtime)",
+                        (time.monotonic() - msg.stamp_s) * 1e3)
+            return
         if msg is not None:
             with self.lock:
                 changed, self.gripper_open = msg.open != self.gripper_open, msg.open

@@ -72,7 +72,7 @@ def test_commands_for_other_machines_or_malformed_are_dropped():
 
 def test_gripper_release_and_one_impact_report():
     twin, inbox = TwinMachine(SimulatedMachine(seed=0), "m1"), PlantInbox("m1")
-    inbox.on_gripper(_sample(GripperCommand(machine_id="m1", stamp_s=0.0, open=True)))
+    inbox.on_gripper(_sample(GripperCommand(machine_id="m1", stamp_s=time.monotonic(), open=True)))
     reports = [r for k in range(300) if (r := plant_tick(twin, inbox, 10.0 + 0.01 * k)[1]) is not None]
     assert len(reports) == 1
     rep = reports[0]
@@ -84,7 +84,7 @@ def test_gripper_release_and_one_impact_report():
 
 def test_the_plant_reloads_by_itself_a_second_after_the_landing():
     twin, inbox = TwinMachine(SimulatedMachine(seed=0), "m1"), PlantInbox("m1")
-    inbox.on_gripper(_sample(GripperCommand(machine_id="m1", stamp_s=0.0, open=True)))
+    inbox.on_gripper(_sample(GripperCommand(machine_id="m1", stamp_s=time.monotonic(), open=True)))
     landed_at = None
     for k in range(400):
         st, report = plant_tick(twin, inbox, 10.0 + 0.01 * k)

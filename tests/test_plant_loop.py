@@ -69,7 +69,7 @@ def test_gripper_change_wakes_a_resting_plant_and_a_repeat_does_not(monkeypatch)
     inbox = PlantInbox("m1")
     inbox.on_gripper(_sample(GripperCommand(machine_id="m1", stamp_s=0.0, open=False)))
     assert not inbox.wake.is_set()
-    inbox.on_gripper(_sample(GripperCommand(machine_id="m1", stamp_s=0.0, open=True)))
+    inbox.on_gripper(_sample(GripperCommand(machine_id="m1", stamp_s=time.monotonic(), open=True)))
     assert inbox.wake.is_set()
 
 

@@ -39,6 +39,6 @@ def test_a_falling_payload_keeps_the_machine_awake():
     for k in range(REST_TICKS + 20):
         plant_tick(twin, inbox, 0.01 * k)
     assert inbox.resting
-    inbox.on_gripper(_Sample(GripperCommand(machine_id="m1", stamp_s=0.0, open=True)))
+    inbox.on_gripper(_Sample(GripperCommand(machine_id="m1", stamp_s=time.monotonic(), open=True)))
     reports = [r for k in range(300) if (r := plant_tick(twin, inbox, 5.0 + 0.01 * k)[1]) is not None]
     assert len(reports) == 1 and reports[0].impact_pos_m[2] == 0.0

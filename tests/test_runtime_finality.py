@@ -371,3 +371,16 @@ def test_a_valve_watchdog_trip_stops_a_return_to_the_ready_pose_for_good(holding
     assert loop.service.recovery.status.result == "stopped: machine link lost: the machine's valve watchdog stopped the arm"
     _run(loop, 20)
     assert all(not any(v.u) for v in loop.of(keys.valve_cmd("m1"), ValveCommand, mark))
+
+
+def test_a_stale_release_command_is_dropped_by_the_plant():
+    from runtime.protocol.messages import GripperCommand
+
+    _NOW[0] = 70.0
+    inbox = PlantInbox("m1")
+    inbox.on_gripper(_Sample(encode(GripperCommand(machine_id="m1", stamp_s=70.0 - STALE_COMMAND_S - 0.1, open=True))))
+    assert not inbox.gripper_open  # a release queued at a stalled runtime comes too late
+    inbox.on_gripper(_Sample(encode(GripperCommand(machine_id="m1", stamp_s=69.99, open=True))))
+    assert inbox.gripper_open
+    inbox.on_gripper(_Sample(encode(GripperCommand(machine_id="m1", stamp_s=10.0, open=False))))
+    assert not inbox.gripper_open  # closing is always obeyed
