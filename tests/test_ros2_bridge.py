@@ -10,6 +10,7 @@ import argparse
 import json
 import os
 import signal
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -410,6 +411,13 @@ def test_bridge_refuses_a_wider_domain_and_sros2_without_middleware_security(ros
         th.join(30)
         assert code == [2] and "could not create node" in caplog.text, caplog.text[-2000:]
         assert "security" in caplog.text.lower()
+    # the wheels' libraries out of reach (their bootstrap marked done, LD_LIBRARY_PATH gone): a clear refusal
+    from server.stack import slinger_command
+
+    env = {k: v for k, v in os.environ.items() if k != "LD_LIBRARY_PATH"} | {"_ROS_WHEELS_BOOTSTRAP_COMPLETE": "1"}
+    r = subprocess.run(slinger_command("ros2-bridge", "--machine-id", "m1", "--connect", f"tcp/127.0.0.1:{free_port()}"),
+                       capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 2 and "rclpy cannot be imported" in r.stderr and "LD_LIBRARY_PATH" in r.stderr, r.stderr[-2000:]
 
 
 # --- the whole chain: slinger up --ros2 -----------------------------------------------------------

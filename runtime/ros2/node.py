@@ -186,7 +186,11 @@ class RosNode:
             import rclpy
             from rclpy.executors import SingleThreadedExecutor
         except ImportError as e:
-            raise RosUnavailable(f"rclpy is not installed (pip install 'slinger[ros2]', or source a ROS 2 installation): {e}") from e
+            raise RosUnavailable(
+                f"rclpy cannot be imported ({e}): install the ros2 extra (pip install 'slinger[ros2]') or source a ROS 2 "
+                "installation; with the wheels, Python finds their libraries through the LD_LIBRARY_PATH that "
+                "ros-wheels-bootstrapper sets when the environment's Python starts (a process started with "
+                "_ROS_WHEELS_BOOTSTRAP_COMPLETE already set but without that LD_LIBRARY_PATH cannot load them)") from e
         self._qos = _qos()
         self.context = rclpy.Context()
         rclpy.init(context=self.context, domain_id=domain_id)
