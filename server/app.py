@@ -20,41 +20,53 @@ from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
-from server.adaptation import AdaptationRuns
-from server.alarms import AlarmService
+from server.accounts import auth_routes as auth
+from server.accounts import user_routes as users
+from server.accounts.auth import AuditBacklog, SessionMirror
+from server.accounts.login_guard import LoginGuard
+from server.analysis import adaptation_routes as adaptation
+from server.analysis import diagnosis_routes as diagnosis
+from server.analysis.adaptation import AdaptationRuns
+from server.analysis.diagnosis import DiagnosisRuns
+from server.analysis.drift import DriftWatch
 from server.api.errors import domain_error
 from server.api.responses import document_errors
-from server.api.routes import adaptation, alarms, auth, diagnosis, health, jobs, live, machines, policies, previews, scene, throws, users
-from server.auth import AuditBacklog, SessionMirror
-from server.command_signer import CommandSigner
+from server.api.web_guard import BodySizeLimit, SecurityHeaders, inline_script_hashes
 from server.config import Settings, get_settings
+from server.console import alarm_routes as alarms
+from server.console import live_routes as live
+from server.console import scene_routes as scene
+from server.console.alarms import AlarmService
+from server.console.live import LiveHub
+from server.console.pages import PageFiles
+from server.console.scene import ConsoleScene
 from server.db.migrate import upgrade
 from server.db.models import Throw
 from server.db.session import make_engine, make_sessionmaker
-from server.diagnosis import DiagnosisRuns
-from server.drift import DriftWatch
 from server.errors import DomainError
-from server.fleet import Fleet
-from server.fleet_events import on_results
+from server.fleet import routes as machines
+from server.fleet.command_signer import CommandSigner
+from server.fleet.events import on_results
+from server.fleet.link import Fleet
+from server.fleet.reconcile import Reconciler
+from server.fleet.results import ResultStore
 from server.jobs import JobQueue, JobStore, queue_url
+from server.jobs import routes as jobs
 from server.jobs import tasks as job_tasks
 from server.jobs.watch import JobWatcher
-from server.live import LiveHub
-from server.login_guard import LoginGuard
-from server.policies import PolicyService
-from server.previews import PreviewService
-from server.reconcile import Reconciler
-from server.results import ResultStore
-from server.scene import ConsoleScene
-from server.storage import StorageFault, StorageMonitor, classify, storage_response
-from server.throws import ThrowService
-from server.web_guard import BodySizeLimit, SecurityHeaders, inline_script_hashes
-from server.web_pages import PageFiles
+from server.policies import routes as policies
+from server.policies.versions import PolicyService
+from server.site import health_routes as health
+from server.site.storage import StorageFault, StorageMonitor, classify, storage_response
+from server.throws import preview_routes as previews
+from server.throws import routes as throws
+from server.throws.previews import PreviewService
+from server.throws.service import ThrowService
 
 log = logging.getLogger(__name__)
 
 ESTOP_LATCH_FILE = "estop_latches.json"
-"""The server's E-STOP latches (server.estop), in the data directory."""
+"""The server's E-STOP latches (server.fleet.estop), in the data directory."""
 
 ROUTE_MODULES = (health, auth, users, machines, throws, previews, policies, scene, live, diagnosis, adaptation, jobs, alarms)
 
@@ -167,7 +179,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
             app.state.login_guard.close()  # its pending audit entries are written first
             session_mirror.stop()
             audit_backlog.flush()
-            storage.release(engine)  # disposes it, unless its files are unwritable (server.storage)
+            storage.release(engine)  # disposes it, unless its files are unwritable (server.site.storage)
 
     app = FastAPI(
         title="Slinger",
@@ -192,7 +204,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
     for module in ROUTE_MODULES:
         app.include_router(module.router)
     if WEB_DIR.is_dir():
-        app.mount("/console", PageFiles(directory=WEB_DIR, html=True), name="console")  # one head: server.web_pages
+        app.mount("/console", PageFiles(directory=WEB_DIR, html=True), name="console")  # one head: server.console.pages
 
         @app.get("/", include_in_schema=False)
         def _root() -> RedirectResponse:
@@ -230,8 +242,8 @@ def _make_scene(fleet: Fleet, throws: ThrowService, live_hub: LiveHub, settings:
     """The 3D view, judging clicked targets like a throw request would (mode geometry, the
     policy's trained range, keep-out zones), pushing console changes live, and binding a view to a
     console only for the console's owner (the session cookie of its websocket)."""
-    from server.auth import user_for_token
-    from server.targets import serve_refusal
+    from server.accounts.auth import user_for_token
+    from server.throws.targets import serve_refusal
 
     def refusal(machine_id: str, mode: str, target) -> str | None:
         state = fleet.latest_state(machine_id)
@@ -253,7 +265,7 @@ def _make_scene(fleet: Fleet, throws: ThrowService, live_hub: LiveHub, settings:
 
 class ResultDrawer:
     """The 3D scene's consumer of stored results: draws each stored throw in the views showing
-    its machine (called with the throw id, :func:`server.fleet_events.on_results`)."""
+    its machine (called with the throw id, :func:`server.fleet.events.on_results`)."""
 
     def __init__(self, scene: ConsoleScene, sessions, store: ResultStore):
         self.scene, self.sessions, self.store = scene, sessions, store
@@ -290,7 +302,7 @@ def _migrate(database_url: str, storage: StorageMonitor) -> None:
 
 
 async def _storage_error(request: Request, exc: Exception) -> JSONResponse:
-    """503 with the reason for a storage fault (server.storage); anything else stays a 500."""
+    """503 with the reason for a storage fault (server.site.storage); anything else stays a 500."""
     fault = classify(exc)
     if fault is None:
         raise exc

@@ -7,15 +7,15 @@ Subcommands::
     slinger db upgrade  alembic upgrade head on the configured database
     slinger user add    add a user (the first admin: slinger user add --admin); user list
     slinger worker      a job worker (previews, evaluations, diagnoses)  (server.jobs.worker)
-    slinger router      the site's Zenoh router              (server.router)
-    slinger plant       the simulated machine            (sim_twin.plant)
+    slinger router      the site's Zenoh router              (server.site.router)
+    slinger plant       the simulated machine            (sim_twin.twin.plant)
     slinger runtime     the runtime of one machine        (runtime.node)
     slinger ros2-bridge a ROS 2 machine behind the machine interface (runtime.ros2.bridge)
-    slinger train       train a policy                   (sim_twin.train)
-    slinger evaluate    evaluate a policy                (sim_twin.evaluate_cli)
+    slinger train       train a policy                   (sim_twin.training.train)
+    slinger evaluate    evaluate a policy                (sim_twin.evaluation.cli)
     slinger diagnose    sim-to-real gap diagnosis        (sim_twin.diagnosis.cli)
-    slinger adapt       adapt a policy to a diagnosed site (sim_twin.adapt)
-    slinger results     docs/results.md from the committed reports (server.results_page)
+    slinger adapt       adapt a policy to a diagnosed site (sim_twin.adaptation.adapt)
+    slinger results     docs/results.md from the committed reports (server.site.results_page)
 
 Settings not given as options come from ``SLINGER_*`` environment variables (server.config).
 ``up``, ``server``, ``db`` and ``user`` are built in; every other subcommand is provided by its
@@ -134,9 +134,9 @@ def _print_urls(settings):
 def cmd_up(args: argparse.Namespace) -> int:
     from runtime.zenoh_acl import site_acl
     from runtime.zenoh_session import TlsFiles, open_session
-    from server import stack
-    from server.certs import make_site
     from server.db.migrate import upgrade
+    from server.site import stack
+    from server.site.certs import make_site
 
     if args.ros2 is not None:  # refuse a bad mapping or a ROS 2 domain open beyond this host before starting anything
         from runtime.ros2.config import ConfigError
@@ -167,7 +167,7 @@ def cmd_up(args: argparse.Namespace) -> int:
                   "to policies/throw2d.onnx + .json, or pass --policy-2d PATH. Server and simulated "
                   "machines start anyway; the console will show the runtimes offline.")
     upgrade(settings.database_url)
-    from server.users_cli import ensure_local_admin
+    from server.accounts.cli import ensure_local_admin
 
     ensure_local_admin(settings.database_url)
     if policies:
@@ -222,7 +222,7 @@ def _delegate(ep: EntryPoint, rest: list[str], prog: str) -> int:
                   file=sys.stderr)
         return 2
     # The module's own main first: it is what `python -m <module>` runs, and it may do more than
-    # parse and run (sim_twin.train re-launches itself under torchrun for --gpus N; the
+    # parse and run (sim_twin.training.train re-launches itself under torchrun for --gpus N; the
     # diagnosis CLI parses options between positional arguments).
     if hasattr(module, "main"):
         return int(module.main(rest) or 0)
@@ -235,7 +235,7 @@ def _delegate(ep: EntryPoint, rest: list[str], prog: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from sim_twin.engines import ENGINES
+    from sim_twin.twin.engines import ENGINES
 
     parser = argparse.ArgumentParser(prog="slinger", description="Slinger: dynamic throwing with material handlers")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -274,7 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
     dbu.add_argument("--revision", default="head")
     dbu.set_defaults(func=cmd_db_upgrade)
 
-    from server.users_cli import build_parser as build_user_parser
+    from server.accounts.cli import build_parser as build_user_parser
 
     build_user_parser(sub)
 

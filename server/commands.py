@@ -23,20 +23,20 @@ def worker() -> ModuleType:
 
 def router() -> ModuleType:
     """the site's Zenoh router (fleets: every process connects to it as a client)"""
-    import server.router as module
+    import server.site.router as module
 
     return module
 
 
 def certs() -> ModuleType:
     """a site's CA, TLS certificates and machine command keys"""
-    import server.certs as module
+    import server.site.certs as module
 
     return module
 
 
 def results() -> ModuleType:
     """docs/results.md from the committed reports (--check: fail when stale)"""
-    import server.results_page as module
+    import server.site.results_page as module
 
     return module

@@ -46,7 +46,7 @@ class Settings(BaseSettings):
         database_busy_timeout_s: how long a request waits for SQLite's write lock before it
             answers 503 "database locked", s.
         storage_min_free_bytes: less free space than this beside a SQLite database is reported
-            as ``disk_full`` (server.storage).
+            as ``disk_full`` (server.site.storage).
         session_ttl_s: how long a log-in stays valid, s.
         cookie_secure: always mark the session cookie Secure (it is anyway when the request came
             over HTTPS: scheme https or ``X-Forwarded-Proto: https``).
@@ -55,7 +55,7 @@ class Settings(BaseSettings):
         login_failures_per_user_address / login_failures_per_address / login_failures_per_user:
             failed log-ins allowed per window before 429, per (user name, client address), per
             address and per user name from all addresses (``limits`` notation; the per-user lock
-            spares addresses the user logged in from: server.login_guard).
+            spares addresses the user logged in from: server.accounts.login_guard).
         trusted_proxies: addresses or networks (e.g. ``["10.0.0.5", "10.1.0.0/16"]``) of reverse
             proxies whose ``X-Forwarded-For``/``X-Forwarded-Proto`` name the client; the header
             of anyone else is ignored. Empty (default): no proxy is trusted, loopback included.
@@ -66,12 +66,12 @@ class Settings(BaseSettings):
             ``SLINGER_KEEP_OUT_ZONES='[{"name": "truck", "center_m": [7, 3], "radius_m": 1.5}]'``.
         keep_out_scatter_sigmas / keep_out_margin_m: the preview's scatter ellipse at this many
             sigma (or, without an ellipse, its nominal impact plus the margin, m) must stay out of
-            every keep-out zone (server.targets.scatter_refusal; the gate's ``keep_out_scatter``).
+            every keep-out zone (server.throws.targets.scatter_refusal; the gate's ``keep_out_scatter``).
         clearance_radius_m: the swing must stay within this horizontal distance of the turn
             axis (the machine's clearance zone), m.
         release_check_radius_m: the release check's radius, m, or None ("off"): given to the
             runtimes that ``slinger up`` starts (``--release-check-radius``) and to every preview
-            (sim_twin.preview.PreviewRequest), so that a preview holds a release as the machine
+            (sim_twin.preview.preview.PreviewRequest), so that a preview holds a release as the machine
             would (runtime.release_check; env ``SLINGER_RELEASE_CHECK_RADIUS_M``, default 3.0).
         preview_rollouts: Monte Carlo rollouts of a full preview (1 sigma impact ellipse).
         preview_processes: processes a worker runs the Monte Carlo's full rollouts in (a pool
@@ -79,13 +79,13 @@ class Settings(BaseSettings):
             2 cores the 200-rollout ellipse takes about 40 % of its one-process time
             (tests/benchmarks/bench_preview.py).
         preview_profile: the site's reality profile with its uncertainty block (parameter ranges,
-            start-state model; sim_twin.uncertainty) that previews sample; default
+            start-state model; sim_twin.twin.uncertainty) that previews sample; default
             sim_twin/profiles/nominal_uncertain.json. A policy version adapted to a diagnosed site
             (``slinger adapt``) carries its own fitted profile, which then takes precedence.
         eval_distances_m / eval_throws: the small twin evaluation of an uploaded policy version
             (throws per distance); empty distances: the policy's trained range in 3 steps.
         require_validation: a policy version is promoted only after it passed its validation
-            (server.policy_validation; a rollback is not checked).
+            (server.policies.validation; a rollback is not checked).
         validation_observations / validation_distances / validation_throws_per_distance: the
             validation's observation sweep, and its twin throws over the declared target range
             (distances spanning it, random start poses each).
@@ -93,12 +93,12 @@ class Settings(BaseSettings):
             (exceeded: the version fails validation with that reason).
         site_dir: the site directory of ``slinger certs`` (command keys in
             ``machines/<id>/command.key``); default ``<data_dir>/site``.
-        require_preview: a throw needs a fresh OK preview of the same request (server.throw_gate);
+        require_preview: a throw needs a fresh OK preview of the same request (server.throws.gate);
             only tests of unrelated parts switch it off.
         preview_max_age_s / preview_target_tolerance_m / preview_max_active_joint_delta /
-            preview_max_passive_joint_delta: the gate's bounds (server.throw_gate.GateLimits).
+            preview_max_passive_joint_delta: the gate's bounds (server.throws.gate.GateLimits).
         reconcile_period_s / result_grace_s / runtime_gone_s: bounds of the reconciliation of
-            open throws (server.reconcile), s.
+            open throws (server.fleet.reconcile), s.
         preview_timeout_s: how long the API awaits a worker's preview before answering 503 (the
             bar for a preview is 3 s; this limit only keeps a request from waiting forever).
         job_queue_url: the job queue of the workers (server.jobs.queue): ``sqlite:///FILE``,
@@ -162,7 +162,7 @@ class Settings(BaseSettings):
     runtime_gone_s: float = Field(30.0, gt=0)
     job_queue_url: str = ""
     drift_webhook_url: str = ""
-    """POST every drift alert (server.drift) to this URL as JSON; empty: none."""
+    """POST every drift alert (server.analysis.drift) to this URL as JSON; empty: none."""
     preview_timeout_s: float = 15.0
 
     @field_validator("release_check_radius_m", mode="before")
@@ -183,7 +183,7 @@ class Settings(BaseSettings):
 
     def gate_limits(self):
         """The preview gate's bounds, or None when ``require_preview`` is off."""
-        from server.throw_gate import GateLimits
+        from server.throws.gate import GateLimits
 
         if not self.require_preview:
             return None
@@ -192,9 +192,9 @@ class Settings(BaseSettings):
                           self.keep_out_scatter_sigmas, self.keep_out_margin_m)
 
     def validation_limits(self, upload: bool = False):
-        """server.policy_validation.ValidationLimits from these settings; ``upload``: the quick
+        """server.policies.validation.ValidationLimits from these settings; ``upload``: the quick
         check of an upload (64 observations, no twin throws, at most 60 s)."""
-        from server.policy_validation import ValidationLimits
+        from server.policies.validation import ValidationLimits
 
         memory = self.validation_memory_mb << 20
         if upload:

@@ -20,7 +20,7 @@ error              HTTP  meaning
 :class:`Failed`    500   the work itself failed (a preview job raised)
 =================  ====  ==========================================================
 
-The errors of a service subclass these (e.g. ``server.fleet_commands.RuntimeUnavailable`` is an
+The errors of a service subclass these (e.g. ``server.fleet.commands.RuntimeUnavailable`` is an
 :class:`Unavailable`); where an error was a built-in exception before (``ValueError``,
 ``LookupError``, ``RuntimeError``), it keeps that base too, so existing ``except`` clauses hold.
 """

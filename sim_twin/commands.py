@@ -15,21 +15,21 @@ from types import ModuleType
 
 def plant() -> ModuleType:
     """the simulated machine"""
-    import sim_twin.plant as module
+    import sim_twin.twin.plant as module
 
     return module
 
 
 def train() -> ModuleType:
     """train a throwing policy (needs the 'train' extra)"""
-    import sim_twin.train as module
+    import sim_twin.training.train as module
 
     return module
 
 
 def evaluate() -> ModuleType:
     """evaluate a policy version"""
-    import sim_twin.evaluate_cli as module
+    import sim_twin.evaluation.cli as module
 
     return module
 
@@ -43,6 +43,6 @@ def diagnose() -> ModuleType:
 
 def adapt() -> ModuleType:
     """a policy version adapted to a site's (fitted) reality profile"""
-    import sim_twin.adapt as module
+    import sim_twin.adaptation.adapt as module
 
     return module

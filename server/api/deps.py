@@ -15,25 +15,25 @@ from typing import Annotated, TypeVar
 from fastapi import Depends, Request
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.adaptation import AdaptationRuns
-from server.alarms import AlarmService
-from server.auth import COOKIE_NAME, AuditBacklog, SessionMirror, SessionUser, role_at_least, user_for_token
+from server.accounts.auth import COOKIE_NAME, AuditBacklog, SessionMirror, SessionUser, role_at_least, user_for_token
+from server.accounts.login_guard import LoginGuard
+from server.analysis.adaptation import AdaptationRuns
+from server.analysis.diagnosis import DiagnosisRuns
+from server.analysis.drift import DriftWatch
 from server.config import Settings
+from server.console.alarms import AlarmService
+from server.console.live import LiveHub
+from server.console.scene import ConsoleScene
 from server.db.models import User
-from server.diagnosis import DiagnosisRuns
-from server.drift import DriftWatch
 from server.errors import Denied, Unauthenticated
-from server.fleet import Fleet
+from server.fleet.link import Fleet
+from server.fleet.results import ResultStore
 from server.jobs import JobQueue
 from server.jobs.watch import JobWatcher
-from server.live import LiveHub
-from server.login_guard import LoginGuard
-from server.policies import PolicyService
-from server.previews import PreviewService
-from server.results import ResultStore
-from server.scene import ConsoleScene
-from server.storage import StorageMonitor
-from server.throws import ThrowService
+from server.policies.versions import PolicyService
+from server.site.storage import StorageMonitor
+from server.throws.previews import PreviewService
+from server.throws.service import ThrowService
 
 
 def get_db(request: Request) -> Iterator[Session]:
@@ -188,7 +188,7 @@ def get_current_user(request: Request) -> User:
 
 def user_from_memory(request: Request, role: str = "viewer") -> User | SessionUser:
     """The logged-in user of ``request`` with at least ``role``, from the in-memory session
-    mirror (server.auth.SessionMirror: no storage touched); only a token the mirror does not hold
+    mirror (server.accounts.auth.SessionMirror: no storage touched); only a token the mirror does not hold
     is looked up in the database (a session of another process since the last refresh, or an
     invalid one). Used by the E-STOP and the machine list, which must answer during storage faults.
 

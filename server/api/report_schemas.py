@@ -1,8 +1,8 @@
 """Response bodies of the analysis routes: diagnosis and adaptation runs, the effects library, a
 throw's recorded trajectory, accuracy groups and policy comparisons.
 
-The documented fields are the ones these routes always write (server.diagnosis.run_view,
-server.adaptation.adaptation_view, server.accuracy.accuracy, ...); the models allow more, so a
+The documented fields are the ones these routes always write (server.analysis.diagnosis.run_view,
+server.analysis.adaptation.adaptation_view, server.analysis.accuracy.accuracy, ...); the models allow more, so a
 field a newer report adds reaches the console before it is documented here.
 """
 
@@ -101,7 +101,7 @@ class TrajectoryOut(BaseModel):
 
 
 class EllipseOut(BaseModel):
-    """1 sigma error ellipse (server.accuracy.ellipse_of): semi-axes (m), major axis angle from
+    """1 sigma error ellipse (server.analysis.accuracy.ellipse_of): semi-axes (m), major axis angle from
     downrange (rad), outline ((n + 1, 2), m)."""
 
     semi_major_m: float
@@ -111,7 +111,7 @@ class EllipseOut(BaseModel):
 
 
 class AccuracyGroupOut(BaseModel):
-    """Landed throws of one mode, policy version and target-distance bin (server.accuracy.accuracy):
+    """Landed throws of one mode, policy version and target-distance bin (server.analysis.accuracy.accuracy):
     mean, bias and spread of the impact errors (m), the ellipse (None below 3 throws) and up to
     200 errors ([downrange, crossrange], m) for the scatter plot."""
 
@@ -151,7 +151,7 @@ class RollbackTargetOut(BaseModel):
 
 
 class DriftAlertOut(_Open):
-    """A machine's accuracy-drift alert (server.drift.DriftWatch; the ``drift`` event on /api/live)."""
+    """A machine's accuracy-drift alert (server.analysis.drift.DriftWatch; the ``drift`` event on /api/live)."""
 
     machine_id: str
     raised_at: str = Field(description="ISO 8601 UTC")

@@ -1,7 +1,7 @@
 """OpenAPI documentation of the error answers: :func:`errors` builds every route's ``responses=``,
 :func:`document_errors` adds the answers that do not depend on the route's own code.
 
-Every error body is ``{"detail": sentence}`` (server.api.errors, server.storage), plus
+Every error body is ``{"detail": sentence}`` (server.api.errors, server.site.storage), plus
 ``condition`` when the error names one (also in the ``X-Refused-Condition`` header); a 422 of a
 malformed request adds ``fields`` (server.app's validation handler). The schemas:
 ``Problem`` (server.api.schemas) and ``HTTPValidationError`` (:data:`VALIDATION_ERROR_SCHEMA`).
@@ -11,8 +11,8 @@ What :func:`document_errors` adds to every operation (answered outside the route
 * 401 on routes that need a session, 403 on those that need the operator or admin role (found
   from their dependencies: server.api.deps.get_current_user / require_role);
 * 503 on routes that need a session (the session is read from storage: a storage fault answers
-  503 with its condition, server.storage);
-* 400 (a body that does not parse) and 413 (a body over its limit, server.web_guard) on routes
+  503 with its condition, server.site.storage);
+* 400 (a body that does not parse) and 413 (a body over its limit, server.api.web_guard) on routes
   that take a body.
 """
 

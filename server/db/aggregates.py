@@ -45,7 +45,7 @@ _FIELDS = ("machine_id", "mode", "policy_sha256", "policy_version", "target_x_m"
 
 def distance_bin(x_m: float, y_m: float, bin_m: float = DISTANCE_BIN_M) -> int:
     """Bin index of a target at (x, y) (machine frame, m): floor(sqrt(x² + y²) / bin_m + 0.5),
-    i.e. the nearest multiple of ``bin_m``, halves up. The SQL row scan (server.accuracy)
+    i.e. the nearest multiple of ``bin_m``, halves up. The SQL row scan (server.analysis.accuracy)
     evaluates the same IEEE operations in the same order, so both agree to the bit."""
     return math.floor(math.sqrt(x_m * x_m + y_m * y_m) / bin_m + 0.5)
 

@@ -31,7 +31,7 @@ NAMING_CONVENTION = {
 
 THROW_STATUSES = ("requested", "preparing", "swinging", "released", "landed", "failed", "aborted", "lost")
 """Row status: ``requested`` until the runtime reports a phase, then the ThrowStatus phase;
-``lost`` when the server's reconciliation (server.reconcile) finds that the throw's result can
+``lost`` when the server's reconciliation (server.fleet.reconcile) finds that the throw's result can
 never arrive (its runtime restarted without it, or stayed away past the bound), with the reason
 in ``failure_reason``. A late result from the runtime still replaces ``lost``."""
 FINAL_STATUSES = ("landed", "failed", "aborted", "lost")
@@ -84,7 +84,7 @@ class PolicyVersion(Base):
                                                           nullable=True)
     """None (not evaluated), ``pending``, ``running``, ``done`` or ``failed``."""
     metrics: Mapped[dict | None] = mapped_column(JSON, nullable=True)
-    """The twin evaluation report (sim_twin.evaluate format)."""
+    """The twin evaluation report (sim_twin.evaluation.evaluate format)."""
 
 
 class Throw(Base):
@@ -127,7 +127,7 @@ class Throw(Base):
     duration_s: Mapped[float | None] = mapped_column(Float, nullable=True)
     telemetry_path: Mapped[str | None] = mapped_column(String(512), nullable=True)
     preview: Mapped[dict | None] = mapped_column(JSON, nullable=True)
-    """The twin preview the throw was sent with (sim_twin.preview summary), if any."""
+    """The twin preview the throw was sent with (sim_twin.preview.preview summary), if any."""
     requested_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
     runtime_epoch: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
     """The claim epoch of the runtime the throw was sent to (RuntimeInfo.epoch): a runtime with
@@ -146,7 +146,7 @@ class Throw(Base):
 
 class ThrowAccuracy(Base):
     """Incremental accuracy aggregates of the landed throws (server.db.aggregates maintains them
-    in the transaction that changes a throw; server.accuracy answers from them).
+    in the transaction that changes a throw; server.analysis.accuracy answers from them).
 
     One row per (machine, mode, policy SHA-256, policy name, target-distance bin, UTC day of
     ``requested_at``); a missing SHA or name is stored as ``''`` (key columns are NOT NULL).
@@ -184,7 +184,7 @@ def new_session_key() -> str:
 
 
 class User(Base):
-    """An account. ``password_hash`` is an argon2id hash (server.auth).
+    """An account. ``password_hash`` is an argon2id hash (server.accounts.auth).
 
     ``session_key`` is random per account and copied into each of its sessions
     (:attr:`AuthSession.user_key`); a session counts only while the two agree, so a session
@@ -307,7 +307,7 @@ ALARM_CAUSES = ("host_behind_real_time", "runtime_not_answering", "link_lost", "
 
 
 class Alarm(Base):
-    """One alarm (server.alarms, after ISA-18.2 / IEC 62682): raised by a condition, cleared
+    """One alarm (server.console.alarms, after ISA-18.2 / IEC 62682): raised by a condition, cleared
     when the condition is gone, acknowledged by an operator (who, when), possibly shelved until
     a time. It leaves the active list once it is both cleared and acknowledged; the row stays as
     the alarm history. ``key`` names the condition (one active alarm per key)."""

@@ -20,7 +20,7 @@ WAL. WAL keeps its index in ``<db>-shm``, a file every connection maps into memo
 becomes unwritable (immutable, its disk gone) while a write is under way, the next store through
 the mapping kills the process with SIGBUS, whatever checks ran before. A rollback journal is
 written and read with plain system calls, so every storage fault is an error the server can
-answer (server.storage), and it keeps the locking of several processes on one file (the server,
+answer (server.site.storage), and it keeps the locking of several processes on one file (the server,
 its job workers and ``slinger user``; unlike WAL with ``locking_mode=EXCLUSIVE``, which would
 leave one process alone). Its cost: a write waits for running reads to end (the busy timeout)."""
 
@@ -38,8 +38,8 @@ def make_engine(database_url: str, busy_timeout_s: float = 10.0) -> Engine:
     use the rollback journal of :data:`SQLITE_JOURNAL_MODE` and no memory-mapped I/O
     (``mmap_size=0``: no file of the database is mapped, so a storage fault is an error, never a
     SIGBUS), wait up to ``busy_timeout_s`` on a locked database instead of failing at once (then
-    "database is locked": server.storage answers 503), and provide
-    ``sqrt`` and ``floor`` where the SQLite build lacks its math functions (server.accuracy
+    "database is locked": server.site.storage answers 503), and provide
+    ``sqrt`` and ``floor`` where the SQLite build lacks its math functions (server.analysis.accuracy
     uses them).
     """
     if database_url.startswith("sqlite"):
@@ -71,7 +71,7 @@ def make_engine(database_url: str, busy_timeout_s: float = 10.0) -> Engine:
 class CheckedSession(Session):
     """A session that calls ``info["before_use"]()`` (if set) each time it is about to use a
     connection (SQLAlchemy asks :meth:`get_bind` before every statement and flush), i.e. before a
-    pooled connection is checked out: server.storage refuses there while the database's files
+    pooled connection is checked out: server.site.storage refuses there while the database's files
     are unusable, so no connection is touched (a pool checkout that fails closes its connection,
     which is what must not happen with an unwritable ``-shm``)."""
 

@@ -28,11 +28,11 @@ class _Spec(BaseModel):
 
 
 class PreviewSpec(_Spec):
-    """A twin preview of one throw (sim_twin.preview.preview_throw)."""
+    """A twin preview of one throw (sim_twin.preview.preview.preview_throw)."""
 
     onnx_path: str = Field(description="policy file, relative to the data dir")
     sha256: str = Field(min_length=64, max_length=64)
-    request: dict = Field(description="keyword arguments of sim_twin.preview.PreviewRequest")
+    request: dict = Field(description="keyword arguments of sim_twin.preview.preview.PreviewRequest")
     meta: dict = Field(default_factory=dict, description="what the API keeps with the preview (machine, start pose)")
     profile_path: str | None = Field(None, description="site profile the preview runs under; None: nominal")
 
@@ -42,7 +42,7 @@ class CatalogSpec(_Spec):
 
 
 class EvaluationSpec(_Spec):
-    """A twin evaluation of a stored policy version (server.policies.evaluate_version)."""
+    """A twin evaluation of a stored policy version (server.policies.versions.evaluate_version)."""
 
     version_id: int
     distances_m: list[float] = Field(min_length=1)
@@ -57,12 +57,12 @@ class DiagnosisSpec(_Spec):
     limit: int = Field(50, ge=1, le=500, description="newest landed throws with telemetry to diagnose")
     workers: int | None = Field(None, ge=1, description="processes; None: every core of the worker")
     upload: str | None = Field(None, pattern=r"^[0-9a-f]{32}$",
-                               description="an uploaded rosbag2 set, <data_dir>/uploads/<upload>/ (server.diagnosis_upload), "
+                               description="an uploaded rosbag2 set, <data_dir>/uploads/<upload>/ (server.analysis.diagnosis_upload), "
                                            "converted instead of exporting stored throws")
 
 
 class AdaptationSpec(_Spec):
-    """An aim adaptation of a policy version to a finished diagnosis (sim_twin.adapt.adapt)."""
+    """An aim adaptation of a policy version to a finished diagnosis (sim_twin.adaptation.adapt.adapt)."""
 
     diagnosis_id: str
     machine_id: str

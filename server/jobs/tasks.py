@@ -8,13 +8,13 @@ the API process too (to register the queue's task).
 
 Kinds and their typed parameters (server.jobs.specs, checked at submit and again here):
 
-* ``preview`` (PreviewSpec) -> sim_twin.preview.preview_throw's summary.
+* ``preview`` (PreviewSpec) -> sim_twin.preview.preview.preview_throw's summary.
 * ``catalog`` (CatalogSpec) -> ``{"effects": {name: description}}`` (sim_twin.effects).
 * ``evaluation`` (EvaluationSpec) -> the evaluation report; also written to the policy
   version's row (``evaluation_status``, ``metrics``).
 * ``diagnosis`` (DiagnosisSpec) -> ``{"throws", "verdict"}``; the dataset and report files under
-  the job's folder (server.jobs.diagnosis_job).
-* ``adaptation`` (AdaptationSpec) -> the new policy version (server.jobs.adaptation_job).
+  the job's folder (server.analysis.diagnosis_job).
+* ``adaptation`` (AdaptationSpec) -> the new policy version (server.analysis.adaptation_job).
 * ``probe`` (ProbeSpec): a worker health check that reports progress and can be cancelled
   between steps. Fault injection for tests (not accepted by the API): ``kill_worker_at_step``
   makes the worker process SIGKILL itself at that step (a worker dying mid-job, server.jobs.leases).
@@ -57,7 +57,7 @@ log = logging.getLogger(__name__)
 class JobRefused(Conflict):
     """A job that this worker cannot do as asked (e.g. its policy file does not load here); its
     kind (server.errors.kind_of: ``"conflict"``) is kept in the job's result as ``refused``, and
-    the API raises that kind for it (server.previews)."""
+    the API raises that kind for it (server.throws.previews)."""
 
 
 @dataclass
@@ -87,9 +87,9 @@ class WorkerContext:
 
     def start_preview_pool(self) -> None:
         """Start ``settings.preview_processes`` processes for the previews' Monte Carlo and import
-        the twin in them (sim_twin.preview.warm_up); none for fewer than 2."""
-        from sim_twin.pools import process_pool
-        from sim_twin.preview import warm_up
+        the twin in them (sim_twin.preview.preview.warm_up); none for fewer than 2."""
+        from sim_twin.preview.preview import warm_up
+        from sim_twin.twin.pools import process_pool
 
         n = self.settings.preview_processes if self.settings is not None else 0
         if n >= 2 and self.preview_pool is None:
@@ -173,7 +173,7 @@ def _json_safe(result) -> dict:
 # --- runners ----------------------------------------------------------------------------------
 def run_preview(ctx: WorkerContext, job: JobRun[PreviewSpec], progress) -> dict:
     from runtime.policy import PolicyError, PolicyRunner
-    from sim_twin.preview import PreviewRequest, preview_throw
+    from sim_twin.preview.preview import PreviewRequest, preview_throw
 
     spec = job.spec
     sha = spec.sha256
@@ -193,7 +193,7 @@ def run_preview(ctx: WorkerContext, job: JobRun[PreviewSpec], progress) -> dict:
 def _site_profile(ctx: WorkerContext, runner, profile_path: str | None):
     """The profile a preview runs under: the policy's own site profile (adapted versions), else
     the server's (Settings.preview_profile), else nominal; cached per source."""
-    from sim_twin.preview import site_profile
+    from sim_twin.preview.preview import site_profile
 
     key = ("policy", runner.sha256) if runner.manifest.get("site_profile") else ("file", profile_path)
     with ctx.lock:
@@ -209,7 +209,7 @@ def run_catalog(ctx: WorkerContext, job: JobRun[CatalogSpec], progress) -> dict:
 
 
 def run_evaluation(ctx: WorkerContext, job: JobRun[EvaluationSpec], progress) -> dict:
-    from server.policies import evaluate_version
+    from server.policies.versions import evaluate_version
 
     limits = ctx.settings.validation_limits() if ctx.settings is not None else None
     return evaluate_version(ctx.sessions, ctx.data_dir, job.spec.version_id, job.spec.distances_m,
@@ -217,15 +217,15 @@ def run_evaluation(ctx: WorkerContext, job: JobRun[EvaluationSpec], progress) ->
 
 
 def run_diagnosis(ctx: WorkerContext, job: JobRun[DiagnosisSpec], progress) -> dict:
-    from server.jobs.diagnosis_job import run
+    from server.analysis.diagnosis_job import run
 
     return run(ctx.sessions, ctx.data_dir, job.id, job.spec, progress)
 
 
 def run_adaptation(ctx: WorkerContext, job: JobRun[AdaptationSpec], progress) -> dict:
-    from server.jobs.adaptation_job import run
-    from server.policies import PolicyService
-    from server.results import ResultStore
+    from server.analysis.adaptation_job import run
+    from server.fleet.results import ResultStore
+    from server.policies.versions import PolicyService
 
     policies = PolicyService(None, ctx.sessions, ResultStore(ctx.sessions, ctx.data_dir), ctx.settings, ctx.jobs)
     return run(policies, ctx.data_dir, job, progress)

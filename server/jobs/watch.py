@@ -40,7 +40,7 @@ class JobWatcher:
 
     Args:
         store: the ``jobs`` table.
-        publish: ``publish(event_name, data)`` (server.live.LiveHub.publish), thread-safe.
+        publish: ``publish(event_name, data)`` (server.console.live.LiveHub.publish), thread-safe.
         period_s: seconds between looks while no request waits.
         busy_period_s: seconds between looks while a request waits for a job.
     """

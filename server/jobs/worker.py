@@ -24,7 +24,7 @@ from pathlib import Path
 
 from server.jobs import leases, tasks
 from server.jobs.queue import LANES, JobQueue, queue_url
-from server.storage import StorageMonitor
+from server.site.storage import StorageMonitor
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit("slinger worker: 'immediate' is not a queue a worker can consume")
     engine = make_engine(settings.database_url, settings.database_busy_timeout_s)
     storage = StorageMonitor(settings.database_url, settings.storage_min_free_bytes)
-    storage.guard(engine)  # an unwritable SQLite -shm: jobs fail with the reason, no SIGBUS (server.storage)
+    storage.guard(engine)  # an unwritable SQLite -shm: jobs fail with the reason, no SIGBUS (server.site.storage)
     ctx = tasks.WorkerContext(make_sessionmaker(engine, before_use=storage.before_use), settings.data_dir, settings,
                               lease_s=args.lease_s)
     tasks.bind(ctx)
@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"slinger worker: {e}") from None
     lease.reap()  # jobs of workers that died while none ran
     if "fast" in lanes:
-        import sim_twin.preview  # noqa: F401  warm: the first preview must not pay MuJoCo's import
+        import sim_twin.preview.preview  # noqa: F401  warm: the first preview must not pay MuJoCo's import
 
         ctx.start_preview_pool()
     consumers = []
@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
 
 def worker_argv(settings) -> list[str]:
     """``slinger worker`` for the database, data dir and queue of ``settings`` (``slinger up``)."""
-    from server.stack import slinger_command
+    from server.site.stack import slinger_command
 
     return slinger_command("worker", "--database-url", settings.database_url, "--data-dir", str(settings.data_dir),
                            "--queue-url", queue_url(settings))

@@ -53,7 +53,7 @@ import numpy as np
 from sim_twin import default_policy
 from sim_twin.diagnosis import dataset as ds
 from sim_twin.diagnosis.reallog import RealLogSpec
-from sim_twin.pools import process_pool
+from sim_twin.twin.pools import process_pool
 
 log = logging.getLogger(__name__)
 

@@ -133,7 +133,7 @@ def _cores() -> int:
 def _generate(args) -> int:
     from sim_twin.diagnosis import dataset
     from sim_twin.diagnosis.reallog import RealLogSpec
-    from sim_twin.profile import RealityProfile
+    from sim_twin.twin.profile import RealityProfile
 
     if args.out is None:
         raise ValueError("generate needs --out DIR")

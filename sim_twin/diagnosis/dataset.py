@@ -19,7 +19,7 @@ diagnosis measures the noise from the log (:mod:`sim_twin.diagnosis.noise`).
 
 The measured impact is what the machine (or a camera) reports. :func:`generate` makes such a
 dataset with the simulated machine under any reality profile (the runtime's ThrowExecutor and an
-ONNX policy in the loop, as in sim_twin.evaluate), optionally degraded like a real machine's log
+ONNX policy in the loop, as in sim_twin.evaluation.evaluate), optionally degraded like a real machine's log
 (:mod:`sim_twin.diagnosis.reallog`); the server exports the throws it stored for one machine.
 """
 
@@ -204,10 +204,10 @@ def _throw_worker(args) -> tuple[dict, bytes] | None:
     from runtime.executor import ThrowExecutor
     from runtime.policy import PolicyRunner
     from runtime.protocol.messages import ThrowRequest
-    from sim_twin.evaluate import target_on_axis
-    from sim_twin.profile import RealityProfile
-    from sim_twin.simulated_machine import SimulatedMachine
-    from sim_twin.twin_machine import TwinMachine, run_throw
+    from sim_twin.evaluation.evaluate import target_on_axis
+    from sim_twin.twin.profile import RealityProfile
+    from sim_twin.twin.simulated_machine import SimulatedMachine
+    from sim_twin.twin.twin_machine import TwinMachine, run_throw
 
     policy = _policy_cache.get(policy_path) or _policy_cache.setdefault(policy_path, PolicyRunner.load(policy_path))
     sim = SimulatedMachine(RealityProfile.from_dict(profile_dict), seed=seed)
@@ -271,7 +271,7 @@ def generate(directory, profile_dict: dict, throws: int, policy_path: str | Path
         profiles = [{**p, "effects": list(p.get("effects", [])) + [real_log.noise_effect()]} for p in profiles]
     jobs = [(str(policy_path), profiles[i], seed * 10007 + i, float(distances_m[i % len(distances_m)]), mode, real_log) for i in range(throws)]
     if workers > 1:
-        from sim_twin.pools import process_pool
+        from sim_twin.twin.pools import process_pool
 
         with process_pool(workers) as pool:
             results = list(pool.map(_throw_worker, jobs, chunksize=max(1, throws // (4 * workers))))

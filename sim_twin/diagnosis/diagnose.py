@@ -18,7 +18,7 @@
 
 Writes ``report.json`` (``which``: the named effects with parameters and 1 sigma, what
 ``slinger adapt`` reads), ``profile_fitted.json`` (a reality profile: the nominal one plus the
-named effects, their 1 sigma in its ``uncertainty`` block, :func:`sim_twin.uncertainty.with_fitted_sigma`)
+named effects, their 1 sigma in its ``uncertainty`` block, :func:`sim_twin.twin.uncertainty.with_fitted_sigma`)
 and PNG plots.
 """
 
@@ -42,7 +42,7 @@ from sim_twin.diagnosis import select as sel
 from sim_twin.diagnosis import stationarity as st
 from sim_twin.diagnosis.verdict import drift_of, verdict_of
 from sim_twin.effects import EFFECTS, Effect, EffectStack, effect_class
-from sim_twin.profile import RealityProfile
+from sim_twin.twin.profile import RealityProfile
 
 log = logging.getLogger(__name__)
 
@@ -300,7 +300,7 @@ def diagnose(dataset_dir: str | Path, out_dir: str | Path | None = None, test_fr
     if out_dir:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        from sim_twin.uncertainty import with_fitted_sigma
+        from sim_twin.twin.uncertainty import with_fitted_sigma
 
         prof = with_fitted_sigma(fitted, {w["effect"]: w["sigma"] for w in report["which"]}).to_dict()
         (out / "profile_fitted.json").write_text(json.dumps(prof, indent=1) + "\n")

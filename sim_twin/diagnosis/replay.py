@@ -39,18 +39,18 @@ from runtime.machine import JOINT_LOWER, JOINT_UPPER
 from sim_twin.diagnosis.dataset import TICK_S, LoggedThrow
 from sim_twin.effects import EffectStack
 from sim_twin.effects.payload import grasp_point, integrate_flight
-from sim_twin.hydraulics import cylinder_step, dead_band_flow, lag_step
-from sim_twin.model import (
+from sim_twin.twin.hydraulics import cylinder_step, dead_band_flow, lag_step
+from sim_twin.twin.model import (
     PAYLOAD_RADIUS_M,
     load_model,
     passive_inertia,
     passive_inertia_of,
 )
-from sim_twin.physics import (
+from sim_twin.twin.physics import (
     ballistic_impact_time,
     passive_friction_force,
 )
-from sim_twin.profile import RealityProfile
+from sim_twin.twin.profile import RealityProfile
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ FLIGHT_DT_S = 0.02
 """RK4 step of the replay's flights under drag or wind (the simulated machine uses 5 ms). Measured
 against 5 ms on 50 random flights at the priors' extremes (wind 15 m/s on both axes, drag
 coefficient 1.5): the impact moves by at most 0.75 mm, against 5 cm impact noise; 4x fewer steps
-(sim_twin.preview's Monte Carlo uses the same step)."""
+(sim_twin.preview.preview's Monte Carlo uses the same step)."""
 
 
 _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS

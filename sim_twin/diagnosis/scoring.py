@@ -19,7 +19,7 @@ from sim_twin.diagnosis import noise as nz
 from sim_twin.diagnosis import replay as rp
 from sim_twin.diagnosis.dataset import TICK_S, LoggedThrow
 from sim_twin.diagnosis.replay import REST_ROWS, Replay, open_row
-from sim_twin.profile import RealityProfile
+from sim_twin.twin.profile import RealityProfile
 
 N_TRAJ = len(nz.TRAJ)
 C = len(nz.CHANNELS)

@@ -3,7 +3,7 @@
 A diagnosis fits constant effects. A gap that changes during the log (a valve wearing in, a
 sensor slipping, a payload swapped half-way) fitted as a constant is wrong twice: the fit is an
 average that describes neither end, and a drift whose two halves cancel can even look like "no
-gap". Every diagnosis (and the drift watch, :mod:`server.drift`) therefore tests each per-throw
+gap". Every diagnosis (and the drift watch, :mod:`server.analysis.drift`) therefore tests each per-throw
 series in throw order (the dataset's index order, the order the machine threw them) for a
 change:
 

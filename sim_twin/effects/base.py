@@ -2,7 +2,7 @@
 
 An effect is a class with a unique ``name``, a documented tuple of :class:`Param` (physical
 meaning, unit, the value that reproduces the nominal twin, prior range, source) and any of the
-hooks below. The simulated machine (:mod:`sim_twin.simulated_machine`) and the diagnosis's
+hooks below. The simulated machine (:mod:`sim_twin.twin.simulated_machine`) and the diagnosis's
 batched replay (:mod:`sim_twin.diagnosis.replay`) call the same hooks, so an effect behaves the
 same in the machine that generates throws and in the twin that explains them.
 
@@ -12,7 +12,7 @@ Hooks (defaults leave everything unchanged; arrays may carry leading batch dimen
 hook                   what it changes                                                stage
 =====================  =============================================================  ==========
 ``hydraulics(hp)``     valve parameters (dead band, transport delay, lag, full-open   dynamics
-                       speed) -> a new :class:`sim_twin.hydraulics.HydraulicParams`
+                       speed) -> a new :class:`sim_twin.twin.hydraulics.HydraulicParams`
 ``setpoint(sp, q, qd)`` joint-velocity servo setpoints (..., 4) after the valve model  dynamics
                        (rate limits, disturbances), given the true state (..., 6)
 ``passive_friction``   (viscous 1/s, coulomb rad/s^2) of the passive joints           dynamics

@@ -7,7 +7,7 @@ from sim_twin.effects.base import Effect, Param
 
 class PassiveFriction(Effect):
     """theta_ddot_fric = viscous * theta_dot + coulomb * sign(theta_dot) on both passive axes,
-    applied as a generalised force (effective inertia x acceleration, sim_twin.physics)."""
+    applied as a generalised force (effective inertia x acceleration, sim_twin.twin.physics)."""
 
     name = "passive_friction"
     footprint = ("passive",)

@@ -20,8 +20,8 @@ from runtime.machine import (
     TELESCOPE_OFFSET_M,
 )
 from sim_twin.effects.base import Effect, Param
-from sim_twin.model import PAYLOAD_MASS_KG, PAYLOAD_RADIUS_M
-from sim_twin.physics import GRAVITY_MPS2
+from sim_twin.twin.model import PAYLOAD_MASS_KG, PAYLOAD_RADIUS_M
+from sim_twin.twin.physics import GRAVITY_MPS2
 
 AIR_DENSITY_KG_M3 = 1.225  # ISA sea level
 FLIGHT_DT_S = 0.005  # RK4 step; drag varies slowly, error < 1 mm over a 2 s flight

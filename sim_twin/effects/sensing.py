@@ -60,7 +60,7 @@ class ImuPassive(Effect):
 class EncoderNoise(Effect):
     """White noise of the active joints' encoders (cabin_turn, boom, dipper, telescope): the
     measured position and velocity are the true ones plus Gaussian noise. Part of every
-    profile's base sensing (sim_twin.profile.SensorParams), not a diagnosis candidate (not in
+    profile's base sensing (sim_twin.twin.profile.SensorParams), not a diagnosis candidate (not in
     the library registry): at these levels it does not move throws."""
 
     name = "encoder_noise"

@@ -3,7 +3,7 @@ actuation": u -> dead band -> transport delay -> first-order lag -> rate-limited
 
 The valve effects have one parameter per active joint (``<name>_<joint>``, ACTIVE_JOINTS order);
 the keyword ``<name>`` alone sets all four alike (``ValveLag(lag_s=0.3)``). Unset joints keep the
-nominal value of :class:`sim_twin.hydraulics.HydraulicParams`. The diagnosis fits them per joint
+nominal value of :class:`sim_twin.twin.hydraulics.HydraulicParams`. The diagnosis fits them per joint
 (:data:`Effect.per_joint`), from each joint's own channels.
 """
 
@@ -15,7 +15,7 @@ import numpy as np
 
 from runtime.machine import ACTIVE_VELOCITY_LIMITS
 from sim_twin.effects.base import Effect, Param, PerJointEffect, joint_params
-from sim_twin.hydraulics import NOMINAL_DEAD_BAND, NOMINAL_DELAY_S, NOMINAL_LAG_S
+from sim_twin.twin.hydraulics import NOMINAL_DEAD_BAND, NOMINAL_DELAY_S, NOMINAL_LAG_S
 
 _HEAP = "HEAP (Egli & Hutter 2020/2022 via machine-spec.md): delays up to ~0.7 s, ~0.5 Hz bandwidth, dead band"
 
@@ -28,7 +28,7 @@ class ValveDeadBand(PerJointEffect):
     summary = "valve dead band (fraction of full command), per active joint"
     stage = "dynamics"
     joint_base = "dead_band"
-    params = joint_params("dead_band", "-", NOMINAL_DEAD_BAND, 0.0, 0.3, "valve dead band as a fraction of full command", _HEAP + "; nominal: sim_twin.hydraulics")
+    params = joint_params("dead_band", "-", NOMINAL_DEAD_BAND, 0.0, 0.3, "valve dead band as a fraction of full command", _HEAP + "; nominal: sim_twin.twin.hydraulics")
 
     def hydraulics(self, hp):
         return replace(hp, dead_band=self.per_joint_values())
@@ -43,7 +43,7 @@ class ValveDelay(PerJointEffect):
     summary = "valve transport delay, per active joint"
     stage = "dynamics"
     joint_base = "delay_s"
-    params = joint_params("delay_s", "s", NOMINAL_DELAY_S, 0.0, 0.7, "transport delay, command to flow", _HEAP + "; nominal: sim_twin.hydraulics")
+    params = joint_params("delay_s", "s", NOMINAL_DELAY_S, 0.0, 0.7, "transport delay, command to flow", _HEAP + "; nominal: sim_twin.twin.hydraulics")
 
     def hydraulics(self, hp):
         return replace(hp, delay_s=self.per_joint_values())
@@ -57,7 +57,7 @@ class ValveLag(PerJointEffect):
     summary = "valve first-order lag time constant, per active joint"
     stage = "dynamics"
     joint_base = "lag_s"
-    params = joint_params("lag_s", "s", NOMINAL_LAG_S, 0.01, 0.6, "first-order lag time constant", _HEAP + " (0.5 Hz ~ 0.32 s); nominal: sim_twin.hydraulics")
+    params = joint_params("lag_s", "s", NOMINAL_LAG_S, 0.01, 0.6, "first-order lag time constant", _HEAP + " (0.5 Hz ~ 0.32 s); nominal: sim_twin.twin.hydraulics")
 
     def hydraulics(self, hp):
         return replace(hp, lag_s=self.per_joint_values())

@@ -1,0 +1,1 @@
+"""Policy versions: upload, validation, promotion and rollback, and their routes."""

@@ -1,0 +1,1 @@
+"""Throws: targets, the preview gate, previews, starting a throw, the history, and their routes."""

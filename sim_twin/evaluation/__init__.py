@@ -1,0 +1,2 @@
+"""Evaluation: the paper's protocol, the site matrix, the deploy comparison, the Drake check and
+`slinger evaluate`."""

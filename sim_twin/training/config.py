@@ -1,0 +1,161 @@
+"""The training config of a recipe (``sim_twin/configs/throw_<mode>.json`` or a committed
+``policies/training/<run>/recipe.json``): its ``training`` section typed (:class:`TrainingSection`:
+seed, std schedule, randomisation curriculum, gate start), read once when a run starts and refused
+with a clear ValueError before anything is written. The ``env`` section is typed by
+sim_twin.training.mjx_env.EnvConfig, the ``runner`` section is rsl_rl's.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+CONFIG_DIR = Path(__file__).parent.parent / "configs"
+
+
+def _check_integer(value, name: str, at_least: int | None = None) -> None:
+    """Raises ValueError unless ``value`` is an int (not a bool) and, with ``at_least``, >= it; the
+    message names the config entry ``name``."""
+    if isinstance(value, bool) or not isinstance(value, int) or (at_least is not None and value < at_least):
+        bound = f" >= {at_least}" if at_least is not None else ""
+        raise ValueError(f"{name} must be an integer{bound}, not {value!r}")
+
+
+@dataclass(frozen=True)
+class StdSchedule:
+    """Cap on the actor's action std: ``start`` -> ``end`` exponentially over ``iterations``,
+    ``end`` after (config ``training.std_schedule``; CHOSEN values in configs/*.json).
+
+    ``release_floor`` (0: none) is a lower bound on the std of the release flag (the last action):
+    with a learned std the flag's std can shrink before the release is timed, after which the flag
+    never crosses its 0.9 threshold and the policy stops throwing (seen from scratch in 3D)."""
+
+    start: float
+    end: float
+    iterations: int
+    release_floor: float = 0.0
+
+    def cap(self, iteration: int) -> float:
+        """The cap at ``iteration`` (>= 0)."""
+        f = min(max(iteration, 0) / max(self.iterations, 1), 1.0)
+        return float(self.start * (self.end / self.start) ** f)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> StdSchedule:
+        """Raises ValueError on unknown keys or non-positive values."""
+        unknown = set(d) - {"start", "end", "iterations", "release_floor"}
+        if unknown:
+            raise ValueError(f"unknown std_schedule settings {sorted(unknown)}")
+        s = cls(float(d["start"]), float(d["end"]), int(d["iterations"]), float(d.get("release_floor", 0.0)))
+        if s.start <= 0 or s.end <= 0 or s.iterations < 1:
+            raise ValueError(f"std_schedule needs start, end > 0 and iterations >= 1, got {d}")
+        if not 0.0 <= s.release_floor <= s.end:
+            raise ValueError(f"std_schedule.release_floor must be in [0, end], got {s.release_floor}")
+        return s
+
+
+@dataclass(frozen=True)
+class RandomizationStage:
+    """A widening of the domain randomisation during training (config
+    ``training.randomization_stage``): from ``iteration`` on, new episodes draw from
+    ``env.randomization`` with the entries of ``randomization`` in place of its own (CHOSEN values
+    in configs/*.json). A curriculum over randomisation width: the policy first learns to throw on
+    the narrower ranges, then becomes robust on the wider ones.
+
+    Raises (from_dict):
+        ValueError: unknown keys, a negative iteration, or widened entries that
+            sim_twin.training.privileged.check_randomization refuses.
+    """
+
+    iteration: int
+    randomization: dict
+
+    @classmethod
+    def from_dict(cls, d: dict) -> RandomizationStage:
+        from sim_twin.training.privileged import check_randomization
+
+        unknown = set(d) - {"iteration", "randomization"}
+        if unknown or "iteration" not in d or "randomization" not in d:
+            raise ValueError(f"training.randomization_stage needs exactly 'iteration' and 'randomization', got {sorted(d)}")
+        _check_integer(d["iteration"], "training.randomization_stage.iteration", at_least=0)
+        check_randomization(d["randomization"], "training.randomization_stage.randomization")
+        return cls(d["iteration"], dict(d["randomization"]))
+
+    def env_dicts(self, env: dict) -> tuple[dict, dict]:
+        """(before, after): the ``env`` mappings of the config before and after the widening. Both
+        normalise the critic's privileged inputs over the widened ranges (``privileged_ranges``,
+        an explicit entry of the config kept), so the critic's inputs keep their scale.
+
+        Raises:
+            ValueError: the merged randomisation is refused (sim_twin.training.privileged.Randomization).
+        """
+        from sim_twin.training.privileged import Randomization, trained_ranges
+
+        wide = {**env.get("randomization", {}), **self.randomization}
+        Randomization.from_dict(wide, "training.randomization_stage (merged)")
+        priv = {**trained_ranges(wide), **env.get("privileged_ranges", {})}
+        before = {**env, "privileged_ranges": priv}
+        return before, {**before, "randomization": wide}
+
+
+@dataclass(frozen=True)
+class TrainingSection:
+    """The config's ``training`` section, typed: what the run does beside the environment and PPO.
+
+    ``seed`` (int or None: then ``--seed`` must give one, :func:`resolve_training`), ``std_schedule``
+    (:class:`StdSchedule` or None: the learned std is only clamped by rsl_rl),
+    ``randomization_stage`` (:class:`RandomizationStage` or None: no widening) and
+    ``gate_from_iteration`` (int >= 0, default 0: the first iteration whose checkpoint the site-matrix
+    gate judges).
+
+    Raises (from_dict):
+        ValueError: an unknown key (a misspelt setting would otherwise be ignored), a seed or
+            ``gate_from_iteration`` that is not an integer (>= 0), or what StdSchedule.from_dict and
+            RandomizationStage.from_dict refuse.
+    """
+
+    seed: int | None = None
+    std_schedule: StdSchedule | None = None
+    randomization_stage: RandomizationStage | None = None
+    gate_from_iteration: int = 0
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainingSection:
+        known = [f.name for f in fields(cls)]
+        unknown = set(d) - set(known)
+        if unknown:
+            raise ValueError(f"unknown training settings {sorted(unknown)}; known: {known}")
+        seed = d.get("seed")
+        if seed is not None:
+            _check_integer(seed, "training.seed")
+        gate_from = d.get("gate_from_iteration", 0)
+        _check_integer(gate_from, "training.gate_from_iteration", at_least=0)
+        schedule = StdSchedule.from_dict(d["std_schedule"]) if "std_schedule" in d else None
+        stage = RandomizationStage.from_dict(d["randomization_stage"]) if "randomization_stage" in d else None
+        return cls(seed, schedule, stage, gate_from)
+
+
+def load_config(mode: str, path: Path | None) -> dict:
+    """The training config (env + runner + num_envs [+ training]) as a dict."""
+    return json.loads((path or CONFIG_DIR / f"throw_{mode}.json").read_text())
+
+
+def resolve_training(cfg: dict, seed_override: int | None) -> TrainingSection:
+    """The config's ``training`` section, typed, with the run's training seed resolved: ``seed_override``
+    (``--seed``) where given, else the recipe's ``training.seed``. The seed seeds the environments'
+    start poses and randomisation (rank r of a multi-GPU run adds 1000 r); it is written into
+    ``cfg["training"]["seed"]`` so that the run's config.json and model card record the seed
+    actually used.
+
+    Raises:
+        ValueError: neither gives a seed, the seed is not an integer, or what
+            :meth:`TrainingSection.from_dict` refuses in the section.
+    """
+    training = cfg.setdefault("training", {})
+    seed = seed_override if seed_override is not None else training.get("seed")
+    section = TrainingSection.from_dict({**training, "seed": seed})
+    if section.seed is None:
+        raise ValueError("the config has no training.seed: pass --seed")
+    training["seed"] = section.seed
+    return section

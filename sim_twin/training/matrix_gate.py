@@ -1,0 +1,272 @@
+"""Site-matrix gate of a training run: the site matrix of new checkpoints runs on the CPU cores
+beside the training, and the run stops at the first checkpoint that meets every bar.
+
+One candidate at a time: when the gate is idle, the training hands it its newest exported
+checkpoint (older ones that came while a matrix ran are skipped). The candidate's matrix runs seed
+by seed (``slinger evaluate --matrix --seed s``, sim_twin.evaluation.matrix, in a child process with its own
+worker pool); a seed that misses a bar ends that candidate. A candidate that meets every bar on
+every seed has *passed*. By default the gate judges nothing after the first candidate that passed
+(the training stops there); with ``judge_after_pass`` it goes on judging newer checkpoints, for a
+training that runs past the bars (``slinger train --no-stop-at-bars``), and ``passes`` lists every
+candidate that passed. The state (every verdict) is saved to ``<dir>/matrix_gate.json`` after every
+change so a resumed training keeps it.
+
+:meth:`MatrixGate.watch` collects verdicts on a thread of its own as soon as a matrix process ends,
+so a verdict is on disk even when the training is stopped (or its machine taken away) before its next
+checkpoint; the training loop then only reads ``passed`` and hands over candidates.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class MatrixResult:
+    """Verdict of one (candidate, seed) site matrix."""
+
+    iteration: int
+    seed: int
+    passed: bool
+    missing_cells: int
+    """Cells (profile x target) missing at least one bar."""
+    matrix_path: str
+    train_wall_s: float
+    """Training wall time at the checkpoint [s]."""
+    verdict_wall_s: float
+    """Training wall time when the verdict came [s]."""
+    misses: list[str] = field(default_factory=list)
+
+
+def summarise_matrix(report: dict) -> tuple[int, list[str]]:
+    """(cells missing a bar, "profile@target: bar,..." strings) of a sim_twin.evaluation.matrix report."""
+    misses = []
+    for p in report["profiles"]:
+        for t in p["targets"]:
+            bad = [k for k, v in t["bars"].items() if not v]
+            if bad:
+                misses.append(f"{p['name']}@{t['target_m']:g}: {','.join(bad)}")
+    return len(misses), misses
+
+
+def matrix_file_name(mode: str, iteration: int, seed: int) -> str:
+    """The gate's name for the site matrix of ``iteration`` on ``seed``:
+    ``site_matrix_<mode>_it<iteration>[_seed<seed>].json`` (no suffix for seed 0)."""
+    return f"site_matrix_{mode}_it{iteration}" + (f"_seed{seed}" if seed else "") + ".json"
+
+
+def parse_matrix_file_name(name: str) -> tuple[int, int]:
+    """(iteration, seed) of a :func:`matrix_file_name`. Raises ValueError on any other name."""
+    m = re.fullmatch(r"site_matrix_[23]d_it(\d+)(?:_seed(\d+))?\.json", name)
+    if not m:
+        raise ValueError(f"{name}: expected site_matrix_<mode>_it<N>[_seed<S>].json")
+    return int(m.group(1)), int(m.group(2) or 0)
+
+
+GATE_NICENESS = 10
+"""How much lower than the training process the site-matrix processes run (Unix niceness)."""
+
+
+class MatrixGate:
+    """Background site matrices of training checkpoints (see module doc).
+
+    Args:
+        out_dir: where matrices (``site_matrix_<mode>_it<iter>[_seed<s>].json/.md/.png``) and
+            ``matrix_gate.json`` go.
+        mode: "2d" or "3d".
+        seeds: start-pose seeds every bar must be met on, in the order they are run.
+        throws: throws per (profile, target) cell (the bars are defined for 100).
+        targets: target spec for ``slinger evaluate --targets`` (default the matrix's).
+        workers: processes of the matrix's pool (default all cores but ``reserve_cores``).
+        reserve_cores: cores left to the training process when ``workers`` is not given.
+        clock: function returning the training wall time now [s].
+        judge_after_pass: keep judging new candidates after one passed (see module doc).
+
+    Raises:
+        ValueError: no seeds or fewer than 1 throw.
+    """
+
+    def __init__(self, out_dir: Path, mode: str, seeds: list[int], throws: int = 100, targets: str | None = None,
+                 workers: int | None = None, reserve_cores: int = 3, clock=None, judge_after_pass: bool = False):
+        if not seeds:
+            raise ValueError("the gate needs at least one seed")
+        if throws < 1:
+            raise ValueError("throws must be >= 1")
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.mode, self.seeds, self.throws, self.targets = mode, list(seeds), throws, targets
+        self.workers = workers or max(1, (os.cpu_count() or 1) - reserve_cores)
+        self.clock = clock or time.time
+        self.state_path = self.out_dir / "matrix_gate.json"
+        self.results: list[MatrixResult] = []
+        self.passed: dict | None = None  # {"iteration", "onnx", "train_wall_s"} of the first candidate that passed
+        self.passes: list[dict] = []  # every candidate that passed, oldest first (the same dicts)
+        self.judge_after_pass = judge_after_pass
+        self._proc: subprocess.Popen | None = None
+        self._cand: dict | None = None  # {"iteration", "onnx", "train_wall_s", "seed_index", "out"}
+        self._lock = threading.RLock()  # the training's thread and the watch thread share the state
+        self._watcher: threading.Thread | None = None
+        self._unwatch = threading.Event()
+        if self.state_path.exists():
+            st = json.loads(self.state_path.read_text())
+            self.results = [MatrixResult(**r) for r in st.get("results", [])]
+            self.passed = st.get("passed")
+            self.passes = st.get("passes", [self.passed] if self.passed else [])
+
+    @property
+    def busy(self) -> bool:
+        """A candidate's matrix is running."""
+        return self._cand is not None
+
+    def submit(self, iteration: int, onnx: Path, train_wall_s: float) -> bool:
+        """Start the matrix of this candidate if the gate is idle; returns whether it started."""
+        with self._lock:
+            if self.busy or (self.passed and not self.judge_after_pass):
+                return False
+            self._cand = {"iteration": int(iteration), "onnx": str(onnx), "train_wall_s": float(train_wall_s), "seed_index": 0}
+            self._start_seed()
+            return True
+
+    def _candidate(self) -> dict:
+        """The checkpoint under test (only called while one is).
+
+        Raises:
+            RuntimeError: no candidate (a bug of the caller).
+        """
+        if self._cand is None:
+            raise RuntimeError("matrix gate: no checkpoint under test")
+        return self._cand
+
+    def _out(self, it: int, seed: int) -> Path:
+        return self.out_dir / matrix_file_name(self.mode, it, seed)
+
+    def command(self, onnx: str, seed: int, out: str) -> list[str]:
+        """The child process that writes the site matrix of ``onnx`` on ``seed`` to ``out``."""
+        cmd = [sys.executable, "-m", "sim_twin.evaluation.cli", "--policy", onnx, "--matrix", "--seed", str(seed),
+               "--throws", str(self.throws), "--workers", str(self.workers), "--out", out]
+        return cmd + (["--targets", self.targets] if self.targets else [])
+
+    def _start_seed(self) -> None:
+        c = self._candidate()
+        seed = self.seeds[c["seed_index"]]
+        c["out"] = str(self._out(c["iteration"], seed))
+        cmd = self.command(c["onnx"], seed, c["out"])
+        env = {**os.environ, "CUDA_VISIBLE_DEVICES": "", "JAX_PLATFORMS": "cpu", "OMP_NUM_THREADS": "1"}
+        logf = open(self.out_dir / "matrix_gate.log", "a")
+        log.info("site matrix of iteration %d, seed %d started (%d workers)", c["iteration"], seed, self.workers)
+        self._proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=env)
+        logf.close()
+        self._lower_priority(self._proc.pid)
+
+    def _lower_priority(self, pid: int) -> None:
+        """Raise the matrix process's niceness by GATE_NICENESS (its pool inherits it), so that the
+        training process keeps the cores it launches its GPU work from: with 13 matrix processes
+        at equal priority on a 16-core machine, training ran at 0.36-0.46 M control steps/s against
+        0.51-0.58 M/s before the gate started (throw2d-scratch-m's README, lab notebook: policies/training/ARCHIVE.md).
+        The process is new (still starting Python), so its pool starts after this."""
+        try:
+            os.setpriority(os.PRIO_PROCESS, pid, os.getpriority(os.PRIO_PROCESS, 0) + GATE_NICENESS)
+        except OSError as e:  # the process already ended, or a platform without priorities
+            log.warning("matrix process %d keeps its priority: %s", pid, e)
+
+    def poll(self) -> dict | None:
+        """Collect a finished matrix, start the candidate's next seed if it passed; returns
+        ``self.passed`` (the first candidate that met every bar on every seed) or None.
+
+        A matrix process that failed or wrote no readable report ends its candidate with no verdict
+        (logged with the path of ``matrix_gate.log``); the gate is idle again."""
+        with self._lock:
+            return self._poll()
+
+    def _poll(self) -> dict | None:
+        if self._proc is None or self._proc.poll() is None:
+            return self.passed
+        c, rc = self._candidate(), self._proc.returncode
+        self._proc = None
+        seed = self.seeds[c["seed_index"]]
+        out = Path(c["out"])
+        try:
+            if rc != 0:
+                raise ValueError(f"exit {rc}")
+            rep = json.loads(out.read_text())
+            n_miss, misses = summarise_matrix(rep)
+            passed = bool(rep["pass"])
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            log.error("site matrix of iteration %d seed %d failed (%s); see %s", c["iteration"], seed, e,
+                      self.out_dir / "matrix_gate.log")
+            self._cand = None
+            return self.passed
+        res = MatrixResult(c["iteration"], seed, passed, n_miss, str(out), c["train_wall_s"], float(self.clock()), misses)
+        self.results.append(res)
+        log.info("site matrix of iteration %d seed %d: %s (%d cells miss a bar)", c["iteration"], seed,
+                 "every bar met" if res.passed else "missed", n_miss)
+        if res.passed and c["seed_index"] + 1 < len(self.seeds):
+            c["seed_index"] += 1
+            self._start_seed()
+        else:
+            if res.passed:
+                self.passes.append({"iteration": c["iteration"], "onnx": c["onnx"], "train_wall_s": c["train_wall_s"],
+                                    "verdict_wall_s": res.verdict_wall_s})
+                self.passed = self.passed or self.passes[-1]
+            self._cand = None
+        self.save()
+        return self.passed
+
+    def watch(self, interval_s: float = 1.0) -> None:
+        """Poll on a daemon thread every ``interval_s`` seconds until :meth:`stop`, so that each
+        verdict is recorded (and the next seed started) when its matrix process ends rather than
+        when the training next calls :meth:`poll`. Calling it again while watching does nothing."""
+        if self._watcher is not None:
+            return
+        self._unwatch.clear()
+
+        def loop() -> None:
+            while not self._unwatch.wait(interval_s):
+                self.poll()
+
+        self._watcher = threading.Thread(target=loop, name="matrix-gate-watch", daemon=True)
+        self._watcher.start()
+
+    def wait(self, timeout_s: float) -> dict | None:
+        """Poll until the gate is idle or ``timeout_s`` passed; returns ``self.passed``."""
+        end = time.time() + timeout_s
+        while self.busy and time.time() < end:
+            self.poll()
+            time.sleep(1.0)
+        return self.passed
+
+    def stop(self) -> None:
+        """Stop watching and terminate a running matrix (its result is dropped)."""
+        if self._watcher is not None:
+            self._unwatch.set()
+            self._watcher.join()
+            self._watcher = None
+        with self._lock:
+            if self._proc is not None and self._proc.poll() is None:
+                self._proc.terminate()
+                try:
+                    self._proc.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    self._proc.kill()
+            self._proc, self._cand = None, None
+
+    def save(self) -> None:
+        """Write every verdict, ``passed`` and ``passes`` to ``matrix_gate.json`` (whole file, replaced
+        atomically so a reader never sees half of it)."""
+        with self._lock:
+            tmp = self.state_path.with_suffix(".json.tmp")
+            tmp.write_text(json.dumps(
+                {"mode": self.mode, "seeds": self.seeds, "throws": self.throws, "passed": self.passed, "passes": self.passes,
+                 "results": [asdict(r) for r in self.results]}, indent=2) + "\n")
+            tmp.replace(self.state_path)

@@ -1,0 +1,97 @@
+"""Model card of a trained policy: how it was made and how it did on the site matrix.
+
+Written beside the exported ONNX as ``<stem>.card.json`` and ``<stem>.card.md`` by
+``slinger train`` (sim_twin.training.train) and folded into the policy manifest's ``training`` section.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import subprocess
+from pathlib import Path
+
+
+def config_sha256(cfg: dict) -> str:
+    """SHA-256 of the training config as canonical JSON (sorted keys, no spaces)."""
+    return hashlib.sha256(json.dumps(cfg, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def head_commit(repo: Path | None = None) -> tuple[str, bool] | None:
+    """``(full hash of HEAD, whether tracked files differ from it)`` of the git repository at
+    ``repo`` (default: this package's), or None where git or the repository is missing (a copy of
+    the tree on a lent GPU machine). The one place that asks git; callers format the answer."""
+    cwd = str(repo or Path(__file__).resolve().parent)
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=cwd, capture_output=True,
+                               text=True, timeout=30, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return head, bool(dirty)
+
+
+def git_commit(repo: Path | None = None) -> str:
+    """The repository's HEAD commit (with ``-dirty`` when the tree has changes); in a copy of the
+    tree without git (a lent GPU machine) the commit named by the environment variable
+    ``SLINGER_GIT_COMMIT``; else "unknown"."""
+    state = head_commit(repo)
+    if state is None:
+        return os.environ.get("SLINGER_GIT_COMMIT", "").strip() or "unknown"
+    return state[0] + ("-dirty" if state[1] else "")
+
+
+def accelerator() -> str:
+    """"<n> x <GPU name>" of the GPUs torch sees, or "CPU (<processor>)"."""
+    import torch
+
+    if torch.cuda.is_available():
+        n = torch.cuda.device_count()
+        return f"{n} x {torch.cuda.get_device_name(0)}"
+    return f"CPU ({platform.processor() or platform.machine()})"
+
+
+def build_card(*, command: str, cfg: dict, iteration: int, train_wall_s: float, verdict_wall_s: float | None,
+               gpus: str, world_size: int, matrices: list[dict], bars_met: bool, policy_sha256: str) -> dict:
+    """The card as a dict (see write_card for the files)."""
+    return {
+        "command": command,
+        "config_sha256": config_sha256(cfg),
+        "git_commit": git_commit(),
+        "accelerator": gpus,
+        "processes": world_size,
+        "num_envs_per_process": cfg.get("num_envs"),
+        "training_seed": cfg.get("training", {}).get("seed"),
+        "iteration": iteration,
+        "training_wall_s": round(train_wall_s, 1),
+        "wall_s_to_verdict": None if verdict_wall_s is None else round(verdict_wall_s, 1),
+        "bars_met": bars_met,
+        "matrices": matrices,
+        "onnx_sha256": policy_sha256,
+    }
+
+
+def write_card(onnx_path: Path, card: dict) -> tuple[Path, Path]:
+    """Write ``<stem>.card.json`` and ``<stem>.card.md`` beside ``onnx_path``; returns both paths."""
+    onnx_path = Path(onnx_path)
+    j = onnx_path.with_name(onnx_path.stem + ".card.json")
+    m = onnx_path.with_name(onnx_path.stem + ".card.md")
+    j.write_text(json.dumps(card, indent=2) + "\n")
+    lines = [
+        f"# Model card: {onnx_path.name}", "",
+        f"* bars met on every seed: **{'yes' if card['bars_met'] else 'no'}**",
+        f"* command: `{card['command']}`",
+        f"* config SHA-256: `{card['config_sha256']}`; commit `{card['git_commit']}`",
+        f"* accelerator: {card['accelerator']}, {card['processes']} process(es) x {card['num_envs_per_process']} environments,"
+        f" training seed {card['training_seed']}",
+        f"* iteration {card['iteration']}, training wall time {card['training_wall_s'] / 60:.1f} min"
+        + ("" if card["wall_s_to_verdict"] is None else f" (matrix verdict at {card['wall_s_to_verdict'] / 60:.1f} min)"),
+        f"* ONNX SHA-256: `{card['onnx_sha256']}`", "",
+        "| iteration | seed | all bars | cells missing a bar | matrix |", "|---|---|---|---|---|",
+    ]
+    for r in card["matrices"]:
+        lines.append(f"| {r['iteration']} | {r['seed']} | {'yes' if r['passed'] else 'no'} | {r['missing_cells']} | {Path(r['matrix_path']).name} |")
+    m.write_text("\n".join(lines) + "\n")
+    return j, m

@@ -1,0 +1,244 @@
+"""The simulated machine: the CPU MuJoCo twin driven through the hydraulic valve model, with the
+gripper's opening delay and the payload's flight, plus the effects of its reality profile
+(:mod:`sim_twin.effects`: valve parameters, setpoint disturbances, passive friction, masses,
+release delay, grasp offset, flight drag, measurement latency and noise). It stands in for the hardware; the Zenoh
+process around it is :mod:`sim_twin.twin.plant`, and evaluation and previews drive it directly.
+
+One :meth:`SimulatedMachine.step` is one 10 ms physics period. Closed valves hold the load and
+the joint ends are hard stops (:func:`sim_twin.twin.hydraulics.cylinder_step`), however many steps run
+with neutral valves (e.g. while the plant process is stalled).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from runtime.machine import JOINT_LOWER, JOINT_UPPER, NUM_ACTIVE, forward_kinematics
+from sim_twin.effects.payload import grasp_point, integrate_flight
+from sim_twin.twin.hydraulics import ValveModel, cylinder_step
+from sim_twin.twin.initial_pose import sample_pose
+from sim_twin.twin.model import (
+    PAYLOAD_RADIUS_M,
+    load_model,
+    passive_inertia,
+    passive_inertia_of,
+)
+from sim_twin.twin.physics import (
+    ballistic_impact_time,
+    ballistic_position,
+    passive_friction_force,
+)
+from sim_twin.twin.profile import RealityProfile
+
+
+@dataclass
+class Impact:
+    """Payload flight summary; positions in the machine frame (m), times in simulated seconds.
+    ``impact_pos_m`` is the measured landing spot (true one + the profile's impact noise)."""
+
+    impact_pos_m: np.ndarray
+    opening_time_s: float
+    impact_time_s: float
+    release_pos_m: np.ndarray
+    release_vel_mps: np.ndarray
+
+
+class SimulatedMachine:
+    """CPU twin + hydraulics + payload.
+
+    Args:
+        profile: reality profile (default: nominal machine).
+        seed: seed of the release-delay jitter and of random initial poses.
+    """
+
+    def __init__(self, profile: RealityProfile | None = None, seed: int | None = None):
+        self.profile = profile or RealityProfile()
+        self.effects = self.profile.stack()
+        self.model = load_model()
+        if self.effects.has("model"):
+            self.effects.model(self.model)
+            self._inertia = passive_inertia_of(self.model)
+        else:
+            self._inertia = passive_inertia()
+        self.data = mujoco.MjData(self.model)
+        self.valves = ValveModel(self.effects.hydraulics(self.profile.hydraulics))
+        self.rng = np.random.default_rng(seed)
+        p = self.profile
+        self._delay_mean_s, self._delay_std_s = self.effects.release_delay(p.release_delay_mean_s, p.release_delay_std_s)
+        self._viscous, self._coulomb = self.effects.passive_friction(p.passive_viscous_per_s, p.passive_coulomb_rad_per_s2)
+        self._grasp_offset = self.effects.grasp_offset()
+        self._fx_setpoint = self.effects.has("setpoint")
+        self._fx_flight = self.effects.has("flight_accel")
+        self._fx_measure = self.effects.has("measure")
+        self._meas_rng = np.random.default_rng(None if seed is None else [int(seed), 1])
+        self._impact_noise_m = float(p.sensing.impact_noise_m)
+        self.reset()
+
+    # --- state ------------------------------------------------------------------------------
+    @property
+    def time_s(self) -> float:
+        return float(self.data.time)
+
+    @property
+    def q(self) -> np.ndarray:
+        """(6,) measured joint positions (the true ones unless a measurement effect is on)."""
+        return self._meas_q.copy() if self._fx_measure else self.data.qpos.copy()
+
+    @property
+    def qd(self) -> np.ndarray:
+        """(6,) measured joint velocities (the true ones unless a measurement effect is on)."""
+        return self._meas_qd.copy() if self._fx_measure else self.data.qvel.copy()
+
+    @property
+    def gripper_open(self) -> bool:
+        return self._opened
+
+    @property
+    def payload_attached(self) -> bool:
+        return self._attached
+
+    @property
+    def impact(self) -> Impact | None:
+        """Set once the payload has hit the ground."""
+        return self._impact if self._landed else None
+
+    def payload_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """(pos (3,), vel (3,)) of the payload: the gripper centre while held, else its flight."""
+        if self._release is None:
+            if self._grasp_offset is not None:
+                return grasp_point(self.data.qpos, self.data.qvel, self._grasp_offset)
+            pts = forward_kinematics(np, self.data.qpos, self.data.qvel)
+            return pts.gripper_centre, pts.gripper_centre_vel
+        p0, v0, t0 = self._release
+        if self._flight is not None:
+            ts, ps, vs = self._flight
+            t = min(self.time_s - t0, self._impact_time_s() - t0)
+            pos = np.array([np.interp(t, ts, ps[:, i]) for i in range(3)])
+            vel = np.zeros(3) if self._landed else np.array([np.interp(t, ts, vs[:, i]) for i in range(3)])
+            return pos, vel
+        t = min(self.time_s - t0, self._impact_time_s() - t0)
+        pos = ballistic_position(np, p0, v0, t)
+        vel = v0 + np.array([0.0, 0.0, -9.81]) * t
+        if self._landed:
+            vel = np.zeros(3)
+        return pos, vel
+
+    # --- control ----------------------------------------------------------------------------
+    def reset(self, q_active: np.ndarray | None = None, cabin_turn: float | None = 0.0) -> np.ndarray:
+        """Re-initialise at rest with the gripper hanging plumb and a payload in the gripper.
+
+        Args:
+            q_active: (4,) pose, or None for a random collision-free pose (sim_twin.twin.initial_pose).
+            cabin_turn: cabin angle for a random pose (rad), or None for a random one.
+
+        Returns:
+            (6,) the initial joint positions.
+        """
+        mujoco.mj_resetData(self.model, self.data)
+        if q_active is None:
+            q = sample_pose(self.rng, cabin_turn=cabin_turn)
+        else:
+            q = np.zeros(6)
+            q[:4] = np.asarray(q_active, dtype=float)
+            q[4] = -(q[1] + q[2])
+        self.data.qpos[:] = q
+        mujoco.mj_forward(self.model, self.data)
+        self.valves.reset()
+        self._x_ref = np.clip(q[:NUM_ACTIVE], JOINT_LOWER[:NUM_ACTIVE], JOINT_UPPER[:NUM_ACTIVE])
+        self._attached, self._opened, self._landed = True, False, False
+        self._open_at: float | None = None
+        self._release: tuple[np.ndarray, np.ndarray, float] | None = None
+        self._flight: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._impact: Impact | None = None
+        if self._fx_measure:
+            n = self.effects.history_steps()
+            self._hist_q = np.repeat(self.data.qpos[None].copy(), n, axis=0)
+            self._hist_qd = np.repeat(self.data.qvel[None].copy(), n, axis=0)
+            self._measure()
+        return q
+
+    def set_state(self, q, qd) -> None:
+        """Re-initialise (as :meth:`reset`: valves neutral, payload held) at the true joint
+        state q, qd (6,) (rad, m, rad/s, m/s), e.g. a preview's start; measurement effects see
+        it as held since long."""
+        self.reset(q_active=np.asarray(q, dtype=float)[:4])
+        self.data.qpos[:] = q
+        self.data.qvel[:] = qd
+        mujoco.mj_forward(self.model, self.data)
+        if self._fx_measure:
+            self._hist_q[:] = self.data.qpos
+            self._hist_qd[:] = self.data.qvel
+            self._measure()
+
+    def step(self, valve_u: np.ndarray, gripper_open_cmd: bool) -> None:
+        """Advance 10 ms.
+
+        Args:
+            valve_u: (4,) valve commands in [-1, 1] (clipped by the valve model).
+            gripper_open_cmd: the gripper-open command; its rising edge starts the opening
+                delay, sampled from the profile's release delay (mean, std).
+        """
+        if gripper_open_cmd and self._attached and self._open_at is None:
+            delay = max(0.0, self.rng.normal(self._delay_mean_s, self._delay_std_s))
+            self._open_at = self.time_s + delay
+        setpoint = self.valves.step(valve_u)
+        if self._fx_setpoint:
+            setpoint = self.effects.setpoint(setpoint, self.data.qpos.copy(), self.data.qvel.copy())
+        self._x_ref, self.data.ctrl[:] = cylinder_step(
+            np, self._x_ref, setpoint, self.data.qpos[:NUM_ACTIVE], JOINT_LOWER[:NUM_ACTIVE], JOINT_UPPER[:NUM_ACTIVE], float(self.model.opt.timestep)
+        )
+        self.data.qfrc_applied[4:6] = passive_friction_force(
+            np,
+            self.data.qvel[4:6],
+            self._inertia,
+            self._viscous,
+            self._coulomb,
+        )
+        mujoco.mj_step(self.model, self.data)
+        if self._fx_measure:
+            self._hist_q = np.roll(self._hist_q, 1, axis=0)
+            self._hist_qd = np.roll(self._hist_qd, 1, axis=0)
+            self._hist_q[0], self._hist_qd[0] = self.data.qpos, self.data.qvel
+            self._measure()
+        if self._open_at is not None and self._attached and self.time_s >= self._open_at - 1e-9:
+            self._open_payload()
+        if self._release is not None and not self._landed and self.time_s >= self._impact_time_s():
+            self._landed = True
+
+    def _impact_time_s(self) -> float:
+        """The released payload's impact time, s (twin clock).
+
+        Raises:
+            RuntimeError: no payload was released (callers check ``_release`` first).
+        """
+        if self._impact is None:
+            raise RuntimeError("impact time asked before the payload was released")
+        return self._impact.impact_time_s
+
+    def _measure(self) -> None:
+        self._meas_q, self._meas_qd = self.effects.measure(self._hist_q, self._hist_qd, float(self.model.opt.timestep), self._meas_rng)
+
+    def _open_payload(self) -> None:
+        if self._grasp_offset is not None:
+            p0, v0 = grasp_point(self.data.qpos, self.data.qvel, self._grasp_offset)
+        else:
+            pts = forward_kinematics(np, self.data.qpos, self.data.qvel)
+            p0, v0 = pts.gripper_centre.copy(), pts.gripper_centre_vel.copy()
+        t0 = self.time_s
+        if self._fx_flight:
+            ts, ps, vs, t_hit, hit = integrate_flight(p0, v0, self.effects.flight_accel)
+            self._flight = (ts, ps, vs)
+            t_fall = float(t_hit)
+        else:
+            t_fall = float(ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
+            hit = ballistic_position(np, p0, v0, t_fall)
+        hit[2] = 0.0
+        hit = np.array(self.effects.measure_impact(hit), dtype=float)  # calibration biases (sim_twin.effects.sensing.ImpactBias)
+        if self._impact_noise_m > 0:  # the measured landing spot (sim_twin.twin.profile.SensorParams)
+            hit[:2] = hit[:2] + self._meas_rng.normal(0.0, self._impact_noise_m, 2)
+        self._attached, self._opened = False, True
+        self._release = (p0, v0, t0)
+        self._impact = Impact(hit, t0, t0 + t_fall, p0, v0)
