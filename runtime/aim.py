@@ -1,4 +1,4 @@
-"""Aim correction of a policy version adapted to a site (``slinger adapt``, sim_twin.adapt).
+"""Aim correction of a policy version adapted to a site (``slinger adapt``, sim_twin.adaptation.adapt).
 
 A per-distance offset table in the version's manifest says where to aim so that the MEAN impact
 on that site hits the target: the runtime builds the policy's observation with the corrected

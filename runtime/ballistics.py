@@ -1,5 +1,5 @@
 """Drag-free flight of the payload, shared by the runtime (runtime.release_check) and the twin
-(sim_twin.physics re-exports these names for the simulated machine, MJX environment and preview).
+(sim_twin.twin.physics re-exports these names for the simulated machine, MJX environment and preview).
 
 Machine frame (runtime.machine: origin on the cabin-turn axis at ground level, z up); metres,
 seconds. Works on any array module ``xp`` (numpy, jax.numpy).

@@ -37,7 +37,7 @@ makes overshoot that bleeds off slowly).
 
 Gains (``ControllerGains`` defaults) were tuned in closed loop against the simulated machine with
 the earlier nominal profile (dead band 0.05, delay 0.04 s, lag 0.1 s); on the current nominal
-(0.10 s delay, 0.16 s lag, sim_twin.hydraulics) the same gains rise to 90 % within 0.55 s without
+(0.10 s delay, 0.16 s lag, sim_twin.twin.hydraulics) the same gains rise to 90 % within 0.55 s without
 big overshoot (tests/test_controller.py). Earlier figures: kp 0.6, ki 3.0 1/s, integral band
 0.05, integral limit 0.3. Measured velocity steps (every joint alike) of 0.1 / 0.3 / 0.7 v_max:
 90 % rise in 0.13-0.16 s, overshoot 6 / 2 / 0 %, error after 1.5 s < 0.5 %. Feed-forward alone

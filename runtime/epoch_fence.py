@@ -1,6 +1,6 @@
 """What a machine-side process makes of the machine-interface commands it receives: decoded for
 its own machine id only, and valve commands of the newest runtime epoch only (one driver; see
-runtime/protocol/README.md). Used by the simulated machine (sim_twin.plant) and the ROS 2 bridge
+runtime/protocol/README.md). Used by the simulated machine (sim_twin.twin.plant) and the ROS 2 bridge
 (runtime.ros2.bridge)."""
 
 from __future__ import annotations

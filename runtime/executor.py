@@ -18,7 +18,7 @@ Phases (messages.ThrowPhase): preparing -> swinging -> released -> landed | fail
 * preparing: gripper commanded closed, valves neutral; wait until the payload is attached, the
   gripper closed and both passive joints slower than ``passive_still_radps``. Timeout -> failed.
   The executor never asks whether the machine is simulated: loading a payload is the machine's
-  business (the simulated machine, sim_twin.plant, reloads by itself after its payload landed).
+  business (the simulated machine, sim_twin.twin.plant, reloads by itself after its payload landed).
 * swinging: every SUBSTEPS-th tick (12.5 Hz) the observation is built from the history
   and the policy's aim target (the requested target, or a site-adapted version's aim correction
   of it: PolicyRunner.aim_target)
@@ -100,7 +100,7 @@ class ExecutorConfig:
         max_state_gap_s: two machine states of a running throw further apart than this (machine
             time, s) fail it (finality, module docstring). CHOSEN 0.2 s: the runtime's link
             timeout (runtime.service.LINK_TIMEOUT_S), twice the simulated machine's valve
-            watchdog (sim_twin.plant.VALVE_WATCHDOG_S) and four periods of a resting machine's
+            watchdog (sim_twin.twin.plant.VALVE_WATCHDOG_S) and four periods of a resting machine's
             20 Hz states.
     """
 

@@ -1,7 +1,7 @@
 """ONNX policy runner with manifest checks.
 
 A policy version is an ONNX file plus a JSON manifest beside it (``<name>.onnx`` and
-``<name>.json``), written by ``sim_twin.export``. The runtime refuses a policy whose manifest
+``<name>.json``), written by ``sim_twin.training.export``. The runtime refuses a policy whose manifest
 does not match what this runtime computes (mode, joint order, observation layout, control period,
 release threshold) or whose file does not hash to the manifest's SHA-256, and checks the ONNX
 graph's input/output shapes and that it returns finite actions.

@@ -38,7 +38,7 @@ from runtime.protocol.messages import MachineState
 
 READY_POSE = np.array([-0.8, 1.6, 0.6])
 """boom, dipper (rad), telescope (m) of the ready pose. CHOSEN: inside the start-pose box of
-sim_twin.initial_pose, the hanging gripper's centre 2.0 m above the ground and 4.8 m from the
+sim_twin.twin.initial_pose, the hanging gripper's centre 2.0 m above the ground and 4.8 m from the
 turn axis (2.8 m outside the cabin cylinder), every joint at least 0.5 rad / 0.6 m from its ends."""
 POSITION_GAIN_PER_S = 0.8
 """Velocity reference per unit of remaining error, 1/s. CHOSEN below the ~1.5 1/s that the

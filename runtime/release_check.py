@@ -28,7 +28,7 @@ are part of its error below.
 
 Accuracy (``tests/benchmarks/release_check_accuracy.py``, ``reports/release_check_accuracy.json``):
 100 throws per cell of the deployed policies (policies/throw2d.onnx, throw3d.onnx) on the twin by
-sim_twin.evaluate's protocol with a check that never holds, the site matrix's seeds
+sim_twin.evaluation.evaluate's protocol with a check that never holds, the site matrix's seeds
 (``i * 100_000 + k``); horizontal distance between the executor's prediction at the release
 command (measured state) and the measured impact, median / p99 / max, m:
 

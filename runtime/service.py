@@ -516,7 +516,7 @@ class RuntimeService(RecoveryHandling):
 
     def _ended_stop(self, req: AbortRequest) -> bool:
         """True (logged) if ``req`` is a stop a confirmed reset already ended: a repeat of an
-        E-STOP put whose ``request_id`` (fresh per press, server.estop) reached this runtime before
+        E-STOP put whose ``request_id`` (fresh per press, server.fleet.estop) reached this runtime before
         the reset (a slowed runtime still had it queued). Requests without a request id, and every
         new press, always stop: a stop is never dated by a clock, whose estimate may move."""
         with self.lock:

@@ -42,7 +42,7 @@ MODES = ("peer", "client", "router")
 class TlsFiles:
     """PEM files of one process: the site CA certificate, its certificate and private key.
 
-    The site directory layout (server/certs.py): ``<site>/ca.crt``, ``<site>/certs/<cn>.crt``
+    The site directory layout (server/site/certs.py): ``<site>/ca.crt``, ``<site>/certs/<cn>.crt``
     and ``<site>/certs/<cn>.key``.
     """
 

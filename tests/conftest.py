@@ -138,7 +138,7 @@ group states the rule that puts a test there (docs/development.md: test tiers)."
 
 def _python_argv(args) -> bool:
     """``args`` (Popen's first argument) runs a Python interpreter: Slinger's processes
-    (server.stack.slinger_command), a policy validation child, ``python -c ...``."""
+    (server.site.stack.slinger_command), a policy validation child, ``python -c ...``."""
     argv = [args] if isinstance(args, (str, bytes, os.PathLike)) else list(args)
     if not argv:
         return False
@@ -215,12 +215,12 @@ def pytest_collection_modifyitems(config, items) -> None:
 @pytest.fixture(scope="session", autouse=True)
 def cheap_password_hashes():
     """argon2id at its minimal cost in this process (1 pass, 1 MiB, 1 lane): the hash's cost is
-    not what the tests check, and the library's default (64 MiB, 3 passes, 4 lanes; server.auth)
+    not what the tests check, and the library's default (64 MiB, 3 passes, 4 lanes; server.accounts.auth)
     costs about 0.2 s of CPU per hash or log-in. Processes that tests start keep the default."""
     from argon2 import PasswordHasher
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr("server.auth._hasher", PasswordHasher(time_cost=1, memory_cost=1024, parallelism=1))
+        mp.setattr("server.accounts.auth._hasher", PasswordHasher(time_cost=1, memory_cost=1024, parallelism=1))
         yield
 
 
@@ -501,7 +501,7 @@ ADMIN = ("admin", "admin-pass-1")
 
 def add_user(sessions, username: str, password: str, role: str) -> None:
     """Create a user straight in the database (``sessions``: the app's session factory)."""
-    from server.auth import create_user
+    from server.accounts.auth import create_user
 
     with sessions.begin() as db:
         create_user(db, username, password, role)
@@ -600,7 +600,7 @@ class SlingerUp:
         """real_policies: run the repository's deployed policies (both modes) with the runtime's release
         check ON, as the main job does, instead of the non-throwing test policy. env: more
         environment variables for the stack (settings as SLINGER_*). args: more options of `slinger up`."""
-        from server.stack import slinger_command
+        from server.site.stack import slinger_command
         from tests.fixtures import write_test_policy
 
         self.env = None
@@ -630,7 +630,7 @@ class SlingerUp:
         import subprocess
 
         if self.create_admin:  # as an operator would: slinger user add --admin
-            from server.stack import slinger_command
+            from server.site.stack import slinger_command
 
             subprocess.run(slinger_command("user", "add", "--admin", "--password", ADMIN[1], "--data-dir",
                                        str(self.data_dir)), check=True, capture_output=True, timeout=60,

@@ -28,7 +28,7 @@ import httpx
 from runtime.protocol import keys
 from runtime.protocol.messages import MachineState, SimReset, ValveCommand, decode, encode
 from runtime.zenoh_session import open_session
-from server.stack import slinger_command
+from server.site.stack import slinger_command
 from tests.conftest import ADMIN, TEST_POLICY_CHECK, free_port, login, machine_key, wait_for
 
 log = logging.getLogger(__name__)
@@ -199,7 +199,7 @@ class FaultStack:
 
     # --- lifecycle --------------------------------------------------------------------------
     def __enter__(self) -> "FaultStack":
-        from server.stack import register_policies
+        from server.site.stack import register_policies
 
         subprocess.run(slinger_command("user", "add", "--admin", "--password", ADMIN[1], "--data-dir", str(self.data_dir)),
                        check=True, capture_output=True, timeout=120, env=self.env, cwd=self.root)

@@ -73,13 +73,13 @@ def finished_diagnosis_run(state, machine_id: str, report: dict, profile: dict |
 
 def raise_drift_alert(watch, machine_id: str, shift_m: float = 0.3, seed: int = 0) -> dict:
     """Raise a drift alert on ``machine_id`` through the watch's own input
-    (:meth:`server.drift.DriftWatch.observe`): BASELINE_THROWS landed throws with 5 cm noise,
+    (:meth:`server.analysis.drift.DriftWatch.observe`): BASELINE_THROWS landed throws with 5 cm noise,
     then throws landing ``shift_m`` long, until the CUSUM alarms. Returns the alert.
 
     Raises:
         AssertionError: no alert after 100 shifted throws.
     """
-    from server.drift import BASELINE_THROWS
+    from server.analysis.drift import BASELINE_THROWS
 
     rng = np.random.default_rng(seed)
     for i in range(BASELINE_THROWS):

@@ -28,7 +28,7 @@ from pathlib import Path
 import httpx
 from sqlalchemy import create_engine, text
 
-from server.stack import slinger_command
+from server.site.stack import slinger_command
 from tests.conftest import ADMIN, TEST_POLICY_CHECK, free_port, login, serving, wait_for
 from tests.fleet_net import Net, TcpRelay
 
@@ -127,9 +127,9 @@ class Site:
         return self
 
     def _start(self) -> None:
-        from server.certs import make_site
+        from server.site.certs import make_site
         from server.db.migrate import upgrade
-        from server.stack import register_policies
+        from server.site.stack import register_policies
 
         upgrade(self.database_url)
         register_policies(self.database_url, self.data_dir, {"2d": self.policy})

@@ -1,4 +1,4 @@
-"""Incremental accuracy aggregates (server.db.aggregates, server.accuracy) on SQLite and
+"""Incremental accuracy aggregates (server.db.aggregates, server.analysis.accuracy) on SQLite and
 PostgreSQL: results stored through the real ingest path (signed ThrowResult queries over Zenoh
 to the server's fleet link) keep ``throw_accuracy`` in step, and the accuracy answered from the
 aggregates equals the row scan's for every filter the aggregates serve: a result re-delivered
@@ -17,13 +17,13 @@ from datetime import datetime, timedelta, timezone
 import pytest
 from sqlalchemy import insert, select
 
-import server.accuracy as acc
+import server.analysis.accuracy as acc
 from runtime.protocol.messages import PolicyInfo, ThrowResult
 from server.db.aggregates import distance_bin, rebuild
 from server.db.migrate import upgrade
 from server.db.models import Machine, Throw, ThrowAccuracy
 from server.db.session import make_engine, make_sessionmaker
-from server.history import ThrowFilter
+from server.throws.history import ThrowFilter
 from tests.conftest import ADMIN, FakeRuntime, add_user, login
 
 T0 = datetime(2026, 5, 1, 20, 0, tzinfo=timezone.utc)

@@ -1,4 +1,4 @@
-"""Adaptation to a site (sim_twin.adapt) and the runtime's aim correction (runtime.aim):
+"""Adaptation to a site (sim_twin.adaptation.adapt) and the runtime's aim correction (runtime.aim):
 the offset table, its seal in the ONNX file, the executor aiming with it, the correction loop
 (on a fake twin evaluation) and the fine-tuning config. The real twin evaluations behind the
 committed report are reports/adaptation.md."""
@@ -16,11 +16,11 @@ from runtime.executor import ThrowExecutor
 from runtime.policy import PolicyError, PolicyRunner
 from runtime.protocol.messages import ThrowRequest
 from runtime.throw_geometry import impact_errors
-from sim_twin import adapt as ad
-from sim_twin.hydraulics import NOMINAL_LAG_S
-from sim_twin.profile import RealityProfile
-from sim_twin.simulated_machine import SimulatedMachine
-from sim_twin.twin_machine import TwinMachine
+from sim_twin.adaptation import adapt as ad
+from sim_twin.twin.hydraulics import NOMINAL_LAG_S
+from sim_twin.twin.profile import RealityProfile
+from sim_twin.twin.simulated_machine import SimulatedMachine
+from sim_twin.twin.twin_machine import TwinMachine
 from tests.fixtures import finished_diagnosis_run, write_test_policy
 
 TABLE = {"format": AIM_FORMAT, "distances_m": [7.0, 9.0], "downrange_offset_m": [-0.2, -0.4], "crossrange_offset_m": [0.1, 0.3]}
@@ -135,7 +135,7 @@ def test_adapt_writes_a_version_with_the_fitted_profile(monkeypatch, sealed, tmp
 def test_finetune_config_fixes_the_profiles_effects():
     cfg = {"env": {"mode": "2d", "randomization": {"dead_band": [0.03, 0.07], "valve_delay_s": [0.02, 0.06], "lag_s": [0.07, 0.13],
                                                    "release_delay_mean_s": 0.258, "release_delay_std_s": 0.015, "release_delay_shift_s": 0.01}}}
-    prof = RealityProfile.load(ad.Path(ad.__file__).parent / "profiles" / "worn_gripper.json")
+    prof = RealityProfile.load(ad.Path(ad.__file__).parent.parent / "profiles" / "worn_gripper.json")
     prof.effects.append(RealityProfile.from_dict({"effects": [{"effect": "valve_delay", "params": {"delay_s": 0.12}}]}).effects[0])
     prof.effects.append(RealityProfile.from_dict({"effects": [{"effect": "payload_drag", "params": {"drag_coefficient": 0.4}}]}).effects[0])
     new, fixed, unsupported = ad.finetune_config(cfg, prof)

@@ -1,4 +1,4 @@
-"""Anchoring the aim table to the site's logged impacts (sim_twin.aim_anchor) and its use by
+"""Anchoring the aim table to the site's logged impacts (sim_twin.adaptation.aim_anchor) and its use by
 ``slinger adapt``: a fitted profile that predicts the wrong closed-loop bias (another,
 replay-equivalent effect) still gives the right correction once the logged throws are in."""
 
@@ -11,12 +11,12 @@ import pytest
 
 from runtime.aim import AIM_FORMAT
 from runtime.policy import PolicyRunner
-from sim_twin import adapt as ad
-from sim_twin.aim_anchor import MIN_THROWS, anchor_table, fit_residual, logged_errors
-from sim_twin.profile import RealityProfile
+from sim_twin.adaptation import adapt as ad
+from sim_twin.adaptation.aim_anchor import MIN_THROWS, anchor_table, fit_residual, logged_errors
+from sim_twin.twin.profile import RealityProfile
 from tests.fixtures import write_test_policy
 
-Y = -0.292  # the 2D targets' crossrange position (sim_twin.evaluate.target_on_axis)
+Y = -0.292  # the 2D targets' crossrange position (sim_twin.evaluation.evaluate.target_on_axis)
 
 
 def _write_dataset(path, rows):

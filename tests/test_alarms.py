@@ -1,4 +1,4 @@
-"""Alarms kept on the server (server.alarms, after ISA-18.2): raised by a condition, cleared when
+"""Alarms kept on the server (server.console.alarms, after ISA-18.2): raised by a condition, cleared when
 it is gone, acknowledged by whom and when, acknowledge-all, shelving with a time limit, history,
 audit entries; failed throws name their cause; the operator's own E-STOP is no alarm. Through
 the API of a real app (SQLite, migrated)."""
@@ -9,9 +9,9 @@ from datetime import UTC, datetime
 
 import pytest
 
-from server.alarms import MAX_SHELVE_MIN, failure_cause
+from server.console.alarms import MAX_SHELVE_MIN, failure_cause
 from server.db.models import Machine, Throw
-from server.fleet_events import ResultStored, RuntimeOffline, RuntimeOnline
+from server.fleet.events import ResultStored, RuntimeOffline, RuntimeOnline
 from tests.conftest import ADMIN, add_user, login
 from tests.fixtures import raise_drift_alert
 

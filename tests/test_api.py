@@ -191,7 +191,7 @@ def test_runtime_not_answering_is_503_and_the_throw_is_reconciled(client, fake_r
     assert r.status_code == 503 and "did not confirm" in r.json()["detail"], r.text
     assert len(rt.requests) == 1 and throw_count() == 1
     reconciler = client.app.state.reconciler
-    reconciler.stop()  # passes by hand only: the running one acts on fleet events (server.reconcile)
+    reconciler.stop()  # passes by hand only: the running one acts on fleet events (server.fleet.reconcile)
     reconciler.handshake_s, reconciler.result_grace_s = 0.0, 0.0
     lost = reconciler.run_once()
     assert [tid for tid, _ in lost] == [rt.requests[0].throw_id]

@@ -6,7 +6,7 @@ from datetime import timedelta
 
 import pytest
 
-from server.auth import hash_password, verify_password
+from server.accounts.auth import hash_password, verify_password
 from server.db.models import AuthSession
 from tests.conftest import ADMIN, add_user, login, wait_online
 

@@ -208,7 +208,7 @@ def test_a_failed_throw_is_an_alarm_in_view_at_both_sizes(up, ann):
     press(ann, "#throw")
     assert stall.wait(120), "the throw never started"
     ann.locator("#result", has_text=re.compile("FAILED|ABORTED|LOST")).wait_for()
-    ann.locator("#alarm-banner").wait_for()  # kept on the server (server.alarms), named by its cause
+    ann.locator("#alarm-banner").wait_for()  # kept on the server (server.console.alarms), named by its cause
     press(ann, "#alarm-toggle")
     ann.locator("#alarms li").first.wait_for()
     text = ann.inner_text("#alarms")
@@ -266,7 +266,7 @@ def test_a_touch_tap_in_the_3d_view_sets_the_target_on_a_phone(up, module_browse
 
 REAL_TIME_FAULT = "behind real time"
 """The one refusal or failure the ten-throw test tolerates: the simulated machine's documented
-fault when its process falls behind real time (sim_twin.realtime; a loaded test host), counted.
+fault when its process falls behind real time (sim_twin.twin.realtime; a loaded test host), counted.
 A stall longer than the runtime's 200 ms state timeout reaches the runtime as "machine link lost"
 before the plant's own fault does: such a failure counts as the same fault only when the plant's
 log reports falling behind real time at that moment (:func:`_plant_fell_behind`)."""

@@ -186,7 +186,7 @@ def test_history_replay_drives_the_3d_view_along_the_plots_timeline(live_3d, bro
 
 def test_a_drift_alarm_shows_on_every_open_console_until_an_operator_acknowledges_it(live, browser):  # noqa: F811
     """Two consoles (two browsers' worth of contexts: no shared storage) on two pages; the alert
-    comes through server.drift's own input; Acknowledge in one clears it in both; a viewer's
+    comes through server.analysis.drift's own input; Acknowledge in one clears it in both; a viewer's
     press is refused with a sentence."""
     base, app = live
     _seed(app, n=3)
@@ -228,7 +228,7 @@ def test_alarms_on_a_phone_stay_within_a_sixth_and_hide_no_control(live, browser
     """Four alarms on a 390x844 phone: the banner (its list opened too) takes at most a sixth of
     the viewport and covers none of the console's controls; acknowledge-all acknowledges them all
     on the server (who, when), the Alarms page lists them with who acknowledged."""
-    from server.fleet_events import RuntimeOffline
+    from server.fleet.events import RuntimeOffline
 
     base, app = live
     _seed(app, n=3)

@@ -14,7 +14,7 @@ import pytest
 
 from runtime.protocol import keys
 from runtime.zenoh_session import Claimed, claim_exclusive, new_claim, open_session
-from server.stack import slinger_command
+from server.site.stack import slinger_command
 from tests.conftest import free_port, wait_for
 from tests.fixtures import write_test_policy
 

@@ -13,14 +13,14 @@ import pytest
 from sqlalchemy import select
 
 from runtime.protocol.messages import PolicyInfo
-from server.auth import UserExists, create_user
+from server.accounts.auth import UserExists, create_user
 from server.db.migrate import upgrade
 from server.db.models import AuditEntry, Machine, PolicyVersion, Throw, User
 from server.db.session import make_engine, make_sessionmaker
 from server.db.upsert import insert_if_absent
 from server.errors import Conflict
-from server.policies import PolicyService
-from server.results import ResultStore, ensure_machine
+from server.policies.versions import PolicyService
+from server.fleet.results import ResultStore, ensure_machine
 
 SHA = "c" * 64
 

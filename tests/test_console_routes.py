@@ -96,7 +96,7 @@ def test_held_log_ins_are_audited_one_entry_each(client):
 
 
 def test_the_login_guard_drops_audit_entries_past_its_backlog_and_counts_them():
-    from server.login_guard import LoginGuard
+    from server.accounts.login_guard import LoginGuard
 
     guard = LoginGuard(max_audit_backlog=1)
     started, gate, written = threading.Event(), threading.Event(), []

@@ -12,7 +12,7 @@ from datetime import timedelta
 import pytest
 
 from server.db.types import utcnow
-from server.throw_gate import GateLimits
+from server.throws.gate import GateLimits
 from tests.conftest import add_user, login, wait_for, wait_online
 
 TARGET = [8.0, -0.292, 0.0]
@@ -129,7 +129,7 @@ def test_restarted_runtime_without_the_throw_makes_it_lost(client, fake_runtime_
     wait_online(client)
     tid = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET}).json()["id"]
     reconciler = client.app.state.reconciler
-    reconciler.stop()  # passes by hand only: the running one acts on fleet events (server.reconcile)
+    reconciler.stop()  # passes by hand only: the running one acts on fleet events (server.fleet.reconcile)
     reconciler.handshake_s, reconciler.result_grace_s = 0.0, 0.0
     assert reconciler.run_once() == []  # the runtime is running it
     first.close()
@@ -172,7 +172,7 @@ def test_runtime_gone_past_the_bound_then_a_late_result_replaces_lost(client, fa
     rt.close()
     wait_online(client, online=False)
     reconciler = client.app.state.reconciler
-    reconciler.stop()  # passes by hand only: the running one acts on fleet events (server.reconcile)
+    reconciler.stop()  # passes by hand only: the running one acts on fleet events (server.fleet.reconcile)
     reconciler.handshake_s = 0.0
     assert reconciler.run_once() == []  # offline for less than the bound
     reconciler.runtime_gone_s = 0.0

@@ -10,8 +10,8 @@ import pytest
 
 from runtime.controller import ControllerGains, JointVelocityController, limit_ramp_scale
 from runtime.machine import ACTIVE_VELOCITY_LIMITS, JOINT_LOWER, JOINT_UPPER, clearance_violations, forward_kinematics
-from sim_twin.profile import RealityProfile
-from sim_twin.simulated_machine import SimulatedMachine
+from sim_twin.twin.profile import RealityProfile
+from sim_twin.twin.simulated_machine import SimulatedMachine
 
 START = np.array([0.0, -0.5, 1.6, 0.9])
 
@@ -214,7 +214,7 @@ def test_robust_3d_throws_with_a_slow_valve_delay_stay_off_the_end_stops(tmp_pat
     velocity alone; with the commanded speed counted they are released and land."""
     import json
 
-    from sim_twin.evaluate import throw_batch
+    from sim_twin.evaluation.evaluate import throw_batch
 
     prof = tmp_path / "delay.json"
     prof.write_text(json.dumps({"name": "delay_0.2s", "effects": [{"effect": "valve_delay", "params": {"delay_s": 0.20}}]}))

@@ -21,7 +21,7 @@ from sim_twin.diagnosis.dataset import DatasetError
 from sim_twin.diagnosis.diagnose import diagnose, resolve_candidates, split
 from sim_twin.diagnosis.reallog import RealLogSpec
 from sim_twin.effects import EffectStack
-from sim_twin.profile import RealityProfile, SensorParams
+from sim_twin.twin.profile import RealityProfile, SensorParams
 
 POLICY = Path(__file__).parent.parent / "policies" / "throw2d.onnx"
 IDEAL = {k: 0.0 for k in SensorParams.__dataclass_fields__}  # exact replays need perfect sensors
@@ -127,7 +127,7 @@ def test_candidates_are_checked_before_any_work(tmp_path: Path):
 
 def test_fitted_profile_is_a_reality_profile_with_uncertainties(noisy_dir: Path, tmp_path: Path):
     """profile_fitted.json of a run with a named effect loads as a reality profile with the fitted 1 sigma."""
-    from sim_twin.uncertainty import with_fitted_sigma
+    from sim_twin.twin.uncertainty import with_fitted_sigma
 
     prof = with_fitted_sigma(RealityProfile.from_dict({"effects": [{"effect": "valve_lag", "params": {"lag_s": 0.3}}]}),
                              {"valve_lag": {"lag_s_boom": 0.01, "lag_s_cabin_turn": 0.0}})
@@ -228,7 +228,7 @@ def test_converter_reads_another_machines_csv(nominal_dir: Path, tmp_path: Path)
 def test_server_runs_a_diagnosis_on_stored_throws(client, nominal_dir: Path):
     from runtime.protocol.messages import ThrowResult
     from runtime.telemetry import read_metadata
-    from server.diagnosis import DiagnosisRuns
+    from server.analysis.diagnosis import DiagnosisRuns
 
     runs = DiagnosisRuns(client.app.state.sessions, client.app.state.jobs, client.app.state.settings.data_dir, workers=1)
     client.app.state.diagnosis_runs = runs

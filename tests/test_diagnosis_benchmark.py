@@ -157,7 +157,7 @@ def test_a_passed_deadline_starts_no_case_and_says_which_did_not_run(tmp_path: P
 def test_stopping_the_workers_ends_running_cases_at_once():
     import time
 
-    from sim_twin.pools import process_pool
+    from sim_twin.twin.pools import process_pool
 
     pool = process_pool(2)
     futs = [pool.submit(time.sleep, 60) for _ in range(3)]

@@ -20,7 +20,7 @@ from runtime.ros2.robot_description import UrdfChain
 from sim_twin.diagnosis import dataset, rosbag
 from sim_twin.diagnosis.cli import main as diagnose_main
 from sim_twin.diagnosis.convert import ConvertError
-from sim_twin.profile import SensorParams
+from sim_twin.twin.profile import SensorParams
 
 POLICY = Path(__file__).parent.parent / "policies" / "throw2d.onnx"
 IDEAL = {k: 0.0 for k in SensorParams.__dataclass_fields__}
@@ -151,7 +151,7 @@ def _zip_dir(d: Path) -> bytes:
 def test_bags_uploaded_through_the_api_are_diagnosed(client, nominal: Path, tmp_path: Path):
     """POST /api/diagnosis/uploads: single MCAP files and zipped rosbag2 directories (sqlite3),
     the mapping and the impacts CSV; converted and diagnosed by the worker."""
-    from server.diagnosis import DiagnosisRuns
+    from server.analysis.diagnosis import DiagnosisRuns
 
     runs = DiagnosisRuns(client.app.state.sessions, client.app.state.jobs, client.app.state.settings.data_dir, workers=1)
     client.app.state.diagnosis_runs = runs

@@ -172,7 +172,7 @@ def test_to_within_noise_only_where_every_channel_is():
 
 # --- the drift watch uses the same test -----------------------------------------------------------
 def test_the_drift_watch_locates_the_change_with_the_diagnosis_test():
-    from server.drift import BASELINE_THROWS, Cusum
+    from server.analysis.drift import BASELINE_THROWS, Cusum
 
     rng = np.random.default_rng(7)
     cu = Cusum()

@@ -1,4 +1,4 @@
-"""Logged throws of the Drake machine as a real-log-like diagnosis dataset (sim_twin.drake_dataset)."""
+"""Logged throws of the Drake machine as a real-log-like diagnosis dataset (sim_twin.diagnosis.drake_dataset)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import json
 
 from sim_twin import default_policy
 from sim_twin.diagnosis import dataset
-from sim_twin.drake_dataset import generate
+from sim_twin.diagnosis.drake_dataset import generate
 
 
 def test_drake_throws_are_logged_like_a_real_machines(tmp_path):

@@ -1,10 +1,10 @@
-"""The Drake evaluation paired with the MuJoCo site matrix's nominal column (sim_twin.drake_evaluate)."""
+"""The Drake evaluation paired with the MuJoCo site matrix's nominal column (sim_twin.evaluation.drake_evaluate)."""
 
 from __future__ import annotations
 
 import pytest
 
-from sim_twin.drake_evaluate import compare_engines, markdown
+from sim_twin.evaluation.drake_evaluate import compare_engines, markdown
 
 
 def _target(d: float, seeds, down, cross) -> dict:

@@ -1,4 +1,4 @@
-"""The machine in Drake (sim_twin.drake_machine): the same model as the MuJoCo twin, moved by
+"""The machine in Drake (sim_twin.twin.drake_machine): the same model as the MuJoCo twin, moved by
 another engine, with the shared valves, cylinders, release and flight."""
 
 from __future__ import annotations
@@ -7,10 +7,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from sim_twin.drake_machine import DrakeMachine
+from sim_twin.twin.drake_machine import DrakeMachine
 from sim_twin.effects import make_effect
-from sim_twin.profile import RealityProfile
-from sim_twin.simulated_machine import SimulatedMachine
+from sim_twin.twin.profile import RealityProfile
+from sim_twin.twin.simulated_machine import SimulatedMachine
 
 POSE = [0.0, -0.6, 1.5, 0.9]
 
@@ -66,7 +66,7 @@ def test_valve_commands_move_the_joints_like_the_twins(drake):
 
 
 def test_passive_friction_is_drakes_joint_damping_with_the_papers_values(drake):
-    from sim_twin.model import passive_inertia
+    from sim_twin.twin.model import passive_inertia
 
     for joint, inertia in zip(drake._passive_joints, passive_inertia()):  # noqa: SLF001
         assert joint.GetDamping(drake._pctx) == pytest.approx(0.03 * inertia)  # noqa: SLF001
@@ -100,7 +100,7 @@ def test_a_model_editing_effect_is_refused():
 
 
 def test_the_deployed_2d_policy_lands_near_its_target_in_drake():
-    from sim_twin.evaluate import throw_batch
+    from sim_twin.evaluation.evaluate import throw_batch
 
     rows = throw_batch("policies/throw2d.onnx", "2d", 8.5, [0], engine="drake")
     assert rows[0]["status"] == "landed", rows

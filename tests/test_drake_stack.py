@@ -1,5 +1,5 @@
 """End to end on the Drake machine: ``slinger up --engine drake`` runs the simulated machine in
-Drake (sim_twin.drake_machine) behind the machine interface; the console's API path (preview in
+Drake (sim_twin.twin.drake_machine) behind the machine interface; the console's API path (preview in
 the MuJoCo twin, then the throw) throws the deployed 2D policy at it, with the release check on."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from runtime.telemetry import read_telemetry
-from sim_twin.drake_plant import UntrackedPayloadTwin, plant_twin
-from sim_twin.profile import RealityProfile
+from sim_twin.twin.drake_plant import UntrackedPayloadTwin, plant_twin
+from sim_twin.twin.profile import RealityProfile
 from tests.conftest import SlingerUp
 from tests.test_stack import TARGET_2D, _landed_throw, _wait_ready
 

@@ -1,4 +1,4 @@
-"""Drift watch (server.drift): the CUSUM's false-alarm and detection behaviour on simulated
+"""Drift watch (server.analysis.drift): the CUSUM's false-alarm and detection behaviour on simulated
 impact errors, bad input, and a simulated machine whose reality profile changes mid-run, its
 throws stored as the ingest stores them and observed through the fleet's result listener: an
 alert on the machine, a diagnosis started by itself, the adaptation offered from its result,
@@ -16,9 +16,9 @@ from sqlalchemy import create_engine
 from sqlalchemy.orm import sessionmaker
 
 from runtime.throw_geometry import impact_errors
-from server import drift
+from server.analysis import drift
 from server.db.models import Base, Machine, Throw
-from server.drift import Cusum, DriftWatch
+from server.analysis.drift import Cusum, DriftWatch
 from sim_twin.diagnosis import dataset
 from sim_twin.diagnosis.reallog import RealLogSpec
 
@@ -43,7 +43,7 @@ def test_cusum_rarely_alarms_on_noise_and_finds_a_one_sigma_shift_within_30_thro
         e[n0:, 0] += 0.05  # the mean moves by one noise sigma after the baseline
         i = _run_until_alarm(e)
         found.append(i is not None and i < n0 + 30)
-    assert np.mean(false) < 0.2, np.mean(false)  # ~11 % of 100-throw runs (server.drift module doc)
+    assert np.mean(false) < 0.2, np.mean(false)  # ~11 % of 100-throw runs (server.analysis.drift module doc)
     assert np.mean(found) > 0.8, np.mean(found)  # ~87 %
 
 
@@ -57,7 +57,7 @@ def test_cusum_refuses_malformed_errors_and_keeps_its_state():
 
 
 class FakeRuns:
-    """Stands in for server.diagnosis.DiagnosisRuns (the job queue is tested elsewhere)."""
+    """Stands in for server.analysis.diagnosis.DiagnosisRuns (the job queue is tested elsewhere)."""
 
     def __init__(self):
         self.started, self.status = [], {}
@@ -129,7 +129,7 @@ def test_profile_change_mid_run_raises_an_alert_starts_a_diagnosis_and_offers_th
 
 
 def test_listener_ignores_unknown_and_unlanded_throws_and_the_live_state_carries_the_alert(tmp_path: Path):
-    from server.live import LiveHub
+    from server.console.live import LiveHub
 
     engine = create_engine(f"sqlite:///{tmp_path / 'db.sqlite'}")
     Base.metadata.create_all(engine)

@@ -12,9 +12,9 @@ import pytest
 from runtime.machine import ACTIVE_VELOCITY_LIMITS, forward_kinematics
 from sim_twin.effects import EFFECTS, Effect, effect_from_dict, load_effect, make_effect
 from sim_twin.effects.payload import integrate_flight
-from sim_twin.physics import ballistic_impact_time, ballistic_position
-from sim_twin.profile import RealityProfile, SensorParams
-from sim_twin.simulated_machine import SimulatedMachine
+from sim_twin.twin.physics import ballistic_impact_time, ballistic_position
+from sim_twin.twin.profile import RealityProfile, SensorParams
+from sim_twin.twin.simulated_machine import SimulatedMachine
 
 POSE = [0.0, -0.6, 1.5, 0.9]
 
@@ -83,7 +83,7 @@ def test_valve_delay_and_lag_shape_the_step_response():
         _, qd = run(sim, [0, 0, 0, 1.0], 60)
         return int(np.argmax(qd[:, 3] > 0.01))
 
-    from sim_twin.hydraulics import NOMINAL_DELAY_S
+    from sim_twin.twin.hydraulics import NOMINAL_DELAY_S
 
     shift = first_motion(machine(make_effect("valve_delay", delay_s=0.2))) - first_motion(machine())
     assert shift == pytest.approx(round((0.2 - NOMINAL_DELAY_S) / 0.01), abs=1)

@@ -2,8 +2,8 @@
 (docs/safety.md, hazard table):
 
 * with the data directory's disk full (a small tmpfs) the E-STOP is authorised from memory
-  (server.auth.SessionMirror), sent and confirmed; ``GET /api/machines`` answers from memory; the
-  audit entry is written once the disk has room again (server.auth.AuditBacklog);
+  (server.accounts.auth.SessionMirror), sent and confirmed; ``GET /api/machines`` answers from memory; the
+  audit entry is written once the disk has room again (server.accounts.auth.AuditBacklog);
 * with PostgreSQL unreachable (a TCP relay to it cut) the same holds;
 * a deactivated account's session is refused at once, a deleted one's (deleted outside the
   server) within the mirror's refresh;
@@ -155,7 +155,7 @@ def test_estop_is_authorised_and_sent_while_postgresql_is_unreachable(settings, 
 
 
 def test_a_disabled_or_deleted_accounts_session_cannot_stop(client, fake_runtime_factory, settings):
-    from server.auth import create_user
+    from server.accounts.auth import create_user
 
     with client.app.state.sessions.begin() as db:
         create_user(db, *OPERATOR, "operator")
@@ -176,7 +176,7 @@ def test_a_disabled_or_deleted_accounts_session_cannot_stop(client, fake_runtime
         con.execute("PRAGMA foreign_keys=ON")
         con.execute("DELETE FROM users WHERE username = 'op2'")
     con.close()
-    # refused within the session mirror's refresh (server.auth.MIRROR_REFRESH_S)
+    # refused within the session mirror's refresh (server.accounts.auth.MIRROR_REFRESH_S)
     wait_for(lambda: op2.post("/api/machines/m1/estop").status_code == 401, 10, "the deleted account's stop refused")
 
 
@@ -242,7 +242,7 @@ def test_a_stop_pressed_while_offline_latches_the_runtime_that_comes_back_and_su
 
 
 def test_the_audit_backlog_keeps_order_and_time_until_storage_is_back(client):
-    from server.storage import StorageFault
+    from server.site.storage import StorageFault
 
     backlog = client.app.state.audit_backlog
     storage = client.app.state.storage
@@ -278,7 +278,7 @@ def test_an_unwritable_latch_file_keeps_the_latch_in_memory(tmp_path):
     the stop is still put, and the file is written once it can be; a new line reads it back."""
     from concurrent.futures import TimeoutError as FutureTimeout
 
-    from server.estop import EstopLine, EstopUnconfirmed
+    from server.fleet.estop import EstopLine, EstopUnconfirmed
 
     class Session:
         def __init__(self):

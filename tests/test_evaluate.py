@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim_twin.evaluate import evaluate, summarise, target_on_axis
-from sim_twin.evaluate_cli import markdown_table, parse_targets
+from sim_twin.evaluation.evaluate import evaluate, summarise, target_on_axis
+from sim_twin.evaluation.cli import markdown_table, parse_targets
 
 POLICY_2D = Path(__file__).resolve().parents[1] / "policies" / "throw2d.onnx"
 

@@ -16,8 +16,8 @@ from runtime.policy import PolicyError, PolicyRunner
 from runtime.protocol.messages import MachineState, SimReset, ThrowRequest
 from runtime.telemetry import read_metadata, read_telemetry
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M, impact_errors
-from sim_twin.twin_machine import TwinMachine, run_throw
-from sim_twin.simulated_machine import SimulatedMachine
+from sim_twin.twin.twin_machine import TwinMachine, run_throw
+from sim_twin.twin.simulated_machine import SimulatedMachine
 from tests.fixtures import write_test_policy
 
 TARGET_2D = [8.0, ARM_PLANE_OFFSET_M, 0.0]  # cabin_turn 0: the arm's plane is y = -0.292 m

@@ -19,7 +19,7 @@ import zenoh
 from runtime.protocol import keys
 from runtime.protocol.messages import ThrowAck, ThrowRequest, decode, encode
 from runtime.zenoh_session import TlsFiles, open_session
-from server.certs import make_site
+from server.site.certs import make_site
 
 from tests.conftest import wait_for
 from tests.fleet_site import SERVICES, Site, netns_available

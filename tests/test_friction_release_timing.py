@@ -4,7 +4,7 @@ only where both swing groups are large enough."""
 
 import pytest
 
-from sim_twin.profile import RealityProfile
+from sim_twin.twin.profile import RealityProfile
 from tests.benchmarks import friction_release_timing as frt
 
 

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from runtime.machine import JOINT_LOWER, JOINT_UPPER, forward_kinematics
-from sim_twin.hydraulics import cylinder_step
-from sim_twin.plant import PlantInbox, plant_tick
-from sim_twin.twin_machine import TwinMachine
-from sim_twin.simulated_machine import SimulatedMachine
+from sim_twin.twin.hydraulics import cylinder_step
+from sim_twin.twin.plant import PlantInbox, plant_tick
+from sim_twin.twin.twin_machine import TwinMachine
+from sim_twin.twin.simulated_machine import SimulatedMachine
 
 POSES = {
     "extended": [0.0, -0.2, 1.2, 1.7],  # telescope near its end, long lever on the boom

@@ -1,4 +1,4 @@
-"""A job's ``jobs`` row is its only state (server.jobs.specs, server.diagnosis, server.jobs.watch):
+"""A job's ``jobs`` row is its only state (server.jobs.specs, server.analysis.diagnosis, server.jobs.watch):
 
 * each kind's parameters are a typed spec, checked when the job is submitted and again when a
   worker runs it (a row with bad parameters fails with the reason instead of half-running);
@@ -21,7 +21,7 @@ from server.config import Settings
 from server.db.migrate import upgrade
 from server.db.models import Job, Machine, Throw
 from server.db.session import make_engine, make_sessionmaker
-from server.diagnosis import DiagnosisBusy, DiagnosisRuns
+from server.analysis.diagnosis import DiagnosisBusy, DiagnosisRuns
 from server.jobs import JobQueue, JobStore
 from server.jobs.specs import JobSpecError, parse_spec
 from server.jobs.tasks import WorkerContext, bind, execute

@@ -21,7 +21,7 @@ from server.db.session import make_engine, make_sessionmaker
 from server.jobs import JobQueue, JobStore
 from server.jobs.queue import lane_of, make_huey
 from server.jobs.tasks import execute
-from server.stack import slinger_command
+from server.site.stack import slinger_command
 from tests.conftest import ADMIN, add_user, login, wait_for
 from tests.fleet_site import Worker
 

@@ -1,4 +1,4 @@
-"""Keep-out zones against a preview's predicted scatter (server.targets.scatter_refusal and the
+"""Keep-out zones against a preview's predicted scatter (server.throws.targets.scatter_refusal and the
 gate's ``keep_out_scatter`` condition): a target outside every zone is not enough when the
 payload may land inside one."""
 
@@ -10,14 +10,14 @@ from datetime import UTC, datetime
 import pytest
 
 from server.config import KeepOutZone
-from server.targets import _distance_to_ellipse, scatter_refusal
-from server.throw_gate import GateLimits, preview_refusal
+from server.throws.targets import _distance_to_ellipse, scatter_refusal
+from server.throws.gate import GateLimits, preview_refusal
 
 TARGET = [8.5, -0.3, 0.0]
 
 
 def _preview(ellipse: dict | None = None, impact=(8.5, -0.3)) -> dict:
-    """An OK preview summary as server.previews stores it (ellipse: 1 sigma, machine frame)."""
+    """An OK preview summary as server.throws.previews stores it (ellipse: 1 sigma, machine frame)."""
     return {"status": "ok", "machine_id": "m1", "mode": "2d", "target_m": TARGET, "created_at": datetime.now(UTC).isoformat(),
             "policy_sha256": "abc", "start_q": [0.0] * 6, "impact_m": [*impact, 0.0],
             "mc": {"ellipse": ellipse} if ellipse else None}

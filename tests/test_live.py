@@ -11,9 +11,9 @@ import pytest
 
 from runtime.protocol import keys
 from runtime.protocol.messages import MachineState, PolicyInfo, RuntimeInfo, ThrowStatus, encode
-from server.fleet import Fleet
-from server.fleet_events import ResultStored
-from server.live import NO_REASON, LiveHub, machine_status
+from server.fleet.link import Fleet
+from server.fleet.events import ResultStored
+from server.console.live import NO_REASON, LiveHub, machine_status
 from tests.conftest import free_port
 
 POL = [PolicyInfo(mode="2d", version="throw2d-v2", sha256="0" * 64)]
@@ -123,7 +123,7 @@ def test_one_runtime_info_cache_feeds_commands_and_the_console(linked, monkeypat
     """The RuntimeInfo the runtime publishes lands in the fleet's one cache (clock offset measured
     from it); the console state reads the same entry, keeps showing it after the fleet forgot it
     for reads, and shows the runtime offline once it is silent too long."""
-    from server import live
+    from server.console import live
 
     fleet, hub, z = linked
     monkeypatch.setattr(live, "SILENT_AFTER_S", 1.0)

@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from sim_twin import matrix
+from sim_twin.evaluation import matrix
 
 def _cell(success=1.0, bias=0.0, down=0.05, cross=0.05):
     return {"success_rate": success, "landed": 10, "bias_m": bias, "sigma_downrange_m": down, "sigma_crossrange_m": cross}

@@ -1,4 +1,4 @@
-"""Deploy comparison of two policies' site matrices (sim_twin.matrix_compare): matched throws by
+"""Deploy comparison of two policies' site matrices (sim_twin.evaluation.matrix_compare): matched throws by
 seed, per-cell paired tests with Holm's correction; noise alone is not called worse, a real
 regression is, and bad input is refused with the reason."""
 
@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from sim_twin import matrix_compare
+from sim_twin.evaluation import matrix_compare
 
 
 def _report(errors: dict[tuple[str, float], list[float | None]], mode: str = "2d", seed0: int = 0) -> dict:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import sys
 
-from sim_twin.matrix_gate import MatrixGate
+from sim_twin.training.matrix_gate import MatrixGate
 
 
 class FakeGate(MatrixGate):
@@ -61,7 +61,7 @@ def test_the_matrix_runs_at_a_lower_priority_than_the_training(tmp_path):
     which keeps the cores it launches its GPU work from."""
     import os
 
-    from sim_twin.matrix_gate import GATE_NICENESS
+    from sim_twin.training.matrix_gate import GATE_NICENESS
 
     seen = tmp_path / "niceness"
 

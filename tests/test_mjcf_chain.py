@@ -1,4 +1,4 @@
-"""The 3D view's machine geometry without MuJoCo (server.mjcf_chain): the MJCF's chain evaluated
+"""The 3D view's machine geometry without MuJoCo (server.console.mjcf_chain): the MJCF's chain evaluated
 with numpy agrees with MuJoCo's forward kinematics (here, in the test, MuJoCo may be imported) and
 with the runtime's own kinematics; the API process with the 3D view on never imports MuJoCo."""
 
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from runtime.machine import JOINT_NAMES, forward_kinematics
-from server.mjcf_chain import KinematicChain, default_mjcf_path, mat_to_quat, quat_to_mat
-from sim_twin.model import load_model
+from server.console.mjcf_chain import KinematicChain, default_mjcf_path, mat_to_quat, quat_to_mat
+from sim_twin.twin.model import load_model
 from tests.conftest import free_port
 
 

@@ -16,9 +16,9 @@ jnp = jax.numpy
 
 from runtime.machine import forward_kinematics  # noqa: E402
 from runtime.observation import build_observation, observation_size  # noqa: E402
-from sim_twin.mjx_env import EnvConfig, ThrowEnvCore  # noqa: E402
-from sim_twin.model import load_model  # noqa: E402
-from sim_twin.training_config import CONFIG_DIR  # noqa: E402
+from sim_twin.training.mjx_env import EnvConfig, ThrowEnvCore  # noqa: E402
+from sim_twin.twin.model import load_model  # noqa: E402
+from sim_twin.training.config import CONFIG_DIR  # noqa: E402
 
 
 @pytest.fixture(scope="module", params=["2d", "3d"])
@@ -63,8 +63,8 @@ def test_mjx_physics_follows_cpu_twin():
     stay within a few mrad over one second of a swing."""
     from mujoco import mjx
 
-    from sim_twin.model import passive_inertia
-    from sim_twin.physics import passive_friction_force
+    from sim_twin.twin.model import passive_inertia
+    from sim_twin.twin.physics import passive_friction_force
 
     model = load_model()
     data = mujoco.MjData(model)
@@ -108,7 +108,7 @@ def test_mjx_env_closed_valves_hold_the_load(env_and_state):
 def _per_env_autoreset(core, s, action):
     """Reference: one environment's step, then its reset when the episode ended (the per-env form
     MuJoCo Warp cannot trace under vmap)."""
-    from sim_twin.mjx_env import EnvState
+    from sim_twin.training.mjx_env import EnvState
 
     s1, obs, rew, term, tout, info = core.step(s, action)
     done = term | tout
@@ -126,7 +126,7 @@ def test_batch_autoreset_equals_the_vmapped_autoreset(reset_slots, n_left):
     into a fraction of it (0.5 of 4: two slots; two finish, then three finish and it falls back to
     the whole batch; 0.25: one slot, one finishes). Checked on a small stand-in environment (the
     method only calls ``step`` and ``reset``), which keeps the test free of compiling the physics."""
-    from sim_twin.mjx_env import EnvState
+    from sim_twin.training.mjx_env import EnvState
 
     class Toy:
         def __init__(self, slots):

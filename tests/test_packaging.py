@@ -182,7 +182,7 @@ def test_server_wheel_runs_db_upgrade_without_the_repository(wheels, tmp_path):
         assert "site-packages" in str(m.migrations_dir()) and (a.WEB_DIR / "index.html").is_file(), (m.migrations_dir(), a.WEB_DIR)
         tables = {{r[0] for r in sqlite3.connect({str(db)!r}).execute("select name from sqlite_master where type='table'")}}
         assert {{"throws", "jobs", "users", "alembic_version"}} <= tables, tables
-        from server.mjcf_chain import KinematicChain, default_mjcf_path  # the 3D view's machine, without the twin
+        from server.console.mjcf_chain import KinematicChain, default_mjcf_path  # the 3D view's machine, without the twin
         assert "site-packages/runtime/dynamics/assets" in str(default_mjcf_path()), default_mjcf_path()
         assert len(KinematicChain.from_mjcf().geom_poses([0.0] * 6)) == 7
         print("MUJOCO", "mujoco" in sys.modules)

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from runtime.protocol.messages import GripperCommand, SimReset, ValidationError, ValveCommand, encode
-from sim_twin.initial_pose import pose_is_valid
-from sim_twin.plant import VALVE_WATCHDOG_S, PlantInbox, plant_tick
-from sim_twin.realtime import BEHIND_FAULT_S, RECOVER_S, RealTimeGuard
-from sim_twin.simulated_machine import SimulatedMachine
-from sim_twin.twin_machine import RELOAD_AFTER_LANDING_S, TwinMachine, run_throw
+from sim_twin.twin.initial_pose import pose_is_valid
+from sim_twin.twin.plant import VALVE_WATCHDOG_S, PlantInbox, plant_tick
+from sim_twin.twin.realtime import BEHIND_FAULT_S, RECOVER_S, RealTimeGuard
+from sim_twin.twin.simulated_machine import SimulatedMachine
+from sim_twin.twin.twin_machine import RELOAD_AFTER_LANDING_S, TwinMachine, run_throw
 
 
 def _sample(msg) -> object:
@@ -161,7 +161,7 @@ def test_a_faulted_plant_holds_the_valves_neutral_and_says_why():
 def test_a_machine_at_rest_outside_the_envelope_stays_there():
     """No teleport: the runtime's return to the ready pose (tests/test_return_to_ready.py) is
     the way back, as on a real machine."""
-    from sim_twin.plant import REST_TICKS
+    from sim_twin.twin.plant import REST_TICKS
 
     twin, inbox = TwinMachine(SimulatedMachine(seed=0), "m1"), PlantInbox("m1")
     twin.sim.reset(q_active=np.array([0.0, -0.5, 1.6, 1.8]))  # telescope at its end, loaded
@@ -183,8 +183,8 @@ def test_the_in_process_twin_runs_without_zenoh():
         "    def find_spec(self, name, path=None, target=None):\n"
         "        if name.split('.')[0] == 'zenoh': raise ImportError('zenoh is not installed here')\n"
         "sys.meta_path.insert(0, Block())\n"
-        "from sim_twin.twin_machine import TwinMachine, run_throw\n"
-        "import sim_twin.evaluate, sim_twin.matrix, sim_twin.preview\n"
+        "from sim_twin.twin.twin_machine import TwinMachine, run_throw\n"
+        "import sim_twin.evaluation.evaluate, sim_twin.evaluation.matrix, sim_twin.preview.preview\n"
         "print('ok')\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

@@ -1,4 +1,4 @@
-"""The plant's real-time loop (sim_twin.plant._loop) with stand-in publishers, without Zenoh: a
+"""The plant's real-time loop (sim_twin.twin.plant._loop) with stand-in publishers, without Zenoh: a
 resting machine sleeps between its 20 Hz publications, a command wakes it at once, and a resting
 plant that falls behind real time still says so."""
 
@@ -9,11 +9,11 @@ import time
 
 import numpy as np
 
-import sim_twin.plant as plant
+import sim_twin.twin.plant as plant
 from runtime.protocol.messages import GripperCommand, MachineState, ValveCommand, decode
-from sim_twin.plant import PlantInbox
-from sim_twin.twin_machine import TwinMachine
-from sim_twin.simulated_machine import SimulatedMachine
+from sim_twin.twin.plant import PlantInbox
+from sim_twin.twin.twin_machine import TwinMachine
+from sim_twin.twin.simulated_machine import SimulatedMachine
 from tests.conftest import wait_for
 from tests.test_plant import _sample
 

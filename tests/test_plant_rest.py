@@ -8,9 +8,9 @@ import time
 import numpy as np
 
 from runtime.protocol.messages import GripperCommand, ValveCommand, encode
-from sim_twin.plant import REST_TICKS, PlantInbox, plant_tick
-from sim_twin.twin_machine import TwinMachine
-from sim_twin.simulated_machine import SimulatedMachine
+from sim_twin.twin.plant import REST_TICKS, PlantInbox, plant_tick
+from sim_twin.twin.twin_machine import TwinMachine
+from sim_twin.twin.simulated_machine import SimulatedMachine
 
 
 class _Sample:

@@ -110,7 +110,7 @@ def test_unconfirmed_promotion_times_out_with_reason(client, tmp_path, quick_eva
 
     from server.db.models import Machine, PolicyDeployment
     from server.db.types import utcnow
-    from server.policies import OFFER_TIMEOUT_S
+    from server.policies.versions import OFFER_TIMEOUT_S
 
     p = upload(client, write_test_policy(tmp_path, "2d"), name="pt").json()
     with client.app.state.sessions.begin() as db:

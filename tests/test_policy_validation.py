@@ -19,7 +19,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from runtime.observation import num_actions, observation_layout, observation_size
 from runtime.policy import PolicyRunner, build_manifest, write_manifest
-from server.policy_validation import ValidationLimits, validate
+from server.policies.validation import ValidationLimits, validate
 from tests.fixtures import write_test_policy
 
 

@@ -1,4 +1,4 @@
-"""The twin's process pools never fork their caller (sim_twin.pools): a worker forked from a
+"""The twin's process pools never fork their caller (sim_twin.twin.pools): a worker forked from a
 process with threads can wait forever on a lock another thread held at the fork (seen as an
 evaluation that hung after a test had run a server in the same process)."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import os
 import threading
 
-from sim_twin.pools import process_pool
+from sim_twin.twin.pools import process_pool
 
 
 def test_pool_workers_start_from_a_fresh_interpreter_while_a_thread_holds_a_lock():
@@ -35,9 +35,9 @@ def test_preview_monte_carlo_in_a_pool_gives_the_same_impacts():
     import numpy as np
 
     from runtime.policy import PolicyRunner
-    from sim_twin.initial_pose import sample_pose
-    from sim_twin.pools import process_pool
-    from sim_twin.preview import PreviewRequest, preview_throw, site_profile, warm_up
+    from sim_twin.twin.initial_pose import sample_pose
+    from sim_twin.twin.pools import process_pool
+    from sim_twin.preview.preview import PreviewRequest, preview_throw, site_profile, warm_up
 
     policy = PolicyRunner.load("policies/throw2d.onnx")
     profile = site_profile(None, None)
@@ -57,7 +57,7 @@ def test_preview_monte_carlo_in_a_pool_gives_the_same_impacts():
 
 OWNER = r"""
 import os, sys, time
-from sim_twin.pools import process_pool
+from sim_twin.twin.pools import process_pool
 pool = process_pool(2)
 pids = {pool.submit(os.getpid).result(timeout=120) for _ in range(8)}
 print(" ".join(map(str, sorted(pids))), flush=True)

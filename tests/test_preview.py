@@ -1,4 +1,4 @@
-"""Previews: the twin rollout (sim_twin.preview) and the API (POST /api/previews, throws sent as
+"""Previews: the twin rollout (sim_twin.preview.preview) and the API (POST /api/previews, throws sent as
 previewed, keep-out zones, 3D confirmation). Uses the real trained 2D policy."""
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ from runtime.executor import ThrowExecutor
 from runtime.policy import PolicyRunner
 from runtime.protocol.messages import PolicyInfo, ThrowRequest
 from server.config import KeepOutZone
-from server.throw_gate import GateLimits
-from sim_twin.twin_machine import TwinMachine
-from sim_twin.preview import PreviewRequest, preview_throw
-from sim_twin.profile import RealityProfile, SensorParams
-from sim_twin.simulated_machine import SimulatedMachine
+from server.throws.gate import GateLimits
+from sim_twin.twin.twin_machine import TwinMachine
+from sim_twin.preview.preview import PreviewRequest, preview_throw
+from sim_twin.twin.profile import RealityProfile, SensorParams
+from sim_twin.twin.simulated_machine import SimulatedMachine
 from tests.conftest import add_user, login, wait_for, wait_online
 
 POLICY = Path(__file__).resolve().parent.parent / "policies" / "throw2d.onnx"
@@ -247,7 +247,7 @@ def test_abort_reaches_the_runtime_and_is_audited(client, fake_runtime_factory):
     wait_online(client)
     r = client.post("/api/machines/m1/abort", json={"reason": "person in zone"})
     assert r.status_code == 200, r.text
-    # one press, one stop: the server re-puts an unconfirmed stop every RESEND_S (server.estop), so a
+    # one press, one stop: the server re-puts an unconfirmed stop every RESEND_S (server.fleet.estop), so a
     # loaded host may deliver it more than once, but every copy is the same request
     stops = [json.loads(raw) for raw in rt.aborts]
     assert stops and len({stop["request_id"] for stop in stops}) == 1, stops

@@ -1,5 +1,5 @@
-"""Asymmetric actor-critic: the privileged observation group (sim_twin.privileged) and resuming a
-policy-only-critic checkpoint with the widened critic (sim_twin.critic_surgery). CPU, tiny."""
+"""Asymmetric actor-critic: the privileged observation group (sim_twin.training.privileged) and resuming a
+policy-only-critic checkpoint with the widened critic (sim_twin.training.critic_surgery). CPU, tiny."""
 
 from __future__ import annotations
 
@@ -16,10 +16,10 @@ jnp = jax.numpy
 pytestmark = pytest.mark.torch
 
 from runtime.observation import build_observation, observation_size  # noqa: E402
-from sim_twin import critic_surgery  # noqa: E402
-from sim_twin.mjx_env import EnvConfig, ThrowEnvCore  # noqa: E402
-from sim_twin.privileged import PRIVILEGED_LAYOUT, PRIVILEGED_SIZE  # noqa: E402
-from sim_twin.training_config import CONFIG_DIR  # noqa: E402
+from sim_twin.training import critic_surgery  # noqa: E402
+from sim_twin.training.mjx_env import EnvConfig, ThrowEnvCore  # noqa: E402
+from sim_twin.training.privileged import PRIVILEGED_LAYOUT, PRIVILEGED_SIZE  # noqa: E402
+from sim_twin.training.config import CONFIG_DIR  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 CKPT_2D = REPO / "tests/data/policy_only_critic_2d.pt"
@@ -213,8 +213,8 @@ def _critic_value(critic_state: dict, obs, groups: list[str], runner_cfg: dict) 
 def test_resume_old_checkpoint_widens_critic_then_trains_and_exports(tmp_path):
     from rsl_rl.runners import OnPolicyRunner
 
-    from sim_twin.export import export_checkpoint
-    from sim_twin.vec_env import MjxThrowVecEnv
+    from sim_twin.training.export import export_checkpoint
+    from sim_twin.training.vec_env import MjxThrowVecEnv
 
     cfg = _cfg("2d")
     cfg["num_envs"] = 8
@@ -286,8 +286,8 @@ def _reset_priv(env_cfg: dict, n: int = 4, seed: int = 5):
 def test_finetune_config_keeps_the_trained_normalisation(mode):
     """A site fine-tuning config (ranges narrowed to [v, v]) normalises the critic's inputs over
     the base config's ranges: v = 0.2 s valve delay reads (0.2 - mid) / half of [0.05, 0.22], not 0."""
-    from sim_twin.adapt import finetune_config
-    from sim_twin.profile import RealityProfile
+    from sim_twin.adaptation.adapt import finetune_config
+    from sim_twin.twin.profile import RealityProfile
 
     base = _deployed_cfg(mode)
     prof = RealityProfile.from_dict({"effects": [{"effect": "valve_delay", "params": {"delay_s": 0.2}}]})
@@ -316,7 +316,7 @@ def test_finetune_config_keeps_the_trained_normalisation(mode):
 def test_normal_config_privileged_values_unchanged():
     """No ``privileged_ranges`` (normal training), or ones equal to the randomisation: the
     randomisation ranges, bit for bit."""
-    from sim_twin.privileged import Randomization, privileged_observation, trained_ranges
+    from sim_twin.training.privileged import Randomization, privileged_observation, trained_ranges
 
     env = _deployed_cfg("2d")["env"]
     state, obs, priv = _reset_priv(env)

@@ -20,10 +20,10 @@ from runtime.observation import num_actions, observation_layout, observation_siz
 from runtime.policy import PolicyRunner
 from runtime.protocol.messages import ThrowRequest
 from runtime.release_check import DEFAULT_RADIUS_M, ReleaseCheck
-from sim_twin.evaluate import target_on_axis, throw_batch
-from sim_twin.twin_machine import TwinMachine, run_throw
-from sim_twin.profile import RealityProfile
-from sim_twin.simulated_machine import SimulatedMachine
+from sim_twin.evaluation.evaluate import target_on_axis, throw_batch
+from sim_twin.twin.twin_machine import TwinMachine, run_throw
+from sim_twin.twin.profile import RealityProfile
+from sim_twin.twin.simulated_machine import SimulatedMachine
 from tests.benchmarks.release_check_accuracy import release_errors
 from tests.fixtures import write_test_policy
 

@@ -1,4 +1,4 @@
-"""The result store's ingest path (server.results.ResultStore): telemetry staged to a unique
+"""The result store's ingest path (server.fleet.results.ResultStore): telemetry staged to a unique
 temporary file (as the fleet link does off its database thread) is renamed into place only for
 an accepted result, in the transaction that stores the row; refused results (never issued, not
 matching the issued throw, bad base64) leave no file and never replace a throw's telemetry."""
@@ -13,7 +13,7 @@ from runtime.protocol.messages import ThrowResult
 from server.db.migrate import upgrade
 from server.db.models import Machine, Throw
 from server.db.session import make_engine, make_sessionmaker
-from server.results import ResultStore, UnknownThrow
+from server.fleet.results import ResultStore, UnknownThrow
 
 
 @pytest.fixture

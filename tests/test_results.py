@@ -1,4 +1,4 @@
-"""docs/results.md is generated from reports/ (server.results_page) and stays true to them.
+"""docs/results.md is generated from reports/ (server.site.results_page) and stays true to them.
 
 Fails when docs/results.md is stale, when a report that claims to describe a deployed policy
 (``provenance.policies[].deployed_as``) names another SHA-256 or version than policies/*.onnx, when a
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from server import results_page as results
+from server.site import results_page as results
 
 ROOT = Path(__file__).resolve().parents[1]
 

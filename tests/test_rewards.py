@@ -11,9 +11,9 @@ jax = pytest.importorskip("jax")
 
 import jax.numpy as jnp  # noqa: E402
 
-from sim_twin.mjx_env import EnvConfig  # noqa: E402
-from sim_twin.rewards import REWARD_TERMS, RewardInputs, RewardScales, reward_terms, total_reward  # noqa: E402
-from sim_twin.training_config import CONFIG_DIR  # noqa: E402
+from sim_twin.training.mjx_env import EnvConfig  # noqa: E402
+from sim_twin.training.rewards import REWARD_TERMS, RewardInputs, RewardScales, reward_terms, total_reward  # noqa: E402
+from sim_twin.training.config import CONFIG_DIR  # noqa: E402
 
 SCALES = RewardScales.from_dict(json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]["rewards"])
 
@@ -93,7 +93,7 @@ def test_every_committed_config_loads_and_a_wrong_randomization_entry_is_refused
 def test_randomization_is_typed_with_defaults_and_privileged_overrides():
     """The environment reads typed fields, not the config mapping: entries the config gives,
     defaults for the rest, and ``privileged_ranges`` replacing only the ranges it names."""
-    from sim_twin.privileged import RANDOMIZATION_DEFAULTS, Randomization
+    from sim_twin.training.privileged import RANDOMIZATION_DEFAULTS, Randomization
 
     env = json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]
     rand = EnvConfig.from_dict(env).randomization
@@ -116,7 +116,7 @@ def test_randomization_is_typed_with_defaults_and_privileged_overrides():
 def test_far_targets_weight_the_target_distance():
     """With far_targets.fraction f, a fraction f of episodes draws from the far range on top of the
     uniform draw over target_range_m (the 2D target lies on the arm's plane, so |target| = distance)."""
-    from sim_twin.mjx_env import ThrowEnvCore
+    from sim_twin.training.mjx_env import ThrowEnvCore
 
     env = json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]
     keys = jax.random.split(jax.random.PRNGKey(0), 4000)
@@ -130,7 +130,7 @@ def test_far_targets_weight_the_target_distance():
 def test_vec_env_logs_every_term_and_their_sum_is_the_mean_reward():
     import torch
 
-    from sim_twin.vec_env import MjxThrowVecEnv
+    from sim_twin.training.vec_env import MjxThrowVecEnv
 
     env = MjxThrowVecEnv(EnvConfig.from_dict(json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]), 6, seed=2)
     g = torch.Generator().manual_seed(0)
@@ -150,7 +150,7 @@ def test_an_episode_that_never_releases_ends_as_a_failure_when_the_recipe_punish
     that reward (no bootstrap); with 0 it is a time-out, as before."""
     import torch
 
-    from sim_twin.vec_env import MjxThrowVecEnv
+    from sim_twin.training.vec_env import MjxThrowVecEnv
 
     env_d = json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]
     env_d = {**env_d, "episode_length_s": 0.4, "forced_release": {**env_d["forced_release"], "probability": 0.0},

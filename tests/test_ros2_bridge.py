@@ -349,15 +349,15 @@ def test_bridge_node_on_fast_dds_reads_the_machine_and_stops_it_for_a_stranger(r
 
 @pytest.mark.processes
 def test_simulated_driver_takes_commands_from_the_bridge_alone(ros_env):
-    """The simulated machine's ROS 2 side (sim_twin.ros2_plant) as a driver should be: valve
+    """The simulated machine's ROS 2 side (sim_twin.twin.ros2_plant) as a driver should be: valve
     commands only from the bridge's node as the topic's one publisher (GIDs against the graph),
     the valve QoS' deadline watched, a second publisher a fault with neutral valves."""
     from rclpy.duration import Duration
     from rclpy.qos import LivelinessPolicy, QoSProfile, ReliabilityPolicy
     from std_msgs.msg import Float64MultiArray
 
-    from sim_twin.plant import PlantInbox
-    from sim_twin.ros2_plant import RosPlantPorts
+    from sim_twin.twin.plant import PlantInbox
+    from sim_twin.twin.ros2_plant import RosPlantPorts
     from tests.ros2_nodes import PlainNode
 
     valve_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, deadline=Duration(seconds=0.1),
@@ -412,7 +412,7 @@ def test_bridge_refuses_a_wider_domain_and_sros2_without_middleware_security(ros
         assert code == [2] and "could not create node" in caplog.text, caplog.text[-2000:]
         assert "security" in caplog.text.lower()
     # the wheels' libraries out of reach (their bootstrap marked done, LD_LIBRARY_PATH gone): a clear refusal
-    from server.stack import slinger_command
+    from server.site.stack import slinger_command
 
     env = {k: v for k, v in os.environ.items() if k != "LD_LIBRARY_PATH"} | {"_ROS_WHEELS_BOOTSTRAP_COMPLETE": "1"}
     r = subprocess.run(slinger_command("ros2-bridge", "--machine-id", "m1", "--connect", f"tcp/127.0.0.1:{free_port()}"),
@@ -450,7 +450,7 @@ RECORDED = {"/joint_states": rt.JOINT_STATE, "/gripper/imu": rt.IMU, "/gripper/s
 
 
 def _child_pid(data_dir: Path, word: str) -> int:
-    """The pid of the stack's child whose command line has ``word`` (server.supervise marks its children)."""
+    """The pid of the stack's child whose command line has ``word`` (server.site.supervise marks its children)."""
     for d in Path("/proc").iterdir():
         if not d.name.isdigit():
             continue

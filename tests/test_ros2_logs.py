@@ -129,10 +129,10 @@ def test_tf_puts_the_gripper_where_the_runtime_kinematics_does():
 
 
 def test_shipped_urdf_is_the_export_of_the_mjcf():
-    from sim_twin.model import load_model
-    from sim_twin.urdf import export_urdf
+    from sim_twin.twin.model import load_model
+    from sim_twin.twin.urdf import export_urdf
 
-    assert URDF_PATH.read_text() == export_urdf(load_model()), "regenerate: python -m sim_twin.urdf > runtime/ros2/material_handler.urdf"
+    assert URDF_PATH.read_text() == export_urdf(load_model()), "regenerate: python -m sim_twin.twin.urdf > runtime/ros2/material_handler.urdf"
     joints = {j.get("name"): j.get("type") for j in ET.fromstring(URDF_PATH.read_text()).iter("joint")}
     assert joints == {"machine_to_chassis": "fixed", "cabin_turn": "continuous", "boom": "revolute", "dipper": "revolute",
                       "telescope": "prismatic", "gripper_pitch": "continuous", "gripper_roll": "continuous"}

@@ -25,8 +25,8 @@ from runtime.protocol.messages import (
 )
 from runtime.service import WARMING, RuntimeService
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
-from sim_twin.simulated_machine import SimulatedMachine
-from sim_twin.twin_machine import TwinMachine
+from sim_twin.twin.simulated_machine import SimulatedMachine
+from sim_twin.twin.twin_machine import TwinMachine
 from tests.fixtures import write_test_policy
 
 KEY = bytes(range(32))

@@ -1,6 +1,6 @@
 """Finality: a throw that a watchdog stopped, or during which the runtime itself stalled, ends
 failed with the reason and never resumes; nothing queued during a stall is acted on after it
-(runtime.service, runtime.executor, the simulated machine's valve watchdog in sim_twin.plant).
+(runtime.service, runtime.executor, the simulated machine's valve watchdog in sim_twin.twin.plant).
 
 The unit cases drive RuntimeService and ThrowExecutor with an injected clock; the system case
 freezes a real runtime process with SIGSTOP mid-swing (plant and runtime on loopback Zenoh, the
@@ -38,9 +38,9 @@ from runtime.protocol.messages import (
 )
 from runtime.service import STALLED, RuntimeService
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
-from sim_twin.plant import STALE_COMMAND_S, VALVE_WATCHDOG_S, PlantInbox, plant_tick
-from sim_twin.simulated_machine import SimulatedMachine
-from sim_twin.twin_machine import TwinMachine
+from sim_twin.twin.plant import STALE_COMMAND_S, VALVE_WATCHDOG_S, PlantInbox, plant_tick
+from sim_twin.twin.simulated_machine import SimulatedMachine
+from sim_twin.twin.twin_machine import TwinMachine
 from tests.conftest import TEST_POLICY_CHECK, free_port, wait_for
 from tests.fixtures import write_test_policy
 
@@ -74,15 +74,15 @@ class _Sample:
 
 _NOW = [100.0]
 """The fake monotonic clock of the unit cases: the runtime's, the machine's stamps and the plant
-inbox's receive times (sim_twin.plant reads ``time.monotonic``, patched by :func:`_fake_clock`)."""
+inbox's receive times (sim_twin.twin.plant reads ``time.monotonic``, patched by :func:`_fake_clock`)."""
 
 
 @pytest.fixture(autouse=True)
 def _fake_clock(monkeypatch):
-    import sim_twin.plant
+    import sim_twin.twin.plant
 
     _NOW[0] = 100.0
-    monkeypatch.setattr(sim_twin.plant, "time", SimpleNamespace(monotonic=lambda: _NOW[0]))
+    monkeypatch.setattr(sim_twin.twin.plant, "time", SimpleNamespace(monotonic=lambda: _NOW[0]))
 
 
 class Loop:
@@ -316,7 +316,7 @@ def test_sigstop_of_the_runtime_mid_swing_fails_the_throw_for_good(tmp_path):
 
             wait_for(lambda: runtime.poll() is not None or info(), 60, "runtime up")
             assert runtime.poll() is None, (tmp_path / "runtime.log").read_text()
-            plant = _spawn(["sim_twin.plant", "--machine-id", mid, "--connect", endpoint, "--listen", "tcp/127.0.0.1:0",
+            plant = _spawn(["sim_twin.twin.plant", "--machine-id", mid, "--connect", endpoint, "--listen", "tcp/127.0.0.1:0",
                             "--seed", "3"], tmp_path / "plant.log")
             froze = None
             for attempt in range(4):  # a loaded host may fail a throw for real-time reasons first: retried

@@ -36,9 +36,9 @@ from runtime.protocol.messages import (
 from runtime.service import LEASE_S, RuntimeService
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
 from runtime.zenoh_session import open_session
-from server.command_signer import SERVER_ID_ENV, CommandSigner, default_server_id
-from sim_twin.simulated_machine import SimulatedMachine
-from sim_twin.twin_machine import TwinMachine
+from server.fleet.command_signer import SERVER_ID_ENV, CommandSigner, default_server_id
+from sim_twin.twin.simulated_machine import SimulatedMachine
+from sim_twin.twin.twin_machine import TwinMachine
 from tests.conftest import free_port, wait_for
 from tests.fixtures import write_test_policy
 
@@ -204,9 +204,9 @@ def test_results_reach_the_issuing_server_beside_a_refusing_one(tmp_path):
 
 
 def test_a_second_server_takes_over_deliberately_through_its_fleet_link(tmp_path, holding_path):
-    """server.fleet_commands.FleetCommands.lease over Zenoh: server b's throw is refused while a
+    """server.fleet.commands.FleetCommands.lease over Zenoh: server b's throw is refused while a
     holds the lease, b's signed takeover moves it, then a is refused with b named."""
-    from server.fleet_commands import FleetCommands
+    from server.fleet.commands import FleetCommands
 
     m = Machine(holding_path)
     m.tick()
@@ -251,7 +251,7 @@ def test_a_second_server_takes_over_deliberately_through_its_fleet_link(tmp_path
 
 
 def _reachable(link) -> bool:
-    from server.fleet_commands import RuntimeUnavailable
+    from server.fleet.commands import RuntimeUnavailable
 
     try:
         link.lease("m1", "probe")

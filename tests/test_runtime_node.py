@@ -41,8 +41,8 @@ from runtime.service import RuntimeService
 from runtime.telemetry import read_telemetry
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
 from runtime.zenoh_session import open_session
-from sim_twin.simulated_machine import SimulatedMachine
-from sim_twin.twin_machine import TwinMachine
+from sim_twin.twin.simulated_machine import SimulatedMachine
+from sim_twin.twin.twin_machine import TwinMachine
 from tests.conftest import free_port, wait_for
 from tests.fixtures import write_test_policy
 
@@ -361,7 +361,7 @@ def test_plant_and_runtime_throw_over_zenoh(tmp_path, policy_path):
             wait_for(lambda: runtime.poll() is not None or info(), 60, "runtime up")
             assert runtime.poll() is None, (tmp_path / "runtime.log").read_text()
             link = ["--connect", endpoint, "--listen", "tcp/127.0.0.1:0"]  # as `slinger up` links its children
-            plant = _spawn(["sim_twin.plant", "--machine-id", mid, *link, "--seed", "3"], tmp_path / "plant.log")
+            plant = _spawn(["sim_twin.twin.plant", "--machine-id", mid, *link, "--seed", "3"], tmp_path / "plant.log")
             wait_for(lambda: (i := info()) is not None and i.machine_online, 60, "machine online")
 
             epoch = info().epoch
@@ -391,7 +391,7 @@ def test_plant_and_runtime_throw_over_zenoh(tmp_path, policy_path):
             assert [a.reason for a in replayed] == ["replayed nonce"]
             # a second runtime and a second plant for the same machine refuse to start (exit 3)
             second = [_spawn([*runtime_args, *link], tmp_path / "runtime2.log"),
-                      _spawn(["sim_twin.plant", "--machine-id", mid, *link], tmp_path / "plant2.log")]
+                      _spawn(["sim_twin.twin.plant", "--machine-id", mid, *link], tmp_path / "plant2.log")]
             for proc, name in zip(second, ("runtime2.log", "plant2.log")):
                 assert proc.wait(20) == 3, (tmp_path / name).read_text()[-2000:]
             assert "already has a runtime" in (tmp_path / "runtime2.log").read_text()

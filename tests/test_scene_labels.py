@@ -1,4 +1,4 @@
-"""Placement of the 3D view's labels (server.scene_labels): in several views (the framing camera
+"""Placement of the 3D view's labels (server.console.scene_labels): in several views (the framing camera
 in 2D and 3D, a phone-sized canvas, an orbited camera) the labels of target, impact, preview
 ellipse and release point never overlap each other, a marker, the fixed labels or the hanging
 gripper on screen, the target at 8.5 m under the hanging gripper included; each label's scene
@@ -13,8 +13,8 @@ import pytest
 
 from runtime.machine import forward_kinematics
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
-from server.scene_labels import GAP_PX, MARKER_PX, PinholeCamera, fixed_label_box, gripper_footprint, label_half_size, place_labels
-from server.scene_view import MACHINE_LABEL_ANCHOR, MACHINE_LABEL_M, camera_framing
+from server.console.scene_labels import GAP_PX, MARKER_PX, PinholeCamera, fixed_label_box, gripper_footprint, label_half_size, place_labels
+from server.console.scene_view import MACHINE_LABEL_ANCHOR, MACHINE_LABEL_M, camera_framing
 
 Y0 = ARM_PLANE_OFFSET_M  # the 2D throwing line's offset from the turn axis, m
 Q_OVER_8_5 = [0.0, -0.5, 1.014, 2.5, -0.514, 0.0]

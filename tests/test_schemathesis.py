@@ -119,7 +119,7 @@ def _started(tmp_path_factory, name: str, endpoint: str):
                             zenoh_listen=[endpoint], query_timeout_s=1.0, auto_migrate=True)
         cheap = PasswordHasher(time_cost=1, memory_cost=1024, parallelism=1)  # argon2's cost is not under test
         with pytest.MonkeyPatch.context() as mp, TestClient(create_app(settings)) as c:
-            mp.setattr("server.auth._hasher", cheap)
+            mp.setattr("server.accounts.auth._hasher", cheap)
             add_user(c.app.state.sessions, *ADMIN, "admin")
             add_user(c.app.state.sessions, "vera", "viewer-pass-1", "viewer")
             tokens = {name: c.post("/api/auth/login", json={"username": name, "password": pw}).json()["token"]

@@ -18,9 +18,9 @@ from websockets.sync.client import connect
 from runtime.protocol.messages import MachineState
 from runtime.telemetry import TelemetryRecorder, write_mcap
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
-from server.scene import ConsoleScene, ground_point
-from server.scene_view import camera_framing, snap_to_line, strip_mesh
-from sim_twin.model import load_model
+from server.console.scene import ConsoleScene, ground_point
+from server.console.scene_view import camera_framing, snap_to_line, strip_mesh
+from sim_twin.twin.model import load_model
 from tests.conftest import free_port, wait_for
 
 
@@ -179,7 +179,7 @@ def test_each_console_has_its_own_view_target_and_machine(scene, tmp_path):
 
 
 def test_a_replay_poses_the_console_machine_from_the_recording_at_the_seeked_time(scene, tmp_path):
-    from server.scene_replay import Replay
+    from server.console.scene_replay import Replay
     from tests.fixtures import write_swing_telemetry
 
     t, q = write_swing_telemetry(tmp_path / "swing.mcap")
@@ -224,7 +224,7 @@ def test_a_drawing_pass_in_flight_does_not_draw_a_stale_pose_over_a_sought_repla
     outside the scene's lock: a CI run saw another time's pose right after seek_replay returned)."""
     import threading
 
-    from server.scene_replay import Replay
+    from server.console.scene_replay import Replay
     from tests.fixtures import write_swing_telemetry
 
     t, q = write_swing_telemetry(tmp_path / "swing.mcap")
@@ -404,7 +404,7 @@ def test_console_routes_answer_409_while_the_3d_view_is_disabled(settings):
 def test_a_console_flood_never_evicts_another_users_console():
     """520 console openings by one viewer (issue 24 finding 6: they pushed the operator's console
     out of a global 500-entry LRU) leave the operator's console open; the viewer keeps its limit."""
-    from server.scene import MAX_CONSOLES_PER_USER, ConsoleLimit
+    from server.console.scene import MAX_CONSOLES_PER_USER, ConsoleLimit
 
     s = ConsoleScene(_Fleet())  # not started: consoles are plain state
     mine = s.open_console("otto")

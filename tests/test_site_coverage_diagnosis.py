@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from sim_twin.profile import RealityProfile
+from sim_twin.twin.profile import RealityProfile
 from tests.benchmarks.site_coverage_diagnosis import split_profile
 
 
@@ -36,7 +36,7 @@ def test_nothing_to_split_is_refused(tmp_path: Path, name, error):
 
 
 def test_a_split_profile_is_thrown_at_from_its_own_directory(tmp_path: Path, fixture_policy):
-    from sim_twin.matrix import run_matrix
+    from sim_twin.evaluation.matrix import run_matrix
 
     split_profile("worn_gripper", tmp_path)
     rep = run_matrix(fixture_policy("2d"), "2d", [8.5], 2, profiles=[("worn_gripper__release_delay", True)], workers=1, profile_dir=tmp_path)

@@ -17,7 +17,7 @@ import pytest
 
 from runtime.telemetry import read_telemetry
 from runtime.throw_geometry import impact_errors
-from server.stack import Children, resolve_policy, slinger_command
+from server.site.stack import Children, resolve_policy, slinger_command
 from tests.conftest import TEST_POLICY_CHECK, SlingerUp, login, wait_for, wait_online
 from tests.fixtures import write_test_policy
 
@@ -75,7 +75,7 @@ def _landed_or_final(get_row):
 def machine(tmp_path, zenoh_endpoint, settings):
     """Real plant + runtime for m1 connecting to the server's endpoint; stopped afterwards. The
     runtime gets m1's command key from the server's site directory (made here, as `slinger up` does)."""
-    from server.certs import make_site
+    from server.site.certs import make_site
 
     site = make_site(settings.resolved_site_dir, ["m1"])
     policy = write_test_policy(tmp_path / "policies", "2d", release_after_bias=2.0)
@@ -231,8 +231,8 @@ def test_slinger_up_prints_credentials_only_once(tmp_path):
     """A second `slinger up` on the same data finds the admin and prints no password."""
     from server.db.session import make_engine, make_sessionmaker
     from server.db.migrate import upgrade
-    from server.users_cli import ensure_local_admin
-    from server.auth import user_count
+    from server.accounts.cli import ensure_local_admin
+    from server.accounts.auth import user_count
 
     url = f"sqlite:///{tmp_path / 'v.db'}"
     upgrade(url)

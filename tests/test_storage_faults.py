@@ -117,8 +117,8 @@ def test_damaged_database_file_starts_in_a_fault_state(settings):
 CHILD = r"""
 import json, sys
 from argon2 import PasswordHasher
-import server.auth
-server.auth._hasher = PasswordHasher(time_cost=1, memory_cost=1024, parallelism=1)
+import server.accounts.auth
+server.accounts.auth._hasher = PasswordHasher(time_cost=1, memory_cost=1024, parallelism=1)
 from fastapi.testclient import TestClient
 from server.app import create_app
 from server.config import Settings
@@ -217,7 +217,7 @@ def test_storage_checks_keep_sqlite_locks(tmp_path):
     import subprocess
     import sys
 
-    from server.storage import StorageMonitor
+    from server.site.storage import StorageMonitor
 
     db = tmp_path / "x.db"
     conn = sqlite3.connect(db, isolation_level=None)
@@ -240,11 +240,11 @@ def test_storage_checks_keep_sqlite_locks(tmp_path):
 MID_WRITE = r"""
 import json, os, subprocess, sys
 from argon2 import PasswordHasher
-import server.auth
-server.auth._hasher = PasswordHasher(time_cost=1, memory_cost=1024, parallelism=1)
+import server.accounts.auth
+server.accounts.auth._hasher = PasswordHasher(time_cost=1, memory_cost=1024, parallelism=1)
 from fastapi.testclient import TestClient
 from server.app import create_app
-from server.auth import audit
+from server.accounts.auth import audit
 from server.config import Settings
 args = json.loads(sys.argv[1])
 settings = Settings(data_dir=args["data_dir"], zenoh_listen=[args["zenoh"]], viser_enabled=False, auto_migrate=True,

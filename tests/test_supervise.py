@@ -1,4 +1,4 @@
-"""Supervision of `slinger up`'s children (server.supervise, server.warden): they die with the
+"""Supervision of `slinger up`'s children (server.site.supervise, server.site.warden): they die with the
 stack on kill -9 (grandchildren too), dead ones are restarted with back-off, bad configuration
 is not retried in a loop."""
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from server.supervise import STACK_ENV, Children
+from server.site.supervise import STACK_ENV, Children
 from tests.conftest import SlingerUp, wait_for
 
 
@@ -37,7 +37,7 @@ def stack_processes(stack_dir: Path) -> dict[int, str]:
 HARNESS = """
 import sys, time
 from pathlib import Path
-from server.supervise import Children
+from server.site.supervise import Children
 c = Children(stack_dir=Path(sys.argv[1]))
 grand = "import subprocess, time; subprocess.Popen(['sleep', '300']); time.sleep(300)"
 c.spawn("kid", [sys.executable, "-c", grand])

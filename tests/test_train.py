@@ -13,7 +13,8 @@ pytest.importorskip("jax")
 pytestmark = pytest.mark.torch
 
 from runtime.policy import PolicyRunner  # noqa: E402
-from sim_twin import train, training_config  # noqa: E402
+from sim_twin.training import train
+from sim_twin.training import config as training_config  # noqa: E402
 
 
 def _args(tmp_path, **kw):
@@ -62,7 +63,7 @@ def test_one_command_with_gate_model_card_and_term_logs(tmp_path):
     training, its verdict is kept, the export carries a model card (bars not met here)."""
     import json
 
-    from sim_twin.rewards import REWARD_TERMS
+    from sim_twin.training.rewards import REWARD_TERMS
 
     onnx = tmp_path / "p.onnx"
     args = _args(tmp_path, gate=True, gate_targets="8.5", gate_throws=1, gate_seeds="0", gate_workers=2,
@@ -94,7 +95,7 @@ def test_the_run_stops_at_the_bars_or_trains_past_them(tmp_path, monkeypatch, st
     import json
     import sys
 
-    from sim_twin.matrix_gate import MatrixGate
+    from sim_twin.training.matrix_gate import MatrixGate
 
     def passing(self, onnx, seed, out):
         rep = {"pass": True, "profiles": []}
@@ -152,7 +153,7 @@ def test_std_schedule_caps_the_learned_std():
 
 def test_model_card_commit_outside_git_comes_from_the_environment(tmp_path, monkeypatch):
     """A copy of the tree without git (as on a lent GPU machine) records the commit it was given."""
-    from sim_twin.model_card import git_commit
+    from sim_twin.training.model_card import git_commit
 
     monkeypatch.delenv("SLINGER_GIT_COMMIT", raising=False)
     assert git_commit(tmp_path) == "unknown"
@@ -180,8 +181,8 @@ def test_randomization_stage_widens_once_and_the_gate_judges_from_its_iteration(
     import json
     import sys
 
-    from sim_twin.matrix_gate import MatrixGate
-    from sim_twin.vec_env import MjxThrowVecEnv
+    from sim_twin.training.matrix_gate import MatrixGate
+    from sim_twin.training.vec_env import MjxThrowVecEnv
 
     def passing(self, onnx, seed, out):
         rep = {"pass": True, "profiles": []}

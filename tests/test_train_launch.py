@@ -1,4 +1,4 @@
-"""``slinger train --gpus N``: the command goes through sim_twin.train's own main, which re-launches
+"""``slinger train --gpus N``: the command goes through sim_twin.training.train's own main, which re-launches
 itself under torchrun with one process per GPU, and refuses before anything starts when the host
 has fewer GPUs than asked for. No process is started here (subprocess.call is recorded)."""
 
@@ -9,12 +9,12 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from server import cli  # noqa: E402
-from sim_twin import train  # noqa: E402
+from sim_twin.training import train  # noqa: E402
 
 
 @pytest.fixture
 def launches(monkeypatch) -> list[list[str]]:
-    """The commands sim_twin.train would start, recorded instead of run."""
+    """The commands sim_twin.training.train would start, recorded instead of run."""
     monkeypatch.delenv("WORLD_SIZE", raising=False)
     calls: list[list[str]] = []
     monkeypatch.setattr("subprocess.call", lambda cmd: calls.append(cmd) or 0)
@@ -28,7 +28,7 @@ def test_slinger_train_with_gpus_relaunches_under_torchrun_one_process_per_gpu(m
     (cmd,) = launches
     i = cmd.index("torch.distributed.run")
     # the workers get the command as given, --gpus included, so that the model card names it
-    assert cmd[i + 1:] == ["--standalone", "--nproc_per_node=4", "-m", "sim_twin.train", "--mode", "2d", *gpus, "--max-minutes", "3"]
+    assert cmd[i + 1:] == ["--standalone", "--nproc_per_node=4", "-m", "sim_twin.training.train", "--mode", "2d", *gpus, "--max-minutes", "3"]
 
 
 def test_more_gpus_than_the_host_has_is_refused_before_anything_starts(monkeypatch, launches, capsys):

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from sim_twin.matrix_gate import summarise_matrix
+from sim_twin.training.matrix_gate import summarise_matrix
 from tests.benchmarks.training_run_report import after_run_row, train_wall_s
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,7 +58,7 @@ def test_an_iteration_the_curve_lacks_is_refused(tmp_path):
 
 
 def test_the_report_reads_the_names_the_gate_writes():
-    from sim_twin.matrix_gate import matrix_file_name, parse_matrix_file_name
+    from sim_twin.training.matrix_gate import matrix_file_name, parse_matrix_file_name
 
     for mode, it, seed in [("2d", 25, 0), ("3d", 1253, 1), ("2d", 701, 2)]:
         assert parse_matrix_file_name(matrix_file_name(mode, it, seed)) == (it, seed)

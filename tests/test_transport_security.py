@@ -1,4 +1,4 @@
-"""Machine links: the site's certificates (server/certs.py), mutual TLS and the site's Zenoh access
+"""Machine links: the site's certificates (server/site/certs.py), mutual TLS and the site's Zenoh access
 control (runtime/zenoh_acl.py), with in-process sessions on loopback."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from runtime.command_auth import load_key
 from runtime.protocol import keys
 from runtime.zenoh_acl import machines_in_site, site_acl
 from runtime.zenoh_session import TlsFiles, add_session_arguments, open_session, session_options
-from server import certs
+from server.site import certs
 from tests.conftest import free_port, wait_for
 
 

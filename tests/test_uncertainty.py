@@ -1,4 +1,4 @@
-"""The uncertainty block of reality profiles (sim_twin.uncertainty): parsing, drawing, fitted sigma."""
+"""The uncertainty block of reality profiles (sim_twin.twin.uncertainty): parsing, drawing, fitted sigma."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from sim_twin.effects import make_effect
-from sim_twin.preview import DEFAULT_SITE_PROFILE, site_profile
-from sim_twin.profile import RealityProfile
-from sim_twin.uncertainty import StartUncertainty, parse, sample_profile, unit_points, with_fitted_sigma
+from sim_twin.preview.preview import DEFAULT_SITE_PROFILE, site_profile
+from sim_twin.twin.profile import RealityProfile
+from sim_twin.twin.uncertainty import StartUncertainty, parse, sample_profile, unit_points, with_fitted_sigma
 
 BLOCK = {
     "hydraulics.delay_s": {"range": [0.03, 0.08]},

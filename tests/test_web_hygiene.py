@@ -9,7 +9,7 @@ import threading
 
 import pytest
 
-from server.login_guard import LoginBusy, LoginGuard
+from server.accounts.login_guard import LoginBusy, LoginGuard
 from tests.conftest import ADMIN, add_user, login
 
 
@@ -146,7 +146,7 @@ def test_session_cookie_is_secure_over_https_only(client):
 
 
 def test_minimum_password_length_on_api_and_cli(client, tmp_path, capsys):
-    from server.auth import MIN_PASSWORD_LENGTH
+    from server.accounts.auth import MIN_PASSWORD_LENGTH
     from server.cli import main
 
     short = "x" * (MIN_PASSWORD_LENGTH - 1)
@@ -177,7 +177,7 @@ def test_request_body_size_limit(app_client):
 
 def test_security_headers_on_pages_and_api(client):
     from server.app import WEB_DIR
-    from server.web_guard import inline_script_hashes
+    from server.api.web_guard import inline_script_hashes
 
     for path in ("/console/index.html", "/api/health"):
         r = client.get(path)

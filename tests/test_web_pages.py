@@ -1,4 +1,4 @@
-"""The console's pages share one head and one top bar (server.web_pages): no page carries a
+"""The console's pages share one head and one top bar (server.console.pages): no page carries a
 copied <head>, every page is served assembled, the partials are not served, a bad include is an
 error that names it; the 3D view may be framed under the other loopback name (web_guard CSP)."""
 
@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from server.web_guard import content_security_policy
-from server.web_pages import assemble
+from server.api.web_guard import content_security_policy
+from server.console.pages import assemble
 
 WEB = Path(__file__).resolve().parent.parent / "web"
 PAGES = sorted(p.name for p in WEB.glob("[a-z]*.html"))

@@ -5,7 +5,7 @@ Revises: 0007
 Create Date: 2026-11-22
 
 ``users`` gains ``session_key`` (random 256 bits, hex; server.db.models.new_session_key) and
-``auth_sessions`` gains ``user_key``, the account's key when the session was made. server.auth
+``auth_sessions`` gains ``user_key``, the account's key when the session was made. server.accounts.auth
 accepts a session only while the two agree, so a session of a deleted account never passes to a
 new account that SQLite gives the same ``id``. Existing sessions are kept (each gets its
 account's new key); sessions whose account is gone are deleted. On SQLite a trigger deletes an

@@ -1,4 +1,4 @@
-"""alarms kept on the server (server.alarms)
+"""alarms kept on the server (server.console.alarms)
 
 Revision ID: 0009
 Revises: 0008

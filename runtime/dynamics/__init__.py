@@ -11,7 +11,7 @@ nothing of sim_twin or server).
 * The drag-free flight of the payload is :mod:`runtime.ballistics`.
 
 The release check (runtime.release_check) simulates the machine with these; the twin
-(sim_twin.model, sim_twin.hydraulics, sim_twin.physics, sim_twin.mjx_env) builds on them.
+(sim_twin.twin.model, sim_twin.twin.hydraulics, sim_twin.twin.physics, sim_twin.training.mjx_env) builds on them.
 """
 
 from pathlib import Path

@@ -2,14 +2,14 @@
 actuation"), shared by the runtime's release check and the twin: per active joint, valve command
 u in [-1, 1] -> dead band (:func:`dead_band_flow`) -> transport delay -> first-order lag
 (:func:`lag_step`) -> rate-limited joint velocity (the stateful valve of the simulated machine:
-sim_twin.hydraulics.ValveModel), then the cylinder
+sim_twin.twin.hydraulics.ValveModel), then the cylinder
 (:func:`cylinder_step`): the oil displaced by that flow sets where the joint is, closed valves
 hold the load (oil is incompressible: no sag or drift at neutral valves, however long), and the
 cylinder's stroke ends are hard stops (no flow moves a joint past its end). The result is the
 setpoint of the twin's stiff joint-velocity servo (MJCF ``<velocity>`` actuators), which alone
 would let gravity sag the arm at F / kv (boom ~2 mrad/s, telescope ~4 mm/s).
 
-Nominal parameters (sim_twin.hydraulics.HydraulicParams' defaults), a HEAP-class machine:
+Nominal parameters (sim_twin.twin.hydraulics.HydraulicParams' defaults), a HEAP-class machine:
 
 =================  ==========  ==============================================================
 parameter          nominal     source

@@ -142,7 +142,7 @@ class CommandAuth(Message):
         issued_unix_s: the signer's wall clock (Unix seconds) when it signed.
         nonce: 32 hex digits, fresh per message (replay protection).
         epoch: the runtime claim the command addresses (RuntimeInfo.epoch).
-        server: the signing server's identity (server.command_signer: SLINGER_SERVER_ID, else
+        server: the signing server's identity (server.fleet.command_signer: SLINGER_SERVER_ID, else
             its host name and site directory), or None (results; servers that name none, which
             the runtime treats as one unnamed server). The runtime leases itself to one server
             at a time (runtime.service: one writer per machine); it is covered by the MAC.

@@ -1,5 +1,5 @@
 """ROS 2 nodes on rclpy: the bridge's (runtime.ros2.bridge) and the simulated machine's
-(sim_twin.ros2_plant), on whatever middleware ``RMW_IMPLEMENTATION`` names (rmw_fastrtps_cpp,
+(sim_twin.twin.ros2_plant), on whatever middleware ``RMW_IMPLEMENTATION`` names (rmw_fastrtps_cpp,
 Fast DDS, when unset; rmw_zenoh_cpp or rmw_cyclonedds_cpp where a site installed them).
 
 * Message types are the rosidl packages' (``sensor_msgs``, ``std_msgs``, ``geometry_msgs``,

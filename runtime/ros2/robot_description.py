@@ -1,6 +1,6 @@
 """The machine's robot description (URDF) and the /tf transforms of its links.
 
-The URDF is exported from the twin's MJCF by ``sim_twin.urdf`` and shipped beside this module
+The URDF is exported from the twin's MJCF by ``sim_twin.twin.urdf`` and shipped beside this module
 (``material_handler.urdf``). :class:`UrdfChain` parses its joints (xml.etree, no ROS needed) and
 gives, for a joint vector in ``runtime.machine.JOINT_NAMES`` order, each link's transform in its
 parent link, as robot_state_publisher would publish them on /tf (movable joints) and

@@ -28,8 +28,8 @@ def main() -> int:
     ap.add_argument("--run", type=Path, default=REPO / "policies" / "training" / "throw2d-v2")
     args = ap.parse_args()
     from runtime.policy import PolicyRunner
-    from sim_twin import adapt as ad
-    from sim_twin.profile import RealityProfile
+    from sim_twin.adaptation import adapt as ad
+    from sim_twin.twin.profile import RealityProfile
 
     prof = RealityProfile.load(args.profile)
     t0 = time.time()

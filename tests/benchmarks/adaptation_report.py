@@ -3,7 +3,7 @@ under the profile (``slinger diagnose generate``) -> ``slinger diagnose`` -> ``s
 with the FITTED profile (never the profile file) for the 2D and 3D policies -> evaluation of
 the adapted versions under the TRUE profile (the profile file), beside the unadapted ones.
 The adaptation's aim table is anchored to the logged throws' measured impacts
-(sim_twin.aim_anchor; ``--no-anchor`` for the twin-only table): the 2D policy's to the diagnosis
+(sim_twin.adaptation.aim_anchor; ``--no-anchor`` for the twin-only table): the 2D policy's to the diagnosis
 dataset, the 3D policy's to 30 logged 3D throws of the same site (``dataset_3d``).
 
 Bar (issue 9): 2D |bias| <= 0.10 m at every target 7.5-10 m, 3D |bias| <= 0.20 m at 7-9.5 m.

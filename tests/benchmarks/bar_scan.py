@@ -16,9 +16,9 @@ import argparse
 import json
 from pathlib import Path
 
-from sim_twin.evaluate import evaluate
-from sim_twin.export import export_checkpoint
-from sim_twin.training_config import load_config
+from sim_twin.evaluation.evaluate import evaluate
+from sim_twin.training.export import export_checkpoint
+from sim_twin.training.config import load_config
 
 TARGETS_M = [7.5, 8.0, 8.5, 9.0, 9.5, 10.0]
 

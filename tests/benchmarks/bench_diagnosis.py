@@ -73,7 +73,7 @@ def main() -> int:
     from sim_twin.diagnosis import dataset
     from sim_twin.diagnosis.diagnose import diagnose
     from sim_twin.diagnosis.reallog import RealLogSpec
-    from sim_twin.profile import RealityProfile
+    from sim_twin.twin.profile import RealityProfile
 
     policy = REPO / "policies" / "throw2d.onnx"
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=REPO, check=False).stdout.strip()  # the code that runs

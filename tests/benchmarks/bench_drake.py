@@ -1,8 +1,8 @@
-"""Speed of one throw on the Drake machine (sim_twin.drake_machine) against real time, on one core.
+"""Speed of one throw on the Drake machine (sim_twin.twin.drake_machine) against real time, on one core.
 
 A throw is what evaluation runs per seed: a fresh machine at the seed's random start pose, then
 the runtime's executor (policy, controller, release check) driving it through
-sim_twin.twin_machine.run_throw until the impact. Its wall time over the simulated time it
+sim_twin.twin.twin_machine.run_throw until the impact. Its wall time over the simulated time it
 covers is the "x real time" figure (goal: <= 5, so the paper's protocol fits a CI budget at
 reduced throws); the MuJoCo twin's is measured beside it, and the Drake physics alone per 10 ms
 period (DrakeMachine.step with valves moving). The process is pinned to one core (``--core``);
@@ -35,9 +35,9 @@ def one_throw(engine: str, mode: str, seed: int, policy, check) -> dict:
     construction and of the throw, and the simulated seconds the throw covered."""
     from runtime.executor import ThrowExecutor
     from runtime.protocol.messages import ThrowRequest
-    from sim_twin.engines import make_machine
-    from sim_twin.evaluate import target_on_axis
-    from sim_twin.twin_machine import TwinMachine, run_throw
+    from sim_twin.twin.engines import make_machine
+    from sim_twin.evaluation.evaluate import target_on_axis
+    from sim_twin.twin.twin_machine import TwinMachine, run_throw
 
     t0, c0 = time.perf_counter(), time.process_time()
     sim = make_machine(engine, None, seed=seed)
@@ -55,7 +55,7 @@ def one_throw(engine: str, mode: str, seed: int, policy, check) -> dict:
 
 def physics_only(periods: int = 500) -> dict:
     """Drake physics alone: seconds per 10 ms period with the valves moving."""
-    from sim_twin.drake_machine import DrakeMachine
+    from sim_twin.twin.drake_machine import DrakeMachine
 
     m = DrakeMachine(seed=0)
     m.reset(q_active=[0.0, -0.6, 1.5, 0.9])

@@ -243,7 +243,7 @@ def _cpu_s() -> float:
 def latency(client, repeats: int) -> None:
     """p50 / p95 of history and accuracy requests. Accuracy without a distance filter is served
     by the incremental aggregates (a time inside a day adds a scan of that partial day); the
-    distance filter falls back to the row scan (server.accuracy). Also the app process's CPU time
+    distance filter falls back to the row scan (server.analysis.accuracy). Also the app process's CPU time
     per request (p50; the database server's CPU is not included): on a shared host the wall time
     includes waiting for a CPU."""
     from server.db.types import utcnow
@@ -285,7 +285,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     if args.debug:
-        logging.getLogger("server.fleet").setLevel(logging.DEBUG)
+        logging.getLogger("server.fleet.link").setLevel(logging.DEBUG)
     from fastapi.testclient import TestClient
 
     from server.app import create_app

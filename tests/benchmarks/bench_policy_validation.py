@@ -1,4 +1,4 @@
-"""Policy validation (server.policy_validation): wall time, verdict and peak resident memory of
+"""Policy validation (server.policies.validation): wall time, verdict and peak resident memory of
 the upload check and of the full validation with the default settings, for a harmless fixture
 policy, the conditional-NaN policy and the 2 GiB memory-bomb policy of
 tests/test_policy_validation.py. Prints JSON (the figures of reports/policy_validation.json).
@@ -20,7 +20,7 @@ from pathlib import Path
 
 from runtime.policy import sha256_of
 from server.config import Settings
-from server.policy_validation import validate
+from server.policies.validation import validate
 from tests.fixtures import write_test_policy
 from tests.test_policy_validation import conditional_nan_policy, memory_bomb_policy
 

@@ -1,14 +1,14 @@
 """Preview latency on this machine: the single-rollout preview (nominal swing in the twin) and
 the 200-rollout Monte Carlo impact ellipse, both through the HTTP API (POST /api/previews, what
 the console calls: a job run by a `slinger worker` process started here) and of
-sim_twin.preview.preview_throw alone.
+sim_twin.preview.preview.preview_throw alone.
 
 Run: ``python tests/benchmarks/bench_preview.py [--repeats 10] [--profile P] [--processes N ...]``.
 Prints median / max wall seconds per case and the bar (0.3 s single rollout, 1.5 s for 200
 rollouts), the function alone with its Monte Carlo in 1 and in 2 processes, and for the
 function alone also the CPU seconds of this process (what the wall time is on an idle core when
 the machine is shared); no assertions. The default profile is the server's default site profile
-(sim_twin.preview.DEFAULT_SITE_PROFILE: parameter ranges, start-state model, release jitter).
+(sim_twin.preview.preview.DEFAULT_SITE_PROFILE: parameter ranges, start-state model, release jitter).
 The HTTP part uses the app with a loopback Zenoh peer and a fake runtime that reports the trained
 2D policy from different start poses (tests.conftest.FakeRuntime).
 """
@@ -36,9 +36,9 @@ def bench_function(repeats: int, profile_path: Path | None, processes: int = 0) 
     """preview_throw alone; with ``processes`` >= 2 its Monte Carlo runs in a pool of that many
     processes (as a worker runs it, Settings.preview_processes). CPU is this process's only."""
     from runtime.policy import PolicyRunner
-    from sim_twin.initial_pose import sample_pose
-    from sim_twin.pools import process_pool
-    from sim_twin.preview import PreviewRequest, preview_throw, site_profile, warm_up
+    from sim_twin.twin.initial_pose import sample_pose
+    from sim_twin.twin.pools import process_pool
+    from sim_twin.preview.preview import PreviewRequest, preview_throw, site_profile, warm_up
 
     pool = None
     if processes >= 2:

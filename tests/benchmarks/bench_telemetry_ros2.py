@@ -43,7 +43,7 @@ def main() -> int:
         rows.append({"ticks": n, "write_cpu_s": statistics.median(w), "read_cpu_s": statistics.median(r), "bytes": len(blob)})
         print(f"{n:5d} ticks: write {rows[-1]['write_cpu_s'] * 1e3:6.0f} ms CPU, read {rows[-1]['read_cpu_s'] * 1e3:6.0f} ms CPU, "
               f"{len(blob) / 1024:6.0f} KiB")
-    from server.results_page import host_description
+    from server.site.results_page import host_description
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True, check=False).stdout.strip()
     report = {

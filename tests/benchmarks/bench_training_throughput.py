@@ -52,7 +52,7 @@ def physics_rate(impl: str, n: int, steps: int) -> float:
     import jax.numpy as jnp
     from mujoco import mjx
 
-    from sim_twin.model import load_model
+    from sim_twin.twin.model import load_model
 
     m = load_model()
     mx = mjx.put_model(m, impl=impl)
@@ -98,9 +98,9 @@ def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int, r
     import torch
     from rsl_rl.runners import OnPolicyRunner
 
-    from sim_twin.mjx_env import EnvConfig
-    from sim_twin.training_config import load_config
-    from sim_twin.vec_env import MjxThrowVecEnv
+    from sim_twin.training.mjx_env import EnvConfig
+    from sim_twin.training.config import load_config
+    from sim_twin.training.vec_env import MjxThrowVecEnv
 
     row = {"mode": mode, "impl": impl, "num_envs": n, "reset_slots": reset_slots, "unroll": unroll, "xla_flags": xla_flags}
     try:

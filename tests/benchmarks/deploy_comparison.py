@@ -1,4 +1,4 @@
-"""Deploy comparison report: from-scratch candidates against the deployed policy (sim_twin.matrix_compare),
+"""Deploy comparison report: from-scratch candidates against the deployed policy (sim_twin.evaluation.matrix_compare),
 with the check that the comparison does not call the deployed policy worse than itself.
 
 ``python tests/benchmarks/deploy_comparison.py --mode 2d --deployed reports/site_matrix_2d.json
@@ -7,7 +7,7 @@ writes ``<out>.json`` and ``<out>.md``:
 
 * **null check**: for every ordered pair of the deployed policy's seeds (a, b), seed b's throws are
   paired with seed a's by position (different start poses, the same policy, so no true difference)
-  and compared; the count of cells called worse by the paired test (sim_twin.matrix_compare) and
+  and compared; the count of cells called worse by the paired test (sim_twin.evaluation.matrix_compare) and
   by the earlier rule (lower success, or |bias| or sigma larger by more than 5 mm) side by side;
 * **candidates**: each candidate's matrices against the deployed ones of the same seeds, pooled.
 """
@@ -20,7 +20,7 @@ import json
 from itertools import permutations
 from pathlib import Path
 
-from sim_twin.matrix_compare import ALPHA, compare
+from sim_twin.evaluation.matrix_compare import ALPHA, compare
 
 OLD_TOL_M = 0.005  # the earlier rule's tolerance
 
@@ -75,7 +75,7 @@ def main() -> None:
     body = {"mode": args.mode, "deployed": [str(f) for f in args.deployed], "alpha": ALPHA, "null_check": null, "candidates": cands}
     args.out.with_suffix(".json").write_text(json.dumps(body, indent=1) + "\n")
     md = [f"# Deploy comparison, {args.mode}: from-scratch candidates against the deployed policy", "",
-          "Paired tests per cell (sim_twin.matrix_compare: exact McNemar on success, Wilcoxon signed-rank on the miss "
+          "Paired tests per cell (sim_twin.evaluation.matrix_compare: exact McNemar on success, Wilcoxon signed-rank on the miss "
           f"distance), Holm-corrected over the comparison at a family-wise error rate of {ALPHA:g}.", "",
           "## Null check: the deployed policy against itself on another seed's throws", "",
           "| seeds | cells called worse, paired test | cells called worse, earlier 5 mm rule |", "|---|---|---|"]

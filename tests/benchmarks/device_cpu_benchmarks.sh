@@ -17,7 +17,7 @@ taskset -c 2-15 python3 -m sim_twin.diagnosis.cli benchmark --workers 14 --deadl
   --out $OUT/diagnosis_benchmark_all.json > $OUT/benchmark.log 2>&1 &
 BENCH=$!
 Z=tcp/127.0.0.1:7461
-taskset -c 0,1 python3 -m sim_twin.plant --machine-id m1 --listen $Z > $OUT/plant.log 2>&1 &
+taskset -c 0,1 python3 -m sim_twin.twin.plant --machine-id m1 --listen $Z > $OUT/plant.log 2>&1 &
 PLANT=$!
 sleep 2
 taskset -c 0,1 python3 -m runtime.node --machine-id m1 --connect $Z --policy-2d policies/throw2d.onnx \

@@ -18,7 +18,7 @@ TAG=${TAG:-f}; MIN=${MIN:-7.0}; ENVS=${ENVS:-16384}; MODES=${MODES:-"2d 3d"}
 for m in $MODES; do
 python3 - <<PY || exit 1
 import json; from pathlib import Path
-from sim_twin.export import export_checkpoint
+from sim_twin.training.export import export_checkpoint
 cfg = json.loads(Path("devwork/cfg_$m.json").read_text())
 export_checkpoint(Path("devwork/$m/checkpoint.pt"), cfg, Path("devwork/throw$m.onnx"), name="throw$m-robust-$TAG")
 PY
@@ -26,14 +26,14 @@ cp devwork/$m/checkpoint.pt devwork/$m/evaluated.pt
 done
 if [ "${TRAIN:-1}" = 1 ]; then
 for m in $MODES; do
-  timeout ${HARD:-540} python3 -m sim_twin.train --mode $m --config devwork/cfg_$m.json --num-envs $ENVS \
+  timeout ${HARD:-540} python3 -m sim_twin.training.train --mode $m --config devwork/cfg_$m.json --num-envs $ENVS \
     --resume devwork/$m/checkpoint.pt --log-dir devwork/$m --max-minutes $MIN > devwork/train_$m.log 2>&1 &
 done
 fi
 if [ "${MATRIX:-1}" = 1 ]; then
 for m in $MODES; do for s in ${SEEDS:-0}; do
   f=site_matrix_$m.json; [ "$s" = 0 ] || f=site_matrix_${m}_seed$s.json
-  timeout ${MHARD:-300} python3 -m sim_twin.evaluate_cli --policy devwork/throw$m.onnx --matrix --seed $s --workers ${W:-13} --out devwork/$f >> $OUT/matrix.log 2>&1
+  timeout ${MHARD:-300} python3 -m sim_twin.evaluation.cli --policy devwork/throw$m.onnx --matrix --seed $s --workers ${W:-13} --out devwork/$f >> $OUT/matrix.log 2>&1
   cp devwork/$f $OUT/ 2>/dev/null; tail -n 2 $OUT/matrix.log
 done; done
 fi

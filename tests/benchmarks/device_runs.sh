@@ -47,7 +47,7 @@ start() {
   [ -f runs/state/$name.tar ] && [ ! -d $run ] && tar xf runs/state/$name.tar  # the whole run or only what resuming needs
   [ -f $run/checkpoint.pt ] && resume="--resume $run/checkpoint.pt"
   mkdir -p $run
-  setsid nohup python3 -m sim_twin.train --mode $mode --config $config --log-dir $run --gate-workers $workers \
+  setsid nohup python3 -m sim_twin.training.train --mode $mode --config $config --log-dir $run --gate-workers $workers \
     --max-minutes 600 $resume "$@" >> $run/train.log 2>&1 < /dev/null &
   echo "started $name (pid $!) $resume"
 }
@@ -87,7 +87,7 @@ watch() {
   local end=$(( $(date +%s) + ${1%.*} * 60 ))
   while [ $(date +%s) -lt $end ]; do
     sleep 60; date +%T; progress; nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader
-    pgrep -f "sim_twin.train" >/dev/null || { echo "no run is training: collecting now"; break; }  # e.g. bars met
+    pgrep -f "sim_twin.training.train" >/dev/null || { echo "no run is training: collecting now"; break; }  # e.g. bars met
   done
   collect
 }

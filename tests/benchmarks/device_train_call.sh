@@ -20,7 +20,7 @@ RUN=runs/$NAME
 [ -f runs/state/$NAME.tar ] && tar xf runs/state/$NAME.tar
 RESUME=""; [ -f $RUN/checkpoint.pt ] && RESUME="--resume $RUN/checkpoint.pt"
 nvidia-smi -L
-timeout ${HARD:-570} python3 -m sim_twin.train --mode $MODE --log-dir $RUN --max-minutes $MIN --gate-wait-minutes $WAIT \
+timeout ${HARD:-570} python3 -m sim_twin.training.train --mode $MODE --log-dir $RUN --max-minutes $MIN --gate-wait-minutes $WAIT \
   --gpus $GPUS $RESUME ${EXTRA:-} > $OUT/train_$NAME.log 2>&1
 echo "train exit $?"
 tar cf $OUT/$NAME.tar --exclude="$RUN/candidates/*.pt" $RUN  # candidate checkpoints stay on the host (size)

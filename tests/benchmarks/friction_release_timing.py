@@ -173,7 +173,7 @@ def plot(report: dict, out: Path) -> None:
 
 def main() -> None:
     from runtime.policy import sha256_of
-    from sim_twin.pools import process_pool
+    from sim_twin.twin.pools import process_pool
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--policy", action="append", required=True, help="NAME=path.onnx, a 2D policy (repeatable)")

@@ -4,7 +4,7 @@ For each of N throws (seeded): the simulated machine's TRUE parameters are drawn
 within the site profile's uncertainty block (ranges; Gaussians for fitted sigmas), its start pose
 is a random collision-free pose with the gripper hanging, a residual passive swing below the
 executor's still threshold, and the preview is given the MEASURED pose (true pose plus encoder /
-IMU error drawn from the profile's start-state model). The preview (sim_twin.preview, the site
+IMU error drawn from the profile's start-state model). The preview (sim_twin.preview.preview, the site
 profile, ``--rollouts`` impacts from ``--param-rollouts`` full rollouts) predicts a mean and a
 covariance; the true throw (the runtime's executor on the simulated machine with the drawn
 parameters and release jitter) lands somewhere. Reported: the share of true impacts inside the
@@ -55,13 +55,13 @@ def one_throw(policy_path: str, profile_path: str, mode: str, distance_m: float,
     from runtime.executor import ThrowExecutor
     from runtime.policy import PolicyRunner
     from runtime.protocol.messages import ThrowRequest
-    from sim_twin.evaluate import target_on_axis
-    from sim_twin.initial_pose import sample_pose
-    from sim_twin.twin_machine import TwinMachine, run_throw
-    from sim_twin.preview import PreviewRequest, preview_throw
-    from sim_twin.profile import RealityProfile
-    from sim_twin.simulated_machine import SimulatedMachine
-    from sim_twin.uncertainty import parse, sample_profile
+    from sim_twin.evaluation.evaluate import target_on_axis
+    from sim_twin.twin.initial_pose import sample_pose
+    from sim_twin.twin.twin_machine import TwinMachine, run_throw
+    from sim_twin.preview.preview import PreviewRequest, preview_throw
+    from sim_twin.twin.profile import RealityProfile
+    from sim_twin.twin.simulated_machine import SimulatedMachine
+    from sim_twin.twin.uncertainty import parse, sample_profile
 
     c0 = time.process_time()
     policy = _policy(policy_path, PolicyRunner)
@@ -193,8 +193,8 @@ def main() -> int:
     ap.add_argument("--report-only", action="store_true", help="write the report from the rows finished so far (<out>.rows.jsonl)")
     args = ap.parse_args()
     from runtime.policy import PolicyRunner
-    from sim_twin.evaluate_cli import parse_targets
-    from sim_twin.profile import RealityProfile
+    from sim_twin.evaluation.cli import parse_targets
+    from sim_twin.twin.profile import RealityProfile
 
     policy = PolicyRunner.load(args.policy)
     mode = policy.mode

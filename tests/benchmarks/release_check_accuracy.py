@@ -2,7 +2,7 @@
 
     nice -n 10 python tests/benchmarks/release_check_accuracy.py --throws 100 --out reports/release_check_accuracy.json
 
-Throws of the deployed policies on the twin by sim_twin.evaluate's protocol (seeds of the site
+Throws of the deployed policies on the twin by sim_twin.evaluation.evaluate's protocol (seeds of the site
 matrix, ``i * 100_000 + k`` with i the target's index in 7.5:10:0.5 (2D) or 7:9.5:0.5 (3D)), with
 a release check that never holds (radius 1e9 m) so that every release is the policy's own. For
 each landed throw: the executor's own prediction at the release command (measured state and the
@@ -43,10 +43,10 @@ def release_errors(policy_path: str, mode: str, distance_m: float, seeds: list[i
     from runtime.policy import PolicyRunner
     from runtime.protocol.messages import ThrowRequest
     from runtime.release_check import ReleaseCheck
-    from sim_twin.evaluate import target_on_axis
-    from sim_twin.twin_machine import TwinMachine, run_throw
-    from sim_twin.profile import RealityProfile
-    from sim_twin.simulated_machine import SimulatedMachine
+    from sim_twin.evaluation.evaluate import target_on_axis
+    from sim_twin.twin.twin_machine import TwinMachine, run_throw
+    from sim_twin.twin.profile import RealityProfile
+    from sim_twin.twin.simulated_machine import SimulatedMachine
 
     check = ReleaseCheck.load()
     predictor = check.predictor

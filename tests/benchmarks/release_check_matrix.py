@@ -1,4 +1,4 @@
-"""Effect of the release check on site-matrix cells (sim_twin.matrix seeds and protocol).
+"""Effect of the release check on site-matrix cells (sim_twin.evaluation.matrix seeds and protocol).
 
     nice -n 10 python tests/benchmarks/release_check_matrix.py --out reports/release_check_matrix.json
     nice -n 10 python tests/benchmarks/release_check_matrix.py --only 3d:nominal --out reports/release_check_matrix_3d_nominal.json
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_twin.evaluate import summarise, throw_batch
+from sim_twin.evaluation.evaluate import summarise, throw_batch
 
 PROFILES = Path(__file__).resolve().parents[2] / "sim_twin" / "profiles"
 CELLS = (  # (policy, mode, profile or None, [(target m, index)])

@@ -4,8 +4,8 @@
 --policy deployed=policies/throw2d.onnx --policy u=policies/training/throw2d-scratch-u/throw2d.onnx
 --out reports/site_coverage_diagnosis_2d`` throws every policy at the profile as committed
 (sim_twin/profiles) and at one profile per effect of it, that effect alone, on the site matrix's
-targets and start poses (sim_twin.matrix.run_matrix, seed 0), and writes ``<out>.json``,
-``<out>.md`` (mean miss distance [m], sim_twin.evaluate.summarise's ``mean_abs_error_m`` over the landed
+targets and start poses (sim_twin.evaluation.matrix.run_matrix, seed 0), and writes ``<out>.json``,
+``<out>.md`` (mean miss distance [m], sim_twin.evaluation.evaluate.summarise's ``mean_abs_error_m`` over the landed
 throws, and success per cell, the policies side by side) and
 ``<out>.png`` (mean miss against target, one panel per profile part).
 
@@ -24,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_twin.matrix import PROFILE_DIR, run_matrix
+from sim_twin.evaluation.matrix import PROFILE_DIR, run_matrix
 
 TARGETS = {"2d": [7.5, 8.0, 8.5, 9.0, 9.5, 10.0], "3d": [7.0, 7.5, 8.0, 8.5, 9.0, 9.5]}
-"""The site matrix's targets [m] per mode (sim_twin.evaluate_cli defaults)."""
+"""The site matrix's targets [m] per mode (sim_twin.evaluation.cli defaults)."""
 
 
 def effect_parts(name: str) -> tuple[dict, list[dict]]:

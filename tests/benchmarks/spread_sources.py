@@ -68,10 +68,10 @@ def throws(policy_path: str, distance_m: float, seeds: list[int], profile: dict 
     from runtime.policy import PolicyRunner
     from runtime.protocol.messages import ThrowRequest
     from runtime.release_check import ReleaseCheck
-    from sim_twin.evaluate import target_on_axis
-    from sim_twin.twin_machine import TwinMachine, run_throw
-    from sim_twin.profile import RealityProfile
-    from sim_twin.simulated_machine import SimulatedMachine
+    from sim_twin.evaluation.evaluate import target_on_axis
+    from sim_twin.twin.twin_machine import TwinMachine, run_throw
+    from sim_twin.twin.profile import RealityProfile
+    from sim_twin.twin.simulated_machine import SimulatedMachine
 
     policy = PolicyRunner.load(policy_path)
     prof = RealityProfile.from_dict(profile) if profile else RealityProfile()
@@ -176,7 +176,7 @@ def plot(report: dict, out: Path) -> None:
 
 def main() -> None:
     from runtime.policy import PolicyRunner, sha256_of
-    from sim_twin.pools import process_pool
+    from sim_twin.twin.pools import process_pool
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--policy", action="append", default=[], help="2D ONNX policy (repeat to compare)")
@@ -199,7 +199,7 @@ def main() -> None:
         ap.error("give at least one --policy or --checkpoint")
     tmp = tempfile.TemporaryDirectory()
     for ckpt in args.checkpoint:  # named after the run's folder
-        from sim_twin.export import export_checkpoint
+        from sim_twin.training.export import export_checkpoint
 
         name = ckpt.parent.name
         args.policy.append(str(export_checkpoint(ckpt, json.loads(args.config.read_text()), Path(tmp.name) / f"{name}.onnx", name)))

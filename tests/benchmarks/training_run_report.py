@@ -47,7 +47,7 @@ def curve_summary(run: Path, rows: int = CURVE_ROWS) -> list[dict]:
     finished episodes: time limit reached without a landing or failure), impact_err_m [m],
     mean_reward, mean_episode_length [control steps], action_std, control_steps_per_s (with
     learning, all processes)}; [] without a curve."""
-    from sim_twin.training_curve import TrainingCurve
+    from sim_twin.training.curve import TrainingCurve
 
     curve = TrainingCurve.load_or_new(run / "curve.csv").rows
     if not curve:
@@ -171,7 +171,7 @@ def main() -> None:
 
 def train_wall_s(run: Path) -> dict[int, float]:
     """Training wall time [s] per iteration, from the run's curve.csv."""
-    from sim_twin.training_curve import TrainingCurve
+    from sim_twin.training.curve import TrainingCurve
 
     return {int(r["iteration"]): r["wall_s"] for r in TrainingCurve.load_or_new(run / "curve.csv").rows}
 
@@ -186,7 +186,7 @@ def after_run_row(run: Path, matrix: Path, wall: dict[int, float], note: str = A
     (UNRECORDED). Iteration and seed come from the file's name, training wall time [s] from ``wall``
     (:func:`train_wall_s` of the run). Raises ValueError on a name that is not
     site_matrix_<mode>_it<N>[_seed<S>].json or an iteration the curve lacks."""
-    from sim_twin.matrix_gate import parse_matrix_file_name, summarise_matrix
+    from sim_twin.training.matrix_gate import parse_matrix_file_name, summarise_matrix
 
     try:
         iteration, seed = parse_matrix_file_name(matrix.name)

@@ -36,7 +36,7 @@ function responseError(res, data) {
 }
 
 /** The server's reason as a sentence an operator reads (never "409: ..."): capital first letter,
- *  a full stop; the HTTP status and the gate condition (server.throw_gate) stay on the error as
+ *  a full stop; the HTTP status and the gate condition (server.throws.gate) stay on the error as
  *  ``status`` and ``condition`` for the code. */
 function sentence(text) {
   const t = String(text || "").trim();
@@ -62,7 +62,7 @@ function viewHost(host) {
 }
 
 /** Show the 3D view (viser) of console ``c`` (POST /api/consoles' answer) in ``iframe``: its
- *  websocket path (with the console's view token) binds the view to the console (server.scene);
+ *  websocket path (with the console's view token) binds the view to the console (server.console.scene);
  *  the status strip hears Esc from the frame's origin. */
 function embedViser(iframe, c) {
   const host = viewHost(location.hostname);

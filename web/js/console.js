@@ -211,7 +211,7 @@ function updateButtons() {
   renderPreviewAge();
 }
 
-/** The operator's sentence for a failed gate condition (server.throw_gate). */
+/** The operator's sentence for a failed gate condition (server.throws.gate). */
 function gateWords(check) {
   switch (check.condition) {
     case "preview_stale": return "The preview is too old";

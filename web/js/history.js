@@ -49,7 +49,7 @@ async function load() {
 
 let plots = null;
 
-// --- the 3D replay: this page's own console (server.scene), posed from the recording at the plots' time ---
+// --- the 3D replay: this page's own console (server.console.scene), posed from the recording at the plots' time ---
 const replay3d = { consoleId: null, throwId: null, busy: false, pending: null, unavailable: "" };
 
 /** Open this page's console and its 3D view once; false (with the reason shown) when there is none. */

@@ -1,4 +1,4 @@
-// Live push from the server (Server-Sent Events on GET /api/live, see server/live.py): machine
+// Live push from the server (Server-Sent Events on GET /api/live, see server/console/live.py): machine
 // states, throw progress, live throw samples, stored results, job progress, drift alerts, alarms, heartbeats,
 // this console's changes.
 // No polling: the page reacts to events. The server-unreachable banner (#server-banner) shows when

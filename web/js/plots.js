@@ -80,7 +80,7 @@ class ThrowPlots {
     this.data = null;
   }
 
-  /** Append a live sample (server.live.sample_of) and redraw. */
+  /** Append a live sample (server.console.live.sample_of) and redraw. */
   addSample(s) {
     if (!this.live) this.reset();
     const L = this.live;

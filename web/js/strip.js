@@ -1,7 +1,7 @@
 // The status strip of every console page (included after common.js and live.js): the selected
 // machine's state with its reason, its active policies, the link to the server and the machine,
 // the E-STOP button (Esc anywhere, the 3D frame included; it acts on pointerdown) and the alarm
-// banner. Alarms are kept on the server (server/alarms.py, GET /api/alarms, ``alarm`` events): an
+// banner. Alarms are kept on the server (server/console/alarms.py, GET /api/alarms, ``alarm`` events): an
 // acknowledgement, an acknowledge-all or a shelving in one console shows in every console. The
 // banner is one line (count, the most urgent alarm, Acknowledge all, Show all); the list it opens
 // scrolls inside at most a sixth of the viewport, so it never pushes the page's controls away.
@@ -24,7 +24,7 @@ const Strip = (() => {
   let estopInFlight = null; // the E-STOP request on its way: presses while it flies join it
   let resetWait = null; // { machineId, timer } while a reset waits for the runtime's state
   let viserOrigin = null;
-  const alarms = new Map(); // alarm id -> the server's alarm (server.alarms.alarm_dict)
+  const alarms = new Map(); // alarm id -> the server's alarm (server.console.alarms.alarm_dict)
   const localAlarms = new Map(); // key -> {key, title, text, todo, at}: what only this page knows
   let alarmsOpen = false;
 
@@ -202,7 +202,7 @@ const Strip = (() => {
   }
 
   /** What failed in a throw that did not land, in the operator's words: {what, text, todo}, by
-   *  the same rules as the server's alarms (server.alarms.failure_cause). ``what`` is "computer"
+   *  the same rules as the server's alarms (server.console.alarms.failure_cause). ``what`` is "computer"
    *  (the control computer fell behind real time: its load, not the network), "runtime" (the
    *  runtime did not answer), "link" (the link to the machine was lost), "stop" (the operator's
    *  E-STOP or abort) or "machine". */
@@ -363,7 +363,7 @@ const Strip = (() => {
   }
 
   /** Esc pressed inside the 3D view (viser's page, another origin): that page posts
-   *  {slinger: "estop"} to us (server.scene injects the listener). */
+   *  {slinger: "estop"} to us (server.console.scene injects the listener). */
   function onFrameMessage(e) {
     if (!e.data || e.data.slinger !== "estop") return;
     if (viserOrigin && e.origin !== viserOrigin) return;
