@@ -20,7 +20,7 @@ from sim_twin.diagnosis.cli import main as diagnose_main
 from sim_twin.diagnosis.dataset import DatasetError
 from sim_twin.diagnosis.diagnose import diagnose, resolve_candidates, split
 from sim_twin.diagnosis.reallog import RealLogSpec
-from sim_twin.effects import EffectStack
+from sim_twin.twin.effects import EffectStack
 from sim_twin.twin.profile import RealityProfile, SensorParams
 
 POLICY = Path(__file__).parent.parent / "policies" / "throw2d.onnx"
@@ -57,7 +57,7 @@ def test_replay_of_nominal_throws_reproduces_the_log(nominal_dir: Path):
 
 def test_residual_vector_squares_to_the_chi_square_without_the_start_state_term(noisy_dir: Path):
     from sim_twin.diagnosis import scoring
-    from sim_twin.effects import effect_class
+    from sim_twin.twin.effects import effect_class
 
     throws, _ = dataset.load(noisy_dir)
     nominal = replay.replay(throws, [EffectStack()])[0]
@@ -87,7 +87,7 @@ def test_pure_noise_is_no_gap_and_release_delay_is_smooth_without_open_flag(nois
     # the expected impact is smooth in the release delay (no 10 ms staircase): a delay change
     # far below one tick moves it
     throws, _ = dataset.load(noisy_dir)
-    from sim_twin.effects import make_effect
+    from sim_twin.twin.effects import make_effect
 
     a, b = replay.replay(throws[:2], [EffectStack([make_effect("release_delay", mean_s=0.300)]), EffectStack([make_effect("release_delay", mean_s=0.302)])])
     assert 1e-4 < abs(a[0].pred["impact_m"][0] - b[0].pred["impact_m"][0]) < 0.05

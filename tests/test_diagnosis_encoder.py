@@ -1,4 +1,4 @@
-"""Encoder offsets, a non-separable per-joint effect (:attr:`sim_twin.effects.PerJointEffect.separable`):
+"""Encoder offsets, a non-separable per-joint effect (:attr:`sim_twin.twin.effects.PerJointEffect.separable`):
 a dataset made by ``slinger diagnose generate`` with an offset on one active joint, diagnosed
 blind, names ``encoder_offset`` with that joint and its value; the other joints stay nominal."""
 

@@ -18,8 +18,8 @@ from sim_twin.diagnosis import forward as fw
 from sim_twin.diagnosis import noise as nz
 from sim_twin.diagnosis import select as sel
 from sim_twin.diagnosis.verdict import verdict_of
-from sim_twin.effects import Effect, effect_class
-from sim_twin.effects.base import Param
+from sim_twin.twin.effects import Effect, effect_class
+from sim_twin.twin.effects.base import Param
 
 N = 30
 BLOCKS = 20  # swing blocks of the gripper pitch per throw (one degree of freedom each)

@@ -235,11 +235,11 @@ class _KinkWorld:
         return S
 
 
-class _KinkEffect(__import__("sim_twin.effects", fromlist=["Effect"]).Effect):
+class _KinkEffect(__import__("sim_twin.twin.effects", fromlist=["Effect"]).Effect):
     name = "test_kink"
     footprint = ("passive",)
     stage = "dynamics"
-    params = (__import__("sim_twin.effects.base", fromlist=["Param"]).Param("k", "-", 0.0, 0.0, 1.0, "synthetic", "test"),)
+    params = (__import__("sim_twin.twin.effects.base", fromlist=["Param"]).Param("k", "-", 0.0, 0.0, 1.0, "synthetic", "test"),)
 
 
 def test_a_kinked_objective_is_fitted_off_the_grid_by_a_bounded_optimiser():
@@ -262,7 +262,7 @@ def test_a_kinked_objective_is_fitted_off_the_grid_by_a_bounded_optimiser():
 
 
 def test_a_per_joint_dead_band_between_grid_points_is_polished_on_its_own_channels():
-    from sim_twin.effects import effect_class
+    from sim_twin.twin.effects import effect_class
     from tests.test_diagnosis_select import FakeEvaluator
 
     cls = effect_class("valve_dead_band")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from sim_twin.twin.drake_machine import DrakeMachine
-from sim_twin.effects import make_effect
+from sim_twin.twin.effects import make_effect
 from sim_twin.twin.profile import RealityProfile
 from sim_twin.twin.simulated_machine import SimulatedMachine
 

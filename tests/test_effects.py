@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from runtime.machine import ACTIVE_VELOCITY_LIMITS, forward_kinematics
-from sim_twin.effects import EFFECTS, Effect, effect_from_dict, load_effect, make_effect
-from sim_twin.effects.payload import integrate_flight
+from sim_twin.twin.effects import EFFECTS, Effect, effect_from_dict, load_effect, make_effect
+from sim_twin.twin.effects.payload import integrate_flight
 from sim_twin.twin.physics import ballistic_impact_time, ballistic_position
 from sim_twin.twin.profile import RealityProfile, SensorParams
 from sim_twin.twin.simulated_machine import SimulatedMachine
@@ -186,8 +186,8 @@ def test_example_profiles_load():
 @pytest.mark.parametrize("entry, message", [
     ({"effect": "no_such_effect"}, "unknown effect 'no_such_effect'"),
     ({"effect": "nosuchpkg.mod:Thing"}, "cannot import module 'nosuchpkg.mod'"),
-    ({"effect": "sim_twin.effects.base:Nope"}, "has no 'Nope'"),
-    ({"effect": "sim_twin.effects.base:Param"}, "not a subclass of sim_twin.effects.Effect"),
+    ({"effect": "sim_twin.twin.effects.base:Nope"}, "has no 'Nope'"),
+    ({"effect": "sim_twin.twin.effects.base:Param"}, "not a subclass of sim_twin.twin.effects.Effect"),
     ({"effect": "payload_drag", "params": {"cd": 1}}, "unknown parameters ['cd']"),
     ({"effect": "payload_drag", "params": {"drag_coefficient": 9}}, "outside its range"),
     ({"effect": "valve_lag", "params": {"lag_s": float("nan")}}, "must be finite"),

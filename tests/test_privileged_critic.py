@@ -94,7 +94,7 @@ def test_friction_drawn_log_uniformly_and_read_in_log_space():
 def test_grasp_offset_drawn_read_and_released_from():
     """A randomised grasp offset: drawn per episode in its ranges, read by the critic, and the
     payload leaves from that point of the gripper with its velocity (the CPU twin's grasp_point)."""
-    from sim_twin.effects.payload import grasp_point
+    from sim_twin.twin.effects.payload import grasp_point
 
     env = _cfg("3d")["env"]
     env["randomization"] = {**env["randomization"], "grasp_forward_m": [-0.2, 0.2], "grasp_up_m": [-0.15, 0.05]}

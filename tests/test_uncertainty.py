@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from sim_twin.effects import make_effect
+from sim_twin.twin.effects import make_effect
 from sim_twin.preview.preview import DEFAULT_SITE_PROFILE, site_profile
 from sim_twin.twin.profile import RealityProfile
 from sim_twin.twin.uncertainty import StartUncertainty, parse, sample_profile, unit_points, with_fitted_sigma

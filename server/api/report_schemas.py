@@ -60,13 +60,13 @@ class AdaptationRunOut(_Open):
 
 
 class EffectParamOut(_Open):
-    """One parameter of an effect (sim_twin.effects.base.Param.to_dict): name, unit, prior range, source."""
+    """One parameter of an effect (sim_twin.twin.effects.base.Param.to_dict): name, unit, prior range, source."""
 
     name: str
 
 
 class EffectOut(_Open):
-    """One effect of the library (sim_twin.effects.base.Effect.describe)."""
+    """One effect of the library (sim_twin.twin.effects.base.Effect.describe)."""
 
     name: str
     summary: str

@@ -38,7 +38,7 @@ class PreviewSpec(_Spec):
 
 
 class CatalogSpec(_Spec):
-    """The effects library's description (sim_twin.effects); no parameters."""
+    """The effects library's description (sim_twin.twin.effects); no parameters."""
 
 
 class EvaluationSpec(_Spec):

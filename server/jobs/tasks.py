@@ -9,7 +9,7 @@ the API process too (to register the queue's task).
 Kinds and their typed parameters (server.jobs.specs, checked at submit and again here):
 
 * ``preview`` (PreviewSpec) -> sim_twin.preview.preview.preview_throw's summary.
-* ``catalog`` (CatalogSpec) -> ``{"effects": {name: description}}`` (sim_twin.effects).
+* ``catalog`` (CatalogSpec) -> ``{"effects": {name: description}}`` (sim_twin.twin.effects).
 * ``evaluation`` (EvaluationSpec) -> the evaluation report; also written to the policy
   version's row (``evaluation_status``, ``metrics``).
 * ``diagnosis`` (DiagnosisSpec) -> ``{"throws", "verdict"}``; the dataset and report files under
@@ -203,7 +203,7 @@ def _site_profile(ctx: WorkerContext, runner, profile_path: str | None):
 
 
 def run_catalog(ctx: WorkerContext, job: JobRun[CatalogSpec], progress) -> dict:
-    from sim_twin.effects import EFFECTS
+    from sim_twin.twin.effects import EFFECTS
 
     return {"effects": {name: cls.describe() for name, cls in EFFECTS.items()}}
 

@@ -192,7 +192,7 @@ def per_throw_profiles(case: dict, throws: int) -> list[dict] | None:
     nominal at the first: a straight ramp, or a step half-way); None for other kinds."""
     if case["kind"] != "drifting":
         return None
-    from sim_twin.effects import effect_class
+    from sim_twin.twin.effects import effect_class
 
     out = []
     for i in range(throws):
@@ -208,7 +208,7 @@ def per_throw_profiles(case: dict, throws: int) -> list[dict] | None:
 def _compare(truth: dict, named: list[dict]) -> list[dict]:
     """Fitted vs true values of one true effect: per compared parameter (identifiable joints
     for per-joint effects): truth, fit, sigma, relative error, inside 1 sigma."""
-    from sim_twin.effects import effect_class
+    from sim_twin.twin.effects import effect_class
 
     cand = next((c for c in named if c["effect"] == truth["effect"]), None)
     if cand is None:

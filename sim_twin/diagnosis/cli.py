@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         if args.what == "effects":
-            from sim_twin.effects import EFFECTS
+            from sim_twin.twin.effects import EFFECTS
 
             print(json.dumps({n: c.describe() for n, c in EFFECTS.items()}, indent=1))
             return 0

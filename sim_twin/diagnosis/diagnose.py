@@ -41,7 +41,7 @@ from sim_twin.diagnosis import scoring as sc
 from sim_twin.diagnosis import select as sel
 from sim_twin.diagnosis import stationarity as st
 from sim_twin.diagnosis.verdict import drift_of, verdict_of
-from sim_twin.effects import EFFECTS, Effect, EffectStack, effect_class
+from sim_twin.twin.effects import EFFECTS, Effect, EffectStack, effect_class
 from sim_twin.twin.profile import RealityProfile
 
 log = logging.getLogger(__name__)

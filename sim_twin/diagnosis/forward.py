@@ -18,7 +18,7 @@ import numpy as np
 from sim_twin.diagnosis import noise as nz
 from sim_twin.diagnosis import select as sel
 from sim_twin.diagnosis import stationarity as st
-from sim_twin.effects import Effect
+from sim_twin.twin.effects import Effect
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from sim_twin.diagnosis import noise as nz
 from sim_twin.diagnosis import replay as rp
-from sim_twin.effects import EffectStack, effect_class
+from sim_twin.twin.effects import EffectStack, effect_class
 
 MAIN = [
     # (effect, parameter, step from nominal, reference change, display unit, factor to display)

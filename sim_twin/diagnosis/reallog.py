@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
-from sim_twin.effects import Effect, Param
+from sim_twin.twin.effects import Effect, Param
 
 _ARR = {"type": "array", "items": {"type": "number"}}
 

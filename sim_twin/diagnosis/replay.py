@@ -37,8 +37,8 @@ from mujoco import rollout
 
 from runtime.machine import JOINT_LOWER, JOINT_UPPER
 from sim_twin.diagnosis.dataset import TICK_S, LoggedThrow
-from sim_twin.effects import EffectStack
-from sim_twin.effects.payload import grasp_point, integrate_flight
+from sim_twin.twin.effects import EffectStack
+from sim_twin.twin.effects.payload import grasp_point, integrate_flight
 from sim_twin.twin.hydraulics import cylinder_step, dead_band_flow, lag_step
 from sim_twin.twin.model import (
     PAYLOAD_RADIUS_M,

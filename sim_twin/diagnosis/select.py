@@ -48,7 +48,7 @@ import numpy as np
 from sim_twin.diagnosis import noise as nz
 from sim_twin.diagnosis import replay as rp
 from sim_twin.diagnosis.scoring import Scorer
-from sim_twin.effects import Effect, EffectStack, PerJointEffect
+from sim_twin.twin.effects import Effect, EffectStack, PerJointEffect
 
 COARSE_1D = 7
 COARSE_2D = 4

@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from runtime.machine import ACTIVE_VELOCITY_LIMITS
-from sim_twin.effects import Effect, Param
-from sim_twin.effects.payload import AIR_DENSITY_KG_M3
+from sim_twin.twin.effects import Effect, Param
+from sim_twin.twin.effects.payload import AIR_DENSITY_KG_M3
 from sim_twin.twin.model import PAYLOAD_MASS_KG, PAYLOAD_RADIUS_M
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from runtime.machine import ACTIVE_VELOCITY_LIMITS
-from sim_twin.effects import Effect, Param
+from sim_twin.twin.effects import Effect, Param
 
 
 class BoomEncoderScale(Effect):

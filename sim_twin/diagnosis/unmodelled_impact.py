@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim_twin.effects import Effect, Param
+from sim_twin.twin.effects import Effect, Param
 
 
 class SidewaysGrasp(Effect):

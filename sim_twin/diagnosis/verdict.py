@@ -31,7 +31,7 @@ from __future__ import annotations
 from sim_twin.diagnosis import forward as fw
 from sim_twin.diagnosis import select as sel
 from sim_twin.diagnosis import stationarity as st
-from sim_twin.effects import Effect, effect_class
+from sim_twin.twin.effects import Effect, effect_class
 
 SEPARATING = {
     "release": "log the gripper's payload-free (open) flag: it measures the release timing directly",

@@ -44,8 +44,8 @@ from runtime.observation import PHYSICS_PERIOD_S
 from runtime.protocol.messages import MachineState, ThrowRequest
 from runtime.release_check import DEFAULT_RADIUS_M, ReleaseCheck
 from runtime.throw_geometry import impact_errors
-from sim_twin.effects.payload import FLIGHT_DT_S, grasp_point, integrate_flight
-from sim_twin.effects.release import ReleaseDelay
+from sim_twin.twin.effects.payload import FLIGHT_DT_S, grasp_point, integrate_flight
+from sim_twin.twin.effects.release import ReleaseDelay
 from sim_twin.twin.model import PAYLOAD_RADIUS_M
 from sim_twin.twin.physics import ballistic_impact_time, ballistic_position
 from sim_twin.twin.profile import RealityProfile

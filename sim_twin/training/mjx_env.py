@@ -21,7 +21,7 @@ the joints as the machine measures them, per episode ``encoder_latency_s`` / ``i
 old (whole 10 ms steps, active joints / passive joints) plus white noise of the std's in
 ``obs_noise`` (q_active, qd_active, q_passive, qd_passive); rewards and terminations use the true
 state. Per episode the gripper's mass and inertia are scaled by ``gripper_mass_scale``
-(sim_twin.effects.machine.HangingMass does the same on the CPU twin) and the passive friction by
+(sim_twin.twin.effects.machine.HangingMass does the same on the CPU twin) and the passive friction by
 ``friction_scale`` (uniformly, or log-uniformly with ``friction_sampling``); the valve parameters
 are drawn per joint, delay and lag around one machine-wide slowness (``valve_spread``), with
 ``valve_coupling`` "all" the dead band and full-open speed too (sim_twin.training.privileged.VALVE_COUPLINGS).
@@ -66,9 +66,9 @@ from runtime.observation import (
     observation_size,
 )
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
-from sim_twin.effects.payload import GRIPPER_CENTRE_LOCAL_M, gripper_frame_point
 from sim_twin.training.privileged import PRIVILEGED_RANGE_KEYS, Randomization, check_randomization, privileged_observation
 from sim_twin.training.rewards import RewardInputs, RewardScales, reward_terms, total_reward
+from sim_twin.twin.effects.payload import GRIPPER_CENTRE_LOCAL_M, gripper_frame_point
 from sim_twin.twin.hydraulics import cylinder_step, dead_band_flow, lag_step
 from sim_twin.twin.initial_pose import pose_from_uniform, pose_is_valid
 from sim_twin.twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
@@ -76,7 +76,7 @@ from sim_twin.twin.physics import ballistic_impact_time, ballistic_position, pas
 
 MAX_VALVE_DELAY_STEPS = 30  # longest valve transport delay the training env can model (0.30 s)
 MAX_SENSOR_LAG_STEPS = 5  # longest sensor latency the training env can model (0.05 s)
-GRIPPER_BODY = "gripper"  # body whose mass and inertia are randomised (sim_twin.effects.machine)
+GRIPPER_BODY = "gripper"  # body whose mass and inertia are randomised (sim_twin.twin.effects.machine)
 POSE_CANDIDATES = 16  # rejection sampling without loops: first valid of 16 (P(all bad) ~ 2e-3)
 FALLBACK_POSE_U = np.array([0.45, 0.45, 0.5])  # a known valid pose if all candidates fail
 

@@ -200,7 +200,7 @@ class Randomization:
     ``gripper_mass_scale`` gripper mass and inertia factor, ``encoder_latency_s`` and
     ``imu_latency_s`` sensor latencies [s], ``grasp_forward_m`` and ``grasp_up_m`` the payload's
     offset from the gripper centre along the gripper's x and z axes [m] (the CPU twin's
-    ``grasp_offset`` effect, sim_twin.effects.payload.GraspOffset); ``friction_sampling`` "log_uniform" draws the friction
+    ``grasp_offset`` effect, sim_twin.twin.effects.payload.GraspOffset); ``friction_sampling`` "log_uniform" draws the friction
     factor uniformly in its logarithm instead (FRICTION_SAMPLINGS). Scalars: ``actuation`` "lag" (first-order velocity lag
     with gain error ±``gain_error``) or "hydraulic" (the runtime's PID + FF law on the valve model);
     the release delay [s] ~ N(``release_delay_mean_s``, ``release_delay_std_s``) plus a uniform

@@ -15,7 +15,7 @@ differs:
   runtime.executor in evaluation and in the runtime process);
 * the gripper's opening delay (the profile's release delay), the payload's release at the
   gripper centre and its flight (:func:`runtime.ballistics.ground_impact` drag-free, or
-  :func:`sim_twin.effects.payload.integrate_flight` with the profile's flight effects: payload
+  :func:`sim_twin.twin.effects.payload.integrate_flight` with the profile's flight effects: payload
   drag, wind);
 * the reality profile's effects outside the rigid-body model (valve parameters, setpoint
   disturbances, passive friction values, release delay, grasp offset, flight, measurement and
@@ -62,7 +62,7 @@ from runtime.dynamics.friction import passive_friction_force
 from runtime.dynamics.hydraulics import HOLD_GAIN_PER_S, cylinder_step
 from runtime.machine import ACTIVE_JOINTS, JOINT_LOWER, JOINT_NAMES, JOINT_UPPER, NUM_ACTIVE, PASSIVE_JOINTS, hanging_pitch
 from runtime.observation import PHYSICS_PERIOD_S
-from sim_twin.effects.payload import GRIPPER_CENTRE_LOCAL_M, integrate_flight
+from sim_twin.twin.effects.payload import GRIPPER_CENTRE_LOCAL_M, integrate_flight
 from sim_twin.twin.hydraulics import ValveModel
 from sim_twin.twin.initial_pose import sample_pose
 from sim_twin.twin.model import passive_inertia

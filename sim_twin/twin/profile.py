@@ -10,7 +10,7 @@ A profile is a JSON file::
      "effects": [{"effect": "payload_drag", "params": {"drag_coefficient": 0.5}},
                  {"effect": "mypkg.quirks:BoomWobble", "params": {"amplitude_radps": 0.05}}]}
 
-``effects`` (optional) is a list of named effects of the library :mod:`sim_twin.effects`, or user
+``effects`` (optional) is a list of named effects of the library :mod:`sim_twin.twin.effects`, or user
 code as ``package.module:Class``; they apply in order on top of the scalar parameters (an effect
 that sets a value, e.g. release_delay's mean, overrides the scalar). Examples in
 sim_twin/profiles/*.json.
@@ -28,8 +28,8 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sim_twin.effects import Effect, EffectStack, effect_from_dict
-from sim_twin.effects.sensing import EncoderNoise, ImuPassive
+from sim_twin.twin.effects import Effect, EffectStack, effect_from_dict
+from sim_twin.twin.effects.sensing import EncoderNoise, ImuPassive
 from sim_twin.twin.hydraulics import HydraulicParams
 from sim_twin.twin.physics import PAPER_COULOMB_RAD_PER_S2, PAPER_VISCOUS_PER_S
 
@@ -90,7 +90,7 @@ class RealityProfile:
         passive_viscous_per_s / passive_coulomb_rad_per_s2: paper eq. (1) upsilon and eta.
         hydraulics: valve model parameters.
         sensing: nominal sensors (noise, latency, impact measurement).
-        effects: effects switched on (sim_twin.effects), applied in order after the sensing.
+        effects: effects switched on (sim_twin.twin.effects), applied in order after the sensing.
         uncertainty: what is not known about the site: parameter ranges, a diagnosis' fitted
             1 sigma, the start-state model (format and meaning: :mod:`sim_twin.twin.uncertainty`;
             checked when loaded). The simulated machine runs the centre values; previews and
@@ -108,7 +108,7 @@ class RealityProfile:
     uncertainty: dict = field(default_factory=dict)
 
     def stack(self) -> EffectStack:
-        """The sensing and the profile's effects as one :class:`sim_twin.effects.EffectStack`."""
+        """The sensing and the profile's effects as one :class:`sim_twin.twin.effects.EffectStack`."""
         return EffectStack(self.sensing.effects() + self.effects)
 
     def to_dict(self) -> dict:

@@ -1,6 +1,6 @@
 """The simulated machine: the CPU MuJoCo twin driven through the hydraulic valve model, with the
 gripper's opening delay and the payload's flight, plus the effects of its reality profile
-(:mod:`sim_twin.effects`: valve parameters, setpoint disturbances, passive friction, masses,
+(:mod:`sim_twin.twin.effects`: valve parameters, setpoint disturbances, passive friction, masses,
 release delay, grasp offset, flight drag, measurement latency and noise). It stands in for the hardware; the Zenoh
 process around it is :mod:`sim_twin.twin.plant`, and evaluation and previews drive it directly.
 
@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 
 from runtime.machine import JOINT_LOWER, JOINT_UPPER, NUM_ACTIVE, forward_kinematics
-from sim_twin.effects.payload import grasp_point, integrate_flight
+from sim_twin.twin.effects.payload import grasp_point, integrate_flight
 from sim_twin.twin.hydraulics import ValveModel, cylinder_step
 from sim_twin.twin.initial_pose import sample_pose
 from sim_twin.twin.model import (
@@ -236,7 +236,7 @@ class SimulatedMachine:
             t_fall = float(ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
             hit = ballistic_position(np, p0, v0, t_fall)
         hit[2] = 0.0
-        hit = np.array(self.effects.measure_impact(hit), dtype=float)  # calibration biases (sim_twin.effects.sensing.ImpactBias)
+        hit = np.array(self.effects.measure_impact(hit), dtype=float)  # calibration biases (sim_twin.twin.effects.sensing.ImpactBias)
         if self._impact_noise_m > 0:  # the measured landing spot (sim_twin.twin.profile.SensorParams)
             hit[:2] = hit[:2] + self._meas_rng.normal(0.0, self._impact_noise_m, 2)
         self._attached, self._opened = False, True

@@ -24,7 +24,7 @@ Parameter addresses:
   an effect that sets a value (release_delay's mean) overrides the scalar's draw.
 
 ``range`` is uniform on [lo, hi]; ``sigma`` is Gaussian about the profile's value, clipped to the
-effect's prior range (:class:`sim_twin.effects.Param`) or at zero. ``start.*`` set the start-state
+effect's prior range (:class:`sim_twin.twin.effects.Param`) or at zero. ``start.*`` set the start-state
 model (:class:`StartUncertainty`); absent keys take its defaults.
 
 Draws map points of the unit cube (scrambled Sobol points for the preview, plain uniform for the
@@ -158,7 +158,7 @@ class Uncertainty:
 
 def _effect_param(path: str):
     """(effect class, Param) of an ``<effect>.<param>`` address. Raises ValueError."""
-    from sim_twin.effects import effect_class
+    from sim_twin.twin.effects import effect_class
 
     spec, _, pname = path.rpartition(".")
     if not spec:
@@ -254,7 +254,7 @@ def sample_profile(profile, unc: Uncertainty, u: np.ndarray):
     Returns:
         a new RealityProfile without uncertainty, every listed parameter set.
     """
-    from sim_twin.effects import effect_class
+    from sim_twin.twin.effects import effect_class
 
     prof = replace(profile, uncertainty={}, effects=[copy.deepcopy(e) for e in profile.effects],
                    hydraulics=copy.deepcopy(profile.hydraulics))

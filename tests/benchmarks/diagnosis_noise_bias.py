@@ -38,7 +38,7 @@ def where_of(directory: Path) -> dict:
     from sim_twin.diagnosis import replay as rp
     from sim_twin.diagnosis import scoring as sc
     from sim_twin.diagnosis.diagnose import _where
-    from sim_twin.effects import EffectStack
+    from sim_twin.twin.effects import EffectStack
 
     throws, index = ds.load(directory)
     cache = rp.simulate(throws, [EffectStack()], long=True)[0]

@@ -43,7 +43,7 @@ def _setup(case: dict, throws_n: int, work: Path):
     from sim_twin.diagnosis import scoring as sc
     from sim_twin.diagnosis import select as sel
     from sim_twin.diagnosis.reallog import RealLogSpec
-    from sim_twin.effects import EffectStack
+    from sim_twin.twin.effects import EffectStack
 
     d = work / f"case{case['case']}"
     ds.generate(d, bm.profile_of(case), throws_n, bm.POLICIES[case["mode"]], seed=case["seed"], mode=case["mode"], real_log=RealLogSpec())
@@ -69,7 +69,7 @@ def sysid_fit(throws, cache, scorer, cls) -> dict:
     from mujoco.sysid import calculate_intervals
 
     from sim_twin.diagnosis import replay as rp
-    from sim_twin.effects import EffectStack
+    from sim_twin.twin.effects import EffectStack
 
     det = [p for p in cls.params if not p.stochastic]
     lo, span = np.array([p.lo for p in det]), np.array([p.hi - p.lo for p in det])
@@ -107,7 +107,7 @@ def main() -> int:
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
     from sim_twin.diagnosis import benchmark as bm
-    from sim_twin.effects import effect_class
+    from sim_twin.twin.effects import effect_class
 
     wanted = {int(c) for c in args.cases.split(",")}
     rows = []

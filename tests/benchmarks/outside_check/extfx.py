@@ -7,7 +7,7 @@ Reproduce (from this folder, 2D and 3D alike)::
     PYTHONPATH=$PWD slinger diagnose generate --mode 2d --throws 30 --real-log --profile boom.json --out /tmp/ds_boom_2d
     slinger diagnose /tmp/ds_boom_2d --workers 2
 """
-from sim_twin.effects import Effect, Param
+from sim_twin.twin.effects import Effect, Param
 
 
 class BoomLength(Effect):

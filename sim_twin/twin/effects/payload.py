@@ -19,7 +19,7 @@ from runtime.machine import (
     HANGER_OFFSET_M,
     TELESCOPE_OFFSET_M,
 )
-from sim_twin.effects.base import Effect, Param
+from sim_twin.twin.effects.base import Effect, Param
 from sim_twin.twin.model import PAYLOAD_MASS_KG, PAYLOAD_RADIUS_M
 from sim_twin.twin.physics import GRAVITY_MPS2
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim_twin.effects.base import Effect, Param
+from sim_twin.twin.effects.base import Effect, Param
 
 MAX_LATENCY_S = 0.2
 

@@ -14,7 +14,7 @@ from dataclasses import replace
 import numpy as np
 
 from runtime.machine import ACTIVE_VELOCITY_LIMITS
-from sim_twin.effects.base import Effect, Param, PerJointEffect, joint_params
+from sim_twin.twin.effects.base import Effect, Param, PerJointEffect, joint_params
 from sim_twin.twin.hydraulics import NOMINAL_DEAD_BAND, NOMINAL_DELAY_S, NOMINAL_LAG_S
 
 _HEAP = "HEAP (Egli & Hutter 2020/2022 via machine-spec.md): delays up to ~0.7 s, ~0.5 Hz bandwidth, dead band"

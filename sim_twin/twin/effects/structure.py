@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from runtime.machine import ACTIVE_VELOCITY_LIMITS
-from sim_twin.effects.base import Effect, Param
+from sim_twin.twin.effects.base import Effect, Param
 
 REST_SPEED = 0.02  # rad/s or m/s: below this a joint counts as at rest (CHOSEN, ~encoder noise)
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim_twin.effects.base import Effect, Param
-from sim_twin.effects.payload import AIR_DENSITY_KG_M3
+from sim_twin.twin.effects.base import Effect, Param
+from sim_twin.twin.effects.payload import AIR_DENSITY_KG_M3
 from sim_twin.twin.model import PAYLOAD_MASS_KG, PAYLOAD_RADIUS_M
 
 WIND_DRAG_COEFFICIENT = 0.5  # basketball, subcritical Re (wind-tunnel literature; PayloadDrag's source)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from sim_twin.effects.base import Effect, Param
+from sim_twin.twin.effects.base import Effect, Param
 
 
 class PassiveFriction(Effect):

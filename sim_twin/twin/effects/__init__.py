@@ -2,30 +2,30 @@
 
 ::
 
-    from sim_twin.effects import EFFECTS, make_effect, load_effect
+    from sim_twin.twin.effects import EFFECTS, make_effect, load_effect
     make_effect("payload_drag", drag_coefficient=0.5)
     make_effect("mypkg.quirks:BoomWobble", amplitude_radps=0.05)   # user code
 
 Library effects are registered by name in :data:`EFFECTS` (one module per family: release,
 friction, valve, payload, machine, sensing); the diagnosis fits every registered effect as a
 candidate. Users model a quirk of their own machine with a class implementing the interface of
-:class:`sim_twin.effects.base.Effect` and name it ``package.module:Class`` in a reality profile.
+:class:`sim_twin.twin.effects.base.Effect` and name it ``package.module:Class`` in a reality profile.
 """
 
 from __future__ import annotations
 
 import importlib
 
-from sim_twin.effects.base import STAGES, Effect, EffectStack, Param, PerJointEffect
-from sim_twin.effects.calibration import EncoderOffset, ImuOffset
-from sim_twin.effects.friction import PassiveFriction
-from sim_twin.effects.machine import CabinDrift, HangingMass
-from sim_twin.effects.payload import GraspOffset, PayloadDrag
-from sim_twin.effects.release import ReleaseDelay
-from sim_twin.effects.sensing import ImpactBias, ImuPassive
-from sim_twin.effects.site import Wind
-from sim_twin.effects.structure import Stiction, StructuralCompliance
-from sim_twin.effects.valve import JointRateLimit, ValveAsymmetry, ValveDeadBand, ValveDelay, ValveLag
+from sim_twin.twin.effects.base import STAGES, Effect, EffectStack, Param, PerJointEffect
+from sim_twin.twin.effects.calibration import EncoderOffset, ImuOffset
+from sim_twin.twin.effects.friction import PassiveFriction
+from sim_twin.twin.effects.machine import CabinDrift, HangingMass
+from sim_twin.twin.effects.payload import GraspOffset, PayloadDrag
+from sim_twin.twin.effects.release import ReleaseDelay
+from sim_twin.twin.effects.sensing import ImpactBias, ImuPassive
+from sim_twin.twin.effects.site import Wind
+from sim_twin.twin.effects.structure import Stiction, StructuralCompliance
+from sim_twin.twin.effects.valve import JointRateLimit, ValveAsymmetry, ValveDeadBand, ValveDelay, ValveLag
 
 EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
@@ -58,7 +58,7 @@ def load_effect(spec: str) -> type[Effect]:
     if cls is None:
         raise ValueError(f"effect {spec!r}: module {module_name!r} has no {class_name!r}")
     if not (isinstance(cls, type) and issubclass(cls, Effect)):
-        raise ValueError(f"effect {spec!r}: {class_name} is not a subclass of sim_twin.effects.Effect")  # profile errors are ValueError
+        raise ValueError(f"effect {spec!r}: {class_name} is not a subclass of sim_twin.twin.effects.Effect")  # profile errors are ValueError
     if not cls.name or cls.stage not in STAGES:
         raise ValueError(f"effect {spec!r}: needs a non-empty 'name' and a stage in {STAGES}")
     return cls

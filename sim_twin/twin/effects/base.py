@@ -134,13 +134,13 @@ class Effect:
         return {"name": cls.name, "summary": cls.summary, "stage": cls.stage, "params": [p.to_dict() for p in cls.params]}
 
     def to_dict(self) -> dict:
-        """The profile entry that rebuilds this effect (see :func:`sim_twin.effects.effect_from_dict`)."""
+        """The profile entry that rebuilds this effect (see :func:`sim_twin.twin.effects.effect_from_dict`)."""
         return {"effect": self.spec(), "params": dict(self.values)}
 
     @classmethod
     def spec(cls) -> str:
         """Registry name for library effects, ``module:Class`` for user code."""
-        from sim_twin.effects import EFFECTS
+        from sim_twin.twin.effects import EFFECTS
 
         if EFFECTS.get(cls.name) is cls:
             return cls.name
@@ -245,7 +245,7 @@ class EffectStack:
         self.effects = list(effects)
         for e in self.effects:
             if not isinstance(e, Effect):
-                raise TypeError(f"{e!r} is not a sim_twin.effects.Effect")
+                raise TypeError(f"{e!r} is not a sim_twin.twin.effects.Effect")
 
     def __bool__(self) -> bool:
         return bool(self.effects)

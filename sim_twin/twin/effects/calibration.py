@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from runtime.machine import PASSIVE_JOINTS
-from sim_twin.effects.base import PerJointEffect, joint_params
+from sim_twin.twin.effects.base import PerJointEffect, joint_params
 
 
 class _Offset(PerJointEffect):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim_twin.effects.base import Effect, Param
+from sim_twin.twin.effects.base import Effect, Param
 
 GRIPPER_BODY = "gripper"
 NOMINAL_GRIPPER_MASS_KG = 839.0  # MJCF: gripper parts 52 + 61 + 267 kg and jaws 233 + 226 kg
