@@ -60,6 +60,7 @@ from server.site import health_routes as health
 from server.site.storage import StorageFault, StorageMonitor, classify, storage_response
 from server.throws import preview_routes as previews
 from server.throws import routes as throws
+from server.throws.gate import GateLimits
 from server.throws.previews import PreviewService
 from server.throws.service import ThrowService
 
@@ -124,7 +125,7 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
                                            settings.login_workers, settings.login_max_pending,
                                            per_user_address=settings.login_failures_per_user_address)
         app.state.throws = throws = ThrowService(fleet, sessions, settings.keep_out_zones,
-                                                 gate=settings.gate_limits(), machine_status=live_hub.status)
+                                                 gate=GateLimits.from_settings(settings), machine_status=live_hub.status)
         scene_obj = _make_scene(fleet, throws, live_hub, settings, sessions) if settings.viser_enabled else None
         app.state.settings, app.state.sessions, app.state.store = settings, sessions, store
         app.state.fleet, app.state.scene = fleet, scene_obj

@@ -181,28 +181,6 @@ class Settings(BaseSettings):
         """The site directory (``site_dir``, default ``<data_dir>/site``)."""
         return self.site_dir if self.site_dir is not None else self.data_dir / "site"
 
-    def gate_limits(self):
-        """The preview gate's bounds, or None when ``require_preview`` is off."""
-        from server.throws.gate import GateLimits
-
-        if not self.require_preview:
-            return None
-        return GateLimits(self.preview_max_age_s, self.preview_target_tolerance_m,
-                          self.preview_max_active_joint_delta, self.preview_max_passive_joint_delta,
-                          self.keep_out_scatter_sigmas, self.keep_out_margin_m)
-
-    def validation_limits(self, upload: bool = False):
-        """server.policies.validation.ValidationLimits from these settings; ``upload``: the quick
-        check of an upload (64 observations, no twin throws, at most 60 s)."""
-        from server.policies.validation import ValidationLimits
-
-        memory = self.validation_memory_mb << 20
-        if upload:
-            return ValidationLimits(observations=64, distances=0, throws_per_distance=0, memory_bytes=memory,
-                                    time_s=min(60.0, self.validation_time_s))
-        return ValidationLimits(self.validation_observations, self.validation_distances,
-                                self.validation_throws_per_distance, memory, self.validation_time_s)
-
     @property
     def telemetry_dir(self) -> Path:
         """Directory of the per-throw MCAP files."""

@@ -168,9 +168,9 @@ def test_upload_and_promotion_wait_for_validation(client, tmp_path, monkeypatch)
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 300_000  # KiB: the API did not take 2 GiB
 
     client.app.state.settings.validation_observations = 2048
-    full = Settings.validation_limits
-    monkeypatch.setattr(Settings, "validation_limits", lambda self, upload=False: ValidationLimits(
-        observations=1, distances=0, throws_per_distance=0, time_s=60) if upload else full(self))
+    full = ValidationLimits.from_settings
+    monkeypatch.setattr(ValidationLimits, "from_settings", classmethod(lambda cls, settings, upload=False: ValidationLimits(
+        observations=1, distances=0, throws_per_distance=0, time_s=60) if upload else full(settings)))
     r = _upload(client, conditional_nan_policy(tmp_path / "cnan.onnx"), "cnan")
     assert r.status_code == 201, r.text
     p = client.get(f"/api/policies/{r.json()['id']}").json()

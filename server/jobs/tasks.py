@@ -209,9 +209,10 @@ def run_catalog(ctx: WorkerContext, job: JobRun[CatalogSpec], progress) -> dict:
 
 
 def run_evaluation(ctx: WorkerContext, job: JobRun[EvaluationSpec], progress) -> dict:
+    from server.policies.validation import ValidationLimits
     from server.policies.versions import evaluate_version
 
-    limits = ctx.settings.validation_limits() if ctx.settings is not None else None
+    limits = ValidationLimits.from_settings(ctx.settings) if ctx.settings is not None else None
     return evaluate_version(ctx.sessions, ctx.data_dir, job.spec.version_id, job.spec.distances_m,
                             job.spec.throws, progress, limits)
 

@@ -35,9 +35,12 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from server.config import Settings
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +67,17 @@ class ValidationLimits:
     throws_per_distance: int = 2
     memory_bytes: int = 1 << 30
     time_s: float = 600.0
+
+    @classmethod
+    def from_settings(cls, settings: Settings, upload: bool = False) -> ValidationLimits:
+        """The limits of the server's settings; ``upload``: the quick check of an upload (64
+        observations, no twin throws, at most 60 s)."""
+        memory = settings.validation_memory_mb << 20
+        if upload:
+            return cls(observations=64, distances=0, throws_per_distance=0, memory_bytes=memory,
+                       time_s=min(60.0, settings.validation_time_s))
+        return cls(settings.validation_observations, settings.validation_distances,
+                   settings.validation_throws_per_distance, memory, settings.validation_time_s)
 
 
 def observation_sweep(runner, n: int, seed: int = 0) -> str | None:

@@ -94,7 +94,7 @@ class PolicyService:
             path.with_suffix(".json").write_text(json.dumps(manifest))
             # loaded and probed in a limited child process, never in the API (a tiny file can ask
             # onnxruntime for gigabytes): server.policies.validation
-            verdict = validate(path, self.settings.validation_limits(upload=True))
+            verdict = validate(path, ValidationLimits.from_settings(self.settings, upload=True))
             if not verdict["passed"]:
                 reason = verdict["reason"].removeprefix("the policy does not load: ")
                 if "onnxruntime cannot load" in reason:

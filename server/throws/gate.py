@@ -30,10 +30,14 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
+from typing import TYPE_CHECKING
 
 from runtime.machine import JOINT_NAMES
 from server.errors import Conflict, DomainError, Refused
 from server.throws.targets import scatter_refusal
+
+if TYPE_CHECKING:
+    from server.config import Settings
 
 
 @dataclass(frozen=True)
@@ -63,6 +67,15 @@ class GateLimits:
     max_passive_joint_delta: float = 0.3
     scatter_sigmas: float = 3.0
     nominal_margin_m: float = 0.6
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> GateLimits | None:
+        """The preview gate's bounds from the server's settings, or None when ``require_preview`` is off."""
+        if not settings.require_preview:
+            return None
+        return cls(settings.preview_max_age_s, settings.preview_target_tolerance_m,
+                   settings.preview_max_active_joint_delta, settings.preview_max_passive_joint_delta,
+                   settings.keep_out_scatter_sigmas, settings.keep_out_margin_m)
 
 
 @dataclass(frozen=True)

@@ -86,7 +86,7 @@ def check_preview(preview_id: str, body: PreviewCheckIn, previews: PreviewsDep, 
     screen, so Throw is enabled only with a valid one. Reads the fleet's latest state and cached
     runtime info only (no query to the machine); the throw itself checks again."""
     summary = previews.get(preview_id)
-    limits = throws.gate  # the gate the throw itself passes (Settings.gate_limits, None when off)
+    limits = throws.gate  # the gate the throw itself passes (GateLimits.from_settings, None when off)
     now = utcnow()
     age = (now - datetime.fromisoformat(summary["created_at"])).total_seconds() if summary else None
     max_age = limits.max_age_s if limits else None

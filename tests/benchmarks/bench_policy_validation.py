@@ -20,7 +20,7 @@ from pathlib import Path
 
 from runtime.policy import sha256_of
 from server.config import Settings
-from server.policies.validation import validate
+from server.policies.validation import ValidationLimits, validate
 from tests.fixtures import write_test_policy
 from tests.test_policy_validation import conditional_nan_policy, memory_bomb_policy
 
@@ -28,10 +28,10 @@ from tests.test_policy_validation import conditional_nan_policy, memory_bomb_pol
 def main() -> None:
     d = Path(tempfile.mkdtemp())
     s = Settings()
-    cases = [("upload check, fixture policy", write_test_policy(d / "a"), s.validation_limits(upload=True)),
-             ("full, fixture policy", write_test_policy(d / "b", release_after_bias=2.0), s.validation_limits()),
-             ("full, conditional-NaN policy", conditional_nan_policy(d / "c.onnx"), s.validation_limits()),
-             ("full, 2 GiB memory-bomb policy", memory_bomb_policy(d / "m.onnx"), s.validation_limits())]
+    cases = [("upload check, fixture policy", write_test_policy(d / "a"), ValidationLimits.from_settings(s, upload=True)),
+             ("full, fixture policy", write_test_policy(d / "b", release_after_bias=2.0), ValidationLimits.from_settings(s)),
+             ("full, conditional-NaN policy", conditional_nan_policy(d / "c.onnx"), ValidationLimits.from_settings(s)),
+             ("full, 2 GiB memory-bomb policy", memory_bomb_policy(d / "m.onnx"), ValidationLimits.from_settings(s))]
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     out = {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "commit": commit,
            "host": f"{platform.node()} ({platform.processor() or platform.machine()}, shared 2-core machine)",
