@@ -160,8 +160,8 @@ def test_through_a_tls_router_only_the_server_commands(site):
 def test_slinger_server_session_over_tls(site, tmp_path):
     """``slinger server --tls-dir SITE`` (Settings.zenoh_tls_dir): TLS with the server's
     certificate and the ACL of the site's machines."""
-    from server.app import open_zenoh
     from server.config import Settings
+    from server.services import open_zenoh
 
     endpoint = f"tls/127.0.0.1:{free_port()}"
     settings = Settings(data_dir=tmp_path, zenoh_listen=[endpoint], zenoh_tls_dir=site.root, viser_enabled=False)
