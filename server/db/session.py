@@ -1,5 +1,5 @@
-"""Engine and session factory, built from settings inside ``create_app`` (never at import), and
-the typed row count of an executed UPDATE or DELETE."""
+"""Engine and session factory, built from settings by ``server.services.build_services`` (never at
+import), and the typed row count of an executed UPDATE or DELETE."""
 
 from __future__ import annotations
 
