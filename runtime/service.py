@@ -138,6 +138,10 @@ LAG_WINDOW_S = 10.0
 to judge, short enough that clock-rate drift between the machine and this host (50 ppm: 0.5 ms
 per window) does not count."""
 
+REBASE_S = 1.0
+"""Machine states that stay stale this long (receive time) mean the machine's clock changed (its
+bridge restarted), not a stall, whose queue drains in a burst: the lag baseline starts afresh."""
+
 LEASE_S = 30.0
 """A server's lease on this machine expires after this long without an authorised command of it
 (never during its throw), s. CHOSEN 30 s: longer than an operator's preview-then-throw, short
@@ -234,6 +238,7 @@ class RuntimeService(RecoveryHandling):
         self.stalls = 0
         self.stale_states = 0  # machine states dropped as stale (for tests and diagnostics)
         self._lags: deque[tuple[float, float]] = deque()  # (receive s, receive - stamp s), lags increasing
+        self._stale_since: float | None = None  # receive time of the first of the current run of stale states
         self._stops_latched: set[str] = set()  # request ids of the E-STOP puts since the last reset
         self._stops_cleared: deque[str] = deque(maxlen=CLEARED_STOPS)
         self.warming: str | None = WARMING if warm_up else None
@@ -340,7 +345,18 @@ class RuntimeService(RecoveryHandling):
         lags.append((now, lag))
         while lags[0][0] < now - LAG_WINDOW_S:
             lags.popleft()
-        return lag - lags[0][1]
+        late = lag - lags[0][1]
+        if late <= self.stale_state_s:
+            self._stale_since = None
+        elif self._stale_since is None:
+            self._stale_since = now
+            log.warning("dropping machine states %.0f ms late (queued during a stall?)", late * 1e3)
+        elif now - self._stale_since > REBASE_S:
+            log.warning("machine states late for %.1f s: the machine's clock changed; judging lateness afresh", now - self._stale_since)
+            lags.clear()
+            lags.append((now, lag))
+            self._stale_since, late = None, 0.0
+        return late
 
     @staticmethod
     def _who(msg: Message) -> str:
@@ -389,8 +405,6 @@ class RuntimeService(RecoveryHandling):
         fails, a return to the ready pose stops. Caller holds the lock."""
         self.stale_states += 1
         why = f"machine link lost: machine state {late_s:.2f} s late"
-        if self.stale_states == 1 or self.executor.busy or self.returning:
-            log.warning("dropping a machine state %.0f ms late (queued during a stall)", late_s * 1e3)
         if self.returning:
             self._stop_return(why)
         if self.executor.busy:

@@ -94,7 +94,7 @@ class Loop:
         self.results: list[ThrowResult] = []
         ex = ThrowExecutor({"2d": PolicyRunner.load(policy)}, config=ExecutorConfig(release_check_radius_m=None))
         self.service = RuntimeService("m1", ex, lambda k, d: self.sent.append((k, d)), self.results.append,
-                                      verifier=CommandVerifier(KEY, EPOCH), clock=lambda: _NOW[0])
+                                      verifier=CommandVerifier(KEY, EPOCH, window_s=600.0), clock=lambda: _NOW[0])  # freshness: not judged here (a loaded host)
         self.twin = TwinMachine(SimulatedMachine(seed=1), "m1", clock=lambda: _NOW[0])
         self.inbox = PlantInbox("m1")
         self._seen = 0
@@ -384,3 +384,18 @@ def test_a_stale_release_command_is_dropped_by_the_plant():
     assert inbox.gripper_open
     inbox.on_gripper(_Sample(encode(GripperCommand(machine_id="m1", stamp_s=10.0, open=False))))
     assert not inbox.gripper_open  # closing is always obeyed
+
+
+def test_a_machine_whose_clock_changed_is_judged_afresh_after_a_second(holding_path):
+    """A bridge restarted with another clock: its states all look late at first (dropped, the
+    machine offline), then the runtime takes its new clock as the baseline and follows it."""
+    loop = Loop(holding_path)
+    _run(loop, 20)
+    for k in range(150):  # 1.5 s of states stamped 100 s in the past
+        state = loop.machine_period()
+        loop.service.on_state(encode(state.model_copy(update={"stamp_s": state.stamp_s - 100.0})))
+        if k == 50:
+            assert loop.service.stale_states == 51
+            assert decode(ThrowAck, loop.service.handle_throw(_throw("c1"))).reason == "machine offline (no recent state)"
+    assert loop.service.stale_states < 110 and loop.service.info().machine_online
+    assert decode(ThrowAck, loop.service.handle_throw(_throw("c2"))).accepted
