@@ -318,7 +318,8 @@ class Outbox:
         while not self._stop.is_set():
             if self.pending() or self.in_memory():
                 self.deliver_pending(due_only=True)
-            waits = [t for _, _, t in self._tries.values()]
+            with self._lock:
+                waits = [t for _, _, t in self._tries.values()]
             pause = self.retry_interval_s if not waits else max(min(min(waits) - self.clock(), self.max_backoff_s), 0.01)
             self._wake.wait(pause)
             self._wake.clear()
