@@ -29,8 +29,8 @@ watchdog tick) measures the monotonic time since the previous one; a gap over
 ``stall_timeout_s`` means this runtime's own loop stalled (SIGSTOP, swapping, a starved host),
 during which the machine's valve watchdog has put the valves neutral. The running throw then
 fails "machine link lost: runtime stalled 1.23 s" (a return to the ready pose stops) before
-anything queued during the stall is acted on; commands issued before the stall ended are refused
-(:data:`STALLED`), and machine states later than ``stale_state_s`` (judged by the state's stamp
+anything queued during the stall is acted on; after a stall of STALL_REFUSE_S or more, commands
+issued before it ended are refused (:data:`STALLED`), and machine states later than ``stale_state_s`` (judged by the state's stamp
 against its receive time, relative to the smallest such lag of the last :data:`LAG_WINDOW_S`,
 so the machine's clock need not be this host's) are dropped, failing a running throw. The
 executor fails a throw whose machine states lie too far apart or during which the machine's
@@ -128,6 +128,11 @@ STALL_TIMEOUT_S = 0.2
 runtime's own loop stalled; a running throw fails (module docstring: finality). CHOSEN 0.2 s: the
 link timeout; four watchdog periods, so a loaded host's late tick is not a stall, while the
 machine's 0.1 s valve watchdog has surely stopped the arm."""
+
+STALL_REFUSE_S = 1.0
+"""A stall at least this long also refuses the commands issued before it ended (STALLED). CHOSEN
+1 s: a loaded host stalls an idle runtime for some 100 ms now and then, while the server still
+awaits the reply (5 s); a frozen runtime (seconds) must not act on what queued meanwhile."""
 
 STALE_STATE_S = 0.2
 """A machine state received this much later than the freshest lag of the last LAG_WINDOW_S is stale
@@ -316,9 +321,11 @@ class RuntimeService(RecoveryHandling):
 
     def _stalled(self, gap_s: float) -> None:
         """This runtime did not run for ``gap_s``: fail the running throw (stop a return) before
-        anything queued meanwhile is acted on; commands issued until now are refused (STALLED)."""
+        anything queued meanwhile is acted on; after a stall of STALL_REFUSE_S or more, commands
+        issued until now are refused (STALLED)."""
         self.stalls += 1
-        self._stall_wall_s = self.wall_clock()
+        if gap_s >= STALL_REFUSE_S:
+            self._stall_wall_s = self.wall_clock()
         why = f"machine link lost: runtime stalled {gap_s:.2f} s"
         if self.returning:
             self._stop_return(why)
@@ -326,7 +333,8 @@ class RuntimeService(RecoveryHandling):
             log.error("runtime stalled for %.0f ms: throw %s failed", gap_s * 1e3, self.executor.throw_id)
             self._publish(self.executor.fail(why), self._stamp())
         else:
-            log.warning("runtime stalled for %.0f ms (idle): commands issued before now are refused", gap_s * 1e3)
+            log.warning("runtime stalled for %.0f ms (idle)%s", gap_s * 1e3,
+                        ": commands issued before now are refused" if gap_s >= STALL_REFUSE_S else "")
 
     def _stall_refusal(self, msg: Message) -> str | None:
         """STALLED if the signed ``msg`` was issued before the last stall was detected."""

@@ -399,3 +399,14 @@ def test_a_machine_whose_clock_changed_is_judged_afresh_after_a_second(holding_p
             assert decode(ThrowAck, loop.service.handle_throw(_throw("c1"))).reason == "machine offline (no recent state)"
     assert loop.service.stale_states < 110 and loop.service.info().machine_online
     assert decode(ThrowAck, loop.service.handle_throw(_throw("c2"))).accepted
+
+
+def test_a_short_idle_stall_refuses_no_command(holding_path):
+    """A loaded host stalls an idle runtime for a few hundred ms: a throw the server is still
+    waiting for is not refused (a stall of a second or more refuses what queued meanwhile)."""
+    loop = Loop(holding_path)
+    _run(loop, 5)
+    pending = _throw("t1")
+    loop.now_s += 0.4
+    _run(loop, 3)
+    assert loop.service.stalls == 1 and decode(ThrowAck, loop.service.handle_throw(pending)).accepted
