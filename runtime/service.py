@@ -28,7 +28,8 @@ Finality (a throw that a watchdog stopped never resumes): every entry (a state, 
 watchdog tick) measures the monotonic time since the previous one; a gap over
 ``stall_timeout_s`` means this runtime's own loop stalled (SIGSTOP, swapping, a starved host),
 during which the machine's valve watchdog has put the valves neutral. The running throw then
-fails "machine link lost: runtime stalled 1.23 s" (a return to the ready pose stops) before
+fails "machine link lost: runtime stalled 1.23 s" (a return to the ready pose stops; a throw
+that has released keeps its arm stopped and still lands: ThrowExecutor.stop_arm) before
 anything queued during the stall is acted on; after a stall of STALL_REFUSE_S or more, commands
 issued before it ended are refused (:data:`STALLED`), and machine states later than ``stale_state_s`` (judged by the state's stamp
 against its receive time, relative to the smallest such lag of the last :data:`LAG_WINDOW_S`,
@@ -330,8 +331,8 @@ class RuntimeService(RecoveryHandling):
         if self.returning:
             self._stop_return(why)
         if self.executor.busy:
-            log.error("runtime stalled for %.0f ms: throw %s failed", gap_s * 1e3, self.executor.throw_id)
-            self._publish(self.executor.fail(why), self._stamp())
+            log.error("runtime stalled for %.0f ms: throw %s stopped", gap_s * 1e3, self.executor.throw_id)
+            self._publish(self.executor.stop_arm(why), self._stamp())
         else:
             log.warning("runtime stalled for %.0f ms (idle)%s", gap_s * 1e3,
                         ": commands issued before now are refused" if gap_s >= STALL_REFUSE_S else "")
@@ -416,7 +417,7 @@ class RuntimeService(RecoveryHandling):
         if self.returning:
             self._stop_return(why)
         if self.executor.busy:
-            self._publish(self.executor.fail(why), self._stamp())
+            self._publish(self.executor.stop_arm(why), self._stamp())
             self.publish_info()
 
     def on_impact(self, payload: bytes) -> None:

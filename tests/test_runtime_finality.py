@@ -410,3 +410,29 @@ def test_a_short_idle_stall_refuses_no_command(holding_path):
     loop.now_s += 0.4
     _run(loop, 3)
     assert loop.service.stalls == 1 and decode(ThrowAck, loop.service.handle_throw(pending)).accepted
+
+
+def test_a_watchdog_after_the_release_stops_the_arm_and_the_throw_still_lands(tmp_path):
+    """The payload is out: a watchdog trip (or a stall) then holds the arm with neutral valves for
+    good, and the impact report still lands the throw (a landed throw is not reported failed)."""
+    from runtime.protocol.messages import ImpactReport
+
+    policy = write_test_policy(tmp_path, "2d", release_after_bias=2.0)  # releases at the first step
+    ex = ThrowExecutor({"2d": PolicyRunner.load(policy)}, config=ExecutorConfig(release_check_radius_m=None))
+    twin = TwinMachine(SimulatedMachine(seed=2), "m1")
+    assert ex.start(ThrowRequest(throw_id="r1", machine_id="m1", mode="2d", target_m=TARGET), twin.state()) is None
+    for _ in range(5):
+        out = ex.tick(twin.state())
+        twin.step(out.valve_u, out.gripper_open)
+    assert ex.phase == "released"
+    st = twin.state()
+    out = ex.tick(st.model_copy(update={"watchdog_trips": 1}))
+    assert out.finished is None and ex.phase == "released" and not any(out.valve_u)
+    assert [e.detail for e in out.events] == ["arm stopped: machine link lost: the machine's valve watchdog stopped the arm"]
+    for k in range(20):  # fresh states afterwards: the arm stays stopped
+        out = ex.tick(st.model_copy(update={"stamp_s": st.stamp_s + 0.01 * (k + 1), "watchdog_trips": 1}))
+        assert not any(out.valve_u) and out.finished is None
+    impact = ImpactReport(machine_id="m1", stamp_s=st.stamp_s + 0.3, impact_pos_m=[7.8, -0.3, 0.0], opening_stamp_s=st.stamp_s,
+                          impact_stamp_s=st.stamp_s + 0.3, release_pos_m=[3.0, 0.0, 2.0], release_vel_mps=[5.0, 0.0, 3.0])
+    done = ex.on_impact(impact).finished
+    assert done is not None and done.status == "landed" and done.failure_reason is None
