@@ -48,7 +48,11 @@ Phases (messages.ThrowPhase): preparing -> swinging -> released -> landed | fail
   ``max_state_gap_s`` apart in machine time (the machine or its link stalled: the machine's
   valve watchdog has put the valves neutral meanwhile), or when the machine reports that its
   valve watchdog tripped since the throw started (``MachineState.watchdog_trips`` grew). The
-  runtime's own stalls are judged by runtime.service (monotonic time between its ticks).
+  runtime's own stalls are judged by runtime.service (monotonic time between its ticks), which
+  calls :meth:`ThrowExecutor.stop_arm`. A throw that has already released is not failed by a
+  watchdog: its payload flies on, so the arm is held with neutral valves for good (a "released"
+  event with the detail "arm stopped: <reason>") and the throw still lands on its impact report
+  (or fails at the impact timeout).
 
 Once a throw ends the executor is idle: valves neutral (references zero), gripper command kept.
 Every tick of a throw is recorded (runtime.telemetry.TelemetryRecorder).
@@ -128,6 +132,7 @@ class _Throw:
     release_stamp_s: float | None = None
     opening_stamp_s: float | None = None
     watchdog_trips: int | None = None  # the machine's valve-watchdog count at the start (None: not reported)
+    arm_stopped: str | None = None  # why a watchdog stopped the arm after the release (valves neutral for good)
     recorder: TelemetryRecorder = field(default_factory=TelemetryRecorder)
 
 
@@ -247,8 +252,10 @@ class ThrowExecutor:
         if not _state_finite(state):
             return self._finish("failed", "non-finite machine state", state.stamp_s)
         stopped = self._watchdog_stop(th, state, last)
-        if stopped:
-            return self._finish("failed", f"machine link lost: {stopped}", state.stamp_s)
+        if stopped and th.arm_stopped is None:
+            if th.phase != "released":
+                return self._finish("failed", f"machine link lost: {stopped}", state.stamp_s)
+            self._hold_arm(th, f"machine link lost: {stopped}", state.stamp_s)
         if th.phase == "preparing":
             return self._tick_preparing(th, state)
         return self._tick_swinging(th, state)
@@ -282,6 +289,23 @@ class ThrowExecutor:
         if self._throw is None:
             return self._output(self.controller.neutral())
         return self._finish("aborted", reason, self._last_stamp_s)
+
+    def stop_arm(self, reason: str) -> TickOutput:
+        """A watchdog stopped the arm (finality, module docstring): a throw that has not released
+        ends failed with ``reason``; a released one holds the arm with neutral valves for good and
+        keeps waiting for its impact. No effect when idle."""
+        th = self._throw
+        if th is None or th.phase != "released":
+            return self.fail(reason)
+        if th.arm_stopped is None:
+            self._hold_arm(th, reason, self._last_stamp_s or th.start_stamp_s)
+        return self._output(self.controller.neutral())
+
+    def _hold_arm(self, th: _Throw, reason: str, stamp_s: float) -> None:
+        """Hold the released throw ``th``'s arm with neutral valves for good (stop_arm)."""
+        th.arm_stopped = reason
+        log.warning("throw %s: arm stopped after the release (%s); awaiting the impact", th.request.throw_id, reason)
+        self._emit("released", stamp_s, f"arm stopped: {reason}")
 
     def fail(self, reason: str) -> TickOutput:
         """End the current throw as failed (valves neutral), e.g. "machine link lost"."""
@@ -332,6 +356,12 @@ class ThrowExecutor:
             return self._finish("failed", f"no release within {cfg.release_timeout_s:.0f} s", now)
         if th.release_stamp_s is not None and now - th.release_stamp_s > cfg.impact_timeout_s:
             return self._finish("failed", f"no impact within {cfg.impact_timeout_s:.0f} s of release", now)
+        if th.arm_stopped is not None:  # a watchdog stopped the arm after the release: it stays stopped
+            if th.opening_stamp_s is None and state.gripper_open:
+                th.opening_stamp_s = now
+            out = self.controller.neutral()
+            self._record(th, state, out.valve_u, out.qd_ref)
+            return self._output(out)
         release_flag = False
         if th.swing_ticks % SUBSTEPS == 0:
             failure, release_flag = self._control_step(th, state, q, qd)

@@ -17,9 +17,10 @@ memory (logged as an error when the result went to memory).
 
 Retries are bounded: a round that no server answers, or whose server could not store the result
 now (``stored=False``: its database or disk failing), backs off (``retry_interval_s`` doubling up
-to MAX_BACKOFF_S, then once per MAX_BACKOFF_S: the outbox's purpose is to outlast a server that is
-away or faulted); a result that servers only refuse (error replies such as "not a throw this
-server issued" or a bad MAC) is tried MAX_REFUSALS times with the same back-off, then moved to
+to AWAY_BACKOFF_S, then once per AWAY_BACKOFF_S: the outbox's purpose is to outlast a server that
+is away or faulted, and a restarted server should have its results within seconds); a result that
+servers only refuse (error replies such as "not a throw this server issued" or a bad MAC) backs
+off up to MAX_BACKOFF_S and is tried MAX_REFUSALS times, then moved to
 ``undeliverable/`` in the outbox directory, kept there and counted (:attr:`Outbox.undeliverable`,
 RuntimeInfo.undeliverable_results), never retried without end; moving a file back into the
 outbox directory queues it again.
@@ -53,10 +54,13 @@ RESERVE_BYTES = 8 * 1024 * 1024
 8 MiB: a 10 s throw's result (100 Hz telemetry as MCAP, base64) is about 0.3 MB, so some 25 of
 them; far below any disk the runtime runs from."""
 MAX_BACKOFF_S = 60.0
-"""Longest pause between delivery tries of one result, s."""
+"""Longest pause between delivery tries of a result that servers refuse, s."""
+AWAY_BACKOFF_S = 8.0
+"""Longest pause between delivery tries of a result no server answered (or stored), s: one query
+per result every 8 s costs the link nothing, and a restarted server gets its results at once."""
 MAX_REFUSALS = 10
 """Tries of a result that servers only refuse before it is moved to ``undeliverable/``. CHOSEN 10:
-with the back-off some 6 minutes, so the issuing server's restart beside a refusing second
+with the back-off some 5 minutes, so the issuing server's restart beside a refusing second
 server does not set its results aside."""
 UNDELIVERABLE = "undeliverable"
 
@@ -290,7 +294,8 @@ class Outbox:
                 self.undeliverable += 1
                 log.error("throw %s undeliverable: refused %d times (%s); kept in %s", throw_id, refusals, refused, target)
                 return
-        delay = min(self.retry_interval_s * 2 ** (tries - 1), self.max_backoff_s)
+        cap = self.max_backoff_s if refusals else min(self.max_backoff_s, AWAY_BACKOFF_S)
+        delay = min(self.retry_interval_s * 2 ** (tries - 1), cap)
         self._tries[name] = (tries, refusals, self.clock() + delay)
 
     def start(self) -> None:
@@ -318,7 +323,8 @@ class Outbox:
         while not self._stop.is_set():
             if self.pending() or self.in_memory():
                 self.deliver_pending(due_only=True)
-            waits = [t for _, _, t in self._tries.values()]
+            with self._lock:
+                waits = [t for _, _, t in self._tries.values()]
             pause = self.retry_interval_s if not waits else max(min(min(waits) - self.clock(), self.max_backoff_s), 0.01)
             self._wake.wait(pause)
             self._wake.clear()

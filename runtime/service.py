@@ -28,9 +28,10 @@ Finality (a throw that a watchdog stopped never resumes): every entry (a state, 
 watchdog tick) measures the monotonic time since the previous one; a gap over
 ``stall_timeout_s`` means this runtime's own loop stalled (SIGSTOP, swapping, a starved host),
 during which the machine's valve watchdog has put the valves neutral. The running throw then
-fails "machine link lost: runtime stalled 1.23 s" (a return to the ready pose stops) before
-anything queued during the stall is acted on; commands issued before the stall ended are refused
-(:data:`STALLED`), and machine states later than ``stale_state_s`` (judged by the state's stamp
+fails "machine link lost: runtime stalled 1.23 s" (a return to the ready pose stops; a throw
+that has released keeps its arm stopped and still lands: ThrowExecutor.stop_arm) before
+anything queued during the stall is acted on; after a stall of STALL_REFUSE_S or more, commands
+issued before it ended are refused (:data:`STALLED`), and machine states later than ``stale_state_s`` (judged by the state's stamp
 against its receive time, relative to the smallest such lag of the last :data:`LAG_WINDOW_S`,
 so the machine's clock need not be this host's) are dropped, failing a running throw. The
 executor fails a throw whose machine states lie too far apart or during which the machine's
@@ -129,6 +130,11 @@ runtime's own loop stalled; a running throw fails (module docstring: finality). 
 link timeout; four watchdog periods, so a loaded host's late tick is not a stall, while the
 machine's 0.1 s valve watchdog has surely stopped the arm."""
 
+STALL_REFUSE_S = 1.0
+"""A stall at least this long also refuses the commands issued before it ended (STALLED). CHOSEN
+1 s: a loaded host stalls an idle runtime for some 100 ms now and then, while the server still
+awaits the reply (5 s); a frozen runtime (seconds) must not act on what queued meanwhile."""
+
 STALE_STATE_S = 0.2
 """A machine state received this much later than the freshest lag of the last LAG_WINDOW_S is stale
 (queued during a stall): dropped, a running throw fails."""
@@ -137,6 +143,10 @@ LAG_WINDOW_S = 10.0
 """Window of the receive-minus-stamp baseline, s: long enough to span any stall the runtime survives
 to judge, short enough that clock-rate drift between the machine and this host (50 ppm: 0.5 ms
 per window) does not count."""
+
+REBASE_S = 1.0
+"""Machine states that stay stale this long (receive time) mean the machine's clock changed (its
+bridge restarted), not a stall, whose queue drains in a burst: the lag baseline starts afresh."""
 
 LEASE_S = 30.0
 """A server's lease on this machine expires after this long without an authorised command of it
@@ -234,6 +244,7 @@ class RuntimeService(RecoveryHandling):
         self.stalls = 0
         self.stale_states = 0  # machine states dropped as stale (for tests and diagnostics)
         self._lags: deque[tuple[float, float]] = deque()  # (receive s, receive - stamp s), lags increasing
+        self._stale_since: float | None = None  # receive time of the first of the current run of stale states
         self._stops_latched: set[str] = set()  # request ids of the E-STOP puts since the last reset
         self._stops_cleared: deque[str] = deque(maxlen=CLEARED_STOPS)
         self.warming: str | None = WARMING if warm_up else None
@@ -311,17 +322,20 @@ class RuntimeService(RecoveryHandling):
 
     def _stalled(self, gap_s: float) -> None:
         """This runtime did not run for ``gap_s``: fail the running throw (stop a return) before
-        anything queued meanwhile is acted on; commands issued until now are refused (STALLED)."""
+        anything queued meanwhile is acted on; after a stall of STALL_REFUSE_S or more, commands
+        issued until now are refused (STALLED)."""
         self.stalls += 1
-        self._stall_wall_s = self.wall_clock()
+        if gap_s >= STALL_REFUSE_S:
+            self._stall_wall_s = self.wall_clock()
         why = f"machine link lost: runtime stalled {gap_s:.2f} s"
         if self.returning:
             self._stop_return(why)
         if self.executor.busy:
-            log.error("runtime stalled for %.0f ms: throw %s failed", gap_s * 1e3, self.executor.throw_id)
-            self._publish(self.executor.fail(why), self._stamp())
+            log.error("runtime stalled for %.0f ms: throw %s stopped", gap_s * 1e3, self.executor.throw_id)
+            self._publish(self.executor.stop_arm(why), self._stamp())
         else:
-            log.warning("runtime stalled for %.0f ms (idle): commands issued before now are refused", gap_s * 1e3)
+            log.warning("runtime stalled for %.0f ms (idle)%s", gap_s * 1e3,
+                        ": commands issued before now are refused" if gap_s >= STALL_REFUSE_S else "")
 
     def _stall_refusal(self, msg: Message) -> str | None:
         """STALLED if the signed ``msg`` was issued before the last stall was detected."""
@@ -340,7 +354,18 @@ class RuntimeService(RecoveryHandling):
         lags.append((now, lag))
         while lags[0][0] < now - LAG_WINDOW_S:
             lags.popleft()
-        return lag - lags[0][1]
+        late = lag - lags[0][1]
+        if late <= self.stale_state_s:
+            self._stale_since = None
+        elif self._stale_since is None:
+            self._stale_since = now
+            log.warning("dropping machine states %.0f ms late (queued during a stall?)", late * 1e3)
+        elif now - self._stale_since > REBASE_S:
+            log.warning("machine states late for %.1f s: the machine's clock changed; judging lateness afresh", now - self._stale_since)
+            lags.clear()
+            lags.append((now, lag))
+            self._stale_since, late = None, 0.0
+        return late
 
     @staticmethod
     def _who(msg: Message) -> str:
@@ -389,12 +414,10 @@ class RuntimeService(RecoveryHandling):
         fails, a return to the ready pose stops. Caller holds the lock."""
         self.stale_states += 1
         why = f"machine link lost: machine state {late_s:.2f} s late"
-        if self.stale_states == 1 or self.executor.busy or self.returning:
-            log.warning("dropping a machine state %.0f ms late (queued during a stall)", late_s * 1e3)
         if self.returning:
             self._stop_return(why)
         if self.executor.busy:
-            self._publish(self.executor.fail(why), self._stamp())
+            self._publish(self.executor.stop_arm(why), self._stamp())
             self.publish_info()
 
     def on_impact(self, payload: bytes) -> None:

@@ -44,7 +44,7 @@ def _service(policy: Path, **kw) -> tuple[RuntimeService, list[tuple[str, bytes]
     ex = ThrowExecutor({"2d": PolicyRunner.load(policy)}, config=ExecutorConfig(release_check_radius_m=None))
     now = [100.0]
     service = RuntimeService("m1", ex, lambda k, d: sent.append((k, d)), lambda r: None,
-                             verifier=CommandVerifier(KEY, EPOCH), clock=lambda: now[0], **kw)
+                             verifier=CommandVerifier(KEY, EPOCH, window_s=600.0), clock=lambda: now[0], **kw)  # freshness: not judged here (a loaded host)
     twin = TwinMachine(SimulatedMachine(seed=1), "m1", clock=lambda: now[0])
     service.on_state(encode(twin.state()))
     return service, sent, twin

@@ -94,7 +94,7 @@ class Loop:
         self.results: list[ThrowResult] = []
         ex = ThrowExecutor({"2d": PolicyRunner.load(policy)}, config=ExecutorConfig(release_check_radius_m=None))
         self.service = RuntimeService("m1", ex, lambda k, d: self.sent.append((k, d)), self.results.append,
-                                      verifier=CommandVerifier(KEY, EPOCH), clock=lambda: _NOW[0])
+                                      verifier=CommandVerifier(KEY, EPOCH, window_s=600.0), clock=lambda: _NOW[0])  # freshness: not judged here (a loaded host)
         self.twin = TwinMachine(SimulatedMachine(seed=1), "m1", clock=lambda: _NOW[0])
         self.inbox = PlantInbox("m1")
         self._seen = 0
@@ -384,3 +384,55 @@ def test_a_stale_release_command_is_dropped_by_the_plant():
     assert inbox.gripper_open
     inbox.on_gripper(_Sample(encode(GripperCommand(machine_id="m1", stamp_s=10.0, open=False))))
     assert not inbox.gripper_open  # closing is always obeyed
+
+
+def test_a_machine_whose_clock_changed_is_judged_afresh_after_a_second(holding_path):
+    """A bridge restarted with another clock: its states all look late at first (dropped, the
+    machine offline), then the runtime takes its new clock as the baseline and follows it."""
+    loop = Loop(holding_path)
+    _run(loop, 20)
+    for k in range(150):  # 1.5 s of states stamped 100 s in the past
+        state = loop.machine_period()
+        loop.service.on_state(encode(state.model_copy(update={"stamp_s": state.stamp_s - 100.0})))
+        if k == 50:
+            assert loop.service.stale_states == 51
+            assert decode(ThrowAck, loop.service.handle_throw(_throw("c1"))).reason == "machine offline (no recent state)"
+    assert loop.service.stale_states < 110 and loop.service.info().machine_online
+    assert decode(ThrowAck, loop.service.handle_throw(_throw("c2"))).accepted
+
+
+def test_a_short_idle_stall_refuses_no_command(holding_path):
+    """A loaded host stalls an idle runtime for a few hundred ms: a throw the server is still
+    waiting for is not refused (a stall of a second or more refuses what queued meanwhile)."""
+    loop = Loop(holding_path)
+    _run(loop, 5)
+    pending = _throw("t1")
+    loop.now_s += 0.4
+    _run(loop, 3)
+    assert loop.service.stalls == 1 and decode(ThrowAck, loop.service.handle_throw(pending)).accepted
+
+
+def test_a_watchdog_after_the_release_stops_the_arm_and_the_throw_still_lands(tmp_path):
+    """The payload is out: a watchdog trip (or a stall) then holds the arm with neutral valves for
+    good, and the impact report still lands the throw (a landed throw is not reported failed)."""
+    from runtime.protocol.messages import ImpactReport
+
+    policy = write_test_policy(tmp_path, "2d", release_after_bias=2.0)  # releases at the first step
+    ex = ThrowExecutor({"2d": PolicyRunner.load(policy)}, config=ExecutorConfig(release_check_radius_m=None))
+    twin = TwinMachine(SimulatedMachine(seed=2), "m1")
+    assert ex.start(ThrowRequest(throw_id="r1", machine_id="m1", mode="2d", target_m=TARGET), twin.state()) is None
+    for _ in range(5):
+        out = ex.tick(twin.state())
+        twin.step(out.valve_u, out.gripper_open)
+    assert ex.phase == "released"
+    st = twin.state()
+    out = ex.tick(st.model_copy(update={"watchdog_trips": 1}))
+    assert out.finished is None and ex.phase == "released" and not any(out.valve_u)
+    assert [e.detail for e in out.events] == ["arm stopped: machine link lost: the machine's valve watchdog stopped the arm"]
+    for k in range(20):  # fresh states afterwards: the arm stays stopped
+        out = ex.tick(st.model_copy(update={"stamp_s": st.stamp_s + 0.01 * (k + 1), "watchdog_trips": 1}))
+        assert not any(out.valve_u) and out.finished is None
+    impact = ImpactReport(machine_id="m1", stamp_s=st.stamp_s + 0.3, impact_pos_m=[7.8, -0.3, 0.0], opening_stamp_s=st.stamp_s,
+                          impact_stamp_s=st.stamp_s + 0.3, release_pos_m=[3.0, 0.0, 2.0], release_vel_mps=[5.0, 0.0, 3.0])
+    done = ex.on_impact(impact).finished
+    assert done is not None and done.status == "landed" and done.failure_reason is None

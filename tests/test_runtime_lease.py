@@ -60,7 +60,7 @@ class Machine:
         self.results: list[ThrowResult] = []
         ex = ThrowExecutor({"2d": PolicyRunner.load(policy)}, config=ExecutorConfig(release_check_radius_m=None))
         self.service = RuntimeService("m1", ex, lambda k, d: None, self.results.append,
-                                      verifier=CommandVerifier(KEY, EPOCH), clock=lambda: self.now[0])
+                                      verifier=CommandVerifier(KEY, EPOCH, window_s=600.0), clock=lambda: self.now[0])  # freshness: not judged here (a loaded host)
         self.twin = TwinMachine(SimulatedMachine(seed=1), "m1", clock=lambda: self.now[0])
 
     def tick(self, n: int = 1) -> None:

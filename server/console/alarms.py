@@ -173,7 +173,8 @@ class AlarmService:
 
     # --- operator actions -----------------------------------------------------------------------
     def acknowledge(self, alarm_id: str, username: str) -> dict:
-        """Acknowledge one alarm (a second acknowledgement keeps the first's who and when).
+        """Acknowledge one alarm (a second acknowledgement keeps the first's who and when); returns
+        its state after the acknowledgement's consequences (a drift alarm is then cleared).
 
         Raises:
             NotFound: no such alarm.
@@ -186,6 +187,7 @@ class AlarmService:
             out = alarm_dict(a)
         if changed:
             self._after_ack(out, username)
+            out = self._current(alarm_id)  # a drift alarm was cleared meanwhile: the answer is its state now
         return out
 
     def acknowledge_all(self, username: str, machine_id: str | None = None) -> list[dict]:
@@ -198,7 +200,7 @@ class AlarmService:
             outs = [alarm_dict(a) for a in db.scalars(q).all() if self._ack(db, a, username)]
         for out in outs:
             self._after_ack(out, username)
-        return outs
+        return [self._current(out["id"]) for out in outs]
 
     def shelve(self, alarm_id: str, username: str, minutes: float) -> dict:
         """Shelve an active alarm for ``minutes`` (0 < minutes <= :data:`MAX_SHELVE_MIN`): hidden
@@ -311,6 +313,13 @@ class AlarmService:
             log.exception("alarms: drift alert not handled")
 
     # --- helpers --------------------------------------------------------------------------------
+    def _current(self, alarm_id: str) -> dict:
+        with self.sessions() as db:
+            a = db.get(Alarm, alarm_id)
+            if a is None:
+                raise NotFound(f"no alarm {alarm_id}")
+            return alarm_dict(a)
+
     def _ack(self, db: Session, a: Alarm, username: str) -> bool:
         if a.acked_at is not None:
             return False

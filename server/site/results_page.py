@@ -208,13 +208,19 @@ def _release_check_accuracy(report: dict) -> list[str]:
 
 
 def _release_check_matrix(report: dict) -> list[str]:
-    rows = []
+    """The cells where the check changed something as rows; the cells it left alone (no throw held,
+    the same figures off and on) in one line."""
+    rows, same = [], []
     for c in report["cells"]:
         off, on = c["off"], c["on"]
+        if not c["held"] and off == on:
+            same.append(f"{c['mode']} {c['profile']} {_num(c['target_m'])} m")
+            continue
         rows.append([c["mode"], c["profile"], c["target_m"], f"{100 * off['success']:.0f} → {100 * on['success']:.0f} %",
                      f"{_num(off['sigma_down_m'], 2)} → {_num(on['sigma_down_m'], 2)}", f"{off['wild']} → {on['wild']}",
                      f"{_num(off['largest_miss_m'], 2)} → {_num(on['largest_miss_m'], 2)}", len(c["held"])])
-    return _table(["mode", "profile", "target [m]", "success (off → on)", "σ down [m]", "throws > 5 m off", "largest miss [m]", "throws held"], rows)
+    lines = _table(["mode", "profile", "target [m]", "success (off → on)", "σ down [m]", "throws > 5 m off", "largest miss [m]", "throws held"], rows)
+    return lines + ["", f"No throw held and the same figures off and on: {', '.join(same)}."] if same else lines
 
 
 def _fleet_load(report: dict) -> list[str]:
@@ -376,18 +382,14 @@ def render(reports: list[tuple[str, dict]], root: Path = REPO) -> str:
     sections = _sections(reports)
     topics = list(dict.fromkeys(t for t, _, _ in sections))
     lines = [HEADER, "", "# Results", "",
-             "Every figure in this documentation comes from one of the reports below, each about a current version:",
-             "the deployed policies, the committed training recipes' reference runs, the current code. Each part names",
-             "the report file (with its table, plot or log where there is one), its date, commit and the policy",
-             "versions (SHA-256) it describes, the host and the command that reproduces it; how the provenance was",
-             "recorded and any note are in the JSON. All accuracy figures are simulation results: the machine is the",
-             "simulated machine (MuJoCo twin with a hydraulic valve model), not hardware. Reports that describe a",
-             "deployed policy name its file (`deployed as`); `slinger results --check` (and `tests/test_results.py`)",
-             "fails when that file's SHA-256 has changed since. Reports of superseded versions are in the lab",
-             "notebook ([reports/ARCHIVE.md](../reports/ARCHIVE.md)).", "",
+             "Every figure in this documentation comes from one of these reports of the current versions, each with",
+             "its file (and table or plot), date, commit, policy versions (SHA-256; `deployed as` for a deployed",
+             "file, which `slinger results --check` holds to), host and command; its note is in the JSON. Accuracy",
+             "figures are simulation results on the simulated machine, not hardware. Superseded versions' reports",
+             "are in the lab notebook ([reports/ARCHIVE.md](../reports/ARCHIVE.md)).", "",
              "Contents: " + " · ".join(f"[{t}](#{_anchor(t)})" for t in topics)]
     for topic in topics:
-        lines += ([""] if lines[-1] else []) + [f"## {topic}", ""]
+        lines += ([""] if lines[-1] else []) + [f"## {topic}"]
         for _, title, group in (s for s in sections if s[0] == topic):
             lines.append(f"### {title}")
             for rel, report in group:

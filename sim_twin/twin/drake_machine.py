@@ -30,7 +30,8 @@ Choices of ours (CHOSEN), each the paper's number or Drake's default where one e
   (implicitfast). Valves, cylinder and measurements stay at the machine's 100 Hz.
 * **the cylinders**: each active joint is a Drake joint actuator with Drake's implicit PD
   controller (``PdControllerGains``) tracking the oil column of :func:`cylinder_step`: desired
-  position ``x_ref``, desired velocity the flow that moved it, ``d`` = the MJCF velocity servo's
+  position the oil column moving through the period at the flow the valves let through (from
+  ``x_ref`` at the period's start to its end), desired velocity that flow, ``d`` = the MJCF velocity servo's
   ``kv`` and ``p`` = ``kv * HOLD_GAIN_PER_S``; the same servo law the MuJoCo twin applies as a
   velocity actuator with the hold term in its setpoint, but solved implicitly every 1 ms by
   Drake. CHOSEN: the twin's gains, no effort limit (a cylinder's force is not limited before its
@@ -109,6 +110,31 @@ class TrueState:
     qvel: np.ndarray
 
 
+def _oil_column_system():
+    """A Drake LeafSystem: the desired state (4 positions, 4 velocities) of the cylinders' PD
+    actuators at the current time: the oil column of the period, ``x0 + flow * (t - t0)`` moving
+    at the flow the valves let through, and that flow. Set once per 10 ms period (:meth:`set`),
+    evaluated at every Drake step: the oil flows during the period, so a joint is not pulled to the
+    period's end position from its start (a held position target would make the sampled joint
+    speed ripple at 100 Hz and read ~4 % low at the period's end)."""
+    from pydrake.systems.framework import BasicVector, LeafSystem
+
+    class OilColumn(LeafSystem):
+        def __init__(self):
+            super().__init__()
+            self.x0, self.flow, self.t0 = np.zeros(NUM_ACTIVE), np.zeros(NUM_ACTIVE), 0.0
+            self.DeclareVectorOutputPort("desired_state", BasicVector(2 * NUM_ACTIVE), self._calc)
+
+        def set(self, x0: np.ndarray, flow: np.ndarray, t0: float) -> None:
+            self.x0, self.flow, self.t0 = np.array(x0, dtype=float), np.array(flow, dtype=float), float(t0)
+
+        def _calc(self, context, output):
+            dt = min(max(context.get_time() - self.t0, 0.0), PHYSICS_PERIOD_S)
+            output.SetFromVector(np.concatenate([self.x0 + self.flow * dt, self.flow]))
+
+    return OilColumn()
+
+
 def _coulomb_system(plant, q_index: np.ndarray, v_index: np.ndarray, inertia: np.ndarray):
     """A Drake LeafSystem: plant state in, generalised forces (nv,) out: the passive joints'
     Coulomb friction (paper eq. (1), eta term; tanh-smoothed as the twin's)."""
@@ -144,13 +170,15 @@ class DrakeMachine:
     Args:
         profile: reality profile (default nominal); effects with a ``model`` hook are refused.
         seed: seed of the release-delay jitter, random start poses and measurement noise.
+        time_step_s: Drake's discrete step, s (default: Drake's default, 1 ms); a divisor of the
+            10 ms period. The step-size study of the engine gap sets 0.01 (the twin's step).
 
     Raises:
         ValueError: the profile has an effect that edits the MuJoCo model.
         ImportError: pydrake is not installed (the ``drake`` extra).
     """
 
-    def __init__(self, profile: RealityProfile | None = None, seed: int | None = None):
+    def __init__(self, profile: RealityProfile | None = None, seed: int | None = None, time_step_s: float | None = None):
         from pydrake.geometry import Box
         from pydrake.math import RigidTransform
         from pydrake.multibody.parsing import Parser
@@ -165,6 +193,11 @@ class DrakeMachine:
             raise ValueError("the Drake machine cannot apply effects that edit the MuJoCo model (e.g. hanging_mass)")
         builder = DiagramBuilder()
         self.config = MultibodyPlantConfig()  # CHOSEN: Drake's defaults (module doc)
+        if time_step_s is not None:
+            periods = PHYSICS_PERIOD_S / time_step_s
+            if not (time_step_s > 0 and abs(periods - round(periods)) < 1e-9):
+                raise ValueError(f"time_step_s must divide the {PHYSICS_PERIOD_S} s period, got {time_step_s}")
+            self.config.time_step = float(time_step_s)
         plant, scene_graph = AddMultibodyPlant(self.config, builder)
         Parser(plant).AddModelsFromString(machine_urdf(), "urdf")
         plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("machine"))
@@ -186,6 +219,9 @@ class DrakeMachine:
         builder.AddSystem(coulomb)
         builder.Connect(plant.get_state_output_port(), coulomb.state_in)
         builder.Connect(coulomb.get_output_port(0), plant.get_applied_generalized_force_input_port())
+        self._oil = _oil_column_system()
+        builder.AddSystem(self._oil)
+        builder.Connect(self._oil.get_output_port(0), plant.get_desired_state_input_port(plant.GetModelInstanceByName("material_handler")))
         self._diagram = builder.Build()
         self._plant, self._coulomb, self._scene_graph = plant, coulomb, scene_graph
         self._passive_joints = [plant.GetJointByName(n) for n in PASSIVE_JOINTS]
@@ -194,8 +230,6 @@ class DrakeMachine:
         self._context = self._simulator.get_mutable_context()
         self._pctx = plant.GetMyMutableContextFromRoot(self._context)
         self._cctx = coulomb.GetMyMutableContextFromRoot(self._context)
-        self._desired = plant.get_desired_state_input_port(plant.GetModelInstanceByName("material_handler"))
-        self._desired.FixValue(self._pctx, np.zeros(2 * NUM_ACTIVE))
         plant.get_actuation_input_port().FixValue(self._pctx, np.zeros(plant.num_actuated_dofs()))
 
         self.valves = ValveModel(self.effects.hydraulics(self.profile.hydraulics))
@@ -324,7 +358,7 @@ class DrakeMachine:
         x[self._q_index] = q
         x[self._plant.num_positions() + self._v_index] = qd
         self._plant.SetPositionsAndVelocities(self._pctx, x)
-        self._desired.FixValue(self._pctx, np.concatenate([self._x_ref, np.zeros(NUM_ACTIVE)]))
+        self._oil.set(self._x_ref, np.zeros(NUM_ACTIVE), 0.0)
         self._simulator.Initialize()
         self._read_state()
 
@@ -348,8 +382,8 @@ class DrakeMachine:
             setpoint = self.effects.setpoint(setpoint, self.data.qpos.copy(), self.data.qvel.copy())
         x_old = self._x_ref
         self._x_ref, _ = cylinder_step(np, x_old, setpoint, self.data.qpos[:NUM_ACTIVE], self._lower, self._upper, PHYSICS_PERIOD_S)
-        moved = (self._x_ref - x_old) / PHYSICS_PERIOD_S
-        self._desired.FixValue(self._pctx, np.concatenate([self._x_ref, moved]))
+        moved = (self._x_ref - x_old) / PHYSICS_PERIOD_S  # the flow that moved the oil column this period
+        self._oil.set(x_old, moved, self.time_s)
         self._steps += 1
         self._simulator.AdvanceTo(self.time_s)
         self._read_state()

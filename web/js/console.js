@@ -197,6 +197,7 @@ function throwLabel() {
 function updateButtons() {
   const m = selected();
   const ready = !!(m && m.state === "ready" && Live.isConnected() && state.target && !state.targetReason) && !state.busy &&
+    !!(m.policies && m.policies[state.mode]) && // the runtime is ready for a mode with a policy: this one must have one
     !state.typed && !state.editing; // a typed target the server has not answered yet, or fields being edited
   $("preview").disabled = !ready;
   // Throw only with a preview of this request that the gate judged valid a moment ago
@@ -399,7 +400,8 @@ async function doThrow() {
 function closeConfirm(why) {
   state.confirmClosedWhy = why;
   cancelConfirm();
-  setStatus(`The confirm dialog closed: ${why}. Check the preview and press Throw again.`, true);
+  // in the strip (it stays 20 s): the status line below goes on with the preview that replaced it
+  Strip.say(`The confirm dialog closed: ${why}. Check the preview and press Throw again.`);
 }
 
 function startThrowPanel(throwId) {

@@ -1,0 +1,163 @@
+"""Which throw style a 2D from-scratch run settled on, and whether it met the bars.
+
+``python tests/benchmarks/training_throw_style.py RUN ... --out reports/<name>`` reads each run's
+site-matrix gate (``matrices/matrix_gate.json`` and the seed-0 matrices beside it) and writes
+``<name>.json`` and ``<name>.md``: per run the training seed, the discount γ, the nominal
+far-target throw's mean duration (start to landing, ``mean_duration_s`` of the site matrix) and
+downrange σ at 10 m in the last seed-0 matrix judged by iteration ``STYLE_BY_ITERATION``, and the
+gate's outcome (bars met on every gate seed, at what training wall time, or the cells still
+missing at the last verdict).
+
+A run is given as a directory (``policies/training/throw2d-scratch-u``, an unpacked device tar) or
+as ``REV:PATH`` for a run kept only in git history (``lab-notebook-2026-11-25:policies/training/
+throw2d-scratch-v``; docs/training.md "Why a run stalls").
+
+The far-target throws of the from-scratch runs come in two styles, fixed within the first
+~250 iterations: a nominal 10 m throw lasting about 3.8-4.2 s ("long") or 2.7-3.5 s ("short");
+``LONG_STYLE_S`` separates them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import subprocess
+from datetime import UTC, datetime
+from pathlib import Path
+
+STYLE_BY_ITERATION = 250
+"""The style is read from the last seed-0 matrix judged at or before this iteration (~7 min)."""
+LONG_STYLE_S = 3.6
+"""Nominal 10 m throws lasting at least this long [s] are the long style."""
+FAR_TARGET_M = 10.0
+_MATRIX = re.compile(r"site_matrix_2d_it(\d+)\.json$")  # seed 0 (other seeds carry a _seed<S> suffix)
+
+
+class RunSource:
+    """Files of one run: a directory, or ``REV:PATH`` read from git (``git show``)."""
+
+    def __init__(self, spec: str, repo: Path = Path(".")):
+        self.spec, self.repo = spec, repo
+        self.rev, _, path = spec.rpartition(":") if ":" in spec and not Path(spec).exists() else ("", "", spec)
+        self.path = Path(path)
+        if not self.rev and not self.path.is_dir():
+            raise FileNotFoundError(f"{spec}: no such run directory (give REV:PATH for a run kept in git only)")
+
+    @property
+    def name(self) -> str:
+        return self.path.name
+
+    def read(self, rel: str) -> str:
+        """Text of the run's file ``rel``. Raises FileNotFoundError where it has none."""
+        if not self.rev:
+            f = self.path / rel
+            if not f.is_file():
+                raise FileNotFoundError(f"{self.spec}: no {rel}")
+            return f.read_text()
+        r = subprocess.run(["git", "-C", str(self.repo), "show", f"{self.rev}:{self.path.as_posix()}/{rel}"],
+                           capture_output=True, text=True)
+        if r.returncode:
+            raise FileNotFoundError(f"{self.spec}: no {rel} ({r.stderr.strip()})")
+        return r.stdout
+
+    def list(self, rel: str) -> list[str]:
+        """Names of the files in the run's folder ``rel``."""
+        if not self.rev:
+            d = self.path / rel
+            return sorted(p.name for p in d.iterdir()) if d.is_dir() else []
+        r = subprocess.run(["git", "-C", str(self.repo), "ls-tree", "--name-only", self.rev, f"{self.path.as_posix()}/{rel}/"],
+                           capture_output=True, text=True, check=True)
+        return sorted(Path(x).name for x in r.stdout.split())
+
+
+def far_throw(matrix: dict, target_m: float = FAR_TARGET_M) -> dict:
+    """The nominal profile's cell at ``target_m`` of a site matrix: {duration_s, sigma_m, bias_m}.
+
+    Raises:
+        ValueError: the matrix has no nominal cell at that target.
+    """
+    for p in matrix["profiles"]:
+        if p["name"] == "nominal":
+            for t in p["targets"]:
+                if abs(t["target_m"] - target_m) < 1e-6:
+                    return {"duration_s": t["mean_duration_s"], "sigma_m": t["sigma_downrange_m"], "bias_m": t["bias_m"]}
+    raise ValueError(f"site matrix {matrix.get('policy_version', '?')} has no nominal cell at {target_m} m")
+
+
+def style_of(duration_s: float) -> str:
+    """'long' or 'short' (LONG_STYLE_S)."""
+    return "long" if duration_s >= LONG_STYLE_S else "short"
+
+
+def run_style(src: RunSource, by_iteration: int = STYLE_BY_ITERATION) -> dict:
+    """One run's row: name, training seed, gamma, the style checkpoint's iteration, wall time,
+    nominal 10 m duration, σ and style, and the gate's outcome ({met, iteration, train_wall_min}
+    or {met: False, last_iteration, last_train_wall_min, missing_cells}).
+
+    Raises:
+        FileNotFoundError: no gate record or no seed-0 matrix by ``by_iteration``.
+    """
+    try:
+        cfg = json.loads(src.read("config.json"))
+    except FileNotFoundError:
+        cfg = {}  # an early run kept no config: its README names the recipe
+    gate = json.loads(src.read("matrices/matrix_gate.json"))
+    seed0 = sorted(int(m.group(1)) for n in src.list("matrices") if (m := _MATRIX.search(n)))
+    early = [i for i in seed0 if i <= by_iteration]
+    if not early:
+        raise FileNotFoundError(f"{src.spec}: no seed-0 site matrix by iteration {by_iteration}")
+    it = early[-1]
+    far = far_throw(json.loads(src.read(f"matrices/site_matrix_2d_it{it}.json")))
+    wall = {r["iteration"]: r["train_wall_s"] for r in gate["results"]}
+    passed = gate.get("passes") or ([gate["passed"]] if gate.get("passed") else [])
+    if passed:
+        first = min(passed, key=lambda p: p["iteration"])
+        outcome = {"met": True, "iteration": first["iteration"], "train_wall_min": round(first["train_wall_s"] / 60, 1)}
+    else:
+        last = max(r["iteration"] for r in gate["results"])
+        at_last = [r for r in gate["results"] if r["iteration"] == last]
+        outcome = {"met": False, "last_iteration": last, "last_train_wall_min": round(at_last[0]["train_wall_s"] / 60, 1),
+                   "missing_cells": {str(r["seed"]): r["missing_cells"] for r in at_last}}
+    return {
+        "run": src.name, "source": src.spec, "training_seed": cfg.get("training", {}).get("seed"),
+        "gamma": cfg.get("runner", {}).get("algorithm", {}).get("gamma"), "num_envs": cfg.get("num_envs"),
+        "style_iteration": it, "style_train_wall_min": round(wall.get(it, float("nan")) / 60, 1),
+        "far_duration_s": round(far["duration_s"], 2), "far_sigma_m": round(far["sigma_m"], 3), "style": style_of(far["duration_s"]),
+        "outcome": outcome,
+    }
+
+
+def outcome_text(o: dict) -> str:
+    """The gate's outcome of a run_style row in words."""
+    if o["met"]:
+        return f"every bar on the gate seeds at iteration {o['iteration']}, {o['train_wall_min']} min"
+    cells = ", ".join(f"seed {k}: {v} cells short" for k, v in o["missing_cells"].items())
+    return f"not met; last verdict at iteration {o['last_iteration']}, {o['last_train_wall_min']} min ({cells})"
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", nargs="+", help="run directories or REV:PATH")
+    p.add_argument("--out", type=Path, required=True, help="report stem (writes .json and .md)")
+    p.add_argument("--by-iteration", type=int, default=STYLE_BY_ITERATION)
+    args = p.parse_args()
+    rows = [run_style(RunSource(s), args.by_iteration) for s in args.runs]
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    report = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "commit": commit,
+              "long_style_s": LONG_STYLE_S, "by_iteration": args.by_iteration, "far_target_m": FAR_TARGET_M, "runs": rows}
+    args.out.with_suffix(".json").write_text(json.dumps(report, indent=1) + "\n")
+    md = ["# 2D from-scratch runs: far-target throw style against the gate's outcome\n",
+          f"Date {report['date']}, commit `{commit}`. Style: the nominal {FAR_TARGET_M:g} m throw's mean duration "
+          f"(start to landing) in the last seed-0 gate matrix judged by iteration {args.by_iteration}; long ≥ {LONG_STYLE_S} s.\n",
+          "| run | γ | envs | training seed | style read at | 10 m duration | 10 m σ | style | outcome |",
+          "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        md.append(f"| `{r['run']}` | {r['gamma'] or '-'} | {r['num_envs'] or '-'} | {'-' if r['training_seed'] is None else r['training_seed']} | it {r['style_iteration']} "
+                  f"({r['style_train_wall_min']} min) | {r['far_duration_s']} s | {r['far_sigma_m']} m | {r['style']} | {outcome_text(r['outcome'])} |")
+    args.out.with_suffix(".md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,76 @@
+"""The far-target throw style of a 2D from-scratch run (tests/benchmarks/training_throw_style.py):
+read from the last seed-0 gate matrix by iteration 250, and, on the committed runs, the style
+separates the runs that met every bar from those that stalled (docs/training.md "Why a run stalls")."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from tests.benchmarks.training_throw_style import LONG_STYLE_S, RunSource, far_throw, run_style, style_of
+
+ROOT = Path(__file__).resolve().parents[1]
+RUNS = ROOT / "policies" / "training"
+COMMITTED_65536 = ["throw2d-scratch-u", "throw2d-scratch-aa", "throw2d-scratch-ab", "throw2d-scratch-ac", "throw2d-scratch-ad"]
+"""The 2D from-scratch runs in the tree with 65536 environments and γ 0.998 or 0.999."""
+
+
+def _matrix(duration_s: float, sigma_m: float = 0.1) -> dict:
+    cell = {"target_m": 10.0, "mean_duration_s": duration_s, "sigma_downrange_m": sigma_m, "bias_m": 0.02}
+    return {"policy_version": "t", "profiles": [{"name": "windy_site", "targets": [dict(cell, mean_duration_s=9.0)]},
+                                                 {"name": "nominal", "targets": [cell]}]}
+
+
+def _run(tmp_path: Path, durations: dict[int, float], results: list[dict], passes: list[dict]) -> Path:
+    run = tmp_path / "throw2d-scratch-t"
+    (run / "matrices").mkdir(parents=True)
+    (run / "config.json").write_text(json.dumps({"num_envs": 64, "runner": {"algorithm": {"gamma": 0.999}}, "training": {"seed": 7}}))
+    for it, d in durations.items():
+        (run / "matrices" / f"site_matrix_2d_it{it}.json").write_text(json.dumps(_matrix(d)))
+    (run / "matrices" / "site_matrix_2d_it100_seed1.json").write_text(json.dumps(_matrix(1.0)))  # not seed 0: ignored
+    gate = {"mode": "2d", "seeds": [0, 1], "results": results, "passes": passes, "passed": passes[0] if passes else None}
+    (run / "matrices" / "matrix_gate.json").write_text(json.dumps(gate))
+    return run
+
+
+def _result(it: int, seed: int, missing: int) -> dict:
+    return {"iteration": it, "seed": seed, "passed": missing == 0, "missing_cells": missing, "train_wall_s": it * 2.0}
+
+
+def test_the_style_is_read_from_the_last_seed0_matrix_by_iteration_250(tmp_path):
+    run = _run(tmp_path, {100: 4.0, 250: 3.1, 300: 4.2},
+               [_result(100, 0, 5), _result(250, 0, 4), _result(300, 0, 0), _result(300, 1, 2)], [])
+    row = run_style(RunSource(str(run)))
+    assert (row["style_iteration"], row["far_duration_s"], row["style"]) == (250, 3.1, "short")
+    assert (row["gamma"], row["num_envs"], row["training_seed"]) == (0.999, 64, 7)
+    # not met: the last verdicts, seed by seed
+    assert row["outcome"] == {"met": False, "last_iteration": 300, "last_train_wall_min": 10.0, "missing_cells": {"0": 0, "1": 2}}
+
+
+def test_a_run_that_met_the_bars_names_its_first_passing_checkpoint(tmp_path):
+    passes = [{"iteration": 150, "train_wall_s": 270.0}, {"iteration": 300, "train_wall_s": 600.0}]
+    run = _run(tmp_path, {150: 4.1}, [_result(150, 0, 0), _result(150, 1, 0)], passes)
+    row = run_style(RunSource(str(run)))
+    assert row["style"] == "long"
+    assert row["outcome"] == {"met": True, "iteration": 150, "train_wall_min": 4.5}
+
+
+def test_a_run_without_an_early_matrix_or_a_nominal_far_cell_is_refused(tmp_path):
+    run = _run(tmp_path, {300: 4.0}, [_result(300, 0, 1)], [])
+    with pytest.raises(FileNotFoundError, match="by iteration 250"):
+        run_style(RunSource(str(run)))
+    with pytest.raises(ValueError, match="no nominal cell at 10"):
+        far_throw({"policy_version": "x", "profiles": [{"name": "nominal", "targets": []}]})
+    with pytest.raises(FileNotFoundError, match="REV:PATH"):
+        RunSource(str(tmp_path / "absent"))
+
+
+def test_the_threshold_separates_the_two_styles():
+    assert style_of(LONG_STYLE_S) == "long"
+    assert style_of(LONG_STYLE_S - 0.01) == "short"
+
+
+@pytest.mark.parametrize("name", COMMITTED_65536)
+def test_on_the_committed_runs_the_long_style_is_the_one_that_met_the_bars(name):
+    row = run_style(RunSource(str(RUNS / name)))
+    assert (row["style"] == "long") == row["outcome"]["met"], row
