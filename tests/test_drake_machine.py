@@ -112,7 +112,7 @@ def test_the_deployed_2d_policy_lands_near_its_target_in_drake():
 
 
 def test_a_full_valve_gives_the_twins_steady_joint_speed_at_every_period_end(drake):
-    """The oil column moves during the period (sim_twin.drake_machine._oil_column_system): the
+    """The oil column moves during the period (sim_twin.twin.drake_machine._oil_column_system): the
     speed sampled at each period's end is the flow's, not ~4 % below it as with a held target."""
     sim = SimulatedMachine(seed=0)
     for m in (drake, sim):

@@ -12,7 +12,7 @@ If Drake at 10 ms sits close to MuJoCo, the gap is the step (the twin's 10 ms di
 not the model.
 
 Run: ``nice -n 10 python tests/benchmarks/drake_gap_step.py --dataset var/drake_gap_2d --throws 20 --report reports/drake_gap_step.json``
-(the dataset from ``python -m sim_twin.drake_dataset --mode 2d --throws 60 --out var/drake_gap_2d``).
+(the dataset from ``python -m sim_twin.diagnosis.drake_dataset --mode 2d --throws 60 --out var/drake_gap_2d``).
 """
 
 from __future__ import annotations
@@ -49,8 +49,8 @@ def main() -> int:
     args = parser.parse_args()
     from runtime.machine import JOINT_NAMES
     from sim_twin.diagnosis import dataset
-    from sim_twin.drake_machine import DrakeMachine
-    from sim_twin.simulated_machine import SimulatedMachine
+    from sim_twin.twin.drake_machine import DrakeMachine
+    from sim_twin.twin.simulated_machine import SimulatedMachine
 
     throws, _ = dataset.load(args.dataset)
     throws = throws[: args.throws]
