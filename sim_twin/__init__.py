@@ -1,4 +1,9 @@
-"""Digital twin, simulated machine, training and diagnosis of the Slinger throwing system."""
+"""Digital twin, simulated machine, training and diagnosis of the Slinger throwing system.
+
+Packages: ``twin`` (the MuJoCo model, hydraulics, reality profiles and effects, the simulated machine),
+``training``, ``evaluation``, ``preview``, ``adaptation`` and ``diagnosis``; ``commands`` holds the
+package's ``slinger`` sub-commands. Who may import whom: pyproject.toml's import-linter contracts.
+"""
 
 from pathlib import Path
 
