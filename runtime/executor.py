@@ -100,7 +100,7 @@ class ExecutorConfig:
             CHOSEN 3.0 m: well above the predictor's error on normal throws of the deployed
             policies (p99 <= 0.55 m nominal, <= 0.8 m on slow_hydraulics but 2.3 m in its 3D
             9.5 m cell; the largest predicted distance of a throw that landed within 3 m was 1.2 m;
-            runtime.release_check, reports/release_check_accuracy.json), far below the 5-21 m of the wild releases.
+            runtime.release_check, reports/release_check_accuracy.json in reports/ARCHIVE.md), far below the 5-21 m of the wild releases.
         max_state_gap_s: two machine states of a running throw further apart than this (machine
             time, s) fail it (finality, module docstring). CHOSEN 0.2 s: the runtime's link
             timeout (runtime.service.LINK_TIMEOUT_S), twice the simulated machine's valve

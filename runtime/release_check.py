@@ -26,8 +26,9 @@ The gripper swings on meanwhile, so a ballistic impact from the state AT the com
 It knows nothing of a site's profile (masses, valve dynamics, wind, drag, grasp offset): those
 are part of its error below.
 
-Accuracy (``tests/benchmarks/release_check_accuracy.py``, ``reports/release_check_accuracy.json``):
-100 throws per cell of the deployed policies (policies/throw2d.onnx, throw3d.onnx) on the twin by
+Accuracy (``tests/benchmarks/release_check_accuracy.py``, ``reports/release_check_accuracy.json``, in the
+lab notebook since its policies were superseded: reports/ARCHIVE.md):
+100 throws per cell of the then deployed policies (throw2d-robust-e, throw3d-robust-e) on the twin by
 sim_twin.evaluation.evaluate's protocol with a check that never holds, the site matrix's seeds
 (``i * 100_000 + k``); horizontal distance between the executor's prediction at the release
 command (measured state) and the measured impact, median / p99 / max, m:

@@ -234,9 +234,13 @@ def _delegate(ep: EntryPoint, rest: list[str], prog: str) -> int:
     return 2
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from sim_twin.twin.engines import ENGINES
+ENGINES = ("mujoco", "drake")
+"""Physics engines of the simulated machines (``slinger up --engine``), the names of
+sim_twin.twin.engines.ENGINES as plain strings: a server-only install parses its command line without
+sim_twin; the simulated machine's process (``slinger plant``) checks the name again where it runs it."""
 
+
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="slinger", description="Slinger: dynamic throwing with material handlers")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)

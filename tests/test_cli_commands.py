@@ -105,3 +105,18 @@ def test_slinger_results_runs_through_its_entry_point(capsys):
     with pytest.raises(SystemExit) as done:  # a module with build_parser/run: its parser, named after the subcommand
         cli.main(["certs", "--help"])
     assert done.value.code == 0 and "usage: slinger certs" in capsys.readouterr().out
+
+
+def test_up_names_the_twins_engines_without_importing_sim_twin():
+    """``slinger up --engine`` offers sim_twin's engines, named as strings in server/cli.py (a
+    server-only install has no sim_twin), and refuses another name at parse time."""
+    from sim_twin.twin.engines import ENGINES
+
+    assert cli.ENGINES == ENGINES
+    tree = ast.parse((ROOT / "server" / "cli.py").read_text())
+    modules = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    modules |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+    assert not [m for m in modules if m.split(".")[0] == "sim_twin"]
+    assert cli.build_parser().parse_args(["up", "--engine", "drake"]).engine == "drake"
+    with pytest.raises(SystemExit):
+        cli.build_parser().parse_args(["up", "--engine", "bullet"])

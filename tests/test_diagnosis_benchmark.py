@@ -177,3 +177,31 @@ def test_merge_on_the_command_line_takes_options_between_the_reports(tmp_path: P
     assert cli.main(["merge", str(tmp_path / "s1.json"), "--out", str(out), "--no-plots", str(tmp_path / "s2.json")]) == 0
     assert [r["case"] for r in json.loads(out.read_text())["cases"]] == [0, 1, 2, 3]
     assert cli.main(["merge", "--out", str(out)]) == 2  # no reports: a clear error
+
+
+def test_new_kinds_are_scored_by_what_is_confirmed_and_listed():
+    """mimic: a library effect confirmed as a part is as wrong as a named one; drifting: only
+    "drifting" is right; impact_pair: the trajectory member confirmed and the impact-only one listed."""
+    from sim_twin.diagnosis import benchmark as b
+
+    mimic = {"kind": "mimic", "truth": [{"effect": "sim_twin.diagnosis.unmodelled_mimic:BoomBacklash", "param": "play", "value": 0.3}]}
+    assert b.score({**mimic, "answer": "unexplained", "effects": ["valve_lag"], "confirmed": []})["correct"]
+    wrong = b.score({**mimic, "answer": "unexplained", "effects": ["valve_lag"], "confirmed": ["valve_lag"]})
+    assert not wrong["correct"] and wrong["confidently_wrong"]
+    drift = {"kind": "drifting", "truth": [{"effect": "valve_lag", "param": "lag_s_boom", "value": 0.4, "shape": "ramp"}]}
+    assert b.score({**drift, "answer": "drifting", "effects": []})["correct"]
+    assert not b.score({**drift, "answer": "named", "effects": ["valve_lag"], "confirmed": ["valve_lag"]})["correct"]
+    pair = {"kind": "impact_pair", "truth": [{"effect": "passive_friction", "param": "viscous_per_s", "value": 0.9},
+                                             {"effect": "release_delay", "param": "mean_s", "value": 0.45}]}
+    ok = b.score({**pair, "answer": "consistent", "effects": ["passive_friction"], "confirmed": ["passive_friction"],
+                  "consistent": ["release_delay"], "alternatives": ["payload_drag", "impact_bias"]})
+    assert ok["correct"]
+    assert not b.score({**pair, "answer": "unexplained", "effects": ["passive_friction"], "confirmed": ["passive_friction"]})["correct"]
+    cases = b.draw_cases(b.MIX, 0)
+    assert len(cases) == 100 and cases[:78] == b.draw_cases({k: b.MIX[k] for k in list(b.MIX)[:8]}, 0)  # the earlier 78 unchanged
+    ramp = b.per_throw_profiles(next(c for c in cases if c["kind"] == "drifting" and c["truth"][0]["shape"] == "ramp"), 10)
+    vals = [p["effects"][0]["params"]["lag_s_boom"] for p in ramp]
+    from sim_twin.twin.effects import effect_class
+
+    nominal = next(p.nominal for p in effect_class("valve_lag").params if p.name == "lag_s_boom")
+    assert vals[0] == pytest.approx(nominal) and vals == sorted(vals) and len(set(vals)) == 10

@@ -28,3 +28,8 @@ def test_generated_boom_encoder_offset_is_named_with_its_joint_and_value(tmp_pat
     assert set(fit["sigma"]) == {"offset_boom"} and fit["sigma"]["offset_boom"] > 0
     assert sorted(fit["not_identifiable"]) == ["offset_cabin_turn", "offset_dipper", "offset_telescope"]
     assert all(fit["params"][n] == 0.0 for n in fit["not_identifiable"])
+    hf = rep["how_far"]  # the held-out shrink per channel, never pooled: gap_shrink is the smallest
+    shrinks = {ch: r["shrink"] for ch, r in hf["shrink_by_channel"].items() if r["shrink"] is not None}
+    shrinks["impact (RMS)"] = hf["impact_gap_shrink"]
+    assert set(hf["shrink_by_channel"]) <= set(rep["where"]["carriers"]) and hf["gap_shrink"] == min(shrinks.values())
+    assert hf["gap_shrink_channel"] == min(shrinks, key=shrinks.get)

@@ -273,3 +273,20 @@ def test_a_per_joint_dead_band_between_grid_points_is_polished_on_its_own_channe
     params, _ = ev.fit(sw, np.ones(30))
     assert "dead_band_boom" in sw.polished and abs(params["dead_band_boom"] - 0.18) < 0.003
     assert abs(params["dead_band_boom"] - 0.2) > 0.01  # not the grid point 0.200 the quadratic fell back to
+
+
+# --- power: sizes from simulation, not one linear step --------------------------------------------
+def test_a_stated_size_holds_at_twice_it_on_the_simulated_sizes():
+    from sim_twin.diagnosis.power import _smallest_reliable
+
+    d = [0.02, 0.04, 0.08, 0.12, 0.16, 0.24]
+    # a release delay: its mean impact shift grows, shrinks and changes sign (found at 0.04 and 0.24 only)
+    assert _smallest_reliable(d, [False, True, False, False, False, True], [0] * 6) == (pytest.approx(0.20), 0)
+    # every size found from 0.08 on: between the last miss and the first find
+    size, _ = _smallest_reliable(d, [False, False, True, True, True, True], [1] * 6)
+    assert size == pytest.approx(0.06) and 2 * size >= 0.08
+    # found at every size: the one-step linear size, where every simulated size up to twice it is found
+    assert _smallest_reliable(d, [True] * 6, [2] * 6, linear=0.005)[0] == pytest.approx(0.005)
+    # a linear size whose double was not found is not stated
+    assert _smallest_reliable(d, [True, False, True, True, True, True], [2] * 6, linear=0.02)[0] == pytest.approx(0.06)
+    assert _smallest_reliable(d, [False] * 6, [0] * 6) == (None, None)

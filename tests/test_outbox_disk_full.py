@@ -90,14 +90,14 @@ def test_refused_results_are_retried_with_backoff_then_kept_as_undeliverable(tmp
     kept = tmp_path / UNDELIVERABLE / "0000000009.000000-t9.json"
     assert decode(ThrowResult, kept.read_bytes()).status == "landed"  # kept, not lost
     assert Outbox(tmp_path, Server()).undeliverable == 1  # counted again after a restart
-    # an unanswered result (server away) is retried on, backing off to once every 8 s
+    # an unanswered result (server away) is retried on, every 2 s, so a restarted server has it at once
     away = Server("away")
     box2 = Outbox(tmp_path / "b", away, retry_interval_s=2.0, reserve_bytes=0, clock=lambda: now[0])
     box2.put(_landed("t10", 10.0))
     for step in range(600):  # 5 min
         now[0] = 1000.0 + step * 0.5
         box2.deliver_pending(due_only=True)
-    assert 35 < away.tries < 42 and len(box2.pending()) == 1
+    assert 148 <= away.tries <= 151 and len(box2.pending()) == 1
     # a server that answers but cannot store now (stored=False: its disk or database failing) is
     # waited for the same way: the result is not set aside
     faulted = Server("faulted")

@@ -36,7 +36,7 @@ OFF = {"release_check_radius_m": None}
 @pytest.mark.acceptance
 @pytest.mark.parametrize("mode, distance, index, bound_m", [("2d", 10.0, 5, 0.7), ("3d", 9.5, 5, 0.5)])
 def test_predicted_impact_matches_the_twin_on_nominal_throws(mode, distance, index, bound_m):
-    """Bounds from the measurement (reports/release_check_accuracy.json): nominal 2D 10 m max 0.61 m, 3D 9.5 m max 0.40 m over
+    """Bounds from the measurement (reports/release_check_accuracy.json, earlier policies, reports/ARCHIVE.md): nominal 2D 10 m max 0.61 m, 3D 9.5 m max 0.40 m over
     100 throws; here 8 of them. The naive prediction (no opening delay) is far worse."""
     rows = release_errors(POLICY[mode], mode, distance, [index * 100_000 + k for k in range(8)], None)
     assert len(rows) == 8

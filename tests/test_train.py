@@ -253,3 +253,20 @@ def test_the_training_section_is_typed_and_refuses_a_misspelt_setting():
         training_config.TrainingSection.from_dict({**cfg["training"], "gate_from_iteratoin": 600})
     with pytest.raises(ValueError, match="unknown training settings"):
         training_config.resolve_training({"training": {"seed": 1, "sed": 2}}, None)
+
+
+def _initial_actor(tmp_path, name, seed):
+    run = train.TrainingRun(_args(tmp_path / name, seed=seed, iterations=0))
+    return [p.detach().clone() for p in run.runner.alg.actor.parameters()]
+
+
+def test_the_training_seed_fixes_the_initial_networks(tmp_path):
+    # rsl_rl initialises the actor and critic from torch's global generator: unseeded, two runs with
+    # the same training seed started from different networks
+    torch.manual_seed(123)
+    a = _initial_actor(tmp_path, "a", seed=3)
+    torch.manual_seed(456)
+    b = _initial_actor(tmp_path, "b", seed=3)
+    c = _initial_actor(tmp_path, "c", seed=4)
+    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+    assert not all(torch.equal(x, y) for x, y in zip(a, c, strict=True))

@@ -219,6 +219,12 @@ class TrainingRun:
             (self.log_dir / "config.json").write_text(json.dumps(cfg, indent=2))
 
         seed = self.training.seed or 0  # resolve_training refuses a config without one
+        # The training seed fixes the networks' initial weights and PPO's minibatch order as well as
+        # the environments: rsl_rl draws both from torch's global generator, which nothing seeded, so
+        # two runs "with the same seed" started from different networks.
+        import torch
+
+        torch.manual_seed(seed + 1000 * proc.rank)
         self.env = MjxThrowVecEnv(env_cfg, cfg["num_envs"], seed=seed + 1000 * proc.rank, device=proc.device, impl=physics)
         self.tb_dir = (args.tb_dir or self.log_dir / "tb") if proc.main else None
         self.runner = OnPolicyRunner(self.env, copy.deepcopy(cfg["runner"]),

@@ -31,8 +31,8 @@ Choices of ours (CHOSEN), each the paper's number or Drake's default where one e
 * **the cylinders**: each active joint is a Drake joint actuator with Drake's implicit PD
   controller (``PdControllerGains``) tracking the oil column of :func:`cylinder_step`: desired
   position the oil column moving through the period at the flow the valves let through (from
-  ``x_ref`` at the period's start to its end), desired velocity that flow, ``d`` = the MJCF velocity servo's
-  ``kv`` and ``p`` = ``kv * HOLD_GAIN_PER_S``; the same servo law the MuJoCo twin applies as a
+  ``x_ref`` at the period's start to its end), desired velocity that flow, ``d`` = the MJCF
+  velocity servo's ``kv`` and ``p`` = ``kv * HOLD_GAIN_PER_S``; the same servo law the MuJoCo twin applies as a
   velocity actuator with the hold term in its setpoint, but solved implicitly every 1 ms by
   Drake. CHOSEN: the twin's gains, no effort limit (a cylinder's force is not limited before its
   relief valve, which the rate limit stands for).
@@ -44,11 +44,16 @@ Choices of ours (CHOSEN), each the paper's number or Drake's default where one e
   accelerations with the twin's effective inertias (runtime.dynamics.model.passive_inertia), so
   both engines get the same friction values. CHOSEN: the conversion, and tanh smoothing at
   0.01 rad/s as in the twin.
-* **contact**: the ground (a 60 x 60 m box with its top at z = 0) and the gripper (a 0.9 x 0.9 x 1.0 m box, the
-  MJCF's gripper geom) collide, with Drake's default point-contact parameters (penetration
+* **contact**: the ground (a 60 x 60 m box with its top at z = 0) and the gripper (a 0.9 x 0.9 x
+  1.0 m box, the MJCF's gripper geom) collide, with Drake's default point-contact parameters (penetration
   allowance 1 mm) and Coulomb friction 0.5 (CHOSEN: steel on soil). The MuJoCo twin has no
   contact (its geoms do not collide): a gripper at the ground there is only a clearance
   violation, in Drake it also rests on the ground.
+* **the payload's flight**: drag-free under the nominal profile, as the twin's (CHOSEN: so that a
+  nominal comparison of the engines measures the machine's physics, not a drag only one of them
+  has); a profile with ``payload_drag`` (a ball's Cd ~0.5) or ``wind`` flies with them
+  (:func:`sim_twin.twin.effects.payload.integrate_flight`), e.g. ``slinger plant --engine drake
+  --profile P``.
 """
 
 from __future__ import annotations

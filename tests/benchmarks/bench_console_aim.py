@@ -1,5 +1,6 @@
 """How fast the console aims and repeats, measured in the page (Chromium, software WebGL) beside
-a running simulated machine (`slinger up`, one machine):
+a running simulated machine (`slinger up`, one machine, the deployed 2D and 3D policies with the
+release check on):
 
 * 2D preview: Preview pressed -> the nominal rollout shown (its row in the preview table), and
   -> the 1 sigma ellipse shown (the "1σ" row names its rollouts);
@@ -31,6 +32,7 @@ from tests.conftest import SlingerUp  # noqa: E402
 
 TIMED_PREVIEW = """() => new Promise((resolve) => {
     const t0 = performance.now(); let nominal = null;
+    setTimeout(() => { obs.disconnect(); resolve([nominal === null ? null : nominal / 1000, null]); }, 300000);
     const seen = () => {
         const p = state.preview;
         if (nominal === null && p && p.status === 'ok' && document.getElementById('pv-down').textContent) nominal = performance.now() - t0;
@@ -50,6 +52,7 @@ TIMED_REPEAT = """() => new Promise((resolve) => {
         if (left && !btn.disabled) { clearInterval(iv); resolve((performance.now() - t0) / 1000); }
     };
     const iv = setInterval(seen, 20);
+    setTimeout(() => { clearInterval(iv); resolve(null); }, 300000);
     btn.click();
 })"""
 
@@ -73,7 +76,7 @@ def run(repeats: int) -> None:
     from playwright.sync_api import sync_playwright
 
     with tempfile.TemporaryDirectory(prefix="bench-console-aim-") as tmp, \
-            SlingerUp(Path(tmp), machines=1) as up, sync_playwright() as p:
+            SlingerUp(Path(tmp), machines=1, real_policies=True) as up, sync_playwright() as p:
         up.wait_machine_online("m1")
         browser = p.chromium.launch(executable_path=CHROMIUM, args=[a for a in CHROMIUM_ARGS if a != "--disable-gpu"]
                                     + SOFTWARE_GL, timeout=60_000)
@@ -92,6 +95,8 @@ def run(repeats: int) -> None:
                 ellipse.append(e)
                 page.locator("#throw:not([disabled])").wait_for()
                 repeat.append(page.evaluate(TIMED_REPEAT))
+                print(f"  2D {d:.1f} m: nominal {n} s, ellipse {e} s, Throw -> Throw {repeat[-1]} s ({host_load()})",
+                      flush=True)
             print(f"2D nominal preview: {stats(nominal)}  ({host_load()})", flush=True)
             print(f"2D ellipse preview: {stats(ellipse)}  ({host_load()})", flush=True)
             print(f"Throw -> next Throw enabled: {stats(repeat)}  ({host_load()})", flush=True)
@@ -104,6 +109,7 @@ def run(repeats: int) -> None:
                 n, e = page.evaluate(TIMED_PREVIEW)
                 nominal3.append(n)
                 ellipse3.append(e)
+                print(f"  3D {d:.1f} m: nominal {n} s, ellipse {e} s ({host_load()})", flush=True)
             print(f"3D nominal preview: {stats(nominal3)}  ({host_load()})", flush=True)
             print(f"3D ellipse preview: {stats(ellipse3)}  ({host_load()})", flush=True)
         finally:
