@@ -328,7 +328,9 @@ def test_console_api_keeps_each_console_to_its_user(settings):
         add_user(c.app.state.sessions, "vera", "viewer-pass-12", "viewer")
         login(c, *ADMIN)
         con = c.post("/api/consoles").json()
-        assert con["viser_path"] == f"/c/{con['console_id']}" and con["viser_port"] == c.get("/api/scene").json()["viser_port"]
+        bound, _, token = con["viser_path"].rpartition("/")  # /c/<console_id>/<view_token>: the view's secret
+        assert bound == f"/c/{con['console_id']}" and len(token) >= 16
+        assert con["viser_port"] == c.get("/api/scene").json()["viser_port"]
         r = c.put(f"/api/consoles/{con['console_id']}", json={"machine_id": "m1", "mode": "3d", "target": [8.0, 1.0, 0.0]})
         assert r.status_code == 200 and r.json()["target"] == [8.0, 1.0, 0.0]
         assert r.json()["target_reason"] == "no state from machine m1"  # judged at once, before any Preview
