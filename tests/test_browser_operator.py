@@ -382,7 +382,7 @@ def test_a_preview_with_its_ellipse_is_in_view_at_both_sizes(tmp_path, module_br
             page.fill("#target-y", "-0.292")
             press(page, "#target-set")
             page.wait_for_function("() => !state.typed")
-            page.locator("#target", has_text="9.5 m from the turn axis").wait_for()
+            page.locator("#target", has_text="9.50 m from the turn axis").wait_for()  # the distance Throw names, to the cm
             page.locator("#preview:not([disabled])").wait_for()
             press(page, "#preview")
             page.locator("#pv-sigma", has_text=re.compile(r"\d+ rollouts")).wait_for()  # judged on the ellipse

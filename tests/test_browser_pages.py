@@ -358,6 +358,31 @@ def test_diagnosis_page_shows_where_verdict_evidence_and_shrink(live, browser): 
     page.close()
 
 
+def test_diagnosis_page_says_drifting_and_partly_consistent_in_plain_words(live, browser):  # noqa: F811
+    """A drifting gap reads as drifting (not "no known effect explains it") and tells the operator not to
+    adapt to it; an effect only partly consistent with the gap is named as not confirmed."""
+    base, app = live
+    where = {"gap": True, "carriers": ["q.boom"], "phases": {"swing": 1.0}, "noise": {"sigma": {"q.boom": 0.002}, "impact_sigma_m": 0.05},
+             "channels": {"q.boom": {"chi2": 900.0, "dof": 300.0, "gap": True, "by_phase": {"swing": {"chi2": 900.0, "dof": 300.0}}}}}
+    drifting = {"verdict": {"answer": "drifting", "effects": [], "partly_consistent": [],
+                            "text": "drifting gap: the throws early and late in the log differ: q.boom changes from throw 14 on."},
+                "where": where, "rounds": [], "plots": {}}
+    partly = {"verdict": {"answer": "unexplained", "effects": ["valve_lag"], "confirmed": [],
+                          "partly_consistent": [{"effect": "valve_lag", "why": ["leaves a gap in channels it changes (q.boom): its residual is not noise"]}],
+                          "text": "unexplained, partly consistent with valve_lag"},
+              "where": where, "rounds": [], "plots": {}}
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    log_in(page, base)
+    for report, expect, absent in ((drifting, ["not the same early and late", "throw 14", "do not adapt"], "no known effect explains it"),
+                                   (partly, ["partly consistent with valve lag", "not confirmed", "its residual is not noise"], "behaves differently")):
+        run_id = finished_diagnosis_run(app.state, "m1", report)
+        page.goto(f"{base}/console/diagnosis.html#{run_id}")
+        page.locator("#r-verdict", has_text=report["verdict"]["answer"]).wait_for(timeout=20_000)
+        summary = page.locator("#r-summary").text_content()
+        assert all(e in summary for e in expect) and absent not in summary, summary
+    page.close()
+
+
 def test_diagnosis_page_uploads_rosbags_and_shows_the_refusal(live, browser):  # noqa: F811
     """The rosbag2 upload form sends the bags, the mapping and the impacts as one multipart request
     (POST /api/diagnosis/uploads); an unusable upload is refused with the server's sentence."""

@@ -81,6 +81,9 @@ function plainSummary(run, rep) {
   const v = rep.verdict, w = rep.where || {};
   const m = run.machine_id || "the machine";
   const n = run.throws ? `${run.throws} throws` : "its throws";
+  if (v.answer === "drifting") return `${m}'s gap is not the same early and late in the log: ${v.text} ` +
+    "What to do: find what changed on the machine around then (wear, oil temperature, a repair, a new payload); " +
+    "do not adapt the policy to this log; diagnose again on throws made after the change.";
   if (!w.gap) return `The twin matches ${m} within its measurement noise on ${n}. Nothing to do.`;
   const named = (rep.rounds || []).filter((r) => r.decision === "named");
   const sure = named.length ? Math.min(...named.map((r) => (r.candidates.find((c) => c.effect === r.named) || {}).wins || 0)) : null;
@@ -94,6 +97,10 @@ function plainSummary(run, rep) {
   }
   if (v.answer === "ambiguous") return `${m} differs from the twin, but the throws cannot tell whether it is ${v.between.map((e) => e.replace(/_/g, " ")).join(" or ")}. ` +
     `What to do: ${v.measurement}, then run the diagnosis again.`;
+  const partly = (v.partly_consistent || []).map((p) => `${p.effect.replace(/_/g, " ")} (${[].concat(p.why).join("; ")})`);
+  if (partly.length) return `${m} differs from the twin (in ${(w.carriers || []).join(", ")}). It is partly consistent with ${partly.join(" and ")}, ` +
+    "which is not confirmed: do not replace parts on this evidence. What to do: check the machine (hydraulics, sensors, payload) " +
+    "and the twin's model with an engineer; throws still work but may miss more.";
   return `${m} differs from the twin (in ${(w.carriers || []).join(", ")}) and no known effect explains it. What to do: ` +
     "check the machine (hydraulics, sensors, payload) and the twin's model with an engineer; throws still work but may miss more.";
 }
