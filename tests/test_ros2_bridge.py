@@ -517,7 +517,9 @@ def test_slinger_up_ros2_throws_through_rclpy_nodes_and_stops_for_strangers_and_
         assert types["/joint_states"] == ["sensor_msgs/msg/JointState"] and types["/gripper/imu"] == ["sensor_msgs/msg/Imu"]
         assert types["/arm/valve_commands"] == ["std_msgs/msg/Float64MultiArray"]
         for topic, typename in RECORDED.items():  # the installed rosidl types' hashes: those the telemetry MCAP carries
-            assert {str(i.topic_type_hash) for i in echo.node.get_publishers_info_by_topic(topic)} == {rt.type_hash(typename)}, topic
+            # a publisher's endpoint may be discovered after the topic's subscribers: wait for it, then judge its hash
+            hashes = wait_for(lambda t=topic: {str(i.topic_type_hash) for i in echo.node.get_publishers_info_by_topic(t)}, 20, f"a publisher of {topic}")
+            assert hashes == {rt.type_hash(typename)}, topic
         nodes = {n for n, _ns in echo.node.get_node_names_and_namespaces()}
         assert {"slinger_bridge", "simulated_machine"} <= nodes, nodes
 

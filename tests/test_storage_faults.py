@@ -69,13 +69,13 @@ def small_disk(tmp_path):
 
 
 def _fill(folder: Path) -> Path:
-    """Write a file until the disk is full; returns it."""
+    """Write a file until the disk is full; returns it. Unbuffered: a buffered file would try to write
+    its rest again at close and raise ENOSPC there, outside the loop that expects it."""
     filler = folder / "filler"
-    with open(filler, "wb") as f:
+    with open(filler, "wb", buffering=0) as f:
         try:
             while True:
                 f.write(b"\0" * (1 << 16))
-                f.flush()
         except OSError:
             pass
     return filler
