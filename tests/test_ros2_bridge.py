@@ -302,7 +302,8 @@ def test_bridge_node_on_fast_dds_reads_the_machine_and_stops_it_for_a_stranger(r
         stop, th, code = _bridge_thread(endpoint)
         try:
             wait_for(lambda: any(n == "slinger_bridge" for n, _ns in machine.node.get_node_names_and_namespaces()), 20, "the bridge node")
-            infos = machine.node.get_publishers_info_by_topic("/valve_commands")
+            # the node may be discovered before its endpoints: wait for the publisher too
+            infos = wait_for(lambda: machine.node.get_publishers_info_by_topic("/valve_commands"), 20, "the bridge's valve publisher")
             assert [(i.node_name, i.topic_type) for i in infos] == [("slinger_bridge", "std_msgs/msg/Float64MultiArray")]
             q = np.arange(6) * 0.1 + [0, 0, 1.0, 0, 0, 0]
 
@@ -520,7 +521,8 @@ def test_slinger_up_ros2_throws_through_rclpy_nodes_and_stops_for_strangers_and_
             # a publisher's endpoint may be discovered after the topic's subscribers: wait for it, then judge its hash
             hashes = wait_for(lambda t=topic: {str(i.topic_type_hash) for i in echo.node.get_publishers_info_by_topic(t)}, 20, f"a publisher of {topic}")
             assert hashes == {rt.type_hash(typename)}, topic
-        nodes = {n for n, _ns in echo.node.get_node_names_and_namespaces()}
+        nodes = wait_for(lambda: (ns := {n for n, _ns in echo.node.get_node_names_and_namespaces()}) >= {"slinger_bridge", "simulated_machine"} and ns,
+                         20, "the bridge's and the driver's nodes in the graph")
         assert {"slinger_bridge", "simulated_machine"} <= nodes, nodes
 
         # 1. a throw lands through the bridge and the driver node; a plain subscriber sees /joint_states at 100 Hz
