@@ -73,7 +73,7 @@ from sim_twin.twin.hydraulics import ValveModel
 from sim_twin.twin.initial_pose import sample_pose
 from sim_twin.twin.model import passive_inertia
 from sim_twin.twin.profile import RealityProfile
-from sim_twin.twin.simulated_machine import Impact
+from sim_twin.twin.simulated_machine import Impact, MachineReadout
 
 GROUND_FRICTION = 0.5
 """Coulomb friction of the gripper on the ground (CHOSEN: steel on soil)."""
@@ -165,7 +165,7 @@ def _coulomb_system(plant, q_index: np.ndarray, v_index: np.ndarray, inertia: np
     return PassiveCoulomb()
 
 
-class DrakeMachine:
+class DrakeMachine(MachineReadout):
     """The machine in Drake behind the interface of
     :class:`sim_twin.twin.simulated_machine.SimulatedMachine` (what TwinMachine, the plant process,
     evaluation and dataset generation use): :meth:`reset`, :meth:`set_state`, :meth:`step` (one
@@ -260,30 +260,6 @@ class DrakeMachine:
     def time_s(self) -> float:
         """Simulated seconds since the last reset."""
         return self._steps * PHYSICS_PERIOD_S
-
-    @property
-    def q(self) -> np.ndarray:
-        """(6,) measured joint positions (the true ones unless a measurement effect is on)."""
-        return self._meas_q.copy() if self._fx_measure else self.data.qpos.copy()
-
-    @property
-    def qd(self) -> np.ndarray:
-        """(6,) measured joint velocities (the true ones unless a measurement effect is on)."""
-        return self._meas_qd.copy() if self._fx_measure else self.data.qvel.copy()
-
-    @property
-    def gripper_open(self) -> bool:
-        """The gripper has opened (the payload is free)."""
-        return self._opened
-
-    @property
-    def payload_attached(self) -> bool:
-        return self._attached
-
-    @property
-    def impact(self) -> Impact | None:
-        """Set once the payload has hit the ground."""
-        return self._impact if self._landed else None
 
     def gripper_point(self, local_m=GRIPPER_CENTRE_LOCAL_M) -> tuple[np.ndarray, np.ndarray]:
         """Position (3,) m and velocity (3,) m/s in the machine frame of a point fixed in the
@@ -380,8 +356,7 @@ class DrakeMachine:
             gripper_open_cmd: the gripper-open command; its rising edge starts the opening
                 delay, sampled from the profile's release delay (mean, std).
         """
-        if gripper_open_cmd and self._attached and self._open_at is None:
-            self._open_at = self.time_s + max(0.0, self.rng.normal(self._delay_mean_s, self._delay_std_s))
+        self._command_gripper(gripper_open_cmd)
         setpoint = self.valves.step(valve_u)
         if self._fx_setpoint:
             setpoint = self.effects.setpoint(setpoint, self.data.qpos.copy(), self.data.qvel.copy())
@@ -392,15 +367,7 @@ class DrakeMachine:
         self._steps += 1
         self._simulator.AdvanceTo(self.time_s)
         self._read_state()
-        if self._fx_measure:
-            self._hist_q = np.roll(self._hist_q, 1, axis=0)
-            self._hist_qd = np.roll(self._hist_qd, 1, axis=0)
-            self._hist_q[0], self._hist_qd[0] = self.data.qpos, self.data.qvel
-            self._measure()
-        if self._open_at is not None and self._attached and self.time_s >= self._open_at - 1e-9:
-            self._open_payload()
-        if self._impact is not None and not self._landed and self.time_s >= self._impact.impact_time_s:
-            self._landed = True
+        self._after_physics()
 
     def _measure(self) -> None:
         self._meas_q, self._meas_qd = self.effects.measure(self._hist_q, self._hist_qd, PHYSICS_PERIOD_S, self._meas_rng)
@@ -416,10 +383,5 @@ class DrakeMachine:
             ts = np.linspace(0.0, t_fall, max(2, int(np.ceil(t_fall / 0.01)) + 1))
             t = ts[:, None]
             self._flight = (ts, ballistic_position(np, p0, v0, t), v0 + t * np.array([0.0, 0.0, -GRAVITY_MPS2]))
-        hit = np.array(self.effects.measure_impact(hit), dtype=float)
-        if self._impact_noise_m > 0:
-            hit[:2] = hit[:2] + self._meas_rng.normal(0.0, self._impact_noise_m, 2)
-        self._attached, self._opened = False, True
-        self._release = (p0, v0, t0)
-        self._impact = Impact(hit, t0, t0 + t_fall, p0, v0)
+        self._released(p0, v0, t0, hit, t_fall)
 

@@ -12,6 +12,7 @@ with neutral valves (e.g. while the plant process is stalled).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -46,7 +47,105 @@ class Impact:
     release_vel_mps: np.ndarray
 
 
-class SimulatedMachine:
+class MachineReadout:
+    """What a simulated machine reports, and how it keeps its gripper opening, release and landing,
+    whatever engine moves it (:class:`SimulatedMachine`: MuJoCo; :class:`sim_twin.twin.drake_machine.DrakeMachine`:
+    Drake).
+
+    A subclass sets, in its constructor and ``reset``: ``data`` (``qpos`` (6,) rad, ``qvel`` (6,) rad/s),
+    ``effects``, ``rng``, ``_meas_rng``, ``_fx_measure``, ``_delay_mean_s``, ``_delay_std_s``, ``_impact_noise_m``,
+    ``_hist_q``/``_hist_qd`` (measurement history, newest first), ``_meas_q``/``_meas_qd``, ``_open_at``, ``_attached``,
+    ``_opened``, ``_landed``, ``_release`` and ``_impact``; it provides ``time_s``, ``_measure`` and ``_open_payload``.
+    """
+
+    data: Any
+    effects: Any
+    rng: np.random.Generator
+    _meas_rng: np.random.Generator
+    _fx_measure: bool
+    _delay_mean_s: float
+    _delay_std_s: float
+    _impact_noise_m: float
+    _hist_q: np.ndarray
+    _hist_qd: np.ndarray
+    _meas_q: np.ndarray
+    _meas_qd: np.ndarray
+    _open_at: float | None
+    _attached: bool
+    _opened: bool
+    _landed: bool
+    _release: tuple[np.ndarray, np.ndarray, float] | None
+    _impact: Impact | None
+
+    @property
+    def time_s(self) -> float:
+        """Simulated seconds (the subclass's clock)."""
+        raise NotImplementedError
+
+    def _measure(self) -> None:
+        """Update ``_meas_q``/``_meas_qd`` from the history (the subclass's physics period)."""
+        raise NotImplementedError
+
+    def _open_payload(self) -> None:
+        """Release the payload now (the subclass's grasp point and flight)."""
+        raise NotImplementedError
+
+    @property
+    def q(self) -> np.ndarray:
+        """(6,) measured joint positions (the true ones unless a measurement effect is on)."""
+        return self._meas_q.copy() if self._fx_measure else self.data.qpos.copy()
+
+    @property
+    def qd(self) -> np.ndarray:
+        """(6,) measured joint velocities (the true ones unless a measurement effect is on)."""
+        return self._meas_qd.copy() if self._fx_measure else self.data.qvel.copy()
+
+    @property
+    def gripper_open(self) -> bool:
+        """The gripper has opened (the payload is free)."""
+        return self._opened
+
+    @property
+    def payload_attached(self) -> bool:
+        return self._attached
+
+    @property
+    def impact(self) -> Impact | None:
+        """Set once the payload has hit the ground."""
+        return self._impact if self._landed else None
+
+    def _command_gripper(self, gripper_open_cmd: bool) -> None:
+        """The open command's rising edge starts the opening delay, sampled from the profile's release
+        delay (mean, std; clipped at 0)."""
+        if gripper_open_cmd and self._attached and self._open_at is None:
+            self._open_at = self.time_s + max(0.0, self.rng.normal(self._delay_mean_s, self._delay_std_s))
+
+    def _after_physics(self) -> None:
+        """After one physics period: the measurement effects' history, the opening once its delay has
+        passed, the landing once the flight's impact time has come."""
+        if self._fx_measure:
+            self._hist_q = np.roll(self._hist_q, 1, axis=0)
+            self._hist_qd = np.roll(self._hist_qd, 1, axis=0)
+            self._hist_q[0], self._hist_qd[0] = self.data.qpos, self.data.qvel
+            self._measure()
+        if self._open_at is not None and self._attached and self.time_s >= self._open_at - 1e-9:
+            self._open_payload()
+        if self._impact is not None and not self._landed and self.time_s >= self._impact.impact_time_s:
+            self._landed = True
+
+    def _released(self, p0: np.ndarray, v0: np.ndarray, t0: float, hit: np.ndarray, t_fall: float) -> None:
+        """Record the release at ``t0`` s from ``p0`` (3,) m with ``v0`` (3,) m/s, landing ``t_fall`` s later at
+        the true spot ``hit`` (3,) m; the stored landing spot is the measured one (the effects' calibration
+        biases, sim_twin.twin.effects.sensing.ImpactBias, plus the profile's impact noise, SensorParams)."""
+        hit = np.array(self.effects.measure_impact(hit), dtype=float)
+        if self._impact_noise_m > 0:
+            hit[:2] = hit[:2] + self._meas_rng.normal(0.0, self._impact_noise_m, 2)
+        self._attached, self._opened = False, True
+        self._release = (p0, v0, t0)
+        self._impact = Impact(hit, t0, t0 + t_fall, p0, v0)
+
+
+class SimulatedMachine(MachineReadout):
     """CPU twin + hydraulics + payload.
 
     Args:
@@ -81,29 +180,6 @@ class SimulatedMachine:
     @property
     def time_s(self) -> float:
         return float(self.data.time)
-
-    @property
-    def q(self) -> np.ndarray:
-        """(6,) measured joint positions (the true ones unless a measurement effect is on)."""
-        return self._meas_q.copy() if self._fx_measure else self.data.qpos.copy()
-
-    @property
-    def qd(self) -> np.ndarray:
-        """(6,) measured joint velocities (the true ones unless a measurement effect is on)."""
-        return self._meas_qd.copy() if self._fx_measure else self.data.qvel.copy()
-
-    @property
-    def gripper_open(self) -> bool:
-        return self._opened
-
-    @property
-    def payload_attached(self) -> bool:
-        return self._attached
-
-    @property
-    def impact(self) -> Impact | None:
-        """Set once the payload has hit the ground."""
-        return self._impact if self._landed else None
 
     def payload_state(self) -> tuple[np.ndarray, np.ndarray]:
         """(pos (3,), vel (3,)) of the payload: the gripper centre while held, else its flight."""
@@ -181,9 +257,7 @@ class SimulatedMachine:
             gripper_open_cmd: the gripper-open command; its rising edge starts the opening
                 delay, sampled from the profile's release delay (mean, std).
         """
-        if gripper_open_cmd and self._attached and self._open_at is None:
-            delay = max(0.0, self.rng.normal(self._delay_mean_s, self._delay_std_s))
-            self._open_at = self.time_s + delay
+        self._command_gripper(gripper_open_cmd)
         setpoint = self.valves.step(valve_u)
         if self._fx_setpoint:
             setpoint = self.effects.setpoint(setpoint, self.data.qpos.copy(), self.data.qvel.copy())
@@ -198,15 +272,7 @@ class SimulatedMachine:
             self._coulomb,
         )
         mujoco.mj_step(self.model, self.data)
-        if self._fx_measure:
-            self._hist_q = np.roll(self._hist_q, 1, axis=0)
-            self._hist_qd = np.roll(self._hist_qd, 1, axis=0)
-            self._hist_q[0], self._hist_qd[0] = self.data.qpos, self.data.qvel
-            self._measure()
-        if self._open_at is not None and self._attached and self.time_s >= self._open_at - 1e-9:
-            self._open_payload()
-        if self._release is not None and not self._landed and self.time_s >= self._impact_time_s():
-            self._landed = True
+        self._after_physics()
 
     def _impact_time_s(self) -> float:
         """The released payload's impact time, s (twin clock).
@@ -236,9 +302,4 @@ class SimulatedMachine:
             t_fall = float(ballistic_impact_time(np, p0, v0, PAYLOAD_RADIUS_M))
             hit = ballistic_position(np, p0, v0, t_fall)
         hit[2] = 0.0
-        hit = np.array(self.effects.measure_impact(hit), dtype=float)  # calibration biases (sim_twin.twin.effects.sensing.ImpactBias)
-        if self._impact_noise_m > 0:  # the measured landing spot (sim_twin.twin.profile.SensorParams)
-            hit[:2] = hit[:2] + self._meas_rng.normal(0.0, self._impact_noise_m, 2)
-        self._attached, self._opened = False, True
-        self._release = (p0, v0, t0)
-        self._impact = Impact(hit, t0, t0 + t_fall, p0, v0)
+        self._released(p0, v0, t0, hit, t_fall)
