@@ -18,6 +18,7 @@ import zenoh
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
+from server.accounts import session_file
 from server.accounts.auth import AuditBacklog, SessionMirror, user_for_token
 from server.accounts.login_guard import LoginGuard
 from server.analysis.adaptation import AdaptationRuns
@@ -49,6 +50,8 @@ log = logging.getLogger(__name__)
 
 ESTOP_LATCH_FILE = "estop_latches.json"
 """The server's E-STOP latches (server.fleet.estop), in the data directory."""
+SESSION_MIRROR_FILE = session_file.FILE_NAME
+"""The session mirror's file (server.accounts.session_file), in the data directory beside the latches."""
 
 
 @dataclass
@@ -135,7 +138,8 @@ def build_services(settings: Settings, zenoh_session: zenoh.Session | None = Non
     sessions = make_sessionmaker(engine, before_use=storage.before_use)
     # the E-STOP and the machine list authorise from memory and audit later (docs/safety.md)
     audit_backlog = AuditBacklog(sessions)
-    session_mirror = SessionMirror(sessions, on_tick=audit_backlog.flush)
+    session_mirror = SessionMirror(sessions, on_tick=audit_backlog.flush,
+                                   file=session_file.SessionFile(settings.data_dir / SESSION_MIRROR_FILE))
     session_mirror.watch(sessions)
     session_mirror.start()
     store = ResultStore(sessions, settings.data_dir)

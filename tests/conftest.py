@@ -30,9 +30,13 @@ from runtime.protocol.messages import (
     AbortRequest,
     EstopReset,
     EstopResetAck,
+    LeaseAck,
+    LeaseRequest,
     MachineState,
     PolicyInfo,
     ResultAck,
+    ReturnToReady,
+    ReturnToReadyAck,
     RuntimeInfo,
     ThrowAck,
     ThrowRequest,
@@ -288,7 +292,10 @@ class FakeRuntime:
             reports it as RuntimeInfo.clock_unix_s).
 
     Set ``frozen = True`` to stand for a stopped (SIGSTOP) runtime's command handling: aborts
-    and E-STOP puts are neither executed nor answered.
+    and E-STOP puts are neither executed nor answered. ``lease_holder`` (the server id it obeys,
+    reported in RuntimeInfo; a signed LeaseRequest takes it when free, held by its sender, or with
+    ``takeover``) and ``undeliverable`` (RuntimeInfo.undeliverable_results) may be set; a signed
+    ReturnToReady is accepted unless E-STOP is latched (``returns`` lists them).
     """
 
     def __init__(self, endpoint: str, machine_id: str = "m1", refuse: str | None = None,
@@ -309,6 +316,9 @@ class FakeRuntime:
         self.aborts: list[bytes] = []
         self.cabin_turn_rad = cabin_turn_rad
         self.requests: list[ThrowRequest] = []
+        self.lease_holder: str | None = None
+        self.undeliverable = 0
+        self.returns: list[ReturnToReady] = []
         self.acks: list[ResultAck] = []
         self.results: list[ThrowResult] = []
         self._stop = threading.Event()
@@ -319,6 +329,8 @@ class FakeRuntime:
             s.declare_queryable(keys.info(machine_id), self._on_info),
             s.declare_queryable(keys.abort(machine_id), self._on_abort),
             s.declare_queryable(keys.estop_reset(machine_id), self._on_estop_reset),
+            s.declare_queryable(keys.lease(machine_id), self._on_lease),
+            s.declare_queryable(keys.return_to_ready(machine_id), self._on_return_to_ready),
         ]
         self._estop_sub = s.declare_subscriber(keys.estop(machine_id), self._on_estop)
         self._state_pub = s.declare_publisher(keys.state(machine_id))
@@ -344,7 +356,8 @@ class FakeRuntime:
                            estop_reason=self.estop_reason, ready=not latched and current is None,
                            not_ready_reason="E-STOP latched" if latched else None,
                            throw_id=current[0] if current else None, phase=current[1] if current else None,
-                           clock_unix_s=self.wall_clock())
+                           clock_unix_s=self.wall_clock(), lease_holder=self.lease_holder,
+                           undeliverable_results=self.undeliverable)
 
     def _on_info(self, query) -> None:
         query.reply(keys.info(self.machine_id), encode(self.info()))
@@ -379,6 +392,25 @@ class FakeRuntime:
             self.estop_reason = None
         ack = EstopResetAck(machine_id=self.machine_id, reset=reason is None, reason=reason)
         query.reply(keys.estop_reset(self.machine_id), encode(ack))
+
+    def _on_lease(self, query) -> None:
+        req = decode(LeaseRequest, query.payload.to_bytes())
+        server = req.auth.server if req.auth is not None and req.auth.server is not None else ""
+        reason = self._check(req)
+        if reason is None and self.lease_holder not in (None, server) and not req.takeover:
+            reason = f"machine {self.machine_id} is commanded by server {self.lease_holder}"
+        if reason is None:
+            self.lease_holder = server
+        ack = LeaseAck(machine_id=self.machine_id, granted=reason is None, holder=self.lease_holder, reason=reason)
+        query.reply(keys.lease(self.machine_id), encode(ack))
+
+    def _on_return_to_ready(self, query) -> None:
+        req = decode(ReturnToReady, query.payload.to_bytes())
+        reason = self._check(req) or ("E-STOP latched" if self.estop_reason else None)
+        if reason is None:
+            self.returns.append(req)
+        ack = ReturnToReadyAck(machine_id=self.machine_id, accepted=reason is None, reason=reason)
+        query.reply(keys.return_to_ready(self.machine_id), encode(ack))
 
     def _on_throw(self, query) -> None:
         req = decode(ThrowRequest, query.payload.to_bytes())

@@ -12,7 +12,7 @@ from tests.conftest import wait_for
 from tests.fixtures import finished_diagnosis_run
 
 
-@pytest.mark.parametrize("path", ["estop", "abort", "estop/reset", "return-to-ready"])
+@pytest.mark.parametrize("path", ["estop", "abort", "estop/reset", "return-to-ready", "lease/takeover"])
 def test_unknown_machine_is_404_known_offline_machine_is_503(client, path):
     r = client.post(f"/api/machines/ghost/{path}")
     assert r.status_code == 404 and r.json()["detail"] == "unknown machine 'ghost'", r.text

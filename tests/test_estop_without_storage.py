@@ -23,7 +23,7 @@ import threading
 import time
 
 from server.db.models import AuditEntry
-from tests.conftest import ADMIN, add_user, login, wait_for
+from tests.conftest import ADMIN, add_user, login, machine_key, wait_for
 from tests.test_storage_faults import _fill, small_disk  # noqa: F401  (a fixture)
 
 OPERATOR = ("op1", "operator-pass-1")
@@ -74,6 +74,90 @@ def test_estop_is_authorised_sent_and_listed_while_the_disk_is_full(settings, sm
         wait_for(lambda: c.app.state.audit_backlog.pending() == 0, 20, "audit backlog written")
         aborts = _audited_aborts(c.app.state.sessions)
         assert any(a["delivered"] and "disk full drill" in a["reason"] and a["user"] == ADMIN[0] for a in aborts), aborts
+
+
+def _small_disk_settings(settings, small_disk):  # noqa: F811
+    data_dir = small_disk / "var"
+    return settings.model_copy(update={"data_dir": data_dir, "database_url": f"sqlite:///{data_dir / 'slinger.db'}",
+                                       "storage_min_free_bytes": 1 << 20})
+
+
+def _audited(sessions, action: str) -> list[dict]:
+    from sqlalchemy import select
+
+    with sessions() as db:
+        return [e.detail | {"user": e.username} for e in db.scalars(select(AuditEntry).where(AuditEntry.action == action))]
+
+
+def test_reset_return_to_ready_and_takeover_work_and_are_audited_while_the_disk_is_full(
+        settings, small_disk, fake_runtime_factory):  # noqa: F811
+    """A reset is a deliberate act that works during a storage fault as the stop does: the session
+    from memory, the signed command sent, the audit entries in memory until the disk has room."""
+    settings = _small_disk_settings(settings, small_disk)
+    with _app(settings) as c:
+        add_user(c.app.state.sessions, *ADMIN, "admin")
+        login(c, *ADMIN)
+        rt = fake_runtime_factory(site_dir=settings.resolved_site_dir)
+        rt.lease_holder = "srv-other"
+        wait_for(lambda: (m := _machine(c)) and m["online"] and m["ready"], 20, "m1 ready")
+        backlog = c.app.state.audit_backlog
+        filler = _fill(small_disk)
+        try:
+            assert c.get("/api/health").json()["condition"] == "disk_full"  # the fault is there
+            assert c.post("/api/machines/m1/estop", json={"reason": "reset drill"}).status_code == 200
+            assert rt.estop_reason is not None
+            r = c.post("/api/machines/m1/estop/reset")
+            assert r.status_code == 200 and r.json()["reset"] is True, r.text  # before: 503 disk_full, latch kept
+            assert rt.estop_reason is None
+            r = c.post("/api/machines/m1/return-to-ready")
+            assert r.status_code == 200 and r.json()["accepted"] is True, r.text  # before: 503
+            assert len(rt.returns) == 1 and rt.returns[0].auth is not None and rt.returns[0].auth.user == ADMIN[0]
+            r = c.post("/api/machines/m1/lease/takeover")
+            assert r.status_code == 200 and r.json()["holder"] == c.app.state.fleet.signer.server_id, r.text
+            wait_for(lambda: backlog.pending() >= 4, 10, "the four audit entries queued in memory")
+        finally:
+            filler.unlink()
+        wait_for(lambda: backlog.pending() == 0, 20, "audit backlog written")
+        sessions = c.app.state.sessions
+        assert [(a["user"], a["delivered"], a["reset"]) for a in _audited(sessions, "estop_reset")] == [(ADMIN[0], True, True)]
+        assert [(a["delivered"], a["accepted"]) for a in _audited(sessions, "return_to_ready")] == [(True, True)]
+        assert [(a["delivered"], a["granted"]) for a in _audited(sessions, "lease_takeover")] == [(True, True)]
+
+
+def test_a_session_from_before_a_restart_stops_and_resets_when_storage_fails_at_start(
+        settings, small_disk, fake_runtime_factory):  # noqa: F811
+    """The session mirror is on disk (server.accounts.session_file): a server restarted while its
+    data disk is full (its first read of the sessions fails) authorises the sessions issued before
+    the restart from the file; a token it never held still needs storage (503)."""
+    from fastapi.testclient import TestClient
+
+    from server.accounts.auth import COOKIE_NAME
+
+    settings = _small_disk_settings(settings, small_disk)
+    with _app(settings) as c:
+        add_user(c.app.state.sessions, *ADMIN, "admin")
+        login(c, *ADMIN)
+        token = c.cookies.get(COOKIE_NAME)
+        assert token
+    assert (settings.data_dir / "session_mirror.json").stat().st_mode & 0o077 == 0  # only the server reads it
+    machine_key(settings.resolved_site_dir, "m1")  # the machine's command key, made before the disk fills
+    filler = _fill(small_disk)
+    try:
+        with _app(settings) as c:  # restarted with the disk full: the sessions cannot be read
+            assert c.app.state.session_mirror.from_file and not c.app.state.session_mirror.loaded
+            c.headers["Authorization"] = f"Bearer {token}"
+            rt = fake_runtime_factory(site_dir=settings.resolved_site_dir)
+            wait_for(lambda: (m := _machine(c)) and m["online"] and m["ready"], 20, "m1 ready")  # before: 503
+            r = c.post("/api/machines/m1/estop", json={"reason": "restart drill"})
+            assert r.status_code == 200, r.text  # before: 503, the stop never sent
+            assert rt.estop_reason is not None and "restart drill" in rt.estop_reason
+            assert c.post("/api/machines/m1/estop/reset").status_code == 200
+            assert rt.estop_reason is None
+            stranger = TestClient(c.app, headers={"Authorization": "Bearer not-a-session-of-this-site"})
+            assert stranger.post("/api/machines/m1/estop").status_code == 503  # unknown: storage must say
+            assert rt.estop_reason is None
+    finally:
+        filler.unlink()
 
 
 class _Relay:

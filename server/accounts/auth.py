@@ -9,7 +9,8 @@ needs a role accepts any higher one.
 Two parts keep the E-STOP and the machine list independent of storage (docs/safety.md):
 :class:`SessionMirror` is an in-memory copy of the valid sessions, loaded at start, refreshed
 after every commit that changes users or sessions and every ``refresh_s`` (changes made by other
-processes, e.g. ``slinger user``), and kept as it was while storage fails; :class:`AuditBacklog`
+processes, e.g. ``slinger user``), and kept as it was while storage fails (and on disk:
+server.accounts.session_file, read at start when storage fails then); :class:`AuditBacklog`
 queues audit entries that cannot be written and writes them, with their original time, once
 storage is back.
 """
@@ -30,6 +31,7 @@ from sqlalchemy import Delete, Update, delete, event, func, select
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
+from server.accounts.session_file import SessionFile
 from server.db.models import ROLES, AuditEntry, AuthSession, User
 from server.db.types import utcnow
 from server.db.upsert import insert_if_absent
@@ -342,21 +344,35 @@ class SessionMirror:
     effect at once); a thread re-reads it every ``refresh_s`` for changes made by other processes.
     A failed read (storage fault) keeps what it held; expiry is judged in memory.
 
+    With ``file`` (server.accounts.session_file) every read that changed what the mirror holds is
+    written there, and :meth:`start` reads the file when the database cannot be read: sessions
+    issued before a restart then still authorise an E-STOP (or a reset) while storage fails, as
+    they would have without the restart. The file holds what the last successful read held: an
+    account disabled while this server was down stays valid from the file until the database
+    answers (as a change made during a storage fault waits for the next successful read).
+
     Args:
         sessions: the session factory.
         refresh_s: see MIRROR_REFRESH_S.
         on_tick: called after each periodic refresh (e.g. :meth:`AuditBacklog.flush`).
+        file: where the sessions are kept across restarts (None: memory only).
     """
 
-    def __init__(self, sessions: sessionmaker[Session], refresh_s: float = MIRROR_REFRESH_S, on_tick=None):
+    def __init__(self, sessions: sessionmaker[Session], refresh_s: float = MIRROR_REFRESH_S, on_tick=None,
+                 file: SessionFile | None = None):
         self.sessions = sessions
         self.refresh_s = refresh_s
         self.on_tick = on_tick
+        self.file = file
         self._map: dict[str, tuple[SessionUser, datetime]] = {}
         self._lock = threading.Lock()
+        self._file_lock = threading.Lock()
+        self._saved: dict[str, tuple[SessionUser, datetime]] | None = None
         self._generation = 0
         self.loaded = False
         """True once a read succeeded (before that, a miss means "unknown", not "invalid")."""
+        self.from_file = False
+        """True while the mirror holds the file's sessions (storage failed at start; no read yet)."""
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -390,7 +406,42 @@ class SessionMirror:
             if generation == self._generation:  # a later refresh (after a newer commit) wins
                 self._map = fresh
                 self.loaded = True
+                self.from_file = False
+        self._save()
         return True
+
+    def _save(self) -> None:
+        """Write the mirror to its file if what it holds changed since the last write (logged on
+        failure; the next change or :meth:`stop` tries again)."""
+        if self.file is None:
+            return
+        with self._file_lock:
+            with self._lock:
+                current = self._map
+            if current is self._saved or current == self._saved:
+                return
+            try:
+                self.file.save({digest: (u.id, u.username, u.role, u.active, u.created_at, expires)
+                                for digest, (u, expires) in current.items()})
+                self._saved = current
+            except OSError as e:
+                log.error("session mirror file %s not written (%s): sessions from now on need storage after a "
+                          "restart", self.file.path, e.strerror or e)
+
+    def _load_file(self) -> None:
+        """Hold the file's unexpired sessions (start, when the database cannot be read)."""
+        if self.file is None:
+            return
+        now = utcnow()
+        kept = {digest: (SessionUser(uid, name, role, active, created), expires)
+                for digest, (uid, name, role, active, created, expires) in self.file.load().items() if expires > now}
+        with self._lock:
+            if self.loaded:  # a read succeeded meanwhile
+                return
+            self._map, self.from_file = kept, True
+            self._saved = kept
+        log.warning("storage not readable at start: %d session(s) authorised from %s until it answers", len(kept),
+                    self.file.path)
 
     def drop(self, token: str | None) -> None:
         """Forget ``token`` at once (the database said it is not valid)."""
@@ -424,15 +475,18 @@ class SessionMirror:
             db.info.pop("auth_changed", None)
 
     def start(self) -> None:
-        """Read once, then start the refresh thread."""
-        self.refresh()
+        """Read once (the file's sessions if that fails), then start the refresh thread."""
+        if not self.refresh():
+            self._load_file()
         self._thread = threading.Thread(target=self._loop, name="session-mirror", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
+        """Stop the refresh thread; the file is written if a change is not on it yet."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
+        self._save()
 
     def _loop(self) -> None:
         while not self._stop.wait(self.refresh_s):

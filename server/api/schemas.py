@@ -62,6 +62,14 @@ class MachineOut(BaseModel):
         clock_offset_s: the runtime host's wall clock minus the server's, s (None: not
             reported); ``clock_warning`` says so in words when it is more than
             CLOCK_WARN_S off (signed commands are compensated; the host's time sync is broken).
+        lease_holder: the server id (server.fleet.command_signer) whose commands the runtime
+            obeys now (one writer per machine: runtime.service's lease; "" an unnamed server),
+            None while nobody holds the lease or unknown; ``lease_held_here`` True when it is
+            this server, False when another one (this server's commands are refused until its
+            lease expires or an operator takes it over: POST .../lease/takeover), None when
+            nobody holds it or unknown.
+        undeliverable_results: throw results the runtime's outbox set aside after servers
+            refused them repeatedly (runtime.outbox; kept on the runtime's disk), None if unknown.
     """
 
     id: str
@@ -78,6 +86,9 @@ class MachineOut(BaseModel):
     throw_id: str | None = None
     clock_offset_s: float | None = None
     clock_warning: str | None = None
+    lease_holder: str | None = None
+    lease_held_here: bool | None = None
+    undeliverable_results: int | None = None
     last_throw_at: datetime | None = None
     last_throw_status: str | None = None
     current_mode: str | None = None

@@ -1,14 +1,17 @@
 """GET /api/machines: the machines the server knows or hears, with presence, policies and the
 runtime's state (E-STOP latch, readiness, running throw). E-STOP: POST .../estop (alias .../abort)
-on the fast path; POST .../estop/reset releases the latch and POST .../return-to-ready starts the
-runtime's recovery action (operator, audited). POST .../drift/ack acknowledges the machine's
-drift alert (server.analysis.drift; operator, audited)."""
+on the fast path; POST .../estop/reset releases the latch, POST .../return-to-ready starts the
+runtime's recovery action and POST .../lease/takeover takes the machine's lease from another
+server (operator, audited; like the E-STOP these need no storage: the session is checked in
+memory and the audit entry waits in memory while storage fails). POST .../drift/ack acknowledges
+the machine's drift alert (server.analysis.drift; operator, audited)."""
 
 from __future__ import annotations
 
 import asyncio
 import logging
 import time
+from collections.abc import Callable
 from typing import Any
 
 from fastapi import APIRouter, Request
@@ -16,13 +19,11 @@ from pydantic import BaseModel, Field
 from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
 
-from server.accounts.auth import AuditBacklog, audit, record_audit
+from server.accounts.auth import AuditBacklog, SessionUser, record_audit
 from server.api.deps import (
     AuditBacklogDep,
     DriftDep,
     FleetDep,
-    OperatorDep,
-    SessionDep,
     SessionsDep,
     ViewerDep,
     authorised_or_audited,
@@ -31,7 +32,7 @@ from server.api.deps import (
 from server.api.report_schemas import DriftAlertOut
 from server.api.responses import errors
 from server.api.schemas import MachineOut
-from server.db.models import Machine, Throw
+from server.db.models import Machine, Throw, User
 from server.errors import Conflict, NotFound, Unavailable
 from server.fleet.link import RUNTIME_SILENT_S, Fleet, RuntimeUnavailable, clock_warning
 from server.site.storage import StorageFault
@@ -125,6 +126,9 @@ def _runtime_out(mid: str, row: Machine | None, fleet: Fleet) -> MachineOut:
         ready=info.ready if info else (False if not online else None),
         not_ready_reason=(info.not_ready_reason if info else ("runtime offline" if not online else None)),
         phase=info.phase if info else None, throw_id=info.throw_id if info else None,
+        lease_holder=info.lease_holder if info else None,
+        lease_held_here=(info.lease_holder == fleet.signer.server_id) if info and info.lease_holder is not None else None,
+        undeliverable_results=info.undeliverable_results if info else None,
     )
 
 
@@ -173,24 +177,64 @@ async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: Se
         log.info("E-STOP %s: authenticated in %.1f ms, runtime confirmed after %.1f ms more", machine_id,
                  (t_auth - t0) * 1e3, (time.perf_counter() - t_auth) * 1e3)
     except (RuntimeUnavailable, ValueError) as e:
-        error = _sentence(e)
-        _audit_later(fleet, backlog, user.username, machine_id[:64], reason=reason, delivered=False, error=error)
+        refused = _not_confirmed(lambda *a, **kw: _audit_later(fleet, backlog, *a, **kw), user.username, "abort",
+                                 machine_id, "abort", e, reason=reason)
         await asyncio.to_thread(_404_if_unknown, fleet, sessions, machine_id)
-        raise Unavailable(f"abort of {machine_id} not confirmed: {error}") from e
+        raise refused from e
     fleet.forget_info(machine_id)
-    _audit_later(fleet, backlog, user.username, machine_id, reason=reason, delivered=True,
+    _audit_later(fleet, backlog, user.username, "abort", machine_id, reason=reason, delivered=True,
                  throw_id=ack.aborted_throw_id)
     return AbortOut(machine_id=machine_id, aborted_throw_id=ack.aborted_throw_id)
 
 
-def _audit_later(fleet: Fleet, backlog: AuditBacklog, username: str, subject: str, **detail) -> None:
+def _audit_later(fleet: Fleet, backlog: AuditBacklog, username: str, action: str, subject: str, **detail) -> None:
     """Audit an E-STOP (action ``abort``) on the fleet's database thread, after the stop went out;
     while storage fails the entry waits in ``backlog``. The E-STOP reply never waits for it."""
     def logged(done) -> None:
         if done.exception() is not None:
             log.error("E-STOP audit entry not written: %s", done.exception())
 
-    fleet.submit_db_job(lambda: backlog.record(username, "abort", subject, **detail)).add_done_callback(logged)
+    fleet.submit_db_job(lambda: backlog.record(username, action, subject, **detail)).add_done_callback(logged)
+
+
+def _not_confirmed(record, username: str, action: str, machine_id: str, what: str, e: Exception,
+                   **detail) -> Unavailable:
+    """A command the runtime did not confirm (``e``: offline, no answer, no command key): the
+    attempt is audited as undelivered through ``record(username, action, subject, **detail)``
+    (AuditBacklog.record, or :func:`_audit_later` on the E-STOP's fast path) and the returned
+    Unavailable (503) names ``what`` and the cause. The caller checks :func:`_404_if_unknown`
+    and raises it."""
+    error = _sentence(e)
+    record(username, action, machine_id[:64], **detail, delivered=False, error=error)
+    return Unavailable(f"{what} of {machine_id} not confirmed: {error}")
+
+
+def _operator_command(request: Request, fleet: Fleet, sessions, backlog: AuditBacklog, action: str, machine_id: str,
+                      what: str, send: Callable[[str], Any]) -> tuple[User | SessionUser, Any]:
+    """A deliberate operator command that, like the E-STOP, needs no storage while storage fails
+    (an E-STOP reset, a return to the ready pose, a lease takeover: docs/safety.md, row S10): the
+    session is checked in memory (server.api.deps.user_from_memory), ``send(username)`` sends the
+    signed command and returns the runtime's ack, and the audit entries go through ``backlog``
+    (written at once, or kept in memory in order until storage is back). An undelivered command is
+    audited as such (:func:`_not_confirmed`). The caller audits the delivered one with the ack's
+    outcome (``backlog.record``).
+
+    Returns:
+        (the operator, the runtime's ack).
+
+    Raises:
+        Unauthenticated (401), Denied (403): no session, or a role below operator.
+        NotFound (404): the runtime did not answer and the machine was never registered.
+        Unavailable (503): the runtime did not answer (offline, no reply, no command key), or the
+            session is not in memory and storage does not answer.
+    """
+    user = user_from_memory(request, "operator")
+    try:
+        return user, send(user.username)
+    except (RuntimeUnavailable, ValueError) as e:
+        refused = _not_confirmed(backlog.record, user.username, action, machine_id, what, e)
+        _404_if_unknown(fleet, sessions, machine_id)
+        raise refused from e
 
 
 def _sentence(e: Exception) -> str:
@@ -216,30 +260,20 @@ def _404_if_unknown(fleet: Fleet, sessions, machine_id: str) -> None:
         raise NotFound(f"unknown machine {machine_id!r}")
 
 
-def _delivered(db, username: str, action: str, machine_id: str, what: str, send, fleet: Fleet | None = None,
-               sessions=None):
-    """The runtime's ack of a signed command ``send()``; if it was not confirmed, the attempt is
-    audited as undelivered (action ``action``) and NotFound (unknown machine, checked when
-    ``fleet`` and ``sessions`` are given) or Unavailable names ``what``."""
-    try:
-        return send()
-    except (RuntimeUnavailable, ValueError) as e:
-        audit(db, username, action, machine_id[:64], delivered=False, error=_sentence(e))
-        db.commit()
-        if fleet is not None and sessions is not None:
-            _404_if_unknown(fleet, sessions, machine_id)
-        raise Unavailable(f"{what} of {machine_id} not confirmed: {_sentence(e)}") from e
+COMMAND_RESPONSES = ((404, "unknown machine"), (503, "the runtime did not answer, or no command key, or the session is "
+                                                    "not in memory and storage does not answer"))
 
 
 @router.post("/{machine_id}/estop/reset", response_model=EstopResetOut,
-             responses=errors((404, "unknown machine"), (409, "the runtime refused the reset (its reason)"),
-                              (503, "the runtime did not answer, or no command key")))
-def estop_reset(machine_id: str, db: SessionDep, sessions: SessionsDep, fleet: FleetDep, user: OperatorDep) -> EstopResetOut:
-    """Release the runtime's latched E-STOP (a signed EstopReset in the operator's name); audited."""
-    ack = _delivered(db, user.username, "estop_reset", machine_id, "E-STOP reset",
-                     lambda: fleet.estop_reset(machine_id, user.username), fleet, sessions)
-    audit(db, user.username, "estop_reset", machine_id, delivered=True, reset=ack.reset, reason=ack.reason)
-    db.commit()
+             responses=errors(401, (403, "needs the operator role"), (409, "the runtime refused the reset (its reason)"),
+                              *COMMAND_RESPONSES))
+def estop_reset(machine_id: str, request: Request, sessions: SessionsDep, fleet: FleetDep,
+                backlog: AuditBacklogDep) -> EstopResetOut:
+    """Release the runtime's latched E-STOP (a signed EstopReset in the operator's name); audited.
+    Works during a storage fault as the E-STOP does (:func:`_operator_command`)."""
+    user, ack = _operator_command(request, fleet, sessions, backlog, "estop_reset", machine_id, "E-STOP reset",
+                                  lambda username: fleet.estop_reset(machine_id, username))
+    backlog.record(user.username, "estop_reset", machine_id, delivered=True, reset=ack.reset, reason=ack.reason)
     if not ack.reset:
         clock = clock_warning(fleet.clock_offset_s(machine_id))
         raise Conflict(f"the runtime of {machine_id} kept E-STOP latched: {ack.reason}" + (f"; {clock}" if clock else ""))
@@ -253,20 +287,50 @@ class ReturnToReadyOut(BaseModel):
 
 
 @router.post("/{machine_id}/return-to-ready", response_model=ReturnToReadyOut,
-             responses=errors((404, "unknown machine"), (409, "the runtime refused (its reason: E-STOP latched, a throw runs, ...)"),
-                              (503, "the runtime did not answer, or no command key")))
-def return_to_ready(machine_id: str, db: SessionDep, sessions: SessionsDep, fleet: FleetDep,
-                    user: OperatorDep) -> ReturnToReadyOut:
+             responses=errors(401, (403, "needs the operator role"),
+                              (409, "the runtime refused (its reason: E-STOP latched, a throw runs, ...)"),
+                              *COMMAND_RESPONSES))
+def return_to_ready(machine_id: str, request: Request, sessions: SessionsDep, fleet: FleetDep,
+                    backlog: AuditBacklogDep) -> ReturnToReadyOut:
     """Recovery action: the runtime drives the arm back to its ready pose (a signed ReturnToReady
     in the operator's name; runtime/recovery.py). Progress and the end follow in the machine's live
-    state (``returning``, ``return_progress``, ``return_result``). Audited."""
-    ack = _delivered(db, user.username, "return_to_ready", machine_id, "return to the ready pose",
-                     lambda: fleet.return_to_ready(machine_id, user.username), fleet, sessions)
-    audit(db, user.username, "return_to_ready", machine_id, delivered=True, accepted=ack.accepted, reason=ack.reason)
-    db.commit()
+    state (``returning``, ``return_progress``, ``return_result``). Audited; works during a storage
+    fault as the E-STOP does (:func:`_operator_command`)."""
+    user, ack = _operator_command(request, fleet, sessions, backlog, "return_to_ready", machine_id,
+                                  "return to the ready pose", lambda username: fleet.return_to_ready(machine_id, username))
+    backlog.record(user.username, "return_to_ready", machine_id, delivered=True, accepted=ack.accepted, reason=ack.reason)
     if not ack.accepted:
         raise Conflict(f"the runtime of {machine_id} refused to return to the ready pose: {ack.reason}")
     return ReturnToReadyOut(machine_id=machine_id, accepted=True)
+
+
+class LeaseOut(BaseModel):
+    """The machine's lease after a takeover: ``holder`` is the server id that commands it now."""
+
+    machine_id: str
+    granted: bool
+    holder: str | None = None
+    reason: str | None = None
+
+
+@router.post("/{machine_id}/lease/takeover", response_model=LeaseOut,
+             responses=errors(401, (403, "needs the operator role"),
+                              (409, "the runtime refused the takeover (its reason: a throw of the holder runs, ...)"),
+                              *COMMAND_RESPONSES))
+def take_over(machine_id: str, request: Request, sessions: SessionsDep, fleet: FleetDep,
+              backlog: AuditBacklogDep) -> LeaseOut:
+    """Take the machine's lease from the server that holds it (one writer per machine:
+    runtime.service): a signed ``LeaseRequest(takeover=True)`` in the operator's name
+    (server.fleet.commands.FleetCommands.lease); the runtime refuses it while a throw runs. From
+    then on this server commands the machine and the other one is refused with this server named.
+    Audited (``lease_takeover``), from memory as the E-STOP reset (:func:`_operator_command`)."""
+    user, ack = _operator_command(request, fleet, sessions, backlog, "lease_takeover", machine_id, "lease takeover",
+                                  lambda username: fleet.lease(machine_id, username, takeover=True))
+    backlog.record(user.username, "lease_takeover", machine_id, delivered=True, granted=ack.granted, holder=ack.holder,
+                   reason=ack.reason)
+    if not ack.granted:
+        raise Conflict(f"the runtime of {machine_id} refused the takeover: {ack.reason}")
+    return LeaseOut(machine_id=machine_id, granted=True, holder=ack.holder, reason=ack.reason)
 
 
 @router.post("/{machine_id}/drift/ack", response_model=DriftAlertOut, responses=errors(
