@@ -1,7 +1,8 @@
 """``slinger worker``: a worker process of the job queue (server.jobs).
 
 It consumes both lanes by default, each with its own Huey consumer (thread workers): ``fast``
-(previews, the effects catalogue; polled every <= 0.1 s on SQLite) and ``heavy`` (evaluations,
+(previews, the effects catalogue; polled every <= FAST_POLL_S = 0.05 s on SQLite: a preview's
+pickup is part of the console's aiming time) and ``heavy`` (evaluations,
 diagnoses, adaptations, probes). Start as many as you like, on this host (SQLite queue) or on
 any host that reaches the queue and the database (PostgreSQL or Redis queue; the data dir, where
 policy files and telemetry live, shared)::
@@ -27,6 +28,12 @@ from server.jobs.queue import LANES, JobQueue, queue_url
 from server.site.storage import StorageMonitor
 
 log = logging.getLogger(__name__)
+
+FAST_POLL_S = 0.05
+"""Longest wait between two looks of an idle fast-lane consumer at a queue without wake-ups
+(SQLite): a preview waits half of it on average before a worker takes it (the console's
+nominal preview has 0.5 s in all, tests/benchmarks/bench_console_aim.py); a look is one small
+query of the queue's own database file."""
 
 
 def build_parser(p: argparse.ArgumentParser) -> None:
@@ -81,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
         workers = args.fast_workers if lane == "fast" else args.heavy_workers
         consumers.append(queue.hueys[lane].create_consumer(
             workers=workers, worker_type="thread", periodic=False, initial_delay=0.02, backoff=1.5,
-            max_delay=0.1 if lane == "fast" else 1.0, check_worker_health=True))
+            max_delay=FAST_POLL_S if lane == "fast" else 1.0, check_worker_health=True))
     log.info("worker %s (id %s) consuming %s on %s", ctx.name, ctx.identity.id, ",".join(lanes), _redact(url))
     lease.start()
     try:

@@ -19,7 +19,7 @@
 "use strict";
 
 const state = { consoleId: null, viserPort: null, machines: Strip.machines, machineId: null, mode: "2d", target: null,
-  targetReason: null, preview: null, previewKey: null, busy: false, throwId: null, throwStarted: null,
+  targetReason: null, preview: null, previewKey: null, busy: false, throwId: null, throwStarted: null, shownState: null,
   check: null, checkAt: 0, checking: false, autoAt: 0, typed: null, editing: false, confirming: null, epochs: new Map() };
 const PREVIEW_CHECK_MS = 1000;
 const AUTO_PREVIEW_MIN_MS = 4000; // at most one automatic preview per this interval
@@ -94,7 +94,13 @@ function onMachineEvent(m) {
   const seen = state.epochs.get(m.machine_id);
   if (m.epoch) state.epochs.set(m.machine_id, m.epoch);
   if (m.machine_id === state.machineId && seen && m.epoch && m.epoch !== seen) onRestart(m);
-  if (m.machine_id === state.machineId) renderState();
+  if (m.machine_id !== state.machineId) return;
+  const was = state.shownState;
+  state.shownState = m.state;
+  renderState();
+  // ready again (a throw over, a payload reloaded): the gate judges the preview on screen now,
+  // and the page previews again if it must, instead of at the next PREVIEW_CHECK_MS tick
+  if (m.state === "ready" && was && was !== "ready") checkPreview();
 }
 
 /** The selected machine's runtime restarted (a new RuntimeInfo epoch): the target, preview and
@@ -459,9 +465,11 @@ async function showResult(throwId) {
     $("out-cross").textContent = `${fmt(t.crossrange_error_m)} m`;
     $("out-duration").textContent = t.duration_s !== undefined && t.duration_s !== null ? `${fmt(t.duration_s)} s` : "–";
   }
+  // the throw is over once its result is read: the next judgement (and preview) need not wait
+  // for its trajectory to load
+  if (throwId === state.throwId) { state.throwId = null; state.throwStarted = null; }
   try { tr = await api("GET", `/api/throws/${throwId}/trajectory`); } catch (e) { /* no telemetry */ }
   if (tr) { plots.showTrajectory(tr); plots.enableScrubber(); }
-  if (throwId === state.throwId) { state.throwId = null; state.throwStarted = null; }
 }
 
 async function doReturnToReady() {
