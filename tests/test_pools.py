@@ -31,13 +31,15 @@ def test_pool_workers_start_from_a_fresh_interpreter_while_a_thread_holds_a_lock
 
 def test_preview_monte_carlo_in_a_pool_gives_the_same_impacts():
     """The preview's full rollouts in pool processes (the worker's Settings.preview_processes)
-    land where they land in one process: every release delay is drawn before they run."""
+    land where they land in one process: every release delay is drawn before they run; a pool
+    whose processes loaded the policy ahead (warm_policy, as a worker does on a policy's first
+    nominal preview) gives the same."""
     import numpy as np
 
     from runtime.policy import PolicyRunner
+    from sim_twin.preview.preview import PreviewRequest, preview_throw, site_profile, warm_policy, warm_up
     from sim_twin.twin.initial_pose import sample_pose
     from sim_twin.twin.pools import process_pool
-    from sim_twin.preview.preview import PreviewRequest, preview_throw, site_profile, warm_up
 
     policy = PolicyRunner.load("policies/throw2d.onnx")
     profile = site_profile(None, None)
@@ -47,6 +49,8 @@ def test_preview_monte_carlo_in_a_pool_gives_the_same_impacts():
     pool = process_pool(2)
     try:
         warm_up(pool, 2)
+        for f in warm_policy(pool, 2, policy.path):
+            assert f.result() is None  # loaded, first calls made (raises here if they failed)
         pooled = preview_throw(policy, req, profile, pool=pool)
     finally:
         pool.shutdown()

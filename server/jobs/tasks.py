@@ -173,7 +173,7 @@ def _json_safe(result) -> dict:
 # --- runners ----------------------------------------------------------------------------------
 def run_preview(ctx: WorkerContext, job: JobRun[PreviewSpec], progress) -> dict:
     from runtime.policy import PolicyError, PolicyRunner
-    from sim_twin.preview.preview import PreviewRequest, preview_throw
+    from sim_twin.preview.preview import PreviewRequest, preview_throw, warm_policy
 
     spec = job.spec
     sha = spec.sha256
@@ -186,6 +186,11 @@ def run_preview(ctx: WorkerContext, job: JobRun[PreviewSpec], progress) -> dict:
             raise JobRefused(f"policy {sha[:12]}… does not load on the worker: {e}") from e
         with ctx.lock:
             ctx.runners[sha] = runner
+        if ctx.preview_pool is not None and spec.request.get("rollouts", 0) <= 1:
+            # a policy new to this worker, met in a nominal-only preview (the console's first
+            # request): its Monte Carlo processes load it meanwhile, not in the ellipse's rollouts
+            warm_policy(ctx.preview_pool, ctx.settings.preview_processes if ctx.settings else 2, runner.path,
+                        spec.request.get("release_check_radius_m") is not None)
     return preview_throw(runner, PreviewRequest(**spec.request), _site_profile(ctx, runner, spec.profile_path),
                          pool=ctx.preview_pool)
 

@@ -383,17 +383,39 @@ _PROCESS_CACHE: dict = {}
 def _rollout_in_process(policy_path: str, req: PreviewRequest, profile: RealityProfile, q, qd, seed: int,
                         delays: np.ndarray) -> np.ndarray | None:
     """:func:`_rollout_impacts` in a pool process (the policy and release check cached there)."""
+    policy, check = _process_policy(policy_path, req.release_check_radius_m is not None)
+    return _rollout_impacts(policy, req, profile, q, qd, seed, delays, check)
+
+
+def _process_policy(policy_path: str, release_check: bool):
+    """(policy runner, release check or None) of this pool process, loaded once (_PROCESS_CACHE)."""
     from runtime.policy import PolicyRunner
 
     policy = _PROCESS_CACHE.get(policy_path)
     if policy is None:
         policy = _PROCESS_CACHE[policy_path] = PolicyRunner.load(policy_path)
     check = None
-    if req.release_check_radius_m is not None:
+    if release_check:
         check = _PROCESS_CACHE.get("release_check")
         if check is None:
             check = _PROCESS_CACHE["release_check"] = ReleaseCheck.load()
-    return _rollout_impacts(policy, req, profile, q, qd, seed, delays, check)
+    return policy, check
+
+
+def warm_policy(pool: Executor, processes: int, policy_path: str | Path, release_check: bool = True) -> list[Future]:
+    """Load the policy ``policy_path`` (and the release check) in the ``processes`` processes of
+    ``pool`` and make their first calls (runtime.executor.ThrowExecutor.warm_up), so that the
+    first Monte Carlo of a policy does not pay for them in its rollouts. Returns at once (the
+    futures); a worker calls it when a preview brings a policy it has not loaded yet, so the
+    processes load it while that preview's nominal rollout runs and the console asks for the
+    ellipse. A process that takes two of these tasks loads once (the second is a cache hit)."""
+    return [pool.submit(_warm_process, str(policy_path), release_check) for _ in range(processes)]
+
+
+def _warm_process(policy_path: str, release_check: bool) -> None:
+    policy, check = _process_policy(policy_path, release_check)
+    config = ExecutorConfig(release_check_radius_m=DEFAULT_RADIUS_M if check is not None else None)
+    ThrowExecutor({policy.mode: policy}, config=config, release_check=check).warm_up()
 
 
 def warm_up(pool: Executor, processes: int) -> None:
