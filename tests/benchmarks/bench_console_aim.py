@@ -5,8 +5,9 @@ release check on):
 * 2D preview: Preview pressed -> the nominal rollout shown (its row in the preview table), and
   -> the 1 sigma ellipse shown (the "1σ" row names its rollouts);
 * 3D preview: the same, the ellipse is the figure;
-* Throw -> next Throw: Throw pressed -> Throw enabled again (the throw ran, the machine was
-  reloaded, the page previewed again by itself and the server's gate judged that preview valid).
+* Throw -> next Throw: Throw pressed -> Throw enabled again (the throw was accepted and ran, the
+  machine was reloaded, the page previewed again by itself and the server's gate judged that
+  preview valid); a throw the server did not accept is a failed sample.
 
 Run: ``PYTHONPATH=. nice -n 10 python tests/benchmarks/bench_console_aim.py --repeats 5 [--out R.json]``.
 Prints p50/p95/max in seconds for each, with the host's load average and core count beside them
@@ -53,10 +54,12 @@ TIMED_PREVIEW = """() => new Promise((resolve) => {
 })"""
 
 TIMED_REPEAT = """() => new Promise((resolve) => {
-    const t0 = performance.now(); const btn = document.getElementById('throw'); let left = false;
+    const t0 = performance.now(); const btn = document.getElementById('throw'); let left = false, sent = false;
     const seen = () => {
         if (btn.disabled) left = true;
-        if (left && !btn.disabled) { clearInterval(iv); resolve((performance.now() - t0) / 1000); }
+        if (state.throwId) sent = true;  // the server accepted the throw (its result clears it)
+        if (/throw was not sent/.test(document.getElementById('status').textContent)) { clearInterval(iv); resolve(null); }
+        if (left && sent && !btn.disabled) { clearInterval(iv); resolve((performance.now() - t0) / 1000); }
     };
     const iv = setInterval(seen, 20);
     setTimeout(() => { clearInterval(iv); resolve(null); }, 300000);

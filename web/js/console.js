@@ -19,7 +19,7 @@
 "use strict";
 
 const state = { consoleId: null, viserPort: null, machines: Strip.machines, machineId: null, mode: "2d", target: null,
-  targetReason: null, preview: null, previewKey: null, busy: false, throwId: null, throwStarted: null, shownState: null,
+  targetReason: null, preview: null, previewKey: null, busy: false, throwId: null, throwStarted: null, shownState: null, sending: false, sends: 0,
   check: null, checkAt: 0, checking: false, autoAt: 0, typed: null, editing: false, confirming: null, epochs: new Map() };
 const PREVIEW_CHECK_MS = 1000;
 const AUTO_PREVIEW_MIN_MS = 4000; // at most one automatic preview per this interval
@@ -211,7 +211,7 @@ function updateButtons() {
     Date.now() - state.checkAt < 3 * PREVIEW_CHECK_MS + 2000;
   const valid = previewOnScreen() && fresh && state.check.valid;
   const confirmed = state.mode !== "3d" || $("confirm-clearance").checked;
-  $("throw").disabled = !(ready && valid && confirmed) || !!state.confirming;
+  $("throw").disabled = !(ready && valid && confirmed) || !!state.confirming || state.sending;
   $("throw").textContent = throwLabel();
   $("confirm-box").hidden = state.mode !== "3d";
   $("preview-panel").classList.toggle("stale", !!state.preview && !(previewOnScreen() && (!state.check || state.check.valid)));
@@ -259,11 +259,12 @@ async function checkPreview() {
   // no judgement while a throw runs (its result clears state.throwId): the swing outdates it
   if (!m || m.state === "throwing" || state.throwId) { renderPreviewAge(); return; }
   state.checking = true;
-  const p = state.preview;
+  const p = state.preview, sends = state.sends;
   try {
     const c = await api("POST", `/api/previews/${encodeURIComponent(p.id)}/check`,
       { machine_id: state.machineId, mode: state.mode, target: state.target });
-    if (state.preview !== p) return;
+    // a throw sent meanwhile used this preview: this judgement is of the machine before it
+    if (state.preview !== p || state.sends !== sends) return;
     state.check = { ...c, previewId: p.id };
     state.checkAt = Date.now();
   } catch (e) {
@@ -381,6 +382,7 @@ async function doThrow() {
     }
   }
   $("throw").disabled = true;
+  state.sending = true; state.sends += 1; // no Throw (and no judgement of this preview) until the answer
   setStatus(`Sending the throw at ${where}…`);
   try {
     const body = { machine_id: state.machineId, mode: state.mode, target, preview_id: p.id };
@@ -398,6 +400,7 @@ async function doThrow() {
   } catch (e) {
     setStatus(`The throw was not sent. ${e.message}`, true);
   } finally {
+    state.sending = false;
     updateButtons();
   }
 }
