@@ -11,7 +11,8 @@ release check on):
 
 Run: ``PYTHONPATH=. nice -n 10 python tests/benchmarks/bench_console_aim.py --repeats 5 [--out R.json]``.
 Prints p50/p95/max in seconds for each, with the host's load average and core count beside them
-(each sample's load too); ``--out`` writes them as a report (every sample with its load, the
+(each sample's load too), and the CPU seconds the job worker and its preview pool spent per
+Preview click (nominal + ellipse: what a preview costs whatever else runs); ``--out`` writes them as a report (every sample with its load, the
 figures with their bars, date, commit, policy SHA-256, host, command).
 Goals (issue of the console): 2D nominal <= 0.5 s, 2D ellipse <= 2 s, 3D ellipse <= 5 s (p95),
 Throw -> next Throw <= 8 s.
@@ -92,6 +93,35 @@ def figure(what: str, values: list[float | None]) -> dict:
     return out
 
 
+def _procs() -> dict[int, tuple[int, str, float]]:
+    """pid -> (parent pid, command line, CPU seconds used so far) of every process (Linux /proc)."""
+    out, tick = {}, os.sysconf("SC_CLK_TCK")
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        f = stat[stat.rindex(")") + 2:].split()
+        out[int(d.name)] = (int(f[1]), cmd, (int(f[11]) + int(f[12])) / tick)
+    return out
+
+
+def worker_cpu_s(up_pid: int) -> float:
+    """CPU seconds used so far by the stack's job worker and its descendants (the preview pool):
+    what a preview costs, whatever else the host runs (the wall times depend on the load)."""
+    procs = _procs()
+    roots = [p for p, (pp, cmd, _) in procs.items() if pp == up_pid and "server.cli worker" in cmd]
+    total, todo = 0.0, list(roots)
+    while todo:
+        pid = todo.pop()
+        total += procs[pid][2]
+        todo += [p for p, (pp, _, _) in procs.items() if pp == pid]
+    return total
+
+
 SAMPLES: list[dict] = []
 """Every sample of the run: what, target distance, seconds (None: failed), 1-min load average."""
 
@@ -123,39 +153,49 @@ def run(repeats: int) -> list[dict]:
             log_in(page, up.base_url)
             page.locator("#machine-state", has_text="m1 READY").wait_for()
             targets = [7.0 + 0.6 * (i % 5) for i in range(repeats)]
-            nominal, ellipse, repeat = [], [], []
+            nominal, ellipse, repeat, cpu = [], [], [], []
             for d in targets:
                 page.locator("#machine-state", has_text="m1 READY").wait_for()
                 set_target(page, d, 0.0)
+                c0 = worker_cpu_s(up.proc.pid)
                 n, e = page.evaluate(TIMED_PREVIEW)
+                cpu.append(worker_cpu_s(up.proc.pid) - c0)
                 nominal.append(n)
                 ellipse.append(e)
                 page.locator("#throw:not([disabled])").wait_for()
                 repeat.append(page.evaluate(TIMED_REPEAT))
-                for what, v in (("2D nominal preview", n), ("2D ellipse preview", e), ("Throw -> next Throw enabled", repeat[-1])):
+                for what, v in (("2D nominal preview", n), ("2D ellipse preview", e), ("Throw -> next Throw enabled", repeat[-1]),
+                                ("2D worker CPU per Preview (nominal + ellipse)", cpu[-1])):
                     note(what, d, v)
-                print(f"  2D {d:.1f} m: nominal {n} s, ellipse {e} s, Throw -> Throw {repeat[-1]} s ({host_load()})",
-                      flush=True)
+                print(f"  2D {d:.1f} m: nominal {n} s, ellipse {e} s, Throw -> Throw {repeat[-1]} s, worker CPU "
+                      f"{cpu[-1]:.2f} s per Preview ({host_load()})", flush=True)
             print(f"2D nominal preview: {stats(nominal)}  ({host_load()})", flush=True)
             print(f"2D ellipse preview: {stats(ellipse)}  ({host_load()})", flush=True)
             print(f"Throw -> next Throw enabled: {stats(repeat)}  ({host_load()})", flush=True)
             page.check("input[name=mode][value='3d']")
             page.wait_for_function("() => state.mode === '3d'")
-            nominal3, ellipse3 = [], []
+            nominal3, ellipse3, cpu3 = [], [], []
             for d in targets:
                 page.locator("#machine-state", has_text="m1 READY").wait_for()
                 set_target(page, d, 1.0)
+                c0 = worker_cpu_s(up.proc.pid)
                 n, e = page.evaluate(TIMED_PREVIEW)
+                cpu3.append(worker_cpu_s(up.proc.pid) - c0)
                 nominal3.append(n)
                 ellipse3.append(e)
                 note("3D nominal preview", d, n)
                 note("3D ellipse preview", d, e)
-                print(f"  3D {d:.1f} m: nominal {n} s, ellipse {e} s ({host_load()})", flush=True)
+                note("3D worker CPU per Preview (nominal + ellipse)", d, cpu3[-1])
+                print(f"  3D {d:.1f} m: nominal {n} s, ellipse {e} s, worker CPU {cpu3[-1]:.2f} s per Preview "
+                      f"({host_load()})", flush=True)
             print(f"3D nominal preview: {stats(nominal3)}  ({host_load()})", flush=True)
             print(f"3D ellipse preview: {stats(ellipse3)}  ({host_load()})", flush=True)
+            print(f"worker CPU per Preview (nominal + ellipse): 2D {stats(cpu)}, 3D {stats(cpu3)}", flush=True)
             return [figure("2D nominal preview", nominal), figure("2D ellipse preview", ellipse),
                     figure("Throw -> next Throw enabled", repeat), figure("3D nominal preview", nominal3),
-                    figure("3D ellipse preview", ellipse3)]
+                    figure("3D ellipse preview", ellipse3),
+                    {**figure("2D worker CPU per Preview (nominal + ellipse)", cpu), "unit": "s CPU"},
+                    {**figure("3D worker CPU per Preview (nominal + ellipse)", cpu3), "unit": "s CPU"}]
         finally:
             browser.close()
 
