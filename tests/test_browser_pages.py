@@ -400,3 +400,27 @@ def test_diagnosis_page_uploads_rosbags_and_shows_the_refusal(live, browser):  #
     msg.wait_for(timeout=20_000)
     assert "409" not in msg.text_content() and "422" not in msg.text_content()  # a sentence, not a status code
     page.close()
+
+
+def test_fleet_page_shows_the_lease_and_takes_a_machine_over_only_after_a_confirmation(live, browser, fake_runtime_factory):  # noqa: F811
+    base, app = live
+    rt = fake_runtime_factory()
+    rt.lease_holder, rt.undeliverable = "srv-other", 2
+    wait_for(lambda: app.state.fleet.is_online("m1"), 20, "m1 online")
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    log_in(page, base)
+    page.goto(f"{base}/console/fleet.html")
+    row = "#fleet tbody tr[data-machine-id=m1]"
+    page.locator(f"{row} td.lease", has_text="another server: srv-other").wait_for(timeout=20_000)
+    assert page.locator(f"{row} td.undeliverable").inner_text() == "2"
+    page.click(f"{row} button.take-over")
+    page.locator("#confirm-dialog[open]").wait_for(timeout=10_000)
+    assert page.evaluate("document.activeElement.id") == "confirm-cancel"  # Enter cancels
+    page.keyboard.press("Enter")
+    page.locator("#fleet-status", has_text="Takeover cancelled").wait_for(timeout=10_000)
+    assert rt.lease_holder == "srv-other"
+    page.click(f"{row} button.take-over")
+    page.click("#confirm-ok")
+    page.locator(f"{row} td.lease", has_text="this server").wait_for(timeout=20_000)
+    assert rt.lease_holder == app.state.fleet.signer.server_id
+    assert page.locator(f"{row} button.take-over").count() == 0

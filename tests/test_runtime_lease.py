@@ -258,3 +258,37 @@ def _reachable(link) -> bool:
         return True
     except RuntimeUnavailable:
         return False
+
+
+def test_the_machine_answer_names_the_lease_holder_and_undeliverable_results_and_an_operator_takes_over(
+        client, fake_runtime_factory):
+    """GET /api/machines shows whose commands the runtime obeys (its lease holder, and whether that
+    is this server) and how many results its outbox set aside; POST .../lease/takeover takes the
+    lease with a signed LeaseRequest(takeover=True) in the operator's name, audited."""
+    from tests.conftest import add_user, login
+
+    def machine() -> dict:
+        r = client.get("/api/machines")
+        assert r.status_code == 200, r.text
+        return next(m for m in r.json() if m["id"] == "m1")
+
+    rt = fake_runtime_factory()
+    rt.lease_holder, rt.undeliverable = "srv-other", 3
+    m = wait_for(lambda: (m := machine())["online"] and m["lease_holder"] and m, 20, "m1 online with its lease")
+    assert (m["lease_holder"], m["lease_held_here"], m["undeliverable_results"]) == ("srv-other", False, 3), m
+    r = client.post("/api/machines/m1/lease/takeover")
+    here = client.app.state.fleet.signer.server_id
+    assert r.status_code == 200 and r.json() == {"machine_id": "m1", "granted": True, "holder": here, "reason": None}, r.text
+    assert rt.lease_holder == here
+    m = machine()  # the takeover dropped the cached info: the runtime is asked again
+    assert (m["lease_holder"], m["lease_held_here"]) == (here, True), m
+    entry = client.get("/api/audit", params={"action": "lease_takeover"}).json()[0]
+    assert entry["subject"] == "m1" and entry["detail"]["granted"] is True and entry["detail"]["holder"] == here
+    rt.lease_holder = None
+    client.app.state.fleet.forget_info("m1")
+    m = machine()
+    assert (m["lease_holder"], m["lease_held_here"]) == (None, None), m  # nobody holds it
+    add_user(client.app.state.sessions, "vic", "viewer-pass-1", "viewer")
+    login(client, "vic", "viewer-pass-1")
+    assert client.post("/api/machines/m1/lease/takeover").status_code == 403
+    assert rt.lease_holder is None

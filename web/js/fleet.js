@@ -1,5 +1,7 @@
 // Fleet page: every machine with its one state (live push), policies, last throw and recent
-// accuracy; admins roll a policy back (after a confirmation). The page follows /api/live: a
+// accuracy, the server whose commands its runtime obeys (its lease) and the results its runtime
+// could not deliver; admins roll a policy back and operators take a machine over from another
+// server (each after a confirmation whose Cancel has the focus). The page follows /api/live: a
 // machine whose policies change (a promotion, a rollback confirmed by its runtime) has its
 // rollback targets fetched again, so the page offers only a rollback that is possible now.
 "use strict";
@@ -30,10 +32,14 @@ function render() {
     const cells = [id, m.simulated ? "SIMULATED" : "real", words, policies["2d"] || "–", policies["3d"] || "–",
       m.last_throw_at ? `${new Date(m.last_throw_at).toLocaleString()} (${m.current_mode}, ${m.last_throw_status})` : "none yet",
       m.recent_mean_abs_error_m === null || m.recent_mean_abs_error_m === undefined ? "–" : `${fmt(m.recent_mean_abs_error_m, 3)} (${m.recent_throws} throws)`];
+    cells.push(leaseText(m), m.undeliverable_results === null || m.undeliverable_results === undefined ? "–"
+      : String(m.undeliverable_results));
     cells.forEach((c, i) => {
       const td = tr.insertCell(); td.textContent = c;
       if (i === 2) { td.className = "state-cell"; const b = document.createElement("span"); b.className = `state-badge ${cls}`; b.textContent = WORDS[cls.slice(6)] || "?"; td.textContent = ""; td.append(b, " ", c.replace(/^[^:]*:?\s*/, "")); }
       if (i === 3) td.className = "policy-2d";
+      if (i === 7) { td.className = "lease"; if (m.lease_held_here === false && can("operator")) td.append(" ", takeOverButton(id, m.lease_holder)); }
+      if (i === 8) { td.className = "undeliverable"; if (m.undeliverable_results > 0) td.classList.add("warn"); }
     });
     const td = tr.insertCell();
     td.dataset.role = "admin"; td.hidden = !can("admin");
@@ -48,6 +54,31 @@ function render() {
     }
     if (!td.childNodes.length) td.textContent = "nothing to roll back to";
   }
+}
+
+function leaseText(m) {
+  if (m.lease_held_here === true) return "this server";
+  if (m.lease_held_here === false) return `another server: ${m.lease_holder || "(unnamed)"}`;
+  return m.online ? "nobody (the next command takes it)" : "–";
+}
+
+function takeOverButton(id, holder) {
+  const b = document.createElement("button");
+  b.type = "button"; b.textContent = "Take over"; b.className = "take-over";
+  b.addEventListener("click", () => takeOver(id, holder));
+  return b;
+}
+
+async function takeOver(id, holder) {
+  const ok = await confirmAction(`Take ${id} over?`, `${id} obeys server ${holder || "(unnamed)"} now. Taking it over makes ` +
+    `${id} obey this server and refuse that one's commands (throws, resets, moves; its E-STOP still works). ` +
+    "The runtime refuses while a throw runs.", "Take over");
+  if (!ok) { $("fleet-status").textContent = "Takeover cancelled."; return; }
+  try {
+    const d = await api("POST", `/api/machines/${encodeURIComponent(id)}/lease/takeover`);
+    $("fleet-status").textContent = `${id} is commanded by this server now (${d.holder}).`;
+  } catch (e) { $("fleet-status").textContent = e.message; }
+  loadFleet();
 }
 
 async function rollback(id, mode, current, previous) {
