@@ -86,7 +86,8 @@ def create_app(settings: Settings | None = None, zenoh_session: zenoh.Session | 
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes,
                        overrides={("POST", "/api/policies"): settings.max_policy_upload_bytes,
                                   ("POST", "/api/diagnosis/uploads"): settings.max_bag_upload_bytes})
-    app.add_middleware(SecurityHeaders, script_hashes=inline_script_hashes(WEB_DIR) if WEB_DIR.is_dir() else [])
+    app.add_middleware(SecurityHeaders, script_hashes=inline_script_hashes(WEB_DIR) if WEB_DIR.is_dir() else [],
+                       view_host=settings.viser_public_host)
     if settings.trusted_proxies:  # outermost: the client address is settled before anything reads it
         app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=list(settings.trusted_proxies))
     for module in ROUTE_MODULES:

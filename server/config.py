@@ -33,6 +33,13 @@ class Settings(BaseSettings):
         host / port: HTTP bind address of the API and console.
         viser_host / viser_port: bind address of the viser 3D view (viser moves to the next free
             port if this one is busy; the console asks the server for the real one).
+        viser_public_host: the host name console pages load the 3D view from (a second DNS name
+            of the server's host, e.g. ``view.site.example``; letters, digits, dots and hyphens,
+            or a bracketed IPv6 address). Another site than the console page's, so the browser
+            draws the view in its own renderer process and the view's WebGL never holds up the
+            page's E-STOP (tests/benchmarks/bench_console_estop.py). None: a page opened under a
+            loopback name loads it under the other one (localhost <-> 127.0.0.1), any other page
+            under its own host name (same process as the page).
         viser_enabled: start the 3D view (tests of the API alone switch it off).
         zenoh_mode: ``peer`` or ``client``.
         zenoh_listen / zenoh_connect: Zenoh endpoints, e.g. ``tcp/127.0.0.1:7447``.
@@ -114,6 +121,7 @@ class Settings(BaseSettings):
     port: int = 8000
     viser_host: str = "127.0.0.1"
     viser_port: int = 8080
+    viser_public_host: str | None = Field(None, pattern=r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]{1,253})$")
     viser_enabled: bool = True
     zenoh_mode: str = "peer"
     zenoh_listen: list[str] = Field(default_factory=list)

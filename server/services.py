@@ -222,7 +222,8 @@ def _make_scene(fleet: Fleet, throws: ThrowService, live_hub: LiveHub, settings:
             return user.username if user is not None else None
 
     return ConsoleScene(fleet, settings.viser_host, settings.viser_port, refusal=refusal, band=throws.target_range,
-                        zones=settings.keep_out_zones, on_console_change=console_changed, authorise=authorise)
+                        zones=settings.keep_out_zones, on_console_change=console_changed, authorise=authorise,
+                        public_host=settings.viser_public_host)
 
 
 class ResultDrawer:

@@ -345,6 +345,32 @@ def test_console_api_keeps_each_console_to_its_user(settings):
         assert r.status_code == 403 and "operator" in r.json()["detail"]
 
 
+def test_a_site_view_host_name_reaches_the_console_and_its_frame_policy(settings):
+    """Settings.viser_public_host: every console's answer names it (the page loads the 3D view
+    from there, web/js/common.js embedViser) and the pages' CSP lets them frame it; unset, the
+    answer leaves the choice to the page; a malformed name is refused at start."""
+    from fastapi.testclient import TestClient
+    from pydantic import ValidationError
+
+    from server.app import create_app
+    from server.config import Settings
+    from tests.conftest import ADMIN, add_user, login
+
+    with pytest.raises(ValidationError):
+        Settings(viser_public_host="view.site.example/evil")
+    settings.viser_enabled, settings.viser_port = True, free_port()
+    settings.viser_public_host = "view.site.example"
+    with TestClient(create_app(settings)) as c:
+        add_user(c.app.state.sessions, *ADMIN, "admin")
+        login(c, *ADMIN)
+        assert c.post("/api/consoles").json()["viser_host"] == "view.site.example"
+        assert "http://view.site.example:*" in c.get("/console/index.html").headers["content-security-policy"]
+    settings.viser_public_host, settings.viser_port = None, free_port()
+    with TestClient(create_app(settings)) as c:  # the same database: the admin exists
+        login(c, *ADMIN)
+        assert c.post("/api/consoles").json()["viser_host"] is None
+
+
 def test_replay_route_loads_seeks_and_refuses_with_reasons(settings):
     """PUT /api/consoles/{id}/replay (viewers too: the page's own view): 404 for an unknown throw,
     409 for one without telemetry or with an unreadable one, 422 for a bad time; the answer says

@@ -54,3 +54,12 @@ def test_the_3d_view_may_be_framed_under_the_other_loopback_name():
     assert "frame-src 'self' http://localhost:* http://127.0.0.1:*" in content_security_policy("http", "localhost", [])
     assert "frame-src 'self' http://127.0.0.1:* http://localhost:*" in content_security_policy("http", "127.0.0.1", [])
     assert "localhost" not in content_security_policy("https", "site.example", [])
+
+
+def test_the_3d_view_may_be_framed_from_the_sites_view_host_name():
+    """Settings.viser_public_host: the console page frames the view from that name (its own
+    renderer process on a deployed site); a malformed name adds nothing."""
+    csp = content_security_policy("https", "console.site.example", [], view_host="view.site.example")
+    assert "frame-src 'self' https://console.site.example:* https://view.site.example:*;" in csp
+    assert "frame-src 'self' https://console.site.example:*;" in content_security_policy(
+        "https", "console.site.example", [], view_host="bad host;")

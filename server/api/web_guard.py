@@ -5,7 +5,8 @@
   limit is small (JSON bodies); routes that take files get their own explicit, larger limit.
 - :class:`SecurityHeaders`: ``Content-Security-Policy`` (own scripts plus the console pages'
   inline scripts by hash, no ``unsafe-inline`` for scripts; the viser 3D view may be framed from
-  the same host on any port, and on a loopback name from the other loopback name; this site may not be framed by anyone: ``frame-ancestors 'none'``),
+  the same host on any port, and from the site's view host name (Settings.viser_public_host) or, without
+  one, on a loopback name from the other loopback name; this site may not be framed by anyone: ``frame-ancestors 'none'``),
   ``X-Frame-Options: DENY``, ``X-Content-Type-Options: nosniff``, ``Referrer-Policy:
   same-origin``. /docs and /redoc (server.app: Swagger UI and ReDoc from the server itself) run inline code: they get
   the other headers but no CSP.
@@ -40,10 +41,14 @@ def inline_script_hashes(web_dir: Path) -> list[str]:
     return sorted(out)
 
 
-def content_security_policy(scheme: str, hostname: str | None, script_hashes: list[str]) -> str:
-    """The console's CSP for a request to ``scheme://hostname``."""
+def content_security_policy(scheme: str, hostname: str | None, script_hashes: list[str],
+                            view_host: str | None = None) -> str:
+    """The console's CSP for a request to ``scheme://hostname``; ``view_host``: the host name
+    the 3D view is loaded from when the site names one (Settings.viser_public_host)."""
     frame = f" {scheme}://{hostname}:*" if hostname and _HOSTNAME.match(hostname) else ""
-    if hostname in LOOPBACK_NAMES:  # the console serves its 3D view under the other name (web/js/common.js viewHost)
+    if view_host and _HOSTNAME.match(view_host):
+        frame += f" {scheme}://{view_host}:*"
+    elif hostname in LOOPBACK_NAMES:  # the console serves its 3D view under the other name (web/js/common.js viewHost)
         frame += f" {scheme}://{LOOPBACK_NAMES[hostname]}:*"
     return "; ".join([
         "default-src 'self'", "script-src " + " ".join(["'self'", *script_hashes]),
@@ -72,8 +77,8 @@ def _hostname(host: str | None) -> str | None:
 class SecurityHeaders:
     """Adds the security headers to every HTTP response (keeps any a route set itself)."""
 
-    def __init__(self, app: ASGIApp, script_hashes: list[str]):
-        self.app, self.script_hashes = app, script_hashes
+    def __init__(self, app: ASGIApp, script_hashes: list[str], view_host: str | None = None):
+        self.app, self.script_hashes, self.view_host = app, script_hashes, view_host
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -82,7 +87,7 @@ class SecurityHeaders:
                  (b"referrer-policy", b"same-origin")]
         if not scope["path"].startswith(NO_CSP_PATHS):
             csp = content_security_policy(scope.get("scheme", "http"), _hostname(_header(scope, b"host")),
-                                          self.script_hashes)
+                                          self.script_hashes, self.view_host)
             extra.append((b"content-security-policy", csp.encode()))
 
         async def send_with_headers(message: Message) -> None:

@@ -178,6 +178,8 @@ class ConsoleScene:
     Args:
         fleet: source of machine states (``latest_state``).
         host / port: where viser listens (it moves on to the next free port; read :attr:`port`).
+        public_host: the host name pages load the view from (server.config.Settings.viser_public_host;
+            None: the page decides, web/js/common.js viewHost).
         rate_hz: machine redraw rate.
         refusal: (machine_id, mode, target (3,)) -> reason the target cannot be served, or None.
         band: (machine_id, mode) -> the policy's trained target range (lo, hi) m, or None.
@@ -193,8 +195,9 @@ class ConsoleScene:
     def __init__(self, fleet, host: str = "127.0.0.1", port: int = 8080, rate_hz: float = 20.0,
                  refusal: Callable | None = None, band: Callable | None = None, zones=(),
                  on_console_change: Callable[[dict], None] | None = None,
-                 authorise: Callable[[str | None], str | None] | None = None):
+                 authorise: Callable[[str | None], str | None] | None = None, public_host: str | None = None):
         self.fleet = fleet
+        self.public_host = public_host
         self.host, self.requested_port, self.rate_hz = host, port, rate_hz
         self.refusal = refusal or (lambda mid, mode, t: None)
         self.band = band or (lambda mid, mode: None)

@@ -30,7 +30,8 @@ def get_scene(scene: SceneDep, _user: ViewerDep) -> SceneInfo:
 
 
 def _out(scene, con) -> ConsoleOut:
-    return ConsoleOut(**con.public(), viser_port=scene.port, viser_path=f"/c/{con.console_id}/{con.view_token}")
+    return ConsoleOut(**con.public(), viser_port=scene.port, viser_path=f"/c/{con.console_id}/{con.view_token}",
+                      viser_host=scene.public_host)
 
 
 def _console(scene: ConsoleScene | None, console_id: str, user):

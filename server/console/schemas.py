@@ -23,7 +23,9 @@ class ConsoleOut(BaseModel):
 
     ``target_reason`` says why the target cannot be served (None: it can); ``snapped`` is True
     when a 2D click was moved onto the throwing line; ``viser_path`` is the websocket path that
-    binds the 3D view to this console (``ws://<host>:<viser_port><viser_path>``); ``replay`` is
+    binds the 3D view to this console (``ws://<host>:<viser_port><viser_path>``), ``<host>`` being
+    ``viser_host`` (server.config.Settings.viser_public_host) or, when None, the page's choice
+    (web/js/common.js viewHost); ``replay`` is
     the recorded throw the view replays instead of the live machine (None: live).
     """
 
@@ -37,6 +39,7 @@ class ConsoleOut(BaseModel):
     replay: ReplayOut | None = None
     viser_port: int | None = None
     viser_path: str | None = None
+    viser_host: str | None = None
 
 
 class ConsoleUpdate(BaseModel):

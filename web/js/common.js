@@ -56,16 +56,18 @@ function apiError(status, detail, condition = null) {
 /** The host name the 3D view is served under for a console page at ``host``: the other name of
  *  the loopback interface (localhost <-> 127.0.0.1), so the browser gives the view its own
  *  renderer process (another site) and its WebGL drawing never holds up this page's E-STOP;
- *  any other host name serves it as is (give a site's view its own name: docs/deployment.md). */
+ *  any other host name serves it as is (a site gives its view its own name with
+ *  SLINGER_VISER_PUBLIC_HOST, which the console's answer carries: embedViser; docs/deployment.md). */
 function viewHost(host) {
   return { localhost: "127.0.0.1", "127.0.0.1": "localhost" }[host] || host;
 }
 
-/** Show the 3D view (viser) of console ``c`` (POST /api/consoles' answer) in ``iframe``: its
+/** Show the 3D view (viser) of console ``c`` (POST /api/consoles' answer) in ``iframe``, under
+ *  the site's view host name (``c.viser_host``: Settings.viser_public_host) or else viewHost's: its
  *  websocket path (with the console's view token) binds the view to the console (server.console.scene);
  *  the status strip hears Esc from the frame's origin. */
 function embedViser(iframe, c) {
-  const host = viewHost(location.hostname);
+  const host = c.viser_host || viewHost(location.hostname);
   const ws = `${location.protocol === "https:" ? "wss" : "ws"}://${host}:${c.viser_port}${c.viser_path}`;
   const origin = `${location.protocol}//${host}:${c.viser_port}`;
   if (typeof Strip !== "undefined") Strip.setViserOrigin(origin); // Esc inside the 3D view arrives from there
