@@ -155,10 +155,14 @@ def test_esc_in_the_3d_frame_stops_the_machine_once_and_reset_is_confirmed(up, a
     assert ann.evaluate("document.activeElement.id") == "viser"
     n0 = len([r for r in ann.requests if r[1] == "POST" and r[2].endswith("/estop")])
     # in flight: (start, end) page clock of each E-STOP request (the page's own fetch)
-    ann.evaluate("""() => { window.__stops = []; const f = window.fetch;
-        window.fetch = function (u, o) { if (!String(u).endsWith('/estop')) return f.apply(this, arguments);
-            const s = { start: performance.now(), end: null }; window.__stops.push(s);
-            return f.apply(this, arguments).finally(() => { s.end = performance.now(); }); }; }""")
+    # (window.__holdStopMs holds an E-STOP request back before it leaves: a stop slow on its way)
+    ann.evaluate("""() => { window.__stops = []; window.__resets = []; window.__holdStopMs = 0; const f = window.fetch;
+        window.fetch = function (u, o) {
+            if (String(u).endsWith('/estop/reset')) window.__resets.push(performance.now());
+            if (!String(u).endsWith('/estop')) return f.apply(this, arguments);
+            const s = { start: performance.now(), end: null }, args = arguments; window.__stops.push(s);
+            return new Promise((r) => setTimeout(r, window.__holdStopMs)).then(() => f.apply(this, args))
+                .finally(() => { s.end = performance.now(); }); }; }""")
     for _ in range(4):  # an anxious operator: four presses, the first stop maybe still on its way
         ann.keyboard.press("Escape")
     ann.locator("#strip-msg", has_text=re.compile("confirmed|NOT CONFIRMED")).wait_for()
@@ -172,6 +176,10 @@ def test_esc_in_the_3d_frame_stops_the_machine_once_and_reset_is_confirmed(up, a
     assert overlaps == [], f"E-STOP requests in flight together: {stops}"
     audit = up.http.get("/api/audit").json()
     assert any(a["action"] == "abort" and a["subject"] == "m1" for a in audit)
+    # one more press whose stop is slow on its way, then at once the reset: the reset must follow
+    # that stop (arriving after the reset, it would latch the machine again)
+    ann.evaluate("window.__holdStopMs = 5000")
+    ann.keyboard.press("Escape")
     # reset: asks first; the E-STOP stays on top of the dialog's backdrop and answers clicks
     press(ann, "#estop-reset")
     ann.locator("#confirm-dialog[open]").wait_for()
@@ -181,7 +189,11 @@ def test_esc_in_the_3d_frame_stops_the_machine_once_and_reset_is_confirmed(up, a
     if SHOTS:
         ann.screenshot(path=f"{SHOTS}/estop-reset-confirm-1440x900.png")
     press(ann, "#confirm-ok")
-    ann.locator("#strip-msg", has_text="confirmed by its runtime").wait_for()
+    ann.locator("#strip-msg", has_text=re.compile("confirmed by its runtime|Reset refused|still reports")).wait_for()
+    assert "confirmed by its runtime" in ann.inner_text("#strip-msg"), ann.inner_text("#strip-msg")
+    stops, resets = ann.evaluate("[window.__stops, window.__resets]")
+    assert len(resets) == 1 and all(s["end"] is not None and s["end"] <= resets[0] for s in stops), \
+        f"the reset left at {resets} with E-STOP requests on their way: {stops}"
     ann.locator("#estop-banner").wait_for(state="hidden")
     ann.locator("#machine-state", has_text="m1 READY").wait_for()
     assert "waiting" not in ann.inner_text("#strip-msg")

@@ -337,6 +337,12 @@ const Strip = (() => {
     const ok = await confirmAction(`Reset the E-STOP of ${mid}?`, `${mid} accepts commands again after the reset. ` +
       "Only reset when the area around the machine is safe and the cause of the stop is dealt with.", "Reset E-STOP");
     if (!ok) { say(`E-STOP of ${mid} stays latched.`); return; }
+    // A stop still on its way would reach the server after the reset and latch the machine again:
+    // the reset follows every press made before it.
+    while (estopInFlight) {
+      say(`E-STOP of ${mid}: waiting for the stop on its way before the reset…`);
+      await estopInFlight.catch(() => {});
+    }
     try {
       await api("POST", `/api/machines/${encodeURIComponent(mid)}/estop/reset`);
     } catch (e) {
