@@ -1,17 +1,21 @@
 """Soak: preview and throw in a loop on one machine as the console does, for ``--minutes``
-(default 60), with the whole stack as separate processes (tests/fault_stack.py: server, worker,
+(default 60; SIGTERM or SIGINT ends it early, with its report), with the whole stack as separate processes (tests/fault_stack.py: server, worker,
 simulated machine, runtime; the deployed 2D policy).
 
 Per throw, as the console: wait until the machine is READY, preview (one rollout), send the throw
 with that preview; a throw refused because the preview no longer matches the machine (409) is
-previewed again. The resident memory (VmRSS) of each process is sampled every minute and every
+previewed again. A machine not ready for ``READY_WAIT_S`` (a failed throw left the arm outside the
+envelope) is sent back to its ready pose as the operator would (``POST .../return-to-ready``). The resident memory (VmRSS) of each process is sampled every minute and every
 ``--sample-every`` throws (the server's and the worker's are printed every 100 throws). Prints and
 writes (``--out``): throws per minute, previews needed per throw, final statuses, and memory per
 process over time (MiB; first sample after a warm-up of ``--warmup-min`` minutes, last sample,
-growth, and the least-squares slope of RSS against throws after warm-up in MiB per 100 throws).
-Goal: memory flat after warm-up, one preview per throw.
+growth, and the least-squares slope of RSS against throws after warm-up in MiB per 100 throws),
+and with ``--out`` a plot of every process's memory over time (``<out>.png``). With
+``--probe-dir`` the server and the worker also record, every 30 s, where their memory is
+(tests/benchmarks/memprobe: glibc's heap in use and free, SQLite's caches, Python's objects); the
+rows go into the JSON and the plot. Goal: memory flat after warm-up, one preview per throw.
 
-Run: ``PYTHONPATH=. python tests/benchmarks/bench_soak.py --minutes 60 --out reports/soak``
+Run: ``PYTHONPATH=. python tests/benchmarks/bench_soak.py --minutes 60 --probe-dir /tmp/soak-probe --out reports/soak``
 """
 
 from __future__ import annotations
@@ -21,8 +25,11 @@ import datetime as dt
 import hashlib
 import json
 import logging
+import os
+import signal
 import sys
 import tempfile
+import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -38,6 +45,12 @@ from tests.fault_stack import TARGET_2D, FaultStack, orphans  # noqa: E402
 log = logging.getLogger("bench_soak")
 
 PROCESSES = ("server", "worker", "plant", "runtime")
+STOP = threading.Event()
+"""Set by SIGTERM or SIGINT: the loop ends early and the report is written for the time run."""
+READY_WAIT_S = 30.0
+"""A machine not ready this long is sent back to its ready pose (counted in ``recoveries``)."""
+PROBE = Path(__file__).resolve().parent / "memprobe"
+"""The folder whose sitecustomize records the server's and worker's memory (``--probe-dir``)."""
 
 
 def rss_mib(pid: int) -> float | None:
@@ -84,7 +97,7 @@ def one_throw(stack: FaultStack, max_previews: int = 5) -> tuple[int, str, str |
 
 def run(minutes: float, warmup_min: float, policy: Path, sample_every: int = 25) -> dict:
     stop_at = time.monotonic() + 60.0 * minutes
-    previews, statuses, refusals, memory = [], Counter(), Counter(), []
+    previews, statuses, refusals, recoveries, memory = [], Counter(), Counter(), Counter(), []
     t_start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="bench-soak-") as tmp:
         stack = FaultStack(Path(tmp), policy)
@@ -98,7 +111,7 @@ def run(minutes: float, warmup_min: float, policy: Path, sample_every: int = 25)
 
         with stack:
             next_sample, next_count = time.monotonic(), sample_every
-            while time.monotonic() < stop_at:
+            while time.monotonic() < stop_at and not STOP.is_set():
                 if time.monotonic() >= next_sample:
                     sample()
                     next_sample += 60.0
@@ -108,8 +121,13 @@ def run(minutes: float, warmup_min: float, policy: Path, sample_every: int = 25)
                     if row["throws"] % 100 == 0:
                         print(f"{row['throws']:5d} throws, {row['t_min']:6.1f} min: server {row['server']:.1f} MiB, "
                               f"worker {row['worker']:.1f} MiB, runtime {row['runtime']:.1f} MiB", flush=True)
-                if not _ready(stack, 60):
-                    refusals["not ready within 60 s: " + str((stack.machine() or {}).get("not_ready_reason"))] += 1
+                if not _ready(stack, READY_WAIT_S):
+                    refusals[f"not ready within {READY_WAIT_S:.0f} s: " + str((stack.machine() or {}).get("not_ready_reason"))] += 1
+                    try:
+                        r = stack.http.post("/api/machines/m1/return-to-ready")
+                        recoveries[f"return to ready: {r.status_code}"] += 1
+                    except httpx.HTTPError as e:
+                        recoveries[f"return to ready: {e!r}"[:160]] += 1
                     continue
                 try:
                     n, status, reason = one_throw(stack)
@@ -127,7 +145,7 @@ def run(minutes: float, warmup_min: float, policy: Path, sample_every: int = 25)
         left = orphans(tmp)
     elapsed_min = (time.monotonic() - t_start) / 60.0
     return {"elapsed_min": elapsed_min, "previews": previews, "statuses": dict(statuses),
-            "refusals": dict(refusals.most_common(10)), "memory": memory, "orphans": left, "warmup_min": warmup_min}
+            "refusals": dict(refusals.most_common(10)), "recoveries": dict(recoveries), "memory": memory, "orphans": left, "warmup_min": warmup_min}
 
 
 def _slope_per_100(points: list[tuple[int, float]]) -> float | None:
@@ -161,14 +179,83 @@ def summary(out: dict) -> dict:
             "statuses": out["statuses"], "memory": growth}
 
 
+def enable_probe(probe_dir: Path) -> None:
+    """Have the stack's server and worker (started after this call) write their memory rows to
+    ``probe_dir`` (tests/benchmarks/memprobe/sitecustomize.py)."""
+    probe_dir.mkdir(parents=True, exist_ok=True)
+    for f in probe_dir.glob("*.tsv"):
+        f.unlink()
+    os.environ["MEMPROBE_DIR"] = str(probe_dir)
+    os.environ["PYTHONPATH"] = os.pathsep.join([str(PROBE), str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])])
+
+
+def read_probe(probe_dir: Path) -> dict[str, list[dict]]:
+    """The probe's rows by role ("server", "worker"): dicts of its columns, bytes turned into MiB."""
+    out: dict[str, list[dict]] = {}
+    for f in sorted(probe_dir.glob("*.tsv")):
+        lines = f.read_text().splitlines()
+        cols = lines[0].split("\t")
+        rows = []
+        for line in lines[1:]:
+            vals = [int(v) for v in line.split("\t")]
+            rows.append({c: (round(v / 2**20, 2) if c in ("rss", "arena", "hblkhd", "uordblks", "fordblks", "sqlite") else v)
+                         for c, v in zip(cols, vals)})
+        out.setdefault(f.stem.split("-")[0], []).extend(rows)
+    return out
+
+
+def plot(report: dict, path: Path) -> None:
+    """RSS of every process against minutes (top) and, with the probe's rows, the server's and
+    worker's heap in use, heap free and SQLite's memory (bottom); written to ``path`` (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    probe = report.get("probe_mib") or {}
+    fig, axes = plt.subplots(2 if probe else 1, 1, figsize=(9, 7 if probe else 4), squeeze=False)
+    ax = axes[0][0]
+    mem = report["memory_samples_mib"]
+    for name in PROCESSES:
+        pts = [(m["t_min"], m[name]) for m in mem if m[name] is not None]
+        ax.plot([t for t, _ in pts], [v for _, v in pts], label=name)
+    ax.axvline(report["warmup_min"], color="grey", ls=":", lw=1)
+    ax.set_xlabel("minutes since start")
+    ax.set_ylabel("RSS [MiB]")
+    ax.set_title(f"Soak: {report['throws']} throws in {report['duration_min']:.0f} min (simulated machine)")
+    ax.legend(loc="lower right", fontsize=8)
+    ax.grid(alpha=0.3)
+    if probe:
+        ax = axes[1][0]
+        for role, style in (("server", "-"), ("worker", "--")):
+            rows = probe.get(role, [])
+            t = [r["t_s"] / 60.0 for r in rows]
+            for col, label in (("uordblks", "heap in use"), ("fordblks", "heap free"), ("sqlite", "SQLite")):
+                ax.plot(t, [r[col] for r in rows], style, label=f"{role}: {label}")
+        ax.set_xlabel("minutes since the process started")
+        ax.set_ylabel("MiB")
+        ax.set_yscale("log")
+        ax.legend(loc="lower right", fontsize=7, ncol=2)
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=60.0)
     parser.add_argument("--warmup-min", type=float, default=2.0, help="memory growth is measured from here on")
     parser.add_argument("--sample-every", type=int, default=25, help="also sample memory every this many throws")
     parser.add_argument("--policy", type=Path, default=REPO / "policies" / "throw2d.onnx")
-    parser.add_argument("--out", type=Path, default=None, help="write <out>.json and <out>.md")
+    parser.add_argument("--out", type=Path, default=None, help="write <out>.json, <out>.md and <out>.png")
+    parser.add_argument("--probe-dir", type=Path, default=None,
+                        help="record where the server's and worker's memory is (tests/benchmarks/memprobe) here")
     args = parser.parse_args()
+    if args.probe_dir is not None:
+        enable_probe(args.probe_dir)
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: STOP.set())
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)
     started = dt.datetime.now(dt.UTC)
@@ -179,14 +266,17 @@ def main() -> int:
         "benchmark": "soak: console-style preview and throw loop on one simulated machine",
         "date_utc": started.isoformat(timespec="seconds"),
         "duration_min": round(out["elapsed_min"], 2),
+        "warmup_min": args.warmup_min,
         "command": "PYTHONPATH=. python tests/benchmarks/bench_soak.py " + " ".join(sys.argv[1:]),
         "host": {**host_info(), "loadavg_before": host0["loadavg"], "commit": host0["commit"]},
         "policy": {"path": "policies/throw2d.onnx" if args.policy == REPO / "policies" / "throw2d.onnx" else str(args.policy),
                    "sha256": hashlib.sha256(args.policy.read_bytes()).hexdigest()},
         **s,
         "refusals_top": out["refusals"],
+        "recoveries": out["recoveries"],
         "memory_samples_mib": out["memory"],
         "orphaned_processes": len(out["orphans"]),
+        "probe_mib": read_probe(args.probe_dir) if args.probe_dir is not None else None,
     }
     print(f"{s['throws']} throws in {out['elapsed_min']:.1f} min ({s['throws_per_min']} / min), statuses {s['statuses']}")
     print(f"previews per throw: mean {s['previews_per_throw_mean']}, {s['throws_needing_more_than_one_preview']} throws needed more than one")
@@ -204,13 +294,15 @@ def main() -> int:
                  f"(SHA-256 `{report['policy']['sha256'][:16]}…`). The machine is the simulated machine (sim_twin plant).", "",
                  f"* throws: {s['throws']} ({s['throws_per_min']} per minute), statuses {s['statuses']}",
                  f"* previews per throw: mean {s['previews_per_throw_mean']}; throws needing more than one: "
-                 f"{s['throws_needing_more_than_one_preview']}", "",
+                 f"{s['throws_needing_more_than_one_preview']}",
+                 f"* machine sent back to its ready pose after {READY_WAIT_S:.0f} s not ready: {out['recoveries'] or 'never'}", "",
                  "| process | RSS after warm-up MiB | last MiB | growth MiB | MiB / 100 throws | slope MiB / 100 throws |",
                  "|---|---|---|---|---|---|"]
         lines += [f"| {n} | {g['after_warmup_mib']} | {g['last_mib']} | {g['growth_mib']:+} | {g['growth_mib_per_100_throws']:+} "
                   f"| {g['slope_mib_per_100_throws']} |" for n, g in s["memory"].items()]
         lines += ["", f"Reproduce: `{report['command']}`", ""]
         args.out.with_suffix(".md").write_text("\n".join(lines))
+        plot(report, args.out.with_suffix(".png"))
     return 0
 
 
