@@ -160,23 +160,47 @@ def _slope_per_100(points: list[tuple[int, float]]) -> float | None:
     return round(100.0 * sum((x - mx) * (y - my) for x, y in points) / sxx, 2)
 
 
-def summary(out: dict) -> dict:
-    """Throws per minute, previews per throw and memory growth per process after warm-up."""
-    throws = sum(out["statuses"].values())
-    mem = [m for m in out["memory"] if m["t_min"] >= out["warmup_min"]] or out["memory"]
+def memory_growth(samples: list[dict], warmup_min: float) -> dict:
+    """Per process, from the samples at or after ``warmup_min``: RSS then and last (MiB), growth,
+    growth per 100 throws, the least-squares slope per 100 throws, and that slope over the second
+    half of the time after warm-up alone (flat there: the memory has levelled off)."""
+    mem = [m for m in samples if m["t_min"] >= warmup_min] or samples
+    half = [m for m in mem if m["t_min"] >= (mem[0]["t_min"] + mem[-1]["t_min"]) / 2.0]
     growth = {}
     for name in PROCESSES:
         vals = [(m["throws"], m[name]) for m in mem if m[name] is not None]
         if len(vals) >= 2:
             (_, a), (_, b) = vals[0], vals[-1]
+            late = [(m["throws"], m[name]) for m in half if m[name] is not None]
             growth[name] = {"after_warmup_mib": round(a, 1), "last_mib": round(b, 1), "growth_mib": round(b - a, 1),
                             "growth_mib_per_100_throws": round(100.0 * (b - a) / max(1, mem[-1]["throws"] - mem[0]["throws"]), 2),
-                            "slope_mib_per_100_throws": _slope_per_100(vals)}
+                            "slope_mib_per_100_throws": _slope_per_100(vals),
+                            "slope_second_half_mib_per_100_throws": _slope_per_100(late) if len(late) >= 2 else None}
+    return growth
+
+
+def probe_summary(probe: dict[str, list[dict]], warmup_min: float) -> dict:
+    """Per role (server, worker) and probe column: the value at the end of warm-up, half-way
+    through the rest and at the end (MiB; Python blocks and gc objects as counts)."""
+    out = {}
+    for role, rows in probe.items():
+        rows = [r for r in rows if r["t_s"] >= 60.0 * warmup_min] or rows
+        if not rows:
+            continue
+        mid = min(rows, key=lambda r: abs(r["t_s"] - (rows[0]["t_s"] + rows[-1]["t_s"]) / 2.0))
+        out[role] = {c: [rows[0][c], mid[c], rows[-1][c]] for c in rows[0] if c != "t_s"}
+        out[role]["t_min"] = [round(r["t_s"] / 60.0, 1) for r in (rows[0], mid, rows[-1])]
+    return out
+
+
+def summary(out: dict) -> dict:
+    """Throws per minute, previews per throw and memory growth per process after warm-up."""
+    throws = sum(out["statuses"].values())
     p = out["previews"]
     return {"throws": throws, "throws_per_min": round(throws / out["elapsed_min"], 2) if out["elapsed_min"] else None,
             "previews_per_throw_mean": round(sum(p) / len(p), 3) if p else None,
             "throws_needing_more_than_one_preview": sum(1 for n in p if n > 1),
-            "statuses": out["statuses"], "memory": growth}
+            "statuses": out["statuses"], "memory": memory_growth(out["memory"], out["warmup_min"])}
 
 
 def enable_probe(probe_dir: Path) -> None:
@@ -242,6 +266,61 @@ def plot(report: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def write(report: dict, out: Path | None) -> None:
+    """Print the report's figures; with ``out``, write <out>.json, <out>.md and <out>.png."""
+    print(f"{report['throws']} throws in {report['duration_min']:.1f} min ({report['throws_per_min']} / min), "
+          f"statuses {report['statuses']}")
+    print(f"previews per throw: mean {report['previews_per_throw_mean']}, "
+          f"{report['throws_needing_more_than_one_preview']} throws needed more than one")
+    for name, g in report["memory"].items():
+        print(f"{name:8s} RSS {g['after_warmup_mib']} -> {g['last_mib']} MiB ({g['growth_mib']:+} MiB, "
+              f"{g['growth_mib_per_100_throws']:+} MiB / 100 throws; slope {g['slope_mib_per_100_throws']}, second half "
+              f"{g.get('slope_second_half_mib_per_100_throws')} MiB / 100 throws)")
+    print(f"orphaned processes: {report['orphaned_processes']}")
+    if out is None:
+        return
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(report, indent=2) + "\n")
+    lines = [f"# Soak: preview and throw on one simulated machine ({report['duration_min']:.0f} min)", "",
+             f"Measured {report['date_utc']} on commit `{report['host']['commit']}`, host {report['host']['cpu_model']} "
+             f"({report['host']['cpu_count']} CPUs), load average {report['host']['loadavg_before'][0]:.1f} before / "
+             f"{report['host']['loadavg'][0]:.1f} after (a shared machine). Policy `{report['policy']['path']}` "
+             f"(SHA-256 `{report['policy']['sha256'][:16]}…`). The machine is the simulated machine (sim_twin plant).", "",
+             f"* throws: {report['throws']} ({report['throws_per_min']} per minute), statuses {report['statuses']}",
+             f"* previews per throw: mean {report['previews_per_throw_mean']}; throws needing more than one: "
+             f"{report['throws_needing_more_than_one_preview']}",
+             f"* machine sent back to its ready pose after {READY_WAIT_S:.0f} s not ready: {report.get('recoveries') or 'never'}",
+             "", f"Memory after a warm-up of {report['warmup_min']:g} min:", "",
+             "| process | RSS after warm-up MiB | last MiB | growth MiB | MiB / 100 throws | slope MiB / 100 throws "
+             "| slope, second half MiB / 100 throws |",
+             "|---|---|---|---|---|---|---|"]
+    lines += [f"| {n} | {g['after_warmup_mib']} | {g['last_mib']} | {g['growth_mib']:+} | {g['growth_mib_per_100_throws']:+} "
+              f"| {g['slope_mib_per_100_throws']} | {g.get('slope_second_half_mib_per_100_throws')} |"
+              for n, g in report["memory"].items()]
+    if report.get("probe_summary"):
+        lines += ["", "Where the server's and worker's memory is (tests/benchmarks/memprobe; MiB at the end of warm-up, "
+                  "half-way, at the end):", "",
+                  "| process | minutes | RSS | glibc heap in use | glibc heap free | SQLite | Python blocks |", "|---|---|---|---|---|---|---|"]
+        for role, p in report["probe_summary"].items():
+            lines.append(f"| {role} | {' / '.join(map(str, p['t_min']))} | {' / '.join(map(str, p['rss']))} | "
+                         f"{' / '.join(map(str, p['uordblks']))} | {' / '.join(map(str, p['fordblks']))} | "
+                         f"{' / '.join(map(str, p['sqlite']))} | {' / '.join(map(str, p['pyblocks']))} |")
+    lines += ["", f"![memory over time]({out.with_suffix('.png').name})", "", f"Reproduce: `{report['command']}`", ""]
+    out.with_suffix(".md").write_text("\n".join(lines))
+    plot(report, out.with_suffix(".png"))
+
+
+def resummarise(path: Path) -> dict:
+    """A report written by this script with its memory figures computed again from its samples
+    (memory_growth, probe_summary) by this version of the script."""
+    report = json.loads(path.read_text())
+    report.setdefault("warmup_min", 2.0)  # reports written before it was recorded: the default
+    report["memory"] = memory_growth(report["memory_samples_mib"], report["warmup_min"])
+    if report.get("probe_mib"):
+        report["probe_summary"] = probe_summary(report["probe_mib"], report["warmup_min"])
+    return report
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=60.0)
@@ -251,7 +330,12 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=None, help="write <out>.json, <out>.md and <out>.png")
     parser.add_argument("--probe-dir", type=Path, default=None,
                         help="record where the server's and worker's memory is (tests/benchmarks/memprobe) here")
+    parser.add_argument("--summarise", type=Path, default=None,
+                        help="compute the memory figures of this report JSON again (and write --out); runs nothing")
     args = parser.parse_args()
+    if args.summarise is not None:
+        write(resummarise(args.summarise), args.out)
+        return 0
     if args.probe_dir is not None:
         enable_probe(args.probe_dir)
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -278,31 +362,9 @@ def main() -> int:
         "orphaned_processes": len(out["orphans"]),
         "probe_mib": read_probe(args.probe_dir) if args.probe_dir is not None else None,
     }
-    print(f"{s['throws']} throws in {out['elapsed_min']:.1f} min ({s['throws_per_min']} / min), statuses {s['statuses']}")
-    print(f"previews per throw: mean {s['previews_per_throw_mean']}, {s['throws_needing_more_than_one_preview']} throws needed more than one")
-    for name, g in s["memory"].items():
-        print(f"{name:8s} RSS {g['after_warmup_mib']} -> {g['last_mib']} MiB ({g['growth_mib']:+} MiB, "
-              f"{g['growth_mib_per_100_throws']:+} MiB / 100 throws; slope {g['slope_mib_per_100_throws']} MiB / 100 throws)")
-    print(f"orphaned processes: {len(out['orphans'])}")
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.with_suffix(".json").write_text(json.dumps(report, indent=2) + "\n")
-        lines = [f"# Soak: preview and throw on one simulated machine ({report['duration_min']:.0f} min)", "",
-                 f"Measured {report['date_utc']} on commit `{report['host']['commit']}`, host {report['host']['cpu_model']} "
-                 f"({report['host']['cpu_count']} CPUs), load average {report['host']['loadavg_before'][0]:.1f} before / "
-                 f"{report['host']['loadavg'][0]:.1f} after (a shared machine). Policy `{report['policy']['path']}` "
-                 f"(SHA-256 `{report['policy']['sha256'][:16]}…`). The machine is the simulated machine (sim_twin plant).", "",
-                 f"* throws: {s['throws']} ({s['throws_per_min']} per minute), statuses {s['statuses']}",
-                 f"* previews per throw: mean {s['previews_per_throw_mean']}; throws needing more than one: "
-                 f"{s['throws_needing_more_than_one_preview']}",
-                 f"* machine sent back to its ready pose after {READY_WAIT_S:.0f} s not ready: {out['recoveries'] or 'never'}", "",
-                 "| process | RSS after warm-up MiB | last MiB | growth MiB | MiB / 100 throws | slope MiB / 100 throws |",
-                 "|---|---|---|---|---|---|"]
-        lines += [f"| {n} | {g['after_warmup_mib']} | {g['last_mib']} | {g['growth_mib']:+} | {g['growth_mib_per_100_throws']:+} "
-                  f"| {g['slope_mib_per_100_throws']} |" for n, g in s["memory"].items()]
-        lines += ["", f"Reproduce: `{report['command']}`", ""]
-        args.out.with_suffix(".md").write_text("\n".join(lines))
-        plot(report, args.out.with_suffix(".png"))
+    if report["probe_mib"]:
+        report["probe_summary"] = probe_summary(report["probe_mib"], args.warmup_min)
+    write(report, args.out)
     return 0
 
 
