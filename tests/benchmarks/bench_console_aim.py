@@ -229,7 +229,7 @@ def main() -> int:
                        f"--out {a.out}", "recorded": "at run time by the benchmark",
             "note": "Chromium (software WebGL) on the console page of a `slinger up --machines 1` stack (the deployed "
                     "policies, the release check on) started by the benchmark; everything on the SIMULATED machine"},
-            "figures": figures, "samples": SAMPLES}
+            "measures": figures, "samples": SAMPLES}
         a.out.write_text(json.dumps(report, indent=1) + "\n")
     return 0
 
