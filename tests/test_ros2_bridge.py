@@ -190,6 +190,37 @@ def test_bridge_takes_the_passive_joints_from_a_gripper_imu_whatever_its_yaw():
 
 
 
+def test_the_bridges_watchdog_trips_reach_the_runtime_in_the_machine_states():
+    """The runtime falls silent with the valves open: the bridge sends neutral valves once and
+    counts a trip, which the states carry (MachineState.watchdog_trips, as the simulated machine's
+    plant does), so the runtime's executor fails the throw whose valves were put neutral
+    (tests/test_runtime_finality.py::test_executor_fails_a_throw_when_the_machines_valve_watchdog_tripped
+    checks that rule)."""
+    b, out, clock = _bridge(BridgeConfig())
+    js = rt.joint_state(0, JOINT_NAMES, [0.0, -0.5, 1.9, 0.7, -1.2, 0.0], np.zeros(6))
+
+    def fresh_state() -> MachineState:
+        b.on_gripper_state(rt.msg(rt.BOOL, data=False))
+        b.on_joint_state(js)
+        return out["state"][-1]
+
+    assert fresh_state().watchdog_trips == 0
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.5, 0.0, 0.0, 0.0], epoch=1)))
+    clock.t += 0.2
+    b.check()
+    b.check()
+    assert not any(out["valves"][-1].data) and len(out["valves"]) == 2  # neutral, once
+    assert fresh_state().watchdog_trips == 1 and b.watchdog_trips == 1
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.0] * 4, epoch=1)))
+    clock.t += 0.2
+    b.check()  # silent with the valves neutral: not a trip
+    assert fresh_state().watchdog_trips == 1
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.0, 0.3, 0.0, 0.0], epoch=1)))
+    clock.t += 0.2
+    b.check()
+    assert fresh_state().watchdog_trips == 2
+
+
 def test_a_second_command_publisher_is_a_machine_fault_with_neutral_valves():
     b, out, clock = _bridge(BridgeConfig())
     js = rt.joint_state(0, JOINT_NAMES, [0.0, -0.5, 1.9, 0.7, -1.2, 0.0], np.zeros(6))

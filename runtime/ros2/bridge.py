@@ -25,7 +25,10 @@ Safety stays in the runtime (watchdog, E-STOP latch, signed commands). A require
 (joint states, passive joints, gripper state) older than ``stale_after_s`` stops the
 MachineStates: the runtime sees a machine-link loss (a running throw fails "machine link lost",
 throws are refused "machine offline"). When the runtime's valve commands stop for 0.1 s the bridge
-sends one neutral command (the machine must also hold its valves neutral on its own watchdog).
+sends one neutral command (the machine must also hold its valves neutral on its own watchdog) and
+counts a watchdog trip: the states carry the count (``MachineState.watchdog_trips``, as the
+simulated machine's plant does), so the runtime fails a throw or a return to the ready pose whose
+valves its watchdog put neutral. A trip of the machine driver's own watchdog is not read.
 A second publisher on the valve- or gripper-command topic (a stranger on the ROS domain) is a
 machine fault for as long as it is there and FOREIGN_HOLD_S after: the states carry it (the
 runtime fails a running throw and refuses throws with it) and only neutral valve commands go
@@ -106,6 +109,8 @@ class MachineBridge:
         self.fence = EpochFence()
         self.valve_rx_s = -np.inf
         self.valves_neutral = True
+        self.watchdog_trips = 0
+        """Times the bridge put moving valves neutral on the runtime's silence (MachineState.watchdog_trips)."""
         self.stale: str | None = None  # the stale topic, logged once per episode
         self.dropped = 0
         self.command_fault: str | None = None  # a foreign command publisher (set_command_fault)
@@ -221,7 +226,7 @@ class MachineBridge:
         return MachineState(machine_id=self.machine_id, stamp_s=now, q=q, qd=qd, gripper_open=bool(self.gripper_open),
                             payload_attached=bool(attached), payload_pos_m=payload[0] if payload is not None else None,
                             payload_vel_mps=payload[1] if payload is not None else None, simulated=self.config.simulated,
-                            machine_fault=self.command_fault or self.fault)
+                            machine_fault=self.command_fault or self.fault, watchdog_trips=self.watchdog_trips)
 
     def _drop(self, why: str) -> None:
         self.dropped += 1
@@ -265,12 +270,14 @@ class MachineBridge:
             self.send_valves(rt.float64_array(self.config.valve_array([0.0] * 4), _valve_labels(self.config)))
 
     def check(self) -> None:
-        """Periodic: one neutral valve command when the runtime fell silent; log a silent machine."""
+        """Periodic: one neutral valve command when the runtime fell silent with the valves open
+        (a watchdog trip, counted); log a silent machine."""
         now = self.clock()
         with self.lock:
             silent = not self.valves_neutral and now - self.valve_rx_s > VALVE_SILENCE_S
             if silent:
                 self.valves_neutral = True
+                self.watchdog_trips += 1
             if now - self.rx.get("joint_states", -np.inf) > self.config.stale_after_s and self.stale != "joint_states":
                 self.stale = "joint_states"
                 log.warning("ROS topic %s silent: no machine state (machine link lost)", self.config.topics.joint_states)
