@@ -10,7 +10,7 @@ parameter), no stateful phase. Two in-process (ASGI) apps with SQLite and no 3D 
 - ``running``: no machine online; every operation but the machine commands.
 - ``machine_app``: a throwaway app with a simulated machine ``m1`` online (tests.conftest.
   FakeRuntime, which latches E-STOP and answers like the runtime) for the machine commands: E-STOP
-  (and its alias abort), E-STOP reset, return to the ready pose, throws and jobs. Every other
+  (and its alias abort), E-STOP reset, return to the ready pose, lease takeover, throws and jobs. Every other
   generated case is sent to ``m1`` (the generated machine ids are random), so the answers of a
   machine that is there (200, 409, a refused throw) are checked as well as 404/503. What the
   commands do to the machine is not under test here (test_estop_*.py, test_return_to_ready.py,
@@ -47,7 +47,7 @@ from tests.conftest import ADMIN, FakeRuntime, add_user, free_port, wait_for
 MAX_EXAMPLES = 5
 SEED = 20261121
 EXCLUDED = [("POST", r"^/api/auth/logout$"), ("GET", r"^/api/diagnosis/effects$"), ("GET", r"^/api/live$")]
-MACHINE_COMMANDS = [("POST", r"^/api/machines/[^/]+/(abort|estop|estop/reset|return-to-ready)$"),
+MACHINE_COMMANDS = [("POST", r"^/api/machines/[^/]+/(abort|estop|estop/reset|return-to-ready|lease/takeover)$"),
                     ("POST", r"^/api/throws$"), ("POST", r"^/api/jobs$")]
 """Operations fuzzed on ``machine_app`` only."""
 
@@ -172,7 +172,7 @@ _sent = {"n": 0}
 
 def _call(case, app, token: str) -> None:
     """Call and check conformance; a machine command may answer its documented 503 (a runtime
-    that does not confirm: FakeRuntime has no return-to-ready), never another 5xx."""
+    that does not confirm: a machine that is not there), never another 5xx."""
     response = case.call_and_validate(app=app, headers={"Authorization": f"Bearer {token}"}, checks=CONFORMANCE)
     assert response.status_code < 500 or response.status_code == 503, response.text
 
