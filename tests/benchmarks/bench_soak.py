@@ -310,6 +310,23 @@ def write(report: dict, out: Path | None) -> None:
     plot(report, out.with_suffix(".png"))
 
 
+def figures(report: dict) -> list[dict]:
+    """The report's headline figures for docs/results.md (``slinger results``): duration and
+    throws, and the server's and worker's RSS slope after warm-up and over its second half."""
+    out = [{"what": "soak duration", "value": round(report["duration_min"], 1), "unit": "min",
+            "conditions": f"{report['throws']} throws, one simulated machine"}]
+    for name in ("server", "worker"):
+        g = report["memory"].get(name)
+        if g is None:
+            continue
+        out.append({"what": f"{name} RSS slope after a {report['warmup_min']:g}-minute warm-up", "unit": "MiB / 100 throws",
+                    "value": g["slope_mib_per_100_throws"],
+                    "conditions": f"{g['after_warmup_mib']} -> {g['last_mib']} MiB"})
+        out.append({"what": f"{name} RSS slope over the second half after warm-up", "unit": "MiB / 100 throws",
+                    "value": g["slope_second_half_mib_per_100_throws"]})
+    return out
+
+
 def resummarise(path: Path) -> dict:
     """A report written by this script with its memory figures computed again from its samples
     (memory_growth, probe_summary) by this version of the script."""
@@ -318,6 +335,7 @@ def resummarise(path: Path) -> dict:
     report["memory"] = memory_growth(report["memory_samples_mib"], report["warmup_min"])
     if report.get("probe_mib"):
         report["probe_summary"] = probe_summary(report["probe_mib"], report["warmup_min"])
+    report["figures"] = figures(report)
     return report
 
 
@@ -364,6 +382,7 @@ def main() -> int:
     }
     if report["probe_mib"]:
         report["probe_summary"] = probe_summary(report["probe_mib"], args.warmup_min)
+    report["figures"] = figures(report)
     write(report, args.out)
     return 0
 
