@@ -312,16 +312,23 @@ class Evaluator:
         self.M_base = scorer.signed(reps)  # (N, C) standardised mean residuals: the bias tests
         self.bias_margin = scorer.bias_margin  # (N, C) their immaterial mean
         self.replays = 0
+        self._scored: dict[tuple, np.ndarray] = {}  # effect (class, parameters) -> its S (N, C, P)
 
     def score(self, effects: list[Effect]) -> np.ndarray:
         """S (K, N, C, P) of base + each effect (a replay that went unstable scores UNSTABLE_CHI2).
-        Effects acting outside the dynamics reuse the base's joint motion (no MuJoCo stepping)."""
-        stacks = [EffectStack(self.base + [e]) for e in effects]
+        Effects acting outside the dynamics reuse the base's joint motion (no MuJoCo stepping).
+        An effect scored before on this base (same class, same parameter values: the sweeps of
+        one candidate meet the same point, e.g. every joint's nominal) is not replayed again."""
+        keys = [rp.effect_key(e) for e in effects]
+        todo = [k for k in range(len(effects)) if keys[k] not in self._scored and keys[k] not in keys[:k]]
+        stacks = {k: EffectStack(self.base + [effects[k]]) for k in todo}
         self.replays += len(stacks)
-        dyn = [k for k, e in enumerate(effects) if rp.needs_dynamics(EffectStack([e]))]
+        dyn = [k for k in todo if rp.needs_dynamics(EffectStack([effects[k]]))]
         reps = dict(zip(dyn, rp.replay(self.throws, [stacks[k] for k in dyn]))) if dyn else {}
-        S = np.stack([self.scorer.score(reps[k] if k in reps else rp.replay_on(self.throws, stacks[k], self.cache)) for k in range(len(stacks))])
-        return np.where(np.isfinite(S), S, UNSTABLE_CHI2)
+        for k in todo:
+            S = self.scorer.score(reps[k] if k in reps else rp.replay_on(self.throws, stacks[k], self.cache))
+            self._scored[keys[k]] = np.where(np.isfinite(S), S, UNSTABLE_CHI2)
+        return np.stack([self._scored[key] for key in keys])
 
     def sweep(self, cls: type[Effect], train: np.ndarray) -> Sweep:
         """Grid sweep of ``cls`` (see module doc); ``train`` (N,) bool picks the throws whose fit
