@@ -19,7 +19,7 @@
 "use strict";
 
 const state = { consoleId: null, viserPort: null, machines: Strip.machines, machineId: null, mode: "2d", target: null,
-  targetReason: null, preview: null, previewKey: null, busy: false, throwId: null, throwStarted: null, shownState: null, sending: false, sends: 0,
+  targetReason: null, preview: null, previewKey: null, busy: false, throwId: null, throwStarted: null, shownState: null, sending: false, sends: 0, throwOver: null,
   check: null, checkAt: 0, checking: false, autoAt: 0, typed: null, editing: false, confirming: null, epochs: new Map() };
 const PREVIEW_CHECK_MS = 1000;
 const AUTO_PREVIEW_MIN_MS = 4000; // at most one automatic preview per this interval
@@ -256,8 +256,8 @@ function renderPreviewAge() {
 async function checkPreview() {
   if (state.checking || !previewOnScreen() || !state.consoleId) { renderPreviewAge(); return; }
   const m = selected();
-  // no judgement while a throw runs (its result clears state.throwId): the swing outdates it
-  if (!m || m.state === "throwing" || state.throwId) { renderPreviewAge(); return; }
+  // no judgement while a throw runs (until its result is in: state.throwOver): the swing outdates it
+  if (!m || m.state === "throwing" || (state.throwId && state.throwOver !== state.throwId)) { renderPreviewAge(); return; }
   state.checking = true;
   const p = state.preview, sends = state.sends;
   try {
@@ -469,10 +469,11 @@ async function showResult(throwId) {
     $("out-duration").textContent = t.duration_s !== undefined && t.duration_s !== null ? `${fmt(t.duration_s)} s` : "–";
   }
   // the throw is over once its result is read: the next judgement (and preview) need not wait
-  // for its trajectory to load
-  if (throwId === state.throwId) { state.throwId = null; state.throwStarted = null; }
+  // for its trajectory to load (checkPreview)
+  if (throwId === state.throwId) state.throwOver = throwId;
   try { tr = await api("GET", `/api/throws/${throwId}/trajectory`); } catch (e) { /* no telemetry */ }
   if (tr) { plots.showTrajectory(tr); plots.enableScrubber(); }
+  if (throwId === state.throwId) { state.throwId = null; state.throwStarted = null; }
 }
 
 async function doReturnToReady() {
