@@ -12,6 +12,7 @@ import asyncio
 import logging
 import time
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 from fastapi import APIRouter, Request
@@ -177,8 +178,8 @@ async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: Se
         log.info("E-STOP %s: authenticated in %.1f ms, runtime confirmed after %.1f ms more", machine_id,
                  (t_auth - t0) * 1e3, (time.perf_counter() - t_auth) * 1e3)
     except (RuntimeUnavailable, ValueError) as e:
-        refused = _not_confirmed(lambda *a, **kw: _audit_later(fleet, backlog, *a, **kw), user.username, "abort",
-                                 machine_id, "abort", e, reason=reason)
+        refused = _not_confirmed(partial(_audit_later, fleet, backlog), user.username, "abort", machine_id, "abort", e,
+                                 reason=reason)
         await asyncio.to_thread(_404_if_unknown, fleet, sessions, machine_id)
         raise refused from e
     fleet.forget_info(machine_id)
@@ -188,8 +189,8 @@ async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: Se
 
 
 def _audit_later(fleet: Fleet, backlog: AuditBacklog, username: str, action: str, subject: str, **detail) -> None:
-    """Audit an E-STOP (action ``abort``) on the fleet's database thread, after the stop went out;
-    while storage fails the entry waits in ``backlog``. The E-STOP reply never waits for it."""
+    """Audit an E-STOP (``action`` ``abort``) on the fleet's database thread, after the stop went
+    out; while storage fails the entry waits in ``backlog``. The E-STOP reply never waits for it."""
     def logged(done) -> None:
         if done.exception() is not None:
             log.error("E-STOP audit entry not written: %s", done.exception())
