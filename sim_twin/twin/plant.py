@@ -298,7 +298,7 @@ def plant_tick(twin: TwinMachine, inbox: PlantInbox, now_s: float) -> tuple[Mach
     inbox.last_gripper = gripper
     inbox.resting = quiet and inbox.still_ticks >= REST_TICKS and inbox.rest_state is not None
     if inbox.resting and inbox.rest_state is not None:  # resting implies a rest state
-        return inbox.rest_state.model_copy(update={"stamp_s": twin._clock(), "machine_fault": twin.fault,  # noqa: SLF001
+        return inbox.rest_state.model_copy(update={"stamp_s": twin.now_s(), "machine_fault": twin.fault,
                                                    "watchdog_trips": trips}), None
     for r in resets:
         q = twin.apply_reset(r)

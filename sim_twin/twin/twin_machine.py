@@ -46,7 +46,9 @@ class TwinMachine:
         self.machine_id = keys.validate_machine_id(machine_id)
         self.reset_count = 0
         self._time_offset_s = 0.0
-        self._clock = clock or self.sim_time_s
+        # None stands for sim_time_s: holding the bound method self.sim_time_s would be a reference
+        # cycle, so every twin (and its MjData, ~13 MiB) would wait for the cyclic GC to be freed
+        self._clock = clock
         self._impact_sent = False
         self._unloaded_since_s: float | None = None
         self.fault: str | None = None  # published as MachineState.machine_fault
@@ -55,12 +57,16 @@ class TwinMachine:
         """Simulated seconds since construction, continuous across resets."""
         return self._time_offset_s + self.sim.time_s
 
+    def now_s(self) -> float:
+        """The stamp (s) of "now": ``clock()``, or :meth:`sim_time_s` without a clock."""
+        return self._clock() if self._clock is not None else self.sim_time_s()
+
     def state(self) -> MachineState:
         """The current MachineState (stamped with ``clock()``)."""
         pos, vel = self.sim.payload_state()
         return MachineState(
             machine_id=self.machine_id,
-            stamp_s=self._clock(),
+            stamp_s=self.now_s(),
             q=self.sim.q.tolist(),
             qd=self.sim.qd.tolist(),
             gripper_open=self.sim.gripper_open,
@@ -127,7 +133,7 @@ class TwinMachine:
         if impact is None or self._impact_sent:
             return None
         self._impact_sent = True
-        now_sim, now = self.sim.time_s, self._clock()
+        now_sim, now = self.sim.time_s, self.now_s()
         return ImpactReport(
             machine_id=self.machine_id,
             stamp_s=now,
