@@ -25,6 +25,14 @@ def _info(**kw) -> RuntimeInfo:
     return RuntimeInfo(**{**base, **kw})
 
 
+def test_machine_status_names_the_lease_holder_and_the_undeliverable_results():
+    """The Fleet page follows them live (web/js/fleet.js reloads the machine's row when they change)."""
+    st = machine_status("m1", True, _info(lease_holder="srv-a", undeliverable_results=2), 0.1)
+    assert (st["lease_holder"], st["undeliverable_results"]) == ("srv-a", 2)
+    st = machine_status("m1", False, _info(lease_holder="srv-a", undeliverable_results=2), 0.1)
+    assert (st["lease_holder"], st["undeliverable_results"]) == (None, None)  # offline: not known now
+
+
 def test_machine_status_says_one_state_with_its_reason():
     assert machine_status("m1", False, _info(), 0.1)["state"] == "offline"
     st = machine_status("m1", True, None, None)

@@ -77,17 +77,21 @@ def machine_status(machine_id: str, online: bool, info: RuntimeInfo | None, info
         "return_to_ready", else None), "returning" (a return to the ready pose runs),
         "return_progress" (0..1 or None), "return_result" (how the last one ended or None),
         "epoch" (the runtime's RuntimeInfo epoch, ms at its start: changes when it restarts;
-        None before its first RuntimeInfo)}.
+        None before its first RuntimeInfo), "lease_holder" (the server id whose commands the
+        runtime obeys, None: nobody or unknown), "undeliverable_results" (results its outbox set
+        aside, None: unknown)}.
     """
     out: dict[str, Any] = {"machine_id": machine_id, "state": "offline", "reason": "runtime offline", "estop_reason": None,
            "phase": None, "throw_id": None, "policies": {}, "simulated": bool(info and info.simulated),
-           "recovery": None, "returning": False, "return_progress": None, "return_result": None, "epoch": None}
+           "recovery": None, "returning": False, "return_progress": None, "return_result": None, "epoch": None,
+           "lease_holder": None, "undeliverable_results": None}
     if not online:
         return out
     if info is None:
         return {**out, "state": "not_ready", "reason": "waiting for the runtime's state"}
     out["policies"] = {p.mode: p.version for p in info.policies}
     out["epoch"] = info.epoch  # the runtime's start (ms): a new value is a restarted runtime
+    out.update(lease_holder=info.lease_holder, undeliverable_results=info.undeliverable_results)
     out.update(recovery=info.recovery, returning=info.returning, return_progress=info.return_progress,
                return_result=info.return_result)
     phase = info.phase or (throw or {}).get("phase")

@@ -106,7 +106,9 @@ document.addEventListener("DOMContentLoaded", async () => {
   Live.on("machine", (s) => {
     const before = fleet.live.get(s.machine_id);
     fleet.live.set(s.machine_id, s);
-    if (before && JSON.stringify(before.policies) !== JSON.stringify(s.policies)) loadFleet(); // its rollback targets moved
+    const moved = before && (JSON.stringify(before.policies) !== JSON.stringify(s.policies) // its rollback targets moved
+      || before.lease_holder !== s.lease_holder || before.undeliverable_results !== s.undeliverable_results); // or its lease
+    if (moved) loadFleet();
     else render();
   });
   Live.on("job", (j) => { if (j && j.kind !== "preview" && ["done", "failed"].includes(j.status)) loadFleet(); });
