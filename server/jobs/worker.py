@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import threading
 from pathlib import Path
 
 from server.jobs import leases, tasks
@@ -80,8 +81,10 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"slinger worker: {e}") from None
     lease.reap()  # jobs of workers that died while none ran
     if "fast" in lanes:
-        import sim_twin.preview.preview  # noqa: F401  warm: the first preview must not pay MuJoCo's import
+        import sim_twin.preview.preview  # warm: the first preview must not pay MuJoCo's import
 
+        # nor the first ellipse scipy's (in the background: the consumers start meanwhile)
+        threading.Thread(target=sim_twin.preview.preview.warm_imports, name="warm-imports", daemon=True).start()
         ctx.start_preview_pool()
     consumers = []
     for lane in lanes:

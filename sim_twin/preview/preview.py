@@ -418,6 +418,13 @@ def _warm_process(policy_path: str, release_check: bool) -> None:
     ThrowExecutor({policy.mode: policy}, config=config, release_check=check).warm_up()
 
 
+def warm_imports() -> None:
+    """Import what a preview imports only when it first needs it: scipy.stats (the Monte Carlo's
+    Sobol points, sim_twin.twin.uncertainty.unit_points), about 2 s of CPU on the 2-core
+    development VM, which a worker's first ellipse paid otherwise (cProfile of a fresh process)."""
+    from scipy.stats import qmc  # noqa: F401
+
+
 def warm_up(pool: Executor, processes: int) -> None:
     """Import the twin in the ``processes`` processes of ``pool`` (a preview's first rollouts
     then start at once); returns when they are up."""
