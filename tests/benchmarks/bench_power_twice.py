@@ -1,0 +1,109 @@
+"""Is twice a stated detectable size found? The "no gap" verdict's power statement checked on datasets.
+
+Run: ``python tests/benchmarks/bench_power_twice.py [--seed 0 --seed 1 ...] [--effect hanging_mass ...]
+[--throws 30] [--report reports/diagnosis_power_twice.json]``.
+
+Per seed: 30 logged throws of the nominal machine (the 2D policy in the loop, real-log noise,
+:class:`sim_twin.diagnosis.reallog.RealLogSpec`) are diagnosed; where the verdict is "no gap" its
+power statement (:mod:`sim_twin.diagnosis.power`) gives each main candidate's detectable size. Then
+for each main candidate a dataset with the same seed is generated with that candidate at its
+nominal value plus TWICE the stated size, and diagnosed blind (whole library). "Found": the
+verdict is not "no gap" (the where stage saw it); "named": the candidate is among the named or
+consistent effects. The statement claims at least 80 % found. Prints each case with the host's
+load average; the report (JSON + .txt) records date, commit, policy SHA-256, host and command.
+No assertions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seed", type=int, action="append", default=[], help="dataset seed (repeatable; default 0)")
+    parser.add_argument("--effect", action="append", default=[], help="main candidate (repeatable; default all of power.MAIN)")
+    parser.add_argument("--throws", type=int, default=30)
+    parser.add_argument("--workers", type=int, default=2, help="processes for generation and the candidate sweeps")
+    parser.add_argument("--report", type=Path, default=None)
+    args = parser.parse_args()
+    from sim_twin.diagnosis import dataset
+    from sim_twin.diagnosis.diagnose import diagnose
+    from sim_twin.diagnosis.power import MAIN
+    from sim_twin.diagnosis.reallog import RealLogSpec
+    from sim_twin.twin.effects import effect_class
+
+    policy = REPO / "policies" / "throw2d.onnx"
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=REPO, check=False).stdout.strip()
+    main_rows = [m for m in MAIN if not args.effect or m[0] in args.effect]
+    rows: list[dict] = []
+    seeds_used: list[dict] = []
+
+    def write() -> None:
+        if not args.report:
+            return
+        found = [r["found"] for r in rows]
+        res = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "commit": commit,
+               "policy_sha256": hashlib.sha256(policy.read_bytes()).hexdigest(), "host": platform.node(), "cpu_count": os.cpu_count(),
+               "command": " ".join(["python"] + sys.argv), "throws": args.throws, "seeds": seeds_used, "cases": rows,
+               "found_rate": sum(found) / len(found) if found else None, "named_rate": sum(r["named"] for r in rows) / len(rows) if rows else None}
+        args.report.parent.mkdir(parents=True, exist_ok=True)
+        args.report.write_text(json.dumps(res, indent=1) + "\n")
+        lines = [f"Twice the stated detectable size, {res['date']}, commit {commit}, policy throw2d.onnx sha256 {res['policy_sha256']}, "
+                 f"host {res['host']}, command: {res['command']}",
+                 f"found (verdict not 'no gap'): {sum(found)} of {len(found)}; named or consistent: {sum(r['named'] for r in rows)} of {len(rows)}"]
+        lines += [f"  seed {s['seed']}: nominal log verdict {s['answer']}" for s in seeds_used]
+        lines += [f"  seed {r['seed']} {r['effect']} {r['param']} {r['nominal']:g} + 2 x {r['stated']:.4g} = {r['value']:.4g}: "
+                  f"{r['answer']} {r['effects']} (found {r['found']}, named {r['named']})" for r in rows]
+        args.report.with_suffix(".txt").write_text("\n".join(lines) + "\n")
+
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in args.seed or [0]:
+            nominal = Path(tmp) / f"nominal_seed{seed}"
+            dataset.generate(nominal, {"name": "nominal", "effects": []}, args.throws, policy, seed=seed, workers=args.workers, real_log=RealLogSpec())
+            rep = diagnose(nominal, None, seed=seed, workers=args.workers, plots=False)
+            v = rep["verdict"]
+            seeds_used.append({"seed": seed, "answer": v["answer"], "power": (v.get("power") or {}).get("effects")})
+            print(f"seed {seed}: nominal log: {v['answer']} (load {os.getloadavg()[0]:.1f})", flush=True)
+            if v["answer"] != "no_gap" or not v.get("power"):
+                write()
+                continue
+            for name, param, _step, _ref, _unit, k in main_rows:
+                stated = v["power"]["effects"].get(name, {}).get("min_change")
+                if stated is None:
+                    continue
+                cls = effect_class(name)
+                p = next(q for q in cls.params if q.name == param or q.name.startswith(param + "_"))
+                value = min(p.nominal + 2 * stated / k, p.hi)
+                data = Path(tmp) / f"{name}_seed{seed}"
+                t0 = time.time()
+                dataset.generate(data, {"name": f"twice_{name}", "effects": [{"effect": name, "params": {param: value}}]}, args.throws, policy,
+                                 seed=seed, workers=args.workers, real_log=RealLogSpec())
+                r = diagnose(data, None, seed=seed, workers=args.workers, plots=False)["verdict"]
+                names = set(r.get("effects", [])) | {n.get("effect") for n in r.get("not_confirmed", [])} | set(r.get("between") or [])
+                row = {"seed": seed, "effect": name, "param": param, "nominal": p.nominal, "stated": stated / k, "value": value,
+                       "answer": r["answer"], "effects": r.get("effects", []), "found": r["answer"] != "no_gap", "named": name in names,
+                       "wall_s": time.time() - t0, "load_avg_1min": os.getloadavg()[0]}
+                rows.append(row)
+                print(f"  {name} {param} = {value:.4g} (nominal {p.nominal:g} + 2 x {stated / k:.4g}): {r['answer']} {row['effects']} "
+                      f"found {row['found']} named {row['named']} ({row['wall_s']:.0f} s, load {row['load_avg_1min']:.1f})", flush=True)
+                write()
+            write()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
