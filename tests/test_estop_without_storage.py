@@ -399,3 +399,37 @@ def test_an_unwritable_latch_file_keeps_the_latch_in_memory(tmp_path):
         assert again.latch("m1") is not None and "drill" in again.latch("m1").reason
     finally:
         again.close()
+
+
+def test_the_session_file_holds_unexpired_sessions_for_a_start_without_storage_and_fails_closed(tmp_path):
+    """server.accounts.session_file with the mirror alone: the file's unexpired sessions are held when
+    the first read fails, an expired one is not; a damaged file authorises nobody; space is reserved."""
+    from datetime import timedelta
+
+    from server.accounts.auth import SessionMirror, _digest
+    from server.accounts.session_file import RESERVE_NAME, SessionFile
+    from server.db.types import utcnow
+    from server.site.storage import StorageFault
+
+    def down():
+        raise StorageFault("disk_full", "the disk is full")
+
+    file = SessionFile(tmp_path / "session_mirror.json")
+    now = utcnow()
+    file.save({_digest("tok-ann"): (1, "ann", "operator", True, now, now + timedelta(hours=1)),
+               _digest("tok-old"): (2, "old", "operator", True, now, now - timedelta(seconds=1))})
+    assert (tmp_path / RESERVE_NAME).stat().st_size > 0
+    mirror = SessionMirror(down, refresh_s=60.0, file=file)
+    mirror.start()
+    try:
+        assert mirror.from_file and mirror.user("tok-ann").username == "ann"
+        assert mirror.user("tok-old") is None and mirror.user("tok-bob") is None
+    finally:
+        mirror.stop()
+    (tmp_path / "session_mirror.json").write_text("{damaged")
+    mirror = SessionMirror(down, refresh_s=60.0, file=file)
+    mirror.start()
+    try:
+        assert mirror.user("tok-ann") is None  # nothing authorised from a file that cannot be read
+    finally:
+        mirror.stop()

@@ -417,8 +417,8 @@ class SessionMirror:
             return
         with self._file_lock:
             with self._lock:
-                current = self._map
-            if current is self._saved or current == self._saved:
+                current = dict(self._map)  # a copy: drop() changes the map in place
+            if current == self._saved:
                 return
             try:
                 self.file.save({digest: (u.id, u.username, u.role, u.active, u.created_at, expires)
@@ -439,7 +439,7 @@ class SessionMirror:
             if self.loaded:  # a read succeeded meanwhile
                 return
             self._map, self.from_file = kept, True
-            self._saved = kept
+            self._saved = dict(kept)
         log.warning("storage not readable at start: %d session(s) authorised from %s until it answers", len(kept),
                     self.file.path)
 
