@@ -300,7 +300,7 @@ def _measure_shared(stack: EffectStack, q: np.ndarray, qd: np.ndarray) -> tuple[
         return hit[2], hit[3]
     mq, mqd = _measure(stack, q, qd)
     if len(_MEASURED) >= _MEASURED_MAX:
-        _MEASURED.pop(next(iter(_MEASURED)))
+        _MEASURED.pop(next(iter(_MEASURED), None), None)  # another thread may have taken it
     _MEASURED[key] = (q, qd, mq, mqd)
     return mq, mqd
 
