@@ -300,7 +300,9 @@ def _measure_shared(stack: EffectStack, q: np.ndarray, qd: np.ndarray) -> tuple[
         return hit[2], hit[3]
     mq, mqd = _measure(stack, q, qd)
     if len(_MEASURED) >= _MEASURED_MAX:
-        _MEASURED.pop(next(iter(_MEASURED), None), None)  # another thread may have taken it
+        oldest = next(iter(_MEASURED), None)
+        if oldest is not None:
+            _MEASURED.pop(oldest, None)  # another thread may have taken it
     _MEASURED[key] = (q, qd, mq, mqd)
     return mq, mqd
 
