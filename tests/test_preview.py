@@ -4,6 +4,7 @@ previewed, keep-out zones, 3D confirmation). Uses the real trained 2D policy."""
 from __future__ import annotations
 
 import dataclasses
+import gc
 import json
 from pathlib import Path
 
@@ -15,10 +16,10 @@ from runtime.policy import PolicyRunner
 from runtime.protocol.messages import PolicyInfo, ThrowRequest
 from server.config import KeepOutZone
 from server.throws.gate import GateLimits
-from sim_twin.twin.twin_machine import TwinMachine
 from sim_twin.preview.preview import PreviewRequest, preview_throw
 from sim_twin.twin.profile import RealityProfile, SensorParams
 from sim_twin.twin.simulated_machine import SimulatedMachine
+from sim_twin.twin.twin_machine import TwinMachine
 from tests.conftest import add_user, login, wait_for, wait_online
 
 POLICY = Path(__file__).resolve().parent.parent / "policies" / "throw2d.onnx"
@@ -58,6 +59,26 @@ def test_preview_predicts_what_the_twin_does(policy):
     assert s["clearance"]["inside"] is True and s["clearance"]["max_radius_m"] > 3.0
     assert set(s["peak_joint_speeds"]) == {"cabin_turn", "boom", "dipper", "telescope"}
     assert 0.5 < s["duration_s"] < 5.0 and s["flight_s"] > 0.1
+
+
+def test_a_preview_frees_its_twin_when_it_returns(policy):
+    """A preview's twin (SimulatedMachine with its MjData, a ~13 MiB arena) is freed by reference
+    counting when the preview returns: none is left for the cyclic garbage collector, which runs
+    on object counts and would let a job worker's heap grow by a twin per preview between its runs
+    (reports/preview_memory.json)."""
+    def twins() -> int:
+        return sum(1 for o in gc.get_objects() if isinstance(o, (SimulatedMachine, TwinMachine)))
+
+    gc.collect()
+    before = twins()
+    gc.disable()
+    try:
+        for _ in range(2):
+            s = preview_throw(policy, PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=1))
+            assert s["status"] == "ok", s["reason"]
+        assert twins() == before
+    finally:
+        gc.enable()
 
 
 def test_monte_carlo_ellipse(policy):

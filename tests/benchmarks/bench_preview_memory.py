@@ -4,9 +4,13 @@ sim_twin.twin.initial_pose.sample_pose, target 8 m) through the worker's own pat
 (server.jobs.tasks.execute: job row in SQLite, policy runner cache, preview_throw on the
 SimulatedMachine twin, result written back), run in one long-lived thread as a Huey thread
 consumer runs them. Every ``--every`` jobs it prints and records the resident memory (VmRSS),
-glibc's heap in use and free (mallinfo2(3)), Python's allocated blocks and, with
+glibc's heap in use and free (mallinfo2(3)), Python's allocated blocks (without forcing a
+garbage collection: objects in reference cycles count until the cyclic GC frees them) and, with
 ``--tracemalloc``, the Python-level memory, whose biggest growers since job 20 are listed at the
 end. Growth is the least-squares slope of RSS against jobs after ``--warmup`` jobs, MiB per 100.
+
+``--before REPORT`` puts an earlier run's samples (another commit's) beside this one's in the
+report and its plot (``<out>.png``: RSS and heap in use against jobs).
 
 Run: ``PYTHONPATH=. python tests/benchmarks/bench_preview_memory.py --n 300 --out reports/preview_memory``
 """
@@ -90,8 +94,7 @@ def run(n: int, every: int, policy: Path, trace: bool) -> dict:
                 if trace and i == 20:
                     gc.collect()
                     snap0 = tracemalloc.take_snapshot()
-                if i % every == 0:
-                    gc.collect()
+                if i % every == 0:  # no gc.collect() here: what the cyclic GC leaves between its runs counts
                     row = {"jobs": i, "t_s": round(time.monotonic() - t0, 1), "status": ctx.store.get(jid)["status"],
                            **sample(libc)}
                     samples.append(row)
@@ -112,6 +115,30 @@ def run(n: int, every: int, policy: Path, trace: bool) -> dict:
     return {"samples": samples, "tracemalloc_top": top}
 
 
+def plot(report: dict, path: Path) -> None:
+    """RSS (solid) and glibc heap in use (dashed) against jobs, this run and ``before`` if any."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    runs = [("this run", report)] + ([("before", report["before"])] if report.get("before") else [])
+    for (label, r), color in zip(runs, ("tab:blue", "tab:red")):
+        commit = r["host"]["commit"][:7]
+        x = [s["jobs"] for s in r["samples"]]
+        ax.plot(x, [s["rss_mib"] for s in r["samples"]], color=color, label=f"{label} ({commit}): RSS")
+        ax.plot(x, [s["heap_in_use_mib"] for s in r["samples"]], color=color, ls="--", label=f"{label} ({commit}): heap in use")
+    ax.set_xlabel("preview jobs")
+    ax.set_ylabel("MiB")
+    ax.set_title("Job worker's preview loop in one process (simulated machine twin)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=300, help="preview jobs")
@@ -119,7 +146,8 @@ def main() -> int:
     parser.add_argument("--warmup", type=int, default=50, help="growth is fitted from this job on")
     parser.add_argument("--tracemalloc", action="store_true", help="trace Python allocations (slower)")
     parser.add_argument("--policy", type=Path, default=REPO / "policies" / "throw2d.onnx")
-    parser.add_argument("--out", type=Path, default=None, help="write <out>.json and <out>.md")
+    parser.add_argument("--out", type=Path, default=None, help="write <out>.json and <out>.png")
+    parser.add_argument("--before", type=Path, default=None, help="an earlier run's report to show beside this one")
     args = parser.parse_args()
     started = dt.datetime.now(dt.UTC)
     host0 = host_info()
@@ -139,8 +167,19 @@ def main() -> int:
                              "sha256": hashlib.sha256(args.policy.read_bytes()).hexdigest()},
                   "jobs": args.n, "warmup_jobs": args.warmup, "rss_growth_mib": growth, "slope_mib_per_100_jobs": slope,
                   **out}
+        if args.before is not None:
+            before = json.loads(args.before.read_text())
+            report["before"] = {k: before[k] for k in ("date_utc", "command", "host", "rss_growth_mib",
+                                                       "slope_mib_per_100_jobs", "samples")}
+        report["figures"] = [
+            {"what": f"worker preview loop, RSS slope after job {args.warmup}", "value": slope, "unit": "MiB / 100 jobs",
+             "conditions": f"{args.n} jobs in one process, commit {host0['commit'][:7]}"},
+            *([{"what": f"the same before the fix, RSS slope after job {args.warmup}",
+                "value": report["before"]["slope_mib_per_100_jobs"], "unit": "MiB / 100 jobs",
+                "conditions": f"commit {report['before']['host']['commit'][:7]}"}] if args.before is not None else [])]
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.with_suffix(".json").write_text(json.dumps(report, indent=2) + "\n")
+        plot(report, args.out.with_suffix(".png"))
     return 0
 
 
