@@ -4,6 +4,7 @@ must follow the CPU MuJoCo twin for the same commands."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import mujoco
@@ -36,8 +37,8 @@ def env_and_state(request):
 
 def test_observation_parity_mjx_vs_runtime(env_and_state):
     core, state, obs_mjx, _ = env_and_state
-    as64 = {k: np.asarray(state[k], dtype=np.float64) for k in ("q_hist", "qd_hist", "prev_action", "target")}
-    obs_rt = build_observation(np, core.mode, as64["q_hist"], as64["qd_hist"], as64["prev_action"], as64["target"], float(state["opened"]))
+    as64 = {k: np.asarray(getattr(state, k), dtype=np.float64) for k in ("q_hist", "qd_hist", "prev_action", "target")}
+    obs_rt = build_observation(np, core.mode, as64["q_hist"], as64["qd_hist"], as64["prev_action"], as64["target"], float(state.opened))
     assert obs_rt.shape == (observation_size(core.mode),) == np.asarray(obs_mjx).shape
     np.testing.assert_allclose(np.asarray(obs_mjx), obs_rt, rtol=2e-5, atol=2e-4)
     assert np.abs(as64["qd_hist"]).max() > 1e-3  # the state really moved
@@ -47,8 +48,8 @@ def test_runtime_kinematics_match_mujoco_site(env_and_state):
     _, state, _, _ = env_and_state
     model = load_model()
     data = mujoco.MjData(model)
-    data.qpos[:] = np.asarray(state["data"].qpos, dtype=float)
-    data.qvel[:] = np.asarray(state["data"].qvel, dtype=float)
+    data.qpos[:] = np.asarray(state.data.qpos, dtype=float)
+    data.qvel[:] = np.asarray(state.data.qvel, dtype=float)
     mujoco.mj_forward(model, data)
     site = model.site("gripper_centre").id
     vel6 = np.zeros(6)
@@ -99,8 +100,8 @@ def test_mjx_env_closed_valves_hold_the_load(env_and_state):
         pytest.skip("one mode suffices: the actuation is the same (compiling it costs ~20 s)")
     run = jax.jit(lambda s: jax.lax.fori_loop(0, 400, lambda _, st: core._substep(st, jnp.zeros(4)), s))
     settled = run(state)
-    q0 = np.asarray(settled["data"].qpos[:4])
-    q1 = np.asarray(run(settled)["data"].qpos[:4])
+    q0 = np.asarray(settled.data.qpos[:4])
+    q1 = np.asarray(run(settled).data.qpos[:4])
     assert np.abs(q1 - q0).max() < 1e-3, q1 - q0
 
 
@@ -108,13 +109,11 @@ def test_mjx_env_closed_valves_hold_the_load(env_and_state):
 def _per_env_autoreset(core, s, action):
     """Reference: one environment's step, then its reset when the episode ended (the per-env form
     MuJoCo Warp cannot trace under vmap)."""
-    from sim_twin.training.mjx_env import EnvState
-
     s1, obs, rew, term, tout, info = core.step(s, action)
     done = term | tout
-    key, k_reset = jax.random.split(s1["key"])
+    key, k_reset = jax.random.split(s1.key)
     s_new, obs_new = core.reset(k_reset)
-    s_out = jax.tree_util.tree_map(lambda n, o: jnp.where(done, n, o), s_new, EnvState(s1, key=key))
+    s_out = jax.tree_util.tree_map(lambda n, o: jnp.where(done, n, o), s_new, s1.replace(key=key))
     return s_out, jnp.where(done, obs_new, obs), rew, done, tout, info
 
 
@@ -126,7 +125,15 @@ def test_batch_autoreset_equals_the_vmapped_autoreset(reset_slots, n_left):
     into a fraction of it (0.5 of 4: two slots; two finish, then three finish and it falls back to
     the whole batch; 0.25: one slot, one finishes). Checked on a small stand-in environment (the
     method only calls ``step`` and ``reset``), which keeps the test free of compiling the physics."""
-    from sim_twin.training.mjx_env import EnvState
+    @jax.tree_util.register_dataclass
+    @dataclasses.dataclass(frozen=True)
+    class ToyState:  # what step_autoreset_batch asks of a state: a pytree with a key and replace()
+        key: jax.Array
+        x: jax.Array
+        n: jax.Array
+
+        def replace(self, **kw):
+            return dataclasses.replace(self, **kw)
 
     class Toy:
         def __init__(self, slots):
@@ -134,26 +141,26 @@ def test_batch_autoreset_equals_the_vmapped_autoreset(reset_slots, n_left):
 
         def reset(self, key):
             x = jax.random.uniform(key, (3,))
-            return EnvState(key=key, x=x, n=jnp.zeros((), jnp.int32)), x * 2
+            return ToyState(key=key, x=x, n=jnp.zeros((), jnp.int32)), x * 2
 
         def step(self, s, a):
-            n = s["n"] + 1
-            x = s["x"] + a
-            s1 = EnvState(s, x=x, n=n)
+            n = s.n + 1
+            x = s.x + a
+            s1 = s.replace(x=x, n=n)
             return s1, x, jnp.sum(x), n >= 3, jnp.asarray(False), {"n": n}
 
         step_autoreset_batch = ThrowEnvCore.step_autoreset_batch
 
     toy = Toy(reset_slots)
     state, _ = jax.vmap(toy.reset)(jax.random.split(jax.random.PRNGKey(5), 4))
-    state["n"] = jnp.asarray(n_left, jnp.int32)
+    state = state.replace(n=jnp.asarray(n_left, jnp.int32))
     action = jnp.ones((4, 3))
     a = jax.jit(jax.vmap(lambda s, act: _per_env_autoreset(toy, s, act)))(state, action)
     b = jax.jit(toy.step_autoreset_batch)(state, action)
     assert np.asarray(b[3]).tolist() == [n == 2 for n in n_left]
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-    assert np.asarray(b[0]["n"]).tolist() == [0 if n == 2 else n + 1 for n in n_left]
+    assert np.asarray(b[0].n).tolist() == [0 if n == 2 else n + 1 for n in n_left]
 
 
 def test_reset_slots_outside_a_fraction_are_refused():

@@ -58,7 +58,7 @@ def test_privileged_group_layout_and_range(mode):
     assert np.all(priv[:, sl["grasp_offset"]] == 0.0)  # the recipes hold the payload at the gripper centre
     # the policy observation is still runtime.observation's, from the measured history
     s0 = jax.tree_util.tree_map(lambda x: np.asarray(x[0], dtype=np.float64), state)
-    ref = build_observation(np, mode, s0["q_hist"], s0["qd_hist"], s0["prev_action"], s0["target"], float(s0["opened"]))
+    ref = build_observation(np, mode, s0.q_hist, s0.qd_hist, s0.prev_action, s0.target, float(s0.opened))
     assert np.asarray(obs).shape == (256, observation_size(mode))
     np.testing.assert_allclose(np.asarray(obs[0]), ref, rtol=1e-5, atol=1e-5)
 
@@ -81,7 +81,7 @@ def test_friction_drawn_log_uniformly_and_read_in_log_space():
     env["randomization"] = {**env["randomization"], "friction_scale": [0.5, 10.0], "friction_sampling": "log_uniform"}
     core = ThrowEnvCore(EnvConfig.from_dict(env))
     state, _ = jax.jit(jax.vmap(core.reset))(jax.random.split(jax.random.PRNGKey(5), 4096))
-    fric = np.asarray(state["fric"])
+    fric = np.asarray(state.fric)
     assert fric.min() >= 0.5 - 1e-6 and fric.max() <= 10.0 + 1e-5
     # log-uniform: the median is the geometric mean (2.24), where uniform would put it at 5.25
     assert abs(np.median(fric) - np.sqrt(0.5 * 10.0)) < 0.15
@@ -101,7 +101,7 @@ def test_grasp_offset_drawn_read_and_released_from():
     core = ThrowEnvCore(EnvConfig.from_dict(env))
     assert core.grasp_on
     state, _ = jax.jit(jax.vmap(core.reset))(jax.random.split(jax.random.PRNGKey(7), 2048))
-    g = np.asarray(state["grasp"])
+    g = np.asarray(state.grasp)
     assert g[:, 0].min() >= -0.2 and g[:, 0].max() <= 0.2 and g[:, 0].std() > 0.1 and np.all(g[:, 1] == 0.0)
     assert g[:, 2].min() >= -0.15 and g[:, 2].max() <= 0.05 + 1e-7 and abs(g[:, 2].mean() + 0.05) < 0.01
     priv = np.asarray(jax.jit(jax.vmap(core.privileged))(state))[:, _slices()["grasp_offset"]]
@@ -113,7 +113,7 @@ def test_grasp_offset_drawn_read_and_released_from():
         q = np.array([rng.uniform(-3, 3), rng.uniform(-0.5, 0.5), rng.uniform(-2, -1), rng.uniform(0, 1.5),
                       rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3)])
         qd = rng.uniform(-1.5, 1.5, 6)
-        p, v = core._held_payload(jnp.asarray(q, jnp.float32), jnp.asarray(qd, jnp.float32), state["grasp"][k])
+        p, v = core._held_payload(jnp.asarray(q, jnp.float32), jnp.asarray(qd, jnp.float32), state.grasp[k])
         p_ref, v_ref = grasp_point(q, qd, g[k])
         np.testing.assert_allclose(np.asarray(p), p_ref, atol=2e-5)
         np.testing.assert_allclose(np.asarray(v), v_ref, atol=2e-5)
@@ -158,7 +158,7 @@ def _valve_draws(coupling: str | None) -> dict[str, np.ndarray]:
         env["randomization"] = {**env["randomization"], "valve_coupling": coupling}
     core = ThrowEnvCore(EnvConfig.from_dict(env))
     state, _ = jax.jit(jax.vmap(core.reset))(jax.random.split(jax.random.PRNGKey(7), 4096))
-    return {k: np.asarray(state[k]) for k in ("valve_delay", "tau", "dead_band", "vscale")}
+    return {k: np.asarray(getattr(state, k)) for k in ("valve_delay", "tau", "dead_band", "vscale")}
 
 
 def test_valve_coupling_all_sets_dead_band_and_speed_from_the_machine_slowness():
@@ -304,7 +304,7 @@ def test_finetune_config_keeps_the_trained_normalisation(mode):
         lo, hi = orig[key]
         np.testing.assert_allclose(priv[:, sl[name]], (fixed[key] - (lo + hi) / 2) / ((hi - lo) / 2), rtol=1e-5, atol=1e-6)
     half = 2 * orig["release_delay_std_s"] + orig["release_delay_shift_s"]
-    x = np.asarray(state["delay_steps"]) * 0.01
+    x = np.asarray(state.delay_steps) * 0.01
     np.testing.assert_allclose(priv[:, sl["release_delay"]][:, 0], (x - orig["release_delay_mean_s"]) / half, rtol=1e-5)
     # without the kept ranges the same episodes' narrowed inputs read 0, and the policy observation is the same
     del env["privileged_ranges"]

@@ -47,6 +47,7 @@ Everything below works on one environment and is vmapped over ``num_envs``.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
@@ -174,15 +175,90 @@ class EnvConfig:
         return asdict(self)
 
 
-class EnvState(dict):
-    """Pytree of per-environment arrays (a dict so jax treats it as a pytree)."""
+@jax.tree_util.register_dataclass
+@dataclass(frozen=True)
+class EnvState:
+    """State of one throwing environment between control steps: a JAX pytree (every field a leaf
+    or, ``data``, a pytree), so it passes through ``jit``, ``vmap`` and ``lax`` loops; a batch of
+    ``num_envs`` environments is one EnvState whose leaves carry a leading (num_envs,) axis.
+    :meth:`replace` returns a copy with some fields changed (the state is immutable).
 
+    Shapes below are of one environment; angles rad, lengths m, times s, machine frame.
+    ``A`` = NUM_ACTIVE (4) active joints, ``num_act`` = num_actions(mode).
 
-jax.tree_util.register_pytree_node(
-    EnvState,
-    lambda s: (tuple(s[k] for k in sorted(s)), tuple(sorted(s))),
-    lambda keys, vals: EnvState(zip(keys, vals)),
-)
+    Attributes:
+        data: mjx.Data of the physics (qpos, qvel (6,): 4 active then 2 passive joints).
+        q_hist, qd_hist: (4, 6) the last four measured joint positions / velocities, newest first
+            (what the observation is built from).
+        prev_action: (num_act,) the previous action.
+        target: (3,) ground target.
+        step: () int32 control steps taken in this episode.
+        release_cmd: () bool the release was commanded (by the policy or forced).
+        countdown: () int32 physics steps until the gripper opens (-1: no release pending).
+        opened: () bool the gripper has opened.
+        ball_p0, ball_v0: (3,) payload position and velocity at the opening, m and m/s.
+        t_open: () time since the opening, s.
+        t_flight: () ballistic flight time from the opening to the ground, s.
+        err2_min, err3_min: () smallest horizontal / 3-D distance of payload to target so far, m.
+        lag_v: (4,) the actuation lag's output (fraction of full speed, or rad/s for the lag model).
+        sensor_lag: (2,) int32 sensor latency, physics steps (active joints, passive joints).
+        phys_q, phys_qd: (MAX_SENSOR_LAG_STEPS + 1, 6) true joint positions / velocities of the
+            last physics steps, newest first (the latency buffer).
+        gripper_scale: () gripper mass and inertia factor.
+        x_ref: (A,) the cylinders' held joint positions (sim_twin.twin.hydraulics.cylinder_step).
+        tau: (4,) actuation lag time constants, s.
+        gain: (4,) velocity-command gain factors (lag model).
+        delay_steps: () int32 release delay, physics steps.
+        fric: () passive-joint friction factor.
+        grasp: (3,) payload offset from the gripper centre in the gripper frame (x, 0, z).
+        key: (2,) uint32 PRNG key of this environment.
+        integral, prev_err: (4,) the PID's integral and previous error (hydraulic model).
+        peaks: (2, 4) the feed-forward law's peak memory (runtime.controller.pid_ff_law).
+        valve_buf: (MAX_VALVE_DELAY_STEPS + 1, 4) valve flows of the last physics steps, newest
+            first (the transport delay's buffer).
+        valve_delay: (4,) int32 valve transport delay, physics steps.
+        dead_band: (4,) valve dead band (fraction of full flow).
+        vscale: (4,) valve full-open speed factor.
+    """
+
+    data: mjx.Data
+    q_hist: jax.Array
+    qd_hist: jax.Array
+    prev_action: jax.Array
+    target: jax.Array
+    step: jax.Array
+    release_cmd: jax.Array
+    countdown: jax.Array
+    opened: jax.Array
+    ball_p0: jax.Array
+    ball_v0: jax.Array
+    t_open: jax.Array
+    t_flight: jax.Array
+    err2_min: jax.Array
+    err3_min: jax.Array
+    lag_v: jax.Array
+    sensor_lag: jax.Array
+    phys_q: jax.Array
+    phys_qd: jax.Array
+    gripper_scale: jax.Array
+    x_ref: jax.Array
+    tau: jax.Array
+    gain: jax.Array
+    delay_steps: jax.Array
+    fric: jax.Array
+    grasp: jax.Array
+    key: jax.Array
+    integral: jax.Array
+    prev_err: jax.Array
+    peaks: jax.Array
+    valve_buf: jax.Array
+    valve_delay: jax.Array
+    dead_band: jax.Array
+    vscale: jax.Array
+
+    def replace(self, **changes: Any) -> EnvState:
+        """A copy with the fields named in ``changes`` replaced. Raises TypeError on an unknown field."""
+        return dataclasses.replace(self, **changes)
 
 
 class ThrowEnvCore:
@@ -351,7 +427,7 @@ class ThrowEnvCore:
         return state, self.observe(state)
 
     def observe(self, s: EnvState) -> jnp.ndarray:
-        return build_observation(jnp, self.mode, s["q_hist"], s["qd_hist"], s["prev_action"], s["target"], s["opened"])
+        return build_observation(jnp, self.mode, s.q_hist, s.qd_hist, s.prev_action, s.target, s.opened)
 
     def privileged(self, s: EnvState) -> jnp.ndarray:
         """The critic's privileged observation (PRIVILEGED_SIZE,), layout in sim_twin.training.privileged,
@@ -367,45 +443,45 @@ class ThrowEnvCore:
         """Training joint-velocity controller: new state and the servo setpoints (4,)."""
         dt = PHYSICS_PERIOD_S
         if not self.hydraulic:
-            lag_v = jnp.clip(lag_step(s["lag_v"], target_v, s["tau"], dt), -self.vmax, self.vmax)
-            return EnvState(s, lag_v=lag_v), lag_v
-        data = s["data"]
+            lag_v = jnp.clip(lag_step(s.lag_v, target_v, s.tau, dt), -self.vmax, self.vmax)
+            return s.replace(lag_v=lag_v), lag_v
+        data = s.data
         u, _, integral, err, peaks = pid_ff_law(
-            jnp, self.gains, self.vmax, dt, target_v, data.qpos[:4], data.qvel[:4], s["integral"], s["prev_err"], s["peaks"]
+            jnp, self.gains, self.vmax, dt, target_v, data.qpos[:4], data.qvel[:4], s.integral, s.prev_err, s.peaks
         )
-        buf = jnp.concatenate([dead_band_flow(jnp, u, s["dead_band"])[None], s["valve_buf"][:-1]])
-        delayed = buf[s["valve_delay"], jnp.arange(4)]
-        lag_v = lag_step(s["lag_v"], delayed, s["tau"], dt)
-        vmax = self.vmax * s["vscale"]
+        buf = jnp.concatenate([dead_band_flow(jnp, u, s.dead_band)[None], s.valve_buf[:-1]])
+        delayed = buf[s.valve_delay, jnp.arange(4)]
+        lag_v = lag_step(s.lag_v, delayed, s.tau, dt)
+        vmax = self.vmax * s.vscale
         setpoint = jnp.clip(lag_v * vmax, -vmax, vmax)
-        return EnvState(s, lag_v=lag_v, integral=integral, prev_err=err, peaks=peaks, valve_buf=buf), setpoint
+        return s.replace(lag_v=lag_v, integral=integral, prev_err=err, peaks=peaks, valve_buf=buf), setpoint
 
     def _substep(self, s: EnvState, target_v) -> EnvState:
         dt = PHYSICS_PERIOD_S
         s, flow = self._actuate(s, target_v)
-        data = s["data"]
-        x_ref, setpoint = cylinder_step(jnp, s["x_ref"], flow, data.qpos[:NUM_ACTIVE], self.lower, self.upper, dt)
-        s = EnvState(s, x_ref=x_ref)
-        fric = passive_friction_force(jnp, data.qvel[4:6], self.inertia * s["fric"])
+        data = s.data
+        x_ref, setpoint = cylinder_step(jnp, s.x_ref, flow, data.qpos[:NUM_ACTIVE], self.lower, self.upper, dt)
+        s = s.replace(x_ref=x_ref)
+        fric = passive_friction_force(jnp, data.qvel[4:6], self.inertia * s.fric)
         data = data.replace(ctrl=setpoint, qfrc_applied=jnp.zeros(6).at[4:6].set(fric))
-        g, scale = self.gripper_id, s["gripper_scale"]
+        g, scale = self.gripper_id, s.gripper_scale
         model = self.model.replace(
             body_mass=self.model.body_mass.at[g].multiply(scale), body_inertia=self.model.body_inertia.at[g].multiply(scale)
         )
         data = mjx.step(model, data)
-        countdown = s["countdown"]
-        open_now = (countdown == 1) & ~s["opened"]
+        countdown = s.countdown
+        open_now = (countdown == 1) & ~s.opened
         countdown = jnp.where(countdown > 0, countdown - 1, countdown)
-        p_held, v_held = self._held_payload(data.qpos, data.qvel, s["grasp"])
-        p0 = jnp.where(open_now, p_held, s["ball_p0"])
-        v0 = jnp.where(open_now, v_held, s["ball_v0"])
-        t_flight = jnp.where(open_now, ballistic_impact_time(jnp, p0, v0, PAYLOAD_RADIUS_M), s["t_flight"])
-        t_open = jnp.where(s["opened"], s["t_open"] + dt, s["t_open"])
-        return EnvState(
-            s, data=data, countdown=countdown, opened=s["opened"] | open_now,
+        p_held, v_held = self._held_payload(data.qpos, data.qvel, s.grasp)
+        p0 = jnp.where(open_now, p_held, s.ball_p0)
+        v0 = jnp.where(open_now, v_held, s.ball_v0)
+        t_flight = jnp.where(open_now, ballistic_impact_time(jnp, p0, v0, PAYLOAD_RADIUS_M), s.t_flight)
+        t_open = jnp.where(s.opened, s.t_open + dt, s.t_open)
+        return s.replace(
+            data=data, countdown=countdown, opened=s.opened | open_now,
             ball_p0=p0, ball_v0=v0, t_flight=t_flight, t_open=t_open,
-            phys_q=jnp.concatenate([data.qpos[None], s["phys_q"][:-1]]),
-            phys_qd=jnp.concatenate([data.qvel[None], s["phys_qd"][:-1]]),
+            phys_q=jnp.concatenate([data.qpos[None], s.phys_q[:-1]]),
+            phys_qd=jnp.concatenate([data.qvel[None], s.phys_qd[:-1]]),
         )
 
     def _held_payload(self, q, qd, grasp) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -420,9 +496,9 @@ class ThrowEnvCore:
 
     def _measure(self, s: EnvState, key) -> tuple[jnp.ndarray, jnp.ndarray]:
         """(q (6,), qd (6,)) as the sensors give them: latency per joint group, white noise."""
-        lag = jnp.concatenate([jnp.full(4, s["sensor_lag"][0]), jnp.full(2, s["sensor_lag"][1])])
+        lag = jnp.concatenate([jnp.full(4, s.sensor_lag[0]), jnp.full(2, s.sensor_lag[1])])
         cols = jnp.arange(6)
-        q, qd = s["phys_q"][lag, cols], s["phys_qd"][lag, cols]
+        q, qd = s.phys_q[lag, cols], s.phys_qd[lag, cols]
         n = self.rand.obs_noise
         q_std = jnp.asarray([n.q_active] * 4 + [n.q_passive] * 2)
         qd_std = jnp.asarray([n.qd_active] * 4 + [n.qd_passive] * 2)
@@ -434,42 +510,41 @@ class ThrowEnvCore:
         holds ``landed``, ``failed``, ``impact_err_m``, ``released`` and ``reward_terms`` (the
         scaled terms of sim_twin.training.rewards, whose sum is ``reward``)."""
         w = self.w
-        key, k_force, k_noise, k_obs = jax.random.split(s["key"], 4)
+        key, k_force, k_noise, k_obs = jax.random.split(s.key, 4)
         qd_ref, release = decode_action(jnp, self.mode, action)
         # forced release (paper Sec. III-D): near the target at low speed, 5 % of the time
-        pts0 = forward_kinematics(jnp, s["data"].qpos, s["data"].qvel)
-        d0 = s["target"] - pts0.gripper_centre
+        pts0 = forward_kinematics(jnp, s.data.qpos, s.data.qvel)
+        d0 = s.target - pts0.gripper_centre
         near = jnp.sqrt(d0[0] ** 2 + d0[1] ** 2) < self.forced.radius_m
         slow = jnp.linalg.norm(pts0.gripper_centre_vel) < self.forced.speed_mps
         forced = near & slow & (jax.random.uniform(k_force) < self.forced.probability)
-        do_release = (release | forced) & ~s["release_cmd"]
-        s = EnvState(
-            s,
+        do_release = (release | forced) & ~s.release_cmd
+        s = s.replace(
             key=key,
-            countdown=jnp.where(do_release, s["delay_steps"], s["countdown"]),
-            release_cmd=s["release_cmd"] | do_release,
+            countdown=jnp.where(do_release, s.delay_steps, s.countdown),
+            release_cmd=s.release_cmd | do_release,
         )
         noise = jax.random.normal(k_noise, (4,)) * self.rand.velocity_noise * self.vmax
-        target_v = (qd_ref if self.hydraulic else qd_ref * s["gain"]) + noise
+        target_v = (qd_ref if self.hydraulic else qd_ref * s.gain) + noise
         s = jax.lax.fori_loop(0, SUBSTEPS, lambda _, st: self._substep(st, target_v), s, unroll=self.unroll_substeps)
 
-        data = s["data"]
+        data = s.data
         pts = forward_kinematics(jnp, data.qpos, data.qvel)
-        t_ball = jnp.minimum(s["t_open"], s["t_flight"])
-        ball = jnp.where(s["opened"], ballistic_position(jnp, s["ball_p0"], s["ball_v0"], t_ball), pts.gripper_centre)
-        landed = s["opened"] & (s["t_open"] >= s["t_flight"])
-        err = s["target"] - ball
+        t_ball = jnp.minimum(s.t_open, s.t_flight)
+        ball = jnp.where(s.opened, ballistic_position(jnp, s.ball_p0, s.ball_v0, t_ball), pts.gripper_centre)
+        landed = s.opened & (s.t_open >= s.t_flight)
+        err = s.target - ball
         err2 = jnp.sqrt(err[0] ** 2 + err[1] ** 2)
         err3 = jnp.sqrt(err2**2 + err[2] ** 2)
         ground, cabin, limit = clearance_violations(jnp, data.qpos, pts)
         failed = ground | cabin | limit | ~jnp.all(jnp.isfinite(data.qpos))
-        impact = ballistic_position(jnp, s["ball_p0"], s["ball_v0"], s["t_flight"])
-        impact_err = jnp.sqrt(jnp.sum((impact[:2] - s["target"][:2]) ** 2))
-        step = s["step"] + 1
+        impact = ballistic_position(jnp, s.ball_p0, s.ball_v0, s.t_flight)
+        impact_err = jnp.sqrt(jnp.sum((impact[:2] - s.target[:2]) ** 2))
+        step = s.step + 1
         at_limit = (step >= self.cfg.max_steps) & ~failed & ~landed
-        unreleased = at_limit & ~s["release_cmd"]
+        unreleased = at_limit & ~s.release_cmd
         terms = reward_terms(
-            RewardInputs(err2, err3, s["err2_min"], s["err3_min"], action, s["prev_action"], s["opened"], failed, landed,
+            RewardInputs(err2, err3, s.err2_min, s.err3_min, action, s.prev_action, s.opened, failed, landed,
                          impact_err, unreleased),
             w,
         )
@@ -478,17 +553,17 @@ class ThrowEnvCore:
         terminated = failed | landed | (unreleased if w.no_release else jnp.zeros_like(unreleased))
         time_out = at_limit & ~terminated
         q_meas, qd_meas = self._measure(s, k_obs)
-        q_hist = jnp.concatenate([q_meas[None], s["q_hist"][:3]])
-        qd_hist = jnp.concatenate([qd_meas[None], s["qd_hist"][:3]])
-        s = EnvState(
-            s, step=step, err2_min=jnp.minimum(s["err2_min"], err2), err3_min=jnp.minimum(s["err3_min"], err3),
+        q_hist = jnp.concatenate([q_meas[None], s.q_hist[:3]])
+        qd_hist = jnp.concatenate([qd_meas[None], s.qd_hist[:3]])
+        s = s.replace(
+            step=step, err2_min=jnp.minimum(s.err2_min, err2), err3_min=jnp.minimum(s.err3_min, err3),
             q_hist=q_hist, qd_hist=qd_hist, prev_action=action,
         )
         info = {
             "landed": landed & ~failed,
             "failed": failed,
             "impact_err_m": impact_err,
-            "released": s["release_cmd"],
+            "released": s.release_cmd,
             "reward_terms": terms,
         }
         return s, self.observe(s), reward, terminated, time_out, info
@@ -506,8 +581,8 @@ class ThrowEnvCore:
         """
         s1, obs, rew, term, tout, info = jax.vmap(self.step)(s, action)
         done = term | tout
-        keys = jax.vmap(jax.random.split)(s1["key"])
-        s1 = EnvState(s1, key=keys[:, 0])
+        keys = jax.vmap(jax.random.split)(s1.key)
+        s1 = s1.replace(key=keys[:, 0])
         n = done.shape[0]
 
         def batched(leaf) -> bool:

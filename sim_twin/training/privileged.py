@@ -61,11 +61,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax.numpy as jnp
 
 from runtime.observation import PHYSICS_PERIOD_S
+
+if TYPE_CHECKING:  # mjx_env imports this module
+    from sim_twin.training.mjx_env import EnvState
 
 RANDOMIZATION_DEFAULTS: dict[str, tuple[float, float]] = {
     "lag_s": (0.03, 0.2),
@@ -307,14 +310,14 @@ def _friction_input(rand: Randomization, fric):
     return _normalise(fric, lo, hi)
 
 
-def privileged_observation(rand: Randomization, hydraulic: bool, s) -> jnp.ndarray:
+def privileged_observation(rand: Randomization, hydraulic: bool, s: EnvState) -> jnp.ndarray:
     """The privileged vector of one environment (layout in the module docstring).
 
     Args:
         rand: the ranges to normalise over: the config's randomisation, or
             ``randomization.with_ranges(privileged_ranges)`` when the config has ``privileged_ranges``.
         hydraulic: the actuation model is "hydraulic" (else the first-order lag model).
-        s: sim_twin.training.mjx_env.EnvState of one environment.
+        s: the state of one environment (sim_twin.training.mjx_env.EnvState).
 
     Returns:
         (PRIVILEGED_SIZE,) float32.
@@ -324,21 +327,21 @@ def privileged_observation(rand: Randomization, hydraulic: bool, s) -> jnp.ndarr
     mean = rand.release_delay_mean_s
     half = 2.0 * rand.release_delay_std_s + rand.release_delay_shift_s
     rng = rand.range
-    lat = s["sensor_lag"] * dt
+    lat = s.sensor_lag * dt
     parts = [
-        _normalise(s["valve_delay"] * dt, *rng("valve_delay_s"), used=hydraulic),
-        _normalise(s["tau"], *rng("lag_s")),
-        _normalise(s["dead_band"], *rng("dead_band"), used=hydraulic),
-        _normalise(s["vscale"], *rng("velocity_scale"), used=hydraulic),
-        _normalise(s["gain"], 1.0 - g, 1.0 + g, used=not hydraulic),
-        _friction_input(rand, s["fric"])[None],
-        _normalise(s["gripper_scale"], *rng("gripper_mass_scale"))[None],
-        _normalise(s["delay_steps"] * dt, mean - half, mean + half)[None],
+        _normalise(s.valve_delay * dt, *rng("valve_delay_s"), used=hydraulic),
+        _normalise(s.tau, *rng("lag_s")),
+        _normalise(s.dead_band, *rng("dead_band"), used=hydraulic),
+        _normalise(s.vscale, *rng("velocity_scale"), used=hydraulic),
+        _normalise(s.gain, 1.0 - g, 1.0 + g, used=not hydraulic),
+        _friction_input(rand, s.fric)[None],
+        _normalise(s.gripper_scale, *rng("gripper_mass_scale"))[None],
+        _normalise(s.delay_steps * dt, mean - half, mean + half)[None],
         _normalise(lat[0], *rng("encoder_latency_s"))[None],
         _normalise(lat[1], *rng("imu_latency_s"))[None],
-        s["data"].qpos[4:6] / PASSIVE_ANGLE_SCALE_RAD,
-        s["data"].qvel[4:6] / PASSIVE_RATE_SCALE_RADPS,
-        _normalise(s["grasp"][0], *rng("grasp_forward_m"))[None],
-        _normalise(s["grasp"][2], *rng("grasp_up_m"))[None],
+        s.data.qpos[4:6] / PASSIVE_ANGLE_SCALE_RAD,
+        s.data.qvel[4:6] / PASSIVE_RATE_SCALE_RADPS,
+        _normalise(s.grasp[0], *rng("grasp_forward_m"))[None],
+        _normalise(s.grasp[2], *rng("grasp_up_m"))[None],
     ]
     return jnp.concatenate([jnp.reshape(jnp.asarray(p, dtype=jnp.float32), (-1,)) for p in parts])

@@ -134,7 +134,7 @@ class MjxThrowVecEnv(VecEnv):
         dones (num_envs,) long, extras {"time_outs", "log"})."""
         a = _to_jax(actions.detach().to(torch.float32))
         self.state, self._obs, rew, done, tout, self._priv, sums, log = self._step(self.state, a)
-        self.episode_length_buf = self._t(self.state["step"]).to(torch.long)
+        self.episode_length_buf = self._t(self.state.step).to(torch.long)
         self._sums += self._t(sums)
         log_t = self._t(log)
         self._log_sum += log_t
