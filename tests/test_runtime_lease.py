@@ -292,3 +292,54 @@ def test_the_machine_answer_names_the_lease_holder_and_undeliverable_results_and
     login(client, "vic", "viewer-pass-1")
     assert client.post("/api/machines/m1/lease/takeover").status_code == 403
     assert rt.lease_holder is None
+
+
+@pytest.mark.system
+def test_two_servers_show_who_commands_the_machine_and_the_other_takes_it_over(settings, zenoh_endpoint, tmp_path,
+                                                                              monkeypatch, fake_runtime_factory):
+    """Two servers of one site (two apps, their own data and server ids, one Zenoh network with b a
+    client of a's endpoint, the site's keys; the runtime: tests.conftest.FakeRuntime's lease): each
+    machine answer says which of them the runtime obeys; server b's operator takes the machine over,
+    and then a's answer names b."""
+    from fastapi.testclient import TestClient
+
+    from server.app import create_app
+    from tests.conftest import ADMIN, add_user, login
+
+    def started(server_id: str, s):
+        monkeypatch.setenv(SERVER_ID_ENV, server_id)
+        c = TestClient(create_app(s))
+        c.__enter__()
+        add_user(c.app.state.sessions, *ADMIN, "admin")
+        login(c, *ADMIN)
+        return c
+
+    def machine(c) -> dict:
+        r = c.get("/api/machines")
+        assert r.status_code == 200, r.text
+        return next((m for m in r.json() if m["id"] == "m1"), {"online": False})
+
+    b_settings = settings.model_copy(update={"data_dir": tmp_path / "b", "database_url": f"sqlite:///{tmp_path / 'b' / 'slinger.db'}",
+                                             "zenoh_mode": "client", "zenoh_listen": [], "zenoh_connect": [zenoh_endpoint],
+                                             "site_dir": settings.resolved_site_dir})
+    a = started("srv-a", settings)
+    try:
+        rt = fake_runtime_factory()
+        b = started("srv-b", b_settings)
+        try:
+            wait_for(lambda: machine(a)["online"] and machine(b)["online"], 20, "m1 online at both servers")
+            assert a.post("/api/machines/m1/lease/takeover").json()["holder"] == "srv-a"
+            b.app.state.fleet.forget_info("m1")
+            mb = machine(b)
+            assert (mb["lease_holder"], mb["lease_held_here"]) == ("srv-a", False), mb
+            r = b.post("/api/machines/m1/lease/takeover")
+            assert r.status_code == 200 and r.json()["holder"] == "srv-b", r.text
+            a.app.state.fleet.forget_info("m1")
+            ma, mb = machine(a), machine(b)
+            assert (ma["lease_holder"], ma["lease_held_here"]) == ("srv-b", False), ma
+            assert (mb["lease_holder"], mb["lease_held_here"]) == ("srv-b", True), mb
+            assert rt.lease_holder == "srv-b"
+        finally:
+            b.__exit__(None, None, None)
+    finally:
+        a.__exit__(None, None, None)
