@@ -81,10 +81,8 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"slinger worker: {e}") from None
     lease.reap()  # jobs of workers that died while none ran
     if "fast" in lanes:
-        import sim_twin.preview.preview  # warm: the first preview must not pay MuJoCo's import
+        import sim_twin.preview.preview  # noqa: F401  warm: the first preview must not pay MuJoCo's import
 
-        # nor the first ellipse scipy's (in the background: the consumers start meanwhile)
-        threading.Thread(target=sim_twin.preview.preview.warm_imports, name="warm-imports", daemon=True).start()
         ctx.start_preview_pool()
     consumers = []
     for lane in lanes:
@@ -97,6 +95,12 @@ def run(args: argparse.Namespace) -> int:
     try:
         for c in consumers[:-1]:
             c.start()
+        if "fast" in lanes:
+            # nor should the first ellipse pay scipy's import: in the background once the
+            # consumers are up (a preview submitted while the worker starts waits for them only)
+            from sim_twin.preview.preview import warm_imports
+
+            threading.Thread(target=warm_imports, name="warm-imports", daemon=True).start()
         consumers[-1].run()  # until SIGINT (graceful) or SIGTERM
         for c in consumers[:-1]:
             c.stop(graceful=True)
