@@ -19,9 +19,10 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from pathlib import Path
+
+from runtime.reserved_file import ReservedFile, fsync_dir
 
 log = logging.getLogger(__name__)
 
@@ -30,14 +31,6 @@ RESERVE_NAME = ".estop_latch.reserve"
 RESERVE_BYTES = 64 * 1024
 """Space held for the latch file on a full disk, bytes (a latch file is some 100 bytes; a file
 system allocates whole blocks, and the temporary file and the directory entry need theirs)."""
-
-
-def _fsync_dir(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 class EstopLatchFile:
@@ -57,22 +50,8 @@ class EstopLatchFile:
         self.path = self.dir / FILE_NAME
         self.reserve = self.dir / RESERVE_NAME
         self.machine_id = machine_id
-        self._make_reserve()
-
-    def _make_reserve(self) -> None:
-        """Hold RESERVE_BYTES in the reserve file if it is missing (best effort, logged)."""
-        if self.reserve.exists():
-            return
-        try:
-            fd = os.open(self.reserve, os.O_WRONLY | os.O_CREAT, 0o600)
-            try:
-                os.posix_fallocate(fd, 0, RESERVE_BYTES)
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-        except OSError as e:
-            self.reserve.unlink(missing_ok=True)
-            log.warning("E-STOP latch: no space reserved in %s (%s)", self.dir, e.strerror or e)
+        self._file = ReservedFile(self.path, self.reserve, RESERVE_BYTES, "E-STOP latch")
+        self._file.make_reserve()
 
     def load(self) -> str | None:
         """The latched reason at start, or None when no latch is on disk. An unreadable or
@@ -101,28 +80,7 @@ class EstopLatchFile:
         """
         data = {"machine_id": self.machine_id, "reason": reason,
                 "latched_unix_s": time.time() if now_unix_s is None else now_unix_s}
-        try:
-            self._write(data)
-        except OSError as e:
-            if not self.reserve.exists():
-                raise
-            self.reserve.unlink()
-            log.error("E-STOP latch: write failed (%s): written from the reserved space", e.strerror or e)
-            self._write(data)
-
-    def _write(self, data: dict) -> None:
-        tmp = self.path.with_name(f".{FILE_NAME}.{os.getpid()}.tmp")
-        try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-            with os.fdopen(fd, "wb") as f:
-                f.write(json.dumps(data).encode())
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, self.path)
-            _fsync_dir(self.dir)
-        except OSError:
-            tmp.unlink(missing_ok=True)
-            raise
+        self._file.write(json.dumps(data).encode())
 
     def clear(self) -> None:
         """Remove the latch (after a signed reset); the directory is fsynced.
@@ -134,5 +92,5 @@ class EstopLatchFile:
             self.path.unlink()
         except FileNotFoundError:
             return
-        _fsync_dir(self.dir)
-        self._make_reserve()
+        fsync_dir(self.dir)
+        self._file.make_reserve()

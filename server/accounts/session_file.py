@@ -21,9 +21,10 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from datetime import datetime
 from pathlib import Path
+
+from runtime.reserved_file import ReservedFile
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +48,7 @@ class SessionFile:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self.reserve = self.path.with_name(RESERVE_NAME)
+        self._file = ReservedFile(self.path, self.reserve, RESERVE_BYTES, "session mirror file")
 
     def load(self) -> dict[str, Entry]:
         """token SHA-256 -> :data:`Entry` as last written, {} when there is no file. A file that
@@ -73,46 +75,6 @@ class SessionFile:
                  "created_at": created.isoformat(), "expires_at": expires.isoformat()}
                 for digest, (uid, name, role, active, created, expires) in sorted(entries.items()) if active]
         data = json.dumps(rows, indent=0).encode()
-        try:
-            self._write(data)
-        except OSError as e:
-            if not self.reserve.exists():
-                raise
-            self.reserve.unlink()
-            log.error("session mirror file: write failed (%s): written from the reserved space", e.strerror or e)
-            self._write(data)
-        self._make_reserve()
-
-    def _write(self, data: bytes) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_name(f".{FILE_NAME}.{os.getpid()}.tmp")
-        try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, self.path)
-            dfd = os.open(self.path.parent, os.O_RDONLY)
-            try:
-                os.fsync(dfd)
-            finally:
-                os.close(dfd)
-        except OSError:
-            tmp.unlink(missing_ok=True)
-            raise
-
-    def _make_reserve(self) -> None:
-        """Hold RESERVE_BYTES in the reserve file if it is missing (best effort, logged)."""
-        if self.reserve.exists():
-            return
-        try:
-            fd = os.open(self.reserve, os.O_WRONLY | os.O_CREAT, 0o600)
-            try:
-                os.posix_fallocate(fd, 0, RESERVE_BYTES)
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-        except OSError as e:
-            self.reserve.unlink(missing_ok=True)
-            log.warning("session mirror file: no space reserved in %s (%s)", self.path.parent, e.strerror or e)
+        self._file.write(data)
+        self._file.make_reserve()
