@@ -23,6 +23,8 @@ from typing import Any
 
 import numpy as np
 
+from runtime import float_xp
+
 JOINT_NAMES: tuple[str, ...] = (
     "cabin_turn",
     "boom",
@@ -135,20 +137,30 @@ def forward_kinematics(xp: ModuleType, q, qd) -> ChainPoints:
         columns a_i x (p - o_i) for revolute and a_i for prismatic joints.
 
     A single NumPy state (the executor every 10 ms tick, every preview rollout) takes
-    :func:`_forward_kinematics_scalar`, the same chain in plain floats (~8x faster; equal to
-    1e-12, tests/test_machine_fk.py); batches and jax take the general array path.
+    :func:`_forward_kinematics_scalar` in plain floats (~8x faster), batches and jax the general
+    array path; the two are deliberately different derivations (the planar closed form in the
+    cabin frame against rotation matrices and Jacobian columns), so tests/test_machine_fk.py's
+    agreement to 1e-12 is an independent check of both, not a copy of one.
     """
     if xp is np and np.ndim(q) == 1 and np.ndim(qd) == 1:
         return _forward_kinematics_scalar(q, qd)
     return _forward_kinematics_array(xp, q, qd)
 
 
+def _floats6(v) -> list[float]:
+    """The first six entries of ``v`` as Python floats (ndarray.tolist for a float array: the same
+    values as float() of each, without a generator)."""
+    if isinstance(v, np.ndarray) and v.dtype.kind == "f":
+        return v[:6].tolist()
+    return [float(x) for x in v[:6]]
+
+
 def _forward_kinematics_scalar(q, qd) -> ChainPoints:
     """forward_kinematics of one NumPy state (6,), (6,) in floats. The boom, dipper and
     gripper-pitch axes are parallel (cabin y), so the arm is planar in the cabin frame: the
     chain is built there (x forward, y left, z up) and turned by the cabin angle at the end."""
-    q0, q1, q2, q3, q4, q5 = (float(v) for v in q[:6])
-    d0, d1, d2, d3, d4, d5 = (float(v) for v in qd[:6])
+    q0, q1, q2, q3, q4, q5 = _floats6(q)
+    d0, d1, d2, d3, d4, d5 = _floats6(qd)
     a12, a124 = q1 + q2, q1 + q2 + q4
     s1, c1 = math.sin(q1), math.cos(q1)
     s12, c12 = math.sin(a12), math.cos(a12)
@@ -177,12 +189,17 @@ def _forward_kinematics_scalar(q, qd) -> ChainPoints:
     vy += (-s124 * rx - c124 * rz) * d5
     vz += (c124 * ry) * d5
     c0, s0 = math.cos(q0), math.sin(q0)
-    dtype = np.result_type(q, np.float64) if np.asarray(q).dtype.kind == "f" else np.float64
+    dtype: Any
+    if isinstance(q, np.ndarray) and q.dtype == np.float64:  # the executor's state: no type promotion to work out
+        dtype = np.float64
+    else:
+        dtype = np.result_type(q, np.float64) if np.asarray(q).dtype.kind == "f" else np.float64
 
-    def world(p):
-        return np.array((c0 * p[0] - s0 * p[1], s0 * p[0] + c0 * p[1], p[2]), dtype=dtype)
-
-    return ChainPoints(world(boom), world(dip), world(hang), world(pc), world((vx, vy, vz)))
+    # the five points turned into the machine frame in one (5, 3) array (one NumPy call); its rows
+    # do not overlap, so each field is an array of its own as far as a caller can tell
+    rows = np.array([(c0 * p[0] - s0 * p[1], s0 * p[0] + c0 * p[1], p[2]) for p in (boom, dip, hang, pc, (vx, vy, vz))],
+                    dtype=dtype)
+    return ChainPoints(rows[0], rows[1], rows[2], rows[3], rows[4])
 
 
 def _forward_kinematics_array(xp: ModuleType, q, qd) -> ChainPoints:
@@ -233,24 +250,63 @@ def clearance_violations(xp: ModuleType, q, points: ChainPoints):
     """Flags for the ways a state ends a throw as failed.
 
     Args:
-        xp: array module.
-        q: (6,) joint positions.
-        points: forward_kinematics(xp, q, qd) of the same state.
+        xp: array module (``numpy`` or ``jax.numpy``).
+        q: (6,) joint positions in JOINT_NAMES order, rad and m.
+        points: forward_kinematics(xp, q, qd) of the same state (machine frame, m).
 
     Returns:
-        (ground, cabin, joint_limit): three booleans. Ground: gripper jaws or arm tip below the
-        ground; cabin: gripper centre or telescope tip inside the cabin cylinder; joint_limit: an
-        active joint at or beyond its range (1 mrad / 1 mm tolerance).
+        (ground, cabin, joint_limit): three booleans. Ground: gripper centre below
+        GROUND_CLEARANCE_GRIPPER_M (0.5 m, the jaws' reach) or the lower of hanger and dipper pivot
+        below GROUND_CLEARANCE_ARM_M (0.3 m, the arm's half-thickness); cabin: gripper centre or
+        hanger (telescope tip) strictly inside the cylinder of CABIN_RADIUS_M about the turn axis
+        and below CABIN_TOP_M; joint_limit: boom, dipper or telescope at or beyond its range less
+        1 mrad / 1 mm (``<=`` / ``>=``). A NaN coordinate or joint raises no flag (every
+        comparison with NaN is false; the executor rejects non-finite states before this).
+        Python bools for a float64 NumPy state, else the module's 0-d booleans (numpy.bool_,
+        jax arrays). Geometry sources: the constants above (machine-spec.md).
+
+    The flags are :func:`_clearance_flags`, written once against ``xp``: jax (vmapped over the
+    training environments) and float32 states run it on arrays, a float64 NumPy state (the
+    executor every 10 ms tick, every preview step) on its Python floats with runtime.float_xp
+    (the same comparisons on the same doubles, about a quarter of the array path's time;
+    tests/test_machine_fk.py compares the two, edge cases included).
     """
-    ground = (points.gripper_centre[2] < GROUND_CLEARANCE_GRIPPER_M) | (
-        xp.minimum(points.hanger[2], points.dipper_pivot[2]) < GROUND_CLEARANCE_ARM_M
-    )
+    if (xp is np and isinstance(q, np.ndarray) and q.ndim == 1 and q.dtype == np.float64
+            and points.gripper_centre.dtype == np.float64):
+        return _clearance_flags(float_xp, points.gripper_centre.tolist(), points.hanger.tolist(), points.dipper_pivot.item(2),
+                                q.tolist(), _LIMIT_LO, _LIMIT_HI)
+    return _clearance_violations_array(xp, q, points)
 
-    def in_cabin(p):
-        return (xp.sqrt(p[0] ** 2 + p[1] ** 2) < CABIN_RADIUS_M) & (p[2] < CABIN_TOP_M)
 
-    cabin = in_cabin(points.gripper_centre) | in_cabin(points.hanger)
-    lo = xp.asarray(JOINT_LOWER[1:4], dtype=q.dtype)
-    hi = xp.asarray(JOINT_UPPER[1:4], dtype=q.dtype)
-    limit = xp.any(q[1:4] <= lo + 1e-3) | xp.any(q[1:4] >= hi - 1e-3)
+def _clearance_violations_array(xp: ModuleType, q, points: ChainPoints):
+    """:func:`_clearance_flags` on arrays of any module, the thresholds in q's dtype."""
+    lo = xp.asarray(JOINT_LOWER[1:4], dtype=q.dtype) + 1e-3
+    hi = xp.asarray(JOINT_UPPER[1:4], dtype=q.dtype) - 1e-3
+    return _clearance_flags(xp, points.gripper_centre, points.hanger, points.dipper_pivot[2], q, lo, hi)
+
+
+_LIMIT_LO = (JOINT_LOWER[1:4] + 1e-3).tolist()  # the float64 thresholds, as the array path's
+_LIMIT_HI = (JOINT_UPPER[1:4] - 1e-3).tolist()
+
+
+def _clearance_flags(xp, g, h, dipper_z, q, lo, hi):
+    """(ground, cabin, joint_limit) of :func:`clearance_violations`, elementwise against ``xp``.
+
+    Args: g, h: gripper centre and hanger (3,), machine frame, m; dipper_z: the dipper pivot's
+    height, m; q: (6,) joint positions (boom, dipper, telescope are read); lo, hi: (3,) their
+    thresholds (the limits with their tolerance). Lists of floats with ``xp`` runtime.float_xp,
+    arrays with numpy / jax.numpy; read entry by entry, combined with ``|`` and ``&`` (no short
+    circuit), so both give the same booleans for the same doubles.
+    """
+    ground = (g[2] < GROUND_CLEARANCE_GRIPPER_M) | (xp.minimum(h[2], dipper_z) < GROUND_CLEARANCE_ARM_M)
+    cabin = _in_cabin(xp, g) | _in_cabin(xp, h)
+    limit = ((q[1] <= lo[0]) | (q[2] <= lo[1]) | (q[3] <= lo[2])
+             | (q[1] >= hi[0]) | (q[2] >= hi[1]) | (q[3] >= hi[2]))
     return ground, cabin, limit
+
+
+def _in_cabin(xp, p):
+    """Point p (3,) strictly inside the cabin cylinder: horizontal distance from the turn axis
+    below CABIN_RADIUS_M and height below CABIN_TOP_M (``x * x``: NumPy's ``x ** 2``, exact square
+    rounded once)."""
+    return (xp.sqrt(p[0] * p[0] + p[1] * p[1]) < CABIN_RADIUS_M) & (p[2] < CABIN_TOP_M)

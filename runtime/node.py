@@ -57,6 +57,7 @@ from runtime.controller import JointVelocityController
 from runtime.entrypoint import module_main, stop_on_signals
 from runtime.estop_latch import EstopLatchFile
 from runtime.executor import ExecutorConfig, ThrowExecutor
+from runtime.heap import HeapTrimmer, bound_heap
 from runtime.outbox import Outbox, zenoh_deliverer
 from runtime.policy import PolicyError, PolicyRunner
 from runtime.policy_update import PolicyUpdater, zenoh_fetcher
@@ -152,6 +153,19 @@ def load_policies(args: argparse.Namespace) -> dict[str, PolicyRunner]:
     return policies
 
 
+def watchdog_tick(service: RuntimeService, updater: PolicyUpdater, trimmer: HeapTrimmer) -> None:
+    """The runtime's housekeeping every WATCHDOG_PERIOD_S: the link watchdog, a policy update
+    that waits for the machine to be idle, the RuntimeInfo repeat and, while no throw or return
+    runs (:meth:`RuntimeService.idle`), the heap trim when due (runtime.heap: a trim holds the
+    heap's locks for a few ms, which no 10 ms control step should wait for; a throw accepted in
+    the instant between the check and the trim may see its first step wait that long)."""
+    service.check_watchdog()
+    updater.apply_pending(service.executor, service.lock)
+    service.publish_info()
+    if service.idle():
+        trimmer.tick()
+
+
 def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     """Run the runtime until SIGINT/SIGTERM (or ``stop`` is set). Returns the exit code
     (2: bad arguments, policy or command key; 3: the machine already has a runtime)."""
@@ -168,6 +182,8 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     if key is None:
         log.warning("no command key configured (--command-key): every throw, E-STOP reset and policy offer will be refused")
     stop = stop_on_signals(stop)
+    bound_heap()  # before Zenoh's and the policies' threads start: fewer arenas, large blocks mapped (runtime.heap)
+    trimmer = HeapTrimmer()
     outbox_dir = args.outbox_dir or default_outbox_dir(machine_id)
     try:
         latch = EstopLatchFile(getattr(args, "state_dir", None) or Path(f"{outbox_dir}-state"), machine_id)
@@ -233,9 +249,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         log.info("runtime %s up: epoch %d, policies %s, outbox %s", machine_id, epoch, sorted(policies), outbox_dir)
         try:
             while not stop.wait(WATCHDOG_PERIOD_S):
-                service.check_watchdog()
-                updater.apply_pending(executor, service.lock)
-                service.publish_info()
+                watchdog_tick(service, updater, trimmer)
         finally:
             service.shutdown()
             outbox.stop()

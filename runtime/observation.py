@@ -69,8 +69,10 @@ def observation_size(mode: str) -> int:
 
 
 def _yaw_inverse(xp: ModuleType, v, yaw):
+    """Rows of v (n, 3) turned by minus ``yaw`` about z (each row's x, y as
+    ``c * x + s * y``, ``-s * x + c * y``; z kept)."""
     c, s = xp.cos(yaw), xp.sin(yaw)
-    return xp.stack([c * v[0] + s * v[1], -s * v[0] + c * v[1], v[2]])
+    return xp.stack([c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1], v[:, 2]], axis=-1)
 
 
 def build_observation(xp: ModuleType, mode: str, q_hist, qd_hist, prev_action, target_m, opened):
@@ -93,8 +95,9 @@ def build_observation(xp: ModuleType, mode: str, q_hist, qd_hist, prev_action, t
     pts = forward_kinematics(xp, q_hist[0], qd_hist[0])
     ee, ee_vel, target = pts.gripper_centre, pts.gripper_centre_vel, xp.asarray(target_m, dtype=dtype)
     if mode == "2d":
-        yaw = q_hist[0][0]
-        ee, ee_vel, target = (_yaw_inverse(xp, v, yaw) for v in (ee, ee_vel, target))
+        # the three vectors turned in one (3, 3) array: per element the same arithmetic as one by one
+        turned = _yaw_inverse(xp, xp.stack([ee, ee_vel, target]), q_hist[0][0])
+        ee, ee_vel, target = turned[0], turned[1], turned[2]
         q_part, qd_part = q_hist[:, 1:], qd_hist[:, 1:]
     else:
         q_part, qd_part = q_hist, qd_hist

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -77,6 +77,7 @@ class PolicyRunner:
     path: Path
     _session: Any  # onnxruntime.InferenceSession
     aim_correction: AimCorrection | None = None
+    _input_name: str | None = field(default=None, repr=False, compare=False)
 
     @property
     def mode(self) -> str:
@@ -171,9 +172,11 @@ class PolicyRunner:
         obs = np.asarray(obs, dtype=np.float32).reshape(1, -1)
         if obs.shape[1] != self.manifest["observation_size"]:
             raise PolicyError(f"observation has {obs.shape[1]} values, expected {self.manifest['observation_size']}")
-        if not np.all(np.isfinite(obs)):
+        if not np.isfinite(obs).all():
             raise PolicyError("non-finite observation")
-        name = self._session.get_inputs()[0].name
+        name = self._input_name
+        if name is None:  # looked up once: get_inputs() builds its NodeArgs again on every call
+            name = self._input_name = self._session.get_inputs()[0].name
         return self._session.run(None, {name: obs})[0][0]
 
 

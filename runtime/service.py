@@ -268,6 +268,12 @@ class RuntimeService(RecoveryHandling):
             self._note_alive()
             return self._stall_refusal(msg) or self._lease(msg)
 
+    def idle(self) -> bool:
+        """No throw and no return to the ready pose runs (the runtime's housekeeping, e.g. giving
+        the free heap back (runtime.heap), waits for this)."""
+        with self.lock:
+            return not self.executor.busy and not self.returning
+
     # --- one writer per machine: the lease -------------------------------------------------------
     @staticmethod
     def _server_of(msg: Message) -> str:
@@ -276,7 +282,7 @@ class RuntimeService(RecoveryHandling):
 
     def _lease_free(self, now: float) -> bool:
         """Nobody holds the lease, or its holder's expired (never while a throw or a return runs)."""
-        return self.lease_holder is None or (now > self._lease_until_s and not self.executor.busy and not self.returning)
+        return self.lease_holder is None or (now > self._lease_until_s and self.idle())
 
     def _lease(self, msg: Message, takeover: bool = False) -> str | None:
         """Give (or renew) the lease to the server of the authorised ``msg``, or the refusal
@@ -432,9 +438,9 @@ class RuntimeService(RecoveryHandling):
         """Fail the running throw (stop a return to the ready pose) if the machine link is
         silent or this runtime stalled (:meth:`_note_alive`); returns True if it did."""
         with self.lock:
-            busy = self.executor.busy or self.returning
+            busy = not self.idle()
             self._note_alive()
-            if busy and not (self.executor.busy or self.returning):  # the stall ended it
+            if busy and self.idle():  # the stall ended it
                 self.publish_info()
                 return True
             if self.returning and self.clock() - self._state_rx_s > self.link_timeout_s:

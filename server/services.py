@@ -18,6 +18,7 @@ import zenoh
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
+from runtime.heap import HeapTrimmer, bound_heap
 from server.accounts import session_file
 from server.accounts.auth import AuditBacklog, SessionMirror, user_for_token
 from server.accounts.login_guard import LoginGuard
@@ -130,6 +131,7 @@ def build_services(settings: Settings, zenoh_session: zenoh.Session | None = Non
     Runs ``alembic upgrade head`` first when ``settings.auto_migrate`` (skipped, with the reason
     logged, while the storage has a fault).
     """
+    bound_heap()  # before the server's threads start: fewer arenas, large blocks mapped (runtime.heap)
     storage = StorageMonitor(settings.database_url, settings.storage_min_free_bytes)
     if settings.auto_migrate:
         _migrate(settings.database_url, storage)
@@ -138,7 +140,13 @@ def build_services(settings: Settings, zenoh_session: zenoh.Session | None = Non
     sessions = make_sessionmaker(engine, before_use=storage.before_use)
     # the E-STOP and the machine list authorise from memory and audit later (docs/safety.md)
     audit_backlog = AuditBacklog(sessions)
-    session_mirror = SessionMirror(sessions, on_tick=audit_backlog.flush,
+    heap_trimmer = HeapTrimmer()  # glibc's free heap back to the system every minute (runtime.heap)
+
+    def tick() -> None:
+        heap_trimmer.tick()
+        audit_backlog.flush()
+
+    session_mirror = SessionMirror(sessions, on_tick=tick,
                                    file=session_file.SessionFile(settings.data_dir / SESSION_MIRROR_FILE))
     session_mirror.watch(sessions)
     session_mirror.start()
@@ -154,20 +162,25 @@ def build_services(settings: Settings, zenoh_session: zenoh.Session | None = Non
     throws = ThrowService(fleet, sessions, settings.keep_out_zones,
                           gate=GateLimits.from_settings(settings), machine_status=live_hub.status)
     scene = _make_scene(fleet, throws, live_hub, settings, sessions) if settings.viser_enabled else None
+    alarms = AlarmService(sessions, publish=live_hub.publish, simulated=lambda mid: _simulated(fleet, mid))
+
+    def throw_lost(throw_id: str) -> None:  # closed by the reconciler: no ThrowResult comes, so no ResultStored
+        live_hub.throw_closed(throw_id)
+        alarms.on_lost(throw_id)
+
     reconciler = Reconciler(fleet, sessions, store.mark_lost, settings.result_grace_s, settings.runtime_gone_s,
-                            settings.reconcile_period_s, handshake_s=settings.query_timeout_s + 2.0)
+                            settings.reconcile_period_s, handshake_s=settings.query_timeout_s + 2.0, on_lost=throw_lost)
     fleet.add_consumer(reconciler.on_event)  # passes follow the fleet's events
     jobs = JobQueue(queue_url(settings), JobStore(sessions), job_tasks.execute)
     if jobs.url == "immediate":  # tests: jobs run in this process
         job_tasks.bind(job_tasks.WorkerContext(sessions, settings.data_dir, settings, jobs))
-    policies = PolicyService(fleet, sessions, store, settings, jobs)
+    policies = PolicyService(fleet, sessions, store, settings, jobs, on_deployment=live_hub.deployment_changed)
     previews = PreviewService(fleet, sessions, throws, jobs, settings.data_dir, settings.clearance_radius_m,
                               settings.preview_profile, settings.release_check_radius_m)
     throws.previews = previews.get  # a throw looks its preview up (built after the throws)
     job_watcher = JobWatcher(jobs.store, live_hub.publish)
     diagnosis_runs = DiagnosisRuns(sessions, jobs, settings.data_dir)
     adaptation_runs = AdaptationRuns(diagnosis_runs, policies, previews, jobs)
-    alarms = AlarmService(sessions, publish=live_hub.publish, simulated=lambda mid: _simulated(fleet, mid))
 
     def publish_drift(event: str, data: dict) -> None:  # a drift alert is also an alarm
         live_hub.publish(event, data)

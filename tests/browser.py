@@ -104,6 +104,17 @@ def press(page, selector: str) -> None:
     page.locator(selector).dispatch_event("click")
 
 
+def set_target(page, x: float, y: float) -> None:
+    """Type the target (x, y), m, into the console's fields and press Set; returns once the server
+    has answered it (the page's target set, nothing typed or being edited) and the target line
+    shows it."""
+    page.fill("#target-x", str(x))
+    page.fill("#target-y", str(y))
+    press(page, "#target-set")
+    page.wait_for_function("() => !state.typed && !state.editing && state.target")
+    page.locator("#target", has_text="from the turn axis").wait_for()
+
+
 def put_machine_at(up, machine_id: str, q_active) -> None:
     """Move the simulated machine of the `slinger up` stack ``up`` to ``q_active`` (4,) (SimReset,
     what a tool may send under the server's certificate)."""

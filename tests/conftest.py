@@ -98,6 +98,7 @@ SLOW_TESTS = {
     "tests/test_job_leases.py::test_sqlite_job_of_a_killed_worker": "processes",
     "tests/test_job_state.py::test_a_diagnosis_killed_on_its_last_attempt": "processes",
     "tests/test_jobs.py::test_api_process_never_imports_mujoco": "processes",
+    "tests/test_memory_bounds.py::test_the_heap_bounds": "processes",
     "tests/test_jobs.py::test_jobs_survive_an_api_restart": "processes",
     "tests/test_mjcf_chain.py::test_api_with_the_3d_view_on_never_imports_mujoco": "processes",
     "tests/test_adapt.py::test_console_flow_diagnosis_to_adapted_version": "processes",

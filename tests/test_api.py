@@ -182,9 +182,10 @@ def test_runtime_refusal_is_422_with_its_reason_and_no_row(client, fake_runtime_
     assert throw_count() == 0
 
 
-def test_runtime_not_answering_is_503_and_the_throw_is_reconciled(client, fake_runtime_factory, throw_count):
+def test_runtime_not_answering_is_503_and_the_throw_is_reconciled(client, fake_runtime_factory, throw_count, monkeypatch):
     """No answer: the runtime may have taken the throw, so the row stays until the runtime
-    reports it or the reconciliation finds it is not running it (then ``lost``, with the reason)."""
+    reports it or the reconciliation finds it is not running it (then ``lost``, with the reason,
+    and a live ``result`` event: no result will come, and pages showing the throw read it again)."""
     rt = fake_runtime_factory(silent=True)
     wait_online(client)
     r = client.post("/api/throws", json={"machine_id": "m1", "mode": "2d", "target": TARGET_2D})
@@ -193,10 +194,37 @@ def test_runtime_not_answering_is_503_and_the_throw_is_reconciled(client, fake_r
     reconciler = client.app.state.reconciler
     reconciler.stop()  # passes by hand only: the running one acts on fleet events (server.fleet.reconcile)
     reconciler.handshake_s, reconciler.result_grace_s = 0.0, 0.0
+    published = []
+    monkeypatch.setattr(client.app.state.live, "publish", lambda event, data, console_id=None: published.append((event, data)))
     lost = reconciler.run_once()
     assert [tid for tid, _ in lost] == [rt.requests[0].throw_id]
+    assert ("result", {"throw_id": rt.requests[0].throw_id}) in published
     row = client.get(f"/api/throws/{rt.requests[0].throw_id}").json()
     assert row["status"] == "lost" and "not running the throw" in row["failure_reason"]
+
+
+def test_a_confirmed_promotion_is_announced_as_a_deployment_event(client, fake_runtime_factory, monkeypatch):
+    """The runtime's PolicyUpdate settles the offered deployment and a live ``deployment`` event
+    says so (its RuntimeInfo may have shown the new policy first: a page's rollback target moved)."""
+    import time
+
+    from runtime.protocol import keys
+    from runtime.protocol.messages import PolicyUpdate, encode
+    from server.db.models import Machine, PolicyDeployment, PolicyVersion
+
+    with client.app.state.sessions.begin() as db:
+        db.add(Machine(id="m1", simulated=True))
+        v = PolicyVersion(name="pB", mode="2d", sha256="b" * 64, manifest={})
+        db.add(v)
+        db.flush()
+        db.add(PolicyDeployment(machine_id="m1", mode="2d", policy_version_id=v.id, previous_sha256="a" * 64, status="offered"))
+    rt = fake_runtime_factory()
+    wait_online(client)
+    published = []
+    monkeypatch.setattr(client.app.state.live, "publish", lambda event, data, console_id=None: published.append((event, data)))
+    update = PolicyUpdate(machine_id="m1", stamp_s=time.monotonic(), mode="2d", version="pB", sha256="b" * 64, status="loaded")
+    rt.session.put(keys.policy_status("m1"), encode(update))
+    wait_for(lambda: ("deployment", {"machine_id": "m1", "mode": "2d", "status": "active"}) in published, 10, "deployment event")
 
 
 def test_openapi_documents_the_endpoints(client):

@@ -17,7 +17,7 @@ import signal
 
 import pytest
 
-from tests.browser import module_browser, no_page_errors, open_console, press, stack_pid  # noqa: F401 (fixtures)
+from tests.browser import module_browser, no_page_errors, open_console, press, set_target, stack_pid  # noqa: F401 (fixtures)
 from tests.conftest import SlingerUp, wait_for
 
 pytestmark = [pytest.mark.browser, pytest.mark.usefixtures("no_page_errors")]
@@ -46,14 +46,6 @@ def ann(up, module_browser):  # noqa: F811
 
 def _fields(page) -> tuple[float, float]:
     return float(page.input_value("#target-x")), float(page.input_value("#target-y"))
-
-
-def _set_typed(page, x: float, y: float) -> None:
-    page.fill("#target-x", str(x))
-    page.fill("#target-y", str(y))
-    press(page, "#target-set")
-    page.wait_for_function("() => !state.typed && !state.editing && state.target")
-    page.locator("#target", has_text="from the turn axis").wait_for()
 
 
 def _preview(page, timeout_s: float = 600.0) -> None:
@@ -115,7 +107,7 @@ def test_the_confirm_dialog_closes_when_the_preview_changes_under_it(up, ann):
     ann.locator("#machine-state", has_text="m1 READY").wait_for()
     ann.check("input[name=mode][value='3d']")
     ann.wait_for_function("() => state.mode === '3d'")
-    _set_typed(ann, 8.0, 1.0)
+    set_target(ann, 8.0, 1.0)
     _preview(ann)
     ann.check("#confirm-clearance")
     ann.locator("#throw:not([disabled])").wait_for()
@@ -156,7 +148,7 @@ def test_enter_in_the_reset_dialog_does_not_reset(up, ann):
 
 def test_a_restarted_runtime_leaves_no_stale_target_or_preview(up, ann):
     ann.locator("#machine-state", has_text="m1 READY").wait_for()
-    _set_typed(ann, 8.5, 0.0)
+    set_target(ann, 8.5, 0.0)
     _preview(ann)
     epoch = ann.evaluate("state.epochs.get('m1')")
     os.kill(stack_pid(up, "runtime", "m1"), signal.SIGKILL)  # `slinger up` starts it again

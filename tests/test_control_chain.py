@@ -141,6 +141,9 @@ def test_restarted_runtime_without_the_throw_makes_it_lost(client, fake_runtime_
     assert [t for t, _ in lost] == [tid]
     row = client.get(f"/api/throws/{tid}").json()
     assert row["status"] == "lost" and f"epoch {first.epoch} -> {second.epoch}" in row["failure_reason"]
+    # no ThrowResult comes for it, yet the operator is told as for a failed throw (docs/operator-guide.md: alarms)
+    (alarm,) = [a for a in client.get("/api/alarms").json() if a["key"] == f"throw:{tid}"]
+    assert alarm["priority"] == "high" and alarm["cause"] == "runtime_not_answering" and "lost" in alarm["title"]
 
 
 def test_running_reconciler_acts_on_the_restart_event_not_on_its_sweep(client, fake_runtime_factory):

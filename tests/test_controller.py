@@ -221,3 +221,93 @@ def test_robust_3d_throws_with_a_slow_valve_delay_stay_off_the_end_stops(tmp_pat
     policy = Path(__file__).resolve().parents[1] / "policies" / "throw3d.onnx"
     rows = throw_batch(str(policy), "3d", 9.0, [400005, 400014], str(prof))
     assert [r["status"] for r in rows] == ["landed", "landed"], rows
+
+
+GAIN_SETS = [ControllerGains(), ControllerGains(kd=0.01, command_hold_s=[0.25, 0.0, 0.1, 0.3]),
+             ControllerGains(stop_horizon_s=0.0, integral_band=0.5, integral_limit=0.05),
+             ControllerGains(integral_limit=[0.0, 0.3, 0.0, 0.1], limit_margin=0.0, dead_band_comp=0.0)]
+
+
+def _random_inputs(rng, n):
+    """n random (r (4,), q (6,), qd (6,)): references zero (either sign), inside and beyond the
+    speed limits; joints near and past their ends; velocities up to about full speed."""
+    lo, hi = JOINT_LOWER[:6].copy(), JOINT_UPPER[:6].copy()
+    lo[~np.isfinite(lo)], hi[~np.isfinite(hi)] = -3.0, 3.0
+    for _ in range(n):
+        q, qd = rng.uniform(lo - 0.05, hi + 0.05), rng.normal(0.0, 0.6, 6)
+        r = rng.normal(0.0, 1.0, 4) * rng.integers(0, 2, 4)
+        yield (-0.0 * r if rng.random() < 0.1 else r), q, qd
+
+
+@pytest.mark.parametrize("gains", GAIN_SETS)
+def test_the_float_law_is_pid_ff_law_bit_for_bit(gains):
+    """JointVelocityController.step runs pid_ff_law's elementwise law joint by joint in floats
+    (runtime.float_xp; a preview rollout's hot loop): over random sequences (saturation,
+    integrator clamping, a zero integrator limit) every output, the integrator, the error memory
+    and the commanded-velocity peaks are the array law's doubles, bit for bit (zeros' signs too)."""
+    from runtime.controller import pid_ff_law
+
+    rng = np.random.default_rng(11)
+    for _ in range(40):
+        ctrl = JointVelocityController(gains)
+        integral, prev, peaks = np.zeros(4), None, np.zeros((2, 4))
+        for r, q, qd in _random_inputs(rng, 50):
+            out = ctrl.step(r, q, qd)
+            p = prev if prev is not None else (r - qd[:4]) / ctrl.velocity_limits
+            u, r_out, integral, prev, peaks = pid_ff_law(np, gains, ctrl.velocity_limits, ctrl.dt_s, r, q[:4], qd[:4],
+                                                         integral, p, peaks)
+            for a, b in ((u, out.valve_u), (r_out, out.qd_ref), (integral, ctrl._integral), (prev, ctrl._prev_err),
+                         (peaks, ctrl._peaks)):
+                assert a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes(), (a, b)
+
+
+@pytest.mark.torch
+@pytest.mark.parametrize("gains", GAIN_SETS[:2])
+def test_pid_ff_law_under_jax_is_numpys_law(gains):
+    """The MJX environment runs pid_ff_law with jax.numpy inside jit. In float64 (x64) it gives
+    NumPy's results to rounding: XLA fuses the arithmetic and has its own exp, so a few results
+    differ in the last bits (measured: at most 2.2e-15 over these sequences, about half of the
+    steps); the law's structure (selections, clamps, the peaks) is the same."""
+    jax = pytest.importorskip("jax")
+    from runtime.controller import pid_ff_law
+
+    jnp = jax.numpy
+    vmax = ACTIVE_VELOCITY_LIMITS
+    rng = np.random.default_rng(11)
+    with jax.enable_x64(True):
+        law = jax.jit(lambda *a: pid_ff_law(jnp, gains, jnp.asarray(vmax), 0.01, *a))
+        for _ in range(5):
+            integral, prev, peaks = np.zeros(4), None, np.zeros((2, 4))
+            for r, q, qd in _random_inputs(rng, 40):
+                p = prev if prev is not None else (r - qd[:4]) / vmax
+                want = pid_ff_law(np, gains, vmax, 0.01, r, q[:4], qd[:4], integral, p, peaks)
+                got = law(*(jnp.asarray(x) for x in (r, q[:4], qd[:4], integral, p, peaks)))
+                for a, b in zip(want, got):
+                    assert np.asarray(b).dtype == np.float64
+                    np.testing.assert_allclose(np.asarray(b), a, rtol=0, atol=1e-14)
+                _, _, integral, prev, peaks = want
+
+
+def test_replaced_gains_limits_and_period_take_effect_and_arrays_are_read_only():
+    """The float path's per-joint constants follow ``gains``, ``velocity_limits`` and ``dt_s``
+    when they are replaced; the arrays they come from cannot change in place."""
+    from dataclasses import FrozenInstanceError, replace
+
+    q, qd, r = np.array([0.0, -0.5, 1.6, 0.9, 0, 0]), np.zeros(6), np.array([0.3, -0.2, 0.2, 0.1])
+    ctrl = JointVelocityController()
+    ctrl.step(r, q, qd)
+    ctrl.gains = replace(ctrl.gains, kp=0.0, ki=0.0)
+    ctrl.velocity_limits = [2.0, 0.9, 1.2, 1.5]
+    ctrl.dt_s = 0.02
+    fresh = JointVelocityController(ctrl.gains, ctrl.velocity_limits, 0.02)
+    fresh._prev_err, fresh._integral, fresh._peaks = ctrl._prev_err, ctrl._integral, ctrl._peaks
+    np.testing.assert_array_equal(ctrl.step(r, q, qd).valve_u, fresh.step(r, q, qd).valve_u)
+    np.testing.assert_allclose(ctrl.last.valve_u, np.sign(r) * (0.05 + 0.95 * np.abs(r) / [2.0, 0.9, 1.2, 1.5]), rtol=1e-12)
+    with pytest.raises(ValueError):
+        ctrl.gains.kp[0] = 1.0
+    with pytest.raises(ValueError):
+        ctrl.velocity_limits[0] = 1.0
+    with pytest.raises(FrozenInstanceError):
+        ctrl.gains.kp = np.zeros(4)  # type: ignore[misc]
+    with pytest.raises(ValueError):
+        ctrl.velocity_limits = [1.0, 0.0, 1.0, 1.0]

@@ -65,7 +65,8 @@ def test_api_process_never_imports_mujoco(tmp_path):
         with TestClient(create_app(s)) as c:
             assert c.get("/api/health").status_code == 200
             assert c.app.state.jobs.url.startswith("sqlite:///")
-        bad = sorted(m for m in sys.modules if m.split(".")[0] in ("mujoco", "sim_twin"))
+        bad = sorted(m for m in sys.modules if m.split(".")[0] in ("mujoco", "sim_twin")
+                     or m.split(".")[0] == "scipy")  # not in the server wheel; scipy.stats alone adds ~50 MiB
         print("HEAVY", bad)
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
@@ -131,6 +132,9 @@ def test_preview_runs_in_a_worker(tmp_path, fake_runtime_factory, zenoh_endpoint
         c.app.state.settings.preview_timeout_s = 60.0  # no timed asserts (bench_preview measures)
         with Worker(settings, "--lanes", "fast") as w:
             wait_for(lambda: "consuming" in w.text(), 60, "worker up")
+            # it loads the recorded policy and previews it once at start (its first preview is warm)
+            wait_for(lambda: "preview warm-up: 2d policy" in w.text(), 60, "the worker's warm-up")
+            assert "warm-up of the" not in w.text(), w.text()[-2000:]
             r = c.post("/api/previews", json=body)
             assert r.status_code == 200, (r.text, w.text()[-2000:])
             p = r.json()

@@ -148,6 +148,12 @@ async def _one_cache(hub, fleet, z):
     fleet.forget_info("m1")
     assert fleet.cached_info("m1") is None and fleet.last_info("m1") is not None
     assert hub.status("m1")["state"] == "ready"
+    assert (hub.status("m1")["lease_holder"], hub.status("m1")["lease_held_here"]) == (None, None)
+    z.put(keys.runtime_state("m1"), encode(_info(lease_holder="srv-other")))
+    st = await _next(sub, "machine", lambda d: d["lease_holder"] == "srv-other")
+    assert st["lease_held_here"] is False  # the Fleet page offers a takeover from this state
+    z.put(keys.runtime_state("m1"), encode(_info(lease_holder=fleet.signer.server_id)))
+    assert (await _next(sub, "machine", lambda d: d["lease_holder"] == fleet.signer.server_id))["lease_held_here"] is True
     st = await _next(sub, "machine", lambda d: d["state"] == "offline", timeout_s=5.0)  # silent > 1 s
     assert st["reason"].startswith("runtime not answering")
     token.undeclare()

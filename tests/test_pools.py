@@ -33,11 +33,14 @@ def test_preview_monte_carlo_in_a_pool_gives_the_same_impacts():
     """The preview's full rollouts in pool processes (the worker's Settings.preview_processes)
     land where they land in one process: every release delay is drawn before they run; a pool
     whose processes loaded the policy ahead (warm_policy, as a worker does on a policy's first
-    nominal preview) gives the same."""
+    nominal preview) gives the same, and so does an ellipse that reuses the nominal of its
+    nominal-only preview (NominalCache)."""
+    import dataclasses
+
     import numpy as np
 
     from runtime.policy import PolicyRunner
-    from sim_twin.preview.preview import PreviewRequest, preview_throw, site_profile, warm_policy, warm_up
+    from sim_twin.preview.preview import NominalCache, PreviewRequest, preview_throw, site_profile, warm_policy, warm_up
     from sim_twin.twin.initial_pose import sample_pose
     from sim_twin.twin.pools import process_pool
 
@@ -52,11 +55,19 @@ def test_preview_monte_carlo_in_a_pool_gives_the_same_impacts():
         for f in warm_policy(pool, 2, policy.path):
             assert f.result() is None  # loaded, first calls made (raises here if they failed)
         pooled = preview_throw(policy, req, profile, pool=pool)
+        # the console's two steps: the nominal alone, then its ellipse, which reuses that nominal
+        nominals = NominalCache()
+        preview_throw(policy, dataclasses.replace(req, rollouts=1), profile, pool=pool, nominals=nominals)
+        shared = preview_throw(policy, req, profile, pool=pool, nominals=nominals)
+        assert nominals.hits == 1
     finally:
         pool.shutdown()
     assert alone["mc"]["param_rollouts"] == 4 and alone["mc"]["failed_rollouts"] == 0
     assert pooled["mc"]["impacts_m"] == alone["mc"]["impacts_m"]
     assert pooled["mc"]["sigma_downrange_m"] == alone["mc"]["sigma_downrange_m"]
+    for s in (shared, alone):
+        s.pop("timing_s")
+    assert shared == alone
 
 
 OWNER = r"""

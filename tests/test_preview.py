@@ -16,7 +16,7 @@ from runtime.policy import PolicyRunner
 from runtime.protocol.messages import PolicyInfo, ThrowRequest
 from server.config import KeepOutZone
 from server.throws.gate import GateLimits
-from sim_twin.preview.preview import PreviewRequest, preview_throw
+from sim_twin.preview.preview import NominalCache, PreviewRequest, preview_throw
 from sim_twin.twin.profile import RealityProfile, SensorParams
 from sim_twin.twin.simulated_machine import SimulatedMachine
 from sim_twin.twin.twin_machine import TwinMachine
@@ -98,6 +98,28 @@ def test_monte_carlo_ellipse(policy):
     assert again["mc"]["impacts_m"] == mc["impacts_m"]
 
 
+
+def test_an_ellipse_reuses_the_nominal_of_its_request(policy):
+    """The console's ellipse follows its nominal-only preview of the same request: with a worker's
+    NominalCache it takes that nominal rollout instead of running it again, and the summary is
+    the one it would have computed itself; another start state, profile or target is a miss."""
+    nominals = NominalCache()
+    profile = RealityProfile()
+    quick = PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=1)
+    full = dataclasses.replace(quick, rollouts=48, param_rollouts=4, seed=0)
+    nominal = preview_throw(policy, quick, profile, nominals=nominals)
+    shared = preview_throw(policy, full, profile, nominals=nominals)
+    assert nominals.hits == 1
+    alone = preview_throw(policy, full, profile)
+    for s in (shared, alone):
+        s.pop("timing_s")
+    assert shared == alone and shared["impact_m"] == nominal["impact_m"]
+    moved = dataclasses.replace(full, q=[Q0[0] + 0.01, *Q0[1:]])
+    preview_throw(policy, moved, profile, nominals=nominals)
+    preview_throw(policy, full, RealityProfile(), nominals=nominals)  # another profile object
+    preview_throw(policy, dataclasses.replace(full, target_m=[8.0, -0.292, 0.0]), profile, nominals=nominals)
+    assert nominals.hits == 1
+
 def test_preview_follows_the_profiles_payload_effects(policy):
     """Grasp offset, drag and a slower release of the site profile: the nominal preview equals a
     twin throw under that profile opened after the mean delay. The twin reports the MEASURED
@@ -139,6 +161,27 @@ def test_site_uncertainty_widens_the_ellipse(policy):
     assert len(site["impacts_m"]) == 48 - 12 * site["failed_rollouts"]
     assert site["sigma_downrange_m"] > 1.4 * jitter["sigma_downrange_m"]  # robust policies: 1.8x measured
     assert site["ellipse"]["semi_major_m"] > jitter["ellipse"]["semi_major_m"]
+
+
+def test_the_ellipse_of_fixed_seeds_is_the_one_it_was(policy):
+    """The rollouts' CPU cuts (issue 45, item 8: the controller's float law, the scalar clearance
+    check, the valves' tables, one noise draw per sensing effect, ...) change no number: a 2D
+    preview of the server's default site profile at seed 3 gives the nominal impact and the
+    Monte Carlo of commit e91987a (bit for bit on the development VM; the tolerance leaves room
+    for another CPU's libm). Skipped when the 2D policy file is another version."""
+    from sim_twin.preview.preview import site_profile
+
+    if policy.sha256 != "076dc49795f077d34cf1e70d43639ef6c2b8335cecf90cd9f4322e5389c7f136":
+        pytest.skip("another 2D policy version than the one the values were taken with")
+    req = PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=24, seed=3)
+    s = preview_throw(policy, req, site_profile(None, None))
+    mc = s["mc"]
+    assert s["impact_m"] == pytest.approx([8.60690392039864, -0.29200137679336013, 0.0], abs=1e-9)
+    assert (mc["param_rollouts"], mc["failed_rollouts"], len(mc["impacts_m"])) == (2, 0, 24)
+    assert mc["mean_impact_m"] == pytest.approx([8.546015915763567, -0.2800550019944746, 0.0], abs=1e-9)
+    assert mc["sigma_downrange_m"] == pytest.approx(0.011622993884556506, abs=1e-9)
+    assert mc["sigma_crossrange_m"] == pytest.approx(0.01845273730084017, abs=1e-9)
+    assert mc["impacts_m"][:3] == [[8.5502, -0.2983], [8.5325, -0.2986], [8.5457, -0.2983]]
 
 
 # --- API ----------------------------------------------------------------------------------------
@@ -207,6 +250,29 @@ def test_a_preview_whose_scatter_reaches_a_keep_out_zone_cannot_be_thrown(client
     c = client.post(f"/api/previews/{r.json()['id']}/check", json={"machine_id": "m1", "mode": "2d", "target": TARGET}).json()
     assert c["valid"] is True, c
 
+
+
+def test_an_ellipse_extends_the_nominal_preview_it_completes(client, machine):
+    """POST /api/previews with ``extends`` (the console's ellipse after its nominal): it starts from
+    that preview's machine state and carries its age, while the gate would accept that preview
+    for this request; otherwise (gate off, another target, unknown id) from the current state."""
+    body = {"machine_id": "m1", "mode": "2d", "target": TARGET}
+    nominal = client.post("/api/previews", json={**body, "rollouts": 1}).json()
+    full = client.post("/api/previews", json={**body, "rollouts": 24, "extends": nominal["id"]}).json()
+    assert full["created_at"] != nominal["created_at"]  # the fixture's settings switch the gate off
+    client.app.state.throws.gate = GateLimits()
+    nominal = client.post("/api/previews", json={**body, "rollouts": 1}).json()
+    full = client.post("/api/previews", json={**body, "rollouts": 24, "extends": nominal["id"]}).json()
+    assert full["status"] == "ok" and full["mc"]["rollouts"] == 24
+    assert full["created_at"] == nominal["created_at"] and full["start_q"] == nominal["start_q"]
+    assert full["impact_m"] == nominal["impact_m"]
+    c = client.post(f"/api/previews/{full['id']}/check", json=body).json()
+    assert c["valid"] is True, c
+    other = client.post("/api/previews", json={**body, "target": [8.0, -0.292, 0.0], "rollouts": 24,
+                                               "extends": nominal["id"]}).json()
+    assert other["status"] == "ok" and other["created_at"] != nominal["created_at"]
+    unknown = client.post("/api/previews", json={**body, "rollouts": 1, "extends": "nope"})
+    assert unknown.status_code == 200 and unknown.json()["created_at"] != nominal["created_at"]
 
 def test_no_throw_button_while_the_runtime_is_not_ready(client, machine, monkeypatch):
     """Between a landing and the next load the runtime is not ready ("no payload loaded") and the
@@ -280,3 +346,26 @@ def test_abort_reaches_the_runtime_and_is_audited(client, fake_runtime_factory):
     assert client.post("/api/machines/ghost/abort").status_code == 404  # unknown machine (still audited)
     wait_for(lambda: len(entries()) == 2, 10, "the refused abort audited")
     assert entries()[0]["detail"]["delivered"] is False
+
+
+def test_a_preview_waiting_for_the_workers_warm_up_says_so(tmp_path, policy):
+    """While the worker's warm-up runs (WorkerContext.warmed not set) a preview records why it
+    waits as its progress message, which the console shows on its status line (job events), then
+    previews once the warm-up is done."""
+    import hashlib
+    import threading
+
+    from server.jobs.specs import PreviewSpec
+    from server.jobs.tasks import WARMING_UP_MESSAGE, JobRun, WorkerContext, run_preview
+
+    ctx = WorkerContext(sessions=None, data_dir=POLICY.parent)  # type: ignore[arg-type]  # no database used
+    ctx.warmed.clear()
+    said: list[tuple[float, str | None]] = []
+    sha = hashlib.sha256(POLICY.read_bytes()).hexdigest()
+    request = {"mode": "2d", "target_m": TARGET, "q": Q0, "qd": [0.0] * 6, "rollouts": 0}
+    job = JobRun("p1", PreviewSpec(onnx_path=POLICY.name, sha256=sha, request=request))
+    threading.Timer(0.3, ctx.warmed.set).start()
+    out = run_preview(ctx, job, lambda f, m=None: said.append((f, m)))
+    assert said == [(0.0, WARMING_UP_MESSAGE)] and out["status"] == "ok"
+    said.clear()
+    assert run_preview(ctx, job, lambda f, m=None: said.append((f, m)))["status"] == "ok" and said == []  # warm: nothing to say

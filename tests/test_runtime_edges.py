@@ -93,3 +93,28 @@ def test_no_throw_before_warm_up(policy_path):
     service.on_state(encode(twin.state()))
     ack = decode(ThrowAck, service.handle_throw(encode(sign(req.model_copy(update={"throw_id": "w2"}), KEY, "op", EPOCH))))
     assert ack.accepted, ack.reason
+
+
+def test_the_heap_is_trimmed_between_throws_only(policy_path, tmp_path):
+    """runtime.node.watchdog_tick gives the free heap back (runtime.heap) only while no throw
+    runs: a trim holds the heap's locks for a few ms, which no 10 ms control step may wait for."""
+    from runtime.heap import HeapTrimmer
+    from runtime.node import watchdog_tick
+    from runtime.policy_update import PolicyUpdater
+
+    service, _, twin = _service(policy_path)
+    updater = PolicyUpdater("m1", tmp_path / "store", lambda name: b"", lambda msg: None, authorize=service.authorize)
+    trimmer = HeapTrimmer(every_s=0.0)
+    if not trimmer.available:
+        pytest.skip("not glibc: no malloc_trim")
+    req = ThrowRequest(throw_id="h1", machine_id="m1", mode="2d", target_m=TARGET)
+    assert decode(ThrowAck, service.handle_throw(encode(sign(req, KEY, "op", EPOCH)))).accepted
+    assert not service.idle()
+    for _ in range(3):
+        service.on_state(encode(twin.state()))
+        watchdog_tick(service, updater, trimmer)
+    assert trimmer.trims == 0  # the throw runs: no trim
+    decode(AbortAck, service.handle_abort(b""))  # ends the throw (and latches E-STOP: still idle)
+    assert service.idle()
+    watchdog_tick(service, updater, trimmer)
+    assert trimmer.trims == 1

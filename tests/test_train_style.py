@@ -84,3 +84,17 @@ def test_on_the_committed_runs_the_long_style_is_the_one_that_met_the_bars(name)
     else:
         row = run_style(RunSource(str(RUNS / name)))
     assert (row["style"] == "long") == row["outcome"]["met"], row
+
+
+def test_term_split_says_whether_a_curve_column_separates_the_styles():
+    from tests.benchmarks.training_throw_style import term_split
+
+    rows = [{"style": "long"}, {"style": "long"}, {"style": "short"}]
+    curves = [{100: {"a": 1.0, "b": 0.5}, 200: {"a": 2.0}},
+              {100: {"a": 1.2, "b": float("nan")}, 200: {"a": 2.5}},
+              {100: {"a": 3.0, "b": 0.4}, 200: {"a": 2.2}}]
+    got = {(x["term"], x["iteration"]): x for x in term_split(rows, curves, terms=("a", "b"))}
+    assert got["a", 100]["separates"] and got["a", 100]["long"] == [1.0, 1.2] and got["a", 100]["short"] == [3.0, 3.0]
+    assert not got["a", 200]["separates"]  # 2.2 lies inside the long runs' 2.0-2.5
+    assert got["b", 100]["runs"] == [1, 1]  # the NaN (no episode paid the term) is skipped
+    assert ("b", 200) not in got  # no run logged it there

@@ -74,7 +74,7 @@ def cylinder_step(xp: ModuleType, x_ref, v_flow, q_active, lower, upper, dt_s: f
     Returns:
         (x_ref (..., 4) new oil-column positions, setpoint (..., 4) servo velocities).
     """
-    x_new = xp.clip(x_ref + v_flow * dt_s, lower, upper)
+    x_new = xp.minimum(xp.maximum(x_ref + v_flow * dt_s, lower), upper)  # clip, without np.clip's wrapper
     moved = (x_new - x_ref) / dt_s
     return x_new, moved + hold_gain * (x_new - q_active)
 

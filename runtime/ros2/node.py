@@ -252,11 +252,22 @@ class RosNode:
 
 
 def publishers_fault(topic: str, infos: list) -> str | None:
-    """None for at most one publisher (TopicEndpointInfo) of ``topic``, else the fault in words."""
+    """None for at most one publisher (TopicEndpointInfo) of ``topic``, else the fault in words.
+
+    A publisher whose node has not announced its name yet (DDS discovers the endpoint before
+    the node's ``ros_discovery_info``; rclpy then reports ``_NODE_NAME_UNKNOWN_``) is named
+    "an unnamed node"; the graph check repeats and the name fills in on a later finding."""
     if len(infos) <= 1:
         return None
-    nodes = sorted(f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in infos)
+    nodes = sorted(_node_label(i) for i in infos)
     return f"{len(infos)} publishers of {topic} ({', '.join(nodes)}), one expected"
+
+
+def _node_label(info) -> str:
+    """``namespace/name`` of a TopicEndpointInfo, or "an unnamed node" before discovery names it."""
+    if "UNKNOWN" in info.node_name:
+        return "an unnamed node"
+    return f"{info.node_namespace.rstrip('/')}/{info.node_name}"
 
 
 def gid_of(info) -> bytes:

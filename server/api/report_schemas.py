@@ -157,6 +157,6 @@ class DriftAlertOut(_Open):
     raised_at: str = Field(description="ISO 8601 UTC")
     status: Literal["open", "acknowledged"]
     text: str = Field(description="the alert in words (shift in m, axis, baseline)")
-    test: dict[str, Any] = Field(description="the sequential test: two-sided CUSUM (Page 1954), its k, h, axis, statistic, shift_m")
+    test: dict[str, Any] = Field(description="the sequential test: two-sided self-starting CUSUM (Page 1954, Hawkins 1987), its k, h, axis, statistic, shift_m")
     diagnosis: dict[str, Any] | None = Field(description="the diagnosis it started: id, status, throws")
     adaptation: dict[str, Any] | None

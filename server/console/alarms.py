@@ -294,6 +294,15 @@ class AlarmService:
         return self.raise_alarm(f"throw:{throw_id}", mid, "high", cause, f"{title} (throw {throw_id[:8]} {status})",
                                 text, todo, subject=throw_id, cleared=True)
 
+    def on_lost(self, throw_id: str) -> None:
+        """A throw the reconciler closed as lost (server.fleet.reconcile: its result can never come,
+        so no ResultStored event does either): the high alarm :meth:`on_result` raises for it.
+        Never raises (the reconciler's sweep goes on)."""
+        try:
+            self.on_result(throw_id)
+        except Exception:
+            log.exception("alarms: lost throw %s not handled", throw_id)
+
     def on_drift(self, alert: dict) -> None:
         """A drift alert (server.analysis.drift): an open one raises a medium alarm, an acknowledged one
         clears it. Never raises."""

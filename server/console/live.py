@@ -10,7 +10,9 @@ throw samples, delivered to every open console page over Server-Sent Events (``G
 * ThrowStatusEvent -> ``throw`` events (phase, seconds since the request);
 * MachineStateEvent and ValveCommandEvent: during a throw, ``sample`` events at ``SAMPLE_RATE_HZ``
   (joint velocities, passive angles, valve commands, payload position);
-* ResultStored -> ``result`` events;
+* ResultStored -> ``result`` events; so does a throw the reconciliation closed as lost
+  (:meth:`LiveHub.throw_closed`: no result will come, and a page showing it running reads its row again);
+* a deployment a runtime confirmed or refused -> ``deployment`` events (:meth:`LiveHub.deployment_changed`);
 * per-console events (the target a click picked, ...) from :mod:`server.console.scene` via :meth:`LiveHub.publish`.
 
 Every subscriber also gets a ``heartbeat`` each ``HEARTBEAT_S`` so a page notices a silent server.
@@ -195,7 +197,8 @@ class LiveHub:
         """:func:`machine_status` of ``machine_id`` now, from the fleet's presence and RuntimeInfo
         cache, with ``simulated``, ``cabin_turn_rad`` (from its latest MachineState, rad, None if
         none), ``drift_alert`` (:meth:`server.analysis.drift.DriftWatch.alert`) and ``clock_warning``
-        (:func:`server.fleet.link.clock_warning`, None while the clocks agree) added. An E-STOP the
+        (:func:`server.fleet.link.clock_warning`, None while the clocks agree) and ``lease_held_here``
+        (the lease holder is this server; None while nobody or an unknown server holds it) added. An E-STOP the
         server holds latched (:meth:`server.fleet.link.Fleet.estop_latch`) makes the state
         ``estopped`` whatever the runtime says or whether it answers."""
         online = self.fleet.is_online(machine_id)
@@ -211,6 +214,8 @@ class LiveHub:
         st["cabin_turn_rad"] = float(state.q[0]) if state is not None else None
         st["drift_alert"] = self.drift.alert(machine_id) if self.drift is not None else None
         st["clock_warning"] = clock_warning(self.fleet.clock_offset_s(machine_id)) if online else None
+        holder = st["lease_holder"]
+        st["lease_held_here"] = (holder == self.fleet.signer.server_id) if holder is not None else None
         return st
 
     def statuses(self) -> list[dict]:
@@ -247,6 +252,19 @@ class LiveHub:
             self._push_status(event.machine_id, force=True)
         elif isinstance(event, ResultStored):
             self.publish("result", {"throw_id": event.throw_id})
+
+    def deployment_changed(self, machine_id: str, mode: str, status: str) -> None:
+        """A runtime's PolicyUpdate settled a deployment of ``machine_id`` for ``mode`` (``status``
+        "active" or "failed", server.policies.versions.PolicyService): a ``deployment`` event
+        ``{"machine_id", "mode", "status"}``. Its RuntimeInfo may have shown the new policy before:
+        a page that fetched the machine's rollback target then reads it again."""
+        self.publish("deployment", {"machine_id": machine_id, "mode": mode, "status": status})
+
+    def throw_closed(self, throw_id: str) -> None:
+        """Throw ``throw_id`` was closed without a result (server.fleet.reconcile marked it
+        ``lost``): a ``result`` event ``{"throw_id"}``, the same as for a stored result, so every page
+        that shows the throw (running, requested) or its machine's last throw reads its row again."""
+        self.publish("result", {"throw_id": throw_id})
 
     def _on_status(self, event: ThrowStatusEvent) -> None:
         status, machine_id = event.status, event.machine_id

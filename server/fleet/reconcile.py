@@ -83,12 +83,17 @@ class Reconciler:
         period_s: the backstop sweep while throws are open, s.
         handshake_s: rows younger than this (wall clock) are skipped, s.
         clock: monotonic seconds (tests pass a fake).
+        on_lost: called with the id of each throw this closes as lost (no ThrowResult, so no
+            ResultStored, tells anyone else: server.services has the live hub announce it,
+            :meth:`server.console.live.LiveHub.throw_closed`, and the alarms raise its alarm,
+            :meth:`server.console.alarms.AlarmService.on_lost`); None: nobody is told.
     """
 
     def __init__(self, fleet: Fleet, sessions: sessionmaker[Session], mark_lost: Callable[[str, str], bool],
                  result_grace_s: float = RESULT_GRACE_S, runtime_gone_s: float = RUNTIME_GONE_S,
-                 period_s: float = PERIOD_S, handshake_s: float = 7.0, clock: Callable[[], float] = time.monotonic):
-        self.fleet, self.sessions, self.mark_lost = fleet, sessions, mark_lost
+                 period_s: float = PERIOD_S, handshake_s: float = 7.0, clock: Callable[[], float] = time.monotonic,
+                 on_lost: Callable[[str], None] | None = None):
+        self.fleet, self.sessions, self.mark_lost, self.on_lost = fleet, sessions, mark_lost, on_lost
         self.result_grace_s, self.runtime_gone_s = float(result_grace_s), float(runtime_gone_s)
         self.period_s, self.handshake_s = float(period_s), float(handshake_s)
         self.clock = clock
@@ -166,6 +171,8 @@ class Reconciler:
                 log.warning("throw %s lost: %s", r.id, reason)
                 self._not_running_since.pop(r.id, None)
                 lost.append((r.id, reason))
+                if self.on_lost is not None:
+                    self.on_lost(r.id)
         self._next_s = max(min(waits), 0.01)
         return lost
 

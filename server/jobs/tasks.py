@@ -22,6 +22,7 @@ Kinds and their typed parameters (server.jobs.specs, checked at submit and again
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -54,6 +55,19 @@ from server.jobs.store import JobCancelled, JobStore
 log = logging.getLogger(__name__)
 
 
+def _set(event: threading.Event) -> threading.Event:
+    event.set()
+    return event
+
+
+WARM_WAIT_S = 60.0
+"""Longest wait of a preview for its worker's warm-up (WorkerContext.warm_previews), s."""
+
+
+WARMING_UP_MESSAGE = "the twin is warming up on the job worker (its first previews after a start take a few seconds more)"
+"""Progress message of a preview that waits for its worker's warm-up."""
+
+
 class JobRefused(Conflict):
     """A job that this worker cannot do as asked (e.g. its policy file does not load here); its
     kind (server.errors.kind_of: ``"conflict"``) is kept in the job's result as ``refused``, and
@@ -80,6 +94,13 @@ class WorkerContext:
     lock: threading.Lock = field(default_factory=threading.Lock)
     preview_pool: Executor | None = None
     """Processes for the previews' Monte Carlo rollouts (:meth:`start_preview_pool`), or None."""
+    warmed: threading.Event = field(default_factory=lambda: _set(threading.Event()))
+    """Set once :meth:`warm_previews` has made the nominal previews warm; a preview waits for it
+    (at most WARM_WAIT_S): running beside that part only slowed both (one interpreter lock, the
+    same policy loaded twice). Set at once where nothing warms up (tests, a heavy-only worker)."""
+    nominals: Any = None
+    """The previews' nominal rollouts by request (sim_twin.preview.preview.NominalCache, made by
+    the first preview): the console's ellipse reuses the nominal it previewed just before."""
 
     def __post_init__(self):
         self.store = JobStore(self.sessions)
@@ -95,6 +116,88 @@ class WorkerContext:
         if n >= 2 and self.preview_pool is None:
             self.preview_pool = process_pool(n)
             warm_up(self.preview_pool, n)
+
+    def policy_runner(self, sha: str, onnx_path: str):
+        """(the loaded policy runner of SHA-256 ``sha``, True if this call loaded it): from
+        :attr:`runners`, else loaded from ``onnx_path`` (relative to the data dir) and kept there.
+
+        Raises:
+            runtime.policy.PolicyError, OSError: the file does not load.
+        """
+        from runtime.policy import PolicyRunner
+
+        with self.lock:
+            runner = self.runners.get(sha)
+        if runner is not None:
+            return runner, False
+        loaded = PolicyRunner.load(self.data_dir / onnx_path)
+        with self.lock:
+            runner = self.runners.setdefault(sha, loaded)  # another thread may have loaded it meanwhile
+        return runner, runner is loaded
+
+    def warm_previews(self) -> None:
+        """Make this worker's first preview as fast as its next ones (a background thread of
+        ``slinger worker``; :attr:`warmed` is set once the nominal previews are warm, and
+        previews wait for it): load the
+        newest policy version of each mode that has a file (the deployed ones in the usual case:
+        ``slinger up`` records them before it starts the worker) here and in the preview pool,
+        run one nominal preview of each from the ready pose (MuJoCo's model, the release check,
+        the first inference, numpy's lazy imports), import scipy.stats (the Monte Carlo's Sobol
+        points, sim_twin.preview.preview.warm_imports) and run one small Monte Carlo in the pool.
+        Without it the first preview of a fresh worker took 1.6 s and its ellipse 6.8 s at a 1-min
+        load of 1-4 on the 2-core development VM (tests/benchmarks/bench_console_aim.py
+        --breakdown, first sample). Errors are logged, never raised: a policy that does not load
+        is refused by its preview as before."""
+        from sqlalchemy import select
+
+        from runtime.recovery import READY_POSE
+        from server.db.models import PolicyVersion
+        from sim_twin.preview.preview import PreviewRequest, preview_throw, warm_imports, warm_policy
+
+        t_start = time.monotonic()
+        try:
+            with self.sessions() as db:
+                rows = db.execute(select(PolicyVersion.mode, PolicyVersion.sha256, PolicyVersion.onnx_path)
+                                  .where(PolicyVersion.onnx_path.is_not(None))
+                                  .order_by(PolicyVersion.created_at.desc())).all()
+            newest: dict[str, tuple[str, str]] = {}
+            for mode, sha, path in rows:
+                if path is not None:  # the query's filter, for the type checker
+                    newest.setdefault(mode, (sha, path))
+            radius = self.settings.release_check_radius_m if self.settings is not None else None
+            processes = self.settings.preview_processes if self.settings is not None else 2
+            profile_path = str(self.settings.preview_profile) if self.settings and self.settings.preview_profile else None
+            q0 = [0.0, *READY_POSE, 0.0, 0.0]
+            loading, requests = [], []
+            for mode, (sha, path) in sorted(newest.items()):
+                t0 = time.monotonic()
+                try:
+                    runner, _ = self.policy_runner(sha, path)
+                    if self.preview_pool is not None:
+                        loading += warm_policy(self.preview_pool, processes, runner.path, radius is not None)
+                    lo, hi = runner.manifest.get("target_range_m", (6.0, 10.0))
+                    req = PreviewRequest(mode, [0.5 * (float(lo) + float(hi)), 0.0, 0.0], q0, [0.0] * 6, rollouts=1,
+                                         release_check_radius_m=radius)
+                    profile = _site_profile(self, runner, profile_path)
+                    preview_throw(runner, req, profile)
+                    requests.append((runner, req, profile))
+                    log.info("preview warm-up: %s policy %s… ready in %.2f s", mode, sha[:12], time.monotonic() - t0)
+                except Exception:
+                    log.exception("preview warm-up of the %s policy %s… failed", mode, sha[:12])
+            log.info("preview warm-up: nominal previews ready in %.2f s", time.monotonic() - t_start)
+            self.warmed.set()  # what the Monte Carlo needs besides goes on beside the previews
+            warm_imports()
+            for f in loading:
+                f.result()
+            if requests and self.preview_pool is not None:  # the pool processes' first rollouts
+                runner, req, profile = requests[0]
+                preview_throw(runner, dataclasses.replace(req, rollouts=12 * processes, param_rollouts=processes),
+                              profile, pool=self.preview_pool)
+            log.info("preview warm-up done in %.2f s", time.monotonic() - t_start)
+        except Exception:
+            log.exception("preview warm-up failed")
+        finally:
+            self.warmed.set()
 
     def close(self) -> None:
         """Stop the preview pool's processes."""
@@ -172,27 +275,28 @@ def _json_safe(result) -> dict:
 
 # --- runners ----------------------------------------------------------------------------------
 def run_preview(ctx: WorkerContext, job: JobRun[PreviewSpec], progress) -> dict:
-    from runtime.policy import PolicyError, PolicyRunner
-    from sim_twin.preview.preview import PreviewRequest, preview_throw, warm_policy
+    from runtime.policy import PolicyError
+    from sim_twin.preview.preview import NominalCache, PreviewRequest, preview_throw, warm_policy
 
     spec = job.spec
     sha = spec.sha256
+    try:
+        runner, loaded_now = ctx.policy_runner(sha, spec.onnx_path)
+    except (PolicyError, OSError) as e:
+        raise JobRefused(f"policy {sha[:12]}… does not load on the worker: {e}") from e
+    if loaded_now and ctx.preview_pool is not None and spec.request.get("rollouts", 0) <= 1:
+        # a policy new to this worker, met in a nominal-only preview (the console's first
+        # request): its Monte Carlo processes load it meanwhile, not in the ellipse's rollouts
+        warm_policy(ctx.preview_pool, ctx.settings.preview_processes if ctx.settings else 2, runner.path,
+                    spec.request.get("release_check_radius_m") is not None)
+    if not ctx.warmed.is_set():  # said on the console's status line (web/js/console.js, job events)
+        progress(0.0, WARMING_UP_MESSAGE)
+    ctx.warmed.wait(WARM_WAIT_S)
     with ctx.lock:
-        runner = ctx.runners.get(sha)
-    if runner is None:
-        try:
-            runner = PolicyRunner.load(ctx.data_dir / spec.onnx_path)
-        except (PolicyError, OSError) as e:
-            raise JobRefused(f"policy {sha[:12]}… does not load on the worker: {e}") from e
-        with ctx.lock:
-            ctx.runners[sha] = runner
-        if ctx.preview_pool is not None and spec.request.get("rollouts", 0) <= 1:
-            # a policy new to this worker, met in a nominal-only preview (the console's first
-            # request): its Monte Carlo processes load it meanwhile, not in the ellipse's rollouts
-            warm_policy(ctx.preview_pool, ctx.settings.preview_processes if ctx.settings else 2, runner.path,
-                        spec.request.get("release_check_radius_m") is not None)
+        if ctx.nominals is None:
+            ctx.nominals = NominalCache()
     return preview_throw(runner, PreviewRequest(**spec.request), _site_profile(ctx, runner, spec.profile_path),
-                         pool=ctx.preview_pool)
+                         pool=ctx.preview_pool, nominals=ctx.nominals)
 
 
 def _site_profile(ctx: WorkerContext, runner, profile_path: str | None):

@@ -84,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
         import sim_twin.preview.preview  # noqa: F401  warm: the first preview must not pay MuJoCo's import
 
         ctx.start_preview_pool()
+        ctx.warmed.clear()  # previews wait for the warm-up below (WorkerContext.warm_previews)
     consumers = []
     for lane in lanes:
         workers = args.fast_workers if lane == "fast" else args.heavy_workers
@@ -96,11 +97,10 @@ def run(args: argparse.Namespace) -> int:
         for c in consumers[:-1]:
             c.start()
         if "fast" in lanes:
-            # nor should the first ellipse pay scipy's import: in the background once the
-            # consumers are up (a preview submitted while the worker starts waits for them only)
-            from sim_twin.preview.preview import warm_imports
-
-            threading.Thread(target=warm_imports, name="warm-imports", daemon=True).start()
+            # nor should the first preview pay for its policy's loading and first rollouts, or the
+            # first ellipse for scipy's import: in the background once the consumers are up
+            # (previews wait for it; other fast jobs do not)
+            threading.Thread(target=ctx.warm_previews, name="warm-previews", daemon=True).start()
         consumers[-1].run()  # until SIGINT (graceful) or SIGTERM
         for c in consumers[:-1]:
             c.stop(graceful=True)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import tempfile
+from collections.abc import Callable
 from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any
@@ -44,11 +45,18 @@ MAX_POLICY_BYTES = 50 * 1024 * 1024
 class PolicyService:
     """Args: fleet (None in a worker: no fleet link, so no promotion, rollback or policy files over
     Zenoh), sessions, store (policy files), settings (eval_distances_m, eval_throws), jobs
-    (server.jobs.JobQueue: the twin evaluation of an upload runs as a job in a worker)."""
+    (server.jobs.JobQueue: the twin evaluation of an upload runs as a job in a worker).
 
-    def __init__(self, fleet: Fleet | None, sessions: sessionmaker[Session], store: ResultStore, settings, jobs):
+    ``on_deployment``: None, or called with (machine id, mode, status) after a runtime's
+    PolicyUpdate settled a deployment (``active`` or ``failed``): the machine's rollback target may
+    have moved (server.services has the live hub announce it:
+    :meth:`server.console.live.LiveHub.deployment_changed`)."""
+
+    def __init__(self, fleet: Fleet | None, sessions: sessionmaker[Session], store: ResultStore, settings, jobs,
+                 on_deployment: Callable[[str, str, str], None] | None = None):
         self.fleet, self.sessions, self.store, self.settings, self.jobs = fleet, sessions, store, settings, jobs
         self._decls: list = []
+        self.on_deployment = on_deployment
 
     @property
     def _link(self) -> Fleet:
@@ -255,7 +263,10 @@ class PolicyService:
                 return
             dep.status = "active" if msg.status == "loaded" else "failed"
             dep.reason, dep.confirmed_at = msg.reason, utcnow()
+            status = dep.status
         log.info("machine %s %s policy %s: %s", msg.machine_id, msg.mode, msg.version, msg.status)
+        if self.on_deployment is not None:
+            self.on_deployment(msg.machine_id, msg.mode, status)
 
 
 def evaluate_version(sessions: sessionmaker[Session], data_dir: Path, version_id: int, distances_m: list[float],

@@ -178,7 +178,7 @@ def _diagnosis(report: dict) -> list[str]:
             ("both effects of a pair named", s["pairs_both_named"], "≥ 70 %", s["pairs_both_named"] >= 0.7),
             ("parameters within ±20 % (cases)", s["params_within_tolerance_cases"], "≥ 80 %", s["params_within_tolerance_cases"] >= 0.8),
             ("outside effects unexplained or ambiguous", s["outside_unexplained_or_ambiguous"], "≥ 90 %", s["outside_unexplained_or_ambiguous"] >= 0.9),
-            ("outside effects confidently wrong", s["outside_confidently_wrong"], "≤ 5 %", s["outside_confidently_wrong"] <= 0.05),
+            ("outside effects confidently wrong", s["outside_confidently_wrong"], "0 %", s["outside_confidently_wrong"] <= 0.0),
             ("noise-only cases answered \"no gap\"", s["noise_no_gap"], "≥ 90 %", s["noise_no_gap"] >= 0.9),
             ("1σ intervals containing the truth", s["one_sigma_coverage"], "60-75 %", 0.6 <= s["one_sigma_coverage"] <= 0.75),
             ("held-out impact RMS shrink (median)", s["held_out_impact_shrink_median"], "reported", None)]

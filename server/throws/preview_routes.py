@@ -35,13 +35,14 @@ async def create_preview(body: PreviewCreate, service: PreviewsDep, settings: Se
     """Preview a throw of ``machine_id`` at ``target`` in ``mode`` from its current joint state.
 
     ``rollouts`` <= 1 gives the nominal rollout only (fast); more adds the Monte Carlo 1 sigma
-    impact ellipse over the release-delay jitter. The twin runs in a worker (a ``preview`` job;
-    its id is the preview id); this route awaits it without holding a request thread. The console
-    draws it in its own 3D view (POST /api/consoles/{id}/preview).
+    impact ellipse over the release-delay jitter; ``extends`` names the nominal-only preview an
+    ellipse completes (its start state and nominal rollout are reused). The twin runs in a
+    worker (a ``preview`` job; its id is the preview id); this route awaits it without holding a
+    request thread. The console draws it in its own 3D view (POST /api/consoles/{id}/preview).
     """
     rollouts = body.rollouts if body.rollouts is not None else settings.preview_rollouts
     job_id = await run_in_threadpool(service.submit, body.machine_id, body.mode, body.target, rollouts,
-                                     user.username)
+                                     user.username, body.extends)
     timeout_s = settings.preview_timeout_s
     job = await watcher.wait(job_id, timeout_s)
     summary = await run_in_threadpool(service.outcome, job, timeout_s)  # domain errors: server.api.errors

@@ -17,11 +17,18 @@ class PreviewCreate(BaseModel):
     target: Vec3
     rollouts: int | None = Field(default=None, ge=0, le=2000)
     """Monte Carlo rollouts (default: settings.preview_rollouts); 0 or 1: nominal only."""
+    extends: str | None = Field(default=None, max_length=64)
+    """The id of a preview of the same machine, mode and target that this one completes (the
+    console's nominal-only preview before its ellipse): it then starts from that preview's
+    machine state and reuses its nominal rollout, while the throw gate would still accept that
+    preview (server.throws.previews.PreviewService.submit); otherwise from the current state."""
 
 
 class PreviewOut(BaseModel):
     """A preview. ``status`` "failed" means the twin's swing failed (``reason``); then the
-    prediction fields are None. Positions machine frame, m; speeds rad/s (telescope m/s)."""
+    prediction fields are None. Positions machine frame, m; speeds rad/s (telescope m/s).
+    ``created_at``: when the machine state it starts from was read (a preview made with
+    ``extends``: that preview's); the throw gate judges its age from it."""
 
     id: str
     machine_id: str

@@ -16,9 +16,11 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from runtime.release_check import DEFAULT_RADIUS_M
 from server.db.models import PolicyVersion
+from server.db.types import utcnow
 from server.errors import KINDS, Conflict, Failed, Refused, Unavailable, found
 from server.fleet.link import Fleet
 from server.jobs import JobQueue
+from server.throws.gate import preview_refusal
 from server.throws.service import ThrowService
 
 log = logging.getLogger(__name__)
@@ -53,10 +55,7 @@ class PreviewService:
 
     def get(self, preview_id: str) -> dict | None:
         """The stored summary of a finished preview, None if unknown or not a finished preview."""
-        job = self.jobs.store.get(preview_id)
-        if job is None or job["kind"] != "preview" or job["status"] != "done":
-            return None
-        return {**job["result"], **job["params"]["meta"], "id": job["id"], "created_at": job["created_at"]}
+        return _summary(self.jobs.store.get(preview_id))
 
     def require(self, preview_id: str) -> dict:
         """:meth:`get`, for a preview that must exist.
@@ -85,9 +84,18 @@ class PreviewService:
         return row.onnx_path, pol.sha256, pol.version
 
     def submit(self, machine_id: str, mode: str, target: list[float], rollouts: int,
-               requested_by: str | None = None) -> str:
+               requested_by: str | None = None, extends: str | None = None) -> str:
         """Check the target (as a throw would be checked) and submit the preview job; returns
         its id (= the preview id).
+
+        ``extends``: the id of a preview of the same request (machine, mode, target) to complete,
+        the console's nominal-only preview before its ellipse: this preview then starts from that
+        one's machine state, so that the worker reuses its nominal rollout (sim_twin.preview.preview
+        .NominalCache) and the nominal shown does not change, as long as the throw gate would still
+        accept that preview for this request (server.throws.gate.preview_refusal: same policy, not
+        stale, the machine not moved beyond the gate's bounds); else, or with the gate off, from
+        the machine's current state. Its ``created_at`` (the age the gate judges) is then that
+        preview's.
 
         Raises:
             DomainError: as ThrowService.checked_state and :meth:`active_policy`; Limited: the user
@@ -95,13 +103,31 @@ class PreviewService:
         """
         state = self.throws.checked_state(machine_id, mode, target)
         onnx_path, sha, version = self.active_policy(machine_id, mode)
-        request = dict(mode=mode, target_m=list(target), q=list(state.q), qd=list(state.qd), rollouts=rollouts,
+        q, qd, state_at = list(state.q), list(state.qd), None
+        base = self._extendable(extends, machine_id, mode, list(target), list(state.q), sha) if extends else None
+        if base is not None:
+            q, qd, state_at = base
+        request = dict(mode=mode, target_m=list(target), q=q, qd=qd, rollouts=rollouts,
                        clearance_radius_m=self.clearance_radius_m, release_check_radius_m=self.release_check_radius_m)
         meta = dict(machine_id=machine_id, mode=mode, target_m=list(target), policy_version=version,
-                    policy_sha256=sha, start_q=list(state.q))
+                    policy_sha256=sha, start_q=q, **({"extends": extends, "state_at": state_at} if base else {}))
         profile = str(self.profile_path) if self.profile_path else None
         return self.jobs.submit("preview", {"onnx_path": onnx_path, "sha256": sha, "request": request, "meta": meta,
                                             "profile_path": profile}, subject=machine_id, requested_by=requested_by)
+
+    def _extendable(self, preview_id: str, machine_id: str, mode: str, target: list[float], current_q: list[float],
+                    sha: str) -> tuple[list[float], list[float], str] | None:
+        """(q (6,), qd (6,), created_at ISO 8601) of preview ``preview_id``'s start state if a
+        preview of this request may start from it (:meth:`submit`, ``extends``), else None."""
+        limits = self.throws.gate
+        job = self.jobs.store.get(preview_id)
+        summary = _summary(job)
+        if limits is None or job is None or summary is None or list(summary["target_m"]) != target:
+            return None
+        if preview_refusal(summary, preview_id, machine_id, mode, target, current_q, sha, utcnow(), limits) is not None:
+            return None
+        request = job["params"]["request"]
+        return list(request["q"]), list(request["qd"]), summary["created_at"]
 
     def outcome(self, job: dict | None, timeout_s: float) -> dict:
         """The summary of a finished preview job.
@@ -125,3 +151,13 @@ class PreviewService:
         log.info("preview %s for %s %s at %s: %s", job["id"][:8], summary["machine_id"], summary["mode"],
                  summary["target_m"], summary["status"])
         return summary
+
+
+def _summary(job: dict | None) -> dict | None:
+    """The summary of a stored preview job (PreviewService.get), None if ``job`` is None or not a
+    finished preview. Its ``created_at`` is when the machine state it starts from was read (an
+    ellipse extending a nominal: the nominal's)."""
+    if job is None or job["kind"] != "preview" or job["status"] != "done":
+        return None
+    meta = job["params"]["meta"]
+    return {**job["result"], **meta, "id": job["id"], "created_at": meta.get("state_at") or job["created_at"]}

@@ -122,7 +122,9 @@ def _where(throws, S: np.ndarray, D: np.ndarray, noise: nz.NoiseModel, nominal, 
 
 def stationarity(throws, M: np.ndarray, D: np.ndarray, seed: int = 0) -> dict[str, dict]:
     """Change test of every channel's per-throw mean residual in throw order (:mod:`stationarity`):
-    channels with data in every throw, the target distance regressed out, Holm over the channels.
+    channels with data in every throw, the target distance regressed out, Holm over the channels,
+    and their combined test (the row :data:`stationarity.COMBINED`: what decides, Holm over the
+    nominal and the after-fit one together in :func:`verdict.drift_of`).
 
     Args:
         throws: the N logged throws in log order; M: (N, C) standardised mean residuals
@@ -294,7 +296,8 @@ def diagnose(dataset_dir: str | Path, out_dir: str | Path | None = None, test_fr
         "effects_library": {name: cls.describe() for name, cls in EFFECTS.items()},
         "method": {"block_rows": nz.BLOCK_ROWS, "z_gap": nz.Z_GAP, "r_gap": nz.R_GAP, "bootstrap": sel.BOOTSTRAP,
                    "win_freq": sel.WIN_FREQ, "ambiguous_freq": sel.AMBIGUOUS_FREQ, "penalty_per_param": sel.PENALTY_PER_PARAM,
-                   "stationarity": {"alpha": st.ALPHA, "permutations": st.PERMUTATIONS, "min_segment": st.MIN_SEGMENT, "z_split": fw.Z_SPLIT}},
+                   "stationarity": {"alpha": st.ALPHA, "permutations": st.PERMUTATIONS, "change_t": st.CHANGE_T, "min_segment": st.MIN_SEGMENT,
+                                    "z_split": fw.Z_SPLIT}},
         "wall_s": time.time() - t0, "workers": workers, "cpu_s": cpu_seconds() - c0,
     }
     if out_dir:

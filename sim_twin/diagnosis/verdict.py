@@ -21,17 +21,19 @@ Verdict classes (``answer``; docs/diagnosis.md says how to read each):
 named effect is confirmed only if channels other than the impact confirm it, it won WIN_FREQ of
 the resamples against every other candidate and against "no further effect", no parameter sits
 at a prior bound, it makes no channel worse, and the residual it leaves is consistent across
-the throws (none of the channels it changes keeps a gap, its residual does not change during
-the log, its fits on the two halves of the log agree). Otherwise it is "partly consistent with
-X", never confirmed.
+the throws (none of the channels it changes keeps a gap, nor do the channels of a joint it is
+fitted to: :func:`fitted_joint_channels`; its residual does not change during the log, its fits
+on the two halves of the log agree). Otherwise it is "partly consistent with X", never
+confirmed.
 """
 
 from __future__ import annotations
 
 from sim_twin.diagnosis import forward as fw
+from sim_twin.diagnosis import noise as nz
 from sim_twin.diagnosis import select as sel
 from sim_twin.diagnosis import stationarity as st
-from sim_twin.twin.effects import Effect, effect_class
+from sim_twin.twin.effects import Effect, PerJointEffect, effect_class
 
 SEPARATING = {
     "release": "log the gripper's payload-free (open) flag: it measures the release timing directly",
@@ -93,13 +95,52 @@ def _consistent_note(c: fw.Candidate, rnd: fw.Round) -> dict:
 IMPACT_CHANNELS = ("impact.downrange", "impact.crossrange")
 
 
+MOVED_SIGMA = 2.0
+"""A per-joint parameter counts as fitted to its joint when its fit lies more than this many of its
+standard errors (``Candidate.sigma``) from the nominal (:func:`fitted_joint_channels`)."""
+
+
+def fitted_joint_channels(c: fw.Candidate) -> dict[str, list[str]]:
+    """The joints a per-joint candidate is fitted to, with their own channels.
+
+    A per-joint effect (:class:`sim_twin.twin.effects.PerJointEffect`: an encoder offset, a valve
+    lag per joint) names the joints whose parameter its fit moved from the nominal by more than
+    MOVED_SIGMA standard errors. Such a part claims something about that joint (recalibrate the
+    boom's encoder, service the boom's valve), so it explains the gap only if the joint's own
+    channels (``q.<joint>``, ``qd.<joint>``) keep no gap with it in the twin, whether or not the
+    fit changed them: a non-separable effect such as an encoder offset may act only through the
+    shared channels (the gripper's swing, the impact) and leave its joint's channels untouched.
+
+    Returns:
+        {joint: [its channels in :data:`noise.CHANNELS`]}; {} for an effect that is not per joint,
+        is not resolvable by name, or whose fit left every joint nominal.
+    """
+    try:
+        cls = effect_class(c.effect)
+    except ValueError:
+        return {}
+    if not issubclass(cls, PerJointEffect):
+        return {}
+    nominal = {p.name: p.nominal for p in cls.params}
+    out: dict[str, list[str]] = {}
+    for j in cls.joints:
+        name = f"{cls.joint_base}_{j}"
+        if name not in c.params or name in c.not_identifiable or name not in nominal:
+            continue
+        if abs(c.params[name] - nominal[name]) > MOVED_SIGMA * max(c.sigma.get(name, 0.0), 0.0):
+            out[j] = [ch for ch in (f"q.{j}", f"qd.{j}") if ch in nz.CH_INDEX]
+    return out
+
+
 def confirmation(c: fw.Candidate, remaining: list[str], drift: dict | None = None) -> list[str]:
     """Why named candidate ``c`` is not confirmed (empty: confirmed; module doc).
 
     Args:
         c: a named candidate (its evidence from :func:`forward.evidence_of`, ``wins_all`` and
             ``split`` from :func:`forward.select_effects` / :func:`forward.split_fits`).
-        remaining: the channels that keep a gap once every named effect is in the twin.
+        remaining: the channels that keep a gap once every named effect is in the twin; a part
+            is not confirmed while one of them is a channel it changes or a channel of a joint
+            it is fitted to (:func:`fitted_joint_channels`).
         drift: :func:`drift_of` (its ``after_fit`` channels that change during the log), or None.
     """
     why = []
@@ -117,6 +158,11 @@ def confirmation(c: fw.Candidate, remaining: list[str], drift: dict | None = Non
     left = [ch for ch in own if ch in remaining]
     if left:
         why.append(f"leaves a gap in channels it changes ({', '.join(left)}): its residual is not noise")
+    for j, chs in fitted_joint_channels(c).items():
+        chs = [ch for ch in chs if ch in remaining and ch not in left]
+        if chs:
+            why.append(f"leaves the gap in {', '.join(chs)} unexplained, the channels of the {j} it is fitted to: "
+                       f"something else acts on the {j}, and this part cannot be told from it")
     split = ev.get("split") or {}
     if split.get("drifting"):
         zs = split.get("z", {})
@@ -133,32 +179,38 @@ def drift_of(nominal: dict | None, after_fit: dict | None, named_c: list[fw.Cand
 
     Args:
         nominal / after_fit: :func:`stationarity.test_series` of the per-throw mean residuals of
-            the nominal twin / of the twin with the named effects (None: not tested).
+            the nominal twin / of the twin with the named effects (None: not tested), each with
+            its channels' combined test under :data:`stationarity.COMBINED`. The combined rows
+            decide: they are Holm-corrected here together, in place (:func:`stationarity.holm`),
+            so the decision has one family-wise false-alarm rate, ALPHA. The channels' own rows
+            only describe.
         named_c: the named candidates (their ``split`` evidence).
         throw_ids: the throws in log order.
 
     Returns:
-        {"drifting": bool, "channels": {channel: change row} (the changing ones, nominal or after
-        the fit, the smaller p), "nominal", "after_fit": [changing channels], "split": {effect:
-        split fits} of the named effects whose halves disagree, "since": the throw id after the
-        most significant change, "text": one sentence}.
+        {"drifting": bool, "together": [the combined rows that change], "channels": {channel:
+        its shape at the change} (the channels of those rows), "nominal", "after_fit": [the
+        channels that change, by family], "split": {effect: split fits} of the named effects
+        whose halves disagree, "since": the throw id after the most significant change, "text":
+        one sentence}.
     """
+    fams = {"nominal": nominal or {}, "after_fit": after_fit or {}}
+    combined = {fam: src[st.COMBINED] for fam, src in fams.items() if st.COMBINED in src}
+    st.holm(combined.values())
+    together = sorted((r for r in combined.values() if r["drifting"]), key=lambda r: r["p_holm"])
     rows: dict[str, dict] = {}
-    for src in (nominal or {}, after_fit or {}):
-        for ch, r in src.items():
-            if r.get("drifting") and (ch not in rows or r["p_holm"] < rows[ch]["p_holm"]):
-                rows[ch] = r
+    for r in reversed(together):  # the most significant last, so its shapes win
+        rows.update({ch: {**r["shapes"][ch], "n": r["n"], "p_holm": r["p_holm"]} for ch in r["channels"]})
     split = {c.effect: c.evidence["split"] for c in named_c if (c.evidence.get("split") or {}).get("drifting")}
-    out: dict = {"drifting": bool(rows or split), "channels": rows,
-                 "nominal": sorted(ch for ch, r in (nominal or {}).items() if r.get("drifting")),
-                 "after_fit": sorted(ch for ch, r in (after_fit or {}).items() if r.get("drifting")), "split": split,
-                 "since": None, "text": ""}
+    out: dict = {"drifting": bool(together or split), "together": together, "channels": rows,
+                 **{fam: sorted(combined[fam]["channels"]) if fam in combined and combined[fam]["drifting"] else [] for fam in fams},
+                 "split": split, "since": None, "text": ""}
     if not out["drifting"]:
         return out
-    parts = [st.describe(ch, r, throw_ids) for ch, r in sorted(rows.items(), key=lambda kv: kv[1]["p_holm"])[:3]]
-    if rows:
-        best = min(rows.values(), key=lambda r: r["p_holm"])
-        out["since"] = throw_ids[best["change_at"]] if best["change_at"] is not None and best["change_at"] < len(throw_ids) else None
+    parts = st.describe_combined(together[0], throw_ids) if together else []
+    if together:
+        k = together[0]["change_at"]
+        out["since"] = throw_ids[k] if k is not None and k < len(throw_ids) else None
     for e, sp in split.items():
         n = max(sp["z"], key=lambda k: abs(sp["z"][k]))
         parts.append(f"{e} fitted on the first {sp['halves']} throws gives {n} = {sp['early'][n]:.4g}, on the last {sp['halves']} "
@@ -210,7 +262,8 @@ def verdict_of(where: dict, rounds: list[fw.Round], named: list[Effect], power: 
         }
     if drift and drift.get("drifting"):
         return {"answer": "drifting", "effects": [], "confirmed": [], "not_confirmed": [], "partly_consistent": [], "evidence": evidence,
-                "power": None, "drift": drift, "where": sorted(drift["channels"]) or carriers, "since": drift.get("since"),
+                "power": None, "drift": drift, "since": drift.get("since"),
+                "where": sorted(drift["channels"]) or carriers,
                 "text": (f"drifting gap: the throws early and late in the log differ: {drift['text']}. Not fitted as a constant effect: "
                          "diagnose the throws since the change on their own, and look for what changed at that throw")}
     if not where["gap"]:

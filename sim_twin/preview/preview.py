@@ -30,7 +30,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass
@@ -64,7 +66,8 @@ JITTER_PER_ROLLOUT = 12
 """At least this many release delays per full rollout: ``rollouts // 12`` full rollouts at most."""
 PARAM_ROLLOUTS = 16
 """Default full rollouts of the Monte Carlo (a power of two keeps the Sobol points balanced):
-16 x ~0.1 s stays inside the 3 s bar on 2 cores (tests/benchmarks/bench_preview.py)."""
+about 0.02 CPU s each in 2D and 0.04 in 3D on the 2-core development VM (0.33 / 0.63 CPU s per
+ellipse, tests/benchmarks/bench_preview_cpu.py, 2026-11-26)."""
 
 DEFAULT_SITE_PROFILE = Path(__file__).resolve().parent.parent / "profiles" / "nominal_uncertain.json"
 """The nominal machine with the parameter ranges a well-tuned HEAP-class machine is known to
@@ -232,8 +235,9 @@ def _run_swing(policy, req: PreviewRequest, profile: RealityProfile, q, qd, seed
     sim.set_state(q, qd)
     twin = TwinMachine(sim, "preview")
     # the release check as the runtime runs it (the request's radius: the server's setting)
+    # no per-tick telemetry: the preview reads only how the throw ended
     executor = ThrowExecutor({req.mode: policy}, config=ExecutorConfig(
-        prepare_timeout_s=10.0, release_check_radius_m=req.release_check_radius_m), release_check=check)
+        prepare_timeout_s=10.0, release_check_radius_m=req.release_check_radius_m, record_ticks=False), release_check=check)
     request = ThrowRequest(throw_id="preview", machine_id="preview", mode=req.mode, target_m=list(req.target_m))
 
     def hardware_state() -> MachineState:
@@ -282,8 +286,92 @@ def _run_swing(policy, req: PreviewRequest, profile: RealityProfile, q, qd, seed
     return swing, (np.array(rec["flags"]).reshape(-1, 3), np.array(rec["radii"]))
 
 
+class NominalCache:
+    """The nominal rollouts of a worker's recent previews, by request (least recently used out).
+
+    The console previews in two steps, the nominal rollout alone and then the ellipse, and asks
+    for the ellipse from the nominal's start state (server.throws.previews.PreviewService.submit,
+    ``extends``): the ellipse's preview then reuses the nominal's swing and summary instead of
+    running the same rollout again (it is deterministic: same policy, profile, request and seed
+    give the same swing). A hit needs the same policy (SHA-256), the same profile object (a
+    worker caches profiles per source) and every request field but ``rollouts`` and
+    ``param_rollouts`` equal. Thread-safe.
+
+    Args:
+        size: entries kept (each a recorded swing of ~200 steps and its summary, tens of kB).
+    """
+
+    def __init__(self, size: int = 8):
+        self.size = size
+        self._entries: OrderedDict[tuple, tuple[RealityProfile, _Swing | None, dict]] = OrderedDict()
+        self._lock = threading.Lock()
+        self.hits = 0
+
+    @staticmethod
+    def key(policy, req: PreviewRequest) -> tuple:
+        """What a nominal rollout depends on besides the profile: policy SHA-256 (or the runner's
+        identity), mode, target, start state, seed, clearance and release-check radii."""
+        return (getattr(policy, "sha256", None) or id(policy), req.mode, tuple(map(float, req.target_m)),
+                tuple(map(float, req.q)), tuple(map(float, req.qd)), int(req.seed), float(req.clearance_radius_m),
+                req.release_check_radius_m)
+
+    def get(self, key: tuple, profile: RealityProfile) -> tuple[_Swing | None, dict] | None:
+        """(swing or None when it failed, nominal summary) of ``key`` under ``profile``, or None."""
+        with self._lock:
+            entry = self._entries.get(key)
+            if entry is None or entry[0] is not profile:
+                return None
+            self._entries.move_to_end(key)
+            self.hits += 1
+            return entry[1], entry[2]
+
+    def put(self, key: tuple, profile: RealityProfile, swing: _Swing | None, summary: dict) -> None:
+        """Keep the nominal rollout of ``key`` under ``profile`` (the entry holds the profile, so
+        that its identity stays its own)."""
+        with self._lock:
+            self._entries[key] = (profile, swing, summary)
+            self._entries.move_to_end(key)
+            while len(self._entries) > self.size:
+                self._entries.popitem(last=False)
+
+
+def _nominal(policy, req: PreviewRequest, profile: RealityProfile, q: np.ndarray, qd: np.ndarray,
+             check: ReleaseCheck | None) -> tuple[_Swing | None, dict]:
+    """The nominal rollout: (its swing, the preview's summary without ``mc`` and ``timing_s``),
+    or (None, {"status": "failed", "reason"}) when the twin's swing failed."""
+    swing, extra = _run_swing(policy, req, dataclasses.replace(profile, uncertainty={}), q, qd, req.seed, kinematics=True,
+                              check=check)
+    if swing is None:
+        return None, {"status": "failed", "reason": extra}
+    flags, radii = extra
+    k0 = int(swing.open_index(swing.payload.delay_mean_s))
+    hit, t_fall, p0, v0 = swing.impacts(np.array([k0]))
+    impact, flight_s, p0, v0 = hit[0], float(t_fall[0]), p0[0], v0[0]
+    down, cross = impact_errors(req.target_m, impact)
+    if swing.payload.flight_accel is not None:
+        ts, ps, _, _, _ = integrate_flight(p0, v0, swing.payload.flight_accel)
+        payload_path = ps[np.unique(np.linspace(0, len(ts) - 1, 40).astype(int))]
+    else:
+        payload_path = np.array([ballistic_position(np, p0, v0, t) for t in np.linspace(0.0, flight_s, 40)])
+    grip = np.array([forward_kinematics(np, a, b).gripper_centre for a, b in zip(swing.qpos[: k0 + 1], swing.qvel[: k0 + 1])])
+    return swing, {
+        "status": "ok", "reason": None, "mode": req.mode, "target_m": list(map(float, req.target_m)),
+        "profile": profile.name,
+        "impact_m": impact.tolist(), "downrange_error_m": down, "crossrange_error_m": cross,
+        "release_pos_m": p0.tolist(), "release_vel_mps": v0.tolist(),
+        "release_command_pos_m": forward_kinematics(np, *(a[int(swing.open_index(0.0))] for a in (swing.qpos, swing.qvel))).gripper_centre.tolist(),
+        "release_after_s": float(swing.release_t - swing.swing_t), "flight_s": flight_s,
+        "duration_s": float(swing.t[k0] - swing.swing_t + flight_s),
+        "peak_joint_speeds": {name: float(np.max(np.abs(swing.meas_qd[: k0 + 1, i]))) for i, name in enumerate(ACTIVE_JOINTS)},
+        "clearance": _clearance(swing.meas_q[: k0 + 1], flags[: k0 + 1], radii[: k0 + 1], req.clearance_radius_m),
+        "gripper_path_m": _downsample(grip),
+        "payload_path_m": np.round(payload_path, 4).tolist(),
+        "mc": None,
+    }
+
+
 def preview_throw(policy, req: PreviewRequest, profile: RealityProfile | None = None,
-                  pool: Executor | None = None) -> dict:
+                  pool: Executor | None = None, nominals: NominalCache | None = None) -> dict:
     """Preview one throw; returns a JSON-ready summary (see the keys below).
 
     Args:
@@ -293,6 +381,9 @@ def preview_throw(policy, req: PreviewRequest, profile: RealityProfile | None = 
         pool: processes for the Monte Carlo's full rollouts (a long-lived pool of
             sim_twin.twin.pools.process_pool; each process loads the policy from ``policy.path`` once),
             or None to run them here one after the other. The impacts are the same either way.
+        nominals: a worker's :class:`NominalCache`: the nominal rollout of the same request under
+            the same profile is taken from it when there, and kept in it otherwise. The summary
+            is the same either way (``timing_s.nominal`` is then the look-up's time).
 
     Returns:
         ``status`` ("ok" or "failed"), ``reason``; and when ok: ``impact_m``, ``downrange_error_m``,
@@ -315,38 +406,20 @@ def preview_throw(policy, req: PreviewRequest, profile: RealityProfile | None = 
     # nothing of it (their release delays are drawn up front), so the two overlap
     plan = _mc_plan(req, profile, unc, q, qd) if req.rollouts > 1 else None
     futures = _submit_rollouts(policy, req, plan[2], pool) if plan is not None and plan[1] else None
-    swing, extra = _run_swing(policy, req, dataclasses.replace(profile, uncertainty={}), q, qd, req.seed, kinematics=True,
-                              check=check)
+    key = NominalCache.key(policy, req) if nominals is not None else None
+    known = nominals.get(key, profile) if nominals is not None and key is not None else None
+    if known is None:
+        swing, nominal = _nominal(policy, req, profile, q, qd, check)
+        if nominals is not None and key is not None:
+            nominals.put(key, profile, swing, nominal)
+    else:
+        swing, nominal = known
+    summary = dict(nominal)  # the cached one stays as it is
     if swing is None:
         for f in futures or []:
             f.cancel()
-        return {"status": "failed", "reason": extra}
-    flags, radii = extra
-    k0 = int(swing.open_index(swing.payload.delay_mean_s))
-    hit, t_fall, p0, v0 = swing.impacts(np.array([k0]))
-    impact, flight_s, p0, v0 = hit[0], float(t_fall[0]), p0[0], v0[0]
-    down, cross = impact_errors(req.target_m, impact)
-    if swing.payload.flight_accel is not None:
-        ts, ps, _, _, _ = integrate_flight(p0, v0, swing.payload.flight_accel)
-        payload_path = ps[np.unique(np.linspace(0, len(ts) - 1, 40).astype(int))]
-    else:
-        payload_path = np.array([ballistic_position(np, p0, v0, t) for t in np.linspace(0.0, flight_s, 40)])
+        return summary
     t_nominal = time.perf_counter() - t_start
-    grip = np.array([forward_kinematics(np, a, b).gripper_centre for a, b in zip(swing.qpos[: k0 + 1], swing.qvel[: k0 + 1])])
-    summary = {
-        "status": "ok", "reason": None, "mode": req.mode, "target_m": list(map(float, req.target_m)),
-        "profile": profile.name,
-        "impact_m": impact.tolist(), "downrange_error_m": down, "crossrange_error_m": cross,
-        "release_pos_m": p0.tolist(), "release_vel_mps": v0.tolist(),
-        "release_command_pos_m": forward_kinematics(np, *(a[int(swing.open_index(0.0))] for a in (swing.qpos, swing.qvel))).gripper_centre.tolist(),
-        "release_after_s": float(swing.release_t - swing.swing_t), "flight_s": flight_s,
-        "duration_s": float(swing.t[k0] - swing.swing_t + flight_s),
-        "peak_joint_speeds": {name: float(np.max(np.abs(swing.meas_qd[: k0 + 1, i]))) for i, name in enumerate(ACTIVE_JOINTS)},
-        "clearance": _clearance(swing.meas_q[: k0 + 1], flags[: k0 + 1], radii[: k0 + 1], req.clearance_radius_m),
-        "gripper_path_m": _downsample(grip),
-        "payload_path_m": np.round(payload_path, 4).tolist(),
-        "mc": None,
-    }
     t1 = time.perf_counter()
     if req.rollouts > 1:
         summary["mc"] = _monte_carlo(policy, req, profile, unc, q, qd, swing, check, pool, plan, futures)

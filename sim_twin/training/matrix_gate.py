@@ -211,16 +211,17 @@ class MatrixGate:
         self.results.append(res)
         log.info("site matrix of iteration %d seed %d: %s (%d cells miss a bar)", c["iteration"], seed,
                  "every bar met" if res.passed else "missed", n_miss)
-        if res.passed and c["seed_index"] + 1 < len(self.seeds):
+        next_seed = res.passed and c["seed_index"] + 1 < len(self.seeds)
+        if res.passed and not next_seed:
+            self.passes.append({"iteration": c["iteration"], "onnx": c["onnx"], "train_wall_s": c["train_wall_s"],
+                                "verdict_wall_s": res.verdict_wall_s})
+            self.passed = self.passed or self.passes[-1]
+        self.save()  # on disk before the gate reads idle: a reader who sees busy False finds the verdict
+        if next_seed:
             c["seed_index"] += 1
             self._start_seed()
         else:
-            if res.passed:
-                self.passes.append({"iteration": c["iteration"], "onnx": c["onnx"], "train_wall_s": c["train_wall_s"],
-                                    "verdict_wall_s": res.verdict_wall_s})
-                self.passed = self.passed or self.passes[-1]
             self._cand = None
-        self.save()
         return self.passed
 
     def watch(self, interval_s: float = 1.0) -> None:

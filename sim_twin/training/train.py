@@ -12,16 +12,18 @@ training runs on to ``--iterations`` / ``--max-minutes``, the gate judging newer
 newest checkpoint that met every bar is exported (its matrices feed the deploy comparison,
 sim_twin.evaluation.matrix_compare).
 
-Training runs in chunks of ``--chunk`` iterations; after every chunk the checkpoint (policy,
-critic, optimiser state, iteration) is written to ``<log-dir>/checkpoint.pt`` with the resolved
-config, the training curve (``curve.csv``, per-term reward means included) and the gate's state,
-so a run stopped at any moment resumes with ``--resume <log-dir>/checkpoint.pt``. rsl_rl writes
-every iteration's losses, action std and per-term reward means (``Reward/<term>``) to TensorBoard
-(``<log-dir>/tb``).
+The iterations run in one ``learn()`` of rsl_rl's runner with per-iteration callbacks
+(sim_twin.training.runner.CallbackRunner; :class:`TrainingRun` says which), cut into chunks of
+``--chunk`` iterations; after every chunk the checkpoint (policy, critic, optimiser state,
+iteration count) is written to ``<log-dir>/checkpoint.pt`` with the resolved config, the training
+curve (``curve.csv``, per-term reward means included) and the gate's state, so a run stopped at any
+moment resumes with ``--resume <log-dir>/checkpoint.pt`` at the checkpoint's iteration count.
+rsl_rl writes every iteration's losses, action std and per-term reward means (``Reward/<term>``)
+to TensorBoard (``<log-dir>/tb``).
 
 Exploration: the config's ``training.std_schedule`` caps the actor's learned action std at a
-value that falls from ``start`` to ``end`` over ``iterations`` (exponentially), applied at every
-chunk boundary; below the cap the std is learned (rsl_rl's GaussianDistribution).
+value that falls from ``start`` to ``end`` over ``iterations`` (exponentially), applied at the
+start of every chunk; below the cap the std is learned (rsl_rl's GaussianDistribution).
 
 Curriculum over the randomisation width: the config's ``training.randomization_stage`` (see
 :class:`RandomizationStage`) widens ``env.randomization`` once, at the first chunk boundary at or
@@ -32,7 +34,7 @@ on (a recipe that widens its randomisation judges the policies trained on the wi
 
 Several GPUs: ``--gpus N`` re-launches the command under torchrun (one process per GPU, each with
 ``--num-envs`` environments, rsl_rl's multi-GPU mode: gradients all-reduced, rank 0 logs,
-checkpoints and runs the gate; the stop decision is broadcast to every rank).
+checkpoints and runs the gate; the runner broadcasts its stop decision to every rank).
 
 The actor sees the ``policy`` group only (config ``runner.obs_groups.actor``, checked); the
 critic the groups in ``runner.obs_groups.critic``: ["policy"] or, for the asymmetric
@@ -114,6 +116,26 @@ def apply_std_cap(runner, cap: float, release_floor: float = 0.0) -> None:
         dist.std_range[1] = cap
 
 
+def set_release_bias(runner, bias: float) -> None:
+    """Set the initial mean of the release flag (the actor's last output) to ``bias`` through the
+    bias of the actor's output layer (rsl_rl's MLP, an ``nn.Sequential`` ending in ``nn.Linear``),
+    and zero that output's weights, so that every observation starts with the same mean. Used when
+    a run starts from scratch (config ``training.release_bias_init``, see
+    sim_twin.training.config.TrainingSection).
+
+    Raises:
+        TypeError: the actor's network does not end in a linear layer.
+    """
+    import torch
+
+    last = runner.alg.actor.mlp[-1]
+    if not isinstance(last, torch.nn.Linear):
+        raise TypeError(f"the actor's network ends in {type(last).__name__}, not a Linear layer")
+    with torch.no_grad():
+        last.weight[-1].zero_()
+        last.bias[-1] = bias
+
+
 def current_std(runner) -> float:
     """Mean over actions of the actor's action std (after its clamp)."""
     import torch
@@ -176,9 +198,29 @@ class _Process:
 
 class TrainingRun:
     """One process of ``slinger train`` (see the module docstring): the config read and checked,
-    the MJX environments, rsl_rl's runner, the training curve and, on rank 0 with ``--gate``, the
-    site-matrix gate. :meth:`train` runs chunks of PPO iterations until the iterations, the time
-    budget or (with ``--stop-at-bars``) the bars end it; :meth:`finish` exports the result.
+    the MJX environments, rsl_rl's runner (:class:`sim_twin.training.runner.CallbackRunner`), the
+    training curve and, on rank 0 with ``--gate``, the site-matrix gate. :meth:`train` runs one
+    ``learn()`` of ``--iterations`` that the runner's callbacks end early where the bars or the
+    time budget say; :meth:`finish` exports the result.
+
+    The run is divided into chunks: a chunk ends where the iteration count is a multiple of
+    ``--chunk`` and at the last iteration of the call. The runner writes ``checkpoint.pt`` at each
+    chunk's end (its checkpoint interval and its last iteration), before the callbacks; three
+    callbacks do the rest, in this order after every iteration (the runner calls them on every
+    rank):
+
+    * :meth:`_keep_checkpoint` (rank 0): ``checkpoint_<count>.pt`` every ``--keep-every``
+      iterations;
+    * :meth:`_end_chunk` (rank 0, at a chunk's end): the curve row, the gate (poll, offer the
+      checkpoint) and the stop decision (bars met with ``--stop-at-bars``, time budget); returns
+      True to stop, which the runner broadcasts to the other ranks;
+    * :meth:`_start_next_chunk` (every rank, at a chunk's end that is not the call's last): the
+      recipe's randomisation stage and std cap for the chunk that follows (:meth:`_start_chunk`,
+      also called once before ``learn()``).
+
+    Iterations are counted as done: the curve's ``iteration``, a checkpoint's ``iter`` and the
+    names ``checkpoint_<count>.pt`` / ``throw2d-it<count>`` say how many iterations the policy
+    was trained, and a resumed run continues at its checkpoint's count.
 
     Raises (constructor):
         ValueError: a config the run refuses (mode, training section, actor observation groups,
@@ -186,12 +228,11 @@ class TrainingRun:
     """
 
     def __init__(self, args: argparse.Namespace):
-        from rsl_rl.runners import OnPolicyRunner
-
         from sim_twin.training import critic_surgery
         from sim_twin.training.curve import TrainingCurve
         from sim_twin.training.matrix_gate import MatrixGate
         from sim_twin.training.mjx_env import EnvConfig
+        from sim_twin.training.runner import CallbackRunner
         from sim_twin.training.vec_env import MjxThrowVecEnv
 
         self.args = args
@@ -227,14 +268,16 @@ class TrainingRun:
         torch.manual_seed(seed + 1000 * proc.rank)
         self.env = MjxThrowVecEnv(env_cfg, cfg["num_envs"], seed=seed + 1000 * proc.rank, device=proc.device, impl=physics)
         self.tb_dir = (args.tb_dir or self.log_dir / "tb") if proc.main else None
-        self.runner = OnPolicyRunner(self.env, copy.deepcopy(cfg["runner"]),
-                                     log_dir=str(self.tb_dir) if self.tb_dir else None, device=proc.device)
+        self.runner = CallbackRunner(self.env, copy.deepcopy(cfg["runner"]), log_dir=str(self.tb_dir) if self.tb_dir else None,
+                                     device=proc.device, callbacks=[self._keep_checkpoint, self._end_chunk, self._start_next_chunk],
+                                     checkpoint_dir=str(self.log_dir), checkpoint_name="checkpoint.pt", save_interval=max(args.chunk, 1))
         self.curve = TrainingCurve.load_or_new(self.log_dir / "curve.csv")
         self._wall_offset = self.curve.last_wall_s()
         if args.resume:
             critic_surgery.resume(self.runner, args.resume, proc.device)  # widens an older critic (privileged inputs)
-            self.runner.current_learning_iteration += 1
             log.info("resumed from %s at iteration %d", args.resume, self.runner.current_learning_iteration)
+        elif self.training.release_bias_init is not None:
+            set_release_bias(self.runner, self.training.release_bias_init)
 
         self._start = time.time()
         self.gate = None
@@ -247,6 +290,8 @@ class TrainingRun:
         self.stop_reason = "iterations"
         self._widened = False
         self._chunks = 0
+        self._end_it = self.runner.current_learning_iteration  # the count this call trains to (train())
+        self._chunk_from, self._chunk_t = self._end_it, time.time()  # the running chunk's first count and start time
 
     def clock(self) -> float:
         """Training wall time of the run, s, resumed runs included (the curve's last wall_s on)."""
@@ -257,66 +302,80 @@ class TrainingRun:
         return bool(self.passed) and self.stop_at_bars
 
     def train(self) -> None:
-        """Chunks of ``--chunk`` PPO iterations until ``--iterations`` are done or rank 0 decides to
-        stop (bars met, time budget); that decision is broadcast to every rank."""
+        """``--iterations`` PPO iterations from the checkpoint's count on (one ``learn()`` call),
+        fewer where rank 0 decides to stop at a chunk's end (bars met, time budget); the runner
+        broadcasts that decision to every rank."""
         import torch
 
-        done = 0
-        while done < self.args.iterations and not self._bars_end_it:
-            n = min(self.args.chunk, self.args.iterations - done)
-            chunk_s = self._train_chunk(n)
-            done += n
-            stop = torch.zeros(1, device=self.proc.device)
-            if self.proc.main:
-                self._after_chunk(n, chunk_s)
-                stop[0] = 1.0 if self.stop_reason != "iterations" else 0.0
-            if self.proc.world > 1:
-                torch.distributed.broadcast(stop, src=0)
-            if stop[0] > 0:
-                break
+        runner, start = self.runner, self.runner.current_learning_iteration
+        self._end_it = start + max(self.args.iterations, 0)
+        if self._end_it > start and not self._bars_end_it:
+            self._start_chunk(start)
+            runner.learn(num_learning_iterations=self._end_it - start)
         if self.proc.world > 1:
             torch.distributed.destroy_process_group()  # rsl_rl's runner made it; NCCL warns at exit otherwise
 
-    def _train_chunk(self, n: int) -> float:
-        """Widen the randomisation and cap the std where the recipe says, then ``n`` iterations;
-        returns their wall time, s."""
-        import torch
+    def _chunk_ends(self, done: int) -> bool:
+        """Whether a chunk ends once ``done`` iterations are done (a multiple of ``--chunk``, or
+        the last iteration of this call)."""
+        return done % max(self.args.chunk, 1) == 0 or done >= self._end_it
 
+    def _start_chunk(self, done: int) -> None:
+        """Before the chunk that starts after ``done`` iterations: widen the randomisation once
+        the recipe's stage is reached, cap the std at the schedule's value for ``done``, and
+        start the chunk's throw statistics and timer."""
         from sim_twin.training.mjx_env import EnvConfig
 
-        runner, stage, schedule = self.runner, self.training.randomization_stage, self.training.std_schedule
-        if stage and not self._widened and runner.current_learning_iteration >= stage.iteration:
+        stage, schedule = self.training.randomization_stage, self.training.std_schedule
+        if stage and not self._widened and done >= stage.iteration:
             self.env.reconfigure(EnvConfig.from_dict(self.env_after))
             self._widened = True
-            log.info("randomisation widened at iteration %d: %s", runner.current_learning_iteration, stage.randomization)
+            log.info("randomisation widened at iteration %d: %s", done, stage.randomization)
         if schedule:
-            apply_std_cap(runner, schedule.cap(runner.current_learning_iteration), schedule.release_floor)
+            apply_std_cap(self.runner, schedule.cap(done), schedule.release_floor)
         self.env.reset_stats()
-        t = time.time()
-        runner.learn(num_learning_iterations=n)
-        if self.proc.device.startswith("cuda"):
-            torch.cuda.synchronize()
-        chunk_s = time.time() - t
-        runner.current_learning_iteration += 1
-        self._chunks += 1
-        return chunk_s
+        self._chunk_from, self._chunk_t = done, time.time()
 
-    def _after_chunk(self, n: int, chunk_s: float) -> None:
-        """Rank 0 after a chunk of ``n`` iterations that took ``chunk_s`` s: curve row, checkpoint,
-        gate, stop reason."""
-        it = self.runner.current_learning_iteration
-        self._record(it, n, chunk_s)
+    def _start_next_chunk(self, runner, it: int) -> bool:
+        """Callback: after iteration ``it`` ends a chunk that is not the call's last, start the
+        next (:meth:`_start_chunk`). Never stops the run."""
+        done = it + 1
+        if self._chunk_ends(done) and done < self._end_it:
+            self._start_chunk(done)
+        return False
+
+    def _keep_checkpoint(self, runner, it: int) -> bool:
+        """Callback, rank 0: with ``--keep-every N``, also keep ``checkpoint_<count>.pt`` when the
+        iteration count is a multiple of N. Never stops the run."""
+        done = it + 1
+        if self.proc.main and self.args.keep_every and done % self.args.keep_every == 0:
+            runner.save(str(self.log_dir / f"checkpoint_{done}.pt"))
+        return False
+
+    def _end_chunk(self, runner, it: int) -> bool:
+        """Callback, rank 0, after iteration ``it`` where it ends a chunk: curve row, gate and the
+        stop decision; returns True to stop (bars met with ``--stop-at-bars``, time budget)."""
+        done = it + 1
+        if not self.proc.main or not self._chunk_ends(done):
+            return False
+        if self.proc.device.startswith("cuda"):
+            import torch
+
+            torch.cuda.synchronize()
+        self._chunks += 1
+        self._record(done, done - self._chunk_from, time.time() - self._chunk_t)
         if self.gate:
             self.passed = self.gate.poll()
-            self._offer_to_gate(it)
+            self._offer_to_gate(done)
         if self._bars_end_it:
             self.stop_reason = "bars met"
         elif self.args.max_minutes and (time.time() - self._start) / 60.0 > self.args.max_minutes:
             self.stop_reason = "time budget"
+        return self.stop_reason != "iterations"
 
     def _record(self, it: int, n: int, chunk_s: float) -> None:
-        """Append the curve row of iteration ``it`` (``n`` iterations in ``chunk_s`` s) and write the
-        checkpoint(s)."""
+        """Append the curve row of iteration count ``it`` (a chunk of ``n`` iterations in
+        ``chunk_s`` s) and save the curve (``checkpoint.pt`` is the runner's)."""
         runner, cfg = self.runner, self.cfg
         stats = self.env.read_stats()
         std = current_std(runner)
@@ -331,18 +390,13 @@ class TrainingRun:
             **stats,
             **self.env.read_term_means(),
         )
-        runner.save(str(self.log_dir / "checkpoint.pt"))
-        for stale in (Path(self.tb_dir).glob("model_*.pt") if self.tb_dir else ()):  # rsl_rl saves one per learn() call; checkpoint.pt is ours
-            stale.unlink()
-        if self.args.keep_every and it % self.args.keep_every == 0:
-            runner.save(str(self.log_dir / f"checkpoint_{it}.pt"))
         self.curve.save()
         log.info("checkpoint at iteration %d (%.1f min): %s, std %.3f", it, self.clock() / 60, stats, std)
 
     def _offer_to_gate(self, it: int) -> None:
-        """Export the checkpoint of iteration ``it`` and hand it to the gate, unless the bars are
-        already met (and end the run), the gate is busy, this is not a ``--gate-every``-th chunk or
-        ``it`` is before the recipe's ``gate_from_iteration``."""
+        """Export the checkpoint of iteration count ``it`` and hand it to the gate, unless the
+        bars are already met (and end the run), the gate is busy, this is not a ``--gate-every``-th
+        chunk or ``it`` is before the recipe's ``gate_from_iteration``."""
         assert self.gate is not None
         if self._bars_end_it or self.gate.busy or self._chunks % max(self.args.gate_every, 1) != 0:
             return

@@ -65,6 +65,14 @@ class ValveModel:
         self._head = 0
         self._cols = np.arange(4)
         self._lagged = np.zeros(4)
+        # constants of step() (the parameters are fixed once the model is made)
+        self._fractional = bool(np.any(self._delay_frac > 0))
+        self._keep_frac = 1.0 - self._delay_frac
+        n = len(self._buffer)  # the delayed rows for each position of the ring's head
+        self._rows = (np.arange(n)[:, None] + self._delay_steps) % n
+        self._rows_next = (self._rows + 1) % n
+        self._lag_gain = self.dt / (params.lag_s + self.dt)  # runtime.dynamics.hydraulics.lag_step's factor
+        self._neg_vmax = -params.velocity_limit
 
     def reset(self) -> None:
         """Valves neutral, joints at rest."""
@@ -79,17 +87,21 @@ class ValveModel:
 
         Returns:
             (4,) joint-velocity setpoints, rad/s and m/s.
+
+        Clipping is ``minimum(maximum(.))`` and the lag is lag_step's arithmetic with its
+        constant factor taken once: the same values as np.clip and lag_step, with fewer NumPy
+        calls per 10 ms step (a preview's rollouts spend most of their time in such calls).
         """
-        u = np.clip(np.asarray(u, dtype=float), -1.0, 1.0)
+        u = np.minimum(np.maximum(np.asarray(u, dtype=float), -1.0), 1.0)
         flow = dead_band_flow(np, u, self.params.dead_band)
         n = len(self._buffer)
         self._head = (self._head - 1) % n
         self._buffer[self._head] = flow
         cols = self._cols
-        delayed = self._buffer[(self._head + self._delay_steps) % n, cols]
-        if np.any(self._delay_frac > 0):
-            frac = self._delay_frac
-            delayed = (1.0 - frac) * delayed + frac * self._buffer[(self._head + self._delay_steps + 1) % n, cols]
-        self._lagged = lag_step(self._lagged, delayed, self.params.lag_s, self.dt)
+        delayed = self._buffer[self._rows[self._head], cols]
+        if self._fractional:
+            delayed = self._keep_frac * delayed + self._delay_frac * self._buffer[self._rows_next[self._head], cols]
+        lagged = self._lagged
+        self._lagged = lagged + self._lag_gain * (delayed - lagged)
         vmax = self.params.velocity_limit
-        return np.clip(self._lagged * vmax, -vmax, vmax)
+        return np.minimum(np.maximum(self._lagged * vmax, self._neg_vmax), vmax)

@@ -30,7 +30,7 @@ def pose_is_valid(xp: ModuleType, q):
     """True if the pose is clear of ground, cabin and limits and the gripper starts high enough."""
     pts = forward_kinematics(xp, q, xp.zeros_like(q))
     ground, cabin, limit = clearance_violations(xp, q, pts)
-    return ~(ground | cabin | limit) & (pts.gripper_centre[2] > MIN_START_HEIGHT_M)
+    return xp.logical_not(ground | cabin | limit) & (pts.gripper_centre[2] > MIN_START_HEIGHT_M)
 
 
 def sample_pose(rng: np.random.Generator, cabin_turn: float | None = 0.0, max_tries: int = 1000) -> np.ndarray:

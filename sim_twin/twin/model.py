@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from runtime.ballistics import PAYLOAD_RADIUS_M  # noqa: F401 (re-exported; size 7 basketball, machine-spec.md)
 from runtime.dynamics import MJCF_PATH  # noqa: F401 (re-exported)
-from runtime.dynamics.model import load_model, passive_inertia, passive_inertia_of  # noqa: F401 (re-exported)
+from runtime.dynamics.model import fresh_model, load_model, passive_inertia, passive_inertia_of  # noqa: F401 (re-exported)
 
 GRIPPER_CENTRE_SITE = "gripper_centre"
 PAYLOAD_MASS_KG = 0.6  # not added to the model: 0.05 % of the hanging mass

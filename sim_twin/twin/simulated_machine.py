@@ -23,7 +23,7 @@ from sim_twin.twin.hydraulics import ValveModel, cylinder_step
 from sim_twin.twin.initial_pose import sample_pose
 from sim_twin.twin.model import (
     PAYLOAD_RADIUS_M,
-    load_model,
+    fresh_model,
     passive_inertia,
     passive_inertia_of,
 )
@@ -165,13 +165,12 @@ class SimulatedMachine(MachineReadout):
     def __init__(self, profile: RealityProfile | None = None, seed: int | None = None):
         self.profile = profile or RealityProfile()
         self.effects = self.profile.stack()
-        self.model = load_model()
+        self.model = fresh_model()
         if self.effects.has("model"):
             self.effects.model(self.model)
-            self._inertia = passive_inertia_of(self.model)
-        else:
-            self._inertia = passive_inertia()
         self.data = mujoco.MjData(self.model)
+        # the inertia is computed in this machine's own data (reset() below clears it: mj_resetData)
+        self._inertia = passive_inertia_of(self.model, self.data) if self.effects.has("model") else passive_inertia()
         self.valves = ValveModel(self.effects.hydraulics(self.profile.hydraulics))
         self.rng = np.random.default_rng(seed)
         p = self.profile

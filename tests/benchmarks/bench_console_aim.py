@@ -9,11 +9,15 @@ release check on):
   machine was reloaded, the page previewed again by itself and the server's gate judged that
   preview valid); a throw the server did not accept is a failed sample.
 
-Run: ``PYTHONPATH=. nice -n 10 python tests/benchmarks/bench_console_aim.py --repeats 5 [--out R.json]``.
+Run: ``PYTHONPATH=. python tests/benchmarks/bench_console_aim.py --repeats 5 [--breakdown] [--ab] [--out R.json]``
+(not niced: it times the stack against whatever else the host runs, and says that load).
 Prints p50/p95/max in seconds for each, with the host's load average and core count beside them
 (each sample's load too), and the CPU seconds the job worker and its preview pool spent per
 Preview click (nominal + ellipse: what a preview costs whatever else runs); ``--out`` writes them as a report (every sample with its load, the
-figures with their bars, date, commit, policy SHA-256, host, command).
+figures with their bars, date, commit, policy SHA-256, host, command). ``--breakdown`` prints
+and reports where each preview's time went (page, route, queue pick-up, worker, the twin's nominal
+and Monte Carlo, the answer); ``--ab`` takes every other sample with the page's ellipse request apart
+from its nominal (without ``extends``), so both are measured on one stack at one load.
 Goals (issue of the console): 2D nominal <= 0.5 s, 2D ellipse <= 2 s, 3D ellipse <= 5 s (p95),
 Throw -> next Throw <= 8 s.
 """
@@ -40,12 +44,16 @@ from tests.browser import CHROMIUM, CHROMIUM_ARGS, log_in  # noqa: E402
 from tests.conftest import SlingerUp  # noqa: E402
 
 TIMED_PREVIEW = """() => new Promise((resolve) => {
+    performance.clearResourceTimings();  // the buffer holds 250 entries; the page's checks fill it
     const t0 = performance.now(); let nominal = null;
+    window.aimMarks = { t0: performance.timeOrigin + t0 };
     setTimeout(() => { obs.disconnect(); resolve([nominal === null ? null : nominal / 1000, null]); }, 300000);
     const seen = () => {
         const p = state.preview;
-        if (nominal === null && p && p.status === 'ok' && document.getElementById('pv-down').textContent) nominal = performance.now() - t0;
+        if (nominal === null && p && p.status === 'ok' && document.getElementById('pv-down').textContent) {
+            nominal = performance.now() - t0; aimMarks.nominal = performance.timeOrigin + t0 + nominal; aimMarks.nominalId = p.id; }
         if (/rollouts/.test(document.getElementById('pv-sigma').textContent) && nominal !== null) {
+            aimMarks.ellipse = performance.now() + performance.timeOrigin; aimMarks.ellipseId = p.id;
             obs.disconnect(); resolve([nominal / 1000, (performance.now() - t0) / 1000]); }
         if (/No preview|failed/.test(document.getElementById('status').textContent)) { obs.disconnect(); resolve([null, null]); }
     };
@@ -59,13 +67,75 @@ TIMED_REPEAT = """() => new Promise((resolve) => {
     const seen = () => {
         if (btn.disabled) left = true;
         if (state.throwId) sent = true;  // the server accepted the throw (its result clears it)
-        if (/throw was not sent/.test(document.getElementById('status').textContent)) { clearInterval(iv); resolve(null); }
+        const status = document.getElementById('status').textContent;
+        // not sent, or the preview after it failed (a throw that failed leaves the gripper swinging):
+        // Throw does not enable again by itself, a failed sample
+        if (/throw was not sent/.test(status) || (sent && /Preview failed|No preview/.test(status))) { clearInterval(iv); resolve(null); }
         if (left && sent && !btn.disabled) { clearInterval(iv); resolve((performance.now() - t0) / 1000); }
     };
     const iv = setInterval(seen, 20);
     setTimeout(() => { clearInterval(iv); resolve(null); }, 300000);
     btn.click();
 })"""
+
+
+BREAKDOWN = r"""async () => {
+    const m = window.aimMarks, o = performance.timeOrigin;
+    const posts = performance.getEntriesByType('resource')
+        .filter((e) => /\/api\/previews$/.test(e.name) && o + e.startTime >= m.t0 - 1)
+        .sort((a, b) => a.startTime - b.startTime).slice(0, 2);
+    const job = async (id) => { const r = await fetch(`/api/jobs/${id}`); return r.ok ? r.json() : null; };
+    const [jn, je] = [await job(m.nominalId), await job(m.ellipseId)];
+    return { marks: m, posts: posts.map((e) => [o + e.startTime, o + e.responseEnd]),
+             jobs: [jn, je].map((j) => j && [j.created_at, j.started_at, j.finished_at, (j.result || {}).timing_s]) };
+}"""
+"""Where one timed preview's time went (wall-clock ms since the epoch, the page's and the
+server's; one host): the page's marks, its two POST /api/previews (start, response end) and the
+two jobs' rows (created, started, finished, the twin's own timing)."""
+
+
+def breakdown(b: dict) -> dict[str, float]:
+    """Phases of one timed preview, s: click -> nominal request sent, request -> job row
+    created (the route's checks and submit), -> a worker started it (queue pick-up), -> finished
+    (of which the twin's nominal / Monte Carlo, timing_s), -> response received (watcher, read
+    back, HTTP), -> shown; the same for the ellipse, whose request follows the nominal's answer."""
+    from datetime import datetime
+
+    def ms(iso: str) -> float:
+        return datetime.fromisoformat(iso).timestamp() * 1000.0
+
+    m, out = b["marks"], {}
+    if len(b["posts"]) < 2 or not all(b["jobs"]):
+        return out
+    shown = (m["nominal"], m["ellipse"])
+    prev = m["t0"]
+    for tag, (start, end), (created, started, finished, timing), at in zip(("n", "e"), b["posts"], b["jobs"], shown):
+        out[f"{tag}.to_request"] = start - prev
+        out[f"{tag}.submit"] = ms(created) - start
+        out[f"{tag}.queue"] = ms(started) - ms(created)
+        out[f"{tag}.job"] = ms(finished) - ms(started)
+        out[f"{tag}.twin_nominal"] = 1000 * (timing or {}).get("nominal", float("nan"))
+        out[f"{tag}.twin_mc"] = 1000 * (timing or {}).get("mc", float("nan"))
+        out[f"{tag}.answer"] = end - ms(finished)
+        out[f"{tag}.show"] = at - end
+        prev = at
+    return {k: round(v / 1000.0, 3) for k, v in out.items()}
+
+
+BREAKDOWNS: list[dict] = []
+"""Per timed preview with --breakdown: mode, target distance, phases (s, :func:`breakdown`), 1-min load."""
+
+
+def timed_preview(page, mode: str, d: float, with_breakdown: bool,
+                  variant: str = "as shipped") -> tuple[float | None, float | None]:
+    """Time one Preview click (TIMED_PREVIEW); with ``with_breakdown`` print and keep where its time went."""
+    n, e = page.evaluate(TIMED_PREVIEW)
+    if with_breakdown and e is not None:
+        phases = breakdown(page.evaluate(BREAKDOWN))
+        BREAKDOWNS.append({"mode": mode, "distance_m": d, "variant": variant, "phases_s": phases,
+                           "load_1min": round(os.getloadavg()[0], 1)})
+        print("    " + " ".join(f"{k}={v:.3f}" for k, v in phases.items()), flush=True)
+    return n, e
 
 
 BARS = {"2D nominal preview": 0.5, "2D ellipse preview": 2.0, "3D ellipse preview": 5.0, "Throw -> next Throw enabled": 8.0}
@@ -126,9 +196,25 @@ SAMPLES: list[dict] = []
 """Every sample of the run: what, target distance, seconds (None: failed), 1-min load average."""
 
 
-def note(what: str, d: float, value: float | None) -> None:
+def note(what: str, d: float, value: float | None, variant: str = "as shipped") -> None:
     SAMPLES.append({"what": what, "distance_m": d, "s": None if value is None else round(value, 3),
-                    "load_1min": round(os.getloadavg()[0], 1)})
+                    "load_1min": round(os.getloadavg()[0], 1), "variant": variant})
+
+
+APART = """() => {
+    // --ab: the page's ellipse request without extends (set window.benchApart)
+    const original = window.fetch;
+    window.fetch = (url, opts) => {
+        if (window.benchApart && opts && opts.body && /\\/api\\/previews$/.test(String(url))) {
+            const b = JSON.parse(opts.body); delete b.extends;
+            opts = { ...opts, body: JSON.stringify(b) };
+        }
+        return original(url, opts);
+    };
+}"""
+"""With --ab, every other sample sends the page's ellipse request without ``extends`` ("apart":
+the ellipse starts from the machine state the server reads then, and the worker reuses the
+nominal only if that state is bit for bit the nominal's), on the same stack at the same load."""
 
 
 def set_target(page, x: float, y: float) -> None:
@@ -139,7 +225,7 @@ def set_target(page, x: float, y: float) -> None:
     page.locator("#preview:not([disabled])").wait_for()
 
 
-def run(repeats: int) -> list[dict]:
+def run(repeats: int, with_breakdown: bool = False, ab: bool = False) -> list[dict]:
     from playwright.sync_api import sync_playwright
 
     with tempfile.TemporaryDirectory(prefix="bench-console-aim-") as tmp, \
@@ -150,52 +236,73 @@ def run(repeats: int) -> list[dict]:
         try:
             page = browser.new_context(viewport={"width": 1440, "height": 900}).new_page()
             page.set_default_timeout(300_000)
+            if ab:
+                page.add_init_script(f"({APART})()")
             log_in(page, up.base_url)
             page.locator("#machine-state", has_text="m1 READY").wait_for()
             targets = [7.0 + 0.6 * (i % 5) for i in range(repeats)]
             nominal, ellipse, repeat, cpu = [], [], [], []
-            for d in targets:
+            apart: dict[str, list] = {}
+            variants = ["apart" if ab and i % 2 else "as shipped" for i in range(repeats)]
+            for i, d in enumerate(targets):
                 page.locator("#machine-state", has_text="m1 READY").wait_for()
                 set_target(page, d, 0.0)
+                page.evaluate("(v) => { window.benchApart = v; }", variants[i] == "apart")
                 c0 = worker_cpu_s(up.proc.pid)
-                n, e = page.evaluate(TIMED_PREVIEW)
-                cpu.append(worker_cpu_s(up.proc.pid) - c0)
-                nominal.append(n)
-                ellipse.append(e)
-                page.locator("#throw:not([disabled])").wait_for()
-                repeat.append(page.evaluate(TIMED_REPEAT))
-                for what, v in (("2D nominal preview", n), ("2D ellipse preview", e), ("Throw -> next Throw enabled", repeat[-1]),
-                                ("2D worker CPU per Preview (nominal + ellipse)", cpu[-1])):
-                    note(what, d, v)
-                print(f"  2D {d:.1f} m: nominal {n} s, ellipse {e} s, Throw -> Throw {repeat[-1]} s, worker CPU "
-                      f"{cpu[-1]:.2f} s per Preview ({host_load()})", flush=True)
+                n, e = timed_preview(page, "2d", d, with_breakdown, variants[i])
+                c = worker_cpu_s(up.proc.pid) - c0
+                r = None
+                if e is not None:  # a preview that failed (the page says why) is not thrown
+                    page.locator("#throw:not([disabled])").wait_for()
+                    r = page.evaluate(TIMED_REPEAT)
+                got = (("2D nominal preview", n), ("2D ellipse preview", e), ("Throw -> next Throw enabled", r),
+                       ("2D worker CPU per Preview (nominal + ellipse)", c))
+                if variants[i] == "apart":
+                    for what, v in got:
+                        apart.setdefault(what, []).append(v)
+                else:
+                    for lst, v in zip((nominal, ellipse, repeat, cpu), (n, e, r, c)):
+                        lst.append(v)
+                for what, v in got:
+                    note(what, d, v, variants[i])
+                print(f"  2D {d:.1f} m ({variants[i]}): nominal {n} s, ellipse {e} s, Throw -> Throw {r} s, worker CPU "
+                      f"{c:.2f} s per Preview ({host_load()})", flush=True)
             print(f"2D nominal preview: {stats(nominal)}  ({host_load()})", flush=True)
             print(f"2D ellipse preview: {stats(ellipse)}  ({host_load()})", flush=True)
             print(f"Throw -> next Throw enabled: {stats(repeat)}  ({host_load()})", flush=True)
             page.check("input[name=mode][value='3d']")
             page.wait_for_function("() => state.mode === '3d'")
             nominal3, ellipse3, cpu3 = [], [], []
-            for d in targets:
+            for i, d in enumerate(targets):
                 page.locator("#machine-state", has_text="m1 READY").wait_for()
                 set_target(page, d, 1.0)
+                page.evaluate("(v) => { window.benchApart = v; }", variants[i] == "apart")
                 c0 = worker_cpu_s(up.proc.pid)
-                n, e = page.evaluate(TIMED_PREVIEW)
-                cpu3.append(worker_cpu_s(up.proc.pid) - c0)
-                nominal3.append(n)
-                ellipse3.append(e)
-                note("3D nominal preview", d, n)
-                note("3D ellipse preview", d, e)
-                note("3D worker CPU per Preview (nominal + ellipse)", d, cpu3[-1])
-                print(f"  3D {d:.1f} m: nominal {n} s, ellipse {e} s, worker CPU {cpu3[-1]:.2f} s per Preview "
+                n, e = timed_preview(page, "3d", d, with_breakdown, variants[i])
+                c = worker_cpu_s(up.proc.pid) - c0
+                got = (("3D nominal preview", n), ("3D ellipse preview", e), ("3D worker CPU per Preview (nominal + ellipse)", c))
+                if variants[i] == "apart":
+                    for what, v in got:
+                        apart.setdefault(what, []).append(v)
+                else:
+                    for lst, v in zip((nominal3, ellipse3, cpu3), (n, e, c)):
+                        lst.append(v)
+                for what, v in got:
+                    note(what, d, v, variants[i])
+                print(f"  3D {d:.1f} m ({variants[i]}): nominal {n} s, ellipse {e} s, worker CPU {c:.2f} s per Preview "
                       f"({host_load()})", flush=True)
             print(f"3D nominal preview: {stats(nominal3)}  ({host_load()})", flush=True)
             print(f"3D ellipse preview: {stats(ellipse3)}  ({host_load()})", flush=True)
             print(f"worker CPU per Preview (nominal + ellipse): 2D {stats(cpu)}, 3D {stats(cpu3)}", flush=True)
+            for what, v in apart.items():
+                print(f"{what}, apart (A/B): {stats(v)}", flush=True)
             return [figure("2D nominal preview", nominal), figure("2D ellipse preview", ellipse),
                     figure("Throw -> next Throw enabled", repeat), figure("3D nominal preview", nominal3),
                     figure("3D ellipse preview", ellipse3),
                     {**figure("2D worker CPU per Preview (nominal + ellipse)", cpu), "unit": "s CPU"},
-                    {**figure("3D worker CPU per Preview (nominal + ellipse)", cpu3), "unit": "s CPU"}]
+                    {**figure("3D worker CPU per Preview (nominal + ellipse)", cpu3), "unit": "s CPU"}] + [
+                {**figure(what, v), "what": f"{what}, apart (A/B)", **({"unit": "s CPU"} if "CPU" in what else {})}
+                for what, v in apart.items()]
         finally:
             browser.close()
 
@@ -204,11 +311,15 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=5, help="previews (and throws) per mode")
     ap.add_argument("--out", type=Path, default=None, help="write the report (JSON) here")
+    ap.add_argument("--breakdown", action="store_true",
+                    help="print (and report) where each preview's time went: page, route, queue, worker, answer")
+    ap.add_argument("--ab", action="store_true",
+                    help="every other sample with the page's ellipse request apart from its nominal (no extends)")
     ap.add_argument("--host-note", default="", help="what else ran on the host, for the report")
     a = ap.parse_args()
     start = host_load()
     print(f"{start} at the start", flush=True)
-    figures = run(a.repeats)
+    figures = run(a.repeats, a.breakdown, a.ab)
     end = host_load()
     print(f"{end} at the end")
     if a.out:
@@ -225,11 +336,11 @@ def main() -> int:
             "date": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"), "commit": commit or "not recorded",
             "policies": policies, "host": f"{host_description()}; {start} at the start, {end} at the end"
                                           + (f"; {a.host_note}" if a.host_note else ""),
-            "command": f"PYTHONPATH=. nice -n 10 python tests/benchmarks/bench_console_aim.py --repeats {a.repeats} "
-                       f"--out {a.out}", "recorded": "at run time by the benchmark",
+            "command": f"PYTHONPATH=. python tests/benchmarks/bench_console_aim.py --repeats {a.repeats}"
+                       + (" --breakdown" if a.breakdown else "") + (" --ab" if a.ab else "") + f" --out {a.out}", "recorded": "at run time by the benchmark",
             "note": "Chromium (software WebGL) on the console page of a `slinger up --machines 1` stack (the deployed "
                     "policies, the release check on) started by the benchmark; everything on the SIMULATED machine"},
-            "measures": figures, "samples": SAMPLES}
+            "measures": figures, "samples": SAMPLES, **({"breakdowns": BREAKDOWNS} if a.breakdown else {})}
         a.out.write_text(json.dumps(report, indent=1) + "\n")
     return 0
 

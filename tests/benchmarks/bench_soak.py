@@ -11,7 +11,7 @@ writes (``--out``): throws per minute, previews needed per throw, final statuses
 process over time (MiB; first sample after a warm-up of ``--warmup-min`` minutes, last sample,
 growth, and the least-squares slope of RSS against throws after warm-up in MiB per 100 throws),
 and with ``--out`` a plot of every process's memory over time (``<out>.png``). With
-``--probe-dir`` the server and the worker also record, every 30 s, where their memory is
+``--probe-dir`` the server, the worker and the runtime also record, every 30 s, where their memory is
 (tests/benchmarks/memprobe: glibc's heap in use and free, SQLite's caches, Python's objects); the
 rows go into the JSON and the plot. Goal: memory flat after warm-up, one preview per throw.
 
@@ -50,7 +50,7 @@ STOP = threading.Event()
 READY_WAIT_S = 30.0
 """A machine not ready this long is sent back to its ready pose (counted in ``recoveries``)."""
 PROBE = Path(__file__).resolve().parent / "memprobe"
-"""The folder whose sitecustomize records the server's and worker's memory (``--probe-dir``)."""
+"""The folder whose sitecustomize records the server's, worker's and runtime's memory (``--probe-dir``)."""
 
 
 def rss_mib(pid: int) -> float | None:
@@ -74,8 +74,9 @@ def _ready(stack: FaultStack, timeout_s: float) -> bool:
     return False
 
 
-def one_throw(stack: FaultStack, max_previews: int = 5) -> tuple[int, str, str | None]:
-    """(previews made, final status or "refused", last refusal) of one console-style throw."""
+def one_throw(stack: FaultStack, max_previews: int = 5) -> tuple[int, str, str | None, str | None]:
+    """(previews made, final status or "refused", last refusal, the throw's failure reason) of
+    one console-style throw."""
     body = {"machine_id": "m1", "mode": "2d", "target": TARGET_2D}
     reason = None
     for n in range(1, max_previews + 1):
@@ -88,16 +89,16 @@ def one_throw(stack: FaultStack, max_previews: int = 5) -> tuple[int, str, str |
         if r.status_code == 202:
             tid = r.json()["id"]
             row, _ = stack.wait_final(tid, 60)
-            return n, row["status"], reason
+            return n, row["status"], reason, row.get("failure_reason")
         reason = f"throw {r.status_code}: {r.json().get('detail', '')[:120]}"
         if r.status_code != 409:
             time.sleep(0.5)
-    return max_previews, "refused", reason
+    return max_previews, "refused", reason, None
 
 
 def run(minutes: float, warmup_min: float, policy: Path, sample_every: int = 25) -> dict:
     stop_at = time.monotonic() + 60.0 * minutes
-    previews, statuses, refusals, recoveries, memory = [], Counter(), Counter(), Counter(), []
+    previews, statuses, refusals, recoveries, memory, failures = [], Counter(), Counter(), Counter(), [], Counter()
     t_start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="bench-soak-") as tmp:
         stack = FaultStack(Path(tmp), policy)
@@ -105,7 +106,8 @@ def run(minutes: float, warmup_min: float, policy: Path, sample_every: int = 25)
 
         def sample() -> dict:
             row = {"t_min": round((time.monotonic() - t_start) / 60.0, 2), "throws": sum(statuses.values()),
-                   **{name: rss_mib(stack.procs[name].pid) for name in PROCESSES}}
+                   **{name: rss_mib(stack.procs[name].pid) for name in PROCESSES},
+                   "load1": round(os.getloadavg()[0], 2), "failed": statuses["failed"]}
             memory.append(row)
             return row
 
@@ -130,22 +132,29 @@ def run(minutes: float, warmup_min: float, policy: Path, sample_every: int = 25)
                         recoveries[f"return to ready: {e!r}"[:160]] += 1
                     continue
                 try:
-                    n, status, reason = one_throw(stack)
+                    n, status, reason, row_reason = one_throw(stack)
                 except (httpx.HTTPError, AssertionError) as e:
                     refusals[f"error: {e!r}"[:160]] += 1
                     continue
                 previews.append(n)
                 statuses[status] += 1
+                if status != "landed" and row_reason:
+                    failures[row_reason[:100]] += 1
                 if reason:
                     refusals[reason] += 1
                 log.info("throw %d: %s after %d preview(s)%s", sum(statuses.values()), status, n,
                          f" (refused first: {reason})" if n > 1 else "")
-            memory.append({"t_min": round((time.monotonic() - t_start) / 60.0, 2), "throws": sum(statuses.values()),
-                           **{name: rss_mib(stack.procs[name].pid) for name in PROCESSES}})
+            sample()
+            plant_log = stack.log_text("plant")
+            server_log = stack.log_text("server")
         left = orphans(tmp)
+    faults = [line for line in plant_log.splitlines() if "behind real time by" in line and "machine fault" in line]
+    trims = [line.split("heap trimmed in ")[1] for line in server_log.splitlines() if "heap trimmed in " in line]
     elapsed_min = (time.monotonic() - t_start) / 60.0
     return {"elapsed_min": elapsed_min, "previews": previews, "statuses": dict(statuses),
-            "refusals": dict(refusals.most_common(10)), "recoveries": dict(recoveries), "memory": memory, "orphans": left, "warmup_min": warmup_min}
+            "refusals": dict(refusals.most_common(10)), "recoveries": dict(recoveries), "memory": memory, "orphans": left, "warmup_min": warmup_min,
+            "failure_reasons": dict(failures.most_common(10)), "plant_behind_real_time_faults": len(faults),
+            "server_heap_trim_longest": trims[-1] if trims else None}
 
 
 def _slope_per_100(points: list[tuple[int, float]]) -> float | None:
@@ -180,7 +189,7 @@ def memory_growth(samples: list[dict], warmup_min: float) -> dict:
 
 
 def probe_summary(probe: dict[str, list[dict]], warmup_min: float) -> dict:
-    """Per role (server, worker) and probe column: the value at the end of warm-up, half-way
+    """Per role (server, worker, runtime) and probe column: the value at the end of warm-up, half-way
     through the rest and at the end (MiB; Python blocks and gc objects as counts)."""
     out = {}
     for role, rows in probe.items():
@@ -191,6 +200,21 @@ def probe_summary(probe: dict[str, list[dict]], warmup_min: float) -> dict:
         out[role] = {c: [rows[0][c], mid[c], rows[-1][c]] for c in rows[0] if c != "t_s"}
         out[role]["t_min"] = [round(r["t_s"] / 60.0, 1) for r in (rows[0], mid, rows[-1])]
     return out
+
+
+def load_summary(samples: list[dict]) -> dict | None:
+    """The host's 1-minute load average over the run (sampled with the memory): min, median, max
+    and the value every 10 minutes."""
+    loads = [(m["t_min"], m["load1"]) for m in samples if m.get("load1") is not None]
+    if not loads:
+        return None
+    v = sorted(x for _, x in loads)
+    every10, nxt = [], 0.0
+    for t, x in loads:
+        if t >= nxt:
+            every10.append([round(t, 1), x])
+            nxt += 10.0
+    return {"min": v[0], "median": v[len(v) // 2], "max": v[-1], "every_10_min": every10}
 
 
 def summary(out: dict) -> dict:
@@ -204,7 +228,7 @@ def summary(out: dict) -> dict:
 
 
 def enable_probe(probe_dir: Path) -> None:
-    """Have the stack's server and worker (started after this call) write their memory rows to
+    """Have the stack's server, worker and runtimes (started after this call) write their memory rows to
     ``probe_dir`` (tests/benchmarks/memprobe/sitecustomize.py)."""
     probe_dir.mkdir(parents=True, exist_ok=True)
     for f in probe_dir.glob("*.tsv"):
@@ -214,7 +238,7 @@ def enable_probe(probe_dir: Path) -> None:
 
 
 def read_probe(probe_dir: Path) -> dict[str, list[dict]]:
-    """The probe's rows by role ("server", "worker"): dicts of its columns, bytes turned into MiB."""
+    """The probe's rows by role ("server", "worker", "runtime"): dicts of its columns, bytes turned into MiB."""
     out: dict[str, list[dict]] = {}
     for f in sorted(probe_dir.glob("*.tsv")):
         lines = f.read_text().splitlines()
@@ -222,7 +246,8 @@ def read_probe(probe_dir: Path) -> dict[str, list[dict]]:
         rows = []
         for line in lines[1:]:
             vals = [int(v) for v in line.split("\t")]
-            rows.append({c: (round(v / 2**20, 2) if c in ("rss", "arena", "hblkhd", "uordblks", "fordblks", "sqlite") else v)
+            rows.append({c: (round(v / 2**20, 2) if c in ("rss", "arena", "hblkhd", "uordblks", "fordblks", "sqlite", "rss_anon", "rss_file", "pyarenas")
+                               else v)
                          for c, v in zip(cols, vals)})
         out.setdefault(f.stem.split("-")[0], []).extend(rows)
     return out
@@ -251,11 +276,13 @@ def plot(report: dict, path: Path) -> None:
     ax.grid(alpha=0.3)
     if probe:
         ax = axes[1][0]
-        for role, style in (("server", "-"), ("worker", "--")):
+        for role, style in (("server", "-"), ("worker", "--"), ("runtime", ":")):
             rows = probe.get(role, [])
             t = [r["t_s"] / 60.0 for r in rows]
-            for col, label in (("uordblks", "heap in use"), ("fordblks", "heap free"), ("sqlite", "SQLite")):
-                ax.plot(t, [r[col] for r in rows], style, label=f"{role}: {label}")
+            for col, label in (("uordblks", "heap in use"), ("fordblks", "heap free"), ("sqlite", "SQLite"),
+                               ("pyarenas", "Python arenas"), ("rss_file", "file-backed")):
+                if rows and col in rows[0]:
+                    ax.plot(t, [r[col] for r in rows], style, label=f"{role}: {label}")
         ax.set_xlabel("minutes since the process started")
         ax.set_ylabel("MiB")
         ax.set_yscale("log")
@@ -276,7 +303,9 @@ def write(report: dict, out: Path | None) -> None:
         print(f"{name:8s} RSS {g['after_warmup_mib']} -> {g['last_mib']} MiB ({g['growth_mib']:+} MiB, "
               f"{g['growth_mib_per_100_throws']:+} MiB / 100 throws; slope {g['slope_mib_per_100_throws']}, second half "
               f"{g.get('slope_second_half_mib_per_100_throws')} MiB / 100 throws)")
-    print(f"orphaned processes: {report['orphaned_processes']}")
+    print(f"orphaned processes: {report['orphaned_processes']}; plant 'behind real time' faults: "
+          f"{report.get('plant_behind_real_time_faults')}; load {report.get('load1_over_time')}; "
+          f"longest heap trim {report.get('server_heap_trim_longest')}")
     if out is None:
         return
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -290,6 +319,10 @@ def write(report: dict, out: Path | None) -> None:
              f"* previews per throw: mean {report['previews_per_throw_mean']}; throws needing more than one: "
              f"{report['throws_needing_more_than_one_preview']}",
              f"* machine sent back to its ready pose after {READY_WAIT_S:.0f} s not ready: {report.get('recoveries') or 'never'}",
+             f"* failed throws' reasons (most frequent): {report.get('failure_reasons_top')}",
+             f"* the simulated machine's 'behind real time' faults (plant log): {report.get('plant_behind_real_time_faults')}",
+             f"* host 1-minute load over the run: {report.get('load1_over_time')}",
+             f"* the server's longest heap trim (server log): {report.get('server_heap_trim_longest')}",
              "", f"Memory after a warm-up of {report['warmup_min']:g} min:", "",
              "| process | RSS after warm-up MiB | last MiB | growth MiB | MiB / 100 throws | slope MiB / 100 throws "
              "| slope, second half MiB / 100 throws |",
@@ -300,11 +333,12 @@ def write(report: dict, out: Path | None) -> None:
     if report.get("probe_summary"):
         lines += ["", "Where the server's and worker's memory is (tests/benchmarks/memprobe; MiB at the end of warm-up, "
                   "half-way, at the end):", "",
-                  "| process | minutes | RSS | glibc heap in use | glibc heap free | SQLite | Python blocks |", "|---|---|---|---|---|---|---|"]
+                  "| process | minutes | RSS | anonymous | file-backed | glibc heap in use | glibc heap free | SQLite "
+                  "| Python arenas | Python blocks |", "|---|---|---|---|---|---|---|---|---|---|"]
         for role, p in report["probe_summary"].items():
-            lines.append(f"| {role} | {' / '.join(map(str, p['t_min']))} | {' / '.join(map(str, p['rss']))} | "
-                         f"{' / '.join(map(str, p['uordblks']))} | {' / '.join(map(str, p['fordblks']))} | "
-                         f"{' / '.join(map(str, p['sqlite']))} | {' / '.join(map(str, p['pyblocks']))} |")
+            cols = ("rss", "rss_anon", "rss_file", "uordblks", "fordblks", "sqlite", "pyarenas", "pyblocks")
+            lines.append(f"| {role} | {' / '.join(map(str, p['t_min']))} | "
+                         + " | ".join(" / ".join(map(str, p[c])) if c in p else "-" for c in cols) + " |")
     lines += ["", f"![memory over time]({out.with_suffix('.png').name})", "", f"Reproduce: `{report['command']}`", ""]
     out.with_suffix(".md").write_text("\n".join(lines))
     plot(report, out.with_suffix(".png"))
@@ -347,7 +381,7 @@ def main() -> int:
     parser.add_argument("--policy", type=Path, default=REPO / "policies" / "throw2d.onnx")
     parser.add_argument("--out", type=Path, default=None, help="write <out>.json, <out>.md and <out>.png")
     parser.add_argument("--probe-dir", type=Path, default=None,
-                        help="record where the server's and worker's memory is (tests/benchmarks/memprobe) here")
+                        help="record where the server's, worker's and runtime's memory is (tests/benchmarks/memprobe) here")
     parser.add_argument("--summarise", type=Path, default=None,
                         help="compute the memory figures of this report JSON again (and write --out); runs nothing")
     args = parser.parse_args()
@@ -376,6 +410,10 @@ def main() -> int:
         **s,
         "refusals_top": out["refusals"],
         "recoveries": out["recoveries"],
+        "failure_reasons_top": out["failure_reasons"],
+        "plant_behind_real_time_faults": out["plant_behind_real_time_faults"],
+        "server_heap_trim_longest": out["server_heap_trim_longest"],
+        "load1_over_time": load_summary(out["memory"]),
         "memory_samples_mib": out["memory"],
         "orphaned_processes": len(out["orphans"]),
         "probe_mib": read_probe(args.probe_dir) if args.probe_dir is not None else None,

@@ -20,6 +20,8 @@ The far-target throws of the from-scratch runs come in two styles, fixed within 
 from __future__ import annotations
 
 import argparse
+import csv
+import io
 import json
 import re
 import subprocess
@@ -122,10 +124,56 @@ def run_style(src: RunSource, by_iteration: int = STYLE_BY_ITERATION) -> dict:
     return {
         "run": src.name, "source": src.spec, "training_seed": cfg.get("training", {}).get("seed"),
         "gamma": cfg.get("runner", {}).get("algorithm", {}).get("gamma"), "num_envs": cfg.get("num_envs"),
+        "release_bias_init": cfg.get("training", {}).get("release_bias_init"),
         "style_iteration": it, "style_train_wall_min": round(wall.get(it, float("nan")) / 60, 1),
         "far_duration_s": round(far["duration_s"], 2), "far_sigma_m": round(far["sigma_m"], 3), "style": style_of(far["duration_s"]),
         "outcome": outcome,
     }
+
+
+SPLIT_TERMS = ("mean_episode_length", "impact_err_m", "reward_delta_err", "reward_landing", "reward_landing_fine",
+               "reward_act_diff", "reward_no_release")
+"""curve.csv columns compared between the styles: per-step means over the iteration's episodes
+(reward terms weighted as in the recipe), the episode length in control steps and the mean
+training impact error, m."""
+SPLIT_ITERATIONS = (50, 100, 150, 200, 250)
+
+
+def curve_at(src: RunSource, iterations: tuple[int, ...] = SPLIT_ITERATIONS) -> dict[int, dict[str, float]]:
+    """The run's curve.csv row at (the first logged row at or after) each of ``iterations``:
+    {iteration: {column: value}}; iterations past the curve's end are left out.
+
+    Raises:
+        FileNotFoundError: the run has no curve.csv.
+    """
+    rows = list(csv.DictReader(io.StringIO(src.read("curve.csv"))))
+    out = {}
+    for it in iterations:
+        at = [r for r in rows if float(r["iteration"]) >= it]
+        if at:
+            out[it] = {k: float(v) for k, v in at[0].items() if v not in ("", None)}
+    return out
+
+
+def term_split(rows: list[dict], curves: list[dict[int, dict[str, float]]],
+               terms: tuple[str, ...] = SPLIT_TERMS) -> list[dict]:
+    """Whether a training-curve column separates the long-style runs from the short ones at each
+    iteration: per (term, iteration) the range over each style's runs and ``separates`` (the two
+    ranges do not overlap). NaN values (a term no episode paid) are skipped. ``rows`` are
+    run_style rows and ``curves`` their curve_at, in the same order."""
+    out = []
+    for term in terms:
+        for it in sorted({i for c in curves for i in c}):
+            vals: dict[str, list[float]] = {"long": [], "short": []}
+            for row, curve in zip(rows, curves, strict=True):
+                v = curve.get(it, {}).get(term)
+                if v is not None and v == v:
+                    vals[row["style"]].append(v)
+            if vals["long"] and vals["short"]:
+                lo_l, hi_l, lo_s, hi_s = min(vals["long"]), max(vals["long"]), min(vals["short"]), max(vals["short"])
+                out.append({"term": term, "iteration": it, "long": [lo_l, hi_l], "short": [lo_s, hi_s],
+                            "runs": [len(vals["long"]), len(vals["short"])], "separates": hi_l < lo_s or hi_s < lo_l})
+    return out
 
 
 def outcome_text(o: dict) -> str:
@@ -142,19 +190,35 @@ def main() -> None:
     p.add_argument("--out", type=Path, required=True, help="report stem (writes .json and .md)")
     p.add_argument("--by-iteration", type=int, default=STYLE_BY_ITERATION)
     args = p.parse_args()
-    rows = [run_style(RunSource(s), args.by_iteration) for s in args.runs]
+    sources = [RunSource(s) for s in args.runs]
+    rows = [run_style(src, args.by_iteration) for src in sources]
+    same_recipe = [i for i, r in enumerate(rows) if r["num_envs"] == 65536]  # the recipe's environment count
+    split = term_split([rows[i] for i in same_recipe], [curve_at(sources[i]) for i in same_recipe])
     commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     report = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "commit": commit,
-              "long_style_s": LONG_STYLE_S, "by_iteration": args.by_iteration, "far_target_m": FAR_TARGET_M, "runs": rows}
+              "long_style_s": LONG_STYLE_S, "by_iteration": args.by_iteration, "far_target_m": FAR_TARGET_M, "runs": rows,
+              "term_split": {"runs": [rows[i]["run"] for i in same_recipe], "by_term": split}}
     args.out.with_suffix(".json").write_text(json.dumps(report, indent=1) + "\n")
     md = ["# 2D from-scratch runs: far-target throw style against the gate's outcome\n",
           f"Date {report['date']}, commit `{commit}`. Style: the nominal {FAR_TARGET_M:g} m throw's mean duration "
           f"(start to landing) in the last seed-0 gate matrix judged by iteration {args.by_iteration}; long ≥ {LONG_STYLE_S} s.\n",
-          "| run | γ | envs | training seed | style read at | 10 m duration | 10 m σ | style | outcome |",
-          "|---|---|---|---|---|---|---|---|---|"]
+          "| run | γ | envs | release bias | training seed | style read at | 10 m duration | 10 m σ | style | outcome |",
+          "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        md.append(f"| `{r['run']}` | {r['gamma'] or '-'} | {r['num_envs'] or '-'} | {'-' if r['training_seed'] is None else r['training_seed']} | it {r['style_iteration']} "
+        md.append(f"| `{r['run']}` | {r['gamma'] or '-'} | {r['num_envs'] or '-'} | {'-' if r['release_bias_init'] is None else r['release_bias_init']} | {'-' if r['training_seed'] is None else r['training_seed']} | it {r['style_iteration']} "
                   f"({r['style_train_wall_min']} min) | {r['far_duration_s']} s | {r['far_sigma_m']} m | {r['style']} | {outcome_text(r['outcome'])} |")
+    md += ["", f"## Do the training curves show the split? ({len(same_recipe)} runs with 65536 environments)\n",
+           "Per-step means from each run's curve.csv; a term separates the styles at an iteration when the "
+           "long runs' range and the short runs' range do not overlap.\n",
+           "| term | " + " | ".join(f"it {i}: long / short" for i in SPLIT_ITERATIONS) + " |",
+           "|---|" + "---|" * len(SPLIT_ITERATIONS)]
+    for term in SPLIT_TERMS:
+        cells = []
+        for it in SPLIT_ITERATIONS:
+            c = next((x for x in split if x["term"] == term and x["iteration"] == it), None)
+            cells.append("-" if c is None else f"{c['long'][0]:.3g}-{c['long'][1]:.3g} / {c['short'][0]:.3g}-{c['short'][1]:.3g}"
+                         + (" **separates**" if c["separates"] else ""))
+        md.append(f"| {term} | " + " | ".join(cells) + " |")
     args.out.with_suffix(".md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 

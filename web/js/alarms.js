@@ -45,10 +45,18 @@ function actions(a) {
   return span;
 }
 
+const newestLoad = latestOnly(); // each alarm event asks again: only the newest answer draws
+let shelfTimer = null;
+
 async function load() {
-  const all = $("alarm-scope").value === "all";
+  const all = $("alarm-scope").value === "all", mine = newestLoad();
   let rows;
-  try { rows = await api("GET", all ? "/api/alarms?active=false&limit=500" : "/api/alarms"); } catch (e) { say(e.message, true); return; }
+  try { rows = await api("GET", all ? "/api/alarms?active=false&limit=500" : "/api/alarms"); } catch (e) { if (mine()) say(e.message, true); return; }
+  if (!mine()) return;
+  // a shelving that runs out is no event: ask again when the first one ends
+  clearTimeout(shelfTimer);
+  const wait = msToShelfEnd(rows);
+  if (wait !== null) shelfTimer = setTimeout(load, wait);
   const body = $("alarm-table").querySelector("tbody");
   body.innerHTML = "";
   $("alarms-empty").hidden = rows.length > 0;

@@ -74,6 +74,24 @@ function embedViser(iframe, c) {
   iframe.src = `${origin}/?websocket=${encodeURIComponent(ws)}`;
 }
 
+/** Answers that may overtake each other (several GETs of one list on their way, each sent on a
+ *  live event): ``const newest = latestOnly();`` once, then in the loader ``const mine = newest();``
+ *  before the request and ``if (!mine()) return;`` after it: the answer to a request sent before
+ *  the newest one is dropped, so an older answer landing late never draws over a newer one. */
+function latestOnly() {
+  let sent = 0;
+  return () => { const mine = ++sent; return () => mine === sent; };
+}
+
+/** Milliseconds until the first shelving among ``alarms`` ends (server.console.alarms.alarm_dict:
+ *  ``shelved``, ``shelved_until`` ISO 8601 UTC), at least ``minMs`` (a browser clock ahead of the
+ *  server's asks again at most that often); null when none is shelved. The server publishes no
+ *  event when a shelving runs out: a page showing alarms asks for them again then. */
+function msToShelfEnd(alarms, minMs = 5000) {
+  const ends = alarms.filter((a) => a.active && a.shelved && a.shelved_until).map((a) => Date.parse(a.shelved_until));
+  return ends.length ? Math.max(minMs, Math.min(...ends) - Date.now() + 500) : null;
+}
+
 const fmt = (v, n = 2) => (v === null || v === undefined ? "–" : Number(v).toFixed(n));
 const fmtVec = (v) => (v ? v.map((x) => fmt(x)).join(", ") : "–");
 const ROLE_RANK = { viewer: 0, operator: 1, admin: 2 };

@@ -14,16 +14,23 @@
 // state.target; it never writes the target or the fields. Throw names what it sends ("Throw 2D at
 // 9.50 m") and sends state.target with the preview of it; the 3D confirm dialog names the target
 // and the preview, and closes (nothing sent) when either changes while it is open.
+// An automatic preview that fails (the twin's swing failed, or the request did: e.g. the gripper
+// still swinging after a failed throw) is tried again by itself AUTO_RETRY_TRIES times,
+// AUTO_RETRY_MS apart, while the machine is ready, the target the same, the fields not being edited
+// and no throw in flight (state.retry); a preview the operator asked for is not (its target may be
+// one the machine cannot reach: its message stays).
 // A runtime that restarted (its RuntimeInfo epoch changed) leaves no stale target, preview or
 // marker behind: the page clears them and says so.
 "use strict";
 
 const state = { consoleId: null, viserPort: null, machines: Strip.machines, machineId: null, mode: "2d", target: null,
   targetReason: null, preview: null, previewKey: null, busy: false, throwId: null, throwStarted: null, shownState: null, sending: false, sends: 0, throwOver: null,
-  check: null, checkAt: 0, checking: false, autoAt: 0, typed: null, editing: false, confirming: null, epochs: new Map() };
+  check: null, checkAt: 0, checking: false, autoAt: 0, retry: null, typed: null, editing: false, confirming: null, epochs: new Map() };
 const PREVIEW_CHECK_MS = 1000;
 const AUTO_PREVIEW_MIN_MS = 4000; // at most one automatic preview per this interval
 const AUTO_PREVIEW_BEFORE_STALE_S = 10; // preview again this long before the gate calls it stale
+const AUTO_RETRY_TRIES = 3; // a failed automatic preview is tried again this many times
+const AUTO_RETRY_MS = 3000; // this long after the failure
 const JOINT_UNITS = { cabin_turn: ["cabin turn", "rad/s"], boom: ["boom", "rad/s"], dipper: ["dipper", "rad/s"],
   telescope: ["telescope", "m/s"] };
 let plots = null;
@@ -188,7 +195,7 @@ function previewOnScreen() {
  *  close a confirm dialog that showed it. */
 function dropPreview(why) {
   const had = !!state.preview;
-  state.preview = null; state.previewKey = null; state.check = null;
+  state.preview = null; state.previewKey = null; state.check = null; state.retry = null;
   $("preview-panel").hidden = true;
   if (state.confirming) closeConfirm(`${why}: nothing was sent`);
   if (had && why) setStatus(`Preview dropped: ${why}. Press Preview for the target on screen.`);
@@ -254,6 +261,7 @@ function renderPreviewAge() {
 /** Ask the server whether the preview on screen still passes the throw gate; refresh it by
  *  itself when the machine is ready and the preview went stale (or is about to) or it moved. */
 async function checkPreview() {
+  retryPreview();
   if (state.checking || !previewOnScreen() || !state.consoleId) { renderPreviewAge(); return; }
   const m = selected();
   // no judgement while a throw runs (until its result is in: state.throwOver): the swing outdates it
@@ -308,29 +316,73 @@ function showPreview(p) {
     ? `${fmt(p.mc.sigma_downrange_m, 3)} / ${fmt(p.mc.sigma_crossrange_m, 3)} m (${p.mc.rollouts} rollouts)` : "computing…";
 }
 
+/** True while a throw is on its way or running (until its result is read: state.throwOver). */
+const throwInFlight = () => state.sending || !!(state.throwId && state.throwOver !== state.throwId);
+
+/** Run the automatic preview again that state.retry waits for, once its time has come and the
+ *  console may preview by itself: the machine ready, the same machine, mode and target, the fields
+ *  not being edited, no throw in flight and no preview running (until then it waits). Another
+ *  request (target, mode or machine) ends the wait. */
+function retryPreview() {
+  const r = state.retry;
+  if (!r || r.at === null || Date.now() < r.at) return;
+  if (requestKey() !== r.key) { state.retry = null; return; }
+  const m = selected();
+  if (!m || m.state !== "ready" || state.editing || state.busy || throwInFlight() || $("preview").disabled) return;
+  r.at = null; // on its way: doPreview schedules the next try or ends the wait
+  state.autoAt = Date.now();
+  doPreview(true);
+}
+
+/** An automatic preview of request ``key`` failed (``why``: the twin's reason, or the request's
+ *  error with ``requestError``); ``tries``: the automatic tries of it so far. Preview again in
+ *  AUTO_RETRY_MS (retryPreview), or after AUTO_RETRY_TRIES tries leave it to the operator. */
+function scheduleRetry(key, why, requestError, tries) {
+  if (tries >= AUTO_RETRY_TRIES) {
+    state.retry = null;
+    setStatus(`The automatic preview failed ${tries + 1} times in a row (${why}). Nothing was sent to the machine; ` +
+      "press Preview once the machine has settled, or pick another target.", true);
+    return;
+  }
+  state.retry = { key, tries: tries + 1, at: Date.now() + AUTO_RETRY_MS };
+  const wait = `previewing again in ${Math.round(AUTO_RETRY_MS / 1000)} s (automatic try ${tries + 1} of ${AUTO_RETRY_TRIES})`;
+  setStatus(requestError ? `The automatic preview failed (${why}): ${wait}.`
+    : `The machine is still settling: the twin's preview failed (${why}). Nothing was sent to the machine; ${wait}.`);
+  setTimeout(retryPreview, AUTO_RETRY_MS + 50);
+}
+
 /** Preview the console's target: the nominal rollout first (shown alone at once), then the
- *  Monte Carlo ellipse. A preview whose target is no longer the console's is dropped, never drawn. */
+ *  Monte Carlo ellipse. A preview whose target is no longer the console's is dropped, never drawn.
+ *  ``auto``: the page previews by itself (checkPreview, retryPreview); such a preview that fails
+ *  is tried again (scheduleRetry), one the operator asked for is not. */
 async function doPreview(auto = false) {
   if (!state.target) return;
+  const retry = auto && state.retry && state.retry.key === requestKey() ? state.retry : null;
+  state.retry = null; // an operator's preview ends the wait for an automatic one
   state.busy = true; updateButtons();
   const body = { machine_id: state.machineId, mode: state.mode, target: state.target };
   const key = requestKey();
   const current = () => state.previewKey === key && requestKey() === key && !state.editing;
-  setStatus(auto ? "The machine or the preview changed: previewing again in the twin…" : "Previewing in the twin…");
+  setStatus(retry ? `Previewing again in the twin (automatic try ${retry.tries} of ${AUTO_RETRY_TRIES})…`
+    : auto ? "The machine or the preview changed: previewing again in the twin…" : "Previewing in the twin…");
+  let failed = null, requestError = false; // why this preview failed, if it did
   try {
     const quick = await api("POST", "/api/previews", { ...body, rollouts: 1 });
     if (requestKey() !== key) return; // the target, mode or machine changed meanwhile: this preview is of another throw
     setPreview(quick, key);
+    if (quick.status !== "ok") failed = quick.reason || "no reason given";
     if (quick.status === "ok") {
       setStatus("Nominal preview shown; computing the 1σ scatter ellipse…");
       let full = null;
-      try { full = await api("POST", "/api/previews", body); } catch (e) {
+      // the ellipse of the nominal just shown: from its machine state, its rollout reused (extends)
+      try { full = await api("POST", "/api/previews", { ...body, extends: quick.id }); } catch (e) {
         $("pv-sigma").textContent = `unavailable (${e.message})`;
         if (current()) setStatus(`Preview of the nominal rollout only (the 1σ ellipse failed: ${e.message}).`);
       }
       if (full && current()) {
         setPreview(full, key);
-        setStatus(`Preview of x ${fmt(full.target_m[0])} y ${fmt(full.target_m[1])} m: ${fmt(full.downrange_error_m)} m downrange, ` +
+        if (full.status !== "ok") failed = full.reason || "no reason given";
+        else setStatus(`Preview of x ${fmt(full.target_m[0])} y ${fmt(full.target_m[1])} m: ${fmt(full.downrange_error_m)} m downrange, ` +
           `${fmt(full.crossrange_error_m)} m crossrange. Throw enables once the server judges it valid.`);
       }
     }
@@ -338,10 +390,12 @@ async function doPreview(auto = false) {
     if (requestKey() === key) {
       dropPreview(null);
       setStatus(`No preview: ${e.message}`, true);
+      failed = e.message; requestError = true;
     }
   } finally {
     state.busy = false; updateButtons();
   }
+  if (auto && failed !== null && requestKey() === key) scheduleRetry(key, failed, requestError, retry ? retry.tries : 0);
   checkPreview(); // at once, not at the next tick: Throw enables when the gate says so
 }
 
@@ -476,6 +530,16 @@ async function showResult(throwId) {
   if (throwId === state.throwId) { state.throwId = null; state.throwStarted = null; }
 }
 
+const FINAL_STATUSES = ["landed", "failed", "aborted", "lost"]; // server.db.models.FINAL_STATUSES
+
+/** The live stream broke while throw ``throwId`` ran: its result event may have been missed.
+ *  Show its result if it is over (else its result event is still to come). */
+async function catchUpThrow(throwId) {
+  let t;
+  try { t = await api("GET", `/api/throws/${encodeURIComponent(throwId)}`); } catch (e) { return; }
+  if (throwId === state.throwId && FINAL_STATUSES.includes(t.status)) showResult(throwId);
+}
+
 async function doReturnToReady() {
   const mid = state.machineId;
   const ok = await confirmAction("Return to the ready pose?", `${mid} will move boom, dipper and telescope slowly to ` +
@@ -494,10 +558,14 @@ async function doReturnToReady() {
 }
 
 // --- history ----------------------------------------------------------------------------------------
+const newestHistory = latestOnly(); // a result or another machine asks again: only the newest answer draws
+
 async function refreshHistory() {
   if (!state.machineId) return;
+  const mine = newestHistory();
   let rows;
   try { rows = await api("GET", `/api/throws?machine_id=${encodeURIComponent(state.machineId)}&limit=10`); } catch (e) { return; }
+  if (!mine()) return; // of an older selection or an older result
   const body = $("history").querySelector("tbody");
   body.innerHTML = "";
   $("history-empty").hidden = rows.length > 0;
@@ -560,6 +628,10 @@ function wireLive() {
     const m = selected();
     if (m) { m.phase = ev.phase; renderState(); }
   });
+  Live.on("job", (j) => { // a preview of this operator's that waits on the worker says why it takes longer
+    if (j && j.kind === "preview" && j.status === "running" && j.message && state.busy && session.user
+      && j.requested_by === session.user.username) setStatus(`Previewing in the twin: ${j.message}…`);
+  });
   Live.on("sample", (s) => { if (s.machine_id === state.machineId && s.throw_id === state.throwId) plots.addSample(s); });
   Live.on("result", (r) => { showResult(r.throw_id); refreshHistory(); });
   Live.on("disconnected", renderState);
@@ -567,6 +639,7 @@ function wireLive() {
   Live.on("connected", async () => {
     try { await api("GET", `/api/consoles/${state.consoleId}`); } catch (e) { await openConsole().catch(() => {}); }
     renderState(); refreshHistory();
+    if (state.throwId) catchUpThrow(state.throwId);
   });
 }
 

@@ -7,9 +7,13 @@ const pct = (x) => (x === null || x === undefined ? "–" : `${(100 * x).toFixed
 const esc = (s) => String(s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]));
 let adaptationId = null;
 const runStatus = {};
+// each job event asks again: only the newest answer draws (an older one landing late would show a finished run running)
+const newestRuns = latestOnly(), newestRun = latestOnly(), newestAdaptation = latestOnly();
 
 async function loadRuns() {
+  const mine = newestRuns();
   const runs = await api("GET", "/api/diagnosis/runs");
+  if (!mine()) return;
   const body = $("runs").querySelector("tbody");
   body.innerHTML = "";
   for (const r of runs) {
@@ -106,8 +110,9 @@ function plainSummary(run, rep) {
 }
 
 async function showRun(id) {
+  const mine = newestRun();
   const run = await api("GET", `/api/diagnosis/runs/${id}`);
-  if (!run.report) return;
+  if (!mine() || !run.report) return;
   const rep = run.report;
   $("report").hidden = false;
   $("r-id").textContent = id;
@@ -131,7 +136,9 @@ async function showRun(id) {
 }
 
 async function showAdaptation(id) {
+  const mine = newestAdaptation();
   const st = await api("GET", `/api/adaptations/${id}`);
+  if (!mine()) return;
   const last = st.progress.length ? st.progress[st.progress.length - 1] : "";
   $("adapt-msg").textContent = st.status === "done" ? `version ${st.policy_version} made: evaluate and promote it under Policies`
     : st.status === "failed" ? `failed: ${st.error}` : `adapting ${st.base_version}… ${last}`;
@@ -149,16 +156,26 @@ function onJob(job) {
 }
 
 async function fillMachines() {
-  const sel = $("machine_id");
   let ids = [];
-  try { ids = (await api("GET", "/api/machines")).map((m) => m.id).sort(); } catch (e) { /* none listed */ }
+  try { ids = (await api("GET", "/api/machines")).map((m) => m.id); } catch (e) { /* none listed */ }
+  listMachines(ids);
+  if (Strip.machineId && ids.includes(Strip.machineId)) $("machine_id").value = Strip.machineId;
+}
+
+/** The machine choices: those listed so far and ``ids`` (a machine that came online after the
+ *  page's GET /api/machines joins by its live state), sorted; the choice made stays. */
+function listMachines(ids) {
+  const sel = $("machine_id"), was = sel.value;
+  const all = [...new Set([...[...sel.options].map((o) => o.value), ...ids])].sort();
+  if (all.length === sel.options.length) return;
   sel.innerHTML = "";
-  for (const id of ids) sel.add(new Option(id, id));
-  if (Strip.machineId && ids.includes(Strip.machineId)) sel.value = Strip.machineId;
+  for (const id of all) sel.add(new Option(id, id));
+  if (was) sel.value = was;
 }
 
 document.addEventListener("DOMContentLoaded", async () => {
   await whoAmI();
+  Live.on("machine", (m) => listMachines([m.machine_id])); // before the GET: a machine heard meanwhile is kept
   await fillMachines();
   Strip.onSelect((id) => { if ([...$("machine_id").options].some((o) => o.value === id)) $("machine_id").value = id; });
   Live.on("job", onJob); // the strip starts the live stream on this page

@@ -26,20 +26,21 @@ function render() {
     const m = fleet.rows.get(id) || { id, policies: {}, simulated: true };
     const live = fleet.live.get(id);
     const policies = live && Object.keys(live.policies || {}).length ? live.policies : m.policies;
+    const lease = live && live.state !== "offline" ? live : m; // the live state is newer than the last GET
     const tr = body.insertRow();
     tr.dataset.machineId = id;
     const [words, cls] = stateText(id);
     const cells = [id, m.simulated ? "SIMULATED" : "real", words, policies["2d"] || "–", policies["3d"] || "–",
       m.last_throw_at ? `${new Date(m.last_throw_at).toLocaleString()} (${m.current_mode}, ${m.last_throw_status})` : "none yet",
       m.recent_mean_abs_error_m === null || m.recent_mean_abs_error_m === undefined ? "–" : `${fmt(m.recent_mean_abs_error_m, 3)} (${m.recent_throws} throws)`];
-    cells.push(leaseText(m), m.undeliverable_results === null || m.undeliverable_results === undefined ? "–"
-      : String(m.undeliverable_results));
+    cells.push(leaseText(lease), lease.undeliverable_results === null || lease.undeliverable_results === undefined ? "–"
+      : String(lease.undeliverable_results));
     cells.forEach((c, i) => {
       const td = tr.insertCell(); td.textContent = c;
       if (i === 2) { td.className = "state-cell"; const b = document.createElement("span"); b.className = `state-badge ${cls}`; b.textContent = WORDS[cls.slice(6)] || "?"; td.textContent = ""; td.append(b, " ", c.replace(/^[^:]*:?\s*/, "")); }
       if (i === 3) td.className = "policy-2d";
-      if (i === 7) { td.className = "lease"; if (m.lease_held_here === false && can("operator")) td.append(" ", takeOverButton(id, m.lease_holder)); }
-      if (i === 8) { td.className = "undeliverable"; if (m.undeliverable_results > 0) td.classList.add("warn"); }
+      if (i === 7) { td.className = "lease"; if (lease.lease_held_here === false && can("operator")) td.append(" ", takeOverButton(id, lease.lease_holder)); }
+      if (i === 8) { td.className = "undeliverable"; if (lease.undeliverable_results > 0) td.classList.add("warn"); }
     });
     const td = tr.insertCell();
     td.dataset.role = "admin"; td.hidden = !can("admin");
@@ -92,13 +93,19 @@ async function rollback(id, mode, current, previous) {
   loadFleet();
 }
 
+const newestLoad = latestOnly(); // live events ask again: only the newest answer draws
+
 async function loadFleet() {
-  try { for (const m of await api("GET", "/api/machines")) fleet.rows.set(m.id, m); } catch (e) { return; }
+  const mine = newestLoad();
+  let rows;
+  try { rows = await api("GET", "/api/machines"); } catch (e) { return; }
+  if (!mine()) return; // an older answer landing late would draw older rows over newer ones
+  for (const m of rows) fleet.rows.set(m.id, m);
   if (can("admin")) {
     await Promise.all([...fleet.rows.keys()].map((id) => api("GET", `/api/policies/rollback-targets?machine_id=${encodeURIComponent(id)}`)
-      .then((t) => fleet.targets.set(id, t)).catch(() => {})));
+      .then((t) => { if (mine()) fleet.targets.set(id, t); }).catch(() => {})));
   }
-  render();
+  if (mine()) render();
 }
 
 document.addEventListener("DOMContentLoaded", async () => {
@@ -113,6 +120,7 @@ document.addEventListener("DOMContentLoaded", async () => {
   });
   Live.on("job", (j) => { if (j && j.kind !== "preview" && ["done", "failed"].includes(j.status)) loadFleet(); });
   Live.on("result", loadFleet);
+  Live.on("deployment", loadFleet); // a promotion confirmed (or refused): the rollback target moved
   Live.on("connected", loadFleet);
   await loadFleet();
   Live.start();

@@ -4,7 +4,8 @@
 "use strict";
 
 const FILTERS = ["machine_id", "policy_version", "mode", "status", "min_distance_m", "max_distance_m", "since", "until"];
-const hist = { sort: "requested_at", order: "desc", limit: 25, offset: 0, total: 0 };
+const hist = { sort: "requested_at", order: "desc", limit: 25, offset: 0, total: 0, shown: new Set(), detail: null };
+const newestLoad = latestOnly(), newestDetail = latestOnly(); // only the newest answer draws (quick clicks, results)
 
 function filterParams() {
   const p = new URLSearchParams();
@@ -18,17 +19,19 @@ function filterParams() {
 }
 
 async function load() {
-  const p = filterParams();
+  const p = filterParams(), mine = newestLoad();
   $("csv").href = `/api/throws/export.csv?${p}`;
   p.set("sort", hist.sort); p.set("order", hist.order); p.set("limit", hist.limit); p.set("offset", hist.offset);
   const res = await fetch(`/api/throws?${p}`);
   if (res.status === 401) { toLogIn(); return; }
   const rows = await res.json().catch(() => null);
+  if (!mine()) return; // a newer request (another page, sort or filter) is on its way
   if (!res.ok) { $("page-info").textContent = responseError(res, rows).message; return; }
   hist.total = parseInt(res.headers.get("X-Total-Count") || "0", 10);
   $("throws-empty").hidden = hist.total > 0;
   const body = $("throws").querySelector("tbody");
   body.innerHTML = "";
+  hist.shown = new Set(rows.map((t) => t.id));
   for (const t of rows) {
     const tr = body.insertRow();
     tr.dataset.throwId = t.id;
@@ -110,7 +113,10 @@ async function start3d(id) {
 }
 
 async function showDetail(id) {
+  const mine = newestDetail();
   const t = await api("GET", `/api/throws/${id}`);
+  if (!mine()) return;
+  hist.detail = id;
   $("detail").hidden = false;
   $("d-id").textContent = `${t.id.slice(0, 8)} · ${t.machine_id} · ${t.mode} · ${t.status}${t.failure_reason ? ` (${t.failure_reason})` : ""}`;
   const p = t.preview || {};
@@ -154,6 +160,12 @@ async function init() {
   }
   const q = new URLSearchParams(location.search);
   for (const f of FILTERS) if (q.get(f) && f !== "since" && f !== "until") $(`f-${f}`).value = q.get(f);
+  // a throw shown here that ends (its result stored, or closed as lost) is read again: a running
+  // throw never stays "requested" on this page; new throws wait for the operator's next query
+  Live.on("result", (r) => {
+    if (hist.shown.has(r.throw_id)) load();
+    if (hist.detail === r.throw_id) showDetail(r.throw_id);
+  });
   await load();
   if (q.get("throw")) showDetail(q.get("throw"));
 }

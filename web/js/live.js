@@ -42,7 +42,7 @@ const Live = (() => {
   function open() {
     if (source) source.close();
     source = new EventSource(`/api/live${params}`);
-    for (const name of ["machine", "throw", "sample", "result", "heartbeat", "console", "job", "drift", "alarm"]) listen(name);
+    for (const name of ["machine", "throw", "sample", "result", "heartbeat", "console", "job", "drift", "alarm", "deployment"]) listen(name);
     source.addEventListener("open", () => { lastEventAt = Date.now(); setConnected(true); });
     source.addEventListener("error", () => {
       broke = true;

@@ -47,9 +47,14 @@ function showEvaluation(p) {
   }, [xs, xs, mean, mean.map((m, i) => (m === null ? null : m + sd[i])), mean.map((m, i) => (m === null ? null : m - sd[i]))], fig);
 }
 
+const newestLoad = latestOnly(); // machine and job events ask again: only the newest answer draws
+
 async function loadPolicies() {
-  let ps;
-  try { ps = await api("GET", "/api/policies"); machineIds = (await api("GET", "/api/machines")).map((m) => m.id); } catch (e) { return; }
+  const mine = newestLoad();
+  let ps, ids;
+  try { ps = await api("GET", "/api/policies"); ids = (await api("GET", "/api/machines")).map((m) => m.id); } catch (e) { return; }
+  if (!mine()) return; // an older answer: a newer request is on its way
+  machineIds = ids;
   policyRows = ps;
   $("policies-empty").hidden = ps.length > 0;
   const body = $("policies").querySelector("tbody");
@@ -158,7 +163,13 @@ document.addEventListener("DOMContentLoaded", async () => {
   });
   // an evaluation (or any job about policies) that ends changes a row: fetch the rows again, so no
   // row says "pending" after its worker finished and every button offered is possible now
-  Live.on("job", (j) => { if (j && j.kind !== "preview" && ["done", "failed", "cancelled"].includes(j.status)) loadPolicies(); });
+  Live.on("job", (j) => {
+    if (!j || j.kind === "preview") return;
+    if (["done", "failed", "cancelled"].includes(j.status)) { loadPolicies(); return; }
+    // an evaluation running (its progress events) on a row drawn as not running yet: the row changed
+    const p = j.kind === "evaluation" && j.status === "running" && policyRows.find((x) => String(x.id) === j.subject);
+    if (p && p.evaluation_status !== "running") loadPolicies();
+  });
   Live.on("connected", loadPolicies);
   await loadPolicies();
   Live.start();

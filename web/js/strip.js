@@ -27,6 +27,7 @@ const Strip = (() => {
   const alarms = new Map(); // alarm id -> the server's alarm (server.console.alarms.alarm_dict)
   const localAlarms = new Map(); // key -> {key, title, text, todo, at}: what only this page knows
   let alarmsOpen = false;
+  let shelfTimer = null; // asks for the alarms again when the first shelving ends (renderAlarms)
 
   const estopMarkup = `<button id="estop" class="estop" type="button" data-role="operator" aria-keyshortcuts="Escape"
       title="E-STOP: stop the selected machine now, valves to neutral (keyboard: Esc, anywhere on the page, the 3D view included)">E-STOP <kbd>Esc</kbd></button>`;
@@ -143,6 +144,10 @@ const Strip = (() => {
     ul.hidden = !alarmsOpen || list.length === 0;
     $("alarm-toggle").textContent = alarmsOpen ? "Hide" : `Show all`;
     $("alarm-toggle").setAttribute("aria-expanded", String(alarmsOpen));
+    // a shelving that runs out is no event: the banner asks again when the first one ends
+    clearTimeout(shelfTimer);
+    const wait = msToShelfEnd([...alarms.values()]);
+    if (wait !== null) shelfTimer = setTimeout(loadAlarms, wait);
   }
 
   /** An alarm only this page knows (the server may be unreachable, e.g. an unconfirmed E-STOP):
@@ -153,19 +158,27 @@ const Strip = (() => {
     renderAlarms();
   }
 
+  // Alarms heard (events, answers to this page's acts) while GET /api/alarms is on its way: the
+  // server may have answered before them, so they are applied again over its list.
+  let heardWhileLoading = null;
   function onAlarm(a) {
     if (!a || !a.id) return;
+    if (heardWhileLoading) heardWhileLoading.push(a);
     if (a.active) alarms.set(a.id, a); else alarms.delete(a.id);
     renderAlarms();
   }
 
   async function loadAlarms() {
+    const heard = heardWhileLoading = [];
     try {
       const list = await api("GET", "/api/alarms");
+      if (heardWhileLoading !== heard) return; // a newer load is on its way
       alarms.clear();
       for (const a of list) alarms.set(a.id, a);
+      heardWhileLoading = null;
+      for (const a of heard) onAlarm(a);
       renderAlarms();
-    } catch (e) { /* the live stream brings them */ }
+    } catch (e) { /* the live stream brings them */ } finally { if (heardWhileLoading === heard) heardWhileLoading = null; }
   }
 
   /** Acknowledge one alarm (on the server: audited, every console follows; a local one here). */

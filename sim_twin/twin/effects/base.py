@@ -169,6 +169,9 @@ class Effect:
         return None
 
     def measure(self, hist_q: np.ndarray, hist_qd: np.ndarray, dt_s: float, rng: np.random.Generator | None):
+        """Measured (q, qd) (6,) from the histories (N, 6) of true (or earlier effects') states,
+        newest first, every ``dt_s``. Read the histories; never write into them (EffectStack
+        hands the first measuring effect the machine's own arrays)."""
         return hist_q[0], hist_qd[0]
 
     def measure_impact(self, hit_m: np.ndarray) -> np.ndarray:
@@ -253,6 +256,15 @@ class EffectStack:
     def has(self, hook: str) -> bool:
         return any(_overrides(e, hook) for e in self.effects)
 
+    def _measuring(self) -> tuple[Effect, ...]:
+        """The effects that override ``measure``, in order (looked up again only when
+        :attr:`effects` is replaced or changes length: measure runs every 10 ms step)."""
+        key = (id(self.effects), len(self.effects))
+        if self.__dict__.get("_measuring_key") != key:
+            self._measuring_fx = tuple(e for e in self.effects if _overrides(e, "measure"))
+            self._measuring_key = key
+        return self._measuring_fx
+
     def hydraulics(self, hp):
         for e in self.effects:
             hp = e.hydraulics(hp)
@@ -309,12 +321,17 @@ class EffectStack:
         return q, qd
 
     def measure(self, hist_q, hist_qd, dt_s, rng):
-        """Measured (q, qd): the first measuring effect reads the true history; later ones see
-        the history with the current row replaced by the previous effect's output."""
+        """Measured (q, qd): the first measuring effect reads the true history (the arrays given:
+        effects read their histories, none writes into them); later ones see a copy with the
+        current row replaced by the previous effect's output."""
         q, qd = hist_q[0], hist_qd[0]
-        for e in self.effects:
-            if _overrides(e, "measure"):
-                hq, hqd = hist_q.copy(), hist_qd.copy()
-                hq[0], hqd[0] = q, qd
-                q, qd = e.measure(hq, hqd, dt_s, rng)
+        first = True
+        for e in self._measuring():
+            if first:
+                q, qd = e.measure(hist_q, hist_qd, dt_s, rng)
+                first = False
+                continue
+            hq, hqd = hist_q.copy(), hist_qd.copy()
+            hq[0], hqd[0] = q, qd
+            q, qd = e.measure(hq, hqd, dt_s, rng)
         return q, qd

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from sim_twin.twin.effects.base import Effect, Param
@@ -32,18 +34,26 @@ class ImuPassive(Effect):
         return int(np.ceil(MAX_LATENCY_S / 0.01)) + 2
 
     def measure(self, hist_q, hist_qd, dt_s, rng):
-        d = self.latency_s / dt_s
-        i0 = int(np.floor(d + 1e-9))
-        i0 = min(i0, hist_q.shape[0] - 1)
-        i1 = min(i0 + 1, hist_q.shape[0] - 1)
+        # one draw of both noises: the generator fills them one after the other, so they are the
+        # values two draws (angle, then rate) gave; fewer NumPy calls on every 10 ms step
+        v = self.values
+        d = v["latency_s"] / dt_s
+        last = hist_q.shape[0] - 1
+        i0 = min(math.floor(d + 1e-9), last)
+        i1 = min(i0 + 1, last)
         f = d - i0
-        q = np.array(hist_q[0], dtype=float, copy=True)
-        qd = np.array(hist_qd[0], dtype=float, copy=True)
-        q[..., 4:6] = (1 - f) * hist_q[i0][..., 4:6] + f * hist_q[i1][..., 4:6]
-        qd[..., 4:6] = (1 - f) * hist_qd[i0][..., 4:6] + f * hist_qd[i1][..., 4:6]
+        q = hist_q[0].astype(float)
+        qd = hist_qd[0].astype(float)
+        if f == 0.0:  # a whole number of steps (the nominal 20 ms): (1 - 0) * a + 0 * b is a
+            q[..., 4:6] = hist_q[i0, ..., 4:6]
+            qd[..., 4:6] = hist_qd[i0, ..., 4:6]
+        else:
+            q[..., 4:6] = (1 - f) * hist_q[i0, ..., 4:6] + f * hist_q[i1, ..., 4:6]
+            qd[..., 4:6] = (1 - f) * hist_qd[i0, ..., 4:6] + f * hist_qd[i1, ..., 4:6]
         if rng is not None:
-            q[..., 4:6] += rng.normal(0.0, 1.0, q[..., 4:6].shape) * self.angle_noise_rad
-            qd[..., 4:6] += rng.normal(0.0, 1.0, qd[..., 4:6].shape) * self.rate_noise_radps
+            noise = rng.normal(0.0, 1.0, (2, *q[..., 4:6].shape))
+            q[..., 4:6] += noise[0] * v["angle_noise_rad"]
+            qd[..., 4:6] += noise[1] * v["rate_noise_radps"]
         return q, qd
 
     def estimate_spread(self, spreads: dict) -> dict:
@@ -74,11 +84,13 @@ class EncoderNoise(Effect):
     )
 
     def measure(self, hist_q, hist_qd, dt_s, rng):
-        q = np.array(hist_q[0], dtype=float, copy=True)
-        qd = np.array(hist_qd[0], dtype=float, copy=True)
-        if rng is not None:
-            q[..., :4] += rng.normal(0.0, 1.0, q[..., :4].shape) * self.angle_noise_rad
-            qd[..., :4] += rng.normal(0.0, 1.0, qd[..., :4].shape) * self.rate_noise_radps
+        q = hist_q[0].astype(float)
+        qd = hist_qd[0].astype(float)
+        if rng is not None:  # one draw of both noises, as ImuPassive.measure
+            v = self.values
+            noise = rng.normal(0.0, 1.0, (2, *q[..., :4].shape))
+            q[..., :4] += noise[0] * v["angle_noise_rad"]
+            qd[..., :4] += noise[1] * v["rate_noise_radps"]
         return q, qd
 
 

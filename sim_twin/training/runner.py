@@ -1,0 +1,201 @@
+"""rsl_rl's on-policy runner with per-iteration callbacks that may end ``learn()`` early, and a
+checkpoint name, folder and interval of the caller's choosing.
+
+:class:`CallbackRunner` is ``rsl_rl.runners.OnPolicyRunner`` of rsl-rl-lib 5.5.1
+(``rsl_rl/runners/on_policy_runner.py``) with its ``learn()`` loop copied and three changes, each
+marked ``# CHANGE`` in the copy, written to be proposed upstream as they stand:
+
+1. **Callbacks** (``callbacks``): after every iteration (rollout, update, log, periodic
+   checkpoint) each callback is called as ``callback(runner, it)`` on every rank, ``it`` being
+   the index of the iteration that just ended (rsl_rl's loop variable, the TensorBoard step).
+   A callback returns True to end ``learn()`` after this iteration (anything else: go on). Every
+   callback runs each iteration, also after one has asked to stop. Under multi-GPU training
+   (``WORLD_SIZE`` > 1) rank 0's decision is broadcast and every rank follows it, so the ranks
+   leave the loop together (their gradient all-reduces stay matched). rsl_rl 5.5.1 has no such
+   hook: ``learn(n)`` always runs n iterations, so schedules, curricula, gates and early stops
+   had to call ``learn()`` in pieces and patch the runner in between.
+2. **Iteration count**: ``current_learning_iteration`` is the number of iterations done (the
+   index of the next one), set after each iteration, and a checkpoint stores that number as
+   ``iter``. In 5.5.1 it is the index of the last iteration done, so a second ``learn()`` call,
+   or one after ``load()``, runs that index again (its TensorBoard step and checkpoint name
+   appear twice). Here consecutive calls and resumed runs continue the numbering without
+   repeating or skipping one (``load()`` is rsl_rl's: it sets the count from ``iter``).
+3. **Checkpoints** (``checkpoint_dir``, ``checkpoint_name``, ``save_interval``): written to
+   ``checkpoint_dir`` (default the logger's log_dir, as rsl_rl) under ``checkpoint_name``
+   formatted with ``it`` = the iteration count it stores (default ``model_{it}.pt``; a name
+   without ``{it}`` is overwritten each time) whenever the count is a multiple of
+   ``save_interval`` (default the config's ``save_interval``; 0: none on the way) and after the
+   last iteration, before the callbacks see it; at the end of ``learn()`` only if a callback
+   stopped the loop at an iteration not yet written (5.5.1 writes the last one at the end, twice
+   when the interval has just written it).
+   As in rsl_rl only a process with a log writer (rank 0 with a log_dir) writes checkpoints.
+
+Everything else (the constructor, ``save``, ``load``, the logger, multi-GPU set-up, exports) is
+rsl_rl's. The copied loop is BSD-3-Clause, Copyright (c) 2021-2026, ETH Zurich and NVIDIA
+CORPORATION (rsl-rl-lib's licence); keep it in step with the installed rsl_rl when it is updated
+(tests/test_training_runner.py runs it on a toy environment).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterable
+
+import torch
+from rsl_rl.env import VecEnv
+from rsl_rl.runners import OnPolicyRunner
+from rsl_rl.utils import check_nan
+
+IterationCallback = Callable[["CallbackRunner", int], "bool | None"]
+"""``callback(runner, it) -> bool | None``: called after iteration ``it`` (0-based index) on every
+rank; True ends ``learn()`` after it (under multi-GPU, rank 0's answer counts)."""
+
+
+class CallbackRunner(OnPolicyRunner):
+    """OnPolicyRunner (rsl-rl-lib 5.5.1) with per-iteration callbacks, an iteration count that
+    continues across ``learn()`` calls and resumes, and a checkpoint name / folder / interval (see
+    the module docstring).
+
+    Args:
+        env, train_cfg, log_dir, device: as ``OnPolicyRunner``.
+        callbacks: called in this order after every iteration (:data:`IterationCallback`); the
+            list stays open (``runner.callbacks.append``).
+        checkpoint_dir: folder of the checkpoints; None: the logger's log_dir (as rsl_rl).
+        checkpoint_name: file name, formatted with ``it`` (the iteration count it stores).
+        save_interval: write a checkpoint when the iteration count is a multiple of this; None:
+            ``train_cfg["save_interval"]``; 0: only the last iteration's.
+
+    Raises:
+        ValueError: a negative ``save_interval``; OnPolicyRunner's errors.
+    """
+
+    current_learning_iteration: int
+    """Iterations done (the index of the next one); a checkpoint stores it as ``iter``."""
+
+    def __init__(self, env: VecEnv, train_cfg: dict, log_dir: str | None = None, device: str = "cpu", *,
+                 callbacks: Iterable[IterationCallback] = (), checkpoint_dir: str | None = None,
+                 checkpoint_name: str = "model_{it}.pt", save_interval: int | None = None) -> None:
+        super().__init__(env, train_cfg, log_dir=log_dir, device=device)
+        self.callbacks: list[IterationCallback] = list(callbacks)
+        self.checkpoint_dir = checkpoint_dir
+        self.checkpoint_name = checkpoint_name
+        self.save_interval = int(train_cfg["save_interval"] if save_interval is None else save_interval)
+        if self.save_interval < 0:
+            raise ValueError(f"save_interval must be >= 0, not {self.save_interval}")
+
+    def checkpoint_path(self, it: int) -> str:
+        """Path of the checkpoint that stores iteration count ``it``.
+
+        Raises:
+            ValueError: neither ``checkpoint_dir`` nor a logger log_dir is set.
+        """
+        folder = self.checkpoint_dir or self.logger.log_dir
+        if folder is None:
+            raise ValueError("no checkpoint_dir and no log_dir: nowhere to write checkpoints")
+        return os.path.join(folder, self.checkpoint_name.format(it=it))
+
+    def learn(self, num_learning_iterations: int, init_at_random_ep_len: bool = False) -> None:
+        """Run ``num_learning_iterations`` iterations from ``current_learning_iteration`` on, fewer
+        when a callback ends the loop (module docstring)."""
+        # --- copied from rsl_rl 5.5.1 OnPolicyRunner.learn; changes marked CHANGE ---------------
+        # Randomize initial episode lengths (for exploration)
+        if init_at_random_ep_len:
+            self.env.episode_length_buf = torch.randint_like(
+                self.env.episode_length_buf, high=int(self.env.max_episode_length)
+            )
+
+        # Start learning
+        obs = self.env.get_observations().to(self.device)
+        self.alg.train_mode()  # switch to train mode (for dropout for example)
+
+        # Ensure all parameters are in-synced
+        if self.is_distributed:
+            print(f"Synchronizing parameters for rank {self.gpu_global_rank}...")
+            self.alg.broadcast_parameters()
+
+        # Initialize the logging writer
+        self.logger.init_logging_writer()
+
+        # Start training
+        start_it = self.current_learning_iteration
+        total_it = start_it + num_learning_iterations
+        saved_it = None  # CHANGE (3): the count whose checkpoint was written last
+        for it in range(start_it, total_it):
+            start = time.time()
+            # Rollout
+            with torch.inference_mode():
+                for _ in range(self.cfg["num_steps_per_env"]):
+                    # Sample actions
+                    actions = self.alg.act(obs)
+                    # Step the environment
+                    obs, rewards, dones, extras = self.env.step(actions.to(self.env.device))
+                    # Check for NaN values from the environment
+                    if self.cfg.get("check_for_nan", True):
+                        check_nan(obs, rewards, dones)
+                    # Move to device
+                    obs, rewards, dones = (obs.to(self.device), rewards.to(self.device), dones.to(self.device))
+                    # Process the step
+                    self.alg.process_env_step(obs, rewards, dones, extras)
+                    # Extract intrinsic rewards if RND is used (only for logging)
+                    intrinsic_rewards = self.alg.intrinsic_rewards if self.cfg["algorithm"].get("rnd_cfg") else None
+                    # Book keeping
+                    self.logger.process_env_step(rewards, dones, extras, intrinsic_rewards)
+
+                stop = time.time()
+                collect_time = stop - start
+                start = stop
+
+                # Compute returns
+                self.alg.compute_returns(obs)
+
+            # Update policy
+            loss_dict = self.alg.update()
+
+            stop = time.time()
+            learn_time = stop - start
+            self.current_learning_iteration = it + 1  # CHANGE (2): iterations done (5.5.1: it)
+
+            # Log information
+            self.logger.log(
+                it=it,
+                start_it=start_it,
+                total_it=total_it,
+                collect_time=collect_time,
+                learn_time=learn_time,
+                loss_dict=loss_dict,
+                learning_rate=self.alg.learning_rate,
+                action_std=self.alg.get_policy().output_std,
+                rnd_weight=self.alg.rnd.weight if self.cfg["algorithm"].get("rnd_cfg") else None,
+            )
+
+            # Save model
+            # CHANGE (3): checkpoint_path / save_interval on the iteration count, and the last iteration's
+            # here, before the callbacks (5.5.1: log_dir/model_{it}.pt when it % cfg["save_interval"] == 0)
+            done = self.current_learning_iteration
+            if self.logger.writer is not None and ((self.save_interval and done % self.save_interval == 0) or done == total_it):
+                self.save(self.checkpoint_path(done))
+                saved_it = done
+
+            # CHANGE (1): the callbacks, every one of them, then rank 0's stop decision on every rank
+            if self._callbacks_stop(it):
+                break
+
+        # Save the final model after training and stop the logging writer
+        if self.logger.writer is not None:
+            if saved_it != self.current_learning_iteration:  # CHANGE (3): not twice (stopped by a callback, or no iteration)
+                self.save(self.checkpoint_path(self.current_learning_iteration))
+            self.logger.stop_logging_writer()
+        # --- end of the copy ---------------------------------------------------------------------
+
+    def _callbacks_stop(self, it: int) -> bool:
+        """Call every callback after iteration ``it``; True if the loop is to end (rank 0's
+        answer, broadcast to every rank under multi-GPU training)."""
+        stop = False
+        for callback in self.callbacks:
+            stop = bool(callback(self, it)) or stop
+        if self.is_distributed:  # every rank takes part, whatever callbacks it has
+            flag = torch.tensor([1.0 if stop else 0.0], device=self.device)
+            torch.distributed.broadcast(flag, src=0)
+            stop = bool(flag.item() > 0)
+        return stop
