@@ -22,7 +22,8 @@ def _inputs(rng, n):
     f = lambda lo, hi: jnp.asarray(rng.uniform(lo, hi, n), jnp.float32)  # noqa: E731
     b = lambda p: jnp.asarray(rng.random(n) < p)  # noqa: E731
     return RewardInputs(f(0, 12), f(0, 12), f(0, 12), f(0, 12), jnp.asarray(rng.normal(0, 1, (n, 4)), jnp.float32),
-                        jnp.asarray(rng.normal(0, 1, (n, 4)), jnp.float32), b(0.5), b(0.2), b(0.3), f(0, 3), b(0.05))
+                        jnp.asarray(rng.normal(0, 1, (n, 4)), jnp.float32), b(0.5), b(0.2), b(0.3), f(0, 3), b(0.05),
+                        f(0, 15))
 
 
 def test_terms_sum_to_reward_and_have_their_signs():
@@ -169,3 +170,32 @@ def test_an_episode_that_never_releases_ends_as_a_failure_when_the_recipe_punish
         assert float(log["Reward/no_release"]) == pytest.approx(scale)
     else:
         assert extras["time_outs"].all() and float(log["Reward/no_release"]) == 0.0
+
+
+def test_release_slope_is_how_fast_the_landing_point_moves_at_the_opening():
+    """The environment's release_slope is the held payload's landing-point speed at the physics step
+    the gripper opened (10 ms finite difference): it agrees with the landing point's movement over
+    the control step of the opening (80 ms), and the release_slope term pays weight x slope on the
+    landing step only."""
+    from sim_twin.training.mjx_env import ThrowEnvCore
+
+    env_d = json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]
+    env_d = {**env_d, "forced_release": {**env_d["forced_release"], "probability": 0.0},
+             "rewards": {**env_d["rewards"], "release_slope": -0.5}}
+    core = ThrowEnvCore(EnvConfig.from_dict(env_d))
+    step = jax.jit(core.step)
+    state, _ = jax.jit(core.reset)(jax.random.PRNGKey(5))
+    points, terms, opened_at = [], [], None
+    for k in range(60):  # dipper and telescope out at 0.6 of full speed, release commanded at step 8
+        was_open = bool(state.opened)
+        points.append(np.asarray(state.held_impact))
+        state, _, _, terminated, _, info = step(state, jnp.asarray([0.0, 0.6, 0.6, 1.0 if k >= 8 else -1.0], jnp.float32))
+        terms.append(float(info["reward_terms"]["release_slope"]))
+        opened_at = k if bool(state.opened) and not was_open else opened_at
+        if bool(terminated):
+            break
+    assert bool(info["landed"]) and opened_at is not None
+    slope = float(state.release_slope)
+    coarse = np.linalg.norm(points[opened_at + 1] - points[opened_at]) / 0.08
+    assert slope > 0.05 and slope == pytest.approx(coarse, rel=0.25)
+    assert terms[-1] == pytest.approx(-0.5 * slope, rel=1e-5) and not any(terms[:-1])

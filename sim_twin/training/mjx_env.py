@@ -175,6 +175,12 @@ class EnvConfig:
         return asdict(self)
 
 
+def _landing_xy(p: jax.Array, v: jax.Array) -> jax.Array:
+    """Where (x, y) (2,) a payload freed at ``p`` (3,) with ``v`` (3,) lands, m, machine frame:
+    drag-free flight to the height of its centre at touch-down (runtime.ballistics)."""
+    return ballistic_position(jnp, p, v, ballistic_impact_time(jnp, p, v, PAYLOAD_RADIUS_M))[:2]
+
+
 @jax.tree_util.register_dataclass
 @dataclass(frozen=True)
 class EnvState:
@@ -219,6 +225,10 @@ class EnvState:
         valve_delay: (4,) int32 valve transport delay, physics steps.
         dead_band: (4,) valve dead band (fraction of full flow).
         vscale: (4,) valve full-open speed factor.
+        held_impact: (2,) where the held payload would land (x, y) if it were freed now, as of the
+            last physics step, m (drag-free flight, runtime.ballistics).
+        release_slope: () how fast that landing point moved at the physics step the gripper
+            opened, m/s (0 before the opening): the landing's sensitivity to the opening time.
     """
 
     data: mjx.Data
@@ -255,6 +265,8 @@ class EnvState:
     valve_delay: jax.Array
     dead_band: jax.Array
     vscale: jax.Array
+    held_impact: jax.Array
+    release_slope: jax.Array
 
     def replace(self, **changes: Any) -> EnvState:
         """A copy with the fields named in ``changes`` replaced. Raises TypeError on an unknown field."""
@@ -423,6 +435,8 @@ class ThrowEnvCore:
             valve_delay=jnp.clip(valve_delay, 0, MAX_VALVE_DELAY_STEPS).astype(jnp.int32),
             dead_band=db[0] + frac_b * (db[1] - db[0]),
             vscale=vs[0] + frac_v * (vs[1] - vs[0]),
+            held_impact=_landing_xy(*self._held_payload(q, zeros6, grasp)),
+            release_slope=jnp.zeros(()),
         )
         return state, self.observe(state)
 
@@ -477,9 +491,12 @@ class ThrowEnvCore:
         v0 = jnp.where(open_now, v_held, s.ball_v0)
         t_flight = jnp.where(open_now, ballistic_impact_time(jnp, p0, v0, PAYLOAD_RADIUS_M), s.t_flight)
         t_open = jnp.where(s.opened, s.t_open + dt, s.t_open)
+        held_impact = _landing_xy(p_held, v_held)
+        slope = jnp.sqrt(jnp.sum((held_impact - s.held_impact) ** 2)) / dt
         return s.replace(
             data=data, countdown=countdown, opened=s.opened | open_now,
             ball_p0=p0, ball_v0=v0, t_flight=t_flight, t_open=t_open,
+            held_impact=held_impact, release_slope=jnp.where(open_now, slope, s.release_slope),
             phys_q=jnp.concatenate([data.qpos[None], s.phys_q[:-1]]),
             phys_qd=jnp.concatenate([data.qvel[None], s.phys_qd[:-1]]),
         )
@@ -545,7 +562,7 @@ class ThrowEnvCore:
         unreleased = at_limit & ~s.release_cmd
         terms = reward_terms(
             RewardInputs(err2, err3, s.err2_min, s.err3_min, action, s.prev_action, s.opened, failed, landed,
-                         impact_err, unreleased),
+                         impact_err, unreleased, s.release_slope),
             w,
         )
         reward = total_reward(terms, w.failure)
