@@ -1,6 +1,7 @@
 """Console pages follow the server's state, not the answer of one GET: an older answer that lands
 after a newer live event never draws over it, a throw the reconciliation closes shows closed, a
-shelving that runs out brings its alarm back, an evaluation that starts shows running, a machine
+shelving that runs out brings its alarm back, an acknowledgement's late answer does not
+bring back an alarm that has ended since, an evaluation that starts shows running, a machine
 that comes online joins the diagnosis page's list. Headless Chromium against a live server
 (uvicorn in a thread); the GET answers that must land late are held with Playwright's routing."""
 
@@ -258,3 +259,22 @@ def test_the_fleet_page_offers_the_rollback_the_server_would_make_once_a_promoti
     rt.session.put(keys.policy_status("m1"), encode(update))  # the runtime's word: pB loaded
     wait_for(lambda: app.state.policies.rollback_target("m1", "2d").name == "pA", 20, "pB's deployment active")
     page.locator("#fleet tbody tr[data-machine-id=m1] button.rollback-2d", has_text="roll back to pA").wait_for(timeout=20_000)
+
+
+def test_the_banner_drops_an_acknowledgement_answer_older_than_the_alarms_end(live, browser):  # noqa: F811
+    """The answer to the banner's Acknowledge is held back while the condition clears: the alarm,
+    cleared and acknowledged, leaves the active list (its live event empties the banner); the older
+    answer (active, acknowledged) that lands afterwards must not bring it back."""
+    base, app = live
+    alarm = app.state.alarms.raise_alarm("k:stale-ack", "m1", "high", "machine_fault", "m1: stale ack", "text", "todo")
+    page = _page(browser, base, "fleet.html")
+    page.locator("#alarm-top", has_text="m1: stale ack").wait_for()
+    held = Held()
+    page.route(f"**/api/alarms/{alarm['id']}/ack", held)
+    page.click("#alarm-toggle")
+    page.click("#alarms .alarm-ack")
+    held.wait(page)  # the server has acknowledged it; the page has not heard the answer yet
+    app.state.alarms.clear("k:stale-ack")  # cleared and acknowledged: history only
+    page.locator("#alarm-banner").wait_for(state="hidden")
+    held.release(page)
+    assert page.locator("#alarm-banner").is_hidden(), page.locator("#alarm-count").inner_text()

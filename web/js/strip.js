@@ -161,10 +161,22 @@ const Strip = (() => {
   // Alarms heard (events, answers to this page's acts) while GET /api/alarms is on its way: the
   // server may have answered before them, so they are applied again over its list.
   let heardWhileLoading = null;
+  // An alarm's clearing, acknowledgement and retirement happen once each and are never undone
+  // (server.console.alarms: a condition that comes back raises a new alarm), so a record that lacks
+  // one the page has already seen is older than what the page shows: an answer to this page's
+  // acknowledge or shelve that lands after the live event of a later change. Such a record is
+  // dropped. ``retired``: ids of alarms the page has seen leave the active list.
+  const retired = new Set();
+  function isOlder(a, known) {
+    return retired.has(a.id) || (known !== undefined &&
+      ((known.cleared_at && !a.cleared_at) || (known.acked_at && !a.acked_at)));
+  }
+
   function onAlarm(a) {
     if (!a || !a.id) return;
     if (heardWhileLoading) heardWhileLoading.push(a);
-    if (a.active) alarms.set(a.id, a); else alarms.delete(a.id);
+    if (isOlder(a, alarms.get(a.id))) return;
+    if (a.active) alarms.set(a.id, a); else { alarms.delete(a.id); retired.add(a.id); }
     renderAlarms();
   }
 
