@@ -63,3 +63,13 @@ def test_the_3d_view_may_be_framed_from_the_sites_view_host_name():
     assert "frame-src 'self' https://console.site.example:* https://view.site.example:*;" in csp
     assert "frame-src 'self' https://console.site.example:*;" in content_security_policy(
         "https", "console.site.example", [], view_host="bad host;")
+
+
+def test_the_consoles_final_throw_statuses_are_the_servers():
+    """web/js/console.js keeps its own copy of the statuses that end a throw (it waits for one to
+    show the result); it must name exactly server.db.models.FINAL_STATUSES."""
+    from server.db.models import FINAL_STATUSES
+
+    line = re.search(r"const FINAL_STATUSES = \[([^\]]*)\];", (WEB / "js" / "console.js").read_text())
+    assert line, "console.js no longer declares FINAL_STATUSES: update this test"
+    assert tuple(re.findall(r'"([a-z_]+)"', line.group(1))) == FINAL_STATUSES

@@ -530,7 +530,7 @@ async function showResult(throwId) {
   if (throwId === state.throwId) { state.throwId = null; state.throwStarted = null; }
 }
 
-const FINAL_STATUSES = ["landed", "failed", "aborted", "lost"]; // server.db.models.FINAL_STATUSES
+const FINAL_STATUSES = ["landed", "failed", "aborted", "lost"]; // server.db.models.FINAL_STATUSES (tests/test_web_pages.py holds them equal)
 
 /** The live stream broke while throw ``throwId`` ran: its result event may have been missed.
  *  Show its result if it is over (else its result event is still to come). */
