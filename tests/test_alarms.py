@@ -110,3 +110,22 @@ def test_shelving_needs_a_positive_time(client, minutes):
     client.app.state.alarms.on_event(RuntimeOffline("m1"))
     (a,) = client.get("/api/alarms").json()
     assert client.post(f"/api/alarms/{a['id']}/shelve", json={"minutes": minutes}).status_code == 422
+
+
+def test_every_change_of_an_alarm_raises_its_revision_and_a_no_op_does_not(client):
+    """``revision`` orders one alarm's records for the consoles (web/js/strip.js): 1 when raised, one
+    more with each change, the same after an act that changes nothing; its live events carry it."""
+    alarms = client.app.state.alarms
+    heard = []
+    alarms.publish = lambda event, data: heard.append(data["revision"])
+    a = alarms.raise_alarm("k:rev", "m1", "high", "machine_fault", "m1: revisions", "text", "todo")
+    assert a["revision"] == 1
+    revisions = [client.post(f"/api/alarms/{a['id']}/shelve", json={"minutes": 5}).json()["revision"],
+                 client.delete(f"/api/alarms/{a['id']}/shelve").json()["revision"],
+                 client.delete(f"/api/alarms/{a['id']}/shelve").json()["revision"],  # not shelved: no change
+                 client.post(f"/api/alarms/{a['id']}/ack").json()["revision"],
+                 client.post(f"/api/alarms/{a['id']}/ack").json()["revision"]]  # acknowledged already
+    assert revisions == [2, 3, 3, 4, 4]
+    (cleared,) = alarms.clear("k:rev")
+    assert cleared["revision"] == 5 and not cleared["active"]
+    assert heard == [1, 2, 3, 3, 4, 5]  # the unchanged unshelve is published too; the second ack is not

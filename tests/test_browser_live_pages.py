@@ -1,7 +1,7 @@
 """Console pages follow the server's state, not the answer of one GET: an older answer that lands
 after a newer live event never draws over it, a throw the reconciliation closes shows closed, a
-shelving that runs out brings its alarm back, an acknowledgement's late answer does not
-bring back an alarm that has ended since, an evaluation that starts shows running, a machine
+shelving that runs out brings its alarm back, a late answer to the banner's Acknowledge or Shelve
+does not undo a later change of its alarm, an evaluation that starts shows running, a machine
 that comes online joins the diagnosis page's list. Headless Chromium against a live server
 (uvicorn in a thread); the GET answers that must land late are held with Playwright's routing."""
 
@@ -278,3 +278,25 @@ def test_the_banner_drops_an_acknowledgement_answer_older_than_the_alarms_end(li
     page.locator("#alarm-banner").wait_for(state="hidden")
     held.release(page)
     assert page.locator("#alarm-banner").is_hidden(), page.locator("#alarm-count").inner_text()
+
+
+def test_the_banner_drops_a_shelving_answer_older_than_the_unshelving_it_heard(live, browser):  # noqa: F811
+    """The answer to the banner's Shelve is held back while another operator unshelves the alarm:
+    its live events (shelved, then unshelved) come first and the alarm is back in the banner; the
+    older answer (shelved) that lands afterwards must not hide it again (the records' revisions
+    order them)."""
+    base, app = live
+    alarm = app.state.alarms.raise_alarm("k:stale-shelve", "m1", "high", "machine_fault", "m1: stale shelve",
+                                         "text", "todo")
+    page = _page(browser, base, "fleet.html")
+    page.locator("#alarm-top", has_text="m1: stale shelve").wait_for()
+    held = Held()
+    page.route(f"**/api/alarms/{alarm['id']}/shelve", held)
+    page.click("#alarm-toggle")
+    page.click("#alarms .alarm-shelve")
+    held.wait(page)  # shelved on the server; its live event hides the alarm
+    page.locator("#alarm-banner").wait_for(state="hidden")
+    app.state.alarms.unshelve(alarm["id"], "someone-else")
+    page.locator("#alarm-top", has_text="m1: stale shelve").wait_for()
+    held.release(page)
+    assert page.locator("#alarm-top").inner_text().endswith("m1: stale shelve")

@@ -41,6 +41,8 @@ class AlarmOut(BaseModel):
     acked_by: str | None
     shelved_until: str | None
     shelved_by: str | None
+    revision: int
+    """1 when raised, one more with every change: of two records of one alarm the higher is newer."""
 
 
 class AckAllIn(BaseModel):

@@ -101,7 +101,7 @@ def alarm_dict(a: Alarm, now: datetime | None = None) -> dict:
     """The API's and the live event's view of an alarm row; ``state`` is the ISA-18.2 state:
     ``unacked`` (active, not acknowledged), ``acked`` (active, acknowledged), ``rtn_unacked``
     (cleared, not acknowledged), ``normal`` (cleared and acknowledged: history); ``shelved``
-    while its shelving lasts."""
+    while its shelving lasts; ``revision`` orders one alarm's records (models.Alarm.revision)."""
     now = now or utcnow()
     if a.cleared_at is None:
         state = "acked" if a.acked_at else "unacked"
@@ -112,7 +112,7 @@ def alarm_dict(a: Alarm, now: datetime | None = None) -> dict:
     return {"id": a.id, "key": a.key, "machine_id": a.machine_id, "priority": a.priority, "cause": a.cause,
             "title": a.title, "text": a.text, "todo": a.todo, "subject": a.subject, "state": state,
             "active": a.active, "shelved": shelved, "raised_at": iso(a.raised_at), "cleared_at": iso(a.cleared_at),
-            "acked_at": iso(a.acked_at), "acked_by": a.acked_by,
+            "acked_at": iso(a.acked_at), "acked_by": a.acked_by, "revision": a.revision,
             "shelved_until": iso(a.shelved_until) if shelved else None, "shelved_by": a.shelved_by if shelved else None}
 
 
@@ -147,7 +147,8 @@ class AlarmService:
                 return alarm_dict(cur)
             now = utcnow()
             a = Alarm(key=key, machine_id=machine_id, priority=priority, cause=cause, title=title[:200], text=text,
-                      todo=todo, subject=subject, raised_at=now, cleared_at=now if cleared else None, active=True)
+                      todo=todo, subject=subject, raised_at=now, cleared_at=now if cleared else None, active=True,
+                      revision=1)
             db.add(a)
             audit(db, "system", "alarm_raise", machine_id, key=key, priority=priority, cause=cause, title=title)
             db.flush()
@@ -165,6 +166,7 @@ class AlarmService:
             for a in db.scalars(select(Alarm).where(Alarm.key == key, Alarm.active, Alarm.cleared_at.is_(None))):
                 a.cleared_at = now
                 a.active = a.acked_at is None
+                a.revision += 1
                 audit(db, "system", "alarm_clear", a.machine_id, key=key)
                 changed.append(alarm_dict(a, now))
         for out in changed:
@@ -221,6 +223,7 @@ class AlarmService:
                 raise Conflict("the alarm is cleared and acknowledged: nothing to shelve")
             a.shelved_until = utcnow() + timedelta(minutes=minutes)
             a.shelved_by = username
+            a.revision += 1
             audit(db, username, "alarm_shelve", a.machine_id, alarm=a.id, key=a.key, minutes=minutes)
             out = alarm_dict(a)
         self._publish(out)
@@ -238,6 +241,7 @@ class AlarmService:
                 raise NotFound(f"no alarm {alarm_id}")
             if a.shelved_until is not None:
                 a.shelved_until = None
+                a.revision += 1
                 audit(db, username, "alarm_unshelve", a.machine_id, alarm=a.id, key=a.key)
             out = alarm_dict(a)
         self._publish(out)
@@ -334,6 +338,7 @@ class AlarmService:
             return False
         a.acked_at, a.acked_by = utcnow(), username
         a.active = a.cleared_at is None
+        a.revision += 1
         audit(db, username, "alarm_ack", a.machine_id, alarm=a.id, key=a.key, title=a.title)
         return True
 

@@ -333,3 +333,7 @@ class Alarm(Base):
     shelved_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
     active: Mapped[bool] = mapped_column(Boolean, default=True)
     """False once cleared and acknowledged: history only."""
+    revision: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
+    """1 when raised, one more with every change of the row (cleared, acknowledged, shelved,
+    unshelved): a console orders the records of one alarm it hears by it (web/js/strip.js), so an
+    answer that lands after the live event of a later change does not draw over it."""

@@ -161,15 +161,14 @@ const Strip = (() => {
   // Alarms heard (events, answers to this page's acts) while GET /api/alarms is on its way: the
   // server may have answered before them, so they are applied again over its list.
   let heardWhileLoading = null;
-  // An alarm's clearing, acknowledgement and retirement happen once each and are never undone
-  // (server.console.alarms: a condition that comes back raises a new alarm), so a record that lacks
-  // one the page has already seen is older than what the page shows: an answer to this page's
-  // acknowledge or shelve that lands after the live event of a later change. Such a record is
-  // dropped. ``retired``: ids of alarms the page has seen leave the active list.
+  // Of two records of one alarm the one with the higher ``revision`` is newer (the server counts
+  // every change of an alarm: server.db.models.Alarm.revision). A record older than the one the page
+  // shows is an answer to this page's acknowledge or shelve that landed after the live event of a
+  // later change: it is dropped. ``retired``: ids of alarms the page has seen leave the active list
+  // (cleared and acknowledged, which is never undone).
   const retired = new Set();
   function isOlder(a, known) {
-    return retired.has(a.id) || (known !== undefined &&
-      ((known.cleared_at && !a.cleared_at) || (known.acked_at && !a.acked_at)));
+    return retired.has(a.id) || (known !== undefined && a.revision < known.revision);
   }
 
   function onAlarm(a) {
