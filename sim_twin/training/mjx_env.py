@@ -175,10 +175,13 @@ class EnvConfig:
         return asdict(self)
 
 
-def _landing_xy(p: jax.Array, v: jax.Array) -> jax.Array:
+def _landing_xy(p: jax.Array, v: jax.Array, t: jax.Array | None = None) -> jax.Array:
     """Where (x, y) (2,) a payload freed at ``p`` (3,) with ``v`` (3,) lands, m, machine frame:
-    drag-free flight to the height of its centre at touch-down (runtime.ballistics)."""
-    return ballistic_position(jnp, p, v, ballistic_impact_time(jnp, p, v, PAYLOAD_RADIUS_M))[:2]
+    drag-free flight to the height of its centre at touch-down (runtime.ballistics), taking ``t``
+    s (its flight time, computed when None)."""
+    if t is None:
+        t = ballistic_impact_time(jnp, p, v, PAYLOAD_RADIUS_M)
+    return ballistic_position(jnp, p, v, t)[:2]
 
 
 @jax.tree_util.register_dataclass
@@ -229,6 +232,7 @@ class EnvState:
             last physics step, m (drag-free flight, runtime.ballistics).
         release_slope: () how fast that landing point moved at the physics step the gripper
             opened, m/s (0 before the opening): the landing's sensitivity to the opening time.
+            Both are tracked only when the recipe weighs ``rewards.release_slope`` (else 0).
     """
 
     data: mjx.Data
@@ -435,7 +439,7 @@ class ThrowEnvCore:
             valve_delay=jnp.clip(valve_delay, 0, MAX_VALVE_DELAY_STEPS).astype(jnp.int32),
             dead_band=db[0] + frac_b * (db[1] - db[0]),
             vscale=vs[0] + frac_v * (vs[1] - vs[0]),
-            held_impact=_landing_xy(*self._held_payload(q, zeros6, grasp)),
+            held_impact=_landing_xy(*self._held_payload(q, zeros6, grasp)) if self.w.release_slope else jnp.zeros(2),
             release_slope=jnp.zeros(()),
         )
         return state, self.observe(state)
@@ -489,14 +493,16 @@ class ThrowEnvCore:
         p_held, v_held = self._held_payload(data.qpos, data.qvel, s.grasp)
         p0 = jnp.where(open_now, p_held, s.ball_p0)
         v0 = jnp.where(open_now, v_held, s.ball_v0)
-        t_flight = jnp.where(open_now, ballistic_impact_time(jnp, p0, v0, PAYLOAD_RADIUS_M), s.t_flight)
+        t_held = ballistic_impact_time(jnp, p_held, v_held, PAYLOAD_RADIUS_M)
+        t_flight = jnp.where(open_now, t_held, s.t_flight)
         t_open = jnp.where(s.opened, s.t_open + dt, s.t_open)
-        held_impact = _landing_xy(p_held, v_held)
-        slope = jnp.sqrt(jnp.sum((held_impact - s.held_impact) ** 2)) / dt
+        if self.w.release_slope:  # the recipe's constant: a run without the term computes none of it
+            held_impact = _landing_xy(p_held, v_held, t_held)
+            slope = jnp.sqrt(jnp.sum((held_impact - s.held_impact) ** 2)) / dt
+            s = s.replace(held_impact=held_impact, release_slope=jnp.where(open_now, slope, s.release_slope))
         return s.replace(
             data=data, countdown=countdown, opened=s.opened | open_now,
             ball_p0=p0, ball_v0=v0, t_flight=t_flight, t_open=t_open,
-            held_impact=held_impact, release_slope=jnp.where(open_now, slope, s.release_slope),
             phys_q=jnp.concatenate([data.qpos[None], s.phys_q[:-1]]),
             phys_qd=jnp.concatenate([data.qvel[None], s.phys_qd[:-1]]),
         )
