@@ -15,96 +15,99 @@ point, m/s, per throw:
 
 A landing that an opening-time error of dt moves by about speed x dt: the speed is the throw's
 sensitivity to release-timing errors (release-delay jitter, sensor latency). Also per throw: the
-release command and the opening after the swing's start (s) and the downrange error (m).
+release command and the opening after the throw's start (s) and the downrange error (m).
 
-SPEC is an ONNX policy (``policies/training/throw2d-scratch-u/throw2d.onnx``) or ``REV:RUN_DIR``, a
-run kept in git (``903fcd5:policies/training/throw2d-scratch-ab``), whose ``checkpoint.pt`` is exported
-with its ``config.json`` (sim_twin.training.export). Prints a table and writes JSON.
+SPEC is an ONNX policy (``policies/training/throw2d-scratch-u/throw2d.onnx``) or a run, a directory or
+``REV:RUN_DIR`` kept in git (``903fcd5:policies/training/throw2d-scratch-ab``; training_throw_style.RunSource),
+whose ``checkpoint.pt`` is exported with its ``config.json`` (sim_twin.training.export). Prints a table and writes JSON.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+
+from tests.benchmarks.training_throw_style import RunSource  # noqa: E402
+
 PHYSICS_PERIOD_S = 0.01
 
 
 def policy_file(spec: str, tmp: Path) -> Path:
-    """The ONNX file of ``spec`` (see the module docstring); a git run is exported into ``tmp``.
+    """The ONNX file of ``spec`` (see the module docstring); a run is exported into ``tmp``.
 
     Raises:
-        subprocess.CalledProcessError: ``REV:RUN_DIR`` names no checkpoint or config in git.
+        FileNotFoundError: the run has no checkpoint.pt or config.json.
     """
     if spec.endswith(".onnx"):
         return Path(spec)
     from sim_twin.training.export import export_checkpoint
 
-    rev, _, run = spec.partition(":")
-    name = Path(run).name
-    ckpt, cfg = tmp / f"{name}.pt", tmp / f"{name}.json"
-    ckpt.write_bytes(subprocess.run(["git", "show", f"{rev}:{run}/checkpoint.pt"], check=True, capture_output=True).stdout)
-    cfg.write_bytes(subprocess.run(["git", "show", f"{rev}:{run}/config.json"], check=True, capture_output=True).stdout)
-    return export_checkpoint(ckpt, json.loads(cfg.read_text()), tmp / f"{name}.onnx", name)
+    run = RunSource(spec, REPO)
+    ckpt = tmp / f"{run.name}.pt"
+    ckpt.write_bytes(run.read_bytes("checkpoint.pt"))
+    return export_checkpoint(ckpt, json.loads(run.read("config.json")), tmp / f"{run.name}.onnx", run.name)
 
 
-def landing_xy(p: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Drag-free landing point (2,) of a payload freed at p (3,) with v (3,), m (runtime.ballistics)."""
-    from runtime.ballistics import PAYLOAD_RADIUS_M, ballistic_impact_time, ballistic_position
+class _Recorder:
+    """A twin seen through sim_twin.twin.twin_machine.run_throw: keeps every state it hands out
+    (``states``, 10 ms apart after the first two, which the executor's start and first tick both
+    read) and the index of the state at which the release was first commanded (``command_at``)."""
 
-    return ballistic_position(np, p, v, ballistic_impact_time(np, p, v, PAYLOAD_RADIUS_M))[:2]
+    def __init__(self, twin):
+        self.twin, self.states, self.command_at = twin, [], None
+
+    def __getattr__(self, name):
+        return getattr(self.twin, name)
+
+    def state(self):
+        st = self.twin.state()
+        self.states.append(st)
+        return st
+
+    def step(self, valve_u, gripper_open):
+        if gripper_open and self.command_at is None:
+            self.command_at = len(self.states) - 1
+        return self.twin.step(valve_u, gripper_open)
 
 
 def one_throw(policy, check, seed: int, target_m: float) -> dict:
     """One nominal 2D throw at ``target_m``; the landing-point speeds and timings of the module docstring."""
+    from runtime.ballistics import ground_impact
     from runtime.executor import ExecutorConfig, ThrowExecutor
     from runtime.protocol.messages import ThrowRequest
     from sim_twin.evaluation.evaluate import target_on_axis
     from sim_twin.twin.engines import make_machine
     from sim_twin.twin.profile import RealityProfile
-    from sim_twin.twin.twin_machine import SimReset, TwinMachine
+    from sim_twin.twin.twin_machine import TwinMachine, run_throw
 
     sim = make_machine("mujoco", RealityProfile(), seed=seed)
     sim.reset(cabin_turn=0.0)
-    twin = TwinMachine(sim, "eval")
-    twin.apply_reset(SimReset(machine_id=twin.machine_id, stamp_s=0.0))
+    twin = _Recorder(TwinMachine(sim, "eval"))
     ex = ThrowExecutor({"2d": policy}, config=ExecutorConfig(), release_check=check)
     req = ThrowRequest(throw_id=f"s{seed}", machine_id="eval", mode="2d", target_m=target_on_axis("2d", target_m))
-    assert ex.start(req, twin.state()) is None
-    points, command_k, open_k, error = [], None, None, None
-    for k in range(3000):
-        st = twin.state()
-        if st.gripper_open and open_k is None:
-            open_k = k
-        if open_k is None:
-            points.append(landing_xy(np.asarray(st.payload_pos_m), np.asarray(st.payload_vel_mps)))
-        out = ex.tick(st)
-        if out.finished is not None:
-            break
-        if out.gripper_open and command_k is None:
-            command_k = k
-        report = twin.step(out.valve_u, out.gripper_open)
-        if report is not None:
-            done = ex.on_impact(report)
-            if done.finished is not None:
-                error = done.finished.downrange_error_m
-                break
-    if command_k is None or open_k is None or open_k < 2:
+    outcome, _ = run_throw(twin, ex, req)
+    open_at = next((i for i, st in enumerate(twin.states) if st.gripper_open), None)
+    if outcome is None or outcome.status != "landed" or twin.command_at is None or open_at is None:
         return {"seed": seed, "landed": False}
+    held = twin.states[:open_at]
+    points = [ground_impact(np.asarray(st.payload_pos_m), np.asarray(st.payload_vel_mps))[0][:2] for st in held]
     speed = lambda i, j: float(np.linalg.norm(points[j] - points[i]) / ((j - i) * PHYSICS_PERIOD_S))  # noqa: E731
-    return {"seed": seed, "landed": error is not None, "downrange_error_m": error,
-            "command_after_s": command_k * PHYSICS_PERIOD_S, "opening_after_s": open_k * PHYSICS_PERIOD_S,
-            "at_opening_mps": speed(open_k - 2, open_k - 1), "at_command_mps": speed(command_k - 1, command_k + 1)}
+    return {"seed": seed, "landed": True, "downrange_error_m": outcome.downrange_error_m,
+            "command_after_s": (twin.command_at - 1) * PHYSICS_PERIOD_S, "opening_after_s": (open_at - 1) * PHYSICS_PERIOD_S,
+            "at_opening_mps": speed(open_at - 2, open_at - 1), "at_command_mps": speed(twin.command_at - 1, twin.command_at + 1)}
 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("policies", nargs="+", help="NAME=SPEC (an ONNX file, or REV:RUN_DIR in git)")
+    ap.add_argument("policies", nargs="+", help="NAME=SPEC (an ONNX file, or a run: a directory or REV:RUN_DIR in git)")
     ap.add_argument("--target-m", type=float, default=10.0)
     ap.add_argument("--throws", type=int, default=12)
     ap.add_argument("--out", type=Path, required=True)

@@ -52,15 +52,19 @@ class RunSource:
 
     def read(self, rel: str) -> str:
         """Text of the run's file ``rel``. Raises FileNotFoundError where it has none."""
+        return self.read_bytes(rel).decode()
+
+    def read_bytes(self, rel: str) -> bytes:
+        """Contents of the run's file ``rel`` (a checkpoint, say). Raises FileNotFoundError where it has none."""
         if not self.rev:
             f = self.path / rel
             if not f.is_file():
                 raise FileNotFoundError(f"{self.spec}: no {rel}")
-            return f.read_text()
+            return f.read_bytes()
         r = subprocess.run(["git", "-C", str(self.repo), "show", f"{self.rev}:{self.path.as_posix()}/{rel}"],
-                           capture_output=True, text=True)
+                           capture_output=True)
         if r.returncode:
-            raise FileNotFoundError(f"{self.spec}: no {rel} ({r.stderr.strip()})")
+            raise FileNotFoundError(f"{self.spec}: no {rel} ({r.stderr.decode().strip()})")
         return r.stdout
 
     def list(self, rel: str) -> list[str]:
