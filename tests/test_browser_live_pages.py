@@ -261,19 +261,27 @@ def test_the_fleet_page_offers_the_rollback_the_server_would_make_once_a_promoti
     page.locator("#fleet tbody tr[data-machine-id=m1] button.rollback-2d", has_text="roll back to pA").wait_for(timeout=20_000)
 
 
+def _banner_act_held(browser, base, app, key: str, title: str, act: str):  # noqa: F811
+    """Raise alarm ``key`` (``title``), open the fleet page and press the banner's ``act`` button
+    ("ack" or "shelve") with its answer held (the server has acted; the page has not heard it).
+    Returns (page, alarm, held)."""
+    alarm = app.state.alarms.raise_alarm(key, "m1", "high", "machine_fault", title, "text", "todo")
+    page = _page(browser, base, "fleet.html")
+    page.locator("#alarm-top", has_text=title).wait_for()
+    held = Held()
+    page.route(f"**/api/alarms/{alarm['id']}/{act}", held)
+    page.click("#alarm-toggle")
+    page.click(f"#alarms .alarm-{act}")
+    held.wait(page)
+    return page, alarm, held
+
+
 def test_the_banner_drops_an_acknowledgement_answer_older_than_the_alarms_end(live, browser):  # noqa: F811
     """The answer to the banner's Acknowledge is held back while the condition clears: the alarm,
     cleared and acknowledged, leaves the active list (its live event empties the banner); the older
     answer (active, acknowledged) that lands afterwards must not bring it back."""
     base, app = live
-    alarm = app.state.alarms.raise_alarm("k:stale-ack", "m1", "high", "machine_fault", "m1: stale ack", "text", "todo")
-    page = _page(browser, base, "fleet.html")
-    page.locator("#alarm-top", has_text="m1: stale ack").wait_for()
-    held = Held()
-    page.route(f"**/api/alarms/{alarm['id']}/ack", held)
-    page.click("#alarm-toggle")
-    page.click("#alarms .alarm-ack")
-    held.wait(page)  # the server has acknowledged it; the page has not heard the answer yet
+    page, _, held = _banner_act_held(browser, base, app, "k:stale-ack", "m1: stale ack", "ack")
     app.state.alarms.clear("k:stale-ack")  # cleared and acknowledged: history only
     page.locator("#alarm-banner").wait_for(state="hidden")
     held.release(page)
@@ -286,16 +294,8 @@ def test_the_banner_drops_a_shelving_answer_older_than_the_unshelving_it_heard(l
     older answer (shelved) that lands afterwards must not hide it again (the records' revisions
     order them)."""
     base, app = live
-    alarm = app.state.alarms.raise_alarm("k:stale-shelve", "m1", "high", "machine_fault", "m1: stale shelve",
-                                         "text", "todo")
-    page = _page(browser, base, "fleet.html")
-    page.locator("#alarm-top", has_text="m1: stale shelve").wait_for()
-    held = Held()
-    page.route(f"**/api/alarms/{alarm['id']}/shelve", held)
-    page.click("#alarm-toggle")
-    page.click("#alarms .alarm-shelve")
-    held.wait(page)  # shelved on the server; its live event hides the alarm
-    page.locator("#alarm-banner").wait_for(state="hidden")
+    page, alarm, held = _banner_act_held(browser, base, app, "k:stale-shelve", "m1: stale shelve", "shelve")
+    page.locator("#alarm-banner").wait_for(state="hidden")  # the shelving's live event hides it
     app.state.alarms.unshelve(alarm["id"], "someone-else")
     page.locator("#alarm-top", has_text="m1: stale shelve").wait_for()
     held.release(page)
