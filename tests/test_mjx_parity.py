@@ -166,3 +166,27 @@ def test_batch_autoreset_equals_the_vmapped_autoreset(reset_slots, n_left):
 def test_reset_slots_outside_a_fraction_are_refused():
     with pytest.raises(ValueError, match="reset_slots"):
         ThrowEnvCore(EnvConfig.from_dict(json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]), reset_slots=1.5)
+
+
+def test_joint_limit_constraints_do_not_change_training_trajectories():
+    """The training model drops the MJCF's joint-limit constraints (ThrowEnvCore's joint_limits):
+    an episode fails within 1 mrad / 1 mm of a range and the cylinders stop at the same ends, so
+    random commands that drive the joints about give the same states with and without them."""
+    cfg = EnvConfig.from_dict(json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"])
+    keys = jax.random.split(jax.random.PRNGKey(11), 24)
+    actions = jnp.clip(0.9 * jax.random.normal(jax.random.PRNGKey(12), (40, 24, 4)), -1.0, 1.0).at[..., -1].set(-1.0)
+    runs = []
+    for limits in (True, False):
+        core = ThrowEnvCore(cfg, joint_limits=limits)
+        assert core.joint_limits is limits
+        state, _ = jax.jit(jax.vmap(core.reset))(keys)
+        step = jax.jit(jax.vmap(core.step))
+        qs = []
+        for a in actions:
+            state, *_ = step(state, a)
+            qs.append(np.asarray(state.data.qpos))
+        runs.append(np.stack(qs))
+    with_limits, without = runs
+    np.testing.assert_allclose(without, with_limits, atol=1e-6)
+    travel = with_limits[..., 1:4].max(axis=(0, 1)) - with_limits[..., 1:4].min(axis=(0, 1))
+    assert (travel > 0.2).all()  # boom, dipper and telescope really moved

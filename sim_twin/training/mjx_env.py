@@ -53,6 +53,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 from mujoco import mjx
 
@@ -175,6 +176,24 @@ class EnvConfig:
         return asdict(self)
 
 
+def _graph_mode_arg(impl: str, graph_mode: str | None) -> dict:
+    """``{"graph_mode": warp.JaxCallableGraphMode.<graph_mode>}`` for mjx.put_model, or {} (MJX's
+    default; always for ``impl="jax"``).
+
+    Raises:
+        ValueError: an unknown mode name.
+    """
+    if impl != "warp" or graph_mode is None:
+        return {}
+    import warp as wp
+
+    try:
+        return {"graph_mode": getattr(wp.JaxCallableGraphMode, graph_mode)}
+    except AttributeError:
+        names = [n for n in dir(wp.JaxCallableGraphMode) if n.isupper()]
+        raise ValueError(f"unknown graph_mode {graph_mode!r}; known: {names}") from None
+
+
 def _landing_xy(p: jax.Array, v: jax.Array, t: jax.Array | None = None) -> jax.Array:
     """Where (x, y) (2,) a payload freed at ``p`` (3,) with ``v`` (3,) lands, m, machine frame:
     drag-free flight to the height of its centre at touch-down (runtime.ballistics), taking ``t``
@@ -285,6 +304,19 @@ class ThrowEnvCore:
         impl: MJX implementation, "jax" or "warp".
         unroll_substeps: unroll the 8 physics substeps of a control step into straight-line code
             (``jax.lax.fori_loop(..., unroll=True)``) instead of a loop; the same arithmetic.
+        joint_limits: keep the MJCF's joint-limit constraints (boom, dipper, telescope). Off by
+            default: a training episode fails when one of these joints comes within 1 mrad / 1 mm of
+            its range (runtime.machine.clearance_violations) and the cylinders stop at the same
+            ends (sim_twin.twin.hydraulics.cylinder_step), so a limit constraint could act only
+            in a control step that ends its episode as failed; without them a physics step has no
+            constraint rows and MJX skips the constraint solver (the same trajectories:
+            tests/test_mjx_parity.py; the speed: tests/benchmarks/bench_training_throughput.py
+            ``--joint-limits``).
+        graph_mode: MJX's CUDA-graph mode for ``impl="warp"`` (a name of
+            ``warp.JaxCallableGraphMode``: "WARP", MJX's default on a GPU, captures each MuJoCo
+            Warp call's kernels into a CUDA graph and replays it; "WARP_STAGED" also stages the
+            call's buffers so that one graph serves every call; "NONE" launches the kernels one
+            by one); None: MJX's default. Ignored for ``impl="jax"``.
         reset_slots: None (default) resets the whole batch in every
             :meth:`step_autoreset_batch` and keeps the fresh state where an episode ended; a
             fraction in (0, 1) resets only the environments that finished, gathered into that
@@ -298,18 +330,23 @@ class ThrowEnvCore:
         ValueError: ``reset_slots`` outside (0, 1).
     """
 
-    def __init__(self, cfg: EnvConfig, impl: str = "jax", reset_slots: float | None = None, unroll_substeps: bool = False):
+    def __init__(self, cfg: EnvConfig, impl: str = "jax", reset_slots: float | None = None, unroll_substeps: bool = False,
+                 joint_limits: bool = False, graph_mode: str | None = None):
         if reset_slots is not None and not 0.0 < reset_slots < 1.0:
             raise ValueError(f"reset_slots must be a fraction in (0, 1) or None, got {reset_slots!r}")
         self.cfg = cfg
         self.impl = impl
         self.reset_slots = reset_slots
         self.unroll_substeps = unroll_substeps
+        self.joint_limits = joint_limits
+        self.graph_mode = graph_mode
         self.mode = cfg.mode
         self.num_obs = observation_size(cfg.mode)
         self.num_act = num_actions(cfg.mode)
         mj_model = load_model()
-        self.model = mjx.put_model(mj_model, impl=impl)
+        if not joint_limits:
+            mj_model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_LIMIT
+        self.model = mjx.put_model(mj_model, impl=impl, **_graph_mode_arg(impl, graph_mode))
         self.gripper_id = mj_model.body(GRIPPER_BODY).id
         self.data0 = mjx.make_data(mj_model, impl=impl)
         self.inertia = jnp.asarray(passive_inertia(), dtype=jnp.float32)

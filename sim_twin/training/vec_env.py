@@ -43,7 +43,7 @@ class MjxThrowVecEnv(VecEnv):
         impl: MJX implementation, "jax" or "warp".
         reset_slots: see :class:`sim_twin.training.mjx_env.ThrowEnvCore` (None: reset the whole batch each
             step; a fraction: reset only the finished environments).
-        unroll_substeps: see :class:`sim_twin.training.mjx_env.ThrowEnvCore`.
+        unroll_substeps, joint_limits, graph_mode: see :class:`sim_twin.training.mjx_env.ThrowEnvCore`.
 
     Shapes: observations ``policy`` (num_envs, observation_size(mode)), ``privileged``
     (num_envs, PRIVILEGED_SIZE); actions (num_envs, num_actions(mode));
@@ -51,8 +51,10 @@ class MjxThrowVecEnv(VecEnv):
     """
 
     def __init__(self, cfg: EnvConfig, num_envs: int, seed: int = 0, device: str = "cpu", impl: str = "jax",
-                 reset_slots: float | None = None, unroll_substeps: bool = False):
-        self._build(ThrowEnvCore(cfg, impl=impl, reset_slots=reset_slots, unroll_substeps=unroll_substeps))
+                 reset_slots: float | None = None, unroll_substeps: bool = False, joint_limits: bool = False,
+                 graph_mode: str | None = None):
+        self._build(ThrowEnvCore(cfg, impl=impl, reset_slots=reset_slots, unroll_substeps=unroll_substeps,
+                                 joint_limits=joint_limits, graph_mode=graph_mode))
         self.num_envs = num_envs
         self.num_actions = self.core.num_act
         self.max_episode_length = cfg.max_steps
@@ -76,7 +78,9 @@ class MjxThrowVecEnv(VecEnv):
         if cfg.mode != self.core.mode or cfg.max_steps != self.max_episode_length:
             raise ValueError(f"reconfigure keeps mode and episode length ({self.core.mode}, {self.max_episode_length} steps); "
                              f"got {cfg.mode}, {cfg.max_steps}")
-        self._build(ThrowEnvCore(cfg, impl=self.core.impl, reset_slots=self.core.reset_slots, unroll_substeps=self.core.unroll_substeps))
+        c = self.core
+        self._build(ThrowEnvCore(cfg, impl=c.impl, reset_slots=c.reset_slots, unroll_substeps=c.unroll_substeps,
+                                 joint_limits=c.joint_limits, graph_mode=c.graph_mode))
         self._priv = self._privileged(self.state)
 
     def _build(self, core: ThrowEnvCore) -> None:

@@ -24,6 +24,14 @@ capture loops and conditionals, and joins the rows into one table. ``env_step_on
 ``env_reset_only_per_s`` time the batch's control step without the auto-reset and the batch's
 reset alone, so that the environment's time splits into physics, its own work and the reset.
 
+``--joint-limits on,off`` compares the training model with and without the MJCF's joint-limit
+constraints (``ThrowEnvCore``'s ``joint_limits``; training runs without them), ``--graph-mode``
+MJX's CUDA-graph modes of the Warp call (``default``, ``WARP``, ``WARP_STAGED``, ``NONE``; each row
+records the mode it ran with in ``graph_mode``), and ``--update fp32,tf32,bf16`` the PPO update's
+arithmetic: float32 (the recipe's), TF32 matrix products (``torch.backends.cuda.matmul.allow_tf32``)
+and rsl_rl's bfloat16 autocast (``algorithm.use_mixed_precision``); every update setting of one
+environment configuration shares its environment rates.
+
 ``--reset-slots`` compares the auto-reset of the whole batch at every step (``all``) with resetting
 only the finished environments gathered into a fraction of the batch (``ThrowEnvCore``'s
 ``reset_slots``), side by side in one run.
@@ -46,15 +54,19 @@ import traceback
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 
-def physics_rate(impl: str, n: int, steps: int) -> float:
-    """Bare mjx.step of the MJCF over ``n`` worlds: physics steps per second."""
+def physics_rate(impl: str, n: int, steps: int, joint_limits: bool = True) -> float:
+    """Bare mjx.step of the MJCF (without its joint-limit constraints unless ``joint_limits``)
+    over ``n`` worlds: physics steps per second."""
     import jax
     import jax.numpy as jnp
+    import mujoco
     from mujoco import mjx
 
     from sim_twin.twin.model import load_model
 
     m = load_model()
+    if not joint_limits:
+        m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_LIMIT
     mx = mjx.put_model(m, impl=impl)
 
     @jax.jit
@@ -92,20 +104,29 @@ def _rate(fn, args, n: int, k: int = 32) -> float:
     return n * k / (time.perf_counter() - t0)
 
 
+UPDATES = ("fp32", "tf32", "bf16")
+"""The PPO update's arithmetic settings ``--update`` compares (module docstring); ``+compile``
+after one (e.g. ``bf16+compile``) also compiles actor and critic with ``torch.compile`` (rsl_rl's
+``torch_compile_mode`` "default")."""
+
+
 def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int, reset_slots: float | None = None,
-            unroll: bool = False, xla_flags: str = "default") -> dict:
+            unroll: bool = False, xla_flags: str = "default", joint_limits: bool = False, graph_mode: str | None = None,
+            updates: tuple[str, ...] = ("fp32",)) -> list[dict]:
+    """One environment configuration: its rates, then rsl_rl's rollout and PPO iteration once per
+    setting in ``updates`` (UPDATES); one row per update setting, the environment's rates in each."""
     import jax
     import torch
-    from rsl_rl.runners import OnPolicyRunner
 
     from sim_twin.training.mjx_env import EnvConfig
     from sim_twin.training.config import load_config
     from sim_twin.training.vec_env import MjxThrowVecEnv
 
-    row = {"mode": mode, "impl": impl, "num_envs": n, "reset_slots": reset_slots, "unroll": unroll, "xla_flags": xla_flags}
+    row = {"mode": mode, "impl": impl, "num_envs": n, "reset_slots": reset_slots, "unroll": unroll, "xla_flags": xla_flags,
+           "joint_limits": joint_limits}
     try:
         if physics_steps:
-            row["physics_steps_per_s"] = physics_rate(impl, n, physics_steps)
+            row["physics_steps_per_s"] = physics_rate(impl, n, physics_steps, joint_limits)
     except Exception as e:  # noqa: BLE001 - reported, the benchmark goes on
         row["physics_error"] = f"{type(e).__name__}: {e}"[:400]
     try:
@@ -113,7 +134,13 @@ def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int, r
         device = "cuda" if torch.cuda.is_available() else "cpu"
         t0 = time.perf_counter()
         env = MjxThrowVecEnv(EnvConfig.from_dict(cfg["env"]), n, seed=0, device=device, impl=impl, reset_slots=reset_slots,
-                             unroll_substeps=unroll)
+                             unroll_substeps=unroll, joint_limits=joint_limits, graph_mode=graph_mode)
+        gm = env.core.model.opt._impl.graph_mode if impl == "warp" else None
+        if gm is not None:
+            import warp as wp
+
+            gm = wp.JaxCallableGraphMode(int(gm)).name
+        row["graph_mode"] = gm
         a = jax.numpy.zeros((n, env.num_actions), jax.numpy.float32)
         out = env._step(env.state, a)
         jax.block_until_ready(out)
@@ -123,9 +150,36 @@ def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int, r
         keys = jax.random.split(jax.random.PRNGKey(1), n)
         reset = jax.jit(jax.vmap(env.core.reset))
         row["env_reset_only_per_s"] = _rate(lambda _s, k: (reset(k)[0],), (None, keys), n)
+    except Exception as e:  # noqa: BLE001
+        row["error"] = f"{type(e).__name__}: {e}"[:400]
+        traceback.print_exc()
+        return [row]
+    rows = []
+    for update in updates:
+        rows.append(_learn_rates({**row, "update": update}, env, cfg, device, iterations))
+    del env
+    return rows
 
-        runner = OnPolicyRunner(env, copy.deepcopy(cfg["runner"]), log_dir=None, device=device)
+
+def _learn_rates(row: dict, env, cfg: dict, device: str, iterations: int) -> dict:
+    """rsl_rl's rollout (inference + environment + storage) and whole PPO iterations on ``env``
+    with the update setting ``row["update"]``: the rates into ``row``."""
+    import torch
+    from rsl_rl.runners import OnPolicyRunner
+
+    update, _, extra = row["update"].partition("+")
+    if update not in UPDATES or extra not in ("", "compile"):
+        raise ValueError(f"unknown update setting {row['update']!r}; known: {UPDATES}, each optionally with +compile")
+    runner_cfg = copy.deepcopy(cfg["runner"])
+    runner_cfg["algorithm"]["use_mixed_precision"] = update == "bf16"
+    if extra:
+        runner_cfg["torch_compile_mode"] = "default"
+    tf32 = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = update == "tf32"
+    try:
+        runner = OnPolicyRunner(env, runner_cfg, log_dir=None, device=device)
         T = cfg["runner"]["num_steps_per_env"]
+        n = env.num_envs
         alg = runner.alg
 
         def rollout():
@@ -156,10 +210,12 @@ def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int, r
         row["rollout_s"] = n * T / row["step_infer_steps_per_s"]
         row["update_s"] = row["iteration_s"] - row["rollout_s"]
         row["device"] = torch.cuda.get_device_name(0) if device == "cuda" else "cpu"
-        del runner, env
+        del runner
     except Exception as e:  # noqa: BLE001
         row["error"] = f"{type(e).__name__}: {e}"[:400]
         traceback.print_exc()
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = tf32
     return row
 
 
@@ -176,6 +232,10 @@ def main() -> None:
     p.add_argument("--physics-steps", type=int, default=200)
     p.add_argument("--reset-slots", default="all", help="comma-separated: 'all' and/or fractions in (0, 1)")
     p.add_argument("--unroll", default="off", help="comma-separated: off and/or on (unrolled physics substeps)")
+    p.add_argument("--joint-limits", default="off", help="comma-separated: off (training's model) and/or on (the MJCF's limits)")
+    p.add_argument("--graph-mode", default="default",
+                   help="comma-separated MJX graph modes of the Warp call: default, WARP, WARP_STAGED, NONE (warp rows only)")
+    p.add_argument("--update", default="fp32", help=f"comma-separated PPO update arithmetic: {', '.join(UPDATES)}, each optionally +compile")
     p.add_argument("--xla-flags", default="default",
                    help="';'-separated sets of XLA flags, one process each ('default': none)")
     p.add_argument("--out", default=None)
@@ -192,29 +252,41 @@ def main() -> None:
     if a.child:
         print("ROWS " + json.dumps(rows), flush=True)
         return
-    print("impl   envs  reset unroll  physics M/s  env M/s  step-only  reset-only  step+infer M/s  +PPO M/s  rollout s  update s  XLA flags")
+    print("impl   envs  reset unroll limits graph        update        physics M/s  env M/s  step-only  reset-only  step+infer M/s  +PPO M/s  "
+          "rollout s  update s  XLA flags")
     for r in rows:
         reset = "all" if r["reset_slots"] is None else f"{r['reset_slots']:g}"
-        print(f"{r['impl']:5} {r['num_envs']:6} {reset:>6} {'on' if r.get('unroll') else 'off':>6} {_f(r.get('physics_steps_per_s'))}     "
+        graph = (r.get("graph_mode") or "-").split(".")[-1]
+        print(f"{r['impl']:5} {r['num_envs']:6} {reset:>6} {'on' if r.get('unroll') else 'off':>6} "
+              f"{'on' if r.get('joint_limits') else 'off':>6} {graph:12} {r.get('update', '-'):12} {_f(r.get('physics_steps_per_s'))}     "
               f"{_f(r.get('env_steps_per_s'))} {_f(r.get('env_step_only_per_s'))}  {_f(r.get('env_reset_only_per_s'))}   "
               f"{_f(r.get('step_infer_steps_per_s'))}       {_f(r.get('learn_steps_per_s'))}  {_f(r.get('rollout_s'), 1)}  "
               f"{_f(r.get('update_s'), 1)}  {r.get('xla_flags', '')} {r.get('error', '') or r.get('physics_error', '')}")
 
 
 def _measure_all(a, xla_flags: str) -> list[dict]:
-    """Every implementation x environment count x reset x unroll of the arguments, in this process."""
+    """Every implementation x environment count x joint limits x graph mode x reset x unroll of
+    the arguments (each with every update setting), in this process."""
     slots = [None if x == "all" else float(x) for x in a.reset_slots.split(",")]
     unrolls = [u == "on" for u in a.unroll.split(",")]
-    rows = []
+    limits = [x == "on" for x in a.joint_limits.split(",")]
+    updates = tuple(a.update.split(","))
+    rows: list[dict] = []
     for impl in a.impls.split(","):
+        modes = [None if g == "default" else g for g in a.graph_mode.split(",")] if impl == "warp" else [None]
         for n in a.envs.split(","):
-            first = True
-            for sl in slots:
-                for un in unrolls:  # the bare physics rate depends on neither the reset nor the unroll: once
-                    rows.append(measure(a.mode, impl, int(n), a.iterations, a.physics_steps if first else 0, sl, un, xla_flags))
-                    first = False
-                    print(json.dumps(rows[-1]), flush=True)
-                    _save(a.out, rows)
+            for lim in limits:
+                first = True  # the bare physics rate depends on the limits only: once per limit setting
+                for gm in modes:
+                    for sl in slots:
+                        for un in unrolls:
+                            new = measure(a.mode, impl, int(n), a.iterations, a.physics_steps if first else 0, sl, un, xla_flags,
+                                          lim, gm, updates)
+                            first = False
+                            rows += new
+                            for r in new:
+                                print(json.dumps(r), flush=True)
+                            _save(a.out, rows)
     return rows
 
 
