@@ -17,9 +17,9 @@ jnp = jax.numpy
 
 from runtime.machine import forward_kinematics  # noqa: E402
 from runtime.observation import build_observation, observation_size  # noqa: E402
+from sim_twin.training.config import CONFIG_DIR  # noqa: E402
 from sim_twin.training.mjx_env import EnvConfig, ThrowEnvCore  # noqa: E402
 from sim_twin.twin.model import load_model  # noqa: E402
-from sim_twin.training.config import CONFIG_DIR  # noqa: E402
 
 
 @pytest.fixture(scope="module", params=["2d", "3d"])

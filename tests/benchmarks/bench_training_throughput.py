@@ -118,8 +118,8 @@ def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int, r
     import jax
     import torch
 
-    from sim_twin.training.mjx_env import EnvConfig
     from sim_twin.training.config import load_config
+    from sim_twin.training.mjx_env import EnvConfig
     from sim_twin.training.vec_env import MjxThrowVecEnv
 
     row = {"mode": mode, "impl": impl, "num_envs": n, "reset_slots": reset_slots, "unroll": unroll, "xla_flags": xla_flags,
