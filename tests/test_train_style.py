@@ -14,10 +14,14 @@ ROOT = Path(__file__).resolve().parents[1]
 RUNS = ROOT / "policies" / "training"
 ARCHIVED_AT = "903fcd522fe5a44b5c6daa7d89c5afda847bee06"
 """The last commit with the archived runs -ab and -ad (policies/training/ARCHIVE.md)."""
+NO_LIMITS_AT = "b334ef6655c3b3201352094f53724193351729e4"
+"""The last commit with the archived run -aj (policies/training/ARCHIVE.md)."""
 COMMITTED_65536 = ["throw2d-scratch-u", "throw2d-scratch-aa", f"{ARCHIVED_AT}:policies/training/throw2d-scratch-ab",
-                   "throw2d-scratch-ac", f"{ARCHIVED_AT}:policies/training/throw2d-scratch-ad"]
-"""The committed 2D from-scratch runs with 65536 environments and γ 0.998 or 0.999: in the tree, or
-``REV:PATH`` for those kept in git history only."""
+                   "throw2d-scratch-ac", f"{ARCHIVED_AT}:policies/training/throw2d-scratch-ad",
+                   "throw2d-scratch-ai", f"{NO_LIMITS_AT}:policies/training/throw2d-scratch-aj"]
+"""The committed 2D from-scratch runs with 65536 environments and γ 0.998 or 0.999 (-ai and -aj on the
+training model without joint-limit constraints): in the tree, or ``REV:PATH`` for those kept in git
+history only."""
 
 
 def _matrix(duration_s: float, sigma_m: float = 0.1) -> dict:
@@ -78,8 +82,9 @@ def test_the_threshold_separates_the_two_styles():
 @pytest.mark.parametrize("name", COMMITTED_65536)
 def test_on_the_committed_runs_the_long_style_is_the_one_that_met_the_bars(name):
     if ":" in name:
-        if subprocess.run(["git", "-C", str(ROOT), "cat-file", "-e", ARCHIVED_AT], capture_output=True).returncode:
-            pytest.skip(f"{ARCHIVED_AT[:7]} is not in this clone's history (a shallow clone)")
+        rev = name.split(":", 1)[0]
+        if subprocess.run(["git", "-C", str(ROOT), "cat-file", "-e", rev], capture_output=True).returncode:
+            pytest.skip(f"{rev[:7]} is not in this clone's history (a shallow clone)")
         row = run_style(RunSource(name, repo=ROOT))
     else:
         row = run_style(RunSource(str(RUNS / name)))
