@@ -170,23 +170,40 @@ def test_reset_slots_outside_a_fraction_are_refused():
 
 def test_joint_limit_constraints_do_not_change_training_trajectories():
     """The training model drops the MJCF's joint-limit constraints (ThrowEnvCore's joint_limits):
-    an episode fails within 1 mrad / 1 mm of a range and the cylinders stop at the same ends, so
-    random commands that drive the joints about give the same states with and without them."""
+    an episode fails within 1 mrad / 1 mm of a range and the cylinders stop at the same ends. Random
+    commands, and full commands that drive the boom, dipper and telescope towards each end, give the
+    same states with and without the constraints up to each episode's first failure, and the driven
+    joints come close to their ends (the controller's limit ramp slows them there)."""
+    from runtime.machine import JOINT_LOWER, JOINT_UPPER
+
     cfg = EnvConfig.from_dict(json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"])
-    keys = jax.random.split(jax.random.PRNGKey(11), 24)
-    actions = jnp.clip(0.9 * jax.random.normal(jax.random.PRNGKey(12), (40, 24, 4)), -1.0, 1.0).at[..., -1].set(-1.0)
+    n_random, steps = 10, 60
+    driven = [(j, sign) for j in (0, 1, 2) for sign in (1.0, -1.0)]  # action j drives active joint j + 1
+    n = n_random + len(driven)
+    keys = jax.random.split(jax.random.PRNGKey(11), n)
+    rand = np.clip(0.9 * np.asarray(jax.random.normal(jax.random.PRNGKey(12), (steps, n_random, 4))), -1.0, 1.0)
+    push = np.zeros((steps, len(driven), 4))
+    for i, (j, sign) in enumerate(driven):
+        push[:, i, j] = sign
+    actions = jnp.asarray(np.concatenate([rand, push], axis=1), jnp.float32).at[..., -1].set(-1.0)  # never release
     runs = []
     for limits in (True, False):
         core = ThrowEnvCore(cfg, joint_limits=limits)
         assert core.joint_limits is limits
         state, _ = jax.jit(jax.vmap(core.reset))(keys)
         step = jax.jit(jax.vmap(core.step))
-        qs = []
+        qs, failed = [], []
         for a in actions:
-            state, *_ = step(state, a)
+            state, _, _, _, _, info = step(state, a)
             qs.append(np.asarray(state.data.qpos))
-        runs.append(np.stack(qs))
-    with_limits, without = runs
-    np.testing.assert_allclose(without, with_limits, atol=1e-6)
-    travel = with_limits[..., 1:4].max(axis=(0, 1)) - with_limits[..., 1:4].min(axis=(0, 1))
+            failed.append(np.asarray(info["failed"]))
+        runs.append((np.stack(qs), np.stack(failed)))
+    (q_on, failed_on), (q_off, _) = runs
+    for i in range(n):  # up to and including the first failure (after it the episode is over)
+        end = int(np.argmax(failed_on[:, i])) + 1 if failed_on[:, i].any() else steps
+        np.testing.assert_allclose(q_off[:end, i], q_on[:end, i], atol=1e-6)
+    travel = q_on[:, :n_random, 1:4].max(axis=(0, 1)) - q_on[:, :n_random, 1:4].min(axis=(0, 1))
     assert (travel > 0.2).all()  # boom, dipper and telescope really moved
+    lo, hi = np.asarray(JOINT_LOWER[1:4]), np.asarray(JOINT_UPPER[1:4])
+    margin = np.minimum(q_on[:, n_random:, 1:4] - lo, hi - q_on[:, n_random:, 1:4]).min(axis=(0, 1))
+    assert (margin < 0.1).sum() >= 2, margin  # the pushes took joints to near their ends

@@ -308,7 +308,9 @@ class ThrowEnvCore:
             default: a training episode fails when one of these joints comes within 1 mrad / 1 mm of
             its range (runtime.machine.clearance_violations) and the cylinders stop at the same
             ends (sim_twin.twin.hydraulics.cylinder_step), so a limit constraint could act only
-            in a control step that ends its episode as failed; without them a physics step has no
+            where a joint overshoots an end, which ends the episode as failed unless the joint is
+            back more than 1 mrad / 1 mm inside by the end of that control step (the parity test
+            finds no such case); without them a physics step has no
             constraint rows and MJX skips the constraint solver (the same trajectories:
             tests/test_mjx_parity.py; the speed: tests/benchmarks/bench_training_throughput.py
             ``--joint-limits``).
