@@ -207,3 +207,11 @@ def test_joint_limit_constraints_do_not_change_training_trajectories():
     lo, hi = np.asarray(JOINT_LOWER[1:4]), np.asarray(JOINT_UPPER[1:4])
     margin = np.minimum(q_on[:, n_random:, 1:4] - lo, hi - q_on[:, n_random:, 1:4]).min(axis=(0, 1))
     assert (margin < 0.1).sum() >= 2, margin  # the pushes took joints to near their ends
+
+
+def test_a_graph_mode_is_checked_and_only_passed_to_the_warp_implementation():
+    from sim_twin.training.mjx_env import _graph_mode_arg
+
+    assert _graph_mode_arg("jax", "WARP") == {} and _graph_mode_arg("warp", None) == {}
+    with pytest.raises(ValueError, match="unknown graph_mode 'BOGUS'"):
+        _graph_mode_arg("warp", "BOGUS")

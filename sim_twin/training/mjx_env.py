@@ -185,13 +185,12 @@ def _graph_mode_arg(impl: str, graph_mode: str | None) -> dict:
     """
     if impl != "warp" or graph_mode is None:
         return {}
-    import warp as wp
+    from mujoco.mjx.warp.types import GraphMode  # warp.JaxCallableGraphMode where warp-lang is installed
 
-    try:
-        return {"graph_mode": getattr(wp.JaxCallableGraphMode, graph_mode)}
-    except AttributeError:
-        names = [n for n in dir(wp.JaxCallableGraphMode) if n.isupper()]
-        raise ValueError(f"unknown graph_mode {graph_mode!r}; known: {names}") from None
+    names = [m.name for m in GraphMode] if isinstance(GraphMode, type) and GraphMode is not int else []
+    if graph_mode not in names:
+        raise ValueError(f"unknown graph_mode {graph_mode!r}; known: {names or 'none (warp-lang is not installed)'}")
+    return {"graph_mode": GraphMode[graph_mode]}
 
 
 def _landing_xy(p: jax.Array, v: jax.Array, t: jax.Array | None = None) -> jax.Array:
