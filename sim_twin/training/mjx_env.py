@@ -1,8 +1,9 @@
 """MJX training environment for the throwing task (paper Sec. III-B to III-F).
 
-Physics is MuJoCo's (MJX) on the same MJCF as the CPU twin. The observation and the action
-decoding are runtime.observation's, the kinematics and terminations runtime.machine's, the
-passive friction and ballistics sim_twin.twin.physics': one definition shared with the machine.
+Physics is MuJoCo's (MJX) on the same MJCF as the CPU twin, without its joint-limit constraints
+(``ThrowEnvCore``'s ``joint_limits`` says why). The observation and the action decoding are
+runtime.observation's, the kinematics and terminations runtime.machine's, the passive friction and
+ballistics sim_twin.twin.physics': one definition shared with the machine.
 
 Per control step (12.5 Hz) the policy's action is decoded into joint-velocity references and the
 release flag; 8 physics steps (100 Hz) follow, in each of which the *training joint-velocity
