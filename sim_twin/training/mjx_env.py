@@ -186,12 +186,13 @@ def _graph_mode_arg(impl: str, graph_mode: str | None) -> dict:
     """
     if impl != "warp" or graph_mode is None:
         return {}
-    from mujoco.mjx.warp.types import GraphMode  # warp.JaxCallableGraphMode where warp-lang is installed
+    from mujoco.mjx.warp import types as mjxw_types
 
-    names = [m.name for m in GraphMode] if isinstance(GraphMode, type) and GraphMode is not int else []
+    modes: Any = mjxw_types.GraphMode  # warp.JaxCallableGraphMode where warp-lang is installed, else int
+    names = [] if modes is int else [m.name for m in modes]
     if graph_mode not in names:
         raise ValueError(f"unknown graph_mode {graph_mode!r}; known: {names or 'none (warp-lang is not installed)'}")
-    return {"graph_mode": GraphMode[graph_mode]}
+    return {"graph_mode": modes[graph_mode]}
 
 
 def _landing_xy(p: jax.Array, v: jax.Array, t: jax.Array | None = None) -> jax.Array:
