@@ -177,6 +177,15 @@ class EnvConfig:
         return asdict(self)
 
 
+def training_model(joint_limits: bool = False) -> mujoco.MjModel:
+    """The MJCF the training physics runs (sim_twin.twin.model.load_model), without its joint-limit
+    constraints unless ``joint_limits`` (``ThrowEnvCore``'s ``joint_limits`` says why)."""
+    m = load_model()
+    if not joint_limits:
+        m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_LIMIT
+    return m
+
+
 def _graph_mode_arg(impl: str, graph_mode: str | None) -> dict:
     """``{"graph_mode": warp.JaxCallableGraphMode.<graph_mode>}`` for mjx.put_model, or {} (MJX's
     default; always for ``impl="jax"``).
@@ -346,9 +355,7 @@ class ThrowEnvCore:
         self.mode = cfg.mode
         self.num_obs = observation_size(cfg.mode)
         self.num_act = num_actions(cfg.mode)
-        mj_model = load_model()
-        if not joint_limits:
-            mj_model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_LIMIT
+        mj_model = training_model(joint_limits)
         self.model = mjx.put_model(mj_model, impl=impl, **_graph_mode_arg(impl, graph_mode))
         self.gripper_id = mj_model.body(GRIPPER_BODY).id
         self.data0 = mjx.make_data(mj_model, impl=impl)

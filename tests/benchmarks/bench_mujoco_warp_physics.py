@@ -26,15 +26,12 @@ LAUNCHED_STEPS = 200
 
 def rates(n: int, joint_limits: bool) -> dict:
     """Physics steps per second of ``n`` worlds: ``graph`` (replayed CUDA graph) and ``launched``."""
-    import mujoco
     import mujoco.mjx.third_party.mujoco_warp as mjw
     import warp as wp
 
-    from sim_twin.twin.model import load_model
+    from sim_twin.training.mjx_env import training_model
 
-    m = load_model()
-    if not joint_limits:
-        m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_LIMIT
+    m = training_model(joint_limits)
     mw, dw = mjw.put_model(m), mjw.make_data(m, nworld=n)
     dw.ctrl.fill_(0.1)
     mjw.step(mw, dw)

@@ -59,14 +59,11 @@ def physics_rate(impl: str, n: int, steps: int, joint_limits: bool = True) -> fl
     over ``n`` worlds: physics steps per second."""
     import jax
     import jax.numpy as jnp
-    import mujoco
     from mujoco import mjx
 
-    from sim_twin.twin.model import load_model
+    from sim_twin.training.mjx_env import training_model
 
-    m = load_model()
-    if not joint_limits:
-        m.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_LIMIT
+    m = training_model(joint_limits)
     mx = mjx.put_model(m, impl=impl)
 
     @jax.jit
@@ -256,7 +253,7 @@ def main() -> None:
           "rollout s  update s  XLA flags")
     for r in rows:
         reset = "all" if r["reset_slots"] is None else f"{r['reset_slots']:g}"
-        graph = (r.get("graph_mode") or "-").split(".")[-1]
+        graph = r.get("graph_mode") or "-"
         print(f"{r['impl']:5} {r['num_envs']:6} {reset:>6} {'on' if r.get('unroll') else 'off':>6} "
               f"{'on' if r.get('joint_limits') else 'off':>6} {graph:12} {r.get('update', '-'):12} {_f(r.get('physics_steps_per_s'))}     "
               f"{_f(r.get('env_steps_per_s'))} {_f(r.get('env_step_only_per_s'))}  {_f(r.get('env_reset_only_per_s'))}   "
