@@ -1,0 +1,257 @@
+"""Read a 2D run's far-target throw style from its checkpoint, without the site-matrix gate.
+
+``python -m tests.benchmarks.training_style_probe RUN ... --out reports/<name>`` loads each run's
+``checkpoint.pt`` and ``config.json`` (a directory or ``REV:PATH``, as
+tests/benchmarks/training_throw_style.py reads them), exports its actor to ONNX
+(sim_twin.training.export) and throws it at one target distance in the MJX training environment
+(sim_twin.training.mjx_env, on the CPU here), twice:
+
+* **nominal**: the randomisation narrowed to the nominal simulated machine (``nominal_randomization``:
+  the valve model's nominal dead band, delay and lag, full-open speed ×1, friction and gripper mass
+  ×1, no encoder latency, the nominal gripper-IMU latency and sensing noise), the machine the site
+  matrix's ``nominal`` profile throws on;
+* **training**: the run's own randomisation.
+
+Per run and case it records the mean landing time (start to landing, what the site matrix calls
+``mean_duration_s``), the mean time of the release command, the signed downrange landing error's
+mean (bias) and standard deviation (σ). The nominal landing time gives the style as
+tests/benchmarks/training_throw_style.py reads it from a gate matrix (long ≥ ``LONG_STYLE_S``), so a
+run trained with ``--no-gate`` (a short run that only asks which style a recipe takes) gets a style
+too, and a kept run's reading can be compared with its gate's. Writes ``<name>.json``, ``<name>.md``
+and ``<name>.png`` (the nominal landing time of every run, grouped by recipe).
+
+Forced release is off in the probe (the matrix has none); every throw starts from the environment's
+own random start pose (``--envs`` of them, the same keys for every run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import subprocess
+import tempfile
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+
+from tests.benchmarks.training_throw_style import FAR_TARGET_M, LONG_STYLE_S, RunSource, run_style, style_of
+
+PROBE_KEY = 7
+"""PRNG key of the probe's episodes (start poses, release delays, noise): the same for every run."""
+
+
+def nominal_randomization(rand: dict) -> dict:
+    """``rand`` (a config's ``env.randomization``) narrowed to the nominal simulated machine.
+
+    The valve model's nominal values are sim_twin.twin.hydraulics' (``NOMINAL_DEAD_BAND``,
+    ``NOMINAL_DELAY_S``, ``NOMINAL_LAG_S``), the sensing sim_twin.twin.profile.SensorParams'
+    defaults (encoder and gripper-IMU noise, 20 ms IMU latency); the release delay keeps its
+    per-throw jitter (``release_delay_std_s``) without the episode shift. Every joint gets the same
+    valve (``valve_spread`` 0), full-open speed ×1 and no velocity-reference noise.
+    """
+    from sim_twin.twin.hydraulics import NOMINAL_DEAD_BAND, NOMINAL_DELAY_S, NOMINAL_LAG_S
+    from sim_twin.twin.profile import SensorParams
+
+    s = SensorParams()
+    out = copy.deepcopy(rand)
+    out.update(dead_band=[NOMINAL_DEAD_BAND] * 2, valve_delay_s=[NOMINAL_DELAY_S] * 2, lag_s=[NOMINAL_LAG_S] * 2,
+               velocity_scale=[1.0, 1.0], velocity_noise=0.0, friction_scale=[1.0, 1.0], gripper_mass_scale=[1.0, 1.0],
+               encoder_latency_s=[0.0, 0.0], imu_latency_s=[s.imu_latency_s] * 2, release_delay_shift_s=0.0,
+               valve_spread=0.0,
+               obs_noise={"q_active": s.encoder_noise_rad, "qd_active": s.encoder_rate_noise_radps,
+                          "q_passive": s.imu_angle_noise_rad, "qd_passive": s.imu_rate_noise_radps})
+    return out
+
+
+def throw_at(onnx_path: Path, env_cfg: dict, target_m: float, envs: int) -> dict:
+    """Throw the exported actor ``envs`` times at ``target_m`` in the MJX training environment.
+
+    Args:
+        onnx_path: the actor (sim_twin.training.export), input (1 or N, observation_size) float32.
+        env_cfg: the ``env`` mapping of a training config (its randomisation is used as given).
+        target_m: target distance from the machine [m] (the arm's plane, 2D).
+        envs: number of throws.
+
+    Returns:
+        {"landed": fraction of throws that landed without failure, "landing_s" / "release_cmd_s":
+        mean time of the landing / first release command from the episode start [s], "bias_m" /
+        "sigma_m": mean and standard deviation of the signed downrange error (landing distance from
+        the machine minus the target's) [m]}.
+    """
+    import jax
+    import jax.numpy as jnp
+    import onnxruntime as ort
+
+    from runtime.observation import CONTROL_PERIOD_S
+    from sim_twin.training.mjx_env import EnvConfig, ThrowEnvCore
+    from sim_twin.twin.physics import ballistic_position
+
+    cfg = copy.deepcopy(env_cfg)
+    cfg["target_range_m"] = [target_m, target_m]
+    cfg["forced_release"] = {**cfg.get("forced_release", {}), "probability": 0.0}
+    core = ThrowEnvCore(EnvConfig.from_dict(cfg))
+    sess = ort.InferenceSession(str(onnx_path))
+    name = sess.get_inputs()[0].name
+    reset, step = jax.jit(jax.vmap(core.reset)), jax.jit(jax.vmap(core.step))
+    impact_of = jax.jit(jax.vmap(lambda p, v, t: ballistic_position(jnp, p, v, t)))
+    s, obs = reset(jax.random.split(jax.random.PRNGKey(PROBE_KEY), envs))
+    done = np.zeros(envs, bool)
+    signed, t_land, t_rel = (np.full(envs, np.nan) for _ in range(3))
+    for k in range(core.cfg.max_steps):
+        released_before = np.asarray(s.release_cmd)
+        s, obs, _, term, tout, info = step(s, jnp.asarray(sess.run(None, {name: np.asarray(obs, np.float32)})[0]))
+        t = (k + 1) * CONTROL_PERIOD_S
+        t_rel[np.asarray(s.release_cmd) & ~released_before & ~done] = t
+        landed = np.asarray(info["landed"]) & ~done
+        if landed.any():
+            imp, tgt = np.asarray(impact_of(s.ball_p0, s.ball_v0, s.t_flight)), np.asarray(s.target)
+            signed[landed] = (np.hypot(imp[:, 0], imp[:, 1]) - np.hypot(tgt[:, 0], tgt[:, 1]))[landed]
+            t_land[landed] = t
+        done |= np.asarray(term) | np.asarray(tout)
+        if done.all():
+            break
+    ok = ~np.isnan(signed)
+    nan = float("nan")
+    return {"landed": float(ok.mean()), "landing_s": float(np.nanmean(t_land)) if ok.any() else nan,
+            "release_cmd_s": float(np.nanmean(t_rel)) if ok.any() else nan,
+            "bias_m": float(np.nanmean(signed)) if ok.any() else nan, "sigma_m": float(np.nanstd(signed)) if ok.any() else nan}
+
+
+def recipe_of(cfg: dict) -> str:
+    """What a run's recipe changes against the committed 2D recipe (sim_twin/configs/throw_2d.json), in words."""
+    from sim_twin.training.config import CONFIG_DIR
+
+    base = json.loads((CONFIG_DIR / "throw_2d.json").read_text())
+    words = []
+    g, g0 = cfg["runner"]["algorithm"].get("gamma"), base["runner"]["algorithm"]["gamma"]
+    if g != g0:
+        words.append(f"γ {g}")
+    far = cfg["env"].get("far_targets", {}).get("fraction", 0.0)
+    if far:
+        lo, hi = cfg["env"]["far_targets"].get("range_m", (9.0, 10.7))
+        words.append(f"{far:.0%} far targets {lo:g}-{hi:g} m")
+    if cfg["env"]["rewards"].get("release_slope"):
+        words.append(f"release_slope {cfg['env']['rewards']['release_slope']}")
+    if cfg.get("training", {}).get("release_bias_init") is not None:
+        words.append(f"release bias {cfg['training']['release_bias_init']}")
+    if cfg["runner"]["algorithm"].get("use_mixed_precision"):
+        words.append("bf16" + ("+compile" if cfg["runner"].get("torch_compile_mode") else ""))
+    return ", ".join(words) or "committed"
+
+
+def probe_run(src: RunSource, target_m: float, envs: int, workdir: Path) -> dict:
+    """One run's row: its recipe, training seed and checkpoint iteration, the nominal and training
+    throws at ``target_m`` (:func:`throw_at`), the style the nominal landing time gives, and the
+    gate's style reading and outcome where the run kept its gate (training_throw_style.run_style).
+
+    The actor is the run's ``checkpoint.pt`` (its last iteration) or, where the run kept none, its
+    exported ``throw2d.onnx`` (the iteration its model card names).
+
+    Raises:
+        FileNotFoundError: the run has no config.json, or neither a checkpoint.pt nor an exported policy.
+        ValueError: a 3D run.
+    """
+    import torch
+
+    from sim_twin.training.export import export_checkpoint
+
+    cfg = json.loads(src.read("config.json"))
+    if cfg["env"].get("mode", "2d") != "2d":
+        raise ValueError(f"{src.spec}: a {cfg['env']['mode']} run; the probe reads 2D runs")
+    onnx_path = workdir / f"{src.name}.onnx"
+    try:
+        ckpt = workdir / f"{src.name}.pt"
+        ckpt.write_bytes(src.read_bytes("checkpoint.pt"))
+        iteration = int(torch.load(ckpt, map_location="cpu", weights_only=False).get("iter", -1))
+        export_checkpoint(ckpt, cfg, onnx_path, src.name)
+    except FileNotFoundError:  # a run that kept only its exported policy (the checkpoint that met the bars)
+        onnx_path.write_bytes(src.read_bytes("throw2d.onnx"))
+        iteration = int(json.loads(src.read("throw2d.card.json"))["iteration"])
+    nominal_env = dict(cfg["env"], randomization=nominal_randomization(cfg["env"]["randomization"]))
+    row = {"run": src.name, "source": src.spec, "recipe": recipe_of(cfg), "training_seed": cfg.get("training", {}).get("seed"),
+           "iteration": iteration, "target_m": target_m, "envs": envs,
+           "nominal": throw_at(onnx_path, nominal_env, target_m, envs),
+           "training": throw_at(onnx_path, cfg["env"], target_m, envs)}
+    row["style"] = style_of(row["nominal"]["landing_s"])
+    try:
+        gate = run_style(src)
+        row["gate"] = {"style": gate["style"], "far_duration_s": gate["far_duration_s"], "style_iteration": gate["style_iteration"],
+                       "outcome": gate["outcome"]}
+    except (FileNotFoundError, ValueError, KeyError, StopIteration):
+        row["gate"] = None
+    return row
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    """The nominal landing time of every run, grouped by recipe, with the style threshold."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    recipes = list(dict.fromkeys(r["recipe"] for r in rows))
+    fig, ax = plt.subplots(figsize=(8, 0.6 * len(recipes) + 1.8))
+    for i, rec in enumerate(recipes):
+        pts = [r for r in rows if r["recipe"] == rec]
+        x = [r["nominal"]["landing_s"] for r in pts]
+        ax.scatter(x, [i] * len(x), s=60, c=["tab:blue" if r["style"] == "long" else "tab:red" for r in pts], zorder=3)
+        for r, xx in zip(pts, x):
+            ax.annotate(r["run"].replace("throw2d-scratch-", "-"), (xx, i), textcoords="offset points", xytext=(0, 7),
+                        ha="center", fontsize=7)
+    ax.axvline(LONG_STYLE_S, color="grey", ls="--", lw=1)
+    ax.set_yticks(range(len(recipes)), recipes)
+    ax.set_ylim(-0.7, len(recipes) - 0.3)
+    ax.set_xlabel(f"nominal {rows[0]['target_m']:g} m throw, start to landing [s] (long ≥ {LONG_STYLE_S} s, blue)")
+    ax.set_title("2D runs from scratch: far-target throw style by recipe (MJX environment, nominal machine)", fontsize=9)
+    ax.grid(axis="x", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _fmt(c: dict) -> str:
+    return f"{c['landing_s']:.2f} s | {c['release_cmd_s']:.2f} s | {c['bias_m']:+.3f} | {c['sigma_m']:.3f}"
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", nargs="+", help="run directories or REV:PATH")
+    p.add_argument("--out", type=Path, required=True, help="report stem (writes .json, .md and .png)")
+    p.add_argument("--target-m", type=float, default=FAR_TARGET_M)
+    p.add_argument("--envs", type=int, default=128, help="throws per run and case")
+    args = p.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for spec in args.runs:
+            rows.append(probe_run(RunSource(spec), args.target_m, args.envs, Path(tmp)))
+            r = rows[-1]
+            print(f"{r['run']}: {r['recipe']}, seed {r['training_seed']}, it {r['iteration']}: nominal {_fmt(r['nominal'])}, "
+                  f"training {_fmt(r['training'])} -> {r['style']}", flush=True)
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    report = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "commit": commit, "long_style_s": LONG_STYLE_S,
+              "target_m": args.target_m, "envs": args.envs, "probe_key": PROBE_KEY, "runs": rows}
+    args.out.with_suffix(".json").write_text(json.dumps(report, indent=1) + "\n")
+    plot(rows, args.out.with_suffix(".png"))
+    md = [f"# 2D runs: far-target throw style read from the checkpoint ({args.target_m:g} m)\n",
+          f"Date {report['date']}, commit `{commit}`. {args.envs} throws per run and case in the MJX training environment "
+          f"(CPU), the same start poses for every run; style long when the nominal throw lands ≥ {LONG_STYLE_S} s after the start. "
+          "Bias and σ: signed downrange error [m].\n",
+          "| run | recipe | training seed | iteration | nominal: landing | release cmd | bias | σ | "
+          "training: landing | release cmd | bias | σ | style | gate's style (it) | gate's outcome |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        g = r["gate"]
+        gate_style = f"{g['style']} ({g['far_duration_s']} s, it {g['style_iteration']})" if g else "no gate"
+        outcome = "-" if not g else ("met at " + f"{g['outcome']['train_wall_min']} min" if g["outcome"]["met"]
+                                     else f"not met by {g['outcome']['last_train_wall_min']} min")
+        md.append(f"| `{r['run']}` | {r['recipe']} | {r['training_seed']} | {r['iteration']} | {_fmt(r['nominal'])} | "
+                  f"{_fmt(r['training'])} | **{r['style']}** | {gate_style} | {outcome} |")
+    md.append(f"\n![style by recipe]({args.out.with_suffix('.png').name})")
+    args.out.with_suffix(".md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,50 @@
+"""The checkpoint style probe (tests/benchmarks/training_style_probe.py): the nominal machine it
+narrows the randomisation to, the recipe words, and, on two kept runs, that its reading agrees with
+the site-matrix gate's, which throws in the CPU twin (docs/training.md "Why a 2D run stalls")."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("jax")
+pytestmark = pytest.mark.torch  # the training extra (jax, mujoco-mjx, rsl_rl)
+
+from sim_twin.training.config import CONFIG_DIR  # noqa: E402
+from sim_twin.training.mjx_env import EnvConfig  # noqa: E402
+from tests.benchmarks.training_style_probe import nominal_randomization, probe_run, recipe_of  # noqa: E402
+from tests.benchmarks.training_throw_style import RunSource  # noqa: E402
+
+RUNS = Path(__file__).resolve().parents[1] / "policies" / "training"
+RECIPE = json.loads((CONFIG_DIR / "throw_2d.json").read_text())
+
+
+def test_the_nominal_machine_is_the_twin_nominal_one_and_loads():
+    from sim_twin.twin.hydraulics import NOMINAL_DELAY_S, NOMINAL_LAG_S
+    from sim_twin.twin.profile import SensorParams
+
+    rand = nominal_randomization(RECIPE["env"]["randomization"])
+    env = EnvConfig.from_dict(dict(RECIPE["env"], randomization=rand))
+    r = env.randomization
+    assert r.valve_delay_s == (NOMINAL_DELAY_S, NOMINAL_DELAY_S) and r.lag_s == (NOMINAL_LAG_S, NOMINAL_LAG_S)
+    assert r.velocity_scale == (1.0, 1.0) and r.friction_scale == (1.0, 1.0) and r.gripper_mass_scale == (1.0, 1.0)
+    assert r.imu_latency_s == (SensorParams().imu_latency_s,) * 2 and r.release_delay_shift_s == 0.0
+    assert RECIPE["env"]["randomization"]["valve_delay_s"] != [NOMINAL_DELAY_S] * 2  # the recipe itself is untouched
+
+
+def test_recipe_words_name_what_a_run_changed():
+    assert recipe_of(RECIPE) == "committed"
+    cfg = json.loads(json.dumps(RECIPE))
+    cfg["runner"]["algorithm"].update(gamma=1.0, use_mixed_precision=True)
+    cfg["runner"]["torch_compile_mode"] = "default"
+    cfg["env"]["far_targets"] = {"fraction": 0.5, "range_m": [9.0, 10.7]}
+    assert recipe_of(cfg) == "γ 1.0, 50% far targets 9-10.7 m, bf16+compile"
+
+
+@pytest.mark.parametrize("run, style", [("throw2d-scratch-ai", "long"), ("throw2d-scratch-ak", "short")])
+def test_the_probe_reads_the_style_the_gate_read(run, style, tmp_path):
+    row = probe_run(RunSource(str(RUNS / run)), 10.0, 16, tmp_path)
+    assert row["style"] == style == row["gate"]["style"]
+    assert row["nominal"]["landed"] == 1.0 and row["training"]["landed"] > 0.9
+    # the final checkpoint's nominal 10 m throw lasts what the gate's early matrix measured in the CPU twin
+    assert abs(row["nominal"]["landing_s"] - row["gate"]["far_duration_s"]) < 0.3
