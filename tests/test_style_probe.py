@@ -3,6 +3,7 @@ narrows the randomisation to, the recipe words, and, on two kept runs, that its 
 the site-matrix gate's, which throws in the CPU twin (docs/training.md "Why a 2D run stalls")."""
 
 import json
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -15,7 +16,10 @@ from sim_twin.training.mjx_env import EnvConfig  # noqa: E402
 from tests.benchmarks.training_style_probe import nominal_randomization, probe_run, recipe_of  # noqa: E402
 from tests.benchmarks.training_throw_style import RunSource  # noqa: E402
 
-RUNS = Path(__file__).resolve().parents[1] / "policies" / "training"
+ROOT = Path(__file__).resolve().parents[1]
+RUNS = ROOT / "policies" / "training"
+PROBES_AT = "27dac7e0990367acc838115f9160f0dc789184af"
+"""The last commit with the archived runs -ak to -ao (policies/training/ARCHIVE.md)."""
 RECIPE = json.loads((CONFIG_DIR / "throw_2d.json").read_text())
 
 
@@ -41,9 +45,15 @@ def test_recipe_words_name_what_a_run_changed():
     assert recipe_of(cfg) == "γ 1.0, 50% far targets 9-10.7 m, bf16+compile"
 
 
-@pytest.mark.parametrize("run, style", [("throw2d-scratch-ai", "long"), ("throw2d-scratch-ak", "short")])
+@pytest.mark.parametrize("run, style", [("throw2d-scratch-ai", "long"), (f"{PROBES_AT}:policies/training/throw2d-scratch-ak", "short")])
 def test_the_probe_reads_the_style_the_gate_read(run, style, tmp_path):
-    row = probe_run(RunSource(str(RUNS / run)), 10.0, 16, tmp_path)
+    if ":" in run:
+        if subprocess.run(["git", "-C", str(ROOT), "cat-file", "-e", PROBES_AT], capture_output=True).returncode:
+            pytest.skip(f"{PROBES_AT[:7]} is not in this clone's history (a shallow clone)")
+        src = RunSource(run, repo=ROOT)
+    else:
+        src = RunSource(str(RUNS / run))
+    row = probe_run(src, 10.0, 16, tmp_path)
     assert row["style"] == style == row["gate"]["style"]
     assert row["nominal"]["landed"] == 1.0 and row["training"]["landed"] > 0.9
     # the final checkpoint's nominal 10 m throw lasts what the gate's early matrix measured in the CPU twin

@@ -16,11 +16,14 @@ ARCHIVED_AT = "903fcd522fe5a44b5c6daa7d89c5afda847bee06"
 """The last commit with the archived runs -ab and -ad (policies/training/ARCHIVE.md)."""
 NO_LIMITS_AT = "b334ef6655c3b3201352094f53724193351729e4"
 """The last commit with the archived run -aj (policies/training/ARCHIVE.md)."""
+PROBES_AT = "27dac7e0990367acc838115f9160f0dc789184af"
+"""The last commit with the archived run -ak (policies/training/ARCHIVE.md)."""
 COMMITTED_65536 = ["throw2d-scratch-u", "throw2d-scratch-aa", f"{ARCHIVED_AT}:policies/training/throw2d-scratch-ab",
                    "throw2d-scratch-ac", f"{ARCHIVED_AT}:policies/training/throw2d-scratch-ad",
-                   "throw2d-scratch-ai", f"{NO_LIMITS_AT}:policies/training/throw2d-scratch-aj"]
+                   "throw2d-scratch-ai", f"{NO_LIMITS_AT}:policies/training/throw2d-scratch-aj",
+                   f"{PROBES_AT}:policies/training/throw2d-scratch-ak"]
 """The committed 2D from-scratch runs with 65536 environments and γ 0.998 or 0.999 (-ai and -aj on the
-training model without joint-limit constraints): in the tree, or ``REV:PATH`` for those kept in git
+training model without joint-limit constraints, -ak with the bfloat16 update): in the tree, or ``REV:PATH`` for those kept in git
 history only."""
 
 

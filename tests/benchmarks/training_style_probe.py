@@ -204,7 +204,7 @@ def plot(rows: list[dict], path: Path) -> None:
     ax.set_yticks(range(len(recipes)), recipes)
     ax.set_ylim(-0.7, len(recipes) - 0.3)
     ax.set_xlabel(f"nominal {rows[0]['target_m']:g} m throw, start to landing [s] (long ≥ {LONG_STYLE_S} s, blue)")
-    ax.set_title("2D runs from scratch: far-target throw style by recipe (MJX environment, nominal machine)", fontsize=9)
+    ax.set_title("2D runs from scratch: far-target style by recipe (MJX environment, nominal machine)", fontsize=9, loc="right")
     ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
