@@ -58,3 +58,14 @@ def test_the_probe_reads_the_style_the_gate_read(run, style, tmp_path):
     assert row["nominal"]["landed"] == 1.0 and row["training"]["landed"] > 0.9
     # the final checkpoint's nominal 10 m throw lasts what the gate's early matrix measured in the CPU twin
     assert abs(row["nominal"]["landing_s"] - row["gate"]["far_duration_s"]) < 0.3
+
+
+def test_a_run_the_probe_cannot_read_is_refused_with_a_reason(tmp_path):
+    run = tmp_path / "throw3d-x"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({**RECIPE, "env": {**RECIPE["env"], "mode": "3d"}}))
+    with pytest.raises(ValueError, match="a 3d run; the probe reads 2D runs"):
+        probe_run(RunSource(str(run)), 10.0, 4, tmp_path)
+    (run / "config.json").write_text(json.dumps(RECIPE))
+    with pytest.raises(FileNotFoundError, match="neither a checkpoint.pt nor an exported throw2d.onnx"):
+        probe_run(RunSource(str(run)), 10.0, 4, tmp_path)

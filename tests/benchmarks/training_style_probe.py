@@ -167,8 +167,11 @@ def probe_run(src: RunSource, target_m: float, envs: int, workdir: Path) -> dict
         iteration = int(torch.load(ckpt, map_location="cpu", weights_only=False).get("iter", -1))
         export_checkpoint(ckpt, cfg, onnx_path, src.name)
     except FileNotFoundError:  # a run that kept only its exported policy (the checkpoint that met the bars)
-        onnx_path.write_bytes(src.read_bytes("throw2d.onnx"))
-        iteration = int(json.loads(src.read("throw2d.card.json"))["iteration"])
+        try:
+            onnx_path.write_bytes(src.read_bytes("throw2d.onnx"))
+            iteration = int(json.loads(src.read("throw2d.card.json"))["iteration"])
+        except FileNotFoundError:
+            raise FileNotFoundError(f"{src.spec}: neither a checkpoint.pt nor an exported throw2d.onnx with its model card") from None
     nominal_env = dict(cfg["env"], randomization=nominal_randomization(cfg["env"]["randomization"]))
     row = {"run": src.name, "source": src.spec, "recipe": recipe_of(cfg), "training_seed": cfg.get("training", {}).get("seed"),
            "iteration": iteration, "target_m": target_m, "envs": envs,
