@@ -113,25 +113,25 @@ def throw_at(onnx_path: Path, env_cfg: dict, target_m: float, envs: int) -> dict
         if done.all():
             break
     ok = ~np.isnan(signed)
-    nan = float("nan")
-    return {"landed": float(ok.mean()), "landing_s": float(np.nanmean(t_land)) if ok.any() else nan,
-            "release_cmd_s": float(np.nanmean(t_rel)) if ok.any() else nan,
-            "bias_m": float(np.nanmean(signed)) if ok.any() else nan, "sigma_m": float(np.nanstd(signed)) if ok.any() else nan}
+    if not ok.any():
+        return {"landed": 0.0, "landing_s": float("nan"), "release_cmd_s": float("nan"), "bias_m": float("nan"), "sigma_m": float("nan")}
+    return {"landed": float(ok.mean()), "landing_s": float(np.nanmean(t_land)), "release_cmd_s": float(np.nanmean(t_rel)),
+            "bias_m": float(np.nanmean(signed)), "sigma_m": float(np.nanstd(signed))}
 
 
 def recipe_of(cfg: dict) -> str:
     """What a run's recipe changes against the committed 2D recipe (sim_twin/configs/throw_2d.json), in words."""
     from sim_twin.training.config import CONFIG_DIR
+    from sim_twin.training.mjx_env import EnvConfig
 
     base = json.loads((CONFIG_DIR / "throw_2d.json").read_text())
     words = []
     g, g0 = cfg["runner"]["algorithm"].get("gamma"), base["runner"]["algorithm"]["gamma"]
     if g != g0:
         words.append(f"γ {g}")
-    far = cfg["env"].get("far_targets", {}).get("fraction", 0.0)
-    if far:
-        lo, hi = cfg["env"]["far_targets"].get("range_m", (9.0, 10.7))
-        words.append(f"{far:.0%} far targets {lo:g}-{hi:g} m")
+    far = EnvConfig.from_dict(cfg["env"]).far_targets  # its defaults where the config leaves an entry out
+    if far.fraction:
+        words.append(f"{far.fraction:.0%} far targets {far.range_m[0]:g}-{far.range_m[1]:g} m")
     if cfg["env"]["rewards"].get("release_slope"):
         words.append(f"release_slope {cfg['env']['rewards']['release_slope']}")
     if cfg.get("training", {}).get("release_bias_init") is not None:
@@ -160,18 +160,18 @@ def probe_run(src: RunSource, target_m: float, envs: int, workdir: Path) -> dict
     cfg = json.loads(src.read("config.json"))
     if cfg["env"].get("mode", "2d") != "2d":
         raise ValueError(f"{src.spec}: a {cfg['env']['mode']} run; the probe reads 2D runs")
-    onnx_path = workdir / f"{src.name}.onnx"
+    onnx_path, ckpt = workdir / f"{src.name}.onnx", workdir / f"{src.name}.pt"
     try:
-        ckpt = workdir / f"{src.name}.pt"
         ckpt.write_bytes(src.read_bytes("checkpoint.pt"))
-        iteration = int(torch.load(ckpt, map_location="cpu", weights_only=False).get("iter", -1))
-        export_checkpoint(ckpt, cfg, onnx_path, src.name)
     except FileNotFoundError:  # a run that kept only its exported policy (the checkpoint that met the bars)
         try:
             onnx_path.write_bytes(src.read_bytes("throw2d.onnx"))
             iteration = int(json.loads(src.read("throw2d.card.json"))["iteration"])
         except FileNotFoundError:
             raise FileNotFoundError(f"{src.spec}: neither a checkpoint.pt nor an exported throw2d.onnx with its model card") from None
+    else:
+        iteration = int(torch.load(ckpt, map_location="cpu", weights_only=False).get("iter", -1))
+        export_checkpoint(ckpt, cfg, onnx_path, src.name)
     nominal_env = dict(cfg["env"], randomization=nominal_randomization(cfg["env"]["randomization"]))
     row = {"run": src.name, "source": src.spec, "recipe": recipe_of(cfg), "training_seed": cfg.get("training", {}).get("seed"),
            "iteration": iteration, "target_m": target_m, "envs": envs,
