@@ -6,6 +6,9 @@
 #
 #   bash tests/benchmarks/device_runs.sh install        # wheels from .whl/base (and .whl/extra if carried)
 #   bash tests/benchmarks/device_runs.sh start NAME MODE CONFIG WORKERS [more slinger train args]
+#   bash tests/benchmarks/device_runs.sh after PREV NAME MODE CONFIG WORKERS [args]  # `start NAME ...` once the run
+#                                                       # PREV has stopped (several runs one after another on
+#                                                       # one GPU: set CUDA_VISIBLE_DEVICES for both)
 #   bash tests/benchmarks/device_runs.sh watch MINUTES  # progress every minute (ends early once no run trains), then collect
 #   bash tests/benchmarks/device_runs.sh collect        # $OUT/<name>.tar and $OUT/train_<name>.log.gz per run
 #                                                       # (candidate checkpoints left out but the exported one's),
@@ -52,6 +55,15 @@ start() {
   echo "started $name (pid $!) $resume"
 }
 
+after() {
+  # A detached waiter: the `[ ]` keeps the pattern from matching the waiter's own command line, and
+  # `slinger-after` is what `watch` looks for so that it does not collect between two runs.
+  local prev=$1; shift
+  setsid nohup bash -c "while pgrep -f -- 'log-dir runs/$prev[ ]' >/dev/null; do sleep 5; done
+    exec bash tests/benchmarks/device_runs.sh start $(printf '%q ' "$@")" slinger-after >> runs/after.log 2>&1 < /dev/null &
+  echo "$1 starts once $prev has stopped (waiter pid $!)"
+}
+
 progress() {
   for run in runs/*/; do
     [ -f $run/curve.csv ] || continue
@@ -87,7 +99,7 @@ watch() {
   local end=$(( $(date +%s) + ${1%.*} * 60 ))
   while [ $(date +%s) -lt $end ]; do
     sleep 60; date +%T; progress; nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader
-    pgrep -f "sim_twin.training.train" >/dev/null || { echo "no run is training: collecting now"; break; }  # e.g. bars met
+    pgrep -f "sim_twin.training.train|slinger-[a]fter" >/dev/null || { echo "no run is training: collecting now"; break; }  # e.g. bars met
   done
   collect
 }
