@@ -1,8 +1,10 @@
 """`tests/benchmarks/device_runs.sh state RUN_DIR NAME` packs what resuming a run needs into
 runs/state/NAME.tar (gzip), laid out as `device_runs.sh start NAME` unpacks it, and nothing else;
-a directory without a checkpoint is refused and writes nothing."""
+a directory without a checkpoint is refused and writes nothing; `collect` brings back what resuming
+needs; `after PREV NAME ...` starts NAME only once PREV has stopped (runs in turn on one GPU)."""
 
 import subprocess
+import time
 import tarfile
 from pathlib import Path
 
@@ -93,3 +95,32 @@ def test_collect_brings_back_the_state_that_resumes_each_run_in_one_file(tmp_pat
     assert files == ["runs/resumable/checkpoint.pt", "runs/resumable/config.json", "runs/resumable/curve.csv",
                      "runs/resumable/matrices/site_matrix_2d_it25.json"]
     assert not (work / ".state").exists()
+
+
+def test_after_starts_the_next_run_once_the_previous_one_has_stopped(tmp_path):
+    """`start` runs `python3 -m sim_twin.training.train ...`: a stand-in python3 on PATH records when
+    each run starts and ends (2 s), so the order is checked without training anything."""
+    work, fake = tmp_path / "work", tmp_path / "bin"
+    (work / "tests" / "benchmarks").mkdir(parents=True)
+    (work / "tests" / "benchmarks" / "device_runs.sh").write_text(SCRIPT.read_text())
+    fake.mkdir()
+    (fake / "python3").write_text('#!/bin/bash\necho "start $(date +%s.%N) $*"\nsleep 2\necho "end $(date +%s.%N)"\n')
+    (fake / "python3").chmod(0o755)
+    env = {"PATH": f"{fake}:/usr/bin:/bin", "SLINGER_RUNS_WORK": str(work)}
+
+    def sh(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["bash", str(SCRIPT), *args], env=env, capture_output=True, text=True, timeout=60)
+
+    assert sh("start", "first", "2d", "cfg.json", "2", "--seed", "21").returncode == 0
+    r = sh("after", "first", "second", "2d", "cfg.json", "2", "--seed", "23", "--note", "two words")
+    assert r.returncode == 0 and "second starts once first has stopped" in r.stdout, r.stderr
+    log = work / "runs" / "second" / "train.log"
+    deadline = time.time() + 30
+    while time.time() < deadline and "end" not in (log.read_text() if log.exists() else ""):
+        time.sleep(0.5)
+    first = dict(line.split(" ", 1) for line in (work / "runs" / "first" / "train.log").read_text().splitlines())
+    second = (log.read_text()).splitlines()
+    assert float(second[0].split()[1]) >= float(first["end"]), "the second run started before the first had stopped"
+    assert second[0].split(" ", 2)[2] == ("-m sim_twin.training.train --mode 2d --config cfg.json --log-dir runs/second "
+                                          "--gate-workers 2 --max-minutes 600 --seed 23 --note two words")
+    assert not subprocess.run(["pgrep", "-f", "slinger-[a]fter"], capture_output=True).stdout  # the waiter is gone

@@ -63,3 +63,28 @@ def test_the_2d_run_exported_a_policy_that_met_every_bar_on_two_seeds(run_name):
     assert card["bars_met"] is True
     passing = {(r["iteration"], r["seed"]) for r in gate["results"] if r["passed"]}
     assert {(card["iteration"], 0), (card["iteration"], 1)} <= passing
+
+
+CANDIDATE_2D = {("runner", "algorithm", "gamma"): 1.0, ("runner", "algorithm", "use_mixed_precision"): True,
+                ("runner", "torch_compile_mode"): "default",
+                ("runner", "actor", "class_name"): "sim_twin.training.models:Float32MLPModel"}
+"""What the next attempt's 2D recipe (sim_twin/configs/throw_2d_candidate.json) changes, and to what."""
+
+
+def _flat(cfg: dict, prefix: tuple = ()) -> dict:
+    out = {}
+    for k, v in cfg.items():
+        out.update(_flat(v, prefix + (k,)) if isinstance(v, dict) else {prefix + (k,): v})
+    return out
+
+
+def test_the_candidate_recipe_changes_only_what_it_declares():
+    recipe = _flat(_without_notes(ROOT / "sim_twin" / "configs" / "throw_2d.json"))
+    candidate = _flat(_without_notes(ROOT / "sim_twin" / "configs" / "throw_2d_candidate.json"))
+    changed = {k for k in recipe.keys() | candidate.keys() if recipe.get(k) != candidate.get(k)}
+    assert changed == set(CANDIDATE_2D)
+    assert {k: candidate[k] for k in CANDIDATE_2D} == CANDIDATE_2D
+    # the runs it follows on (gamma 1.0, bfloat16 update, compile) had rsl_rl's MLPModel actor and nothing else differed
+    for run_name in ("throw2d-scratch-ap", "throw2d-scratch-at", "throw2d-scratch-au"):
+        run = _flat(_without_notes(ROOT / "policies" / "training" / run_name / "config.json"))
+        assert {k for k in run.keys() | candidate.keys() if run.get(k) != candidate.get(k)} == {("runner", "actor", "class_name")}

@@ -50,7 +50,7 @@ class RewardScales:
             An opening-time error (release-delay jitter, sensor latency) moves the landing by
             about that speed times the error; the landing kernels pay for that spread only through
             single throws' noise, this term directly. Trained policies open where the landing
-            point moves at 0.8-2.0 m/s on a nominal 10 m throw (reports/training_release_sensitivity_2d.json);
+            point moves at 0.8-2.0 m/s on a nominal 10 m throw (reports/training_release_sensitivity_2d.json, lab notebook: reports/ARCHIVE.md);
             at -0.5 the term did not change which throw style a 2D run took (docs/training.md).
     """
 

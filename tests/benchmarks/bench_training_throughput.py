@@ -27,9 +27,10 @@ reset alone, so that the environment's time splits into physics, its own work an
 ``--joint-limits on,off`` compares the training model with and without the MJCF's joint-limit
 constraints (``ThrowEnvCore``'s ``joint_limits``; training runs without them), ``--graph-mode``
 MJX's CUDA-graph modes of the Warp call (``default``, ``WARP``, ``WARP_STAGED``, ``NONE``; each row
-records the mode it ran with in ``graph_mode``), and ``--update fp32,tf32,bf16`` the PPO update's
+records the mode it ran with in ``graph_mode``), and ``--update fp32,tf32,bf16,bf16critic`` the PPO update's
 arithmetic: float32 (the recipe's), TF32 matrix products (``torch.backends.cuda.matmul.allow_tf32``)
-and rsl_rl's bfloat16 autocast (``algorithm.use_mixed_precision``); every update setting of one
+rsl_rl's bfloat16 autocast (``algorithm.use_mixed_precision``) and ``bf16critic``, that autocast with
+the actor kept in float32 (sim_twin.training.models); every update setting of one
 environment configuration shares its environment rates.
 
 ``--reset-slots`` compares the auto-reset of the whole batch at every step (``all``) with resetting
@@ -101,8 +102,9 @@ def _rate(fn, args, n: int, k: int = 32) -> float:
     return n * k / (time.perf_counter() - t0)
 
 
-UPDATES = ("fp32", "tf32", "bf16")
-"""The PPO update's arithmetic settings ``--update`` compares (module docstring); ``+compile``
+UPDATES = ("fp32", "tf32", "bf16", "bf16critic")
+"""The PPO update's arithmetic settings ``--update`` compares (module docstring; ``bf16critic``: the
+bfloat16 update with the actor kept in float32, sim_twin.training.models.Float32MLPModel); ``+compile``
 after one (e.g. ``bf16+compile``) also compiles actor and critic with ``torch.compile`` (rsl_rl's
 ``torch_compile_mode`` "default")."""
 
@@ -168,7 +170,11 @@ def _learn_rates(row: dict, env, cfg: dict, device: str, iterations: int) -> dic
     if update not in UPDATES or extra not in ("", "compile"):
         raise ValueError(f"unknown update setting {row['update']!r}; known: {UPDATES}, each optionally with +compile")
     runner_cfg = copy.deepcopy(cfg["runner"])
-    runner_cfg["algorithm"]["use_mixed_precision"] = update == "bf16"
+    runner_cfg["algorithm"]["use_mixed_precision"] = update in ("bf16", "bf16critic")
+    if update == "bf16critic":
+        from sim_twin.training.models import FLOAT32_ACTOR
+
+        runner_cfg["actor"]["class_name"] = FLOAT32_ACTOR
     if extra:
         runner_cfg["torch_compile_mode"] = "default"
     tf32 = torch.backends.cuda.matmul.allow_tf32
