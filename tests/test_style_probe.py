@@ -43,6 +43,8 @@ def test_recipe_words_name_what_a_run_changed():
     cfg["runner"]["torch_compile_mode"] = "default"
     cfg["env"]["far_targets"] = {"fraction": 0.5, "range_m": [9.0, 10.7]}
     assert recipe_of(cfg) == "γ 1.0, 50% far targets 9-10.7 m, bf16+compile"
+    candidate = json.loads((CONFIG_DIR / "throw_2d_candidate.json").read_text())
+    assert recipe_of(candidate) == "γ 1.0, bf16+compile, float32 actor"
 
 
 @pytest.mark.parametrize("run, style", [("throw2d-scratch-ai", "long"), (f"{PROBES_AT}:policies/training/throw2d-scratch-ak", "short")])

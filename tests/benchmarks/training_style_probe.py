@@ -77,14 +77,16 @@ def throw_at(onnx_path: Path, env_cfg: dict, target_m: float, envs: int) -> dict
     Returns:
         {"landed": fraction of throws that landed without failure, "landing_s" / "release_cmd_s":
         mean time of the landing / first release command from the episode start [s], "bias_m" /
-        "sigma_m": mean and standard deviation of the signed downrange error (landing distance from
-        the machine minus the target's) [m]}.
+        "sigma_m": mean and standard deviation of the signed downrange error (the landing's offset
+        from the target along the target's direction, positive long, as the site matrix takes it:
+        runtime.throw_geometry.impact_errors) [m]}.
     """
     import jax
     import jax.numpy as jnp
     import onnxruntime as ort
 
     from runtime.observation import CONTROL_PERIOD_S
+    from runtime.throw_geometry import impact_errors
     from sim_twin.training.mjx_env import EnvConfig, ThrowEnvCore
     from sim_twin.twin.physics import ballistic_position
 
@@ -107,7 +109,8 @@ def throw_at(onnx_path: Path, env_cfg: dict, target_m: float, envs: int) -> dict
         landed = np.asarray(info["landed"]) & ~done
         if landed.any():
             imp, tgt = np.asarray(impact_of(s.ball_p0, s.ball_v0, s.t_flight)), np.asarray(s.target)
-            signed[landed] = (np.hypot(imp[:, 0], imp[:, 1]) - np.hypot(tgt[:, 0], tgt[:, 1]))[landed]
+            for i in np.flatnonzero(landed):  # the site matrix's downrange error: along the target direction
+                signed[i] = impact_errors(tgt[i], imp[i])[0]
             t_land[landed] = t
         done |= np.asarray(term) | np.asarray(tout)
         if done.all():
@@ -123,6 +126,7 @@ def recipe_of(cfg: dict) -> str:
     """What a run's recipe changes against the committed 2D recipe (sim_twin/configs/throw_2d.json), in words."""
     from sim_twin.training.config import CONFIG_DIR
     from sim_twin.training.mjx_env import EnvConfig
+    from sim_twin.training.models import FLOAT32_ACTOR
 
     base = json.loads((CONFIG_DIR / "throw_2d.json").read_text())
     words = []
@@ -138,6 +142,8 @@ def recipe_of(cfg: dict) -> str:
         words.append(f"release bias {cfg['training']['release_bias_init']}")
     if cfg["runner"]["algorithm"].get("use_mixed_precision"):
         words.append("bf16" + ("+compile" if cfg["runner"].get("torch_compile_mode") else ""))
+    if cfg["runner"]["actor"].get("class_name") == FLOAT32_ACTOR:
+        words.append("float32 actor")
     return ", ".join(words) or "committed"
 
 
