@@ -49,9 +49,8 @@ def test_the_float32_actor_keeps_the_rollout_policy_inside_bfloat16_autocast(cls
 
 
 def test_a_bfloat16_update_trains_with_the_float32_actor_and_its_checkpoint_loads_into_mlpmodel(tmp_path):
-    from tests.test_training_runner import ToyEnv, _cfg
-
     from sim_twin.training.runner import CallbackRunner
+    from tests.test_training_runner import ToyEnv, _cfg
 
     cfg = _cfg()
     cfg["actor"]["class_name"] = FLOAT32_ACTOR
@@ -70,3 +69,21 @@ def test_a_bfloat16_update_trains_with_the_float32_actor_and_its_checkpoint_load
     plain = MLPModel(obs, {"actor": ["policy"]}, "actor", 2, hidden_dims=[8], activation="elu",
                      distribution_cfg={"class_name": "GaussianDistribution", "init_std": 1.0})
     plain.load_state_dict(state)  # strict: the same keys and shapes
+
+
+def test_on_a_trained_actor_the_rounding_alone_passes_desired_kl_at_the_std_floor():
+    """The committed throw2d-scratch-at actor (trained with the bfloat16 update): at its std floor
+    0.05 the bfloat16 update's rounding alone is a KL above the recipe's desired_kl, with the actor
+    in float32 none (reports/training_policy_rounding_2d.md measures it on 65536 observations)."""
+    from pathlib import Path
+
+    from tests.benchmarks.training_policy_rounding import load_actor, rounding
+
+    run = Path(__file__).resolve().parents[1] / "policies" / "training" / "throw2d-scratch-at"
+    plain, cfg = load_actor(run, MLPModel)
+    fixed, _ = load_actor(run, Float32MLPModel)
+    desired = cfg["runner"]["algorithm"]["desired_kl"]
+    floor = cfg["runner"]["actor"]["distribution_cfg"]["std_range"][0]
+    at_floor = {m: rounding(a, 8192, sigmas=(floor,))["per_sigma"][0] for m, a in [("plain", plain), ("fixed", fixed)]}
+    assert at_floor["plain"]["kl_mean"] > desired and at_floor["plain"]["clipped_share"] > 0.05
+    assert at_floor["fixed"]["kl_mean"] == 0.0 and at_floor["fixed"]["clipped_share"] == 0.0
