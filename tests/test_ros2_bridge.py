@@ -587,8 +587,11 @@ def test_slinger_up_ros2_throws_through_rclpy_nodes_and_stops_for_strangers_and_
                               "--out", str(tmp_path / "ds")]) == 0
         (th,), _index = dataset.load(tmp_path / "ds")
         assert th.throw_id == row["id"] and th.cmd_row is not None and np.abs(th.valve_u).max() > 0.1
+        # degrees on the topic, radians in the dataset. The echo and the recorder are two subscribers of the
+        # 100 Hz topic and on a loaded host either may miss a sample at the swing's extreme (seen: 0.05 deg),
+        # so the ranges agree within a degree; a unit error would be a factor of 57.
         boom_deg = [msg.position[1] for msg in msgs]
-        assert min(boom_deg) - 1e-6 <= np.degrees(th.q[:, 1]).min() and np.degrees(th.q[:, 1]).max() <= max(boom_deg) + 1e-6
+        assert min(boom_deg) - 1.0 <= np.degrees(th.q[:, 1]).min() and np.degrees(th.q[:, 1]).max() <= max(boom_deg) + 1.0
         assert np.all((th.q[:, 3] >= 0.0) & (th.q[:, 3] <= 1.8))  # millimetres back to metres
 
         # 3. a stranger publishes valve commands (cabin turn full open): the machine stops (the
