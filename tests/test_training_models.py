@@ -5,6 +5,8 @@ checkpoints load into MLPModel (resume and ONNX export build that)."""
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 torch = pytest.importorskip("torch")
@@ -77,11 +79,13 @@ def test_on_a_trained_actor_the_rounding_alone_passes_desired_kl_at_the_std_floo
     in float32 none (reports/training_policy_rounding_2d.md measures it on 65536 observations)."""
     from pathlib import Path
 
-    from tests.benchmarks.training_policy_rounding import load_actor, rounding
+    from sim_twin.training.export import load_actor
+    from tests.benchmarks.training_policy_rounding import rounding
 
     run = Path(__file__).resolve().parents[1] / "policies" / "training" / "throw2d-scratch-at"
-    plain, cfg = load_actor(run, MLPModel)
-    fixed, _ = load_actor(run, Float32MLPModel)
+    cfg = json.loads((run / "config.json").read_text())
+    plain, _ = load_actor(run / "checkpoint.pt", cfg, MLPModel)
+    fixed, _ = load_actor(run / "checkpoint.pt", cfg, Float32MLPModel)
     desired = cfg["runner"]["algorithm"]["desired_kl"]
     floor = cfg["runner"]["actor"]["distribution_cfg"]["std_range"][0]
     at_floor = {m: rounding(a, 8192, sigmas=(floor,))["per_sigma"][0] for m, a in [("plain", plain), ("fixed", fixed)]}

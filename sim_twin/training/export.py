@@ -23,6 +23,32 @@ ONNX_OPSET = 17
 ONNX_IR_VERSION = 8
 
 
+def load_actor(checkpoint: Path, cfg: dict, cls=None):
+    """The actor of an rsl_rl checkpoint as ``cls`` (default rsl_rl's MLPModel; a subclass such as
+    sim_twin.training.models.Float32MLPModel takes the same state), built from ``cfg``'s
+    ``runner.actor`` for its mode's observation and action sizes (runtime.observation), its std
+    parameter converted where the checkpoint's parameterisation differs
+    (critic_surgery.match_std_parameter), in eval mode.
+
+    Returns:
+        (actor, the loaded checkpoint dict: ``iter``, ``actor_state_dict``, ...).
+    """
+    import torch
+    from rsl_rl.models import MLPModel
+    from tensordict import TensorDict
+
+    from sim_twin.training.critic_surgery import match_std_parameter
+
+    mode = cfg["env"]["mode"]
+    obs = TensorDict({"policy": torch.zeros(1, observation_size(mode))}, batch_size=[1])
+    actor_cfg = copy.deepcopy(cfg["runner"]["actor"])
+    actor_cfg.pop("class_name")
+    actor = (cls or MLPModel)(obs, {"actor": ["policy"]}, "actor", num_actions(mode), **actor_cfg)
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    actor.load_state_dict(match_std_parameter(state["actor_state_dict"], cfg["runner"]["actor"])[0])
+    return actor.eval(), state
+
+
 def export_checkpoint(checkpoint: Path, cfg: dict, out_path: Path, name: str) -> Path:
     """Write ``out_path`` (.onnx) and its ``.json`` manifest from an rsl_rl checkpoint.
 
@@ -37,20 +63,10 @@ def export_checkpoint(checkpoint: Path, cfg: dict, out_path: Path, name: str) ->
     """
     import onnx
     import torch
-    from rsl_rl.models import MLPModel
-    from tensordict import TensorDict
 
     mode = cfg["env"]["mode"]
     n_obs = observation_size(mode)
-    obs = TensorDict({"policy": torch.zeros(1, n_obs)}, batch_size=[1])
-    actor_cfg = copy.deepcopy(cfg["runner"]["actor"])
-    actor_cfg.pop("class_name")
-    actor = MLPModel(obs, {"actor": ["policy"]}, "actor", num_actions(mode), **actor_cfg)
-    state = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    from sim_twin.training.critic_surgery import match_std_parameter
-
-    actor.load_state_dict(match_std_parameter(state["actor_state_dict"], cfg["runner"]["actor"])[0])
-    actor.eval()
+    actor, state = load_actor(checkpoint, cfg)
     wrapper = actor.as_onnx(verbose=False).eval()
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)

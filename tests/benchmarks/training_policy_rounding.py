@@ -28,7 +28,6 @@ and action std at ``--iterations``. Writes ``<name>.json``, ``<name>.md`` and ``
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import platform
 import subprocess
@@ -41,26 +40,6 @@ SIGMAS = (0.6, 0.2, 0.1, 0.05)
 """Action stds [-] of the table: the recipes' initial std, two on the schedule and the std floor."""
 
 
-def load_actor(run: Path, cls):
-    """The actor of ``run/checkpoint.pt`` as ``cls`` (MLPModel or a subclass), in eval mode, with the
-    observation size its normaliser was trained on. Returns (actor, config dict)."""
-    import torch
-    from tensordict import TensorDict
-
-    from sim_twin.training.critic_surgery import match_std_parameter
-
-    cfg = json.loads((run / "config.json").read_text())
-    state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)["actor_state_dict"]
-    actor_cfg = copy.deepcopy(cfg["runner"]["actor"])
-    actor_cfg.pop("class_name")
-    n_obs = state["obs_normalizer._mean"].shape[1]
-    n_act = state["mlp.4.bias"].shape[0] if "mlp.4.bias" in state else None
-    obs = TensorDict({"policy": torch.zeros(1, n_obs)}, batch_size=[1])
-    actor = cls(obs, {"actor": ["policy"]}, "actor", n_act, **actor_cfg)
-    actor.load_state_dict(match_std_parameter(state, cfg["runner"]["actor"])[0])
-    return actor.eval(), cfg
-
-
 def rounding(actor, n: int, sigmas=SIGMAS, clip: float = 0.2, seed: int = 0) -> dict:
     """Rounding of ``actor``'s policy mean under bfloat16 autocast, on ``n`` observations drawn from
     its normaliser. Returns {delta_rms: rms of δ [action units], mean_abs: median |mean|, per_sigma:
@@ -70,7 +49,7 @@ def rounding(actor, n: int, sigmas=SIGMAS, clip: float = 0.2, seed: int = 0) -> 
 
     g = torch.Generator().manual_seed(seed)
     norm = actor.obs_normalizer
-    x = norm._mean + norm._std * torch.randn(n, norm._mean.shape[1], generator=g)
+    x = norm.mean + norm.std * torch.randn(n, norm.mean.shape[0], generator=g)
     obs = TensorDict({"policy": x}, batch_size=[n])
     with torch.no_grad():
         mu = actor(obs).float()
@@ -196,6 +175,7 @@ def main() -> None:
     import torch
     from rsl_rl.models import MLPModel
 
+    from sim_twin.training.export import load_actor
     from sim_twin.training.models import Float32MLPModel
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -212,7 +192,7 @@ def main() -> None:
         cfg = json.loads((run / "config.json").read_text())
         models = {}  # a run that kept no checkpoint (only its exported policy) gives its course alone
         for cls in (MLPModel, Float32MLPModel) if (run / "checkpoint.pt").exists() else ():
-            actor, _ = load_actor(run, cls)
+            actor, _ = load_actor(run / "checkpoint.pt", cfg, cls)
             models[cls.__name__] = rounding(actor, a.samples, clip=cfg["runner"]["algorithm"].get("clip_param", 0.2))
         alg = cfg["runner"]["algorithm"]
         update = ("bf16" if alg.get("use_mixed_precision") else "fp32") + f", γ {alg['gamma']}"
