@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import subprocess
 import tarfile
 import tempfile
 from datetime import UTC, datetime
@@ -104,13 +103,6 @@ def run_course(run: Path, iterations: list[int]) -> list[dict]:
     return rows
 
 
-def _git_commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def write_report(report: dict, out: Path) -> None:
     """``out``.json, .md and .png (KL from rounding against σ per run and model; learning rate over
     iterations of the runs with TensorBoard events)."""
@@ -176,6 +168,7 @@ def main() -> None:
     from rsl_rl.models import MLPModel
 
     from sim_twin.training.export import load_actor
+    from sim_twin.training.model_card import head_commit
     from sim_twin.training.models import Float32MLPModel
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -200,7 +193,7 @@ def main() -> None:
                      "models": models, "course": run_course(run, iterations)})
     report = {
         "title": "bfloat16 PPO update: the policy's rounding against the adaptive learning rate (2D actors)",
-        "date": datetime.now(UTC).isoformat(timespec="seconds"), "commit": _git_commit(), "host": platform.node(),
+        "date": datetime.now(UTC).isoformat(timespec="seconds"), "commit": (head_commit() or ("unknown",))[0], "host": platform.node(),
         "command": "python -m tests.benchmarks.training_policy_rounding " + " ".join(str(r) for r in a.runs) + f" --out {a.out}",
         "method": __doc__.split("\n\n")[1].replace("\n", " "), "sigmas": list(SIGMAS), "samples": a.samples, "runs": runs,
     }
