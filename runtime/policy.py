@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,9 +37,47 @@ from runtime.observation import (
 
 MANIFEST_FORMAT = "slinger-policy/1"
 
+POLICY_THREADS_ENV = "SLINGER_POLICY_THREADS"
+"""Environment variable: onnxruntime intra-op threads of a policy session (default 1; 0 takes
+onnxruntime's own defaults, a thread per physical core spinning between calls)."""
+
 
 class PolicyError(ValueError):
     """A policy file or manifest is unusable; the message says why."""
+
+
+def session_options(threads: int | None = None) -> Any:
+    """onnxruntime session options for a policy: ``threads`` intra-op threads (default
+    ``$SLINGER_POLICY_THREADS``, else 1), one inter-op thread and no spin-waiting between calls;
+    with 0 onnxruntime's own defaults (a thread per physical core, spinning between calls).
+
+    The policy is an MLP evaluated on one observation per 80 ms control step (a few µs of work):
+    onnxruntime's default pool, a thread per physical core that spins between calls, buys nothing
+    there and takes the cores from the 100 Hz controller beside it, and from the other processes of
+    a site matrix (each of its workers holds a session). Spinning and pool size are onnxruntime's
+    ``session.intra_op.allow_spinning`` and ``intra_op_num_threads``
+    (https://onnxruntime.ai/docs/performance/tune-performance/threading.html).
+
+    Raises:
+        PolicyError: ``$SLINGER_POLICY_THREADS`` is not a whole number ≥ 0.
+    """
+    import onnxruntime as ort
+
+    if threads is None:
+        raw = os.environ.get(POLICY_THREADS_ENV, "1")
+        try:
+            threads = int(raw)
+        except ValueError:
+            threads = -1
+        if threads < 0:
+            raise PolicyError(f"{POLICY_THREADS_ENV} must be a whole number >= 0, got {raw!r}")
+    opts = ort.SessionOptions()
+    if threads == 0:
+        return opts
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return opts
 
 
 def sha256_of(path: str | Path) -> str:
@@ -106,7 +145,8 @@ class PolicyRunner:
 
         Raises:
             PolicyError: missing files, a manifest that does not match this runtime, a SHA-256
-                mismatch, a file onnxruntime cannot load, wrong input/output shapes, or
+                mismatch, a bad ``$SLINGER_POLICY_THREADS`` (:func:`session_options`), a file
+                onnxruntime cannot load, wrong input/output shapes, or
                 non-finite actions on a zero observation.
         """
         import onnxruntime as ort
@@ -133,8 +173,9 @@ class PolicyRunner:
         digest = sha256_of(onnx_path)
         if digest != manifest["onnx_sha256"]:
             raise PolicyError(f"SHA-256 mismatch: file {digest[:12]}…, manifest {manifest['onnx_sha256'][:12]}…")
+        opts = session_options()
         try:
-            session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+            session = ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
         except Exception as e:  # onnxruntime raises its own exception types
             raise PolicyError(f"onnxruntime cannot load {onnx_path.name}: {e}") from e
         inputs, outputs = session.get_inputs(), session.get_outputs()
