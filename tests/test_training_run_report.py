@@ -104,3 +104,26 @@ def test_the_report_names_the_exported_policy_by_its_model_cards_onnx_hash(tmp_p
     (run / "throw2d.card.json").write_text("{}")
     with pytest.raises(KeyError):
         exported_policy_sha256(run)
+
+
+def test_several_runs_make_one_report_with_each_runs_wall_time_style_and_command(tmp_path, monkeypatch):
+    """Two kept runs of one recipe: one JSON with a row per run, the table names each run's
+    training seed, far-target style and outcome, and each run's command has its own seed."""
+    import sys
+
+    from tests.benchmarks import training_run_report
+
+    runs = [ROOT / "policies" / "training" / n for n in ("throw2d-scratch-ax", "throw2d-scratch-ay")]
+    out = tmp_path / "both"
+    monkeypatch.setattr(sys, "argv", ["training_run_report", *map(str, runs), "--out", str(out), "--title", "two seeds",
+                                      "--command", "slinger train --seed {seed} --log-dir runs/{name}"])
+    training_run_report.main()
+    rep = json.loads(out.with_suffix(".json").read_text())
+    assert [Path(r["run"]).name for r in rep["runs"]] == ["throw2d-scratch-ax", "throw2d-scratch-ay"]
+    ax, ay = rep["runs"]
+    assert ax["command"] == "slinger train --seed 25 --log-dir runs/throw2d-scratch-ax"
+    assert ax["bars_wall_min"] == round(ax["passed"]["train_wall_s"] / 60, 1) and ay["passed"] is None
+    assert (ax["far_style"]["style"], ay["far_style"]["style"]) == ("long", "short")
+    table = out.with_suffix(".md").read_text()
+    assert "| throw2d-scratch-ay | 26 | short" in table and "| no | not met |" in table
+    assert out.with_suffix(".png").stat().st_size > 0

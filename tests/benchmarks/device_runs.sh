@@ -10,7 +10,7 @@
 #                                                       # PREV has stopped (several runs one after another on
 #                                                       # one GPU: set CUDA_VISIBLE_DEVICES for both)
 #   bash tests/benchmarks/device_runs.sh watch MINUTES  # progress every minute (ends early once no run trains), then collect
-#   bash tests/benchmarks/device_runs.sh collect        # $OUT/<name>.tar and $OUT/train_<name>.log.gz per run
+#   bash tests/benchmarks/device_runs.sh collect        # $OUT/<name>.tar per run, its log as logs/machine1.log.gz
 #                                                       # (candidate checkpoints left out but the exported one's),
 #                                                       # and $OUT/state.tar: every run's runs/state/<name>.tar
 #   bash tests/benchmarks/device_runs.sh state RUN_DIR NAME [DIR]  # runs/state/NAME.tar (or DIR/NAME.tar),
@@ -81,6 +81,8 @@ collect() {
     for _ in $(seq 20); do
       [ $(( $(date +%s) - $(stat -c %Y $run/checkpoint.pt 2>/dev/null || echo 0) )) -ge 3 ] && break; sleep 1
     done
+    # the log goes inside the run's tar, where the tree keeps it: a call brings back a limited number of files
+    mkdir -p $run/logs && gzip -c $run/train.log > $run/logs/machine1.log.gz
     tar cf $OUT/$name.tar --exclude="$run/candidates/*.pt" --exclude="$run/train.log" $run
     # but the checkpoint of the exported policy (a run that met the bars), which adapting it needs
     local card=$(ls $run/throw*.card.json 2>/dev/null | head -n 1) it
@@ -88,7 +90,6 @@ collect() {
       it=$(python3 -c "import json, sys; print(json.load(open(sys.argv[1]))['iteration'])" "$card")
       [ -f $run/candidates/checkpoint_$it.pt ] && tar rf $OUT/$name.tar $run/candidates/checkpoint_$it.pt
     fi
-    gzip -c $run/train.log > $OUT/train_$name.log.gz
     [ -f $run/checkpoint.pt ] && [ -f $run/config.json ] && state $run $name $WORK/.state/runs/state >/dev/null
   done
   [ -d $WORK/.state ] && tar cf $OUT/state.tar -C $WORK/.state runs && rm -rf $WORK/.state

@@ -1,10 +1,13 @@
 """Report of a `slinger train` run's site-matrix gate: wall time to each bar.
 
-``python tests/benchmarks/training_run_report.py policies/training/<run> --out reports/<name>``
+``python -m tests.benchmarks.training_run_report policies/training/<run> [<run> ...] --out reports/<name>``
 reads ``<run>/matrices/matrix_gate.json`` and the matrices beside it and writes ``<name>.md``,
 ``<name>.json`` and ``<name>.png`` (cells missing a bar against training wall time). For every
 profile it gives the first checkpoint (training wall time) at which that profile met all its bars
-on the gate's first seed, and whether it kept meeting them after.
+on the gate's first seed, and whether it kept meeting them after. With several runs (one recipe's
+training seeds, say) it writes one report: a table of each run's wall time to the bars, then a
+section per run, and one line per run in the plot; ``--command`` may name each run's ``{name}`` and
+training ``{seed}``, and each ``--after-run`` matrix belongs to the run whose directory holds it.
 
 The report also summarises the run's ``curve.csv`` at up to ``CURVE_ROWS`` checkpoints (evenly
 spaced, the last included): landings, failures and time-outs per finished episode, mean impact
@@ -75,29 +78,25 @@ def curve_table(summary: list[dict]) -> list[str]:
     return md
 
 
-def main() -> None:
-    p = argparse.ArgumentParser()
-    p.add_argument("run", type=Path)
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--gpu", default="one NVIDIA H100 80GB HBM3")
-    p.add_argument("--command", default="slinger train --mode 2d")
-    p.add_argument("--after-run", type=Path, nargs="*", default=[],
-                   help="site matrices of later checkpoints run after the training (site_matrix_<mode>_it<N>[_seed<S>].json)")
-    p.add_argument("--gate-unrecorded", type=Path, nargs="*", default=[],
-                   help="site matrices the gate ran during the training whose verdict matrix_gate.json lacks")
-    a = p.parse_args()
-    gate = json.loads((a.run / "matrices" / "matrix_gate.json").read_text())
-    wall = train_wall_s(a.run) if a.after_run or a.gate_unrecorded else {}
+def run_report(run: Path, gpu: str, command: str, after_run: list[Path], gate_unrecorded: list[Path]) -> tuple[dict, list[str]]:
+    """One run's report: the JSON dict (without date, commit and host) and its Markdown section.
+
+    Raises:
+        FileNotFoundError: ``run`` has no ``matrices/matrix_gate.json``.
+        ValueError: a bad ``after_run`` / ``gate_unrecorded`` matrix (:func:`after_run_row`).
+    """
+    gate = json.loads((run / "matrices" / "matrix_gate.json").read_text())
+    wall = train_wall_s(run) if after_run or gate_unrecorded else {}
     rows = ([dict(r, after_run=False, note=None) for r in gate["results"]]
-            + [after_run_row(a.run, m, wall) for m in a.after_run]
-            + [after_run_row(a.run, m, wall, note=UNRECORDED) for m in a.gate_unrecorded])
+            + [after_run_row(run, m, wall) for m in after_run]
+            + [after_run_row(run, m, wall, note=UNRECORDED) for m in gate_unrecorded])
     rows.sort(key=lambda r: (r["iteration"], r["seed"]))
     first_seed = gate["seeds"][0]
     per_profile: dict[str, list[tuple[float, int, bool]]] = {}
     for r in rows:
         if r["seed"] != first_seed:
             continue
-        rep = json.loads(Path(a.run / "matrices" / Path(r["matrix_path"]).name).read_text())
+        rep = json.loads(Path(run / "matrices" / Path(r["matrix_path"]).name).read_text())
         for prof in rep["profiles"]:
             per_profile.setdefault(prof["name"], []).append((r["train_wall_s"], r["iteration"], prof["pass"]))
     first_met = {}
@@ -105,33 +104,28 @@ def main() -> None:
         met = [(t, it) for t, it, ok in hist if ok]
         kept = bool(met) and all(ok for t, it, ok in hist if t >= met[0][0])
         first_met[name] = {"wall_min": round(met[0][0] / 60, 1) if met else None, "iteration": met[0][1] if met else None, "kept": kept}
-    ckpt = a.run / "checkpoint.pt"
-    policy_sha256 = exported_policy_sha256(a.run)
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    ckpt = run / "checkpoint.pt"
+    policy_sha256 = exported_policy_sha256(run)
+    passed = gate["passed"]
     out = {
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
-        "commit": commit,
-        "host": platform.node(),
-        "gpu": a.gpu,
-        "command": a.command,
-        "run": str(a.run),
+        "gpu": gpu,
+        "command": command,
+        "run": str(run),
         "checkpoint_sha256": hashlib.sha256(ckpt.read_bytes()).hexdigest() if ckpt.exists() else None,
         "policy_sha256": policy_sha256,
         "seeds": gate["seeds"],
-        "passed": gate["passed"],
+        "passed": passed,
+        "bars_wall_min": round(passed["train_wall_s"] / 60, 1) if passed else None,
         "results": [{k: r[k] for k in ("iteration", "seed", "passed", "missing_cells", "train_wall_s", "misses", "after_run", "note")}
                     for r in rows],
         "first_met_per_profile": first_met,
-        "curve": curve_summary(a.run),
+        "curve": curve_summary(run),
     }
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.with_suffix(".json").write_text(json.dumps(out, indent=2) + "\n")
-    md = [f"# Training run {a.run.name}: wall time to the site-matrix bars", "",
-          f"Date {out['date']}, commit `{commit}`, {a.gpu}; "
-          + (f"checkpoint SHA-256 `{out['checkpoint_sha256']}`; " if out["checkpoint_sha256"] else "checkpoint not kept; ")
+    verdict = f"yes, iteration {passed['iteration']} ({out['bars_wall_min']} min)" if passed else "no"
+    md = [(f"checkpoint SHA-256 `{out['checkpoint_sha256']}`; " if out["checkpoint_sha256"] else "checkpoint not kept; ")
           + (f"exported policy ONNX SHA-256 `{policy_sha256}`; " if policy_sha256 else "")
-          + f"command `{a.command}`. Gate seeds {gate['seeds']}; every bar met on every seed: "
-          f"**{'yes, iteration ' + str(gate['passed']['iteration']) if gate['passed'] else 'no'}**.", "",
+          + f"command `{command}`. Gate seeds {gate['seeds']}; every bar met on every seed: "
+          f"**{verdict}**.", "",
           "| iteration | training wall time [min] | seed | cells missing a bar (of 66) | misses |", "|---|---|---|---|---|"]
     for r in rows:
         miss = "; ".join(r["misses"]) if r["missing_cells"] <= 6 else f"{r['missing_cells']} cells"
@@ -144,8 +138,79 @@ def main() -> None:
     if out["curve"]:
         md += ["", "Training curve (`curve.csv`; per finished episode: landed, failed, or timed out without either):", "",
                *curve_table(out["curve"])]
-    a.out.with_suffix(".md").write_text("\n".join(md) + "\n")
+    out["_first_seed_rows"] = [(r["train_wall_s"] / 60, r["missing_cells"]) for r in rows if r["seed"] == first_seed]
+    return out, md
 
+
+def far_style(run: Path) -> dict | None:
+    """A 2D run's far-target throw style by iteration 250, read from its gate's seed-0 matrices
+    (tests/benchmarks/training_throw_style.py's run_style: {style, far_duration_s [s],
+    style_iteration, ...}), or None for a run without 2D gate matrices."""
+    from tests.benchmarks.training_throw_style import RunSource, run_style
+
+    if not list((run / "matrices").glob("site_matrix_2d_it*.json")):
+        return None
+    return run_style(RunSource(str(run)))
+
+
+def run_command(template: str, run: Path) -> str:
+    """``template`` with ``{name}`` (the run directory's name) and ``{seed}`` (the training seed of
+    its ``config.json``, ``training.seed``) filled in."""
+    seed = json.loads((run / "config.json").read_text()).get("training", {}).get("seed") if (run / "config.json").exists() else None
+    return template.replace("{name}", run.name).replace("{seed}", str(seed))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser()
+    p.add_argument("runs", type=Path, nargs="+", help="run directories; several: one report with a section per run")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--gpu", default="one NVIDIA H100 80GB HBM3")
+    p.add_argument("--command", default="slinger train --mode 2d",
+                   help="how the run was made; {name} and {seed} are each run's directory name and training seed")
+    p.add_argument("--title", default=None, help="the report's title with several runs")
+    p.add_argument("--after-run", type=Path, nargs="*", default=[],
+                   help="site matrices of later checkpoints run after the training (site_matrix_<mode>_it<N>[_seed<S>].json)")
+    p.add_argument("--gate-unrecorded", type=Path, nargs="*", default=[],
+                   help="site matrices the gate ran during the training whose verdict matrix_gate.json lacks")
+    a = p.parse_args()
+    reports = []
+    for run in a.runs:
+        mine = [m for m in a.after_run if m.resolve().is_relative_to(run.resolve())]
+        unrec = [m for m in a.gate_unrecorded if m.resolve().is_relative_to(run.resolve())]
+        reports.append(run_report(run, a.gpu, run_command(a.command, run), mine, unrec))
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    head = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "commit": commit, "host": platform.node()}
+    curves = {Path(r["run"]).name: r.pop("_first_seed_rows") for r, _ in reports}
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    if len(reports) == 1:
+        (out, md) = reports[0]
+        a.out.with_suffix(".json").write_text(json.dumps({**head, **out}, indent=2) + "\n")
+        lines = [f"# Training run {a.runs[0].name}: wall time to the site-matrix bars", "",
+                 f"Date {head['date']}, commit `{commit}`, {a.gpu}; " + md[0], *md[1:]]
+    else:
+        lines = [f"# {a.title or 'Training runs'}: wall time to the site-matrix bars", "",
+                 f"Date {head['date']}, commit `{commit}`, {a.gpu}.", "",
+                 "| run | training seed | far-target style by iteration 250 | every bar on every gate seed | "
+                 "training wall time to the bars [min] | last verdict |", "|---|---|---|---|---|---|"]
+        for r, _ in reports:
+            last = r["results"][-1] if r["results"] else None
+            seed = run_command("{seed}", Path(r["run"]))
+            style = r["far_style"] = far_style(Path(r["run"]))
+            style_text = f"{style['style']} ({style['far_duration_s']} s, iteration {style['style_iteration']})" if style else "-"
+            verdict = (f"iteration {last['iteration']}, seed {last['seed']}: {last['missing_cells']} cells missing"
+                       + (" (after the run)" if last["after_run"] else "")) if last else "none"
+            lines.append(f"| {Path(r['run']).name} | {seed} | {style_text} | "
+                         f"{'yes, iteration ' + str(r['passed']['iteration']) if r['passed'] else 'no'} | "
+                         f"{r['bars_wall_min'] if r['bars_wall_min'] is not None else 'not met'} | {verdict} |")
+        a.out.with_suffix(".json").write_text(json.dumps({**head, "gpu": a.gpu, "runs": [r for r, _ in reports]}, indent=2) + "\n")
+        for (r, md) in reports:
+            lines += ["", f"## {Path(r['run']).name}", "", md[0][0].upper() + md[0][1:], *md[1:]]
+    a.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    plot_cells(curves, a.out.with_suffix(".png"), a.title or (a.runs[0].name if len(a.runs) == 1 else "training runs"))
+
+
+def plot_cells(curves: dict[str, list[tuple[float, int]]], path: Path, title: str) -> None:
+    """Cells missing a bar on the first gate seed against training wall time [min], one line per run."""
     import matplotlib
     import matplotlib.ticker
 
@@ -153,20 +218,22 @@ def main() -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
-    s0 = [r for r in rows if r["seed"] == first_seed]
-    ax.plot([r["train_wall_s"] / 60 for r in s0], [r["missing_cells"] for r in s0], "o-")
+    for name, pts in curves.items():
+        ax.plot([t for t, _ in pts], [n for _, n in pts], "o-", label=name)
     ax.set_yscale("symlog", linthresh=1)
     # symlog labels only decades: runs whose counts stay within one (3-6 cells, say) got no labels
-    top = max([r["missing_cells"] for r in s0], default=1)
+    top = max([n for pts in curves.values() for _, n in pts], default=1)
     ax.set_yticks([v for v in CELL_TICKS if v <= max(top, 1)])
     ax.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
     ax.yaxis.set_minor_locator(matplotlib.ticker.NullLocator())
     ax.set_xlabel("training wall time [min]")
     ax.set_ylabel("site-matrix cells missing a bar")
-    ax.set_title(f"{a.run.name}: cells missing a bar (seed {first_seed}, 66 cells)", fontsize=10)
+    ax.set_title(f"{title}\ncells missing a bar (first gate seed, 66 cells)", fontsize=9)
     ax.grid(alpha=0.3)
+    if len(curves) > 1:
+        ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(a.out.with_suffix(".png"), dpi=110)
+    fig.savefig(path, dpi=110)
 
 
 def train_wall_s(run: Path) -> dict[int, float]:
