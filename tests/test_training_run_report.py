@@ -127,3 +127,19 @@ def test_several_runs_make_one_report_with_each_runs_wall_time_style_and_command
     table = out.with_suffix(".md").read_text()
     assert "| throw2d-scratch-ay | 26 | short" in table and "| no | not met |" in table
     assert out.with_suffix(".png").stat().st_size > 0
+
+
+def test_a_command_per_run_or_a_clear_error(tmp_path, monkeypatch):
+    import sys
+
+    from tests.benchmarks import training_run_report
+
+    runs = [str(ROOT / "policies" / "training" / n) for n in ("throw2d-scratch-ax", "throw2d-scratch-ay")]
+    out = tmp_path / "r"
+    monkeypatch.setattr(sys, "argv", ["r", *runs, "--out", str(out), "--command", "first", "--command", "second"])
+    training_run_report.main()
+    assert [r["command"] for r in json.loads(out.with_suffix(".json").read_text())["runs"]] == ["first", "second"]
+    monkeypatch.setattr(sys, "argv", ["r", *runs, runs[0], "--out", str(tmp_path / "bad"), "--command", "a", "--command", "b"])
+    with pytest.raises(SystemExit):
+        training_run_report.main()
+    assert not (tmp_path / "bad.json").exists()

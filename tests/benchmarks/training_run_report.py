@@ -6,8 +6,9 @@ reads ``<run>/matrices/matrix_gate.json`` and the matrices beside it and writes 
 profile it gives the first checkpoint (training wall time) at which that profile met all its bars
 on the gate's first seed, and whether it kept meeting them after. With several runs (one recipe's
 training seeds, say) it writes one report: a table of each run's wall time to the bars, then a
-section per run, and one line per run in the plot; ``--command`` may name each run's ``{name}`` and
-training ``{seed}``, and each ``--after-run`` matrix belongs to the run whose directory holds it.
+section per run, and one line per run in the plot; ``--command``, given once, may name each run's
+``{name}`` and training ``{seed}``, or is given once per run; each ``--after-run`` matrix belongs to
+the run whose directory holds it.
 
 The report also summarises the run's ``curve.csv`` at up to ``CURVE_ROWS`` checkpoints (evenly
 spaced, the last included): landings, failures and time-outs per finished episode, mean impact
@@ -153,11 +154,23 @@ def far_style(run: Path) -> dict | None:
     return run_style(RunSource(str(run)))
 
 
+def training_seed(run: Path) -> int | None:
+    """The run's training seed: its ``config.json``'s ``training.seed`` or, for a run from before the
+    config recorded it, the ``--seed`` of its model card's command; None when neither says."""
+    if (run / "config.json").exists():
+        seed = json.loads((run / "config.json").read_text()).get("training", {}).get("seed")
+        if seed is not None:
+            return int(seed)
+    for card in sorted(run.glob("throw*.card.json")):
+        words = json.loads(card.read_text()).get("command", "").split()
+        if "--seed" in words[:-1]:
+            return int(words[words.index("--seed") + 1])
+    return None
+
+
 def run_command(template: str, run: Path) -> str:
-    """``template`` with ``{name}`` (the run directory's name) and ``{seed}`` (the training seed of
-    its ``config.json``, ``training.seed``) filled in."""
-    seed = json.loads((run / "config.json").read_text()).get("training", {}).get("seed") if (run / "config.json").exists() else None
-    return template.replace("{name}", run.name).replace("{seed}", str(seed))
+    """``template`` with ``{name}`` (the run directory's name) and ``{seed}`` (:func:`training_seed`) filled in."""
+    return template.replace("{name}", run.name).replace("{seed}", str(training_seed(run)))
 
 
 def main() -> None:
@@ -165,19 +178,23 @@ def main() -> None:
     p.add_argument("runs", type=Path, nargs="+", help="run directories; several: one report with a section per run")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--gpu", default="one NVIDIA H100 80GB HBM3")
-    p.add_argument("--command", default="slinger train --mode 2d",
-                   help="how the run was made; {name} and {seed} are each run's directory name and training seed")
+    p.add_argument("--command", action="append", default=None,
+                   help="how the run was made (default `slinger train --mode 2d`): once for every run, where {name} and "
+                        "{seed} are each run's directory name and training seed, or once per run in the runs' order")
     p.add_argument("--title", default=None, help="the report's title with several runs")
     p.add_argument("--after-run", type=Path, nargs="*", default=[],
                    help="site matrices of later checkpoints run after the training (site_matrix_<mode>_it<N>[_seed<S>].json)")
     p.add_argument("--gate-unrecorded", type=Path, nargs="*", default=[],
                    help="site matrices the gate ran during the training whose verdict matrix_gate.json lacks")
     a = p.parse_args()
+    commands = a.command or ["slinger train --mode 2d"]
+    if len(commands) not in (1, len(a.runs)):
+        p.error(f"--command given {len(commands)} times for {len(a.runs)} runs: give it once or once per run")
     reports = []
-    for run in a.runs:
+    for k, run in enumerate(a.runs):
         mine = [m for m in a.after_run if m.resolve().is_relative_to(run.resolve())]
         unrec = [m for m in a.gate_unrecorded if m.resolve().is_relative_to(run.resolve())]
-        reports.append(run_report(run, a.gpu, run_command(a.command, run), mine, unrec))
+        reports.append(run_report(run, a.gpu, run_command(commands[k % len(commands)], run), mine, unrec))
     commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     head = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "commit": commit, "host": platform.node()}
     curves = {Path(r["run"]).name: r.pop("_first_seed_rows") for r, _ in reports}
@@ -194,7 +211,7 @@ def main() -> None:
                  "training wall time to the bars [min] | last verdict |", "|---|---|---|---|---|---|"]
         for r, _ in reports:
             last = r["results"][-1] if r["results"] else None
-            seed = run_command("{seed}", Path(r["run"]))
+            seed = training_seed(Path(r["run"]))
             style = r["far_style"] = far_style(Path(r["run"]))
             style_text = f"{style['style']} ({style['far_duration_s']} s, iteration {style['style_iteration']})" if style else "-"
             verdict = (f"iteration {last['iteration']}, seed {last['seed']}: {last['missing_cells']} cells missing"

@@ -147,6 +147,35 @@ def recipe_of(cfg: dict) -> str:
     return ", ".join(words) or "committed"
 
 
+def probe_actor(src: RunSource, cfg: dict, workdir: Path) -> tuple[Path, int]:
+    """The actor of a 2D run as ONNX in ``workdir``, and its iteration: the run's ``checkpoint.pt``
+    (its last iteration) exported (sim_twin.training.export) or, where the run kept none, its
+    exported ``throw2d.onnx`` (the iteration its model card names).
+
+    Raises:
+        FileNotFoundError: neither a checkpoint.pt nor an exported policy with its model card.
+        ValueError: ``cfg`` is a 3D run's.
+    """
+    import torch
+
+    from sim_twin.training.export import export_checkpoint
+
+    if cfg["env"].get("mode", "2d") != "2d":
+        raise ValueError(f"{src.spec}: a {cfg['env']['mode']} run; the probe reads 2D runs")
+    onnx_path, ckpt = workdir / f"{src.name}.onnx", workdir / f"{src.name}.pt"
+    try:
+        ckpt.write_bytes(src.read_bytes("checkpoint.pt"))
+    except FileNotFoundError:  # a run that kept only its exported policy (the checkpoint that met the bars)
+        try:
+            onnx_path.write_bytes(src.read_bytes("throw2d.onnx"))
+            return onnx_path, int(json.loads(src.read("throw2d.card.json"))["iteration"])
+        except FileNotFoundError:
+            raise FileNotFoundError(f"{src.spec}: neither a checkpoint.pt nor an exported throw2d.onnx with its model card") from None
+    iteration = int(torch.load(ckpt, map_location="cpu", weights_only=False).get("iter", -1))
+    export_checkpoint(ckpt, cfg, onnx_path, src.name)
+    return onnx_path, iteration
+
+
 def probe_run(src: RunSource, target_m: float, envs: int, workdir: Path) -> dict:
     """One run's row: its recipe, training seed and checkpoint iteration, the nominal and training
     throws at ``target_m`` (:func:`throw_at`), the style the nominal landing time gives, and the
@@ -159,25 +188,8 @@ def probe_run(src: RunSource, target_m: float, envs: int, workdir: Path) -> dict
         FileNotFoundError: the run has no config.json, or neither a checkpoint.pt nor an exported policy.
         ValueError: a 3D run.
     """
-    import torch
-
-    from sim_twin.training.export import export_checkpoint
-
     cfg = json.loads(src.read("config.json"))
-    if cfg["env"].get("mode", "2d") != "2d":
-        raise ValueError(f"{src.spec}: a {cfg['env']['mode']} run; the probe reads 2D runs")
-    onnx_path, ckpt = workdir / f"{src.name}.onnx", workdir / f"{src.name}.pt"
-    try:
-        ckpt.write_bytes(src.read_bytes("checkpoint.pt"))
-    except FileNotFoundError:  # a run that kept only its exported policy (the checkpoint that met the bars)
-        try:
-            onnx_path.write_bytes(src.read_bytes("throw2d.onnx"))
-            iteration = int(json.loads(src.read("throw2d.card.json"))["iteration"])
-        except FileNotFoundError:
-            raise FileNotFoundError(f"{src.spec}: neither a checkpoint.pt nor an exported throw2d.onnx with its model card") from None
-    else:
-        iteration = int(torch.load(ckpt, map_location="cpu", weights_only=False).get("iter", -1))
-        export_checkpoint(ckpt, cfg, onnx_path, src.name)
+    onnx_path, iteration = probe_actor(src, cfg, workdir)
     nominal_env = dict(cfg["env"], randomization=nominal_randomization(cfg["env"]["randomization"]))
     row = {"run": src.name, "source": src.spec, "recipe": recipe_of(cfg), "training_seed": cfg.get("training", {}).get("seed"),
            "iteration": iteration, "target_m": target_m, "envs": envs,
