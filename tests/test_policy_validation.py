@@ -148,6 +148,28 @@ def test_twin_sweep_runs_throws_over_the_declared_range(tmp_path):
     assert verdict["passed"] and verdict["throws"] == 2, verdict
 
 
+def test_a_policy_that_never_asks_to_release_fails_the_twin_sweep_by_distance(tmp_path):
+    """A version that holds the load at a distance of its declared range (as a γ 1.0 policy left the
+    5-7.5 m targets to training's forced release, docs/training.md) cannot throw there on the
+    machine: the sweep says where. The release output here is at most -1.5, never above the threshold."""
+    verdict = validate(write_test_policy(tmp_path / "holds", release_after_bias=-2.5),
+                       ValidationLimits(observations=64, distances=2, throws_per_distance=1, time_s=300))
+    assert not verdict["passed"] and verdict["throws"] == 1, verdict
+    assert "asked to release in none of its 1 twin throws at 5.00 m" in verdict["reason"]
+    assert "declared range 5-10.7 m" in verdict["reason"] and "no release within" in verdict["reason"]
+
+
+def test_the_sweep_refuses_a_gamma_one_policy_that_holds_near_targets_and_passes_the_deployed_one():
+    """throw2d-scratch-ax met every site-matrix bar (7.5-10 m) but, trained with γ 1.0 beside the
+    forced release, holds the load at 5 m; the deployed policy throws over its whole range."""
+    root = Path(__file__).resolve().parents[1]
+    limits = ValidationLimits(observations=64, distances=5, throws_per_distance=2, time_s=300)
+    held = validate(root / "policies" / "training" / "throw2d-scratch-ax" / "throw2d.onnx", limits)
+    assert not held["passed"] and "at 5.00 m" in held["reason"], held
+    deployed = validate(root / "policies" / "throw2d.onnx", limits)
+    assert deployed["passed"] and deployed["throws"] == 10, deployed
+
+
 def _upload(client, path, name):
     with open(path, "rb") as f:
         return client.post("/api/policies", files={"file": (path.name, f, "application/octet-stream")},
