@@ -92,6 +92,7 @@ SLOW_TESTS = {
     "tests/test_estop_faults.py": "processes", "tests/test_storage_faults.py": "processes",
     "tests/test_policy_validation.py": "processes", "tests/test_policies.py": "processes",
     "tests/test_policy_threads.py::test_sessions_start_the_threads_asked_for": "processes",
+    "tests/test_release_sweep.py::test_a_policy": "processes", "tests/test_release_sweep.py::test_the_deployed": "processes",
     "tests/test_runtime_node.py::test_plant_and_runtime_throw_over_zenoh": "processes",
     "tests/test_ros2_bridge.py::test_slinger_up_ros2_throws_through_rclpy_nodes": "processes",
     "tests/test_ros2_bridge.py::test_bridge_node_on_fast_dds": "processes",

@@ -10,7 +10,7 @@ A policy version must pass two sweeps before it can be promoted (server.policies
    over the whole declared range (both ends included) and both gripper states. Every action must
    be finite and of the mode's size. A condition that only some states meet (e.g. a NaN only
    beyond 6 m while the gripper moves faster than 1 m/s) is met by a large share of the samples.
-2. **Twin sweep** (:func:`twin_sweep`): throws in the CPU twin (sim_twin.evaluation.evaluate's throw loop)
+2. **Twin sweep** (sim_twin.evaluation.evaluate.twin_sweep): throws in the CPU twin (sim_twin.evaluation.evaluate's throw loop)
    at ``distances`` target distances spanning the declared range, ``throws_per_distance`` each,
    every throw from a random collision-free start pose (sim_twin.twin.initial_pose through the seed).
    No throw may fail because of the policy (a non-finite or misshaped action, a policy error), and
@@ -127,37 +127,10 @@ def _gripper_speed(q, qd) -> float:
     return float(np.linalg.norm(forward_kinematics(np, q, qd).gripper_centre_vel))
 
 
-def twin_sweep(onnx_path: str, mode: str, target_range_m, distances: int, throws_per_distance: int,
-               seed: int = 0) -> tuple[str | None, int]:
-    """Twin throws over the declared range from random start poses; returns (why it failed or
-    None, throws made). Only failures caused by the policy count: a policy error or non-finite
-    action, and a distance at which the policy released in none of its throws (the runtime ends such
-    a throw after its release timeout: a version that cannot throw at part of the range it declares,
-    e.g. one trained to wait there for training's forced release, docs/training.md). A throw that
-    misses, or that the release check holds, is the evaluation's business, not validation's."""
-    from sim_twin.evaluation.evaluate import throw_batch  # the protocol's own throw loop
-
-    lo, hi = target_range_m
-    made = 0
-    for k, d in enumerate(np.linspace(lo, hi, distances) if distances > 1 else [0.5 * (lo + hi)] * distances):
-        seeds = [seed + 1000 * k + j for j in range(throws_per_distance)]
-        unreleased = 0
-        for row in throw_batch(onnx_path, mode, float(d), seeds, None):
-            made += 1
-            reason = str(row.get("reason") or "")
-            if row["status"] == "failed" and ("policy" in reason or "non-finite" in reason):
-                return f"twin throw at {d:.2f} m (start pose seed {row['seed']}) failed: {reason}", made
-            # the policy never asked to release (a throw whose every release the release check held is not one)
-            unreleased += row["status"] == "failed" and reason.startswith("no release") and not row.get("held_releases")
-        if seeds and unreleased == len(seeds):
-            return (f"the policy asked to release in none of its {len(seeds)} twin throws at {d:.2f} m, inside its "
-                    f"declared range {lo:g}-{hi:g} m ({reason})"), made
-    return None, made
-
-
 def _child(args: dict) -> dict:
     """The child's work: load, observation sweep, twin sweep."""
     from runtime.policy import PolicyError, PolicyRunner
+    from sim_twin.evaluation.evaluate import twin_sweep  # the training gate's release check too
 
     t0 = time.monotonic()
     out: dict[str, Any] = {"passed": False, "reason": None, "observations": 0, "throws": 0}

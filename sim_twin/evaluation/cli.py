@@ -93,6 +93,8 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=None)
     parser.add_argument("--out", type=Path, default=None, help="JSON report (default reports/eval_<mode>.json)")
     parser.add_argument("--plot", type=Path, default=None, help="PNG figure (default beside the JSON)")
+    parser.add_argument("--release-sweep", action="store_true",
+                        help="--matrix: first the policy validation's twin sweep over the declared range; the matrix passes only with it")
     parser.add_argument("--matrix", action="store_true",
                         help="run the site matrix (nominal + sim_twin/profiles site profiles, sim_twin.evaluation.matrix) and write "
                              "reports/site_matrix_<mode>.json/.md/.png (or --out); default 100 throws per target")
@@ -127,7 +129,8 @@ def run(args: argparse.Namespace) -> int:
         from sim_twin.evaluation import matrix
 
         throws = 100 if args.throws == 200 else args.throws  # 200 is the single-profile default
-        rep = matrix.run_matrix(args.policy, mode, targets, throws, seed=args.seed, workers=args.workers)
+        rep = matrix.run_matrix(args.policy, mode, targets, throws, seed=args.seed, workers=args.workers,
+                                release_sweep=args.release_sweep)
         out = args.out or Path("reports") / f"site_matrix_{mode}.json"
         matrix.write(rep, out)
         log.info("site matrix %s: all bars met: %s; %s", mode, rep["pass"], out.with_suffix(".md"))

@@ -9,7 +9,8 @@ the gripper hanging still (3D: cabin anywhere); targets lie on the downrange axi
 arm's plane).
 
 :func:`throw_batch` runs throws at one target distance, one per seed (the evaluation, the site
-matrix sim_twin.evaluation.matrix and the server's quick evaluations use it); :func:`evaluate` spreads them
+matrix sim_twin.evaluation.matrix and the server's quick evaluations use it); :func:`twin_sweep`
+throws over a policy's declared range (the policy validation's and the training gate's check); :func:`evaluate` spreads them
 over all cores and summarises them per target (:func:`summarise`); progress is logged. The
 command line (``slinger evaluate``: JSON report and the paper's figure) is sim_twin.evaluation.cli.
 """
@@ -100,6 +101,50 @@ def throw_batch(policy_path: str | Path, mode: str, distance_m: float, seeds: li
             )
         rows.append(row)
     return rows
+
+
+SWEEP_DISTANCES = 5
+"""Target distances of :func:`twin_sweep` by default, spanning the declared range (the policy
+validation's default too, server.config.Settings.validation_distances)."""
+SWEEP_THROWS_PER_DISTANCE = 2
+"""Throws per distance of :func:`twin_sweep` by default (server.config.Settings.validation_throws_per_distance)."""
+
+
+def twin_sweep(onnx_path: str | Path, mode: str, target_range_m, distances: int = SWEEP_DISTANCES,
+               throws_per_distance: int = SWEEP_THROWS_PER_DISTANCE, seed: int = 0) -> tuple[str | None, int]:
+    """Twin throws over a policy's declared target range, the policy validation's sweep
+    (server.policies.validation) and the training gate's release check (sim_twin.evaluation.matrix):
+    ``distances`` distances spanning ``target_range_m`` (its middle for one), ``throws_per_distance``
+    throws each (:func:`throw_batch`, nominal twin, start-pose seeds from ``seed``).
+
+    Only failures caused by the policy count: a policy error or non-finite action, and a distance at
+    which the policy asked to release in none of its throws (the runtime ends such a throw after its
+    release timeout: a version that cannot throw at part of the range it declares, e.g. one trained
+    with γ 1.0 to wait there for training's forced release, docs/training.md). A throw that misses,
+    or whose every release the release check held, is the evaluation's business.
+
+    Returns:
+        (why it failed, or None; throws made).
+
+    Raises:
+        ValueError, OSError: the policy cannot be loaded (:func:`throw_batch`).
+    """
+    lo, hi = target_range_m
+    made = 0
+    for k, d in enumerate(np.linspace(lo, hi, distances) if distances > 1 else [0.5 * (lo + hi)] * distances):
+        seeds = [seed + 1000 * k + j for j in range(throws_per_distance)]
+        unreleased = 0
+        reason = ""
+        for row in throw_batch(onnx_path, mode, float(d), seeds, None):
+            made += 1
+            reason = str(row.get("reason") or "")
+            if row["status"] == "failed" and ("policy" in reason or "non-finite" in reason):
+                return f"twin throw at {d:.2f} m (start pose seed {row['seed']}) failed: {reason}", made
+            unreleased += row["status"] == "failed" and reason.startswith("no release") and not row.get("held_releases")
+        if seeds and unreleased == len(seeds):
+            return (f"the policy asked to release in none of its {len(seeds)} twin throws at {d:.2f} m, inside its "
+                    f"declared range {lo:g}-{hi:g} m ({reason})"), made
+    return None, made
 
 
 def summarise(distance_m: float, rows: list[dict], per_throw: bool = False) -> dict:

@@ -68,17 +68,34 @@ def cell_bars(mode: str, profile: str, shifts_mean: bool, t: dict) -> dict[str, 
 
 
 def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profiles=None, seed: int = 0, workers: int | None = None, batch: int = 10,
-               profile_dir: Path = PROFILE_DIR) -> dict:
+               profile_dir: Path = PROFILE_DIR, release_sweep: bool = False) -> dict:
     """Evaluate ``policy`` on every profile of ``profiles`` (default MATRIX_PROFILES), read from
     ``profile_dir`` (default sim_twin/profiles).
 
+    With ``release_sweep`` (the training gate's matrices) the policy validation's twin sweep over
+    the policy's declared target range runs first (sim_twin.evaluation.evaluate.twin_sweep, its
+    defaults): the matrix's targets are 7.5-10 m, a manifest's range 5-10.7 m, and a version that
+    does not release at part of it fails validation before promotion; the report's ``pass``
+    then needs the sweep too.
+
     Returns:
         {"policy", "mode", "throws_per_target", "seed", "wall_s", "profiles": [{"name",
-        "shifts_mean", "targets": [summarise(per_throw=True) + "bars"], "pass"}], "pass"}.
+        "shifts_mean", "targets": [summarise(per_throw=True) + "bars"], "pass"}], "pass"} and, with
+        ``release_sweep``, "release_sweep": {"passed", "reason", "throws", "target_range_m"}.
 
     Raises:
         FileNotFoundError: a profile file is missing.
     """
+    from runtime.policy import PolicyRunner
+
+    sweep = None
+    if release_sweep:
+        from sim_twin.evaluation.evaluate import twin_sweep
+
+        declared = PolicyRunner.load(policy).target_range_m
+        why, made = twin_sweep(policy, mode, declared)
+        sweep = {"passed": why is None, "reason": why, "throws": made, "target_range_m": list(declared)}
+        log.info("release sweep over %g-%g m: %s", *declared, "passed" if why is None else why)
     profiles = profiles or MATRIX_PROFILES
     paths: dict[str, str | None] = {}
     for name, _ in profiles:
@@ -98,8 +115,6 @@ def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profi
             results[futs[fut]] += fut.result()
             if k % 20 == 0 or k == len(futs):
                 log.info("matrix %s: %d/%d batches (%.0f s)", mode, k, len(futs), time.time() - t0)
-    from runtime.policy import PolicyRunner
-
     rows = []
     for name, shifts in profiles:
         cells = []
@@ -108,7 +123,7 @@ def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profi
             t["bars"] = cell_bars(mode, name, shifts, t)
             cells.append(t)
         rows.append({"name": name, "shifts_mean": shifts, "targets": cells, "pass": all(all(c["bars"].values()) for c in cells)})
-    return {
+    report = {
         "policy": str(policy),
         "policy_version": PolicyRunner.load(policy).version,
         "mode": mode,
@@ -116,14 +131,21 @@ def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profi
         "seed": seed,
         "wall_s": time.time() - t0,
         "profiles": rows,
-        "pass": all(r["pass"] for r in rows),
+        "pass": all(r["pass"] for r in rows) and (sweep is None or sweep["passed"]),
     }
+    if sweep is not None:
+        report["release_sweep"] = sweep
+    return report
 
 
 def markdown(report: dict) -> str:
     """One table: a row per profile and target (success, bias, sigmas, verdict)."""
     out = [f"**Site matrix {report['mode'].upper()} `{report['policy_version']}`**, {report['throws_per_target']} throws per "
            f"target and profile, {report['wall_s'] / 60:.1f} min; all bars met: **{'yes' if report['pass'] else 'no'}**\n",
+           *([f"Release sweep over the declared range {report['release_sweep']['target_range_m'][0]:g}-"
+              f"{report['release_sweep']['target_range_m'][1]:g} m: "
+              + ("passed" if report["release_sweep"]["passed"] else f"**failed**: {report['release_sweep']['reason']}") + "\n"]
+             if report.get("release_sweep") else []),
            "| profile | shifts mean | target [m] | success | bias [m] | σ down [m] | σ cross [m] | bars |",
            "|---|---|---|---|---|---|---|---|"]
     for p in report["profiles"]:

@@ -3,8 +3,10 @@ beside the training, and the run stops at the first checkpoint that meets every 
 
 One candidate at a time: when the gate is idle, the training hands it its newest exported
 checkpoint (older ones that came while a matrix ran are skipped). The candidate's matrix runs seed
-by seed (``slinger evaluate --matrix --seed s``, sim_twin.evaluation.matrix, in a child process with its own
-worker pool); a seed that misses a bar ends that candidate. A candidate that meets every bar on
+by seed (``slinger evaluate --matrix --release-sweep --seed s``, sim_twin.evaluation.matrix, in a child
+process with its own worker pool; the release sweep is the policy validation's twin sweep over the
+declared target range, so that a candidate that passes can also be promoted); a seed that misses a
+bar ends that candidate. A candidate that meets every bar on
 every seed has *passed*. By default the gate judges nothing after the first candidate that passed
 (the training stops there); with ``judge_after_pass`` it goes on judging newer checkpoints, for a
 training that runs past the bars (``slinger train --no-stop-at-bars``), and ``passes`` lists every
@@ -50,8 +52,12 @@ class MatrixResult:
 
 
 def summarise_matrix(report: dict) -> tuple[int, list[str]]:
-    """(cells missing a bar, "profile@target: bar,..." strings) of a sim_twin.evaluation.matrix report."""
+    """(cells missing a bar, "profile@target: bar,..." strings) of a sim_twin.evaluation.matrix report;
+    a failed release sweep (``release_sweep``, the gate's matrices) counts as one more, "release sweep: <why>"."""
     misses = []
+    sweep = report.get("release_sweep")
+    if sweep and not sweep["passed"]:
+        misses.append(f"release sweep: {sweep['reason']}")
     for p in report["profiles"]:
         for t in p["targets"]:
             bad = [k for k, v in t["bars"].items() if not v]
@@ -153,7 +159,7 @@ class MatrixGate:
 
     def command(self, onnx: str, seed: int, out: str) -> list[str]:
         """The child process that writes the site matrix of ``onnx`` on ``seed`` to ``out``."""
-        cmd = [sys.executable, "-m", "sim_twin.evaluation.cli", "--policy", onnx, "--matrix", "--seed", str(seed),
+        cmd = [sys.executable, "-m", "sim_twin.evaluation.cli", "--policy", onnx, "--matrix", "--release-sweep", "--seed", str(seed),
                "--throws", str(self.throws), "--workers", str(self.workers), "--out", out]
         return cmd + (["--targets", self.targets] if self.targets else [])
 

@@ -1,0 +1,43 @@
+"""The release sweep of the training gate's site matrices (sim_twin.evaluation.matrix with
+``release_sweep``): the policy validation's twin sweep over the declared target range runs first and
+the matrix passes only with it, so a checkpoint the gate passes can also be promoted. On two kept
+policies: throw2d-scratch-ax (γ 1.0, met every site-matrix bar, holds the load at 5 m) and the
+deployed throw2d-robust-i."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from server.config import Settings
+from sim_twin.evaluation.evaluate import SWEEP_DISTANCES, SWEEP_THROWS_PER_DISTANCE
+from sim_twin.evaluation.matrix import markdown, run_matrix
+from sim_twin.training.matrix_gate import MatrixGate, summarise_matrix
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _tiny(policy: Path) -> dict:
+    return run_matrix(policy, "2d", [10.0], 2, profiles=[("nominal", False)], workers=1, release_sweep=True)
+
+
+def test_a_policy_that_holds_at_part_of_its_range_fails_the_gates_matrix():
+    rep = _tiny(ROOT / "policies" / "training" / "throw2d-scratch-ax" / "throw2d.onnx")
+    sweep = rep["release_sweep"]
+    assert not sweep["passed"] and "at 5.00 m" in sweep["reason"] and sweep["target_range_m"] == [5.0, 10.7]
+    assert not rep["pass"]
+    n, misses = summarise_matrix(rep)
+    assert misses[0].startswith("release sweep: the policy asked to release in none") and n == len(misses)
+    assert "Release sweep over the declared range 5-10.7 m: **failed**" in markdown(rep)
+
+
+def test_the_deployed_policy_passes_the_sweep_and_the_sweep_is_the_validations():
+    rep = _tiny(ROOT / "policies" / "throw2d.onnx")
+    assert rep["release_sweep"] == {"passed": True, "reason": None, "throws": SWEEP_DISTANCES * SWEEP_THROWS_PER_DISTANCE,
+                                    "target_range_m": [5.0, 10.7]}
+    settings = Settings()
+    assert (settings.validation_distances, settings.validation_throws_per_distance) == (SWEEP_DISTANCES, SWEEP_THROWS_PER_DISTANCE)
+
+
+def test_the_gate_asks_for_the_sweep(tmp_path):
+    cmd = MatrixGate(tmp_path, "2d", seeds=[0], workers=1).command("c.onnx", 0, "out.json")
+    assert "--release-sweep" in cmd and "--matrix" in cmd
