@@ -42,3 +42,13 @@ def test_gamma_one_leaves_near_targets_to_the_forced_release_gamma_0998_throws_t
     ax = _near_band("throw2d-scratch-ax", forced_release=False)
     assert ax["landed"] < 0.5 and ax["terms"]["no_release"] < -2.5  # held to the time limit
     assert _near_band("throw2d-scratch-ax", forced_release=True)["landed"] > 0.9
+
+
+def test_the_gate_matrices_count_throws_ended_without_a_release():
+    """From the committed matrices: γ 1.0's -az held the load at 7.5 m in some of its gate's throws
+    (its seed-1 miss at iteration 1050), the γ 0.998 -u in none."""
+    from tests.benchmarks.training_style_return import gate_no_release
+
+    az, u = gate_no_release(RunSource(str(RUNS / "throw2d-scratch-az"))), gate_no_release(RunSource(str(RUNS / "throw2d-scratch-u")))
+    assert az["7.5"][0] > 0 and az["7.5"][1] == 6600  # 6 matrices of 11 profiles x 100 throws from iteration 200
+    assert sum(c[0] for c in u.values()) == 0 and set(u) == {"7.5", "8", "8.5", "9", "9.5", "10"}

@@ -8,7 +8,8 @@ randomisation and target range (the training distribution; forced release off, a
 matrix), the same PRNG keys for every run. Per run and target band it records the mean sum over the
 episode of every reward term (``info["reward_terms"]``, the scaled terms the reward adds up,
 sim_twin.training.rewards), the mean return (their sum: the return with γ 1.0, the candidate
-recipe's discount), the landing error and the episode length. The run's style comes from its gate
+recipe's discount), the landing error and the episode length; and from the run's gate matrices how
+many throws ended without a release, by target. The run's style comes from its gate
 (tests/benchmarks/training_throw_style.py). Writes ``<name>.json``, ``<name>.md`` and ``<name>.png``
 (mean return by target band and run, long-style runs blue, short red).
 
@@ -112,6 +113,29 @@ def summarise(ep: dict) -> list[dict]:
     return out
 
 
+GATE_FROM_ITERATION = 200
+"""The gate's matrices from this iteration on count in :func:`gate_no_release` (the style is set by then)."""
+
+
+def gate_no_release(src: RunSource, from_iteration: int = GATE_FROM_ITERATION) -> dict[str, list[int]]:
+    """Throws of the run's gate matrices (every profile and seed, iterations from ``from_iteration``)
+    that ended without a release ("no release within 10 s"), by target: {"7.5": [failed, throws]};
+    {} for a run that kept no gate matrices."""
+    import re
+
+    out: dict[str, list[int]] = {}
+    for name in src.list("matrices"):
+        m = re.fullmatch(r"site_matrix_2d_it(\d+)(?:_seed\d+)?\.json", name)
+        if not m or int(m.group(1)) < from_iteration:
+            continue
+        for prof in json.loads(src.read(f"matrices/{name}"))["profiles"]:
+            for t in prof["targets"]:
+                c = out.setdefault(f"{t['target_m']:g}", [0, 0])
+                c[0] += int(t.get("failures", {}).get("no release within 10 s", 0))
+                c[1] += int(t["throws"])
+    return dict(sorted(out.items(), key=lambda kv: float(kv[0])))
+
+
 def run_row(src: RunSource, envs: int, workdir: Path) -> dict:
     """One run: its style by the gate, its checkpoint's iteration and :func:`summarise` of its episodes.
 
@@ -128,7 +152,7 @@ def run_row(src: RunSource, envs: int, workdir: Path) -> dict:
     ep = episode_returns(onnx_path, cfg["env"], envs)
     return {"run": src.name, "source": src.spec, "training_seed": cfg.get("training", {}).get("seed"),
             "gamma": cfg["runner"]["algorithm"].get("gamma"), "iteration": iteration, "style": style, "envs": envs,
-            "bands": summarise(ep)}
+            "bands": summarise(ep), "gate_no_release": gate_no_release(src)}
 
 
 def plot(rows: list[dict], path: Path) -> None:
@@ -184,6 +208,17 @@ def main() -> None:
                       f"{b['episodes']} | {b['return']:.2f} ± {b['return_sem']:.2f} | "
                       + " | ".join(f"{b['terms'][t]:.3f}" for t in terms)
                       + f" | {b['landed']:.1%} | {b['impact_err_m']:.3f} / {b['impact_err_sd_m']:.3f} | {b['steps']:.1f} |")
+    targets = sorted({t for r in rows for t in r["gate_no_release"]}, key=float)
+    md += ["", f"Throws of each run's gate matrices (iteration {GATE_FROM_ITERATION} on, every profile and seed, the CPU twin "
+           "without forced release) that ended without a release, by target [m]:", "",
+           "| run | γ | " + " | ".join(targets) + " | all |", "|" + "---|" * (len(targets) + 3)]
+    for r in rows:
+        if not r["gate_no_release"]:
+            continue
+        cells = [r["gate_no_release"].get(t, [0, 0]) for t in targets]
+        failed, throws = sum(c[0] for c in cells), sum(c[1] for c in cells)
+        md.append(f"| {r['run']} | {r['gamma']} | " + " | ".join(f"{c[0]} / {c[1]}" for c in cells)
+                  + f" | {failed} / {throws} ({failed / max(throws, 1):.2%}) |")
     a.out.with_suffix(".md").write_text("\n".join(md) + "\n")
     plot(rows, a.out.with_suffix(".png"))
 
