@@ -85,14 +85,16 @@ def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profi
 
     Raises:
         FileNotFoundError: a profile file is missing.
+        runtime.policy.PolicyError: the policy does not load (before any throw).
     """
     from runtime.policy import PolicyRunner
 
+    runner = PolicyRunner.load(policy)  # its version and declared range; the throws load their own
     sweep = None
     if release_sweep:
         from sim_twin.evaluation.evaluate import twin_sweep
 
-        declared = PolicyRunner.load(policy).target_range_m
+        declared = runner.target_range_m
         why, made = twin_sweep(policy, mode, declared)
         sweep = {"passed": why is None, "reason": why, "throws": made, "target_range_m": list(declared)}
         log.info("release sweep over %g-%g m: %s", *declared, "passed" if why is None else why)
@@ -125,7 +127,7 @@ def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profi
         rows.append({"name": name, "shifts_mean": shifts, "targets": cells, "pass": all(all(c["bars"].values()) for c in cells)})
     report = {
         "policy": str(policy),
-        "policy_version": PolicyRunner.load(policy).version,
+        "policy_version": runner.version,
         "mode": mode,
         "throws_per_target": throws,
         "seed": seed,

@@ -26,7 +26,6 @@ import argparse
 import hashlib
 import json
 import platform
-import subprocess
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -139,7 +138,6 @@ def run_report(run: Path, gpu: str, command: str, after_run: list[Path], gate_un
     if out["curve"]:
         md += ["", "Training curve (`curve.csv`; per finished episode: landed, failed, or timed out without either):", "",
                *curve_table(out["curve"])]
-    out["_first_seed_rows"] = [(r["train_wall_s"] / 60, r["missing_cells"]) for r in rows if r["seed"] == first_seed]
     return out, md
 
 
@@ -174,6 +172,8 @@ def run_command(template: str, run: Path) -> str:
 
 
 def main() -> None:
+    from sim_twin.training.model_card import head_commit
+
     p = argparse.ArgumentParser()
     p.add_argument("runs", type=Path, nargs="+", help="run directories; several: one report with a section per run")
     p.add_argument("--out", type=Path, required=True)
@@ -195,9 +195,10 @@ def main() -> None:
         mine = [m for m in a.after_run if m.resolve().is_relative_to(run.resolve())]
         unrec = [m for m in a.gate_unrecorded if m.resolve().is_relative_to(run.resolve())]
         reports.append(run_report(run, a.gpu, run_command(commands[k % len(commands)], run), mine, unrec))
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    commit = (head_commit() or ("",))[0]
     head = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "commit": commit, "host": platform.node()}
-    curves = {Path(r["run"]).name: r.pop("_first_seed_rows") for r, _ in reports}
+    curves = {Path(r["run"]).name: [(x["train_wall_s"] / 60, x["missing_cells"]) for x in r["results"] if x["seed"] == r["seeds"][0]]
+              for r, _ in reports}
     a.out.parent.mkdir(parents=True, exist_ok=True)
     if len(reports) == 1:
         (out, md) = reports[0]

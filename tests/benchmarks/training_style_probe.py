@@ -65,6 +65,36 @@ def nominal_randomization(rand: dict) -> dict:
     return out
 
 
+def play(onnx_path: Path, env_cfg: dict, envs: int, key: int):
+    """One episode in each of ``envs`` MJX training environments (sim_twin.training.mjx_env, ``env_cfg``
+    as given) driven by the exported actor, reset with PRNG key ``key``.
+
+    Yields, per control step k (0-based): ``(k, before, after, info, live)``: the batch's
+    EnvState before and after the step, the step's info and ``live`` (envs,) bool, the environments
+    whose episode had not ended before this step. Stops once every episode has ended, or at the
+    episode's step limit.
+    """
+    import jax
+    import jax.numpy as jnp
+    import onnxruntime as ort
+
+    from sim_twin.training.mjx_env import EnvConfig, ThrowEnvCore
+
+    core = ThrowEnvCore(EnvConfig.from_dict(env_cfg))
+    sess = ort.InferenceSession(str(onnx_path))
+    name = sess.get_inputs()[0].name
+    reset, step = jax.jit(jax.vmap(core.reset)), jax.jit(jax.vmap(core.step))
+    s, obs = reset(jax.random.split(jax.random.PRNGKey(key), envs))
+    done = np.zeros(envs, bool)
+    for k in range(core.cfg.max_steps):
+        before = s
+        s, obs, _, term, tout, info = step(s, jnp.asarray(sess.run(None, {name: np.asarray(obs, np.float32)})[0]))
+        yield k, before, s, info, ~done
+        done |= np.asarray(term) | np.asarray(tout)
+        if done.all():
+            return
+
+
 def throw_at(onnx_path: Path, env_cfg: dict, target_m: float, envs: int) -> dict:
     """Throw the exported actor ``envs`` times at ``target_m`` in the MJX training environment.
 
@@ -83,38 +113,25 @@ def throw_at(onnx_path: Path, env_cfg: dict, target_m: float, envs: int) -> dict
     """
     import jax
     import jax.numpy as jnp
-    import onnxruntime as ort
 
     from runtime.observation import CONTROL_PERIOD_S
     from runtime.throw_geometry import impact_errors
-    from sim_twin.training.mjx_env import EnvConfig, ThrowEnvCore
     from sim_twin.twin.physics import ballistic_position
 
     cfg = copy.deepcopy(env_cfg)
     cfg["target_range_m"] = [target_m, target_m]
     cfg["forced_release"] = {**cfg.get("forced_release", {}), "probability": 0.0}
-    core = ThrowEnvCore(EnvConfig.from_dict(cfg))
-    sess = ort.InferenceSession(str(onnx_path))
-    name = sess.get_inputs()[0].name
-    reset, step = jax.jit(jax.vmap(core.reset)), jax.jit(jax.vmap(core.step))
     impact_of = jax.jit(jax.vmap(lambda p, v, t: ballistic_position(jnp, p, v, t)))
-    s, obs = reset(jax.random.split(jax.random.PRNGKey(PROBE_KEY), envs))
-    done = np.zeros(envs, bool)
     signed, t_land, t_rel = (np.full(envs, np.nan) for _ in range(3))
-    for k in range(core.cfg.max_steps):
-        released_before = np.asarray(s.release_cmd)
-        s, obs, _, term, tout, info = step(s, jnp.asarray(sess.run(None, {name: np.asarray(obs, np.float32)})[0]))
+    for k, before, s, info, live in play(onnx_path, cfg, envs, PROBE_KEY):
         t = (k + 1) * CONTROL_PERIOD_S
-        t_rel[np.asarray(s.release_cmd) & ~released_before & ~done] = t
-        landed = np.asarray(info["landed"]) & ~done
+        t_rel[np.asarray(s.release_cmd) & ~np.asarray(before.release_cmd) & live] = t
+        landed = np.asarray(info["landed"]) & live
         if landed.any():
             imp, tgt = np.asarray(impact_of(s.ball_p0, s.ball_v0, s.t_flight)), np.asarray(s.target)
             for i in np.flatnonzero(landed):  # the site matrix's downrange error: along the target direction
                 signed[i] = impact_errors(tgt[i], imp[i])[0]
             t_land[landed] = t
-        done |= np.asarray(term) | np.asarray(tout)
-        if done.all():
-            break
     ok = ~np.isnan(signed)
     if not ok.any():
         return {"landed": 0.0, "landing_s": float("nan"), "release_cmd_s": float("nan"), "bias_m": float("nan"), "sigma_m": float("nan")}

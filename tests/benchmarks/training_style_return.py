@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.benchmarks.training_style_probe import probe_actor
+from tests.benchmarks.training_style_probe import play, probe_actor
 from tests.benchmarks.training_throw_style import RunSource, run_style
 
 RETURN_KEY = 11
@@ -42,8 +42,7 @@ def episode_returns(onnx_path: Path, env_cfg: dict, envs: int, key: int = RETURN
 
     Args:
         onnx_path: the actor, input (N, observation_size) float32.
-        env_cfg: the ``env`` mapping of a training config (its randomisation and target range as given;
-            forced release is turned off).
+        env_cfg: the ``env`` mapping of a training config (its randomisation and target range as given).
         envs: number of episodes.
         key: PRNG key of the resets.
         forced_release: keep the config's forced release (paper Sec. III-D: the gripper opened at
@@ -57,38 +56,23 @@ def episode_returns(onnx_path: Path, env_cfg: dict, envs: int, key: int = RETURN
     """
     import copy
 
-    import jax
-    import jax.numpy as jnp
-    import onnxruntime as ort
-
-    from sim_twin.training.mjx_env import EnvConfig, ThrowEnvCore
-
     cfg = copy.deepcopy(env_cfg)
     if not forced_release:
         cfg["forced_release"] = {**cfg.get("forced_release", {}), "probability": 0.0}
-    core = ThrowEnvCore(EnvConfig.from_dict(cfg))
-    sess = ort.InferenceSession(str(onnx_path))
-    name = sess.get_inputs()[0].name
-    reset, step = jax.jit(jax.vmap(core.reset)), jax.jit(jax.vmap(core.step))
-    s, obs = reset(jax.random.split(jax.random.PRNGKey(key), envs))
-    target_m = np.linalg.norm(np.asarray(s.target)[:, :2], axis=1)
-    done = np.zeros(envs, bool)
+    target_m = np.zeros(envs)
     sums: dict[str, np.ndarray] = {}
     landed, failed = np.zeros(envs, bool), np.zeros(envs, bool)
     err, steps = np.full(envs, np.nan), np.zeros(envs, int)
-    for _ in range(core.cfg.max_steps):
-        s, obs, _, term, tout, info = step(s, jnp.asarray(sess.run(None, {name: np.asarray(obs, np.float32)})[0]))
-        live = ~done
-        for k, v in info["reward_terms"].items():
-            sums.setdefault(k, np.zeros(envs))[live] += np.asarray(v)[live]
+    for k, before, _, info, live in play(onnx_path, cfg, envs, key):
+        if k == 0:
+            target_m = np.linalg.norm(np.asarray(before.target)[:, :2], axis=1)
+        for name, v in info["reward_terms"].items():
+            sums.setdefault(name, np.zeros(envs))[live] += np.asarray(v)[live]
         steps[live] += 1
         new_land = np.asarray(info["landed"]) & live
         landed |= new_land
         err[new_land] = np.asarray(info["impact_err_m"])[new_land]
         failed |= np.asarray(info["failed"]) & live
-        done |= np.asarray(term) | np.asarray(tout)
-        if done.all():
-            break
     return {"target_m": target_m, "terms": sums, "landed": landed, "failed": failed, "impact_err_m": err, "steps": steps}
 
 
