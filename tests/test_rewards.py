@@ -23,7 +23,7 @@ def _inputs(rng, n):
     b = lambda p: jnp.asarray(rng.random(n) < p)  # noqa: E731
     return RewardInputs(f(0, 12), f(0, 12), f(0, 12), f(0, 12), jnp.asarray(rng.normal(0, 1, (n, 4)), jnp.float32),
                         jnp.asarray(rng.normal(0, 1, (n, 4)), jnp.float32), b(0.5), b(0.2), b(0.3), f(0, 3), b(0.05),
-                        f(0, 15))
+                        f(0, 15), b(0.5))
 
 
 def test_terms_sum_to_reward_and_have_their_signs():
@@ -199,3 +199,37 @@ def test_release_slope_is_how_fast_the_landing_point_moves_at_the_opening():
     coarse = np.linalg.norm(points[opened_at + 1] - points[opened_at]) / 0.08
     assert slope > 0.05 and slope == pytest.approx(coarse, rel=0.25)
     assert terms[-1] == pytest.approx(-0.5 * slope, rel=1e-5) and not any(terms[:-1])
+
+
+def test_hold_costs_every_step_that_ends_before_the_release_command():
+    """The ``hold`` cost: -hold for a step whose end finds no release commanded, 0 once it has been
+    (by the policy or the forced release); off (0) in the committed recipes."""
+    x = _inputs(np.random.default_rng(1), 256)
+    assert SCALES.hold == 0.0
+    assert np.all(np.asarray(jax.vmap(lambda xi: reward_terms(xi, SCALES))(x)["hold"]) == 0)
+    scales = RewardScales(**{**SCALES.__dict__, "hold": 0.01})
+    hold = np.asarray(jax.vmap(lambda xi: reward_terms(xi, scales))(x)["hold"])
+    released = np.asarray(x.released)
+    assert released.any() and (~released).any()
+    np.testing.assert_allclose(hold[~released], -0.01, rtol=1e-6)
+    assert np.all(hold[released] == 0)
+
+
+def test_the_environment_charges_hold_until_the_policy_commands_the_release():
+    """In the MJX environment a step whose action keeps the flag under 0.9 pays -hold, the step that
+    raises it and every later one nothing: the cost is on the policy's release command, not on the
+    opening after the release delay."""
+    from sim_twin.training.mjx_env import ThrowEnvCore
+
+    env = json.loads((CONFIG_DIR / "throw_2d_candidate.json").read_text())["env"]
+    env = {**env, "rewards": {**env["rewards"], "hold": 0.01}}
+    core = ThrowEnvCore(EnvConfig.from_dict(env))
+    state, _ = jax.jit(core.reset)(jax.random.PRNGKey(5))
+    step = jax.jit(core.step)
+    keep, release = jnp.asarray([0.0, 0.0, 0.0, -1.0]), jnp.asarray([0.0, 0.0, 0.0, 1.0])
+    paid = []
+    for action in (keep, keep, release, keep, keep):
+        state, _, _, term, _, info = step(state, action)
+        paid.append(float(info["reward_terms"]["hold"]))
+        assert not bool(term)
+    np.testing.assert_allclose(paid, [-0.01, -0.01, 0.0, 0.0, 0.0], atol=1e-7)

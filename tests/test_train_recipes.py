@@ -68,7 +68,8 @@ def test_the_2d_run_exported_a_policy_that_met_every_bar_on_two_seeds(run_name):
 CANDIDATE_2D = {("runner", "algorithm", "gamma"): 1.0, ("runner", "algorithm", "use_mixed_precision"): True,
                 ("runner", "torch_compile_mode"): "default",
                 ("runner", "actor", "class_name"): "sim_twin.training.models:Float32MLPModel",
-                ("env", "forced_release", "probability"): 0.0}
+                ("env", "forced_release", "probability"): 0.0,
+                ("env", "rewards", "err_3d"): 0.0, ("env", "rewards", "hold"): 0.01}
 """What the next attempt's 2D recipe (sim_twin/configs/throw_2d_candidate.json) changes, and to what."""
 
 
@@ -86,12 +87,16 @@ def test_the_candidate_recipe_changes_only_what_it_declares():
     assert changed == set(CANDIDATE_2D)
     assert {k: candidate[k] for k in CANDIDATE_2D} == CANDIDATE_2D
     # the runs it follows on: gamma 1.0, bfloat16 update, compile with rsl_rl's MLPModel actor and the
-    # forced release; then with the float32 actor (training seeds 25-28), the forced release still on
+    # forced release; then with the float32 actor (training seeds 25-28), the forced release still on;
+    # then without it (training seeds 29-32); each with the dense err_3d term and no hold cost
     forced = ("env", "forced_release", "probability")
-    for run_name, differs in [("throw2d-scratch-ap", {("runner", "actor", "class_name"), forced}),
-                              ("throw2d-scratch-at", {("runner", "actor", "class_name"), forced}),
-                              ("throw2d-scratch-au", {("runner", "actor", "class_name"), forced}),
-                              *((f"throw2d-scratch-{n}", {forced}) for n in ("ax", "ay", "az", "aw"))]:
+    dense = {("env", "rewards", "err_3d"), ("env", "rewards", "hold")}
+    for run_name, differs in [("throw2d-scratch-ap", {("runner", "actor", "class_name"), forced, *dense}),
+                              ("throw2d-scratch-at", {("runner", "actor", "class_name"), forced, *dense}),
+                              ("throw2d-scratch-au", {("runner", "actor", "class_name"), forced, *dense}),
+                              *((f"throw2d-scratch-{n}", {forced, *dense}) for n in ("ax", "ay", "az", "aw")),
+                              *((f"throw2d-scratch-b{i}", dense) for i in range(4))]:
         run = _flat(_without_notes(ROOT / "policies" / "training" / run_name / "config.json"))
         assert {k for k in run.keys() | candidate.keys() if run.get(k) != candidate.get(k)} == differs, run_name
-        assert run[forced] == 0.05
+        assert run[forced] == (0.0 if "-b" in run_name else 0.05)
+        assert run[("env", "rewards", "err_3d")] == recipe[("env", "rewards", "err_3d")] == 0.05

@@ -10,7 +10,7 @@ caller) and returns the term's *unscaled* value; :func:`reward_terms` scales the
 
 The paper writes the landing kernel as exp(b2 err^2) with b2 > 0, which would grow with the
 error; exp(-b2 err^2) is used (its evident intent). ``landing_fine`` (a second, sharper landing
-kernel of width b3) and ``landing_precise`` (a third, of width b4) are our additions. All weights are CHOSEN (the paper gives none); their values
+kernel of width b3), ``landing_precise`` (a third, of width b4) and the per-step ``hold`` cost are our additions. All weights are CHOSEN (the paper gives none); their values
 live in sim_twin/configs/throw_<mode>.json.
 """
 
@@ -52,6 +52,14 @@ class RewardScales:
             single throws' noise, this term directly. Trained policies open where the landing
             point moves at 0.8-2.0 m/s on a nominal 10 m throw (reports/training_release_sensitivity_2d.json, lab notebook: reports/ARCHIVE.md);
             at -0.5 the term did not change which throw style a 2D run took (docs/training.md).
+        hold: cost per control step that ends without the release having been commanded (>= 0;
+            0: off). With gamma 1.0 no term made a later throw cost anything while the dense
+            ``err_3d`` paid for every step the load was held near the target: the candidate 2D
+            runs without forced release released later and later and ran 1-5 % of their episodes
+            (at times up to 18 %) into the time limit (reports/training_release_noise_2d.md, docs/training.md,
+            "γ 1.0 and the dense term"). A constant cost per held step is the time preference the
+            discount gave, without the discount's share of the landing reward (CHOSEN value in the
+            candidate 2D recipe).
     """
 
     delta_err: float
@@ -68,6 +76,7 @@ class RewardScales:
     b4: float = 100.0
     no_release: float = 0.0
     release_slope: float = 0.0
+    hold: float = 0.0
 
     @classmethod
     def from_dict(cls, d: dict) -> RewardScales:
@@ -96,7 +105,9 @@ class RewardInputs(NamedTuple):
     landed: the payload reached the ground this step; impact_err_m: horizontal impact error [m];
     unreleased_at_limit: the episode reached its time limit this step and the gripper was never
     commanded open; release_slope_mps: how fast the landing point moved when the gripper opened
-    [m/s] (sim_twin.training.mjx_env.EnvState.release_slope).
+    [m/s] (sim_twin.training.mjx_env.EnvState.release_slope); released: the release has been
+    commanded by the end of this step (by the policy or the forced release; the gripper opens
+    after the release delay).
     """
 
     err2_m: jnp.ndarray
@@ -111,6 +122,7 @@ class RewardInputs(NamedTuple):
     impact_err_m: jnp.ndarray
     unreleased_at_limit: jnp.ndarray
     release_slope_mps: jnp.ndarray
+    released: jnp.ndarray
 
 
 def reward_delta_err(x: RewardInputs, w: RewardScales) -> jnp.ndarray:
@@ -164,6 +176,11 @@ def cost_release_slope(x: RewardInputs, w: RewardScales) -> jnp.ndarray:
     return jnp.where(x.landed & ~x.failed, x.release_slope_mps, 0.0)
 
 
+def cost_hold(x: RewardInputs, w: RewardScales) -> jnp.ndarray:
+    """1 for a control step that ends with the release not yet commanded, else 0 (returned negative: a cost)."""
+    return -(~x.released).astype(jnp.float32)
+
+
 REWARD_TERMS = {
     "delta_err": reward_delta_err,
     "err_3d": reward_err_3d,
@@ -175,6 +192,7 @@ REWARD_TERMS = {
     "landing_precise": reward_landing_precise,
     "no_release": reward_no_release,
     "release_slope": cost_release_slope,
+    "hold": cost_hold,
 }
 """Term name (= its scale's name in RewardScales) -> unscaled term function."""
 

@@ -26,6 +26,7 @@ import argparse
 import hashlib
 import json
 import platform
+import textwrap
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -246,7 +247,7 @@ def plot_cells(curves: dict[str, list[tuple[float, int]]], path: Path, title: st
     ax.yaxis.set_minor_locator(matplotlib.ticker.NullLocator())
     ax.set_xlabel("training wall time [min]")
     ax.set_ylabel("site-matrix cells missing a bar")
-    ax.set_title(f"{title}\ncells missing a bar (first gate seed, 66 cells)", fontsize=9)
+    ax.set_title(textwrap.fill(title, 90) + "\ncells missing a bar (first gate seed, 66 cells)", fontsize=9)
     ax.grid(alpha=0.3)
     if len(curves) > 1:
         ax.legend(fontsize=8)

@@ -65,14 +65,19 @@ def nominal_randomization(rand: dict) -> dict:
     return out
 
 
-def play(onnx_path: Path, env_cfg: dict, envs: int, key: int):
+def play(onnx_path: Path, env_cfg: dict, envs: int, key: int, action_std: float = 0.0):
     """One episode in each of ``envs`` MJX training environments (sim_twin.training.mjx_env, ``env_cfg``
     as given) driven by the exported actor, reset with PRNG key ``key``.
 
+    ``action_std`` 0 (the default) plays the actor's mean, as the site matrix, the validation and the
+    machine do; above 0 it adds Gaussian noise of that std to every action entry (numpy generator
+    seeded with ``key``), as PPO's sampled actor does in training (its learned std, 0.05 at the floor).
+
     Yields, per control step k (0-based): ``(k, before, after, info, live)``: the batch's
-    EnvState before and after the step, the step's info and ``live`` (envs,) bool, the environments
-    whose episode had not ended before this step. Stops once every episode has ended, or at the
-    episode's step limit.
+    EnvState before and after the step, the step's info (with ``action_mean`` (envs, actions), the
+    actor's output, and ``action`` (envs, actions), what was played) and ``live`` (envs,) bool, the
+    environments whose episode had not ended before this step. Stops once every episode has ended,
+    or at the episode's step limit.
     """
     import jax
     import jax.numpy as jnp
@@ -86,10 +91,13 @@ def play(onnx_path: Path, env_cfg: dict, envs: int, key: int):
     reset, step = jax.jit(jax.vmap(core.reset)), jax.jit(jax.vmap(core.step))
     s, obs = reset(jax.random.split(jax.random.PRNGKey(key), envs))
     done = np.zeros(envs, bool)
+    rng = np.random.default_rng(key)
     for k in range(core.cfg.max_steps):
         before = s
-        s, obs, _, term, tout, info = step(s, jnp.asarray(sess.run(None, {name: np.asarray(obs, np.float32)})[0]))
-        yield k, before, s, info, ~done
+        mean = sess.run(None, {name: np.asarray(obs, np.float32)})[0]
+        act = (mean + action_std * rng.standard_normal(mean.shape)).astype(np.float32) if action_std > 0 else mean
+        s, obs, _, term, tout, info = step(s, jnp.asarray(act))
+        yield k, before, s, {**info, "action_mean": mean, "action": act}, ~done
         done |= np.asarray(term) | np.asarray(tout)
         if done.all():
             return

@@ -120,6 +120,23 @@ def gate_no_release(src: RunSource, from_iteration: int = GATE_FROM_ITERATION) -
     return dict(sorted(out.items(), key=lambda kv: float(kv[0])))
 
 
+def gate_no_release_table(rows: list[dict]) -> list[str]:
+    """Markdown lines: each row's :func:`gate_no_release` counts by target, and over all targets
+    (rows with ``run``, ``gamma`` and ``gate_no_release``; runs without gate matrices left out)."""
+    targets = sorted({t for r in rows for t in r["gate_no_release"]}, key=float)
+    md = ["", f"Throws of each run's gate matrices (iteration {GATE_FROM_ITERATION} on, every profile and seed, the CPU twin "
+          "without forced release, the actor's mean) that ended without a release, by target [m]:", "",
+          "| run | γ | " + " | ".join(targets) + " | all |", "|" + "---|" * (len(targets) + 3)]
+    for r in rows:
+        if not r["gate_no_release"]:
+            continue
+        cells = [r["gate_no_release"].get(t, [0, 0]) for t in targets]
+        failed, throws = sum(c[0] for c in cells), sum(c[1] for c in cells)
+        md.append(f"| {r['run']} | {r['gamma']} | " + " | ".join(f"{c[0]} / {c[1]}" for c in cells)
+                  + f" | {failed} / {throws} ({failed / max(throws, 1):.2%}) |")
+    return md
+
+
 def run_row(src: RunSource, envs: int, workdir: Path) -> dict:
     """One run: its style by the gate, its checkpoint's iteration and :func:`summarise` of its episodes.
 
@@ -163,18 +180,35 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def runs_parser(doc: str, envs_help: str) -> argparse.ArgumentParser:
+    """The command line of a tool that plays runs in the MJX training environment: RUN ... (directories
+    or REV:PATH), ``--out`` (report stem) and ``--envs`` (episodes, default 512)."""
+    p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     p.add_argument("runs", nargs="+", help="run directories or REV:PATH")
     p.add_argument("--out", type=Path, required=True, help="report stem (writes .json, .md and .png)")
-    p.add_argument("--envs", type=int, default=512, help="episodes per run")
-    a = p.parse_args()
+    p.add_argument("--envs", type=int, default=512, help=envs_help)
+    return p
+
+
+def rows_of(specs: list[str], row, say) -> list[dict]:
+    """``row(RunSource(spec), workdir)`` for every run spec in order, with a scratch directory for the
+    exported actors; ``say(row)`` gives a progress line after each."""
     with tempfile.TemporaryDirectory() as tmp:
         rows = []
-        for spec in a.runs:
-            rows.append(run_row(RunSource(spec), a.envs, Path(tmp)))
-            b = rows[-1]["bands"][-1]
-            print(f"{rows[-1]['run']}: {rows[-1]['style']}, return {b['return']:.2f} ± {b['return_sem']:.2f}", flush=True)
+        for spec in specs:
+            rows.append(row(RunSource(spec), Path(tmp)))
+            print(say(rows[-1]), flush=True)
+    return rows
+
+
+def main() -> None:
+    a = runs_parser(__doc__, "episodes per run").parse_args()
+
+    def say(r: dict) -> str:
+        b = r["bands"][-1]
+        return f"{r['run']}: {r['style']}, return {b['return']:.2f} ± {b['return_sem']:.2f}"
+
+    rows = rows_of(a.runs, lambda src, tmp: run_row(src, a.envs, tmp), say)
     out = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "envs": a.envs, "key": RETURN_KEY, "rows": rows}
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.with_suffix(".json").write_text(json.dumps(out, indent=1) + "\n")
@@ -192,17 +226,7 @@ def main() -> None:
                       f"{b['episodes']} | {b['return']:.2f} ± {b['return_sem']:.2f} | "
                       + " | ".join(f"{b['terms'][t]:.3f}" for t in terms)
                       + f" | {b['landed']:.1%} | {b['impact_err_m']:.3f} / {b['impact_err_sd_m']:.3f} | {b['steps']:.1f} |")
-    targets = sorted({t for r in rows for t in r["gate_no_release"]}, key=float)
-    md += ["", f"Throws of each run's gate matrices (iteration {GATE_FROM_ITERATION} on, every profile and seed, the CPU twin "
-           "without forced release) that ended without a release, by target [m]:", "",
-           "| run | γ | " + " | ".join(targets) + " | all |", "|" + "---|" * (len(targets) + 3)]
-    for r in rows:
-        if not r["gate_no_release"]:
-            continue
-        cells = [r["gate_no_release"].get(t, [0, 0]) for t in targets]
-        failed, throws = sum(c[0] for c in cells), sum(c[1] for c in cells)
-        md.append(f"| {r['run']} | {r['gamma']} | " + " | ".join(f"{c[0]} / {c[1]}" for c in cells)
-                  + f" | {failed} / {throws} ({failed / max(throws, 1):.2%}) |")
+    md += gate_no_release_table(rows)
     a.out.with_suffix(".md").write_text("\n".join(md) + "\n")
     plot(rows, a.out.with_suffix(".png"))
 
