@@ -21,6 +21,9 @@
 # and carry `runs/state` in the call that starts the runs again. Have it ready before the call that
 # collects returns: a machine goes back 30 s after a call ends.
 #
+# The device call sends the whole working tree (64 MiB at most); with the kept training runs it is
+# larger: move policies/training out of the tree for the calls (the runs do not read it) and back after.
+#
 # The copy has no git: export SLINGER_GIT_COMMIT=<commit> in the call that starts a run (the run
 # inherits it) so that the model card of an exported policy names the commit it was trained at.
 #
