@@ -106,7 +106,10 @@ UPDATES = ("fp32", "tf32", "bf16", "bf16critic")
 """The PPO update's arithmetic settings ``--update`` compares (module docstring; ``bf16critic``: the
 bfloat16 update with the actor kept in float32, sim_twin.training.models.Float32MLPModel); ``+compile``
 after one (e.g. ``bf16+compile``) also compiles actor and critic with ``torch.compile`` (rsl_rl's
-``torch_compile_mode`` "default")."""
+``torch_compile_mode`` "default"), ``+autotune`` with "max-autotune-no-cudagraphs" (autotuned kernels;
+rsl_rl refuses the CUDA-graph modes: its graph replay would overwrite an earlier call's output)."""
+COMPILE_MODES = {"": None, "compile": "default", "autotune": "max-autotune-no-cudagraphs"}
+"""``+<extra>`` of an update setting -> rsl_rl's ``torch_compile_mode``."""
 
 
 def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int, reset_slots: float | None = None,
@@ -167,8 +170,9 @@ def _learn_rates(row: dict, env, cfg: dict, device: str, iterations: int) -> dic
     from rsl_rl.runners import OnPolicyRunner
 
     update, _, extra = row["update"].partition("+")
-    if update not in UPDATES or extra not in ("", "compile"):
-        raise ValueError(f"unknown update setting {row['update']!r}; known: {UPDATES}, each optionally with +compile")
+    if update not in UPDATES or extra not in COMPILE_MODES:
+        raise ValueError(f"unknown update setting {row['update']!r}; known: {UPDATES}, each optionally with "
+                         + " or ".join(f"+{k}" for k in COMPILE_MODES if k))
     runner_cfg = copy.deepcopy(cfg["runner"])
     runner_cfg["algorithm"]["use_mixed_precision"] = update in ("bf16", "bf16critic")
     if update == "bf16critic":
@@ -176,7 +180,7 @@ def _learn_rates(row: dict, env, cfg: dict, device: str, iterations: int) -> dic
 
         runner_cfg["actor"]["class_name"] = FLOAT32_ACTOR
     if extra:
-        runner_cfg["torch_compile_mode"] = "default"
+        runner_cfg["torch_compile_mode"] = COMPILE_MODES[extra]
     tf32 = torch.backends.cuda.matmul.allow_tf32
     torch.backends.cuda.matmul.allow_tf32 = update == "tf32"
     try:
@@ -238,7 +242,7 @@ def main() -> None:
     p.add_argument("--joint-limits", default="off", help="comma-separated: off (training's model) and/or on (the MJCF's limits)")
     p.add_argument("--graph-mode", default="default",
                    help="comma-separated MJX graph modes of the Warp call: default, WARP, WARP_STAGED, NONE (warp rows only)")
-    p.add_argument("--update", default="fp32", help=f"comma-separated PPO update arithmetic: {', '.join(UPDATES)}, each optionally +compile")
+    p.add_argument("--update", default="fp32", help=f"comma-separated PPO update arithmetic: {', '.join(UPDATES)}, each optionally +compile or +autotune")
     p.add_argument("--xla-flags", default="default",
                    help="';'-separated sets of XLA flags, one process each ('default': none)")
     p.add_argument("--out", default=None)
