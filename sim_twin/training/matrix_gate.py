@@ -3,9 +3,9 @@ beside the training, and the run stops at the first checkpoint that meets every 
 
 One candidate at a time: when the gate is idle, the training hands it its newest exported
 checkpoint (older ones that came while a matrix ran are skipped). The candidate's matrix runs seed
-by seed (``slinger evaluate --matrix --release-sweep --seed s``, sim_twin.evaluation.matrix, in a child
-process with its own worker pool; the release sweep is the policy validation's twin sweep over the
-declared target range, so that a candidate that passes can also be promoted); a seed that misses a
+by seed (``slinger evaluate --matrix --seed s``, sim_twin.evaluation.matrix, in a child process with
+its own worker pool; the first seed's with ``--release-sweep``, the policy validation's twin sweep
+over the declared target range, so that a candidate that passes can also be promoted); a seed that misses a
 bar ends that candidate. A candidate that meets every bar on
 every seed has *passed*. By default the gate judges nothing after the first candidate that passed
 (the training stops there); with ``judge_after_pass`` it goes on judging newer checkpoints, for a
@@ -158,8 +158,11 @@ class MatrixGate:
         return self.out_dir / matrix_file_name(self.mode, it, seed)
 
     def command(self, onnx: str, seed: int, out: str) -> list[str]:
-        """The child process that writes the site matrix of ``onnx`` on ``seed`` to ``out``."""
-        cmd = [sys.executable, "-m", "sim_twin.evaluation.cli", "--policy", onnx, "--matrix", "--release-sweep", "--seed", str(seed),
+        """The child process that writes the site matrix of ``onnx`` on ``seed`` to ``out``; on the
+        gate's first seed the release sweep first (its throws do not depend on the matrix seed, and a
+        failed sweep ends the candidate at its first seed)."""
+        cmd = [sys.executable, "-m", "sim_twin.evaluation.cli", "--policy", onnx, "--matrix",
+               *(["--release-sweep"] if seed == self.seeds[0] else []), "--seed", str(seed),
                "--throws", str(self.throws), "--workers", str(self.workers), "--out", out]
         return cmd + (["--targets", self.targets] if self.targets else [])
 

@@ -21,15 +21,14 @@ sampled, per run). Runs on the CPU (JAX) in a few minutes per run.
 
 from __future__ import annotations
 
-import copy
 import json
 from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
-from runtime.observation import RELEASE_THRESHOLD
-from tests.benchmarks.training_style_probe import play, probe_actor
+from runtime.observation import CONTROL_PERIOD_S, RELEASE_THRESHOLD
+from tests.benchmarks.training_style_probe import play, probe_actor, without_forced_release
 from tests.benchmarks.training_style_return import BANDS_M, RETURN_KEY, gate_no_release, gate_no_release_table, rows_of, runs_parser
 from tests.benchmarks.training_throw_style import RunSource
 
@@ -54,10 +53,7 @@ def release_episodes(onnx_path: Path, env_cfg: dict, envs: int, action_std: floa
         episode released (over the whole episode where it never did), "release_s": (envs,) time of
         the release command [s from the episode's start] (nan without one)}.
     """
-    from sim_twin.training.mjx_env import PHYSICS_PERIOD_S, SUBSTEPS
-
-    cfg = copy.deepcopy(env_cfg)
-    cfg["forced_release"] = {**cfg.get("forced_release", {}), "probability": 0.0}
+    cfg = without_forced_release(env_cfg)
     target_m = np.zeros(envs)
     released, landed, failed = np.zeros(envs, bool), np.zeros(envs, bool), np.zeros(envs, bool)
     flag_max, release_s = np.full(envs, -np.inf), np.full(envs, np.nan)
@@ -67,7 +63,7 @@ def release_episodes(onnx_path: Path, env_cfg: dict, envs: int, action_std: floa
         holding = live & ~released
         flag_max[holding] = np.maximum(flag_max[holding], info["action_mean"][holding, -1])
         now = np.asarray(info["released"]) & holding
-        release_s[now] = (k + 1) * PHYSICS_PERIOD_S * SUBSTEPS
+        release_s[now] = (k + 1) * CONTROL_PERIOD_S
         released |= now
         landed |= np.asarray(info["landed"]) & live
         failed |= np.asarray(info["failed"]) & live

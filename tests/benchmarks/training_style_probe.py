@@ -103,6 +103,14 @@ def play(onnx_path: Path, env_cfg: dict, envs: int, key: int, action_std: float 
             return
 
 
+def without_forced_release(env_cfg: dict) -> dict:
+    """A copy of a training config's ``env`` mapping with training's forced release off (paper
+    Sec. III-D), as the site matrix, the validation and the machine play: they have none."""
+    cfg = copy.deepcopy(env_cfg)
+    cfg["forced_release"] = {**cfg.get("forced_release", {}), "probability": 0.0}
+    return cfg
+
+
 def throw_at(onnx_path: Path, env_cfg: dict, target_m: float, envs: int) -> dict:
     """Throw the exported actor ``envs`` times at ``target_m`` in the MJX training environment.
 
@@ -126,9 +134,7 @@ def throw_at(onnx_path: Path, env_cfg: dict, target_m: float, envs: int) -> dict
     from runtime.throw_geometry import impact_errors
     from sim_twin.twin.physics import ballistic_position
 
-    cfg = copy.deepcopy(env_cfg)
-    cfg["target_range_m"] = [target_m, target_m]
-    cfg["forced_release"] = {**cfg.get("forced_release", {}), "probability": 0.0}
+    cfg = {**without_forced_release(env_cfg), "target_range_m": [target_m, target_m]}
     impact_of = jax.jit(jax.vmap(lambda p, v, t: ballistic_position(jnp, p, v, t)))
     signed, t_land, t_rel = (np.full(envs, np.nan) for _ in range(3))
     for k, before, s, info, live in play(onnx_path, cfg, envs, PROBE_KEY):

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.benchmarks.training_style_probe import play, probe_actor
+from tests.benchmarks.training_style_probe import play, probe_actor, without_forced_release
 from tests.benchmarks.training_throw_style import RunSource, run_style
 
 RETURN_KEY = 11
@@ -54,11 +54,7 @@ def episode_returns(onnx_path: Path, env_cfg: dict, envs: int, key: int = RETURN
         scaled term}, "landed": (envs,) bool, "failed": (envs,) bool, "impact_err_m": (envs,) landing
         error [m] (nan without a landing), "steps": (envs,) control steps played}.
     """
-    import copy
-
-    cfg = copy.deepcopy(env_cfg)
-    if not forced_release:
-        cfg["forced_release"] = {**cfg.get("forced_release", {}), "probability": 0.0}
+    cfg = env_cfg if forced_release else without_forced_release(env_cfg)
     target_m = np.zeros(envs)
     sums: dict[str, np.ndarray] = {}
     landed, failed = np.zeros(envs, bool), np.zeros(envs, bool)
