@@ -293,6 +293,8 @@ class FakeRuntime:
         hold: accept throws but never finish them (the throw stays running).
         clock_offset_s: its wall clock runs this far off the host's (checks freshness with it and
             reports it as RuntimeInfo.clock_unix_s).
+        lease_holder: the server id it obeys from the start (RuntimeInfo.lease_holder).
+        undeliverable: RuntimeInfo.undeliverable_results from the start.
 
     Set ``frozen = True`` to stand for a stopped (SIGSTOP) runtime's command handling: aborts
     and E-STOP puts are neither executed nor answered. ``lease_holder`` (the server id it obeys,
@@ -304,7 +306,7 @@ class FakeRuntime:
     def __init__(self, endpoint: str, machine_id: str = "m1", refuse: str | None = None,
                  silent: bool = False, deliver: bool = True, cabin_turn_rad: float = 0.0,
                  policies: list[PolicyInfo] | None = None, site_dir: Path | None = None, hold: bool = False,
-                 clock_offset_s: float = 0.0):
+                 clock_offset_s: float = 0.0, lease_holder: str | None = None, undeliverable: int = 0):
         self.machine_id, self.refuse, self.silent, self.deliver = machine_id, refuse, silent, deliver
         self.hold = hold
         self.frozen = False
@@ -319,8 +321,8 @@ class FakeRuntime:
         self.aborts: list[bytes] = []
         self.cabin_turn_rad = cabin_turn_rad
         self.requests: list[ThrowRequest] = []
-        self.lease_holder: str | None = None
-        self.undeliverable = 0
+        self.lease_holder = lease_holder  # set before the queryables exist: the first info query sees it
+        self.undeliverable = undeliverable
         self.returns: list[ReturnToReady] = []
         self.acks: list[ResultAck] = []
         self.results: list[ThrowResult] = []

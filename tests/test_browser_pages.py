@@ -404,8 +404,7 @@ def test_diagnosis_page_uploads_rosbags_and_shows_the_refusal(live, browser):  #
 
 def test_fleet_page_shows_the_lease_and_takes_a_machine_over_only_after_a_confirmation(live, browser, fake_runtime_factory):  # noqa: F811
     base, app = live
-    rt = fake_runtime_factory()
-    rt.lease_holder, rt.undeliverable = "srv-other", 2
+    rt = fake_runtime_factory(lease_holder="srv-other", undeliverable=2)  # the page loads once: no later info to wait for
     wait_for(lambda: app.state.fleet.is_online("m1"), 20, "m1 online")
     page = browser.new_page(viewport={"width": 1400, "height": 900})
     log_in(page, base)

@@ -97,8 +97,7 @@ def test_reset_return_to_ready_and_takeover_work_and_are_audited_while_the_disk_
     with _app(settings) as c:
         add_user(c.app.state.sessions, *ADMIN, "admin")
         login(c, *ADMIN)
-        rt = fake_runtime_factory(site_dir=settings.resolved_site_dir)
-        rt.lease_holder = "srv-other"
+        rt = fake_runtime_factory(site_dir=settings.resolved_site_dir, lease_holder="srv-other")
         wait_for(lambda: (m := _machine(c)) and m["online"] and m["ready"], 20, "m1 ready")
         backlog = c.app.state.audit_backlog
         filler = _fill(small_disk)

@@ -272,8 +272,7 @@ def test_the_machine_answer_names_the_lease_holder_and_undeliverable_results_and
         assert r.status_code == 200, r.text
         return next(m for m in r.json() if m["id"] == "m1")
 
-    rt = fake_runtime_factory()
-    rt.lease_holder, rt.undeliverable = "srv-other", 3
+    rt = fake_runtime_factory(lease_holder="srv-other", undeliverable=3)
     m = wait_for(lambda: (m := machine())["online"] and m["lease_holder"] and m, 20, "m1 online with its lease")
     assert (m["lease_holder"], m["lease_held_here"], m["undeliverable_results"]) == ("srv-other", False, 3), m
     r = client.post("/api/machines/m1/lease/takeover")
