@@ -423,3 +423,41 @@ def test_fleet_page_shows_the_lease_and_takes_a_machine_over_only_after_a_confir
     page.locator(f"{row} td.lease", has_text="this server").wait_for(timeout=20_000)
     assert rt.lease_holder == app.state.fleet.signer.server_id
     assert page.locator(f"{row} button.take-over").count() == 0
+
+
+def test_a_console_past_its_log_in_still_stops_and_one_logged_out_says_the_stop_was_not_sent(live, browser, fake_runtime_factory):  # noqa: F811
+    """docs/safety.md row S13: the console stays on its page. Its log-in expired: the E-STOP is sent and
+    confirmed, the answer says the log-in expired. Its session ended (logged out elsewhere): the live
+    stream ends and the banner says LOGGED OUT, the E-STOP is refused and the strip says NOT SENT
+    with a local alarm (before: 401, and the page left for the log-in page without a word)."""
+    from sqlalchemy import delete
+
+    from server.db.models import AuthSession
+    from tests.test_estop_expired_login import _expire
+
+    base, app = live
+    rt = fake_runtime_factory()
+    wait_for(lambda: app.state.fleet.is_online("m1"), 20, "m1 online")
+    add_user(app.state.sessions, "op1", "operator-pass-1", "operator")
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    log_in(page, base, ("op1", "operator-pass-1"), start="/console/fleet.html")
+    page.locator("#machine-state", has_text="READY").wait_for(timeout=20_000)
+    token = next(c["value"] for c in page.context.cookies() if c["name"] == "slinger_session")
+
+    _expire(app.state.sessions, token, 60.0)
+    page.click("#estop")
+    page.locator("#strip-msg", has_text="Your log-in expired at").wait_for(timeout=20_000)
+    assert "confirmed by the runtime of m1" in page.inner_text("#strip-msg")
+    assert rt.estop_reason is not None and "log-in expired" in rt.estop_reason
+
+    rt.estop_reason = None
+    with app.state.sessions.begin() as db:  # logged out elsewhere
+        db.execute(delete(AuthSession))
+    page.locator("#server-banner", has_text="LOGGED OUT").wait_for(timeout=20_000)  # the stream ended, refused again
+    page.keyboard.press("Escape")
+    page.locator("#strip-msg", has_text="E-STOP NOT SENT to m1").wait_for(timeout=20_000)
+    assert "Use the machine's own emergency stop now" in page.inner_text("#strip-msg")
+    page.locator("#alarm-count", has_text="ALARMS 1").wait_for(timeout=10_000)
+    assert "NOT SENT" in page.inner_text("#alarm-top")
+    assert page.url.endswith("/console/fleet.html") and rt.estop_reason is None
+    page.close()

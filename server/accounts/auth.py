@@ -41,6 +41,11 @@ from server.site.storage import StorageFault
 log = logging.getLogger(__name__)
 
 COOKIE_NAME = "slinger_session"
+STOP_GRACE_S = 24 * 3600.0
+"""How long after its log-in expired a session still authorises the E-STOP, and nothing else
+(CHOSEN: a console left open past the end of its log-in must not lose its stop; docs/safety.md,
+row S13). A log-out, a disabled or a deleted account end it at once. The session cookie lives this
+much longer than the session, and expired sessions are purged only after it."""
 MIN_PASSWORD_LENGTH = 12  # NIST SP 800-63B asks for >= 8, >= 15 when it is the only factor
 MAX_PASSWORD_LENGTH = 256
 _hasher = PasswordHasher()  # argon2id with the library's recommended parameters
@@ -152,9 +157,10 @@ def _digest(token: str) -> str:
 
 
 def create_session(db: Session, user: User, ttl_s: float) -> tuple[str, AuthSession]:
-    """A new session token for ``user`` valid ``ttl_s`` seconds; expired sessions are purged."""
+    """A new session token for ``user`` valid ``ttl_s`` seconds; sessions expired more than
+    :data:`STOP_GRACE_S` ago are purged."""
     now = utcnow()
-    db.execute(delete(AuthSession).where(AuthSession.expires_at < now))
+    db.execute(delete(AuthSession).where(AuthSession.expires_at < now - timedelta(seconds=STOP_GRACE_S)))
     token = secrets.token_urlsafe(32)
     row = AuthSession(token_sha256=_digest(token), user_id=user.id, user_key=user.session_key, created_at=now,
                       expires_at=now + timedelta(seconds=ttl_s))
@@ -162,8 +168,9 @@ def create_session(db: Session, user: User, ttl_s: float) -> tuple[str, AuthSess
     return token, row
 
 
-def user_for_token(db: Session, token: str | None) -> User | None:
-    """The active user of an unexpired session token, else None.
+def session_for_token(db: Session, token: str | None, grace_s: float = 0.0) -> tuple[User, datetime] | None:
+    """(the active user, the session's expiry, UTC) of a session token that has not expired, or
+    expired less than ``grace_s`` seconds ago (:data:`STOP_GRACE_S` for the E-STOP), else None.
 
     The session must carry the account's current ``session_key`` (server.db.models.User): a
     session whose account was deleted, even by a tool that bypasses foreign keys, never
@@ -172,13 +179,19 @@ def user_for_token(db: Session, token: str | None) -> User | None:
     if not token:
         return None
     row = db.get(AuthSession, _digest(token))
-    if row is None or row.expires_at <= utcnow():
+    if row is None or row.expires_at <= utcnow() - timedelta(seconds=grace_s):
         return None
     user = db.get(User, row.user_id)
     if user is None or not secrets.compare_digest(user.session_key, row.user_key):
         log.warning("session of user id %s refused: its account was deleted or replaced", row.user_id)
         return None
-    return user if user.active else None
+    return (user, row.expires_at) if user.active else None
+
+
+def user_for_token(db: Session, token: str | None) -> User | None:
+    """The active user of an unexpired session token, else None (:func:`session_for_token`)."""
+    found = session_for_token(db, token)
+    return found[0] if found is not None else None
 
 
 def end_session(db: Session, token: str | None) -> None:
@@ -337,8 +350,9 @@ class SessionMirror:
     """The valid sessions in memory: token SHA-256 -> (:class:`SessionUser`, expiry), so that a
     stop can be authorised without storage.
 
-    It holds exactly what :func:`user_for_token` accepts (unexpired session, existing active
-    account with the session's ``session_key``), read in one query. :meth:`watch` makes every
+    It holds exactly what :func:`session_for_token` accepts with the E-STOP's grace (a session not
+    expired more than :data:`STOP_GRACE_S` ago, an existing active account with the session's
+    ``session_key``), read in one query; :meth:`user` takes only the unexpired ones. :meth:`watch` makes every
     commit of the server's sessions that adds, changes or deletes users or sessions re-read it
     before the commit's caller goes on (a log-out, a deleted or disabled account, a new role take
     effect at once); a thread re-reads it every ``refresh_s`` for changes made by other processes.
@@ -378,13 +392,20 @@ class SessionMirror:
 
     def user(self, token: str | None) -> SessionUser | None:
         """The active user of an unexpired session ``token`` as last read, else None. No I/O."""
+        found = self.session(token)
+        return found[0] if found is not None else None
+
+    def session(self, token: str | None, grace_s: float = 0.0) -> tuple[SessionUser, datetime] | None:
+        """(the active user, the session's expiry) of ``token`` as last read if the session has not
+        expired, or expired less than ``grace_s`` seconds ago (at most :data:`STOP_GRACE_S`: the
+        mirror holds no older one), else None. No I/O."""
         if not token:
             return None
         with self._lock:
             entry = self._map.get(_digest(token))
-        if entry is None or entry[1] <= utcnow() or not entry[0].active:
+        if entry is None or entry[1] <= utcnow() - timedelta(seconds=grace_s) or not entry[0].active:
             return None
-        return entry[0]
+        return entry
 
     def refresh(self) -> bool:
         """Read the valid sessions now. Returns False (the mirror unchanged) on a storage error."""
@@ -395,7 +416,7 @@ class SessionMirror:
             with self.sessions() as db:
                 rows = db.execute(select(AuthSession.token_sha256, AuthSession.expires_at, User).join(
                     User, User.id == AuthSession.user_id).where(
-                    AuthSession.expires_at > utcnow(), AuthSession.user_key == User.session_key, User.active.is_(True)
+                    AuthSession.expires_at > utcnow() - timedelta(seconds=STOP_GRACE_S), AuthSession.user_key == User.session_key, User.active.is_(True)
                 )).all()
         except (SQLAlchemyError, OSError, StorageFault) as e:
             log.debug("session mirror not refreshed: %s", _first_line(e))
@@ -429,12 +450,13 @@ class SessionMirror:
                           "restart", self.file.path, e.strerror or e)
 
     def _load_file(self) -> None:
-        """Hold the file's unexpired sessions (start, when the database cannot be read)."""
+        """Hold the file's sessions not expired more than :data:`STOP_GRACE_S` ago (start, when the
+        database cannot be read)."""
         if self.file is None:
             return
-        now = utcnow()
+        oldest = utcnow() - timedelta(seconds=STOP_GRACE_S)
         kept = {digest: (SessionUser(uid, name, role, active, created), expires)
-                for digest, (uid, name, role, active, created, expires) in self.file.load().items() if expires > now}
+                for digest, (uid, name, role, active, created, expires) in self.file.load().items() if expires > oldest}
         with self._lock:
             if self.loaded:  # a read succeeded meanwhile
                 return

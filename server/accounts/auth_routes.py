@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Request, Response
 
-from server.accounts.auth import COOKIE_NAME, BadCredentials, audit, authenticate, create_session, end_session, record_audit
+from server.accounts.auth import COOKIE_NAME, STOP_GRACE_S, BadCredentials, audit, authenticate, create_session, end_session, record_audit
 from server.accounts.login_guard import LoginBusy, LoginGuard
 from server.accounts.schemas import LoginIn, LoginOut, UserOut
 from server.api.deps import CurrentUser, LoginGuardDep, SessionsDep, SettingsDep, session_token
@@ -79,7 +79,8 @@ async def login(body: LoginIn, request: Request, response: Response, settings: S
         guard.failed(body.username, address)
         raise
     guard.succeeded(body.username, address)
-    response.set_cookie(COOKIE_NAME, token, max_age=int(settings.session_ttl_s), httponly=True, samesite="lax",
+    # the cookie outlives the session by the E-STOP's grace: a console left open past its log-in keeps its stop
+    response.set_cookie(COOKIE_NAME, token, max_age=int(settings.session_ttl_s + STOP_GRACE_S), httponly=True, samesite="lax",
                         secure=settings.cookie_secure or served_over_https(request), path="/")
     return LoginOut(token=token, expires_at=row.expires_at, user=user_out(user))
 

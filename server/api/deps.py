@@ -10,12 +10,22 @@ E-STOP route relies on that).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from datetime import datetime
 from typing import Annotated, TypeVar
 
 from fastapi import Depends, Request
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.accounts.auth import COOKIE_NAME, AuditBacklog, SessionMirror, SessionUser, role_at_least, user_for_token
+from server.accounts.auth import (
+    COOKIE_NAME,
+    STOP_GRACE_S,
+    AuditBacklog,
+    SessionMirror,
+    SessionUser,
+    role_at_least,
+    session_for_token,
+    user_for_token,
+)
 from server.accounts.login_guard import LoginGuard
 from server.analysis.adaptation import AdaptationRuns
 from server.analysis.diagnosis import DiagnosisRuns
@@ -25,6 +35,7 @@ from server.console.alarms import AlarmService
 from server.console.live import LiveHub
 from server.console.scene import ConsoleScene
 from server.db.models import User
+from server.db.types import utcnow
 from server.errors import Denied, Unauthenticated
 from server.fleet.link import Fleet
 from server.fleet.results import ResultStore
@@ -144,7 +155,7 @@ def session_token(request: Request) -> str | None:
     return request.cookies.get(COOKIE_NAME)
 
 
-AnyUser = TypeVar("AnyUser", User, SessionUser)
+AnyUser = TypeVar("AnyUser", bound=User | SessionUser)
 
 
 def authorised(user: AnyUser | None, role: str = "viewer") -> AnyUser:
@@ -190,22 +201,49 @@ def user_from_memory(request: Request, role: str = "viewer") -> User | SessionUs
     """The logged-in user of ``request`` with at least ``role``, from the in-memory session
     mirror (server.accounts.auth.SessionMirror: no storage touched); only a token the mirror does not hold
     is looked up in the database (a session of another process since the last refresh, or an
-    invalid one). Used by the E-STOP and the machine list, which must answer during storage faults.
+    invalid one). Used by the machine list and the deliberate commands that must answer during
+    storage faults (the E-STOP: :func:`stopper_from_memory`).
 
     Raises:
         Unauthenticated (401), Denied (403): as :func:`authorised`.
         StorageFault: the token is not in the mirror and the database cannot be read (503).
     """
+    found: User | SessionUser | None = _session_from_memory(request, 0.0)[0]
+    return authorised(found, role)
+
+
+def stopper_from_memory(request: Request) -> tuple[User | SessionUser, datetime | None]:
+    """The operator who presses an E-STOP, as :func:`user_from_memory`, but a session whose log-in
+    expired less than server.accounts.auth.STOP_GRACE_S ago still counts (for the stop only: a
+    console left open past its log-in keeps its E-STOP; docs/safety.md, row S13).
+
+    Returns:
+        (the user, when the session's log-in expired (UTC) if it has, else None).
+
+    Raises:
+        Unauthenticated (401), Denied (403): no such session (logged out, account disabled or
+            deleted, expired longer ago), or a role below operator.
+        StorageFault: the token is not in the mirror and the database cannot be read (503).
+    """
+    found, expires = _session_from_memory(request, STOP_GRACE_S)
+    user: User | SessionUser = authorised(found, "operator")
+    return user, (expires if expires is not None and expires <= utcnow() else None)
+
+
+def _session_from_memory(request: Request, grace_s: float) -> tuple[User | SessionUser | None, datetime | None]:
+    """(user, session expiry) of the request's token with ``grace_s`` (see :func:`user_from_memory`), or (None, None)."""
     token = session_token(request)
     mirror: SessionMirror | None = getattr(request.app.state, "session_mirror", None)
-    user = mirror.user(token) if mirror is not None else None
-    if user is not None:
-        return authorised(user, role)
+    held = mirror.session(token, grace_s) if mirror is not None else None
+    if held is not None:
+        return held
     with request.app.state.sessions() as db:
-        row = user_for_token(db, token)
-    if row is None and mirror is not None:
-        mirror.drop(token)
-    return authorised(row, role)
+        found = session_for_token(db, token, grace_s)
+    if found is None:
+        if mirror is not None:
+            mirror.drop(token)
+        return None, None
+    return found
 
 
 def require_role(role: str):

@@ -12,6 +12,7 @@ import asyncio
 import logging
 import time
 from collections.abc import Callable
+from datetime import datetime
 from functools import partial
 from typing import Any
 
@@ -28,6 +29,7 @@ from server.api.deps import (
     SessionsDep,
     ViewerDep,
     authorised_or_audited,
+    stopper_from_memory,
     user_from_memory,
 )
 from server.api.report_schemas import DriftAlertOut
@@ -140,6 +142,9 @@ class AbortIn(BaseModel):
 class AbortOut(BaseModel):
     machine_id: str
     aborted_throw_id: str | None
+    login_expired_at: datetime | None = None
+    """When the pressing console's log-in expired (UTC), if it has: the stop was still taken
+    (server.accounts.auth.STOP_GRACE_S); nothing else is until the operator logs in again."""
 
 
 class EstopResetOut(BaseModel):
@@ -148,10 +153,11 @@ class EstopResetOut(BaseModel):
     reason: str | None = None
 
 
-STOP_RESPONSES = errors(401, (403, "needs the operator role"), (404, "unknown machine"),
+STOP_RESPONSES = errors((401, "no session: none sent, logged out, account disabled or deleted, or its log-in expired more "
+                              "than 24 h ago (server.accounts.auth.STOP_GRACE_S)"), (403, "needs the operator role"), (404, "unknown machine"),
                         (503, "the runtime did not confirm the stop (the server holds it latched and keeps sending "
                               "it), or the session is unknown in memory and storage does not answer"))
-"""The E-STOP checks its session itself (server.api.deps.user_from_memory): it lists 401/403."""
+"""The E-STOP checks its session itself (server.api.deps.stopper_from_memory): it lists 401/403."""
 
 
 @router.post("/{machine_id}/estop", response_model=AbortOut, responses=STOP_RESPONSES)
@@ -168,10 +174,13 @@ async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: Se
     deliberate reset). The operator's session is checked in memory (server.accounts.auth.SessionMirror) and
     no other machine, query, thread pool or storage is waited for: the audit entry is written
     afterwards on the fleet's database thread, also when the runtime does not confirm, and queued
-    in memory while storage fails (server.accounts.auth.AuditBacklog)."""
+    in memory while storage fails (server.accounts.auth.AuditBacklog). A session whose log-in expired
+    less than server.accounts.auth.STOP_GRACE_S ago still stops (``login_expired_at`` in the answer and
+    the audit entry)."""
     t0 = time.perf_counter()
-    user = user_from_memory(request, "operator")
-    reason = f"{(body or AbortIn()).reason} ({user.username})"
+    user, expired_at = stopper_from_memory(request)
+    late = {"login_expired_at": expired_at.isoformat()} if expired_at is not None else {}
+    reason = f"{(body or AbortIn()).reason} ({user.username}{', log-in expired' if late else ''})"
     try:
         t_auth = time.perf_counter()
         ack = await asyncio.wrap_future(fleet.estop(machine_id, reason, user.username))
@@ -179,13 +188,13 @@ async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: Se
                  (t_auth - t0) * 1e3, (time.perf_counter() - t_auth) * 1e3)
     except (RuntimeUnavailable, ValueError) as e:
         refused = _not_confirmed(partial(_audit_later, fleet, backlog), user.username, "abort", machine_id, "abort", e,
-                                 reason=reason)
+                                 reason=reason, **late)
         await asyncio.to_thread(_404_if_unknown, fleet, sessions, machine_id)
         raise refused from e
     fleet.forget_info(machine_id)
     _audit_later(fleet, backlog, user.username, "abort", machine_id, reason=reason, delivered=True,
-                 throw_id=ack.aborted_throw_id)
-    return AbortOut(machine_id=machine_id, aborted_throw_id=ack.aborted_throw_id)
+                 throw_id=ack.aborted_throw_id, **late)
+    return AbortOut(machine_id=machine_id, aborted_throw_id=ack.aborted_throw_id, login_expired_at=expired_at)
 
 
 def _audit_later(fleet: Fleet, backlog: AuditBacklog, username: str, action: str, subject: str, **detail) -> None:

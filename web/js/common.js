@@ -4,14 +4,16 @@
 const $ = (id) => document.getElementById(id);
 const session = { user: null };
 
-async function api(method, path, body, isForm = false) {
+/** A JSON API call: the parsed answer, or a thrown apiError. A 401 leaves for the log-in page,
+ *  except with ``keepPage`` (the E-STOP: it must say it was not sent, not leave the page). */
+async function api(method, path, body, isForm = false, { keepPage = false } = {}) {
   const opts = { method, headers: {} };
   if (body !== undefined) {
     if (isForm) opts.body = body;
     else { opts.headers["Content-Type"] = "application/json"; opts.body = JSON.stringify(body); }
   }
   const res = await fetch(path, opts);
-  if (res.status === 401 && !path.startsWith("/api/auth/login")) {
+  if (res.status === 401 && !keepPage && !path.startsWith("/api/auth/login")) {
     // The page is leaving for the log-in page: the call never settles, so no caller shows a stale
     // error and no unhandled rejection is reported while the page unloads.
     toLogIn();

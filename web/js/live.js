@@ -8,17 +8,26 @@
 const Live = (() => {
   const SILENT_MS = 4000;
   const handlers = {};
+  // the E-STOP still works for a day after a log-in expired (server.accounts.auth.STOP_GRACE_S)
+  const LOGGED_OUT_TEXT = "This console's log-in has expired or ended: reload the page to log in again. Machine states " +
+    "on this page are not live. The E-STOP still works for a day after a log-in expires.";
   let source = null, lastEventAt = 0, watchdog = null, connected = false, params = "", broke = true;
+  let loggedOut = false; // the stream was refused and the server says this console's log-in is over
 
   function on(event, fn) { (handlers[event] = handlers[event] || []).push(fn); }
 
   function emit(event, data) { for (const fn of handlers[event] || []) fn(data); }
 
+  /** Show the stream as up or down (``why``: the reason it is down). */
   function setConnected(ok, why) {
+    if (ok) loggedOut = false;
     const banner = $("server-banner");
     if (banner) {
       banner.hidden = ok;
-      if (!ok) $("server-banner-text").textContent = `Server unreachable: ${why}. Machine states on this page are not live; reconnecting…`;
+      if (!ok) {
+        $("server-banner-title").textContent = loggedOut ? "LOGGED OUT." : "SERVER UNREACHABLE.";
+        $("server-banner-text").textContent = loggedOut ? LOGGED_OUT_TEXT : `Server unreachable: ${why}. Machine states on this page are not live; reconnecting…`;
+      }
     }
     document.body.classList.toggle("server-lost", !ok);
     if (ok !== connected) {
@@ -46,8 +55,13 @@ const Live = (() => {
     source.addEventListener("open", () => { lastEventAt = Date.now(); setConnected(true); });
     source.addEventListener("error", () => {
       broke = true;
-      if (source.readyState === EventSource.CLOSED) setTimeout(open, 2000); // e.g. 401/503: try again later
       setConnected(false, "connection lost");
+      if (source.readyState !== EventSource.CLOSED) return; // the browser reconnects by itself
+      setTimeout(open, 2000); // refused (401/503) or the server gone: try again later
+      // a refusal for the log-in would read as "server unreachable": ask, and say so until the stream is back
+      fetch("/api/auth/me").then((r) => {
+        if (r.status === 401 && !connected) { loggedOut = true; setConnected(false, "log-in ended"); }
+      }).catch(() => {});
     });
   }
 

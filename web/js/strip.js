@@ -343,12 +343,23 @@ const Strip = (() => {
     if (!mid) { say("E-STOP: no machine selected. Use the machine's own emergency stop.", "error"); return Promise.resolve(); }
     say(`E-STOP sent to ${mid}…`, "error");
     $("estop").setAttribute("aria-busy", "true");
-    estopInFlight = api("POST", `/api/machines/${encodeURIComponent(mid)}/estop`, { reason: `E-STOP in the console (${source})` })
+    // keepPage: a console whose log-in the server no longer takes stays here and says so (a log-in
+    // that merely expired still stops: server.accounts.auth.STOP_GRACE_S)
+    estopInFlight = api("POST", `/api/machines/${encodeURIComponent(mid)}/estop`, { reason: `E-STOP in the console (${source})` },
+      false, { keepPage: true })
       .then((r) => {
         say(`E-STOP confirmed by the runtime of ${r.machine_id}: valves neutral` +
-          (r.aborted_throw_id ? `, throw ${r.aborted_throw_id.slice(0, 8)} aborted` : "") + ".", "error");
+          (r.aborted_throw_id ? `, throw ${r.aborted_throw_id.slice(0, 8)} aborted` : "") + "." +
+          (r.login_expired_at ? ` Your log-in expired at ${new Date(r.login_expired_at).toLocaleTimeString()}: ` +
+            "log in again before anything else (reload the page)." : ""), "error");
       })
       .catch((e) => {
+        if (e.status === 401) {
+          const why = "The server no longer takes this console's log-in (logged out, or the account was disabled or changed).";
+          say(`E-STOP NOT SENT to ${mid}: ${why} Use the machine's own emergency stop now, then log in again.`, "error");
+          raise(`estop-${mid}`, `E-STOP of ${mid} NOT SENT`, why, "Use the machine's own emergency stop now, then log in again (reload the page).");
+          return;
+        }
         say(`E-STOP NOT CONFIRMED for ${mid}: ${e.message} Use the machine's own emergency stop.`, "error");
         raise(`estop-${mid}`, `E-STOP of ${mid} NOT CONFIRMED`, e.message, "Use the machine's own emergency stop now.");
       })
