@@ -154,7 +154,7 @@ class Settings(BaseSettings):
     require_validation: bool = True
     validation_observations: int = Field(4096, ge=1)
     validation_distances: int = Field(5, ge=0)
-    validation_throws_per_distance: int = Field(2, ge=0)
+    validation_throws_per_distance: int = Field(20, ge=0)
     validation_memory_mb: int = Field(1024, ge=64)
     validation_time_s: float = Field(600.0, gt=0)
     site_dir: Path | None = None

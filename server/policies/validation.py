@@ -65,7 +65,7 @@ class ValidationLimits:
 
     observations: int = 4096
     distances: int = 5
-    throws_per_distance: int = 2
+    throws_per_distance: int = 20  # sim_twin.evaluation.evaluate.SWEEP_THROWS_PER_DISTANCE (tests/test_release_sweep.py)
     memory_bytes: int = 1 << 30
     time_s: float = 600.0
 
