@@ -9,6 +9,7 @@ the machine's drift alert (server.analysis.drift; operator, audited)."""
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import time
 from collections.abc import Callable
@@ -21,7 +22,7 @@ from pydantic import BaseModel, Field
 from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
 
-from server.accounts.auth import AuditBacklog, SessionUser, record_audit
+from server.accounts.auth import AuditBacklog, SessionUser, clean_text, record_audit
 from server.api.deps import (
     AuditBacklogDep,
     DriftDep,
@@ -136,7 +137,32 @@ def _runtime_out(mid: str, row: Machine | None, fleet: Fleet) -> MachineOut:
 
 
 class AbortIn(BaseModel):
+    """The E-STOP's body, optional. Documented for the API; the route reads it itself
+    (:func:`stop_reason`) so that no body refuses a stop."""
+
     reason: str = Field(default="operator abort", max_length=200)
+
+
+STOP_REASON_CHARS = 200
+"""The longest stop reason sent, characters (runtime.protocol.messages.AbortRequest.reason's limit):
+a longer one is cut, never refused."""
+
+
+def stop_reason(raw: bytes, limit: int = STOP_REASON_CHARS) -> str:
+    """The reason of an E-STOP's request body ``raw`` (JSON ``{"reason": "..."}``, optional). A
+    stop is never refused for its body: a reason longer than ``limit`` characters is cut, and a body
+    that is not such JSON (malformed, another type, a reason that is not text) gives the default
+    reason marked "(request body not read: ...)". Control characters are escaped
+    (server.accounts.auth.clean_text)."""
+    default = AbortIn.model_fields["reason"].default
+    try:
+        data = json.loads(raw) if raw.strip() else {}
+    except (ValueError, UnicodeDecodeError):
+        return f"{default} (request body not read: not JSON)"
+    reason = data.get("reason", default) if isinstance(data, dict) else None
+    if not isinstance(reason, str):
+        return f"{default} (request body not read: no text reason)"
+    return clean_text(reason.strip() or default, limit)
 
 
 class AbortOut(BaseModel):
@@ -160,10 +186,13 @@ STOP_RESPONSES = errors((401, "no session: none sent, logged out, account disabl
 """The E-STOP checks its session itself (server.api.deps.stopper_from_memory): it lists 401/403."""
 
 
-@router.post("/{machine_id}/estop", response_model=AbortOut, responses=STOP_RESPONSES)
-@router.post("/{machine_id}/abort", response_model=AbortOut, responses=STOP_RESPONSES)
-async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: SessionsDep, backlog: AuditBacklogDep,
-                body: AbortIn | None = None) -> AbortOut:
+STOP_BODY = {"requestBody": {"required": False, "content": {"application/json": {"schema": AbortIn.model_json_schema()}}}}
+"""The E-STOP's body as documented (AbortIn); the route reads it with :func:`stop_reason`."""
+
+
+@router.post("/{machine_id}/estop", response_model=AbortOut, responses=STOP_RESPONSES, openapi_extra=STOP_BODY)
+@router.post("/{machine_id}/abort", response_model=AbortOut, responses=STOP_RESPONSES, openapi_extra=STOP_BODY)
+async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: SessionsDep, backlog: AuditBacklogDep) -> AbortOut:
     """E-STOP: the runtime ends any throw as aborted, puts the valves to neutral and LATCHES
     (throws refused until POST .../estop/reset; the latch survives a runtime restart). Fast path:
     an async route that puts the stop for this machine at once (server.fleet.estop: fire-and-forget,
@@ -176,11 +205,13 @@ async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: Se
     afterwards on the fleet's database thread, also when the runtime does not confirm, and queued
     in memory while storage fails (server.accounts.auth.AuditBacklog). A session whose log-in expired
     less than server.accounts.auth.STOP_GRACE_S ago still stops (``login_expired_at`` in the answer and
-    the audit entry)."""
+    the audit entry). No body refuses a stop (:func:`stop_reason`: a long reason is cut, an unreadable
+    body gives the default reason)."""
     t0 = time.perf_counter()
     user, expired_at = stopper_from_memory(request)
     late = {"login_expired_at": expired_at.isoformat()} if expired_at is not None else {}
-    reason = f"{(body or AbortIn()).reason} ({user.username}{', log-in expired' if late else ''})"
+    who = f" ({user.username}{', log-in expired' if late else ''})"  # kept whole: the body's reason is cut first
+    reason = stop_reason(await request.body(), STOP_REASON_CHARS - len(who)) + who
     try:
         t_auth = time.perf_counter()
         ack = await asyncio.wrap_future(fleet.estop(machine_id, reason, user.username))
