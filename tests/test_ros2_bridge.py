@@ -140,9 +140,9 @@ def test_bridge_maps_units_and_stops_states_when_a_topic_goes_silent(tmp_path):
     assert len(out["state"]) == 3 and b.dropped == 2
 
     # commands: only the newest runtime epoch, in the ROS array layout; neutral on runtime silence
-    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.1, 0.2, 0.3, 0.4], epoch=5)))
-    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.9, 0.9, 0.9, 0.9], epoch=4)))
-    b.on_valve_command(encode(ValveCommand(machine_id="m2", stamp_s=1.0, u=[0.9, 0.9, 0.9, 0.9], epoch=6)))
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=clock.t, u=[0.1, 0.2, 0.3, 0.4], epoch=5)))
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=clock.t, u=[0.9, 0.9, 0.9, 0.9], epoch=4)))
+    b.on_valve_command(encode(ValveCommand(machine_id="m2", stamp_s=clock.t, u=[0.9, 0.9, 0.9, 0.9], epoch=6)))
     b.on_valve_command(b"{not json")
     (v,) = out["valves"]
     assert list(v.data) == [40.0, 0.2, 0.3, 10.0] and v.layout.dim[0].label == "telescope,boom,dipper,cabin_turn"
@@ -150,7 +150,7 @@ def test_bridge_maps_units_and_stops_states_when_a_topic_goes_silent(tmp_path):
     b.check()
     b.check()
     assert len(out["valves"]) == 2 and not any(out["valves"][1].data)
-    b.on_gripper_command(encode(GripperCommand(machine_id="m1", stamp_s=1.0, open=True)))
+    b.on_gripper_command(encode(GripperCommand(machine_id="m1", stamp_s=clock.t, open=True)))
     assert out["gripper"][0].data is True
 
     # the opening and the impact
@@ -205,20 +205,41 @@ def test_the_bridges_watchdog_trips_reach_the_runtime_in_the_machine_states():
         return out["state"][-1]
 
     assert fresh_state().watchdog_trips == 0
-    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.5, 0.0, 0.0, 0.0], epoch=1)))
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=clock.t, u=[0.5, 0.0, 0.0, 0.0], epoch=1)))
     clock.t += 0.2
     b.check()
     b.check()
     assert not any(out["valves"][-1].data) and len(out["valves"]) == 2  # neutral, once
     assert fresh_state().watchdog_trips == 1 and b.watchdog_trips == 1
-    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.0] * 4, epoch=1)))
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=clock.t, u=[0.0] * 4, epoch=1)))
     clock.t += 0.2
     b.check()  # silent with the valves neutral: not a trip
     assert fresh_state().watchdog_trips == 1
-    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.0, 0.3, 0.0, 0.0], epoch=1)))
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=clock.t, u=[0.0, 0.3, 0.0, 0.0], epoch=1)))
     clock.t += 0.2
     b.check()
     assert fresh_state().watchdog_trips == 2
+
+
+def test_the_bridge_drops_commands_queued_too_long_as_the_plant_does():
+    """docs/safety.md row Q5: commands queued at a stalled runtime or at the bridge itself (frozen,
+    starved of CPU) reach it late. A non-neutral valve command or a gripper opening answering a
+    state older than STALE_COMMAND_S is dropped (before, the bridge forwarded them: the arm driven
+    and the payload released late); neutral valves and a closing gripper always go out."""
+    from runtime.protocol.messages import STALE_COMMAND_S
+
+    b, out, clock = _bridge(BridgeConfig())
+    late = clock.t - STALE_COMMAND_S - 0.05  # the stamp of a state 250 ms old
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=late, u=[0.5, 0.0, 0.0, 0.0], epoch=1)))
+    b.on_gripper_command(encode(GripperCommand(machine_id="m1", stamp_s=late, open=True)))
+    assert out["valves"] == [] and out["gripper"] == [] and b.stale_commands == 2
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=late, u=[0.0] * 4, epoch=1)))
+    b.on_gripper_command(encode(GripperCommand(machine_id="m1", stamp_s=late, open=False)))
+    assert not any(out["valves"][-1].data) and out["gripper"][-1].data is False and b.stale_commands == 2
+    fresh = clock.t - STALE_COMMAND_S + 0.05
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=fresh, u=[0.5, 0.0, 0.0, 0.0], epoch=1)))
+    b.on_gripper_command(encode(GripperCommand(machine_id="m1", stamp_s=fresh, open=True)))
+    assert list(out["valves"][-1].data) == [0.5, 0.0, 0.0, 0.0] and out["gripper"][-1].data is True
 
 
 def test_a_second_command_publisher_is_a_machine_fault_with_neutral_valves():
@@ -230,14 +251,14 @@ def test_a_second_command_publisher_is_a_machine_fault_with_neutral_valves():
         b.on_joint_state(js)
 
     tick()
-    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.5, 0.0, 0.0, 0.0], epoch=1)))
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=clock.t, u=[0.5, 0.0, 0.0, 0.0], epoch=1)))
     assert out["state"][-1].machine_fault is None and list(out["valves"][-1].data) == [0.5, 0.0, 0.0, 0.0]
     fault = "2 publishers of /valve_commands (/slinger_bridge, /stranger), one expected"
     b.set_command_fault(fault)  # the graph check found a stranger: neutral at once, the fault in every state
     assert not any(out["valves"][-1].data)
     tick()
     assert out["state"][-1].machine_fault == fault
-    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.5, 0.5, 0.0, 0.0], epoch=1)))
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=clock.t, u=[0.5, 0.5, 0.0, 0.0], epoch=1)))
     assert not any(out["valves"][-1].data)  # the runtime's commands go out neutral while the fault stands
     clock.t += FOREIGN_HOLD_S / 2
     b.set_command_fault(None)  # the stranger left: the fault holds FOREIGN_HOLD_S after it was last seen
@@ -247,7 +268,7 @@ def test_a_second_command_publisher_is_a_machine_fault_with_neutral_valves():
     b.set_command_fault(None)
     tick()
     assert out["state"][-1].machine_fault is None
-    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.5, 0.5, 0.0, 0.0], epoch=1)))
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=clock.t, u=[0.5, 0.5, 0.0, 0.0], epoch=1)))
     assert list(out["valves"][-1].data) == [0.5, 0.5, 0.0, 0.0]
 
 
@@ -355,8 +376,10 @@ def test_bridge_node_on_fast_dds_reads_the_machine_and_stops_it_for_a_stranger(r
 
             # runtime commands reach the machine as Float64MultiArray
             # (repeated, as the runtime's 100 Hz commands are: one put may precede the bridge's subscription reaching this peer)
-            command = encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.1, 0.2, 0.3, 0.4], epoch=1))
-            wait_for(lambda: (session.put(keys.valve_cmd("m1"), command),
+            def command() -> bytes:  # answering a state of now: an older one would be dropped as stale
+                return encode(ValveCommand(machine_id="m1", stamp_s=time.monotonic(), u=[0.1, 0.2, 0.3, 0.4], epoch=1))
+
+            wait_for(lambda: (session.put(keys.valve_cmd("m1"), command()),
                               any(list(m.data) == [0.1, 0.2, 0.3, 0.4] for _t, m in valves))[1], 10, "valve command on ROS")
 
             # a stranger publishes valve commands: a machine fault in the states, neutral valves
@@ -368,7 +391,7 @@ def test_bridge_node_on_fast_dds_reads_the_machine_and_stops_it_for_a_stranger(r
             # DDS may find the endpoint before the node's name: the fault names it on a later check
             wait_for(lambda: (publish(1), "/machine_driver" in (states[-1].machine_fault or ""))[1], 10, "the stranger named")
             wait_for(lambda: list(valves[-1][1].data) == [0.0] * 4, 5, "neutral valves")
-            session.put(keys.valve_cmd("m1"), encode(ValveCommand(machine_id="m1", stamp_s=1.0, u=[0.5, 0.5, 0.5, 0.5], epoch=1)))
+            session.put(keys.valve_cmd("m1"), encode(ValveCommand(machine_id="m1", stamp_s=time.monotonic(), u=[0.5, 0.5, 0.5, 0.5], epoch=1)))
             time.sleep(0.3)
             m = valves[-1][1]
             assert not any(m.data) and not any(list(m.data) == [0.5] * 4 for _t, m in valves)  # it went out neutral

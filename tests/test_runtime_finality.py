@@ -25,6 +25,7 @@ from runtime.executor import ExecutorConfig, ThrowExecutor
 from runtime.policy import PolicyRunner
 from runtime.protocol import keys
 from runtime.protocol.messages import (
+    STALE_COMMAND_S,
     MachineState,
     ResultAck,
     RuntimeInfo,
@@ -38,7 +39,7 @@ from runtime.protocol.messages import (
 )
 from runtime.service import STALLED, RuntimeService
 from runtime.throw_geometry import ARM_PLANE_OFFSET_M
-from sim_twin.twin.plant import STALE_COMMAND_S, VALVE_WATCHDOG_S, PlantInbox, plant_tick
+from sim_twin.twin.plant import VALVE_WATCHDOG_S, PlantInbox, plant_tick
 from sim_twin.twin.simulated_machine import SimulatedMachine
 from sim_twin.twin.twin_machine import TwinMachine
 from tests.conftest import TEST_POLICY_CHECK, free_port, wait_for

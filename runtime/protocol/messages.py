@@ -108,6 +108,23 @@ class GripperCommand(Stamped):
     open: bool
 
 
+STALE_COMMAND_S = 0.2
+"""A machine (the simulated machine's plant, the ROS 2 bridge) drops a non-neutral ValveCommand or an
+opening GripperCommand whose stamp (the stamp of the MachineState it answers, on the machine's
+monotonic clock, which the runtime shares) is older than this, s: it was queued somewhere (a
+stalled runtime or bridge) and would move the arm or release the payload late. CHOSEN 0.2 s: the
+runtime's own bound for stale states and its link timeout; a healthy round trip (state out,
+command back) takes milliseconds."""
+
+
+def stale_motion(msg: ValveCommand | GripperCommand, now_s: float) -> bool:
+    """True if ``msg`` moves the machine (a ValveCommand with a non-zero valve, an opening
+    GripperCommand) and answers a state older than STALE_COMMAND_S at ``now_s`` (monotonic, s).
+    Neutral valves and a closing gripper are never stale: they only stop or hold."""
+    moves = any(msg.u) if isinstance(msg, ValveCommand) else msg.open
+    return bool(moves) and now_s - msg.stamp_s > STALE_COMMAND_S
+
+
 class SimReset(Stamped):
     """Simulated machine only: re-initialise to a collision-free pose with a fresh payload.
 

@@ -19,7 +19,9 @@ mapping of its configuration (runtime.ros2.config) it translates:
   the gripper state turned open; release position and velocity from the payload odometry then,
   else the impact point and zero velocity);
 * Slinger -> ROS: ``ValveCommand`` -> ``std_msgs/Float64MultiArray`` (only the newest runtime
-  epoch, as the simulated machine does), ``GripperCommand`` -> ``std_msgs/Bool``.
+  epoch, as the simulated machine does), ``GripperCommand`` -> ``std_msgs/Bool``; a command that
+  would move the arm or open the gripper and answers a state older than
+  runtime.protocol.messages.STALE_COMMAND_S is dropped (queued at a stalled runtime or bridge).
 
 Safety stays in the runtime (watchdog, E-STOP latch, signed commands). A required ROS topic
 (joint states, passive joints, gripper state) older than ``stale_after_s`` stops the
@@ -57,6 +59,7 @@ from runtime.protocol.messages import (
     MachineState,
     ValveCommand,
     encode,
+    stale_motion,
 )
 from runtime.ros2 import types as rt
 from runtime.ros2.config import BridgeConfig, ConfigError, load
@@ -113,6 +116,8 @@ class MachineBridge:
         """Times the bridge put moving valves neutral on the runtime's silence (MachineState.watchdog_trips)."""
         self.stale: str | None = None  # the stale topic, logged once per episode
         self.dropped = 0
+        self.stale_commands = 0
+        """Valve and gripper commands dropped as stale (runtime.protocol.messages.stale_motion)."""
         self.command_fault: str | None = None  # a foreign command publisher (set_command_fault)
         self.command_fault_s = -np.inf
 
@@ -235,21 +240,39 @@ class MachineBridge:
 
     # --- Slinger -> ROS -------------------------------------------------------------------
     def on_valve_command(self, payload: bytes) -> None:
-        """A ValveCommand of the runtime -> the ROS valve array (newest epoch only)."""
+        """A ValveCommand of the runtime -> the ROS valve array (newest epoch only; a non-neutral
+        one answering a state older than STALE_COMMAND_S is dropped, as the simulated machine's
+        plant drops it: queued at a stalled runtime or at this bridge, it would move the arm late)."""
         msg = decode_for(ValveCommand, payload, self.machine_id)
         if msg is None:
             return
         with self.lock:
             if not self.fence.admit(msg):
                 return
+            if stale_motion(msg, self.clock()):
+                self.stale_commands += 1
+                if self.stale_commands in (1, 10, 100) or self.stale_commands % 1000 == 0:
+                    log.warning("dropping a valve command %.0f ms old (%d so far): queued at a stalled runtime or bridge",
+                                (self.clock() - msg.stamp_s) * 1e3, self.stale_commands)
+                return
             u = [0.0] * 4 if self.command_fault else msg.u
             self.valve_rx_s, self.valves_neutral = self.clock(), not any(u)
         self.send_valves(rt.float64_array(self.config.valve_array(u), _valve_labels(self.config)))
 
     def on_gripper_command(self, payload: bytes) -> None:
+        """A GripperCommand of the runtime -> the ROS gripper Bool; an opening one answering a state
+        older than STALE_COMMAND_S is dropped (a late release throws the payload where nobody aimed;
+        the runtime's throw then fails without a release)."""
         msg = decode_for(GripperCommand, payload, self.machine_id)
-        if msg is not None:
-            self.send_gripper(rt.msg(rt.BOOL, data=bool(msg.open)))
+        if msg is None:
+            return
+        if stale_motion(msg, self.clock()):
+            with self.lock:
+                self.stale_commands += 1
+            log.error("dropping a gripper open command %.0f ms old: queued at a stalled runtime or bridge (a late release)",
+                      (self.clock() - msg.stamp_s) * 1e3)
+            return
+        self.send_gripper(rt.msg(rt.BOOL, data=bool(msg.open)))
 
     def set_command_fault(self, fault: str | None) -> None:
         """The graph check's finding (runtime.ros2.node.RosNode.command_publishers_fault): a

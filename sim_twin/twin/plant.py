@@ -29,7 +29,8 @@ What only the simulated machine does stays here, behind the machine interface:
   VALVE_WATCHDOG_S) it counts a trip (MachineState.watchdog_trips: the runtime fails the running
   throw) and disarms: valve commands are held neutral until a neutral one arrives (the runtime
   sends neutral once its throw has ended). A non-neutral command whose stamp (the stamp of the
-  machine state it answers, this plant's monotonic clock) is older than STALE_COMMAND_S was
+  machine state it answers, this plant's monotonic clock) is older than
+  runtime.protocol.messages.STALE_COMMAND_S was
   queued somewhere (a stalled runtime) and is dropped; so is such a gripper open command.
 * real time: when a period starts more than 100 ms late (sim_twin.twin.realtime.BEHIND_FAULT_S), the
   plant publishes ``machine_fault`` "behind real time by N ms" and holds the valves neutral
@@ -64,6 +65,7 @@ from runtime.protocol.messages import (
     SimReset,
     ValveCommand,
     encode,
+    stale_motion,
 )
 from runtime.zenoh_session import Claimed, add_session_arguments, claim_exclusive, open_session, session_options
 from sim_twin.twin.drake_plant import plant_twin
@@ -76,11 +78,6 @@ log = logging.getLogger(__name__)
 
 VALVE_WATCHDOG_S = 0.1
 """Plant-side watchdog: valves go neutral when no ValveCommand arrived for this long (s)."""
-
-STALE_COMMAND_S = 0.2
-"""A non-neutral ValveCommand answering a machine state older than this (s) is dropped: it was
-queued at a stalled runtime. CHOSEN 0.2 s: the runtime's own bound for stale states and its link
-timeout; a healthy round trip (state out, command back) takes milliseconds."""
 
 EXIT_ALREADY_CLAIMED = 3
 
@@ -131,7 +128,7 @@ class PlantInbox:
         with self.lock:
             if not self.fence.admit(msg):
                 return
-            if u.any() and now - msg.stamp_s > STALE_COMMAND_S:
+            if stale_motion(msg, now):
                 self.stale_commands += 1
                 if self.stale_commands == 1 or self.armed:
                     log.warning("dropping a valve command %.0f ms old (queued at a stalled runtime)", (now - msg.stamp_s) * 1e3)
@@ -148,9 +145,9 @@ class PlantInbox:
 
     def on_gripper(self, sample) -> None:
         """The gripper command; an open (release) command answering a state older than
-        STALE_COMMAND_S is dropped (queued at a stalled runtime: a late release)."""
+        runtime.protocol.messages.STALE_COMMAND_S is dropped (queued at a stalled runtime: a late release)."""
         msg = self._decode(GripperCommand, sample)
-        if msg is not None and msg.open and time.monotonic() - msg.stamp_s > STALE_COMMAND_S:
+        if msg is not None and stale_motion(msg, time.monotonic()):
             log.warning("dropping a gripper open command %.0f ms old (queued at a stalled runtime)",
                         (time.monotonic() - msg.stamp_s) * 1e3)
             return
