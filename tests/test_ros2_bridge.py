@@ -211,11 +211,14 @@ def test_the_bridges_watchdog_trips_reach_the_runtime_in_the_machine_states():
     b.check()
     assert not any(out["valves"][-1].data) and len(out["valves"]) == 2  # neutral, once
     assert fresh_state().watchdog_trips == 1 and b.watchdog_trips == 1
-    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=clock.t, u=[0.0] * 4, epoch=1)))
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=clock.t, u=[0.5, 0.0, 0.0, 0.0], epoch=1)))
+    assert not any(out["valves"][-1].data)  # the runtime woke and drives on: held neutral (as the plant), until ...
+    b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=clock.t, u=[0.0] * 4, epoch=1)))  # ... its throw ended
     clock.t += 0.2
     b.check()  # silent with the valves neutral: not a trip
     assert fresh_state().watchdog_trips == 1
     b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=clock.t, u=[0.0, 0.3, 0.0, 0.0], epoch=1)))
+    assert list(out["valves"][-1].data) == [0.0, 0.3, 0.0, 0.0]  # re-armed: the next throw's commands go out
     clock.t += 0.2
     b.check()
     assert fresh_state().watchdog_trips == 2

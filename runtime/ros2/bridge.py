@@ -27,10 +27,11 @@ Safety stays in the runtime (watchdog, E-STOP latch, signed commands). A require
 (joint states, passive joints, gripper state) older than ``stale_after_s`` stops the
 MachineStates: the runtime sees a machine-link loss (a running throw fails "machine link lost",
 throws are refused "machine offline"). When the runtime's valve commands stop for 0.1 s the bridge
-sends one neutral command (the machine must also hold its valves neutral on its own watchdog) and
-counts a watchdog trip: the states carry the count (``MachineState.watchdog_trips``, as the
-simulated machine's plant does), so the runtime fails a throw or a return to the ready pose whose
-valves its watchdog put neutral. A trip of the machine driver's own watchdog is not read.
+sends one neutral command (the machine must also hold its valves neutral on its own watchdog),
+holds the valves neutral until the runtime sends a neutral command, and counts a watchdog trip:
+the states carry the count (``MachineState.watchdog_trips``, as the simulated machine's plant
+does), so the runtime fails a throw or a return to the ready pose whose valves its watchdog put
+neutral. A trip of the machine driver's own watchdog is not read.
 A second publisher on the valve- or gripper-command topic (a stranger on the ROS domain) is a
 machine fault for as long as it is there and FOREIGN_HOLD_S after: the states carry it (the
 runtime fails a running throw and refuses throws with it) and only neutral valve commands go
@@ -112,6 +113,10 @@ class MachineBridge:
         self.fence = EpochFence()
         self.valve_rx_s = -np.inf
         self.valves_neutral = True
+        self.armed = True
+        """False after a watchdog trip until a neutral valve command arrives: commands go out neutral
+        meanwhile (the simulated machine's plant does the same), so a throw whose valves were put
+        neutral is never driven on."""
         self.watchdog_trips = 0
         """Times the bridge put moving valves neutral on the runtime's silence (MachineState.watchdog_trips)."""
         self.stale: str | None = None  # the stale topic, logged once per episode
@@ -256,6 +261,12 @@ class MachineBridge:
                                 (self.clock() - msg.stamp_s) * 1e3, self.stale_commands)
                 return
             u = [0.0] * 4 if self.command_fault else msg.u
+            if not self.armed:  # after a watchdog trip: neutral until the runtime sends neutral (its throw ended)
+                if any(u):
+                    u = [0.0] * 4
+                else:
+                    self.armed = True
+                    log.info("valve watchdog re-armed by a neutral command")
             self.valve_rx_s, self.valves_neutral = self.clock(), not any(u)
         self.send_valves(rt.float64_array(self.config.valve_array(u), _valve_labels(self.config)))
 
@@ -299,7 +310,7 @@ class MachineBridge:
         with self.lock:
             silent = not self.valves_neutral and now - self.valve_rx_s > VALVE_SILENCE_S
             if silent:
-                self.valves_neutral = True
+                self.valves_neutral, self.armed = True, False
                 self.watchdog_trips += 1
             if now - self.rx.get("joint_states", -np.inf) > self.config.stale_after_s and self.stale != "joint_states":
                 self.stale = "joint_states"
