@@ -125,6 +125,7 @@ SLOW_TESTS = {
     "tests/test_diagnosis.py::test_pure_noise_is_no_gap_and_release_delay_is_smooth_without_open_flag": "slow",
     "tests/test_diagnosis_encoder.py": "slow",
     "tests/test_estop_without_storage.py": "slow",
+    "tests/test_estop_unknown_token.py": "slow",
     "tests/test_diagnosis_rosbag.py::test_bags_uploaded_through_the_api_are_diagnosed": "slow",
     "tests/test_diagnosis_rosbag.py::test_rosbag2_of_another_library_converts_and_diagnoses": "slow",
     "tests/test_drift.py::test_profile_change_mid_run_raises_an_alert_starts_a_diagnosis_and_offers_the_adaptation": "slow",

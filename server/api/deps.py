@@ -9,6 +9,7 @@ E-STOP route relies on that).
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Callable, Iterator
 from datetime import datetime
 from typing import Annotated, TypeVar
@@ -212,10 +213,13 @@ def user_from_memory(request: Request, role: str = "viewer") -> User | SessionUs
     return authorised(found, role)
 
 
-def stopper_from_memory(request: Request) -> tuple[User | SessionUser, datetime | None]:
+async def stopper_from_memory(request: Request) -> tuple[User | SessionUser, datetime | None]:
     """The operator who presses an E-STOP, as :func:`user_from_memory`, but a session whose log-in
     expired less than server.accounts.auth.STOP_GRACE_S ago still counts (for the stop only: a
-    console left open past its log-in keeps its E-STOP; docs/safety.md, row S13).
+    console left open past its log-in keeps its E-STOP; docs/safety.md, row S13). The mirror
+    answers without I/O; a token it does not hold (a logged-out console, a stranger) is looked up
+    in the database in a worker thread, so that the lookup (up to the busy timeout of a locked
+    database) never holds the event loop that serves every other stop (docs/safety.md, row S15).
 
     Returns:
         (the user, when the session's log-in expired (UTC) if it has, else None).
@@ -225,7 +229,10 @@ def stopper_from_memory(request: Request) -> tuple[User | SessionUser, datetime 
             deleted, expired longer ago), or a role below operator.
         StorageFault: the token is not in the mirror and the database cannot be read (503).
     """
-    found, expires = _session_from_memory(request, STOP_GRACE_S)
+    token = session_token(request)
+    mirror: SessionMirror | None = getattr(request.app.state, "session_mirror", None)
+    held = mirror.session(token, STOP_GRACE_S) if mirror is not None else None
+    found, expires = held if held is not None else await asyncio.to_thread(_session_from_storage, request, token, STOP_GRACE_S)
     user: User | SessionUser = authorised(found, "operator")
     return user, (expires if expires is not None and expires <= utcnow() else None)
 
@@ -235,11 +242,15 @@ def _session_from_memory(request: Request, grace_s: float) -> tuple[User | Sessi
     token = session_token(request)
     mirror: SessionMirror | None = getattr(request.app.state, "session_mirror", None)
     held = mirror.session(token, grace_s) if mirror is not None else None
-    if held is not None:
-        return held
+    return held if held is not None else _session_from_storage(request, token, grace_s)
+
+
+def _session_from_storage(request: Request, token: str | None, grace_s: float) -> tuple[User | SessionUser | None, datetime | None]:
+    """A token the mirror does not hold, from the database (dropped from the mirror if invalid)."""
     with request.app.state.sessions() as db:
         found = session_for_token(db, token, grace_s)
     if found is None:
+        mirror: SessionMirror | None = getattr(request.app.state, "session_mirror", None)
         if mirror is not None:
             mirror.drop(token)
         return None, None

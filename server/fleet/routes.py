@@ -208,7 +208,7 @@ async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: Se
     the audit entry). No body refuses a stop (:func:`stop_reason`: a long reason is cut, an unreadable
     body gives the default reason)."""
     t0 = time.perf_counter()
-    user, expired_at = stopper_from_memory(request)
+    user, expired_at = await stopper_from_memory(request)
     late = {"login_expired_at": expired_at.isoformat()} if expired_at is not None else {}
     who = f" ({user.username}{', log-in expired' if late else ''})"  # kept whole: the body's reason is cut first
     reason = stop_reason(await request.body(), STOP_REASON_CHARS - len(who)) + who
