@@ -425,6 +425,16 @@ def test_fleet_page_shows_the_lease_and_takes_a_machine_over_only_after_a_confir
     assert page.locator(f"{row} button.take-over").count() == 0
 
 
+def _operator_on_the_fleet_page(base: str, app, browser, fake_runtime_factory):  # noqa: F811
+    """A fake runtime m1 online and an operator logged in on the fleet page: (runtime, page)."""
+    rt = fake_runtime_factory()
+    wait_for(lambda: app.state.fleet.is_online("m1"), 20, "m1 online")
+    add_user(app.state.sessions, "op1", "operator-pass-1", "operator")
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    log_in(page, base, ("op1", "operator-pass-1"), start="/console/fleet.html")
+    return rt, page
+
+
 def test_a_console_past_its_log_in_still_stops_and_one_logged_out_says_the_stop_was_not_sent(live, browser, fake_runtime_factory):  # noqa: F811
     """docs/safety.md row S13: the console stays on its page. Its log-in expired: the E-STOP is sent and
     confirmed, the answer says the log-in expired. Its session ended (logged out elsewhere): the live
@@ -436,11 +446,7 @@ def test_a_console_past_its_log_in_still_stops_and_one_logged_out_says_the_stop_
     from tests.test_estop_expired_login import _expire
 
     base, app = live
-    rt = fake_runtime_factory()
-    wait_for(lambda: app.state.fleet.is_online("m1"), 20, "m1 online")
-    add_user(app.state.sessions, "op1", "operator-pass-1", "operator")
-    page = browser.new_page(viewport={"width": 1400, "height": 900})
-    log_in(page, base, ("op1", "operator-pass-1"), start="/console/fleet.html")
+    rt, page = _operator_on_the_fleet_page(base, app, browser, fake_runtime_factory)
     page.locator("#machine-state", has_text="READY").wait_for(timeout=20_000)
     token = next(c["value"] for c in page.context.cookies() if c["name"] == "slinger_session")
 
@@ -461,3 +467,24 @@ def test_a_console_past_its_log_in_still_stops_and_one_logged_out_says_the_stop_
     assert "NOT SENT" in page.inner_text("#alarm-top")
     assert page.url.endswith("/console/fleet.html") and rt.estop_reason is None
     page.close()
+
+
+def test_the_strip_announces_the_end_of_the_log_in_and_the_estop_outlives_it(settings, browser, fake_runtime_factory):  # noqa: F811
+    """A 40 s log-in: the strip says when it ends (an alarm of the page, low, within 15 minutes of the
+    end), then that it ended (medium); the E-STOP pressed after the end still stops the machine and
+    says the log-in expired (docs/safety.md row S13); the page, loaded again, asks for a log-in."""
+    settings.session_ttl_s = 40.0
+    served = _serve(settings)
+    base, app = next(served)
+    try:
+        rt, page = _operator_on_the_fleet_page(base, app, browser, fake_runtime_factory)
+        page.locator("#alarm-top", has_text="LOW: Log-in ends at").wait_for(timeout=20_000)
+        page.locator("#alarm-top", has_text="MEDIUM: Log-in ended at").wait_for(timeout=60_000)
+        page.click("#estop")
+        page.locator("#strip-msg", has_text="Your log-in expired at").wait_for(timeout=20_000)
+        assert rt.estop_reason is not None and "log-in expired" in rt.estop_reason
+        page.reload()  # anything but the stop asks for a new log-in
+        page.wait_for_url("**/login.html**", timeout=20_000)
+        page.close()
+    finally:
+        next(served, None)

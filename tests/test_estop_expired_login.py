@@ -64,6 +64,8 @@ def test_an_expired_log_in_still_stops_and_nothing_else(settings, fake_runtime_f
         assert f"Max-Age={int(settings.session_ttl_s + STOP_GRACE_S)}" in cookie, cookie  # the cookie outlives the log-in
         rt = fake_runtime_factory(site_dir=settings.resolved_site_dir)
         _ready(c, rt)
+        me = c.get("/api/auth/me").json()  # the console announces the end of the log-in from this
+        assert me["username"] == OPERATOR[0] and me["session_expires_at"] == r.json()["expires_at"], me
 
         _expire(c.app.state.sessions, token, 60.0)
         assert c.get("/api/auth/me").status_code == 401  # the log-in is over ...

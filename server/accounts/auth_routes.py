@@ -4,12 +4,22 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Request, Response
 
-from server.accounts.auth import COOKIE_NAME, STOP_GRACE_S, BadCredentials, audit, authenticate, create_session, end_session, record_audit
+from server.accounts.auth import (
+    COOKIE_NAME,
+    STOP_GRACE_S,
+    BadCredentials,
+    audit,
+    authenticate,
+    create_session,
+    end_session,
+    record_audit,
+    session_for_token,
+)
 from server.accounts.login_guard import LoginBusy, LoginGuard
-from server.accounts.schemas import LoginIn, LoginOut, UserOut
-from server.api.deps import CurrentUser, LoginGuardDep, SessionsDep, SettingsDep, session_token
+from server.accounts.schemas import LoginIn, LoginOut, MeOut, UserOut
+from server.api.deps import LoginGuardDep, SessionsDep, SettingsDep, session_token
 from server.api.responses import errors
-from server.errors import Limited
+from server.errors import Limited, Unauthenticated
 
 router = APIRouter(prefix="/api/auth", tags=["auth"])
 
@@ -95,6 +105,12 @@ def logout(request: Request, response: Response, sessions: SessionsDep) -> Respo
     return response
 
 
-@router.get("/me", response_model=UserOut, responses=errors((401, "not logged in")))
-def me(user: CurrentUser) -> UserOut:
-    return user_out(user)
+@router.get("/me", response_model=MeOut, responses=errors((401, "not logged in")))
+def me(request: Request, sessions: SessionsDep) -> MeOut:
+    """The logged-in user and when the session's log-in ends (the console warns before it)."""
+    with sessions() as db:
+        found = session_for_token(db, session_token(request))
+    if found is None:
+        raise Unauthenticated("log in first (session missing or expired)")
+    user, expires = found
+    return MeOut(**user_out(user).model_dump(), session_expires_at=expires)

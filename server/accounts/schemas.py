@@ -26,6 +26,13 @@ class UserOut(BaseModel):
     created_at: datetime
 
 
+class MeOut(UserOut):
+    """GET /api/auth/me: the user, and when the caller's log-in ends (UTC; the E-STOP still
+    works for server.accounts.auth.STOP_GRACE_S after it)."""
+
+    session_expires_at: datetime
+
+
 class LoginOut(BaseModel):
     """The session token (also set as the ``slinger_session`` cookie) and when it expires."""
 

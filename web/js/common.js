@@ -121,6 +121,7 @@ async function whoAmI() {
   const who = $("who");
   if (who) who.textContent = `${session.user.username} (${session.user.role})`;
   for (const el of document.querySelectorAll("[data-role]")) el.hidden = !can(el.dataset.role);
+  if (typeof Strip !== "undefined") Strip.watchLogIn(session.user.session_expires_at); // pages with the status strip
   return session.user;
 }
 

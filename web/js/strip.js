@@ -83,7 +83,7 @@ const Strip = (() => {
    *  unacknowledged first, then by priority, newest first. */
   function shownAlarms() {
     const list = [...alarms.values()].filter((a) => a.active && !a.shelved)
-      .concat([...localAlarms.values()].map((a) => ({ ...a, id: a.key, local: true, priority: "high", state: "unacked",
+      .concat([...localAlarms.values()].map((a) => ({ ...a, id: a.key, local: true, state: "unacked",
         raised_at: new Date(a.at).toISOString() })));
     const unacked = (a) => (a.state === "unacked" || a.state === "rtn_unacked" ? 0 : 1);
     return list.sort((a, b) => unacked(a) - unacked(b) || PRIORITY_RANK[a.priority] - PRIORITY_RANK[b.priority] ||
@@ -151,10 +151,11 @@ const Strip = (() => {
   }
 
   /** An alarm only this page knows (the server may be unreachable, e.g. an unconfirmed E-STOP):
-   *  in the banner until acknowledged here; a second with the same ``key`` replaces the first. */
-  function raise(key, title, text, todo) {
+   *  in the banner until acknowledged here; a second with the same ``key`` replaces the first.
+   *  ``priority``: "high" (default), "medium" or "low", as the server's alarms. */
+  function raise(key, title, text, todo, priority = "high") {
     if (!$("strip-msg").classList.contains("error")) say(""); // an alarm outranks a passing message: keep the strip short
-    localAlarms.set(key, { key, title, text, todo, at: Date.now() });
+    localAlarms.set(key, { key, title, text, todo, priority, at: Date.now() });
     renderAlarms();
   }
 
@@ -394,6 +395,26 @@ const Strip = (() => {
     }, RESET_CONFIRM_MS) };
   }
 
+  // --- the end of the log-in ----------------------------------------------------------------------
+  const LOGIN_NOTICE_MS = 15 * 60 * 1000; // how long before its end the log-in's end is announced
+  let loginTimers = [];
+  /** Announce the end of this page's log-in (``expiresAt``: ISO 8601 UTC, GET /api/auth/me) as an
+   *  alarm of the page LOGIN_NOTICE_MS before it and when it comes: after it every command but the
+   *  E-STOP asks for a new log-in, and the E-STOP still works for a day (server.accounts.auth.STOP_GRACE_S). */
+  function watchLogIn(expiresAt) {
+    for (const t of loginTimers) clearTimeout(t);
+    const end = Date.parse(expiresAt);
+    if (!Number.isFinite(end)) return;
+    const at = new Date(end).toLocaleTimeString();
+    const todo = "Log out and in again to keep commanding. The E-STOP keeps working for a day after the log-in ends.";
+    const soon = () => raise("login-end", `Log-in ends at ${at}`, "After that every command but the E-STOP asks for a new log-in.", todo, "low");
+    const ended = () => raise("login-end", `Log-in ended at ${at}`, "Throws, resets and moves ask for a new log-in now.", todo, "medium");
+    // setTimeout holds at most 2^31-1 ms (24.8 days): a longer log-in is announced on a later page load
+    loginTimers = [[end - LOGIN_NOTICE_MS, soon], [end, ended]]
+      .filter(([when]) => when - Date.now() < 2 ** 31 - 1)
+      .map(([when, fn]) => setTimeout(fn, Math.max(0, when - Date.now())));
+  }
+
   function isStopKey(e) { return e.key === "Escape" || e.key === "Esc"; }
 
   function onKey(e) {
@@ -455,7 +476,7 @@ const Strip = (() => {
   document.addEventListener("DOMContentLoaded", init);
 
   return {
-    machines, estop, raise, select, say, explainFailure,
+    machines, estop, raise, select, say, explainFailure, watchLogIn,
     get machineId() { return machineId; },
     onSelect: (fn) => selectHandlers.push(fn),
     setViserOrigin: (origin) => { viserOrigin = origin; },
