@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import pytest
 
-from server.fleet.routes import STOP_REASON_CHARS, stop_reason
+from runtime.protocol.messages import ABORT_REASON_CHARS
+from server.fleet.routes import stop_reason
 from tests.conftest import add_user, login, wait_for
 
 
@@ -17,7 +18,7 @@ from tests.conftest import add_user, login, wait_for
     (b"", "operator abort"),
     (b'{"reason": "  "}', "operator abort"),
     (b'{"reason": "drill"}', "drill"),
-    (b'{"reason": "' + b"x" * 300 + b'"}', "x" * (STOP_REASON_CHARS - 1) + "\u2026"),
+    (b'{"reason": "' + b"x" * 300 + b'"}', "x" * (ABORT_REASON_CHARS - 1) + "\u2026"),
     (b'{"reason": "bell\\u0007"}', "bell\\x07"),
     (b"{not json", "operator abort (request body not read: not JSON)"),
     (b"\xff\xfe", "operator abort (request body not read: not JSON)"),

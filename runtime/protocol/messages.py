@@ -197,6 +197,10 @@ class ThrowAck(Message):
     """SHA-256 of the ONNX file of the policy that will run the throw (the version's identity)."""
 
 
+ABORT_REASON_CHARS = 200
+"""The longest AbortRequest reason, characters (senders cut a longer one: a stop is never refused for it)."""
+
+
 class AbortRequest(Message):
     """Server -> runtime: stop now (valves to neutral) and latch E-STOP until a signed
     EstopReset. Honoured even unsigned (stopping is always safe); ``auth`` names who asked.
@@ -208,7 +212,7 @@ class AbortRequest(Message):
     """
 
     machine_id: MachineId
-    reason: Annotated[str, Field(max_length=200)] = "operator abort"
+    reason: Annotated[str, Field(max_length=ABORT_REASON_CHARS)] = "operator abort"
     request_id: Annotated[str, Field(pattern=r"^[0-9a-f]{1,64}$")] | None = None
     auth: CommandAuth | None = None
 

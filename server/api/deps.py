@@ -230,8 +230,7 @@ async def stopper_from_memory(request: Request) -> tuple[User | SessionUser, dat
         StorageFault: the token is not in the mirror and the database cannot be read (503).
     """
     token = session_token(request)
-    mirror: SessionMirror | None = getattr(request.app.state, "session_mirror", None)
-    held = mirror.session(token, STOP_GRACE_S) if mirror is not None else None
+    held = _session_held(request, token, STOP_GRACE_S)
     found, expires = held if held is not None else await asyncio.to_thread(_session_from_storage, request, token, STOP_GRACE_S)
     user: User | SessionUser = authorised(found, "operator")
     return user, (expires if expires is not None and expires <= utcnow() else None)
@@ -240,9 +239,14 @@ async def stopper_from_memory(request: Request) -> tuple[User | SessionUser, dat
 def _session_from_memory(request: Request, grace_s: float) -> tuple[User | SessionUser | None, datetime | None]:
     """(user, session expiry) of the request's token with ``grace_s`` (see :func:`user_from_memory`), or (None, None)."""
     token = session_token(request)
-    mirror: SessionMirror | None = getattr(request.app.state, "session_mirror", None)
-    held = mirror.session(token, grace_s) if mirror is not None else None
+    held = _session_held(request, token, grace_s)
     return held if held is not None else _session_from_storage(request, token, grace_s)
+
+
+def _session_held(request: Request, token: str | None, grace_s: float) -> tuple[SessionUser, datetime] | None:
+    """The session mirror's (user, expiry) of ``token`` with ``grace_s``; None if it does not hold it. No I/O."""
+    mirror: SessionMirror | None = getattr(request.app.state, "session_mirror", None)
+    return mirror.session(token, grace_s) if mirror is not None else None
 
 
 def _session_from_storage(request: Request, token: str | None, grace_s: float) -> tuple[User | SessionUser | None, datetime | None]:

@@ -42,7 +42,7 @@ import zenoh
 from pydantic import ValidationError
 
 from runtime.protocol import keys
-from runtime.protocol.messages import AbortAck, AbortRequest, decode_on_key, encode
+from runtime.protocol.messages import ABORT_REASON_CHARS, AbortAck, AbortRequest, decode_on_key, encode
 from server.fleet.commands import RuntimeUnavailable
 
 log = logging.getLogger(__name__)
@@ -159,7 +159,7 @@ class EstopLine:
                 self.coalesced += 1
                 return press.future
         request_id = secrets.token_hex(8)
-        request = AbortRequest(machine_id=machine_id, reason=reason[:200], request_id=request_id)
+        request = AbortRequest(machine_id=machine_id, reason=reason[:ABORT_REASON_CHARS], request_id=request_id)
         try:
             request = self.sign(request, machine_id, user)
         except ValueError as e:
@@ -297,7 +297,7 @@ class EstopLine:
 
     def _put_latch(self, latch: Latch) -> None:
         """Put a latched stop, signed afresh (the runtime may have restarted: a new epoch)."""
-        request = AbortRequest(machine_id=latch.machine_id, reason=latch.reason[:200], request_id=latch.request_id)
+        request = AbortRequest(machine_id=latch.machine_id, reason=latch.reason[:ABORT_REASON_CHARS], request_id=latch.request_id)
         try:
             request = self.sign(request, latch.machine_id, latch.user)
         except ValueError as e:

@@ -22,6 +22,7 @@ from pydantic import BaseModel, Field
 from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
 
+from runtime.protocol.messages import ABORT_REASON_CHARS
 from server.accounts.auth import AuditBacklog, SessionUser, clean_text, record_audit
 from server.api.deps import (
     AuditBacklogDep,
@@ -140,15 +141,10 @@ class AbortIn(BaseModel):
     """The E-STOP's body, optional. Documented for the API; the route reads it itself
     (:func:`stop_reason`) so that no body refuses a stop."""
 
-    reason: str = Field(default="operator abort", max_length=200)
+    reason: str = Field(default="operator abort", max_length=ABORT_REASON_CHARS)
 
 
-STOP_REASON_CHARS = 200
-"""The longest stop reason sent, characters (runtime.protocol.messages.AbortRequest.reason's limit):
-a longer one is cut, never refused."""
-
-
-def stop_reason(raw: bytes, limit: int = STOP_REASON_CHARS) -> str:
+def stop_reason(raw: bytes, limit: int = ABORT_REASON_CHARS) -> str:
     """The reason of an E-STOP's request body ``raw`` (JSON ``{"reason": "..."}``, optional). A
     stop is never refused for its body: a reason longer than ``limit`` characters is cut, and a body
     that is not such JSON (malformed, another type, a reason that is not text) gives the default
@@ -211,7 +207,7 @@ async def estop(machine_id: str, request: Request, fleet: FleetDep, sessions: Se
     user, expired_at = await stopper_from_memory(request)
     late = {"login_expired_at": expired_at.isoformat()} if expired_at is not None else {}
     who = f" ({user.username}{', log-in expired' if late else ''})"  # kept whole: the body's reason is cut first
-    reason = stop_reason(await request.body(), STOP_REASON_CHARS - len(who)) + who
+    reason = stop_reason(await request.body(), ABORT_REASON_CHARS - len(who)) + who
     try:
         t_auth = time.perf_counter()
         ack = await asyncio.wrap_future(fleet.estop(machine_id, reason, user.username))
