@@ -23,7 +23,7 @@ def _inputs(rng, n):
     b = lambda p: jnp.asarray(rng.random(n) < p)  # noqa: E731
     return RewardInputs(f(0, 12), f(0, 12), f(0, 12), f(0, 12), jnp.asarray(rng.normal(0, 1, (n, 4)), jnp.float32),
                         jnp.asarray(rng.normal(0, 1, (n, 4)), jnp.float32), b(0.5), b(0.2), b(0.3), f(0, 3), b(0.05),
-                        f(0, 15), b(0.5))
+                        f(0, 15), b(0.5), f(0, 10))
 
 
 def test_terms_sum_to_reward_and_have_their_signs():
@@ -215,6 +215,22 @@ def test_hold_costs_every_step_that_ends_before_the_release_command():
     assert np.all(hold[released] == 0)
 
 
+def test_hold_after_a_grace_charges_only_the_steps_that_end_after_it():
+    """With ``hold_after_s`` g the cost falls on unreleased steps whose end is later than g; a step
+    ending at g itself is free, and a released one stays free whenever it ends."""
+    x = _inputs(np.random.default_rng(2), 512)
+    scales = RewardScales(**{**SCALES.__dict__, "hold": 0.01, "hold_after_s": 4.0})
+    hold = np.asarray(jax.vmap(lambda xi: reward_terms(xi, scales))(x)["hold"])
+    released, late = np.asarray(x.released), np.asarray(x.elapsed_s) > 4.0
+    assert (late & ~released).any() and (~late & ~released).any()
+    np.testing.assert_allclose(hold[late & ~released], -0.01, rtol=1e-6)
+    assert np.all(hold[~late | released] == 0)
+    edge = x._replace(elapsed_s=jnp.full_like(x.elapsed_s, 4.0), released=jnp.zeros_like(x.released))
+    assert np.all(np.asarray(jax.vmap(lambda xi: reward_terms(xi, scales))(edge)["hold"]) == 0)
+    with pytest.raises(ValueError, match="unknown reward"):
+        RewardScales.from_dict({**SCALES.__dict__, "hold_after": 4.0})
+
+
 def test_the_environment_charges_hold_until_the_policy_commands_the_release():
     """In the MJX environment a step whose action keeps the flag under 0.9 pays -hold, the step that
     raises it and every later one nothing: the cost is on the policy's release command, not on the
@@ -222,7 +238,7 @@ def test_the_environment_charges_hold_until_the_policy_commands_the_release():
     from sim_twin.training.mjx_env import ThrowEnvCore
 
     env = json.loads((CONFIG_DIR / "throw_2d_candidate.json").read_text())["env"]
-    env = {**env, "rewards": {**env["rewards"], "hold": 0.01}}
+    env = {**env, "rewards": {**env["rewards"], "hold": 0.01, "hold_after_s": 0.0}}
     core = ThrowEnvCore(EnvConfig.from_dict(env))
     state, _ = jax.jit(core.reset)(jax.random.PRNGKey(5))
     step = jax.jit(core.step)
@@ -233,3 +249,23 @@ def test_the_environment_charges_hold_until_the_policy_commands_the_release():
         paid.append(float(info["reward_terms"]["hold"]))
         assert not bool(term)
     np.testing.assert_allclose(paid, [-0.01, -0.01, 0.0, 0.0, 0.0], atol=1e-7)
+
+
+def test_the_environment_counts_the_grace_in_control_periods():
+    """``elapsed_s`` is the control steps so far times the 0.08 s control period: with a grace of
+    0.2 s the first two held steps (ending at 0.08 and 0.16 s) are free, the third (0.24 s) and the
+    fourth pay, and the release command ends the cost."""
+    from sim_twin.training.mjx_env import ThrowEnvCore
+
+    env = json.loads((CONFIG_DIR / "throw_2d_candidate.json").read_text())["env"]
+    env = {**env, "rewards": {**env["rewards"], "hold": 0.01, "hold_after_s": 0.2}}
+    core = ThrowEnvCore(EnvConfig.from_dict(env))
+    state, _ = jax.jit(core.reset)(jax.random.PRNGKey(5))
+    step = jax.jit(core.step)
+    keep, release = jnp.asarray([0.0, 0.0, 0.0, -1.0]), jnp.asarray([0.0, 0.0, 0.0, 1.0])
+    paid = []
+    for action in (keep, keep, keep, keep, release, keep):
+        state, _, _, term, _, info = step(state, action)
+        paid.append(float(info["reward_terms"]["hold"]))
+        assert not bool(term)
+    np.testing.assert_allclose(paid, [0.0, 0.0, -0.01, -0.01, 0.0, 0.0], atol=1e-7)

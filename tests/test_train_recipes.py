@@ -69,7 +69,8 @@ CANDIDATE_2D = {("runner", "algorithm", "gamma"): 1.0, ("runner", "algorithm", "
                 ("runner", "torch_compile_mode"): "default",
                 ("runner", "actor", "class_name"): "sim_twin.training.models:Float32MLPModel",
                 ("env", "forced_release", "probability"): 0.0,
-                ("env", "rewards", "err_3d"): 0.0, ("env", "rewards", "hold"): 0.01}
+                ("env", "rewards", "err_3d"): 0.0, ("env", "rewards", "hold"): 0.01,
+                ("env", "rewards", "hold_after_s"): 5.0}
 """What the next attempt's 2D recipe (sim_twin/configs/throw_2d_candidate.json) changes, and to what."""
 
 
@@ -88,15 +89,21 @@ def test_the_candidate_recipe_changes_only_what_it_declares():
     assert {k: candidate[k] for k in CANDIDATE_2D} == CANDIDATE_2D
     # the runs it follows on: gamma 1.0, bfloat16 update, compile with rsl_rl's MLPModel actor and the
     # forced release; then with the float32 actor (training seeds 25-28), the forced release still on;
-    # then without it (training seeds 29-32); each with the dense err_3d term and no hold cost
+    # then without it (training seeds 29-32); each with the dense err_3d term and no hold cost; then
+    # with err_3d 0 and the hold cost from the first step (training seeds 33-34)
     forced = ("env", "forced_release", "probability")
-    dense = {("env", "rewards", "err_3d"), ("env", "rewards", "hold")}
+    grace = ("env", "rewards", "hold_after_s")
+    dense = {("env", "rewards", "err_3d"), ("env", "rewards", "hold"), grace}
     for run_name, differs in [("throw2d-scratch-ap", {("runner", "actor", "class_name"), forced, *dense}),
                               ("throw2d-scratch-at", {("runner", "actor", "class_name"), forced, *dense}),
                               ("throw2d-scratch-au", {("runner", "actor", "class_name"), forced, *dense}),
                               *((f"throw2d-scratch-{n}", {forced, *dense}) for n in ("ax", "ay", "az", "aw")),
-                              *((f"throw2d-scratch-b{i}", dense) for i in range(4))]:
+                              *((f"throw2d-scratch-b{i}", dense) for i in range(4)),
+                              *((f"throw2d-scratch-c{i}", {grace}) for i in range(2))]:
         run = _flat(_without_notes(ROOT / "policies" / "training" / run_name / "config.json"))
         assert {k for k in run.keys() | candidate.keys() if run.get(k) != candidate.get(k)} == differs, run_name
-        assert run[forced] == (0.0 if "-b" in run_name else 0.05)
+        assert run[forced] == (0.0 if "-b" in run_name or "-c" in run_name else 0.05)
+        if "-c" in run_name:
+            assert run[("env", "rewards", "hold")] == 0.01 and grace not in run  # charged from the first step
+            continue
         assert run[("env", "rewards", "err_3d")] == recipe[("env", "rewards", "err_3d")] == 0.05

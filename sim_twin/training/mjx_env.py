@@ -615,7 +615,8 @@ class ThrowEnvCore:
         unreleased = at_limit & ~s.release_cmd
         terms = reward_terms(
             RewardInputs(err2, err3, s.err2_min, s.err3_min, action, s.prev_action, s.opened, failed, landed,
-                         impact_err, unreleased, s.release_slope, s.release_cmd),
+                         impact_err, unreleased, s.release_slope, s.release_cmd,
+                         step * (PHYSICS_PERIOD_S * SUBSTEPS)),
             w,
         )
         reward = total_reward(terms, w.failure)

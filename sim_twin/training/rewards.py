@@ -60,6 +60,13 @@ class RewardScales:
             "γ 1.0 and the dense term"). A constant cost per held step is the time preference the
             discount gave, without the discount's share of the landing reward (CHOSEN value in the
             candidate 2D recipe).
+        hold_after_s: episode time [s] before which ``hold`` charges nothing (0: from the first step).
+            Charged from the first step, the cost favoured the short far-target throw: both runs of
+            the candidate recipe with ``hold`` 0.01 from the start took it (throw2d-scratch-c0 and
+            -c1, reports/training_scratch_2d_candidate.md), where eight of ten γ 1.0 runs without it took
+            the long one. Charged only after a grace longer than either style's release, it leaves
+            the styles' returns alike and still charges a load held on and on (docs/training.md,
+            "γ 1.0 and the dense term").
     """
 
     delta_err: float
@@ -77,6 +84,7 @@ class RewardScales:
     no_release: float = 0.0
     release_slope: float = 0.0
     hold: float = 0.0
+    hold_after_s: float = 0.0
 
     @classmethod
     def from_dict(cls, d: dict) -> RewardScales:
@@ -107,7 +115,8 @@ class RewardInputs(NamedTuple):
     commanded open; release_slope_mps: how fast the landing point moved when the gripper opened
     [m/s] (sim_twin.training.mjx_env.EnvState.release_slope); released: the release has been
     commanded by the end of this step (by the policy or the forced release; the gripper opens
-    after the release delay).
+    after the release delay); elapsed_s: episode time at the end of this step [s] (control steps
+    times the control period).
     """
 
     err2_m: jnp.ndarray
@@ -123,6 +132,7 @@ class RewardInputs(NamedTuple):
     unreleased_at_limit: jnp.ndarray
     release_slope_mps: jnp.ndarray
     released: jnp.ndarray
+    elapsed_s: jnp.ndarray
 
 
 def reward_delta_err(x: RewardInputs, w: RewardScales) -> jnp.ndarray:
@@ -177,8 +187,9 @@ def cost_release_slope(x: RewardInputs, w: RewardScales) -> jnp.ndarray:
 
 
 def cost_hold(x: RewardInputs, w: RewardScales) -> jnp.ndarray:
-    """1 for a control step that ends with the release not yet commanded, else 0 (returned negative: a cost)."""
-    return -(~x.released).astype(jnp.float32)
+    """1 for a control step that ends after ``hold_after_s`` of episode time with the release not yet
+    commanded, else 0 (returned negative: a cost)."""
+    return -(~x.released & (x.elapsed_s > w.hold_after_s)).astype(jnp.float32)
 
 
 REWARD_TERMS = {

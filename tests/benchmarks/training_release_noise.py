@@ -142,19 +142,45 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def kept_rows(report: Path, envs: int, action_std: float, runs: list[str]) -> list[dict]:
+    """The rows of the earlier ``report`` (its JSON) whose runs are not among ``runs`` (by the run's
+    directory name), to stand beside this invocation's.
+
+    Raises:
+        ValueError: the report played another number of episodes, another noise std or PRNG key.
+    """
+    old = json.loads(report.read_text())
+    for name, have, want in (("envs", old.get("envs"), envs), ("action_std", old.get("action_std"), action_std),
+                             ("key", old.get("key"), RETURN_KEY)):
+        if have != want:
+            raise ValueError(f"{report}: {name} {have} differs from this run's {want}; its rows cannot stand beside these")
+    now = {Path(r.split(":")[-1]).name for r in runs}
+    return [r for r in old["rows"] if r["run"] not in now]
+
+
 def main() -> None:
     p = runs_parser(__doc__, "episodes per run and setting")
     p.add_argument("--action-std", type=float, default=ACTION_STD, help="noise std of the sampled actor")
+    p.add_argument("--keep-rows-of", type=Path, default=None,
+                   help="an earlier report (.json) of the same --envs and --action-std whose rows of other runs "
+                        "stay in the new one, before the runs played now (each run takes minutes on a CPU)")
     a = p.parse_args()
-    rows = rows_of(a.runs, lambda src, tmp: run_row(src, a.envs, a.action_std, tmp),
-                   lambda r: f"{r['run']}: released {r['mean'][-1]['released']:.1%} (mean) / {r['sampled'][-1]['released']:.1%} (sampled)")
-    out = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "envs": a.envs, "key": RETURN_KEY,
-           "action_std": a.action_std, "rows": rows}
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.with_suffix(".json").write_text(json.dumps(out, indent=1) + "\n")
+    kept = kept_rows(a.keep_rows_of, a.envs, a.action_std, a.runs) if a.keep_rows_of else []
+    rows = kept + rows_of(a.runs, lambda src, tmp: run_row(src, a.envs, a.action_std, tmp),
+                          lambda r: f"{r['run']}: released {r['mean'][-1]['released']:.1%} (mean) / {r['sampled'][-1]['released']:.1%} (sampled)")
+    write_report(a.out, rows, a.envs, a.action_std)
+
+
+def write_report(out_stem: Path, rows: list[dict], envs: int, action_std: float) -> None:
+    """``<out_stem>.json``, ``.md`` and ``.png`` of ``rows`` (:func:`run_row`'s, in order), played with
+    ``envs`` episodes per run and setting and noise std ``action_std``."""
+    out = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "envs": envs, "key": RETURN_KEY,
+           "action_std": action_std, "rows": rows}
+    out_stem.parent.mkdir(parents=True, exist_ok=True)
+    out_stem.with_suffix(".json").write_text(json.dumps(out, indent=1) + "\n")
     md = ["# 2D runs: releases of the actor's mean against the sampled actor", "",
-          f"{a.envs} episodes per run and setting in the MJX training environment with the run's own randomisation "
-          f"and targets, forced release off, PRNG key {RETURN_KEY}; `sampled` adds Gaussian noise of std {a.action_std} "
+          f"{envs} episodes per run and setting in the MJX training environment with the run's own randomisation "
+          f"and targets, forced release off, PRNG key {RETURN_KEY}; `sampled` adds Gaussian noise of std {action_std} "
           "to every action entry, as PPO does in training. `flag quartiles`: the highest release flag the mean reached "
           f"in its unreleased episodes (threshold {RELEASE_THRESHOLD}).", "",
           "| run | seed | γ | forced release in training | iteration | targets | episodes | released (mean) | released (sampled) "
@@ -168,8 +194,8 @@ def main() -> None:
                       f"| {bm['band']} | {bm['episodes']} | {bm['released']:.1%} | {bs['released']:.1%} | {bm['landed']:.1%} "
                       f"| {bs['landed']:.1%} | {bm['release_s_median']:.2f} / {bs['release_s_median']:.2f} | {q} | {within} |")
     md += gate_no_release_table(rows)
-    a.out.with_suffix(".md").write_text("\n".join(md) + "\n")
-    plot(rows, a.out.with_suffix(".png"))
+    out_stem.with_suffix(".md").write_text("\n".join(md) + "\n")
+    plot(rows, out_stem.with_suffix(".png"))
 
 
 if __name__ == "__main__":
