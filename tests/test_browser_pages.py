@@ -488,3 +488,73 @@ def test_the_strip_announces_the_end_of_the_log_in_and_the_estop_outlives_it(set
         page.close()
     finally:
         next(served, None)
+
+
+def test_the_typed_aim_comes_back_after_a_new_log_in_as_an_edit_not_yet_set(live_3d, browser, fake_runtime_factory):  # noqa: F811
+    """The log-in ends (logged out elsewhere) while the operator types a target on the console: the
+    page leaves for the log-in page (Set, or a call of its own, answered 401), and after the new log-in
+    the typed x, y and the mode are back in the fields, not yet the target: Preview and Throw wait for
+    Set, and Set aims there. The same after a reload under the LOGGED OUT banner. Before, the page
+    came back with empty fields."""
+    from sqlalchemy import delete
+
+    from server.db.models import AuthSession
+
+    base, app = live_3d
+    fake_runtime_factory()
+    wait_for(lambda: app.state.fleet.is_online("m1"), 20, "m1 online")
+    add_user(app.state.sessions, "op1", "operator-pass-1", "operator")
+    page = browser.new_page(viewport={"width": 1440, "height": 900})
+    page.set_default_timeout(30_000)
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    log_in(page, base, ("op1", "operator-pass-1"), start="/console/")
+    page.locator("#machine-state", has_text="READY").wait_for()
+    page.wait_for_function("() => state.consoleId && state.machineId === 'm1'")
+
+    def log_in_again():
+        page.wait_for_url("**/login.html**")
+        page.fill("#username", "op1")
+        page.fill("#password", "operator-pass-1")
+        page.click("#login")
+        page.wait_for_url("**/console/**")
+        page.locator("#status", has_text="Your aim from before the log-in is back in the fields").wait_for()
+
+    def end_the_log_in_then(act):
+        """Log out elsewhere; the page leaves for the log-in page by itself (a periodic call answered
+        401) or shows LOGGED OUT (its live stream refused), and then ``act()`` takes it there."""
+        with app.state.sessions.begin() as db:
+            db.execute(delete(AuthSession))
+
+        def settled() -> bool:
+            if "login.html" in page.url:
+                return True
+            try:
+                return page.locator("#server-banner", has_text="LOGGED OUT").is_visible()
+            except Exception:  # the page is navigating
+                return False
+
+        wait_for(settled, 30, "LOGGED OUT or the log-in page")
+        if "login.html" not in page.url:
+            act()
+
+    page.fill("#target-x", "8.75")
+    page.fill("#target-y", "0")
+    end_the_log_in_then(lambda: page.click("#target-set"))  # Set answered 401: to the log-in page
+    log_in_again()
+    assert (page.input_value("#target-x"), page.input_value("#target-y")) == ("8.75", "0")
+    assert page.evaluate("state.editing && state.target === null")  # typed, not aimed at
+    assert page.locator("#preview").is_disabled() and page.locator("#throw").is_disabled()
+    page.click("#target-set")
+    page.wait_for_function("() => !state.editing && state.target && Math.abs(state.target[0] - 8.75) < 1e-6")
+    page.locator("#target", has_text="8.75 m from the turn axis").wait_for()
+
+    y = page.input_value("#target-y")  # the 2D target snapped onto the arm's line
+    page.fill("#target-x", "9.5")  # typed, never Set
+    end_the_log_in_then(page.reload)  # under the LOGGED OUT banner a reload asks for a log-in
+    log_in_again()
+    assert (page.input_value("#target-x"), page.input_value("#target-y")) == ("9.5", y)
+    assert page.evaluate("state.editing && state.target === null")
+    assert page.evaluate("sessionStorage.getItem('slinger.console.aim')") is None  # put back once
+    assert errors == [], errors
+    page.close()

@@ -24,8 +24,15 @@ async function api(method, path, body, isForm = false, { keepPage = false } = {}
   return data;
 }
 
+const leavingForLogIn = [];
+
+/** ``fn()`` runs just before this page leaves for the log-in page (to keep what the operator typed
+ *  in sessionStorage for the page's return); a hook that throws does not stop the others. */
+function onLeaveForLogIn(fn) { leavingForLogIn.push(fn); }
+
 /** Leave for the log-in page, which comes back to this page (path and query) afterwards. */
 function toLogIn() {
+  for (const fn of leavingForLogIn) { try { fn(); } catch (e) { /* keep leaving */ } }
   location.href = `/console/login.html?next=${encodeURIComponent(location.pathname + location.search)}`;
 }
 

@@ -21,6 +21,10 @@
 // one the machine cannot reach: its message stays).
 // A runtime that restarted (its RuntimeInfo epoch changed) leaves no stale target, preview or
 // marker behind: the page clears them and says so.
+// A log-in that ends takes the page to the log-in page (a command answered 401, or a reload after the
+// LOGGED OUT banner); the aim typed in the fields comes back with the page, as typed and not yet Set
+// (keepAim, restoreAim): the console on the server is a new one, and nothing is aimed at or thrown
+// until the operator presses Set.
 "use strict";
 
 const state = { consoleId: null, viserPort: null, machines: Strip.machines, machineId: null, mode: "2d", target: null,
@@ -179,6 +183,7 @@ async function selectMachine(id) {
   if (state.consoleId) await putConsole({ machine_id: id, mode: state.mode }).catch((e) => setStatus(e.message, true));
   renderState();
   refreshHistory();
+  if (aimToRestore) { const aim = aimToRestore; aimToRestore = null; await restoreAim(aim); }
 }
 
 /** True while the target of preview ``p`` is the console's target (to the millimetre). */
@@ -597,6 +602,49 @@ async function showReplay(throwId) {
   setStatus(`Showing throw ${throwId.slice(0, 8)} of ${t.machine_id} from the History page: its path and impact in the 3D view, its plots below.`);
 }
 
+// --- the aim across a log-in ------------------------------------------------------------------------
+const AIM_KEY = "slinger.console.aim"; // this tab's sessionStorage: the fields, mode and machine
+const AIM_KEEP_MS = 24 * 3600 * 1000; // an aim kept longer ago than this is dropped
+
+/** Keep the x/y fields (as typed), the mode and the machine for this page's return from the log-in
+ *  page; nothing when the fields are empty. */
+function keepAim() {
+  const x = $("target-x").value.trim(), y = $("target-y").value.trim();
+  if (!x || !y) return;
+  try {
+    sessionStorage.setItem(AIM_KEY, JSON.stringify({ x, y, mode: state.mode, machine: state.machineId, at: Date.now() }));
+  } catch (e) { /* storage refused: the aim is lost, as before */ }
+}
+
+/** The aim keepAim kept (then dropped from storage), or null: none, unreadable or too old. */
+function takeKeptAim() {
+  let aim = null;
+  try { aim = JSON.parse(sessionStorage.getItem(AIM_KEY) || "null"); sessionStorage.removeItem(AIM_KEY); } catch (e) { return null; }
+  if (!aim || typeof aim.x !== "string" || typeof aim.y !== "string" || !(Date.now() - aim.at < AIM_KEEP_MS)) return null;
+  return aim;
+}
+let aimToRestore = null; // takeKeptAim's at the page's load, put back at the first machine selection
+
+/** ``aim`` (takeKeptAim's) back in the fields as an edit not yet Set. Only for the machine it was
+ *  aimed on: with another one selected, the page says so and leaves the fields. */
+async function restoreAim(aim) {
+  if (aim.machine && aim.machine !== state.machineId) {
+    setStatus(`Your aim from before the log-in (x ${aim.x} y ${aim.y} m) was on ${aim.machine}; ${state.machineId || "no machine"} is selected now, so it is not put back.`);
+    return;
+  }
+  if ((aim.mode === "2d" || aim.mode === "3d") && aim.mode !== state.mode) {
+    state.mode = aim.mode;
+    for (const r of document.querySelectorAll("input[name=mode]")) r.checked = r.value === aim.mode;
+    await putConsole({ mode: state.mode }).catch((err) => setStatus(err.message, true));
+  }
+  $("target-x").value = aim.x;
+  $("target-y").value = aim.y;
+  state.editing = true;
+  setStatus(`Your aim from before the log-in is back in the fields: x ${aim.x} y ${aim.y} m, ${state.mode.toUpperCase()}. ` +
+    "Press Set (or Enter) to aim there; Preview and Throw wait until then.");
+  updateButtons();
+}
+
 // --- wiring -----------------------------------------------------------------------------------------
 async function setTypedTarget(e) {
   e.preventDefault();
@@ -662,6 +710,9 @@ async function init() {
     });
   }
   try { await openConsole(); } catch (e) { setStatus(`3D view unavailable. ${e.message}`, true); }
+  aimToRestore = takeKeptAim();
+  onLeaveForLogIn(keepAim);
+  window.addEventListener("pagehide", () => { if (Live.isLoggedOut()) keepAim(); }); // a reload after LOGGED OUT
   Strip.onSelect((id) => selectMachine(id));
   if (Strip.machineId) await selectMachine(Strip.machineId);
   setInterval(checkPreview, PREVIEW_CHECK_MS);

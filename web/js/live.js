@@ -79,5 +79,5 @@ const Live = (() => {
     }, 500);
   }
 
-  return { on, start, isConnected: () => connected };
+  return { on, start, isConnected: () => connected, isLoggedOut: () => loggedOut };
 })();
