@@ -493,9 +493,9 @@ def test_the_strip_announces_the_end_of_the_log_in_and_the_estop_outlives_it(set
 def test_the_typed_aim_comes_back_after_a_new_log_in_as_an_edit_not_yet_set(live_3d, browser, fake_runtime_factory):  # noqa: F811
     """The log-in ends (logged out elsewhere) while the operator types a target on the console: the
     page leaves for the log-in page (Set, or a call of its own, answered 401), and after the new log-in
-    the typed x, y and the mode are back in the fields, not yet the target: Preview and Throw wait for
-    Set, and Set aims there. The same after a reload under the LOGGED OUT banner. Before, the page
-    came back with empty fields."""
+    the typed x, y and the mode (3D the second time) are back in the fields, not yet the target:
+    Preview and Throw wait for Set, and Set aims there. The same after a reload under the LOGGED OUT
+    banner. Before, the page came back with empty fields."""
     from sqlalchemy import delete
 
     from server.db.models import AuthSession
@@ -549,12 +549,16 @@ def test_the_typed_aim_comes_back_after_a_new_log_in_as_an_edit_not_yet_set(live
     page.wait_for_function("() => !state.editing && state.target && Math.abs(state.target[0] - 8.75) < 1e-6")
     page.locator("#target", has_text="8.75 m from the turn axis").wait_for()
 
-    y = page.input_value("#target-y")  # the 2D target snapped onto the arm's line
+    page.check("input[name=mode][value='3d']")
+    page.wait_for_function("() => state.mode === '3d'")
     page.fill("#target-x", "9.5")  # typed, never Set
+    page.fill("#target-y", "1.5")
     end_the_log_in_then(page.reload)  # under the LOGGED OUT banner a reload asks for a log-in
     log_in_again()
-    assert (page.input_value("#target-x"), page.input_value("#target-y")) == ("9.5", y)
+    assert (page.input_value("#target-x"), page.input_value("#target-y")) == ("9.5", "1.5")
     assert page.evaluate("state.editing && state.target === null")
+    assert page.evaluate("state.mode") == "3d" and page.is_checked("input[name=mode][value='3d']")  # the mode came back
+    assert page.evaluate("fetch(`/api/consoles/${state.consoleId}`).then(r => r.json()).then(c => c.mode)") == "3d"
     assert page.evaluate("sessionStorage.getItem('slinger.console.aim')") is None  # put back once
     assert errors == [], errors
     page.close()

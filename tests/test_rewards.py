@@ -235,37 +235,33 @@ def test_the_environment_charges_hold_until_the_policy_commands_the_release():
     """In the MJX environment a step whose action keeps the flag under 0.9 pays -hold, the step that
     raises it and every later one nothing: the cost is on the policy's release command, not on the
     opening after the release delay."""
+    paid = _hold_paid(0.0, "kkrkk")
+    np.testing.assert_allclose(paid, [-0.01, -0.01, 0.0, 0.0, 0.0], atol=1e-7)
+
+
+def _hold_paid(hold_after_s: float, actions: str) -> list[float]:
+    """The ``hold`` term of each step of one MJX episode (the candidate 2D recipe, ``hold`` 0.01 after
+    ``hold_after_s``) played with ``actions``: ``k`` keeps the release flag at -1, ``r`` raises it to
+    1; no step may end the episode."""
     from sim_twin.training.mjx_env import ThrowEnvCore
 
     env = json.loads((CONFIG_DIR / "throw_2d_candidate.json").read_text())["env"]
-    env = {**env, "rewards": {**env["rewards"], "hold": 0.01, "hold_after_s": 0.0}}
+    env = {**env, "rewards": {**env["rewards"], "hold": 0.01, "hold_after_s": hold_after_s}}
     core = ThrowEnvCore(EnvConfig.from_dict(env))
     state, _ = jax.jit(core.reset)(jax.random.PRNGKey(5))
     step = jax.jit(core.step)
-    keep, release = jnp.asarray([0.0, 0.0, 0.0, -1.0]), jnp.asarray([0.0, 0.0, 0.0, 1.0])
+    flag = {"k": -1.0, "r": 1.0}
     paid = []
-    for action in (keep, keep, release, keep, keep):
-        state, _, _, term, _, info = step(state, action)
+    for a in actions:
+        state, _, _, term, _, info = step(state, jnp.asarray([0.0, 0.0, 0.0, flag[a]]))
         paid.append(float(info["reward_terms"]["hold"]))
         assert not bool(term)
-    np.testing.assert_allclose(paid, [-0.01, -0.01, 0.0, 0.0, 0.0], atol=1e-7)
+    return paid
 
 
 def test_the_environment_counts_the_grace_in_control_periods():
     """``elapsed_s`` is the control steps so far times the 0.08 s control period: with a grace of
     0.2 s the first two held steps (ending at 0.08 and 0.16 s) are free, the third (0.24 s) and the
     fourth pay, and the release command ends the cost."""
-    from sim_twin.training.mjx_env import ThrowEnvCore
-
-    env = json.loads((CONFIG_DIR / "throw_2d_candidate.json").read_text())["env"]
-    env = {**env, "rewards": {**env["rewards"], "hold": 0.01, "hold_after_s": 0.2}}
-    core = ThrowEnvCore(EnvConfig.from_dict(env))
-    state, _ = jax.jit(core.reset)(jax.random.PRNGKey(5))
-    step = jax.jit(core.step)
-    keep, release = jnp.asarray([0.0, 0.0, 0.0, -1.0]), jnp.asarray([0.0, 0.0, 0.0, 1.0])
-    paid = []
-    for action in (keep, keep, keep, keep, release, keep):
-        state, _, _, term, _, info = step(state, action)
-        paid.append(float(info["reward_terms"]["hold"]))
-        assert not bool(term)
+    paid = _hold_paid(0.2, "kkkkrk")
     np.testing.assert_allclose(paid, [0.0, 0.0, -0.01, -0.01, 0.0, 0.0], atol=1e-7)

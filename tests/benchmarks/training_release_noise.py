@@ -154,7 +154,7 @@ def kept_rows(report: Path, envs: int, action_std: float, runs: list[str]) -> li
                              ("key", old.get("key"), RETURN_KEY)):
         if have != want:
             raise ValueError(f"{report}: {name} {have} differs from this run's {want}; its rows cannot stand beside these")
-    now = {Path(r.split(":")[-1]).name for r in runs}
+    now = {RunSource(spec).name for spec in runs}
     return [r for r in old["rows"] if r["run"] not in now]
 
 

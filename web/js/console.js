@@ -606,6 +606,15 @@ async function showReplay(throwId) {
 const AIM_KEY = "slinger.console.aim"; // this tab's sessionStorage: the fields, mode and machine
 const AIM_KEEP_MS = 24 * 3600 * 1000; // an aim kept longer ago than this is dropped
 
+/** The console's mode is now ``mode`` ("2d" or "3d"; the radio buttons already show it): the preview
+ *  of the other mode goes, and the server's console follows. */
+async function setMode(mode) {
+  state.mode = mode;
+  dropPreview(`the mode is now ${state.mode.toUpperCase()}`);
+  await putConsole({ mode: state.mode }).catch((err) => setStatus(err.message, true));
+  renderState();
+}
+
 /** Keep the x/y fields (as typed), the mode and the machine for this page's return from the log-in
  *  page; nothing when the fields are empty. */
 function keepAim() {
@@ -633,9 +642,8 @@ async function restoreAim(aim) {
     return;
   }
   if ((aim.mode === "2d" || aim.mode === "3d") && aim.mode !== state.mode) {
-    state.mode = aim.mode;
     for (const r of document.querySelectorAll("input[name=mode]")) r.checked = r.value === aim.mode;
-    await putConsole({ mode: state.mode }).catch((err) => setStatus(err.message, true));
+    await setMode(aim.mode);
   }
   $("target-x").value = aim.x;
   $("target-y").value = aim.y;
@@ -701,14 +709,7 @@ async function init() {
   $("target-form").addEventListener("submit", setTypedTarget);
   for (const id of ["target-x", "target-y"]) $(id).addEventListener("input", onFieldEdit);
   $("confirm-clearance").addEventListener("change", updateButtons);
-  for (const r of document.querySelectorAll("input[name=mode]")) {
-    r.addEventListener("change", async (e) => {
-      state.mode = e.target.value;
-      dropPreview(`the mode is now ${state.mode.toUpperCase()}`);
-      await putConsole({ mode: state.mode }).catch((err) => setStatus(err.message, true));
-      renderState();
-    });
-  }
+  for (const r of document.querySelectorAll("input[name=mode]")) r.addEventListener("change", (e) => setMode(e.target.value));
   try { await openConsole(); } catch (e) { setStatus(`3D view unavailable. ${e.message}`, true); }
   aimToRestore = takeKeptAim();
   onLeaveForLogIn(keepAim);
