@@ -222,14 +222,60 @@ def test_randomization_stage_widens_once_and_the_gate_judges_from_its_iteration(
 
 @pytest.mark.parametrize("stage, match", [
     ({"iteration": -1, "randomization": {}}, "integer >= 0"),
-    ({"iteration": 5}, "exactly 'iteration' and 'randomization'"),
-    ({"iteration": 5, "randomization": {}, "when": 3}, "exactly"),
+    ({"iteration": 5}, "needs 'iteration' and 'randomization' and/or 'rewards'"),
+    ({"randomization": {}}, "needs 'iteration'"),
+    ({"iteration": 5, "randomization": {}, "when": 3}, "needs"),
     ({"iteration": 5, "randomization": {"friction_scal": [1, 2]}}, "unknown entries"),
     ({"iteration": 5, "randomization": {"grasp_up_m": [0.1, -0.1]}}, "must be a range"),
+    ({"iteration": 5, "rewards": {"hld": 0.01}}, r"unknown reward settings \['hld'\]"),
+    ({"iteration": 5, "rewards": {"hold": "0.01"}}, "rewards.hold must be a finite number"),
+    ({"iteration": 5, "rewards": {"hold": float("nan")}}, "finite number"),
 ])
-def test_randomization_stage_refuses_bad_input(stage, match):
+def test_curriculum_stage_refuses_bad_input(stage, match):
     with pytest.raises(ValueError, match=match):
-        training_config.RandomizationStage.from_dict(stage)
+        training_config.CurriculumStage.from_dict(stage)
+
+
+def test_both_spellings_of_the_curriculum_stage_are_refused_together():
+    stage = {"iteration": 5, "rewards": {"hold": 0.01}}
+    section = training_config.TrainingSection.from_dict({"randomization_stage": stage})
+    assert section.curriculum_stage == training_config.CurriculumStage(5, {}, {"hold": 0.01})
+    with pytest.raises(ValueError, match="one setting: give one"):
+        training_config.TrainingSection.from_dict({"curriculum_stage": stage, "randomization_stage": stage})
+
+
+def test_a_reward_stage_changes_the_rewards_once_and_leaves_the_rest(tmp_path, monkeypatch):
+    """training.curriculum_stage with ``rewards`` only: the environment is reconfigured once, at the
+    first chunk boundary at or after its iteration, with the named reward entries changed and every
+    other reward entry and the randomisation as the recipe has them."""
+    import json
+
+    from sim_twin.training.vec_env import MjxThrowVecEnv
+
+    seen = []
+    orig_init, orig_reconf = MjxThrowVecEnv.__init__, MjxThrowVecEnv.reconfigure
+
+    def init(self, cfg, *a, **kw):
+        seen.append(("init", cfg))
+        orig_init(self, cfg, *a, **kw)
+
+    def reconf(self, cfg):
+        seen.append(("stage", cfg))
+        orig_reconf(self, cfg)
+
+    monkeypatch.setattr(MjxThrowVecEnv, "__init__", init)
+    monkeypatch.setattr(MjxThrowVecEnv, "reconfigure", reconf)
+    cfg = training_config.load_config("2d", None)
+    cfg["env"]["rewards"]["hold"] = 0.0
+    cfg["training"]["curriculum_stage"] = {"iteration": 2, "rewards": {"hold": 0.02, "hold_after_s": 4.0}}
+    path = tmp_path / "staged.json"
+    path.write_text(json.dumps(cfg))
+    assert train.run(_args(tmp_path, iterations=3, chunk=1, config=path)) == 0
+    assert [s[0] for s in seen] == ["init", "stage"]
+    (_, before), (_, after) = seen
+    assert (before.rewards.hold, after.rewards.hold, after.rewards.hold_after_s) == (0.0, 0.02, 4.0)
+    assert after.rewards.landing == before.rewards.landing and after.randomization == before.randomization
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["training"]["curriculum_stage"]["iteration"] == 2
 
 
 def test_gate_from_iteration_refuses_bad_input(tmp_path):
@@ -248,7 +294,7 @@ def test_the_training_section_is_typed_and_refuses_a_misspelt_setting():
     cfg = training_config.load_config("2d", None)
     section = training_config.TrainingSection.from_dict(cfg["training"])
     assert section.seed == cfg["training"]["seed"] and isinstance(section.std_schedule, training_config.StdSchedule)
-    assert section.randomization_stage is None and section.gate_from_iteration == 0
+    assert section.curriculum_stage is None and section.gate_from_iteration == 0
     with pytest.raises(ValueError, match=r"unknown training settings \['gate_from_iteratoin'\]"):
         training_config.TrainingSection.from_dict({**cfg["training"], "gate_from_iteratoin": 600})
     with pytest.raises(ValueError, match="unknown training settings"):

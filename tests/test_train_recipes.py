@@ -69,8 +69,10 @@ CANDIDATE_2D = {("runner", "algorithm", "gamma"): 1.0, ("runner", "algorithm", "
                 ("runner", "torch_compile_mode"): "default",
                 ("runner", "actor", "class_name"): "sim_twin.training.models:Float32MLPModel",
                 ("env", "forced_release", "probability"): 0.0,
-                ("env", "rewards", "err_3d"): 0.0, ("env", "rewards", "hold"): 0.01,
-                ("env", "rewards", "hold_after_s"): 5.0}
+                ("env", "rewards", "err_3d"): 0.0,
+                ("training", "curriculum_stage", "iteration"): 300,
+                ("training", "curriculum_stage", "rewards", "hold"): 0.01,
+                ("training", "curriculum_stage", "rewards", "hold_after_s"): 5.0}
 """What the next attempt's 2D recipe (sim_twin/configs/throw_2d_candidate.json) changes, and to what."""
 
 
@@ -90,20 +92,22 @@ def test_the_candidate_recipe_changes_only_what_it_declares():
     # the runs it follows on: gamma 1.0, bfloat16 update, compile with rsl_rl's MLPModel actor and the
     # forced release; then with the float32 actor (training seeds 25-28), the forced release still on;
     # then without it (training seeds 29-32); each with the dense err_3d term and no hold cost; then
-    # with err_3d 0 and the hold cost from the first step (training seeds 33-34)
+    # with err_3d 0 and the hold cost from the first step (training seeds 33-34), then from 5 s of
+    # episode time on (training seeds 35-38); the candidate charges it from iteration 300 on
     forced = ("env", "forced_release", "probability")
-    grace = ("env", "rewards", "hold_after_s")
-    dense = {("env", "rewards", "err_3d"), ("env", "rewards", "hold"), grace}
-    for run_name, differs in [("throw2d-scratch-ap", {("runner", "actor", "class_name"), forced, *dense}),
-                              ("throw2d-scratch-at", {("runner", "actor", "class_name"), forced, *dense}),
-                              ("throw2d-scratch-au", {("runner", "actor", "class_name"), forced, *dense}),
-                              *((f"throw2d-scratch-{n}", {forced, *dense}) for n in ("ax", "ay", "az", "aw")),
-                              *((f"throw2d-scratch-b{i}", dense) for i in range(4)),
-                              *((f"throw2d-scratch-c{i}", {grace}) for i in range(2))]:
+    err_3d = ("env", "rewards", "err_3d")
+    hold, grace = ("env", "rewards", "hold"), ("env", "rewards", "hold_after_s")
+    stage = {k for k in CANDIDATE_2D if k[:2] == ("training", "curriculum_stage")}
+    actor = ("runner", "actor", "class_name")
+    for run_name, differs in [*((f"throw2d-scratch-{n}", {actor, forced, err_3d, *stage}) for n in ("ap", "at", "au")),
+                              *((f"throw2d-scratch-{n}", {forced, err_3d, *stage}) for n in ("ax", "ay", "az", "aw")),
+                              *((f"throw2d-scratch-b{i}", {err_3d, *stage}) for i in range(4)),
+                              *((f"throw2d-scratch-c{i}", {hold, *stage}) for i in range(2)),
+                              *((f"throw2d-scratch-d{i}", {hold, grace, *stage}) for i in range(4))]:
         run = _flat(_without_notes(ROOT / "policies" / "training" / run_name / "config.json"))
         assert {k for k in run.keys() | candidate.keys() if run.get(k) != candidate.get(k)} == differs, run_name
-        assert run[forced] == (0.0 if "-b" in run_name or "-c" in run_name else 0.05)
-        if "-c" in run_name:
-            assert run[("env", "rewards", "hold")] == 0.01 and grace not in run  # charged from the first step
+        assert run[forced] == (0.0 if run_name[-2] in "bcd" else 0.05)
+        if run_name[-2] in "cd":  # the hold cost from the first iteration: from the first step (c), after 5 s (d)
+            assert run[hold] == 0.01 and run.get(grace, 0.0) == (5.0 if run_name[-2] == "d" else 0.0)
             continue
-        assert run[("env", "rewards", "err_3d")] == recipe[("env", "rewards", "err_3d")] == 0.05
+        assert run[err_3d] == recipe[err_3d] == 0.05

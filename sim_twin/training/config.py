@@ -1,6 +1,6 @@
 """The training config of a recipe (``sim_twin/configs/throw_<mode>.json`` or a committed
 ``policies/training/<run>/recipe.json``): its ``training`` section typed (:class:`TrainingSection`:
-seed, std schedule, randomisation curriculum, gate start), read once when a run starts and refused
+seed, std schedule, curriculum stage, gate start), read once when a run starts and refused
 with a clear ValueError before anything is written. The ``env`` section is typed by
 sim_twin.training.mjx_env.EnvConfig, the ``runner`` section is rsl_rl's.
 """
@@ -57,47 +57,69 @@ class StdSchedule:
 
 
 @dataclass(frozen=True)
-class RandomizationStage:
-    """A widening of the domain randomisation during training (config
-    ``training.randomization_stage``): from ``iteration`` on, new episodes draw from
-    ``env.randomization`` with the entries of ``randomization`` in place of its own (CHOSEN values
-    in configs/*.json). A curriculum over randomisation width: the policy first learns to throw on
-    the narrower ranges, then becomes robust on the wider ones.
+class CurriculumStage:
+    """A change of the environment during training (config ``training.curriculum_stage``; the
+    older spelling ``training.randomization_stage`` is read the same): from ``iteration`` on, new
+    episodes draw from ``env.randomization`` with the entries of ``randomization`` in place of its
+    own, and are rewarded by ``env.rewards`` with the entries of ``rewards`` in place of its own
+    (either mapping may be empty, not both; CHOSEN values in configs/*.json).
+
+    * A curriculum over randomisation width: the policy first learns to throw on the narrower
+      ranges, then becomes robust on the wider ones.
+    * A curriculum over reward terms: e.g. ``{"hold": 0.01}`` from iteration 300, a cost on late
+      releases that the run's first iterations, where its far-target throw style is settled, do
+      not pay (docs/training.md, "The hold cost after 5 s").
 
     Raises (from_dict):
-        ValueError: unknown keys, a negative iteration, or widened entries that
-            sim_twin.training.privileged.check_randomization refuses.
+        ValueError: unknown keys, a negative iteration, neither mapping given, widened entries that
+            sim_twin.training.privileged.check_randomization refuses, or reward entries that
+            sim_twin.training.rewards.RewardScales.from_dict refuses.
     """
 
     iteration: int
     randomization: dict
+    rewards: dict
 
     @classmethod
-    def from_dict(cls, d: dict) -> RandomizationStage:
+    def from_dict(cls, d: dict, name: str = "training.curriculum_stage") -> CurriculumStage:
         from sim_twin.training.privileged import check_randomization
+        from sim_twin.training.rewards import RewardScales
 
-        unknown = set(d) - {"iteration", "randomization"}
-        if unknown or "iteration" not in d or "randomization" not in d:
-            raise ValueError(f"training.randomization_stage needs exactly 'iteration' and 'randomization', got {sorted(d)}")
-        _check_integer(d["iteration"], "training.randomization_stage.iteration", at_least=0)
-        check_randomization(d["randomization"], "training.randomization_stage.randomization")
-        return cls(d["iteration"], dict(d["randomization"]))
+        unknown = set(d) - {"iteration", "randomization", "rewards"}
+        if unknown or "iteration" not in d or not ({"randomization", "rewards"} & set(d)):
+            raise ValueError(f"{name} needs 'iteration' and 'randomization' and/or 'rewards', got {sorted(d)}")
+        _check_integer(d["iteration"], f"{name}.iteration", at_least=0)
+        randomization, rewards = dict(d.get("randomization", {})), dict(d.get("rewards", {}))
+        check_randomization(randomization, f"{name}.randomization")
+        unknown_rewards = set(rewards) - {f.name for f in fields(RewardScales)}
+        if unknown_rewards:
+            raise ValueError(f"{name}.rewards: unknown reward settings {sorted(unknown_rewards)}")
+        for key, value in rewards.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"{name}.rewards.{key} must be a finite number, not {value!r}")
+        return cls(d["iteration"], randomization, rewards)
 
     def env_dicts(self, env: dict) -> tuple[dict, dict]:
-        """(before, after): the ``env`` mappings of the config before and after the widening. Both
-        normalise the critic's privileged inputs over the widened ranges (``privileged_ranges``,
+        """(before, after): the ``env`` mappings of the config before and after the stage. Both
+        normalise the critic's privileged inputs over the stage's ranges (``privileged_ranges``,
         an explicit entry of the config kept), so the critic's inputs keep their scale.
 
         Raises:
-            ValueError: the merged randomisation is refused (sim_twin.training.privileged.Randomization).
+            ValueError: the merged randomisation (sim_twin.training.privileged.Randomization) or
+                rewards (RewardScales.from_dict, applied by EnvConfig.from_dict) are refused.
         """
+        from sim_twin.training.mjx_env import EnvConfig
         from sim_twin.training.privileged import Randomization, trained_ranges
 
         wide = {**env.get("randomization", {}), **self.randomization}
-        Randomization.from_dict(wide, "training.randomization_stage (merged)")
+        Randomization.from_dict(wide, "training.curriculum_stage (merged)")
         priv = {**trained_ranges(wide), **env.get("privileged_ranges", {})}
         before = {**env, "privileged_ranges": priv}
-        return before, {**before, "randomization": wide}
+        after = {**before, "randomization": wide}
+        if self.rewards:
+            after["rewards"] = {**env.get("rewards", {}), **self.rewards}
+        EnvConfig.from_dict(after)
+        return before, after
 
 
 @dataclass(frozen=True)
@@ -106,7 +128,7 @@ class TrainingSection:
 
     ``seed`` (int or None: then ``--seed`` must give one, :func:`resolve_training`), ``std_schedule``
     (:class:`StdSchedule` or None: the learned std is only clamped by rsl_rl),
-    ``randomization_stage`` (:class:`RandomizationStage` or None: no widening) and
+    ``curriculum_stage`` (:class:`CurriculumStage` or None: the environment stays as configured) and
     ``gate_from_iteration`` (int >= 0, default 0: the first iteration whose checkpoint the site-matrix
     gate judges) and ``release_bias_init`` (float or None: the initial mean of the release flag, the
     actor's last output, set through its output layer's bias when a run starts from scratch; None
@@ -117,20 +139,21 @@ class TrainingSection:
 
     Raises (from_dict):
         ValueError: an unknown key (a misspelt setting would otherwise be ignored), a seed or
-            ``gate_from_iteration`` that is not an integer (>= 0), or what StdSchedule.from_dict and
-            RandomizationStage.from_dict refuse.
+            ``gate_from_iteration`` that is not an integer (>= 0), both ``curriculum_stage`` and its
+            older spelling ``randomization_stage``, or what StdSchedule.from_dict and
+            CurriculumStage.from_dict refuse.
     """
 
     seed: int | None = None
     std_schedule: StdSchedule | None = None
-    randomization_stage: RandomizationStage | None = None
+    curriculum_stage: CurriculumStage | None = None
     gate_from_iteration: int = 0
     release_bias_init: float | None = None
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainingSection:
         known = [f.name for f in fields(cls)]
-        unknown = set(d) - set(known)
+        unknown = set(d) - set(known) - {"randomization_stage"}
         if unknown:
             raise ValueError(f"unknown training settings {sorted(unknown)}; known: {known}")
         seed = d.get("seed")
@@ -139,7 +162,10 @@ class TrainingSection:
         gate_from = d.get("gate_from_iteration", 0)
         _check_integer(gate_from, "training.gate_from_iteration", at_least=0)
         schedule = StdSchedule.from_dict(d["std_schedule"]) if "std_schedule" in d else None
-        stage = RandomizationStage.from_dict(d["randomization_stage"]) if "randomization_stage" in d else None
+        if "curriculum_stage" in d and "randomization_stage" in d:
+            raise ValueError("training.curriculum_stage and training.randomization_stage (its older spelling) are one setting: give one")
+        key = "curriculum_stage" if "curriculum_stage" in d else "randomization_stage"
+        stage = CurriculumStage.from_dict(d[key], f"training.{key}") if key in d else None
         bias = d.get("release_bias_init")
         if bias is not None and (isinstance(bias, bool) or not isinstance(bias, (int, float)) or not math.isfinite(bias)):
             raise ValueError(f"training.release_bias_init must be a finite number, not {bias!r}")

@@ -25,10 +25,11 @@ Exploration: the config's ``training.std_schedule`` caps the actor's learned act
 value that falls from ``start`` to ``end`` over ``iterations`` (exponentially), applied at the
 start of every chunk; below the cap the std is learned (rsl_rl's GaussianDistribution).
 
-Curriculum over the randomisation width: the config's ``training.randomization_stage`` (see
-:class:`RandomizationStage`) widens ``env.randomization`` once, at the first chunk boundary at or
-after its ``iteration``; the critic's privileged inputs are normalised over the widened ranges from
-the start (``env.privileged_ranges``), so their scale does not change at the switch.
+Curriculum stage: the config's ``training.curriculum_stage`` (see :class:`CurriculumStage`; older
+spelling ``training.randomization_stage``) changes ``env.randomization`` and/or ``env.rewards`` once,
+at the first chunk boundary at or after its ``iteration``; the critic's privileged inputs are
+normalised over the stage's ranges from the start (``env.privileged_ranges``), so their scale does
+not change at the switch.
 ``training.gate_from_iteration`` (default 0) offers the gate only checkpoints from that iteration
 on (a recipe that widens its randomisation judges the policies trained on the wide ranges).
 
@@ -242,7 +243,7 @@ class TrainingRun:
         if args.num_envs:
             cfg["num_envs"] = args.num_envs
         self.training = resolve_training(cfg, args.seed)
-        stage = self.training.randomization_stage
+        stage = self.training.curriculum_stage
         env_before, env_after = stage.env_dicts(cfg["env"]) if stage else (cfg["env"], cfg["env"])
         self.env_after: dict = env_after
         env_cfg = EnvConfig.from_dict(env_before)
@@ -288,7 +289,7 @@ class TrainingRun:
             self.gate.watch()  # verdicts are recorded when each matrix ends, not at the next checkpoint
         self.passed: dict | None = self.gate.passed if self.gate else None
         self.stop_reason = "iterations"
-        self._widened = False
+        self._staged = False
         self._chunks = 0
         self._end_it = self.runner.current_learning_iteration  # the count this call trains to (train())
         self._chunk_from, self._chunk_t = self._end_it, time.time()  # the running chunk's first count and start time
@@ -321,16 +322,16 @@ class TrainingRun:
         return done % max(self.args.chunk, 1) == 0 or done >= self._end_it
 
     def _start_chunk(self, done: int) -> None:
-        """Before the chunk that starts after ``done`` iterations: widen the randomisation once
+        """Before the chunk that starts after ``done`` iterations: apply the curriculum stage once
         the recipe's stage is reached, cap the std at the schedule's value for ``done``, and
         start the chunk's throw statistics and timer."""
         from sim_twin.training.mjx_env import EnvConfig
 
-        stage, schedule = self.training.randomization_stage, self.training.std_schedule
-        if stage and not self._widened and done >= stage.iteration:
+        stage, schedule = self.training.curriculum_stage, self.training.std_schedule
+        if stage and not self._staged and done >= stage.iteration:
             self.env.reconfigure(EnvConfig.from_dict(self.env_after))
-            self._widened = True
-            log.info("randomisation widened at iteration %d: %s", done, stage.randomization)
+            self._staged = True
+            log.info("curriculum stage at iteration %d: randomisation %s, rewards %s", done, stage.randomization, stage.rewards)
         if schedule:
             apply_std_cap(self.runner, schedule.cap(done), schedule.release_floor)
         self.env.reset_stats()
