@@ -44,7 +44,11 @@ def test_recipe_words_name_what_a_run_changed():
     cfg["env"]["far_targets"] = {"fraction": 0.5, "range_m": [9.0, 10.7]}
     assert recipe_of(cfg) == "γ 1.0, 50% far targets 9-10.7 m, bf16+compile"
     candidate = json.loads((CONFIG_DIR / "throw_2d_candidate.json").read_text())
-    assert recipe_of(candidate) == "γ 1.0, bf16+compile, float32 actor"
+    assert recipe_of(candidate) == ("γ 1.0, bf16+compile, float32 actor, no forced release, "
+                                    "from it 300: err_3d 0.0 hold 0.01 hold_after_s 5.0")
+    cfg["env"]["rewards"].update(err_3d=0.0, hold=0.01, hold_after_s=5.0)
+    cfg["env"]["forced_release"]["probability"] = 0.0
+    assert recipe_of(cfg).endswith("bf16+compile, no forced release, err_3d 0.0, hold 0.01 after 5 s")
 
 
 @pytest.mark.parametrize("run, style", [("throw2d-scratch-ai", "long"), (f"{PROBES_AT}:policies/training/throw2d-scratch-ak", "short")])

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.benchmarks.training_throw_style import LONG_STYLE_S, RunSource, far_throw, run_style, style_of
+from tests.benchmarks.training_throw_style import LONG_STYLE_S, RunSource, far_throw, kept_rows, run_style, style_of
 
 ROOT = Path(__file__).resolve().parents[1]
 RUNS = ROOT / "policies" / "training"
@@ -106,3 +106,16 @@ def test_term_split_says_whether_a_curve_column_separates_the_styles():
     assert not got["a", 200]["separates"]  # 2.2 lies inside the long runs' 2.0-2.5
     assert got["b", 100]["runs"] == [1, 1]  # the NaN (no episode paid the term) is skipped
     assert ("b", 200) not in got  # no run logged it there
+
+
+def test_kept_rows_keep_the_other_runs_of_a_report_made_the_same_way(tmp_path):
+    report = tmp_path / "r.json"
+    report.write_text(json.dumps({"envs": 128, "key": 7, "runs": [{"run": "throw2d-scratch-a"}, {"run": "throw2d-scratch-b"}]}))
+    for name in ("throw2d-scratch-b", "throw2d-scratch-c"):
+        (tmp_path / name).mkdir()
+    kept = kept_rows(report, {"envs": 128, "key": 7}, [str(tmp_path / "throw2d-scratch-b"), str(tmp_path / "throw2d-scratch-c")], "runs")
+    assert kept == [{"run": "throw2d-scratch-a"}]  # -b is played again now; -c was not in the report
+    with pytest.raises(ValueError, match="envs 128 differs from this run's 256"):
+        kept_rows(report, {"envs": 256, "key": 7}, [], "runs")
+    with pytest.raises(ValueError, match="probe_key None differs"):  # a setting the report did not record
+        kept_rows(report, {"envs": 128, "probe_key": 7}, [], "runs")

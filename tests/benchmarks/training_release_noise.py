@@ -30,7 +30,7 @@ import numpy as np
 from runtime.observation import CONTROL_PERIOD_S, RELEASE_THRESHOLD
 from tests.benchmarks.training_style_probe import play, probe_actor, without_forced_release
 from tests.benchmarks.training_style_return import BANDS_M, RETURN_KEY, gate_no_release, gate_no_release_table, rows_of, runs_parser
-from tests.benchmarks.training_throw_style import RunSource
+from tests.benchmarks.training_throw_style import RunSource, kept_rows
 
 ACTION_STD = 0.05
 """Default noise std: the 2D recipes' std floor (``runner.actor.distribution_cfg.std_range[0]``)."""
@@ -142,22 +142,6 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def kept_rows(report: Path, envs: int, action_std: float, runs: list[str]) -> list[dict]:
-    """The rows of the earlier ``report`` (its JSON) whose runs are not among ``runs`` (by the run's
-    directory name), to stand beside this invocation's.
-
-    Raises:
-        ValueError: the report played another number of episodes, another noise std or PRNG key.
-    """
-    old = json.loads(report.read_text())
-    for name, have, want in (("envs", old.get("envs"), envs), ("action_std", old.get("action_std"), action_std),
-                             ("key", old.get("key"), RETURN_KEY)):
-        if have != want:
-            raise ValueError(f"{report}: {name} {have} differs from this run's {want}; its rows cannot stand beside these")
-    now = {RunSource(spec).name for spec in runs}
-    return [r for r in old["rows"] if r["run"] not in now]
-
-
 def main() -> None:
     p = runs_parser(__doc__, "episodes per run and setting")
     p.add_argument("--action-std", type=float, default=ACTION_STD, help="noise std of the sampled actor")
@@ -165,7 +149,8 @@ def main() -> None:
                    help="an earlier report (.json) of the same --envs and --action-std whose rows of other runs "
                         "stay in the new one, before the runs played now (each run takes minutes on a CPU)")
     a = p.parse_args()
-    kept = kept_rows(a.keep_rows_of, a.envs, a.action_std, a.runs) if a.keep_rows_of else []
+    settings = {"envs": a.envs, "action_std": a.action_std, "key": RETURN_KEY}
+    kept = kept_rows(a.keep_rows_of, settings, a.runs) if a.keep_rows_of else []
     rows = kept + rows_of(a.runs, lambda src, tmp: run_row(src, a.envs, a.action_std, tmp),
                           lambda r: f"{r['run']}: released {r['mean'][-1]['released']:.1%} (mean) / {r['sampled'][-1]['released']:.1%} (sampled)")
     write_report(a.out, rows, a.envs, a.action_std)

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.benchmarks.training_throw_style import FAR_TARGET_M, LONG_STYLE_S, RunSource, run_style, style_of
+from tests.benchmarks.training_throw_style import FAR_TARGET_M, LONG_STYLE_S, RunSource, kept_rows, run_style, style_of
 
 PROBE_KEY = 7
 """PRNG key of the probe's episodes (start poses, release delays, noise): the same for every run."""
@@ -175,7 +175,27 @@ def recipe_of(cfg: dict) -> str:
         words.append("bf16" + ("+compile" if cfg["runner"].get("torch_compile_mode") else ""))
     if cfg["runner"]["actor"].get("class_name") == FLOAT32_ACTOR:
         words.append("float32 actor")
+    words += _reward_words(cfg["env"], base["env"])
+    stage = cfg.get("training", {}).get("curriculum_stage") or cfg.get("training", {}).get("randomization_stage")
+    if stage:
+        changed = {**stage.get("randomization", {}), **stage.get("rewards", {})}
+        words.append(f"from it {stage['iteration']}: " + " ".join(f"{k} {v}" for k, v in changed.items()))
     return ", ".join(words) or "committed"
+
+
+def _reward_words(env: dict, base: dict) -> list[str]:
+    """The forced release, ``err_3d`` and hold cost of ``env`` where they differ from ``base``'s, in words."""
+    words = []
+    forced, forced0 = env.get("forced_release", {}).get("probability"), base.get("forced_release", {}).get("probability")
+    if forced != forced0:
+        words.append("no forced release" if not forced else f"forced release {forced}")
+    rewards, rewards0 = env.get("rewards", {}), base.get("rewards", {})
+    if rewards.get("err_3d") != rewards0.get("err_3d"):
+        words.append(f"err_3d {rewards.get('err_3d')}")
+    if rewards.get("hold"):
+        after = rewards.get("hold_after_s")
+        words.append(f"hold {rewards['hold']}" + (f" after {after:g} s" if after else ""))
+    return words
 
 
 def probe_actor(src: RunSource, cfg: dict, workdir: Path) -> tuple[Path, int]:
@@ -273,8 +293,12 @@ def main() -> None:
     p.add_argument("--out", type=Path, required=True, help="report stem (writes .json, .md and .png)")
     p.add_argument("--target-m", type=float, default=FAR_TARGET_M)
     p.add_argument("--envs", type=int, default=128, help="throws per run and case")
+    p.add_argument("--keep-rows-of", type=Path, default=None,
+                   help="an earlier report (.json) of the same --target-m and --envs whose rows of other runs stay "
+                        "in the new one, before the runs probed now (each run takes minutes on a CPU)")
     args = p.parse_args()
-    rows = []
+    settings = {"target_m": args.target_m, "envs": args.envs, "probe_key": PROBE_KEY}
+    rows = kept_rows(args.keep_rows_of, settings, args.runs, "runs") if args.keep_rows_of else []
     with tempfile.TemporaryDirectory() as tmp:
         for spec in args.runs:
             rows.append(probe_run(RunSource(spec), args.target_m, args.envs, Path(tmp)))

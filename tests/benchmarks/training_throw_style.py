@@ -36,6 +36,25 @@ FAR_TARGET_M = 10.0
 _MATRIX = re.compile(r"site_matrix_2d_it(\d+)\.json$")  # seed 0 (other seeds carry a _seed<S> suffix)
 
 
+def kept_rows(report: Path, settings: dict, runs: list[str], rows_key: str = "rows") -> list[dict]:
+    """The rows of the earlier ``report`` (its JSON) whose runs are not among ``runs`` (run specs,
+    compared by the run's directory name, :class:`RunSource`), to stand beside an invocation's new rows
+    (a report script's ``--keep-rows-of``: each run takes minutes on a CPU).
+
+    ``settings`` maps report entries to the values this invocation uses (episodes, noise, PRNG key,
+    target distance): the rows of a report made otherwise cannot stand beside the new ones.
+
+    Raises:
+        ValueError: the report has another value for one of ``settings``.
+    """
+    old = json.loads(report.read_text())
+    for name, want in settings.items():
+        if old.get(name) != want:
+            raise ValueError(f"{report}: {name} {old.get(name)} differs from this run's {want}; its rows cannot stand beside these")
+    now = {RunSource(spec).name for spec in runs}
+    return [r for r in old[rows_key] if r["run"] not in now]
+
+
 class RunSource:
     """Files of one run: a directory, or ``REV:PATH`` read from git (``git show``)."""
 
