@@ -23,6 +23,13 @@ def _check_integer(value, name: str, at_least: int | None = None) -> None:
         raise ValueError(f"{name} must be an integer{bound}, not {value!r}")
 
 
+def _check_finite(value, name: str) -> None:
+    """Raises ValueError unless ``value`` is a finite int or float (not a bool); the message names
+    the config entry ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite number, not {value!r}")
+
+
 @dataclass(frozen=True)
 class StdSchedule:
     """Cap on the actor's action std: ``start`` -> ``end`` exponentially over ``iterations``,
@@ -97,8 +104,7 @@ class CurriculumStage:
         if unknown_rewards:
             raise ValueError(f"{name}.rewards: unknown reward settings {sorted(unknown_rewards)}")
         for key, value in rewards.items():
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ValueError(f"{name}.rewards.{key} must be a finite number, not {value!r}")
+            _check_finite(value, f"{name}.rewards.{key}")
         return cls(d["iteration"], randomization, rewards)
 
     def env_dicts(self, env: dict) -> tuple[dict, dict]:
@@ -169,8 +175,8 @@ class TrainingSection:
         key = "curriculum_stage" if "curriculum_stage" in d else "randomization_stage"
         stage = CurriculumStage.from_dict(d[key], f"training.{key}") if key in d else None
         bias = d.get("release_bias_init")
-        if bias is not None and (isinstance(bias, bool) or not isinstance(bias, (int, float)) or not math.isfinite(bias)):
-            raise ValueError(f"training.release_bias_init must be a finite number, not {bias!r}")
+        if bias is not None:
+            _check_finite(bias, "training.release_bias_init")
         return cls(seed, schedule, stage, gate_from, None if bias is None else float(bias))
 
 
