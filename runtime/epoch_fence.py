@@ -1,11 +1,13 @@
 """What a machine-side process makes of the machine-interface commands it receives: decoded for
-its own machine id only, and valve commands of the newest runtime epoch only (one driver; see
-runtime/protocol/README.md). Used by the simulated machine (sim_twin.twin.plant) and the ROS 2 bridge
+its own machine id only, valve commands of the newest runtime epoch only (one driver; see
+runtime/protocol/README.md), and, after its valve watchdog tripped, neutral valves until the runtime
+sends a neutral command. Used by the simulated machine (sim_twin.twin.plant) and the ROS 2 bridge
 (runtime.ros2.bridge)."""
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable
 
 from runtime.protocol.messages import M, ValidationError, ValveCommand, decode, machine_id_in
 
@@ -45,4 +47,39 @@ class EpochFence:
             if self.epoch is not None:
                 log.warning("a second runtime (epoch %d) took over from epoch %d", msg.epoch, self.epoch)
             self.epoch = msg.epoch
+        return True
+
+
+class WatchdogLatch:
+    """The valve watchdog's latch. When a machine-side process's watchdog puts moving valves neutral
+    because the runtime fell silent (``trip``), the throw in flight is over: the runtime fails it on
+    the grown ``trips`` count (MachineState.watchdog_trips, runtime.executor). Valve commands the
+    runtime sends on afterwards (a late or resumed throw) must not move the arm, so non-neutral
+    commands are held neutral until a neutral one arrives, which the runtime sends when its throw
+    has ended; that command re-arms the latch (logged). Not thread-safe: call under the caller's lock.
+
+    Attributes:
+        armed: False from a trip until a neutral command.
+        trips: trips so far (published as MachineState.watchdog_trips).
+    """
+
+    def __init__(self) -> None:
+        self.armed = True
+        self.trips = 0
+
+    def trip(self) -> None:
+        """The watchdog put moving valves neutral: count it and hold the valves neutral from now on."""
+        self.armed = False
+        self.trips += 1
+
+    def admit(self, u: Iterable[float]) -> bool:
+        """True if the valve command ``u`` (4 spool positions, [-1, 1]) may drive the valves; False
+        after a trip while ``u`` is non-neutral (the caller sends neutral instead). A neutral ``u``
+        re-arms the latch."""
+        if self.armed:
+            return True
+        if any(float(x) != 0.0 for x in u):
+            return False
+        self.armed = True
+        log.info("valve watchdog re-armed by a neutral command")
         return True

@@ -210,7 +210,7 @@ def test_the_bridges_watchdog_trips_reach_the_runtime_in_the_machine_states():
     b.check()
     b.check()
     assert not any(out["valves"][-1].data) and len(out["valves"]) == 2  # neutral, once
-    assert fresh_state().watchdog_trips == 1 and b.watchdog_trips == 1
+    assert fresh_state().watchdog_trips == 1 and b.latch.trips == 1
     b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=clock.t, u=[0.5, 0.0, 0.0, 0.0], epoch=1)))
     assert not any(out["valves"][-1].data)  # the runtime woke and drives on: held neutral (as the plant), until ...
     b.on_valve_command(encode(ValveCommand(machine_id="m1", stamp_s=clock.t, u=[0.0] * 4, epoch=1)))  # ... its throw ended

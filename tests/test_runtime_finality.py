@@ -145,7 +145,7 @@ def test_a_stalled_runtime_fails_its_throw_and_acts_on_nothing_queued(holding_pa
     queued = []
     for _ in range(150):
         queued.append(loop.machine_period())
-    assert loop.inbox.watchdog_trips == 1 and not loop.inbox.armed
+    assert loop.inbox.latch.trips == 1 and not loop.inbox.latch.armed
     during = _throw("t2")
     mark = len(loop.sent)
     for state in queued:  # SIGCONT: the queue drains in a burst
@@ -163,7 +163,7 @@ def test_a_stalled_runtime_fails_its_throw_and_acts_on_nothing_queued(holding_pa
     mark = len(loop.sent)
     _run(loop, 100)
     assert not loop.service.executor.busy and all(not any(v.u) for v in loop.of(keys.valve_cmd("m1"), ValveCommand, mark))
-    assert loop.inbox.armed  # the runtime's neutral commands re-armed the plant
+    assert loop.inbox.latch.armed  # the runtime's neutral commands re-armed the plant
     # a new, freshly signed throw request is what starts the next throw (once the arm is at rest)
     for _ in range(300):
         if loop.service.info().ready:
@@ -244,12 +244,12 @@ def test_plant_valve_watchdog_is_final_and_stale_commands_are_dropped():
     inbox.on_valve(_cmd([0.0, 0.0, 0.0, 1.0], 50.0))
     assert inbox.valve_u[3] == 1.0
     st, _ = plant_tick(twin, inbox, 50.0 + VALVE_WATCHDOG_S + 0.01)
-    assert inbox.watchdog_trips == 1 and st.watchdog_trips == 1 and not inbox.armed
+    assert inbox.latch.trips == 1 and st.watchdog_trips == 1 and not inbox.latch.armed
     _NOW[0] = 50.2
     inbox.on_valve(_cmd([0.0, 0.0, 0.0, 1.0], 50.2))  # fresh, but the watchdog disarmed the valves
     assert not inbox.valve_u.any()
     inbox.on_valve(_cmd([0.0] * 4, 50.2))  # the runtime sends neutral: re-armed
-    assert inbox.armed
+    assert inbox.latch.armed
     inbox.on_valve(_cmd([0.0, 0.0, 0.0, 0.5], 50.2))
     assert inbox.valve_u[3] == 0.5
     inbox.on_valve(_cmd([0.0, 0.0, 0.0, 1.0], 50.2 - STALE_COMMAND_S - 0.05))  # answers a state 250 ms old
@@ -258,7 +258,7 @@ def test_plant_valve_watchdog_is_final_and_stale_commands_are_dropped():
     assert not inbox.valve_u.any()
     # a watchdog that fires while the valves are neutral stopped nothing: no trip, still armed
     plant_tick(twin, inbox, 51.0)
-    assert inbox.watchdog_trips == 1 and inbox.armed
+    assert inbox.latch.trips == 1 and inbox.latch.armed
 
 
 # --- system: a real runtime process frozen mid-swing -----------------------------------------------
@@ -365,7 +365,7 @@ def test_a_valve_watchdog_trip_stops_a_return_to_the_ready_pose_for_good(holding
     assert ack.accepted, ack.reason
     _run(loop, 10)
     assert loop.service.returning
-    state = loop.machine_period().model_copy(update={"watchdog_trips": loop.inbox.watchdog_trips + 1})
+    state = loop.machine_period().model_copy(update={"watchdog_trips": loop.inbox.latch.trips + 1})
     mark = len(loop.sent)
     loop.deliver(state)
     assert not loop.service.returning

@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from runtime.entrypoint import module_main, stop_on_signals
-from runtime.epoch_fence import EpochFence, decode_for
+from runtime.epoch_fence import EpochFence, WatchdogLatch, decode_for
 from runtime.machine import ACTIVE_JOINTS, PASSIVE_JOINTS
 from runtime.protocol import keys
 from runtime.protocol.messages import (
@@ -113,12 +113,10 @@ class MachineBridge:
         self.fence = EpochFence()
         self.valve_rx_s = -np.inf
         self.valves_neutral = True
-        self.armed = True
-        """False after a watchdog trip until a neutral valve command arrives: commands go out neutral
-        meanwhile (the simulated machine's plant does the same), so a throw whose valves were put
-        neutral is never driven on."""
-        self.watchdog_trips = 0
-        """Times the bridge put moving valves neutral on the runtime's silence (MachineState.watchdog_trips)."""
+        self.latch = WatchdogLatch()
+        """Times the bridge put moving valves neutral on the runtime's silence (MachineState.watchdog_trips)
+        and, after one, neutral valves until a neutral valve command arrives (as the simulated machine's
+        plant), so a throw whose valves were put neutral is never driven on."""
         self.stale: str | None = None  # the stale topic, logged once per episode
         self.dropped = 0
         self.stale_commands = 0
@@ -236,7 +234,7 @@ class MachineBridge:
         return MachineState(machine_id=self.machine_id, stamp_s=now, q=q, qd=qd, gripper_open=bool(self.gripper_open),
                             payload_attached=bool(attached), payload_pos_m=payload[0] if payload is not None else None,
                             payload_vel_mps=payload[1] if payload is not None else None, simulated=self.config.simulated,
-                            machine_fault=self.command_fault or self.fault, watchdog_trips=self.watchdog_trips)
+                            machine_fault=self.command_fault or self.fault, watchdog_trips=self.latch.trips)
 
     def _drop(self, why: str) -> None:
         self.dropped += 1
@@ -261,12 +259,8 @@ class MachineBridge:
                                 (self.clock() - msg.stamp_s) * 1e3, self.stale_commands)
                 return
             u = [0.0] * 4 if self.command_fault else msg.u
-            if not self.armed:  # after a watchdog trip: neutral until the runtime sends neutral (its throw ended)
-                if any(u):
-                    u = [0.0] * 4
-                else:
-                    self.armed = True
-                    log.info("valve watchdog re-armed by a neutral command")
+            if not self.latch.admit(u):  # after a watchdog trip: neutral until the runtime sends neutral (its throw ended)
+                u = [0.0] * 4
             self.valve_rx_s, self.valves_neutral = self.clock(), not any(u)
         self.send_valves(rt.float64_array(self.config.valve_array(u), _valve_labels(self.config)))
 
@@ -310,8 +304,8 @@ class MachineBridge:
         with self.lock:
             silent = not self.valves_neutral and now - self.valve_rx_s > VALVE_SILENCE_S
             if silent:
-                self.valves_neutral, self.armed = True, False
-                self.watchdog_trips += 1
+                self.valves_neutral = True
+                self.latch.trip()
             if now - self.rx.get("joint_states", -np.inf) > self.config.stale_after_s and self.stale != "joint_states":
                 self.stale = "joint_states"
                 log.warning("ROS topic %s silent: no machine state (machine link lost)", self.config.topics.joint_states)

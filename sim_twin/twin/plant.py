@@ -55,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from runtime.entrypoint import module_main, stop_on_signals
-from runtime.epoch_fence import EpochFence, decode_for
+from runtime.epoch_fence import EpochFence, WatchdogLatch, decode_for
 from runtime.observation import PHYSICS_PERIOD_S
 from runtime.protocol import keys
 from runtime.protocol.messages import (
@@ -93,10 +93,9 @@ class PlantInbox:
         self.gripper_open = False
         self.resets: list[SimReset] = []
         self.watchdog_tripped = False
-        self.watchdog_trips = 0
-        """Times the watchdog put moving valves neutral (published as MachineState.watchdog_trips)."""
-        self.armed = True
-        """False after a trip until a neutral ValveCommand arrives: non-neutral ones are held neutral."""
+        self.latch = WatchdogLatch()
+        """The watchdog's trips (published as MachineState.watchdog_trips) and, after one, neutral
+        valves until a neutral ValveCommand arrives."""
         self.stale_commands = 0
         """Non-neutral ValveCommands dropped because their stamp was older than VALVE_WATCHDOG_S."""
         self.still_ticks = 0
@@ -130,15 +129,11 @@ class PlantInbox:
                 return
             if stale_motion(msg, now):
                 self.stale_commands += 1
-                if self.stale_commands == 1 or self.armed:
+                if self.stale_commands == 1 or self.latch.armed:
                     log.warning("dropping a valve command %.0f ms old (queued at a stalled runtime)", (now - msg.stamp_s) * 1e3)
                 return
-            if not self.armed:
-                if u.any():
-                    u = np.zeros(4)  # disarmed by the watchdog: neutral until the runtime sends neutral
-                else:
-                    self.armed = True
-                    log.info("valve watchdog re-armed by a neutral command")
+            if not self.latch.admit(u):
+                u = np.zeros(4)  # disarmed by the watchdog: neutral until the runtime sends neutral
             self.valve_u, self.valve_rx_s = u, now
         if self.valve_u.any():
             self.wake.set()  # (always: the loop may be deciding to rest right now)
@@ -286,11 +281,10 @@ def plant_tick(twin: TwinMachine, inbox: PlantInbox, now_s: float) -> tuple[Mach
         if not fresh and not inbox.watchdog_tripped and np.isfinite(inbox.valve_rx_s):
             log.warning("no valve command for %.0f ms: valves neutral", VALVE_WATCHDOG_S * 1e3)
             if inbox.valve_u.any():  # it stopped a moving arm: final (module docstring)
-                inbox.watchdog_trips += 1
-                inbox.armed = False
+                inbox.latch.trip()
                 inbox.valve_u = np.zeros(4)
         inbox.watchdog_tripped = not fresh
-        trips = inbox.watchdog_trips
+        trips = inbox.latch.trips
     quiet = not resets and not u.any() and gripper == inbox.last_gripper
     inbox.last_gripper = gripper
     inbox.resting = quiet and inbox.still_ticks >= REST_TICKS and inbox.rest_state is not None
