@@ -297,8 +297,13 @@ class FakeRuntime:
         lease_holder: the server id it obeys from the start (RuntimeInfo.lease_holder).
         undeliverable: RuntimeInfo.undeliverable_results from the start.
 
-    Set ``frozen = True`` to stand for a stopped (SIGSTOP) runtime's command handling: aborts
-    and E-STOP puts are neither executed nor answered. ``lease_holder`` (the server id it obeys,
+    Like the real runtime it publishes its RuntimeInfo on keys.runtime_state at 2 Hz and within one
+    state period (50 ms) of a change (runtime.service.RuntimeService.publish_info), unless
+    ``publish_info`` is False (an older runtime that only answers queries).
+
+    Set ``frozen = True`` to stand for a stopped (SIGSTOP) runtime: aborts and E-STOP puts are
+    neither executed nor answered, and no RuntimeInfo is published (the machine's MachineState,
+    which this stand-in publishes too, goes on). ``lease_holder`` (the server id it obeys,
     reported in RuntimeInfo; a signed LeaseRequest takes it when free, held by its sender, or with
     ``takeover``) and ``undeliverable`` (RuntimeInfo.undeliverable_results) may be set; a signed
     ReturnToReady is accepted unless E-STOP is latched (``returns`` lists them).
@@ -307,7 +312,8 @@ class FakeRuntime:
     def __init__(self, endpoint: str, machine_id: str = "m1", refuse: str | None = None,
                  silent: bool = False, deliver: bool = True, cabin_turn_rad: float = 0.0,
                  policies: list[PolicyInfo] | None = None, site_dir: Path | None = None, hold: bool = False,
-                 clock_offset_s: float = 0.0, lease_holder: str | None = None, undeliverable: int = 0):
+                 clock_offset_s: float = 0.0, lease_holder: str | None = None, undeliverable: int = 0,
+                 publish_info: bool = True):
         self.machine_id, self.refuse, self.silent, self.deliver = machine_id, refuse, silent, deliver
         self.hold = hold
         self.frozen = False
@@ -340,6 +346,8 @@ class FakeRuntime:
         ]
         self._estop_sub = s.declare_subscriber(keys.estop(machine_id), self._on_estop)
         self._state_pub = s.declare_publisher(keys.state(machine_id))
+        self._info_pub = s.declare_publisher(keys.runtime_state(machine_id)) if publish_info else None
+        self._info_sent: tuple[RuntimeInfo | None, float] = (None, -1.0)  # (info without its clock, monotonic s)
         self._status_pub = s.declare_publisher(keys.status(machine_id))
         self._token = s.liveliness().declare_token(keys.runtime_alive(machine_id))
         self._threads = [threading.Thread(target=self._publish_states, daemon=True)]
@@ -353,6 +361,19 @@ class FakeRuntime:
     def _publish_states(self) -> None:
         while not self._stop.wait(0.05):
             self._state_pub.put(encode(self.state()))
+            if not self.frozen:
+                self._publish_info()
+
+    def _publish_info(self) -> None:
+        """RuntimeInfo on keys.runtime_state if it changed or 0.5 s passed (as the runtime's INFO_PERIOD_S)."""
+        if self._info_pub is None:
+            return
+        info, now = self.info(), time.monotonic()
+        bare = info.model_copy(update={"clock_unix_s": None})
+        if bare == self._info_sent[0] and now - self._info_sent[1] < 0.5:
+            return
+        self._info_sent = (bare, now)
+        self._info_pub.put(encode(info))
 
     def info(self) -> RuntimeInfo:
         current = self.current
@@ -485,6 +506,7 @@ class FakeRuntime:
             t.join(timeout=12.0)
         self._token.undeclare()
         self._estop_sub.undeclare()
+
         for d in self._decls:
             d.undeclare()
         self.session.close()

@@ -455,6 +455,8 @@ def test_a_console_past_its_log_in_still_stops_and_one_logged_out_says_the_stop_
     page.locator("#strip-msg", has_text="Your log-in expired at").wait_for(timeout=20_000)
     assert "confirmed by the runtime of m1" in page.inner_text("#strip-msg")
     assert rt.estop_reason is not None and "log-in expired" in rt.estop_reason
+    # the runtime's published RuntimeInfo (latched) reaches the page (tests/conftest.py FakeRuntime)
+    page.locator("#machine-state", has_text="E-STOPPED").wait_for(timeout=20_000)
 
     rt.estop_reason = None
     with app.state.sessions.begin() as db:  # logged out elsewhere

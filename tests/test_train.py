@@ -397,3 +397,35 @@ def test_the_callback_runner_trains_as_the_chunked_loop_did_and_a_resume_continu
     cap3 = 0.6 * (0.08 / 0.6) ** (3 / 4)
     std4 = float(rows[-1][header.index("action_std")])
     assert std4 == pytest.approx(cap3, rel=0.02) and not math.isclose(std4, 0.08, rel_tol=0.05)  # cap(4) = 0.08
+
+
+def test_per_iteration_syncs_and_tf32_train_as_the_plain_run_and_refuse_non_booleans(tmp_path):
+    """training.per_iteration_syncs (CallbackRunner change 4) and training.tf32_matmul change how
+    fast the run computes, not what: on the CPU (where TF32 does not apply) the tiny run's curve and
+    networks are those of the run without them. A setting that is not true or false is refused."""
+    import csv
+    import json
+
+    cfg = training_config.load_config("2d", None)
+    cfg["training"].update(per_iteration_syncs=True, tf32_matmul=True)
+    path = tmp_path / "fast.json"
+    path.write_text(json.dumps(cfg))
+    assert train.run(_args(tmp_path / "fast", iterations=3, seed=5, config=path)) == 0
+    assert train.run(_args(tmp_path / "plain", iterations=3, seed=5)) == 0
+
+    def curve(name):
+        with open(tmp_path / name / "run" / "curve.csv") as f:
+            return [{k: float(v) for k, v in row.items() if k not in ("wall_s", "control_steps_per_s")} for row in csv.DictReader(f)]
+
+    fast, plain = curve("fast"), curve("plain")
+    assert len(fast) == 3 and fast[-1]["mean_episode_length"] > 0  # episodes finished: the buffers were filled
+    for a, b in zip(fast, plain, strict=True):
+        assert a == pytest.approx(b, rel=1e-6, nan_ok=True)
+    ckpts = [torch.load(tmp_path / n / "run" / "checkpoint.pt", weights_only=False) for n in ("fast", "plain")]
+    for name, t in ckpts[0]["actor_state_dict"].items():
+        assert torch.allclose(t, ckpts[1]["actor_state_dict"][name]), name
+
+    cfg["training"]["tf32_matmul"] = "yes"
+    path.write_text(json.dumps(cfg))
+    with pytest.raises(ValueError, match="training.tf32_matmul must be true or false"):
+        train.TrainingRun(_args(tmp_path / "bad", config=path))

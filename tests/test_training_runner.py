@@ -142,3 +142,59 @@ def test_under_multi_gpu_every_rank_follows_rank_0(tmp_path, monkeypatch, rank0_
     monkeypatch.setattr(torch.distributed, "broadcast", broadcast)
     assert runner._callbacks_stop(0) is stops
     assert broadcasts == [1.0 if here_says else 0.0]
+
+
+class RaggedEnv(ToyEnv):
+    """16 environments whose episodes last 2-6 steps (by environment), rewards that vary by step."""
+
+    def __init__(self, nan_at_step: int | None = None):
+        super().__init__(num_envs=16)
+        self.limit = 2 + torch.arange(16) % 5
+        self.t, self.nan_at_step = 0, nan_at_step
+
+    def step(self, actions):
+        self.t += 1
+        self.episode_length_buf += 1
+        done = (self.episode_length_buf >= self.limit).long()
+        self.episode_length_buf[done > 0] = 0
+        self._obs = torch.cat([actions, self.episode_length_buf[:, None].float()], dim=1)
+        rew = -(actions**2).sum(dim=1) + 0.1 * self.episode_length_buf.float()
+        if self.t == self.nan_at_step:
+            rew = rew.clone()
+            rew[3] = float("nan")
+        return self.get_observations(), rew, done, {"time_outs": torch.zeros(16), "log": {"x": rew.mean()}}
+
+
+def _ragged_runner(tmp_path, name: str, env=None, **kw) -> CallbackRunner:
+    torch.manual_seed(0)
+    cfg = {**_cfg(), "num_steps_per_env": 8}
+    return CallbackRunner(env or RaggedEnv(), cfg, log_dir=str(tmp_path / name), **kw)
+
+
+def test_per_iteration_syncs_leave_the_loggers_episode_buffers_and_the_training_as_rsl_rls(tmp_path):
+    """Change 4: the episode bookkeeping on the device gives the logger the same last 100 returns
+    and lengths, in the same order, and the same running sums, and the policy trains the same."""
+    per_step = _ragged_runner(tmp_path, "a")
+    per_step.learn(7)  # 16 x 8 x 7 steps, about 300 episodes: the 100-episode buffers wrap
+    per_iteration = _ragged_runner(tmp_path, "b", per_iteration_syncs=True)  # the same seed, the same actions
+    per_iteration.learn(7)
+    a, b = per_step.logger, per_iteration.logger
+    assert len(a.rewbuffer) == 100 and list(a.lenbuffer) == list(b.lenbuffer)
+    assert list(a.rewbuffer) == pytest.approx(list(b.rewbuffer), rel=1e-6, abs=1e-6)
+    assert sorted(set(a.lenbuffer)) == [2.0, 3.0, 4.0, 5.0, 6.0]
+    assert torch.allclose(a.cur_reward_sum, b.cur_reward_sum) and torch.equal(a.cur_episode_length, b.cur_episode_length)
+    for pa, pb in zip(per_step.alg.actor.parameters(), per_iteration.alg.actor.parameters(), strict=True):
+        assert torch.allclose(pa, pb)
+
+
+def test_per_iteration_syncs_still_refuse_a_nan_before_the_update_uses_it(tmp_path):
+    runner = _ragged_runner(tmp_path, "n", env=RaggedEnv(nan_at_step=11), per_iteration_syncs=True)
+    before = [p.detach().clone() for p in runner.alg.actor.parameters()]
+    with pytest.raises(ValueError, match="NaN"):
+        runner.learn(3)  # step 11 lies in the second rollout (8 steps each)
+    assert runner.current_learning_iteration == 1  # the first iteration's update ran, the second's did not
+    changed = [not torch.equal(p, q) for p, q in zip(before, runner.alg.actor.parameters(), strict=True)]
+    assert any(changed)
+    with pytest.raises(ValueError, match="RND"):
+        CallbackRunner(RaggedEnv(), {**_cfg(), "algorithm": {**_cfg()["algorithm"], "rnd_cfg": {"weight": 1.0}}},
+                       per_iteration_syncs=True)

@@ -145,11 +145,19 @@ class TrainingSection:
     0.8 s (median); a mean of -0.35 releases in 1.9 % (median 3.0 s, near the 3.8-4.2 s of the
     long far-target throw the runs that met the bars settled on, docs/training.md).
 
+    Two settings change how fast, not what, the run computes (both default false; docs/training.md,
+    Throughput): ``per_iteration_syncs`` waits for the GPU once per rollout instead of at every
+    environment step (sim_twin.training.runner.CallbackRunner, change 4: the same updates and logs),
+    and ``tf32_matmul`` lets float32 matrix products on the GPU use TF32 tensor cores
+    (``torch.backends.cuda.matmul.allow_tf32``; inputs rounded to 10 significant bits, products
+    summed in float32), the actor's in the rollout and in the update alike, so the update recomputes
+    the policy the rollout sampled from without the bfloat16 update's rounding gap.
+
     Raises (from_dict):
         ValueError: an unknown key (a misspelt setting would otherwise be ignored), a seed or
             ``gate_from_iteration`` that is not an integer (>= 0), both ``curriculum_stage`` and its
-            older spelling ``randomization_stage``, or what StdSchedule.from_dict and
-            CurriculumStage.from_dict refuse.
+            older spelling ``randomization_stage``, ``per_iteration_syncs`` or ``tf32_matmul`` not a
+            boolean, or what StdSchedule.from_dict and CurriculumStage.from_dict refuse.
     """
 
     seed: int | None = None
@@ -157,6 +165,8 @@ class TrainingSection:
     curriculum_stage: CurriculumStage | None = None
     gate_from_iteration: int = 0
     release_bias_init: float | None = None
+    per_iteration_syncs: bool = False
+    tf32_matmul: bool = False
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainingSection:
@@ -177,7 +187,11 @@ class TrainingSection:
         bias = d.get("release_bias_init")
         if bias is not None:
             _check_finite(bias, "training.release_bias_init")
-        return cls(seed, schedule, stage, gate_from, None if bias is None else float(bias))
+        flags = {k: d.get(k, False) for k in ("per_iteration_syncs", "tf32_matmul")}
+        for k, v in flags.items():
+            if not isinstance(v, bool):
+                raise ValueError(f"training.{k} must be true or false, not {v!r}")
+        return cls(seed, schedule, stage, gate_from, None if bias is None else float(bias), **flags)
 
 
 def load_config(mode: str, path: Path | None) -> dict:

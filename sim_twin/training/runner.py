@@ -29,6 +29,15 @@ marked ``# CHANGE`` in the copy, written to be proposed upstream as they stand:
    stopped the loop at an iteration not yet written (5.5.1 writes the last one at the end, twice
    when the interval has just written it).
    As in rsl_rl only a process with a log writer (rank 0 with a log_dir) writes checkpoints.
+4. **Host syncs** (``per_iteration_syncs``, default False: rsl_rl's loop as it is): rsl_rl's rollout
+   waits for the GPU at every environment step, in ``check_nan`` (``tensor.any()`` in an ``if``, per
+   observation group, rewards and dones) and in the logger's episode bookkeeping (``nonzero()``,
+   ``.cpu()``), so the host cannot queue the next step's work while the GPU runs this one. With
+   ``per_iteration_syncs`` the NaN flags and the finished episodes' returns and lengths stay on the
+   device (:class:`DeviceEpisodeLog`) and are read once after the rollout, before the update: a NaN
+   raises the same ValueError one rollout later than rsl_rl would (before any update uses it), and
+   the logger's return and length buffers (its last 100 finished episodes, in rsl_rl's order) hold
+   the same values (tests/test_training_runner.py). RND's intrinsic rewards are not supported then.
 
 Everything else (the constructor, ``save``, ``load``, the logger, multi-GPU set-up, exports) is
 rsl_rl's. The copied loop is BSD-3-Clause, Copyright (c) 2021-2026, ETH Zurich and NVIDIA
@@ -65,9 +74,12 @@ class CallbackRunner(OnPolicyRunner):
         checkpoint_name: file name, formatted with ``it`` (the iteration count it stores).
         save_interval: write a checkpoint when the iteration count is a multiple of this; None:
             ``train_cfg["save_interval"]``; 0: only the last iteration's.
+        per_iteration_syncs: wait for the GPU once per rollout instead of at every step (module
+            docstring, change 4).
 
     Raises:
-        ValueError: a negative ``save_interval``; OnPolicyRunner's errors.
+        ValueError: a negative ``save_interval``; ``per_iteration_syncs`` with RND; OnPolicyRunner's
+            errors.
     """
 
     current_learning_iteration: int
@@ -75,8 +87,12 @@ class CallbackRunner(OnPolicyRunner):
 
     def __init__(self, env: VecEnv, train_cfg: dict, log_dir: str | None = None, device: str = "cpu", *,
                  callbacks: Iterable[IterationCallback] = (), checkpoint_dir: str | None = None,
-                 checkpoint_name: str = "model_{it}.pt", save_interval: int | None = None) -> None:
+                 checkpoint_name: str = "model_{it}.pt", save_interval: int | None = None,
+                 per_iteration_syncs: bool = False) -> None:
+        if per_iteration_syncs and train_cfg["algorithm"].get("rnd_cfg"):
+            raise ValueError("per_iteration_syncs does not support RND (its intrinsic rewards are logged per step)")
         super().__init__(env, train_cfg, log_dir=log_dir, device=device)
+        self.per_iteration_syncs = per_iteration_syncs
         self.callbacks: list[IterationCallback] = list(callbacks)
         self.checkpoint_dir = checkpoint_dir
         self.checkpoint_name = checkpoint_name
@@ -123,6 +139,8 @@ class CallbackRunner(OnPolicyRunner):
         saved_it = None  # CHANGE (3): the count whose checkpoint was written last
         for it in range(start_it, total_it):
             start = time.time()
+            # CHANGE (4): the NaN flags and the episode bookkeeping on the device, read after the rollout
+            episodes = DeviceEpisodeLog(self.logger, self.cfg["num_steps_per_env"]) if self.per_iteration_syncs else None
             # Rollout
             with torch.inference_mode():
                 for _ in range(self.cfg["num_steps_per_env"]):
@@ -132,7 +150,10 @@ class CallbackRunner(OnPolicyRunner):
                     obs, rewards, dones, extras = self.env.step(actions.to(self.env.device))
                     # Check for NaN values from the environment
                     if self.cfg.get("check_for_nan", True):
-                        check_nan(obs, rewards, dones)
+                        if episodes is not None:  # CHANGE (4)
+                            episodes.note_nan(obs, rewards, dones)
+                        else:
+                            check_nan(obs, rewards, dones)
                     # Move to device
                     obs, rewards, dones = (obs.to(self.device), rewards.to(self.device), dones.to(self.device))
                     # Process the step
@@ -140,7 +161,13 @@ class CallbackRunner(OnPolicyRunner):
                     # Extract intrinsic rewards if RND is used (only for logging)
                     intrinsic_rewards = self.alg.intrinsic_rewards if self.cfg["algorithm"].get("rnd_cfg") else None
                     # Book keeping
-                    self.logger.process_env_step(rewards, dones, extras, intrinsic_rewards)
+                    if episodes is not None:  # CHANGE (4)
+                        episodes.step(rewards, dones, extras)
+                    else:
+                        self.logger.process_env_step(rewards, dones, extras, intrinsic_rewards)
+
+                if episodes is not None:  # CHANGE (4): the rollout's one wait, before the update
+                    episodes.finish()
 
                 stop = time.time()
                 collect_time = stop - start
@@ -199,3 +226,76 @@ class CallbackRunner(OnPolicyRunner):
             torch.distributed.broadcast(flag, src=0)
             stop = bool(flag.item() > 0)
         return stop
+
+
+class DeviceEpisodeLog:
+    """One rollout's episode bookkeeping for rsl_rl's Logger without waiting for the GPU at each
+    step (CallbackRunner change 4). Per step it adds the rewards to the logger's running sums
+    (``cur_reward_sum``, ``cur_episode_length``; shape (num_envs,)) and records, where an episode
+    ended, its return and length into (steps, num_envs) device buffers, then zeroes the sums there,
+    all with masked tensor operations; the NaN checks of rsl_rl's ``check_nan`` accumulate into one
+    device flag. :meth:`finish` reads both once and extends the logger's ``rewbuffer`` and
+    ``lenbuffer`` with the finished episodes in rsl_rl's order (by step, then by environment index,
+    as ``nonzero()`` orders them), so the buffers end as rsl_rl's per-step bookkeeping leaves them.
+
+    Args:
+        logger: rsl_rl's Logger (``runner.logger``); nothing is recorded when it has no writer
+            (as rsl_rl: only the logging rank keeps episode statistics).
+        steps: the rollout's steps per environment (``num_steps_per_env``).
+    """
+
+    def __init__(self, logger, steps: int) -> None:
+        self.logger = logger
+        self.steps = steps
+        self.i = 0
+        self.nan: torch.Tensor | None = None
+        self.returns: torch.Tensor | None = None
+        self.lengths: torch.Tensor | None = None
+        if logger.writer is not None:
+            n = logger.cur_reward_sum.shape[0]
+            self.returns = torch.full((steps, n), float("nan"), dtype=logger.cur_reward_sum.dtype, device=logger.cur_reward_sum.device)
+            self.lengths = torch.zeros((steps, n), dtype=logger.cur_episode_length.dtype, device=logger.cur_episode_length.device)
+
+    def note_nan(self, obs, rewards: torch.Tensor, dones: torch.Tensor) -> None:
+        """Accumulate whether any observation group, reward or done of this step is NaN (no wait)."""
+        flags = [torch.isnan(t).any() for t in (*obs.values(), rewards, dones)]
+        flag = torch.stack(flags).any()
+        self.nan = flag if self.nan is None else self.nan | flag
+
+    def step(self, rewards: torch.Tensor, dones: torch.Tensor, extras: dict) -> None:
+        """The logger's ``process_env_step`` without RND, its per-episode part kept on the device.
+        Shapes: rewards, dones (num_envs,)."""
+        lg = self.logger
+        if lg.writer is None:
+            return
+        if "episode" in extras:
+            lg.ep_extras.append(extras["episode"])
+        elif "log" in extras:
+            lg.ep_extras.append(extras["log"])
+        lg.cur_reward_sum += rewards
+        lg.cur_episode_length += 1
+        ended = dones > 0
+        assert self.returns is not None and self.lengths is not None
+        self.returns[self.i] = torch.where(ended, lg.cur_reward_sum, torch.full_like(lg.cur_reward_sum, float("nan")))
+        self.lengths[self.i] = torch.where(ended, lg.cur_episode_length, torch.zeros_like(lg.cur_episode_length))
+        lg.cur_reward_sum.masked_fill_(ended, 0)
+        lg.cur_episode_length.masked_fill_(ended, 0)
+        self.i += 1
+
+    def finish(self) -> None:
+        """Read the rollout's NaN flag and finished episodes (one device->host copy each).
+
+        Raises:
+            ValueError: an observation, reward or done of the rollout was NaN (rsl_rl's check_nan's
+                condition; which step is not known here).
+        """
+        if self.nan is not None and bool(self.nan):
+            raise ValueError("The environment returned NaN values (observations, rewards or dones) in this rollout. "
+                             "This usually indicates a bug in the environment's step() or reset() function.")
+        if self.returns is None or self.lengths is None or self.i == 0:
+            return
+        lengths = self.lengths[: self.i].cpu().numpy().ravel()
+        ended = lengths > 0  # a finished episode lasted at least one step
+        keep = self.logger.rewbuffer.maxlen or len(lengths)
+        self.logger.rewbuffer.extend(self.returns[: self.i].cpu().numpy().ravel()[ended][-keep:].tolist())
+        self.logger.lenbuffer.extend(lengths[ended][-keep:].tolist())

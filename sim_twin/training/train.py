@@ -267,11 +267,16 @@ class TrainingRun:
         import torch
 
         torch.manual_seed(seed + 1000 * proc.rank)
+        if self.training.tf32_matmul:  # rollout and update alike (TrainingSection); no effect on the CPU
+            torch.backends.cuda.matmul.allow_tf32 = True
+            torch.backends.cudnn.allow_tf32 = True
+            log.info("TF32 matrix products on")
         self.env = MjxThrowVecEnv(env_cfg, cfg["num_envs"], seed=seed + 1000 * proc.rank, device=proc.device, impl=physics)
         self.tb_dir = (args.tb_dir or self.log_dir / "tb") if proc.main else None
         self.runner = CallbackRunner(self.env, copy.deepcopy(cfg["runner"]), log_dir=str(self.tb_dir) if self.tb_dir else None,
                                      device=proc.device, callbacks=[self._keep_checkpoint, self._end_chunk, self._start_next_chunk],
-                                     checkpoint_dir=str(self.log_dir), checkpoint_name="checkpoint.pt", save_interval=max(args.chunk, 1))
+                                     checkpoint_dir=str(self.log_dir), checkpoint_name="checkpoint.pt", save_interval=max(args.chunk, 1),
+                                     per_iteration_syncs=self.training.per_iteration_syncs)
         self.curve = TrainingCurve.load_or_new(self.log_dir / "curve.csv")
         self._wall_offset = self.curve.last_wall_s()
         if args.resume:

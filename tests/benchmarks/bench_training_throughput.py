@@ -27,8 +27,8 @@ reset alone, so that the environment's time splits into physics, its own work an
 ``--joint-limits on,off`` compares the training model with and without the MJCF's joint-limit
 constraints (``ThrowEnvCore``'s ``joint_limits``; training runs without them), ``--graph-mode``
 MJX's CUDA-graph modes of the Warp call (``default``, ``WARP``, ``WARP_STAGED``, ``NONE``; each row
-records the mode it ran with in ``graph_mode``), and ``--update fp32,tf32,bf16,bf16critic`` the PPO update's
-arithmetic: float32 (the recipe's), TF32 matrix products (``torch.backends.cuda.matmul.allow_tf32``)
+records the mode it ran with in ``graph_mode``), and ``--update fp32,tf32,bf16,bf16critic`` (each with
+modifiers, see UPDATES: compiled, TF32, one GPU wait per rollout) the PPO update's arithmetic: float32 (the recipe's), TF32 matrix products (``torch.backends.cuda.matmul.allow_tf32``)
 rsl_rl's bfloat16 autocast (``algorithm.use_mixed_precision``) and ``bf16critic``, that autocast with
 the actor kept in float32 (sim_twin.training.models); every update setting of one
 environment configuration shares its environment rates.
@@ -49,6 +49,8 @@ import argparse
 import copy
 import json
 import os
+import shutil
+import tempfile
 import time
 import traceback
 
@@ -104,12 +106,31 @@ def _rate(fn, args, n: int, k: int = 32) -> float:
 
 UPDATES = ("fp32", "tf32", "bf16", "bf16critic")
 """The PPO update's arithmetic settings ``--update`` compares (module docstring; ``bf16critic``: the
-bfloat16 update with the actor kept in float32, sim_twin.training.models.Float32MLPModel); ``+compile``
-after one (e.g. ``bf16+compile``) also compiles actor and critic with ``torch.compile`` (rsl_rl's
-``torch_compile_mode`` "default"), ``+autotune`` with "max-autotune-no-cudagraphs" (autotuned kernels;
-rsl_rl refuses the CUDA-graph modes: its graph replay would overwrite an earlier call's output)."""
-COMPILE_MODES = {"": None, "compile": "default", "autotune": "max-autotune-no-cudagraphs"}
-"""``+<extra>`` of an update setting -> rsl_rl's ``torch_compile_mode``."""
+bfloat16 update with the actor kept in float32, sim_twin.training.models.Float32MLPModel). Modifiers
+follow with ``+``, any of them together (e.g. ``bf16critic+compile+tf32+syncs``): ``+compile``
+compiles actor and critic with ``torch.compile`` (rsl_rl's ``torch_compile_mode`` "default"),
+``+autotune`` with "max-autotune-no-cudagraphs" (autotuned kernels; rsl_rl refuses the CUDA-graph
+modes: its graph replay would overwrite an earlier call's output), ``+tf32`` turns on TF32 matrix
+products for what stays float32 (the recipe's ``training.tf32_matmul``; ``tf32`` alone is ``fp32+tf32``)
+and ``+syncs`` waits for the GPU once per rollout instead of at every step (the recipe's
+``training.per_iteration_syncs``, sim_twin.training.runner.CallbackRunner change 4)."""
+COMPILE_MODES = {"compile": "default", "autotune": "max-autotune-no-cudagraphs"}
+"""An update setting's compile modifier -> rsl_rl's ``torch_compile_mode``."""
+MODIFIERS = (*COMPILE_MODES, "tf32", "syncs")
+"""The modifiers an update setting may carry after ``+`` (UPDATES)."""
+
+
+def parse_update(setting: str) -> tuple[str, set[str]]:
+    """``"bf16critic+compile+syncs"`` -> ("bf16critic", {"compile", "syncs"}).
+
+    Raises:
+        ValueError: an unknown update or modifier, or two compile modes.
+    """
+    update, *mods = setting.split("+")
+    if update not in UPDATES or not set(mods) <= set(MODIFIERS) or len(set(mods) & set(COMPILE_MODES)) > 1:
+        raise ValueError(f"unknown update setting {setting!r}; known: {UPDATES}, each with any of "
+                         + ", ".join(f"+{k}" for k in MODIFIERS) + " (one compile mode at most)")
+    return update, set(mods)
 
 
 def measure(mode: str, impl: str, n: int, iterations: int, physics_steps: int, reset_slots: float | None = None,
@@ -167,24 +188,27 @@ def _learn_rates(row: dict, env, cfg: dict, device: str, iterations: int) -> dic
     """rsl_rl's rollout (inference + environment + storage) and whole PPO iterations on ``env``
     with the update setting ``row["update"]``: the rates into ``row``."""
     import torch
-    from rsl_rl.runners import OnPolicyRunner
 
-    update, _, extra = row["update"].partition("+")
-    if update not in UPDATES or extra not in COMPILE_MODES:
-        raise ValueError(f"unknown update setting {row['update']!r}; known: {UPDATES}, each optionally with "
-                         + " or ".join(f"+{k}" for k in COMPILE_MODES if k))
+    from sim_twin.training.runner import CallbackRunner
+
+    update, mods = parse_update(row["update"])
     runner_cfg = copy.deepcopy(cfg["runner"])
     runner_cfg["algorithm"]["use_mixed_precision"] = update in ("bf16", "bf16critic")
     if update == "bf16critic":
         from sim_twin.training.models import FLOAT32_ACTOR
 
         runner_cfg["actor"]["class_name"] = FLOAT32_ACTOR
-    if extra:
-        runner_cfg["torch_compile_mode"] = COMPILE_MODES[extra]
+    runner_cfg["torch_compile_mode"] = next((COMPILE_MODES[m] for m in mods if m in COMPILE_MODES), None)
+    row["tf32"], row["per_iteration_syncs"] = update == "tf32" or "tf32" in mods, "syncs" in mods
     tf32 = torch.backends.cuda.matmul.allow_tf32
-    torch.backends.cuda.matmul.allow_tf32 = update == "tf32"
+    torch.backends.cuda.matmul.allow_tf32 = row["tf32"]
+    # rsl_rl's loop (CallbackRunner without callbacks; change 4 only with +syncs). Its logger keeps
+    # episode statistics (and waits for the GPU at every step for them) only with a log writer, as in
+    # training: a throwaway TensorBoard folder. (Rows before 2026-11-27 ran without one.)
+    tb = tempfile.mkdtemp(prefix="bench_tb_")
     try:
-        runner = OnPolicyRunner(env, runner_cfg, log_dir=None, device=device)
+        runner = CallbackRunner(env, runner_cfg, log_dir=tb, device=device, save_interval=0,
+                                checkpoint_dir=tb, per_iteration_syncs=row["per_iteration_syncs"])
         T = cfg["runner"]["num_steps_per_env"]
         n = env.num_envs
         alg = runner.alg
@@ -223,6 +247,7 @@ def _learn_rates(row: dict, env, cfg: dict, device: str, iterations: int) -> dic
         traceback.print_exc()
     finally:
         torch.backends.cuda.matmul.allow_tf32 = tf32
+        shutil.rmtree(tb, ignore_errors=True)
     return row
 
 
@@ -242,12 +267,18 @@ def main() -> None:
     p.add_argument("--joint-limits", default="off", help="comma-separated: off (training's model) and/or on (the MJCF's limits)")
     p.add_argument("--graph-mode", default="default",
                    help="comma-separated MJX graph modes of the Warp call: default, WARP, WARP_STAGED, NONE (warp rows only)")
-    p.add_argument("--update", default="fp32", help=f"comma-separated PPO update arithmetic: {', '.join(UPDATES)}, each optionally +compile or +autotune")
+    p.add_argument("--update", default="fp32", help=f"comma-separated PPO update settings: {', '.join(UPDATES)}, each with any of "
+                   + ", ".join(f"+{m}" for m in MODIFIERS) + " (UPDATES)")
     p.add_argument("--xla-flags", default="default",
                    help="';'-separated sets of XLA flags, one process each ('default': none)")
     p.add_argument("--out", default=None)
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args()
+    for setting in a.update.split(","):
+        try:
+            parse_update(setting)
+        except ValueError as e:
+            p.error(str(e))
     flag_sets = a.xla_flags.split(";")
     rows = []
     if len(flag_sets) > 1 and not a.child:
@@ -259,13 +290,13 @@ def main() -> None:
     if a.child:
         print("ROWS " + json.dumps(rows), flush=True)
         return
-    print("impl   envs  reset unroll limits graph        update        physics M/s  env M/s  step-only  reset-only  step+infer M/s  +PPO M/s  "
+    print("impl   envs  reset unroll limits graph        update                         physics M/s  env M/s  step-only  reset-only  step+infer M/s  +PPO M/s  "
           "rollout s  update s  XLA flags")
     for r in rows:
         reset = "all" if r["reset_slots"] is None else f"{r['reset_slots']:g}"
         graph = r.get("graph_mode") or "-"
         print(f"{r['impl']:5} {r['num_envs']:6} {reset:>6} {'on' if r.get('unroll') else 'off':>6} "
-              f"{'on' if r.get('joint_limits') else 'off':>6} {graph:12} {r.get('update', '-'):12} {_f(r.get('physics_steps_per_s'))}     "
+              f"{'on' if r.get('joint_limits') else 'off':>6} {graph:12} {r.get('update', '-'):30} {_f(r.get('physics_steps_per_s'))}     "
               f"{_f(r.get('env_steps_per_s'))} {_f(r.get('env_step_only_per_s'))}  {_f(r.get('env_reset_only_per_s'))}   "
               f"{_f(r.get('step_infer_steps_per_s'))}       {_f(r.get('learn_steps_per_s'))}  {_f(r.get('rollout_s'), 1)}  "
               f"{_f(r.get('update_s'), 1)}  {r.get('xla_flags', '')} {r.get('error', '') or r.get('physics_error', '')}")
