@@ -246,15 +246,15 @@ class DeviceEpisodeLog:
 
     def __init__(self, logger, steps: int) -> None:
         self.logger = logger
-        self.steps = steps
         self.i = 0
         self.nan: torch.Tensor | None = None
         self.returns: torch.Tensor | None = None
         self.lengths: torch.Tensor | None = None
+        """Per step and environment: the return and length of the episode that ended there, else 0
+        (a finished episode lasted at least one step: its length marks it)."""
         if logger.writer is not None:
-            n = logger.cur_reward_sum.shape[0]
-            self.returns = torch.full((steps, n), float("nan"), dtype=logger.cur_reward_sum.dtype, device=logger.cur_reward_sum.device)
-            self.lengths = torch.zeros((steps, n), dtype=logger.cur_episode_length.dtype, device=logger.cur_episode_length.device)
+            self.returns = logger.cur_reward_sum.new_zeros((steps, logger.cur_reward_sum.shape[0]))
+            self.lengths = logger.cur_episode_length.new_zeros((steps, logger.cur_episode_length.shape[0]))
 
     def note_nan(self, obs, rewards: torch.Tensor, dones: torch.Tensor) -> None:
         """Accumulate whether any observation group, reward or done of this step is NaN (no wait)."""
@@ -276,8 +276,8 @@ class DeviceEpisodeLog:
         lg.cur_episode_length += 1
         ended = dones > 0
         assert self.returns is not None and self.lengths is not None
-        self.returns[self.i] = torch.where(ended, lg.cur_reward_sum, torch.full_like(lg.cur_reward_sum, float("nan")))
-        self.lengths[self.i] = torch.where(ended, lg.cur_episode_length, torch.zeros_like(lg.cur_episode_length))
+        self.returns[self.i] = torch.where(ended, lg.cur_reward_sum, 0.0)
+        self.lengths[self.i] = torch.where(ended, lg.cur_episode_length, 0.0)
         lg.cur_reward_sum.masked_fill_(ended, 0)
         lg.cur_episode_length.masked_fill_(ended, 0)
         self.i += 1
@@ -295,7 +295,7 @@ class DeviceEpisodeLog:
         if self.returns is None or self.lengths is None or self.i == 0:
             return
         lengths = self.lengths[: self.i].cpu().numpy().ravel()
-        ended = lengths > 0  # a finished episode lasted at least one step
+        ended = lengths > 0
         keep = self.logger.rewbuffer.maxlen or len(lengths)
         self.logger.rewbuffer.extend(self.returns[: self.i].cpu().numpy().ravel()[ended][-keep:].tolist())
         self.logger.lenbuffer.extend(lengths[ended][-keep:].tolist())

@@ -268,8 +268,7 @@ class TrainingRun:
 
         torch.manual_seed(seed + 1000 * proc.rank)
         if self.training.tf32_matmul:  # rollout and update alike (TrainingSection); no effect on the CPU
-            torch.backends.cuda.matmul.allow_tf32 = True
-            torch.backends.cudnn.allow_tf32 = True
+            torch.backends.cuda.matmul.allow_tf32 = True  # (cuDNN's TF32 is on by default; the networks have no convolutions)
             log.info("TF32 matrix products on")
         self.env = MjxThrowVecEnv(env_cfg, cfg["num_envs"], seed=seed + 1000 * proc.rank, device=proc.device, impl=physics)
         self.tb_dir = (args.tb_dir or self.log_dir / "tb") if proc.main else None
