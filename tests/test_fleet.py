@@ -86,7 +86,9 @@ def test_cut_a_machine_hosts_link_mid_throw(tmp_path):
         print("throw cut mid-way:", final, site.http.get(f"/api/throws/{t1}").json()["failure_reason"])
         wait_for(lambda: "m1" in site.online(), 60, "m1 rejoined")
         t3 = wait_for(lambda: _try_throw(site, "m1"), 60, "m1 accepts a throw again")
-        assert wait_for(lambda: (s := status(site, t3)) in FINAL and s, 60) == "landed"
+        third = wait_for(lambda: (s := status(site, t3)) in FINAL and s, 60)
+        assert third == "landed", (site.http.get(f"/api/throws/{t3}").json()["failure_reason"],
+                                   site.log("plant-m1")[-1500:], site.log("runtime-m1")[-3000:])
         rows = site.http.get("/api/throws", params={"limit": 10}).json()
         assert {r["id"] for r in rows} == {t1, t2, t3} and not [r for r in rows if r["status"] not in FINAL]
 
