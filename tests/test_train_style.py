@@ -59,6 +59,19 @@ def test_the_style_is_read_from_the_last_seed0_matrix_by_iteration_250(tmp_path)
     assert row["outcome"] == {"met": False, "last_iteration": 300, "last_train_wall_min": 10.0, "missing_cells": {"0": 0, "1": 2}}
 
 
+def test_the_style_skips_a_matrix_whose_far_throws_did_not_land(tmp_path):
+    """Where the last matrix by iteration 250 has no landed nominal 10 m throw (the run still held its
+    far throws), the first later matrix where they landed sets the style, not an earlier one (from
+    before the styles split)."""
+    run = _run(tmp_path, {25: 2.0, 200: None, 275: None, 300: 3.3, 400: 4.0},
+               [_result(i, 0, 9) for i in (25, 200, 275, 300, 400)], [])
+    row = run_style(RunSource(str(run)))
+    assert (row["style_iteration"], row["far_duration_s"], row["style"]) == (300, 3.3, "short")
+    run = _run(tmp_path / "c", {100: None}, [_result(100, 0, 9)], [])
+    with pytest.raises(ValueError, match="no seed-0 site matrix where a nominal 10 m throw landed"):
+        run_style(RunSource(str(run)))
+
+
 def test_a_run_that_met_the_bars_names_its_first_passing_checkpoint(tmp_path):
     passes = [{"iteration": 150, "train_wall_s": 270.0}, {"iteration": 300, "train_wall_s": 600.0}]
     run = _run(tmp_path, {150: 4.1}, [_result(150, 0, 0), _result(150, 1, 0)], passes)

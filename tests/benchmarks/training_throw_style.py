@@ -120,8 +120,12 @@ def run_style(src: RunSource, by_iteration: int = STYLE_BY_ITERATION) -> dict:
     nominal 10 m duration, σ and style, and the gate's outcome ({met, iteration, train_wall_min}
     or {met: False, last_iteration, last_train_wall_min, missing_cells}).
 
+    The style is read from the last seed-0 matrix by ``by_iteration``, or, where its nominal 10 m
+    throws did not land (``mean_duration_s`` None), from the first later one where they did.
+
     Raises:
         FileNotFoundError: no gate record or no seed-0 matrix by ``by_iteration``.
+        ValueError: no seed-0 matrix in which a nominal 10 m throw landed.
     """
     try:
         cfg = json.loads(src.read("config.json"))
@@ -132,8 +136,15 @@ def run_style(src: RunSource, by_iteration: int = STYLE_BY_ITERATION) -> dict:
     early = [i for i in seed0 if i <= by_iteration]
     if not early:
         raise FileNotFoundError(f"{src.spec}: no seed-0 site matrix by iteration {by_iteration}")
-    it = early[-1]
-    far = far_throw(json.loads(src.read(f"matrices/site_matrix_2d_it{it}.json")))
+    # the last matrix by the iteration; where its nominal far throws did not land (a run still holding
+    # them, whose next matrix came later), the first later one where they did: an earlier matrix is
+    # from before the styles split
+    for it in [early[-1]] + [i for i in seed0 if i > by_iteration]:
+        far = far_throw(json.loads(src.read(f"matrices/site_matrix_2d_it{it}.json")))
+        if far["duration_s"] is not None:
+            break
+    else:
+        raise ValueError(f"{src.spec}: no seed-0 site matrix where a nominal 10 m throw landed")
     wall = {r["iteration"]: r["train_wall_s"] for r in gate["results"]}
     passed = gate.get("passes") or ([gate["passed"]] if gate.get("passed") else [])
     if passed:
