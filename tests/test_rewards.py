@@ -145,6 +145,28 @@ def test_vec_env_logs_every_term_and_their_sum_is_the_mean_reward():
     assert set(means) == {f"reward_{k}" for k in REWARD_TERMS}
 
 
+def test_a_diverged_environment_is_left_out_of_the_logged_term_means_and_counted():
+    """A state gone non-finite (here one environment's joint positions set to NaN) fails with the
+    failure reward; its NaN distance terms stay out of the logged means (which were NaN at
+    iterations 75-125 of the 2D runs from scratch) and it is counted as diverged."""
+    import torch
+
+    from sim_twin.training.vec_env import MjxThrowVecEnv
+
+    env = MjxThrowVecEnv(EnvConfig.from_dict(json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]), 4, seed=5)
+    data = env.state.data
+    env.state = env.state.replace(data=data.replace(qpos=data.qpos.at[0].set(jnp.nan)))
+    _, rew, dones, extras = env.step(torch.zeros(4, env.num_actions))
+    log = {k: float(v) for k, v in extras["log"].items()}
+    assert bool(dones[0]) and float(rew[0]) == pytest.approx(SCALES.failure)
+    assert all(np.isfinite(log[f"Reward/{k}"]) for k in REWARD_TERMS), log
+    assert log["Throw/diverged_per_done"] == pytest.approx(1.0 / float(dones.sum()))
+    assert all(np.isfinite(v) for v in env.read_term_means().values())
+    # the next step starts every environment afresh or carries on: nothing diverged
+    _, _, _, extras = env.step(torch.zeros(4, env.num_actions))
+    assert float(extras["log"]["Throw/diverged_per_done"]) == 0.0
+
+
 @pytest.mark.parametrize("scale", [0.0, -5.0])
 def test_an_episode_that_never_releases_ends_as_a_failure_when_the_recipe_punishes_it(scale):
     """At the time limit without a release command: with no_release < 0 the episode terminates with

@@ -7,7 +7,9 @@ true passive joint state, for an asymmetric critic). rsl_rl picks the groups of 
 by the config's ``runner.obs_groups``; the actor must keep ["policy"] (it is what is exported).
 
 Every step returns in ``extras["log"]`` the mean over environments of each scaled reward term
-(``Reward/<term>``, sim_twin.training.rewards) and the throw statistics (``Throw/...``); rsl_rl's logger
+(``Reward/<term>``, sim_twin.training.rewards; environments whose state diverged this step, whose terms
+are not finite and whose reward is the failure reward, are left out of these means and counted in
+``Throw/diverged_per_done``) and the throw statistics (``Throw/...``); rsl_rl's logger
 averages them over the iteration and writes them to TensorBoard. They stay on the device (no
 host synchronisation per step); :meth:`read_stats` copies the accumulated sums once.
 """
@@ -64,7 +66,8 @@ class MjxThrowVecEnv(VecEnv):
         self._obs = obs
         self._priv = self._privileged(self.state)
         self.episode_length_buf = torch.zeros(num_envs, dtype=torch.long, device=device)
-        self.log_keys = [f"Reward/{k}" for k in REWARD_TERMS] + ["Throw/landed_per_done", "Throw/failed_per_done", "Throw/impact_err_m"]
+        self.log_keys = [f"Reward/{k}" for k in REWARD_TERMS] + ["Throw/landed_per_done", "Throw/failed_per_done", "Throw/impact_err_m",
+                                                                 "Throw/diverged_per_done"]
         self.reset_stats()
 
     def reconfigure(self, cfg: EnvConfig) -> None:
@@ -98,9 +101,15 @@ class MjxThrowVecEnv(VecEnv):
         n_done, n_landed = jnp.sum(done), jnp.sum(landed)
         err_sum = jnp.sum(jnp.where(landed, info["impact_err_m"], 0.0))
         sums = jnp.stack([n_done, n_landed, jnp.sum(info["failed"]), err_sum]).astype(jnp.float32)
+        terms = info["reward_terms"]
+        # a diverged state (mjx_env: non-finite qpos, a failure) makes its distance terms NaN; its reward is
+        # the failure reward (rewards.total_reward), so the term means leave it out and count it instead
+        finite = jnp.isfinite(sum(terms.values()))
+        n_finite = jnp.maximum(jnp.sum(finite), 1)
         log = jnp.stack(
-            [jnp.mean(info["reward_terms"][k]) for k in REWARD_TERMS]
-            + [n_landed / jnp.maximum(n_done, 1), jnp.sum(info["failed"]) / jnp.maximum(n_done, 1), err_sum / jnp.maximum(n_landed, 1)]
+            [jnp.sum(jnp.where(finite, terms[k], 0.0)) / n_finite for k in REWARD_TERMS]
+            + [n_landed / jnp.maximum(n_done, 1), jnp.sum(info["failed"]) / jnp.maximum(n_done, 1), err_sum / jnp.maximum(n_landed, 1),
+               jnp.sum(~finite) / jnp.maximum(n_done, 1)]
         ).astype(jnp.float32)
         return state, obs, rew, done, tout, self.core.privileged_batch(state), sums, log
 
@@ -112,7 +121,7 @@ class MjxThrowVecEnv(VecEnv):
 
     def read_term_means(self) -> dict[str, float]:
         """Mean over the steps since reset_stats() of each scaled reward term's mean over the
-        environments: {"reward_<term>": value}."""
+        environments whose state did not diverge: {"reward_<term>": value}."""
         means = (self._log_sum / max(self._log_n, 1)).cpu().tolist()
         return {"reward_" + k.split("/", 1)[1]: v for k, v in zip(self.log_keys, means) if k.startswith("Reward/")}
 
