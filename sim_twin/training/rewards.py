@@ -213,6 +213,12 @@ def reward_terms(x: RewardInputs, w: RewardScales) -> dict[str, jnp.ndarray]:
     return {name: getattr(w, name) * fn(x, w) for name, fn in REWARD_TERMS.items()}
 
 
+def diverged(terms: dict[str, jnp.ndarray]) -> jnp.ndarray:
+    """Whether the scaled terms' sum is not finite (a diverged state: non-finite joint positions make
+    the distance terms NaN), per environment (bool, the terms' shape)."""
+    return ~jnp.isfinite(sum(terms.values()))
+
+
 def total_reward(terms: dict[str, jnp.ndarray], failure_reward: float) -> jnp.ndarray:
-    """Sum of the scaled terms; a non-finite sum (a diverged state) becomes the failure reward."""
-    return jnp.nan_to_num(sum(terms.values()), nan=failure_reward, posinf=failure_reward, neginf=failure_reward)
+    """Sum of the scaled terms; where it is not finite (:func:`diverged`) the failure reward."""
+    return jnp.where(diverged(terms), failure_reward, sum(terms.values()))

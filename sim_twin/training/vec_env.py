@@ -23,7 +23,7 @@ from rsl_rl.env import VecEnv
 from tensordict import TensorDict
 
 from sim_twin.training.mjx_env import EnvConfig, ThrowEnvCore
-from sim_twin.training.rewards import REWARD_TERMS
+from sim_twin.training.rewards import REWARD_TERMS, diverged
 
 
 def _to_torch(x) -> torch.Tensor:
@@ -100,16 +100,17 @@ class MjxThrowVecEnv(VecEnv):
         landed = info["landed"]
         n_done, n_landed = jnp.sum(done), jnp.sum(landed)
         err_sum = jnp.sum(jnp.where(landed, info["impact_err_m"], 0.0))
-        sums = jnp.stack([n_done, n_landed, jnp.sum(info["failed"]), err_sum]).astype(jnp.float32)
+        n_failed = jnp.sum(info["failed"])
+        sums = jnp.stack([n_done, n_landed, n_failed, err_sum]).astype(jnp.float32)
         terms = info["reward_terms"]
-        # a diverged state (mjx_env: non-finite qpos, a failure) makes its distance terms NaN; its reward is
-        # the failure reward (rewards.total_reward), so the term means leave it out and count it instead
-        finite = jnp.isfinite(sum(terms.values()))
-        n_finite = jnp.maximum(jnp.sum(finite), 1)
+        # a diverged state's reward is the failure reward (rewards.total_reward) and its distance terms are
+        # NaN: the term means leave it out and count it instead
+        gone = diverged(terms)
+        n_kept = jnp.maximum(jnp.sum(~gone), 1)
         log = jnp.stack(
-            [jnp.sum(jnp.where(finite, terms[k], 0.0)) / n_finite for k in REWARD_TERMS]
-            + [n_landed / jnp.maximum(n_done, 1), jnp.sum(info["failed"]) / jnp.maximum(n_done, 1), err_sum / jnp.maximum(n_landed, 1),
-               jnp.sum(~finite) / jnp.maximum(n_done, 1)]
+            [jnp.sum(jnp.where(gone, 0.0, terms[k])) / n_kept for k in REWARD_TERMS]
+            + [n_landed / jnp.maximum(n_done, 1), n_failed / jnp.maximum(n_done, 1), err_sum / jnp.maximum(n_landed, 1),
+               jnp.sum(gone) / jnp.maximum(n_done, 1)]
         ).astype(jnp.float32)
         return state, obs, rew, done, tout, self.core.privileged_batch(state), sums, log
 
