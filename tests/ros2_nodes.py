@@ -83,9 +83,21 @@ class Recorder(PlainNode):
         self.messages: list[tuple[str, int, bytes]] = []
         self.recording = False
         reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        for topic, typename in topics.items():
-            self.node.create_subscription(message_type(typename), topic, self._cb(topic),
-                                          qos_profile_sensor_data if topic in best_effort else reliable, raw=True)
+        self.subscriptions = {topic: self.node.create_subscription(message_type(typename), topic, self._cb(topic),
+                                                                   qos_profile_sensor_data if topic in best_effort else reliable, raw=True)
+                              for topic, typename in topics.items()}
+
+    def wait_matched(self, timeout_s: float = 20.0) -> None:
+        """Wait until every recorded topic's subscription has matched a publisher. A publisher seen
+        in the graph by another node may not yet be matched with this one (Fast DDS matches endpoints
+        per participant, later under load), and a volatile topic's messages sent before the match are
+        never delivered: /gripper/command is sent only when the command changes. Raises TimeoutError naming
+        the topics still unmatched."""
+        deadline = time.monotonic() + timeout_s
+        while (unmatched := sorted(t for t, sub in self.subscriptions.items() if sub.get_publisher_count() < 1)):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"the recorder matched no publisher of {unmatched} within {timeout_s:.0f} s")
+            time.sleep(0.05)
 
     def _cb(self, topic: str):
         def cb(raw: bytes) -> None:

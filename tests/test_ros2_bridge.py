@@ -587,6 +587,7 @@ def test_slinger_up_ros2_throws_through_rclpy_nodes_and_stops_for_strangers_and_
         assert {"slinger_bridge", "simulated_machine"} <= nodes, nodes
 
         # 1. a throw lands through the bridge and the driver node; a plain subscriber sees /joint_states at 100 Hz
+        rec.wait_matched()
         rec.recording = True
         row, _ = _landed_throw(http, _previewed(http))
         rec.recording = False
