@@ -28,7 +28,14 @@ def _args(tmp_path, **kw):
     return p.parse_args(argv)
 
 
-def test_train_checkpoint_resume_export(tmp_path):
+def test_train_checkpoint_resume_export(tmp_path, monkeypatch):
+    """A run resumed on another machine (here: another accelerator name) exports a card naming
+    both, with the iterations each trained; the exporting process's GPU alone would misname it."""
+    import json
+
+    from sim_twin.training import model_card
+
+    monkeypatch.setattr(model_card, "accelerator", lambda: "1 x NVIDIA H100 80GB HBM3")
     assert train.run(_args(tmp_path)) == 0
     ckpt = tmp_path / "run" / "checkpoint.pt"
     state = torch.load(ckpt, weights_only=False)
@@ -36,14 +43,37 @@ def test_train_checkpoint_resume_export(tmp_path):
     first_iter = state["iter"]
 
     onnx = tmp_path / "p.onnx"
+    monkeypatch.setattr(model_card, "accelerator", lambda: "1 x NVIDIA H200")
     assert train.run(_args(tmp_path, iterations=1, resume=ckpt, export=onnx, name="tiny")) == 0
     resumed = torch.load(ckpt, weights_only=False)
     assert first_iter == 2 and resumed["iter"] == 3  # continued at the next iteration, not restarted nor one skipped
+    card = json.loads((tmp_path / "p.card.json").read_text())
+    assert card["accelerator"] == "1 x NVIDIA H100 80GB HBM3 (iterations 0-2), 1 x NVIDIA H200 (2-3)"
+    assert "1 x NVIDIA H100 80GB HBM3 (iterations 0-2), 1 x NVIDIA H200 (2-3), 1 process(es)" in (tmp_path / "p.card.md").read_text()
     rows = (tmp_path / "run" / "curve.csv").read_text().strip().splitlines()
     assert [float(r.split(",")[0]) for r in rows[1:]] == [1, 2, 3]  # 2 chunks + 1 resumed chunk
     assert (tmp_path / "run" / "training_curve.png").stat().st_size > 1000
     runner = PolicyRunner.load(onnx)
     assert runner.version == "tiny" and runner.mode == "2d"
+
+
+def test_accelerator_segments_of_a_run_directory(tmp_path):
+    """record_accelerator keeps one segment per start; a resume from an older checkpoint drops the
+    segments of the iterations it trains again; describe_accelerators names one accelerator alone
+    and several with their iterations; a damaged record is refused, naming the file."""
+    from sim_twin.training.model_card import ACCELERATORS_FILE, describe_accelerators, record_accelerator
+
+    record_accelerator(tmp_path, 0, "1 x A", 1)
+    assert describe_accelerators(record_accelerator(tmp_path, 925, "1 x A", 1), 950) == "1 x A"  # the same machine kind
+    segs = record_accelerator(tmp_path, 950, "1 x B", 1)
+    assert describe_accelerators(segs, 1000) == "1 x A (iterations 0-950), 1 x B (950-1000)"
+    assert describe_accelerators(segs, 940) == "1 x A"  # the exported checkpoint was trained before B
+    segs = record_accelerator(tmp_path, 900, "2 x C", 2)  # resumed from an older checkpoint: 925 on are trained again
+    assert [s["from_iteration"] for s in segs] == [0, 900] and describe_accelerators(segs, 1000) == "1 x A (iterations 0-900), 2 x C (900-1000)"
+    assert describe_accelerators(segs, 0) == "1 x A"
+    (tmp_path / ACCELERATORS_FILE).write_text('{"not": "a list"}')
+    with pytest.raises(ValueError, match=ACCELERATORS_FILE):
+        record_accelerator(tmp_path, 1000, "1 x A", 1)
 
 
 def _tb_tags(tb_dir):

@@ -53,9 +53,46 @@ def accelerator() -> str:
     return f"CPU ({platform.processor() or platform.machine()})"
 
 
+ACCELERATORS_FILE = "accelerators.json"
+"""The run directory's record of what trained it: one segment per start of ``slinger train`` there."""
+
+
+def record_accelerator(log_dir: Path, from_iteration: int, gpus: str, world_size: int) -> list[dict]:
+    """Append the segment ``{from_iteration, accelerator, processes}`` to ``log_dir``'s
+    ACCELERATORS_FILE (a fresh run starts it; a resumed run continues it, so a run that went from
+    one lent machine to another keeps both) and return all segments, oldest first. Segments that
+    start at or after ``from_iteration`` (iterations trained again after a resume from an older
+    checkpoint) are dropped. Raises ValueError on a file that is not such a list."""
+    path = Path(log_dir) / ACCELERATORS_FILE
+    segments = json.loads(path.read_text()) if path.exists() else []
+    if not isinstance(segments, list) or not all(isinstance(s, dict) and "from_iteration" in s for s in segments):
+        raise ValueError(f"{path}: not a list of accelerator segments")
+    segments = [s for s in segments if s["from_iteration"] < from_iteration]
+    segments.append({"from_iteration": int(from_iteration), "accelerator": gpus, "processes": int(world_size)})
+    path.write_text(json.dumps(segments, indent=2) + "\n")
+    return segments
+
+
+def describe_accelerators(segments: list[dict], to_iteration: int) -> str:
+    """One line for the card: the accelerator alone when one kind trained every iteration to
+    ``to_iteration``, else each with its iterations (consecutive segments of one kind merged), e.g. "1 x NVIDIA H100 (iterations 0-925),
+    1 x NVIDIA H200 (925-950)". Segments that start at or after ``to_iteration`` are left out."""
+    used: list[dict] = []
+    for s in [s for s in segments if s["from_iteration"] < to_iteration] or segments[:1]:
+        if not used or used[-1]["accelerator"] != s["accelerator"]:  # a resume on the same kind continues its segment
+            used.append(s)
+    if len(used) == 1:
+        return used[0]["accelerator"]
+    ends = [s["from_iteration"] for s in used[1:]] + [to_iteration]
+    parts = [f"{s['accelerator']} ({'iterations ' if i == 0 else ''}{s['from_iteration']}-{end})"
+             for i, (s, end) in enumerate(zip(used, ends))]
+    return ", ".join(parts)
+
+
 def build_card(*, command: str, cfg: dict, iteration: int, train_wall_s: float, verdict_wall_s: float | None,
                gpus: str, world_size: int, matrices: list[dict], bars_met: bool, policy_sha256: str) -> dict:
-    """The card as a dict (see write_card for the files)."""
+    """The card as a dict (see write_card for the files). ``gpus``: the accelerator line
+    (:func:`accelerator`, or :func:`describe_accelerators` for a run trained on more than one)."""
     return {
         "command": command,
         "config_sha256": config_sha256(cfg),

@@ -229,7 +229,7 @@ class TrainingRun:
     """
 
     def __init__(self, args: argparse.Namespace):
-        from sim_twin.training import critic_surgery
+        from sim_twin.training import critic_surgery, model_card
         from sim_twin.training.curve import TrainingCurve
         from sim_twin.training.matrix_gate import MatrixGate
         from sim_twin.training.mjx_env import EnvConfig
@@ -284,6 +284,8 @@ class TrainingRun:
         elif self.training.release_bias_init is not None:
             set_release_bias(self.runner, self.training.release_bias_init)
 
+        self.accelerators = (model_card.record_accelerator(self.log_dir, self.runner.current_learning_iteration,
+                                                           model_card.accelerator(), proc.world) if proc.main else [])
         self._start = time.time()
         self.gate = None
         if getattr(args, "gate", False) and proc.main:
@@ -420,6 +422,8 @@ class TrainingRun:
         Returns the ONNX written or None. Other ranks return None at once."""
         if not self.proc.main:
             return None
+        from sim_twin.training import model_card
+
         args, gate = self.args, self.gate
         if gate and not self._bars_end_it and args.gate_wait_minutes > 0:
             log.info("waiting up to %.1f min for the running site matrix", args.gate_wait_minutes)
@@ -440,7 +444,8 @@ class TrainingRun:
         it = passed["iteration"] if passed else self.runner.current_learning_iteration
         name = args.name or f"{out.stem}-it{it}"  # the Policies page lists versions by name
         return _export(ckpt, self.cfg, out, name, command=getattr(args, "command", None), card=dict(
-            iteration=it, train_wall_s=passed["train_wall_s"] if passed else self.clock(),
+            iteration=it, gpus=model_card.describe_accelerators(self.accelerators, it),
+            train_wall_s=passed["train_wall_s"] if passed else self.clock(),
             verdict_wall_s=passed["verdict_wall_s"] if passed else None, world_size=self.proc.world,
             matrices=[r.__dict__ for r in gate.results if r.iteration == it] if gate else [], bars_met=bool(passed)))
 
@@ -465,7 +470,8 @@ def _export(checkpoint: Path, cfg: dict, out: Path, name: str, card: dict | None
 
     export_checkpoint(checkpoint, cfg, out, name=name)
     if card is not None:
-        c = model_card.build_card(command=command or shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]), cfg=cfg, gpus=model_card.accelerator(),
+        card = {"gpus": model_card.accelerator(), **card}  # the run's own record where it passes one (TrainingRun.finish)
+        c = model_card.build_card(command=command or shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]), cfg=cfg,
                                   policy_sha256=sha256_of(out), **card)
         model_card.write_card(out, c)
         manifest = json.loads(out.with_suffix(".json").read_text())
