@@ -183,7 +183,7 @@ def test_std_schedule_caps_the_learned_std():
 
 def test_model_card_commit_outside_git_comes_from_the_environment(tmp_path, monkeypatch):
     """A copy of the tree without git (as on a lent GPU machine) records the commit it was given."""
-    from sim_twin.training.model_card import git_commit
+    from sim_twin.provenance import git_commit
 
     monkeypatch.delenv("SLINGER_GIT_COMMIT", raising=False)
     assert git_commit(tmp_path) == "unknown"

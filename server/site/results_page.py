@@ -434,7 +434,7 @@ def host_description() -> str:
 
 def git_commit(root: Path = REPO) -> str:
     """Short hash of HEAD, with "+uncommitted changes" when the work tree differs; "not recorded" outside git."""
-    from sim_twin.training.model_card import head_commit
+    from sim_twin.provenance import head_commit
 
     state = head_commit(root)
     if state is None:

@@ -53,6 +53,7 @@ import numpy as np
 from sim_twin import default_policy
 from sim_twin.diagnosis import dataset as ds
 from sim_twin.diagnosis.reallog import RealLogSpec
+from sim_twin.provenance import short_commit
 from sim_twin.twin.pools import process_pool
 
 log = logging.getLogger(__name__)
@@ -481,17 +482,6 @@ def _write(out: Path | None, result: dict) -> str:
     return text
 
 
-def _commit() -> str | None:
-    """The repository's HEAD commit (short) when run from a git checkout, else None."""
-    import subprocess
-
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=10,
-                              cwd=Path(__file__).parent).stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
 def provenance() -> dict:
     """Date (UTC), host, the policies' SHA-256 and the command line of this run."""
     import hashlib
@@ -598,7 +588,7 @@ def run(mix: dict[str, int], throws: int, seed: int, workers: int, out: Path | N
         done = sorted(rows, key=lambda r: r["case"])
         got = {r["case"] for r in rows}
         return {"format": FORMAT, "seed": seed, "throws_per_case": throws, "workers": workers, "mix": mix, "wall_s": wall_before + time.time() - t0,
-                "cpu_count": os.cpu_count(), "commit": _commit(), "complete": complete, "cases_planned": planned,
+                "cpu_count": os.cpu_count(), "commit": short_commit(), "complete": complete, "cases_planned": planned,
                 "shard": list(shard) if shard else None, "deadline_s": deadline_s,
                 "not_run": sorted(c["case"] for c in cases if c["case"] not in got), **provenance(),
                 "summary": summarise(done), "cases": done}

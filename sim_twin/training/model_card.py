@@ -8,39 +8,15 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import platform
-import subprocess
 from pathlib import Path
+
+from sim_twin.provenance import git_commit
 
 
 def config_sha256(cfg: dict) -> str:
     """SHA-256 of the training config as canonical JSON (sorted keys, no spaces)."""
     return hashlib.sha256(json.dumps(cfg, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
-
-
-def head_commit(repo: Path | None = None) -> tuple[str, bool] | None:
-    """``(full hash of HEAD, whether tracked files differ from it)`` of the git repository at
-    ``repo`` (default: this package's), or None where git or the repository is missing (a copy of
-    the tree on a lent GPU machine). The one place that asks git; callers format the answer."""
-    cwd = str(repo or Path(__file__).resolve().parent)
-    try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=10, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=cwd, capture_output=True,
-                               text=True, timeout=30, check=True).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return head, bool(dirty)
-
-
-def git_commit(repo: Path | None = None) -> str:
-    """The repository's HEAD commit (with ``-dirty`` when the tree has changes); in a copy of the
-    tree without git (a lent GPU machine) the commit named by the environment variable
-    ``SLINGER_GIT_COMMIT``; else "unknown"."""
-    state = head_commit(repo)
-    if state is None:
-        return os.environ.get("SLINGER_GIT_COMMIT", "").strip() or "unknown"
-    return state[0] + ("-dirty" if state[1] else "")
 
 
 def accelerator() -> str:

@@ -28,7 +28,6 @@ import argparse
 import hashlib
 import json
 import os
-import subprocess
 import sys
 import tempfile
 from datetime import UTC, datetime
@@ -325,8 +324,9 @@ def main() -> int:
     if a.out:
         from server.site.results_page import host_description
 
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
-                                check=False).stdout.strip()
+        from sim_twin.provenance import short_commit
+
+        commit = short_commit() or "unknown"
         policies = [{"name": json.loads((REPO / "policies" / f"throw{m}.json").read_text()).get("name", f"throw{m}"),
                      "deployed_as": f"policies/throw{m}.onnx",
                      "sha256": hashlib.sha256((REPO / "policies" / f"throw{m}.onnx").read_bytes()).hexdigest()}

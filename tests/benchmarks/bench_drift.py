@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import platform
-import subprocess
 import time
 
 import numpy as np
@@ -79,7 +78,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--sigma", type=float, action="append")
     a = ap.parse_args()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    from sim_twin.provenance import short_commit
+
+    commit = short_commit() or "unknown"
     print(f"host {platform.node()} commit {commit} runs {a.runs} seed {a.seed} K {drift.K} H {drift.H}")
     for sigma in a.sigma or [0.05, 0.1]:
         for name, make in (("self-starting", Cusum), ("truth-baseline", TruthBaseline)):

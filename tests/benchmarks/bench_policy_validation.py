@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import platform
-import subprocess
 import tempfile
 import time
 from datetime import datetime, timezone
@@ -32,7 +31,9 @@ def main() -> None:
              ("full, fixture policy", write_test_policy(d / "b", release_after_bias=2.0), ValidationLimits.from_settings(s)),
              ("full, conditional-NaN policy", conditional_nan_policy(d / "c.onnx"), ValidationLimits.from_settings(s)),
              ("full, 2 GiB memory-bomb policy", memory_bomb_policy(d / "m.onnx"), ValidationLimits.from_settings(s))]
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    from sim_twin.provenance import short_commit
+
+    commit = short_commit() or "unknown"
     out = {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "commit": commit,
            "host": f"{platform.node()} ({platform.processor() or platform.machine()}, shared 2-core machine)",
            "command": "PYTHONPATH=$PWD MUJOCO_GL=egl python tests/benchmarks/bench_policy_validation.py",

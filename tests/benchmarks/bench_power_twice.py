@@ -31,7 +31,6 @@ import hashlib
 import json
 import os
 import platform
-import subprocess
 import sys
 import tempfile
 import time
@@ -64,7 +63,9 @@ def main() -> int:
     from sim_twin.twin.effects import effect_class
 
     policy = REPO / "policies" / "throw2d.onnx"
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=REPO, check=False).stdout.strip()
+    from sim_twin.provenance import short_commit
+
+    commit = short_commit() or "unknown"
     main_rows = [m for m in MAIN if not args.effect or m[0] in args.effect]
     spec = RealLogSpec(declare=not args.no_sensor_spec)
     sensor_spec = "declared" if spec.declare else "measured"

@@ -168,7 +168,7 @@ def main() -> None:
     from rsl_rl.models import MLPModel
 
     from sim_twin.training.export import load_actor
-    from sim_twin.training.model_card import head_commit
+    from sim_twin.provenance import head_commit
     from sim_twin.training.models import Float32MLPModel
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])

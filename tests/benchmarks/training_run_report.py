@@ -173,7 +173,7 @@ def run_command(template: str, run: Path) -> str:
 
 
 def main() -> None:
-    from sim_twin.training.model_card import head_commit
+    from sim_twin.provenance import head_commit
 
     p = argparse.ArgumentParser()
     p.add_argument("runs", type=Path, nargs="+", help="run directories; several: one report with a section per run")

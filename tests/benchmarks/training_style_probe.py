@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import subprocess
 import tempfile
 from datetime import UTC, datetime
 from pathlib import Path
@@ -305,7 +304,9 @@ def main() -> None:
             r = rows[-1]
             print(f"{r['run']}: {r['recipe']}, seed {r['training_seed']}, it {r['iteration']}: nominal {_fmt(r['nominal'])}, "
                   f"training {_fmt(r['training'])} -> {r['style']}", flush=True)
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    from sim_twin.provenance import git_commit
+
+    commit = git_commit()
     report = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "commit": commit, "long_style_s": LONG_STYLE_S,
               "target_m": args.target_m, "envs": args.envs, "probe_key": PROBE_KEY, "runs": rows}
     args.out.with_suffix(".json").write_text(json.dumps(report, indent=1) + "\n")

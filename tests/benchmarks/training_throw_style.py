@@ -228,7 +228,9 @@ def main() -> None:
     rows = [run_style(src, args.by_iteration) for src in sources]
     same_recipe = [i for i, r in enumerate(rows) if r["num_envs"] == 65536]  # the recipe's environment count
     split = term_split([rows[i] for i in same_recipe], [curve_at(sources[i]) for i in same_recipe])
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    from sim_twin.provenance import git_commit
+
+    commit = git_commit()
     report = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "commit": commit,
               "long_style_s": LONG_STYLE_S, "by_iteration": args.by_iteration, "far_target_m": FAR_TARGET_M, "runs": rows,
               "term_split": {"runs": [rows[i]["run"] for i in same_recipe], "by_term": split}}

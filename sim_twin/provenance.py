@@ -1,0 +1,43 @@
+"""Which commit made a result: the one place that asks git (model cards, reports, benchmarks).
+
+Outside a git checkout (a copy of the tree on a lent GPU machine) the commit comes from the
+environment variable ``SLINGER_GIT_COMMIT`` where the caller allows it.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def head_commit(repo: Path | None = None) -> tuple[str, bool] | None:
+    """``(full hash of HEAD, whether tracked files differ from it)`` of the git repository at
+    ``repo`` (default: this repository), or None where git or the repository is missing. Callers
+    format the answer."""
+    cwd = str(repo or REPO)
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=cwd, capture_output=True,
+                               text=True, timeout=30, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return head, bool(dirty)
+
+
+def git_commit(repo: Path | None = None) -> str:
+    """The repository's HEAD commit (with ``-dirty`` when the tree has changes); in a copy of the
+    tree without git (a lent GPU machine) the commit named by the environment variable
+    ``SLINGER_GIT_COMMIT``; else "unknown"."""
+    state = head_commit(repo)
+    if state is None:
+        return os.environ.get("SLINGER_GIT_COMMIT", "").strip() or "unknown"
+    return state[0] + ("-dirty" if state[1] else "")
+
+
+def short_commit(repo: Path | None = None) -> str | None:
+    """The first 7 hex digits of HEAD, or None outside a git checkout."""
+    state = head_commit(repo)
+    return state[0][:7] if state else None
