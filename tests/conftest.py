@@ -134,6 +134,7 @@ SLOW_TESTS = {
     "tests/test_clean_edges.py::test_unknown_machine_is_404_known_offline_machine_is_503[abort]": "slow",
     # the training extra (jax, torch): the fine-tuning config's privileged ranges
     "tests/test_adapt.py::test_finetune_config_fixes_the_profiles_effects": "torch",
+    "tests/test_wind_training.py::test_the_environment_lands_the_payload_where_the_wind_moves_it": "torch",
     # acceptance tests of the deployed policies (policies/*.onnx): how well they throw
     "tests/test_evaluate.py::test_deployed_2d_policy": "acceptance",
     "tests/test_controller.py::test_robust_3d_throws_with_a_slow_valve_delay": "acceptance",

@@ -33,7 +33,10 @@ Payload (paper Sec. III-B): held at the gripper centre, or, with ``randomization
 twin's ``grasp_offset`` effect; a payload gripped off-centre); the release command opens the
 gripper after the release delay (sampled per episode around the identified 258 ms); the payload
 then leaves from where it is held with that point's velocity and flies ballistically (analytic)
-until it reaches the ground, which ends the episode with the positive terminal reward.
+until it reaches the ground, which ends the episode with the positive terminal reward. With
+``randomization.wind_mps`` a steady horizontal wind drawn per episode moves the landing by its
+share of the payload's drag, to first order (sim_twin.twin.effects.site.wind_landing_shift; the CPU
+twin's ``wind`` effect integrates it).
 
 Rewards (paper Sec. III-E): one function per term in sim_twin.training.rewards, weights in the config's
 ``env.rewards`` (typed: sim_twin.training.rewards.RewardScales); ``step`` returns every scaled term in
@@ -72,6 +75,7 @@ from runtime.throw_geometry import ARM_PLANE_OFFSET_M
 from sim_twin.training.privileged import PRIVILEGED_RANGE_KEYS, Randomization, check_randomization, privileged_observation
 from sim_twin.training.rewards import RewardInputs, RewardScales, reward_terms, total_reward
 from sim_twin.twin.effects.payload import GRIPPER_CENTRE_LOCAL_M, gripper_frame_point
+from sim_twin.twin.effects.site import wind_landing_shift
 from sim_twin.twin.hydraulics import cylinder_step, dead_band_flow, lag_step
 from sim_twin.twin.initial_pose import pose_from_uniform, pose_is_valid
 from sim_twin.twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
@@ -262,6 +266,8 @@ class EnvState:
         release_slope: () how fast that landing point moved at the physics step the gripper
             opened, m/s (0 before the opening): the landing's sensitivity to the opening time.
             Both are tracked only when the recipe weighs ``rewards.release_slope`` (else 0).
+        wind: (2,) the episode's steady horizontal wind, m/s (zero unless
+            ``randomization.wind_mps`` > 0).
     """
 
     data: mjx.Data
@@ -300,6 +306,7 @@ class EnvState:
     vscale: jax.Array
     held_impact: jax.Array
     release_slope: jax.Array
+    wind: jax.Array
 
     def replace(self, **changes: Any) -> EnvState:
         """A copy with the fields named in ``changes`` replaced. Raises TypeError on an unknown field."""
@@ -488,8 +495,20 @@ class ThrowEnvCore:
             vscale=vs[0] + frac_v * (vs[1] - vs[0]),
             held_impact=_landing_xy(*self._held_payload(q, zeros6, grasp)) if self.w.release_slope else jnp.zeros(2),
             release_slope=jnp.zeros(()),
+            wind=self._sample_wind(jax.random.fold_in(key, 3)),
         )
         return state, self.observe(state)
+
+    def _sample_wind(self, key) -> jnp.ndarray:
+        """The episode's wind (2,) m/s: direction uniform, speed uniform in [0, ``wind_mps``];
+        zeros (and no draw) when the recipe has none."""
+        w = self.rand.wind_mps
+        if w <= 0.0:  # a config constant: without wind the other draws are unchanged, key for key
+            return jnp.zeros(2)
+        k1, k2 = jax.random.split(key)
+        speed = jax.random.uniform(k1, (), minval=0.0, maxval=w)
+        az = jax.random.uniform(k2, (), minval=-jnp.pi, maxval=jnp.pi)
+        return speed * jnp.stack([jnp.cos(az), jnp.sin(az)])
 
     def observe(self, s: EnvState) -> jnp.ndarray:
         return build_observation(jnp, self.mode, s.q_hist, s.qd_hist, s.prev_action, s.target, s.opened)
@@ -601,7 +620,13 @@ class ThrowEnvCore:
         data = s.data
         pts = forward_kinematics(jnp, data.qpos, data.qvel)
         t_ball = jnp.minimum(s.t_open, s.t_flight)
-        ball = jnp.where(s.opened, ballistic_position(jnp, s.ball_p0, s.ball_v0, t_ball), pts.gripper_centre)
+        ball_free = ballistic_position(jnp, s.ball_p0, s.ball_v0, t_ball)
+        # the wind's landing shift (a config constant: without wind nothing is computed), grown
+        # along the flight as (t / T)^2, the displacement of a steady perturbing acceleration
+        air = wind_landing_shift(jnp, s.ball_p0, s.ball_v0, s.t_flight, s.wind) if self.rand.wind_mps > 0.0 else None
+        if air is not None:
+            ball_free = ball_free.at[:2].add(air * (t_ball / s.t_flight) ** 2)
+        ball = jnp.where(s.opened, ball_free, pts.gripper_centre)
         landed = s.opened & (s.t_open >= s.t_flight)
         err = s.target - ball
         err2 = jnp.sqrt(err[0] ** 2 + err[1] ** 2)
@@ -609,6 +634,8 @@ class ThrowEnvCore:
         ground, cabin, limit = clearance_violations(jnp, data.qpos, pts)
         failed = ground | cabin | limit | ~jnp.all(jnp.isfinite(data.qpos))
         impact = ballistic_position(jnp, s.ball_p0, s.ball_v0, s.t_flight)
+        if air is not None:
+            impact = impact.at[:2].add(air)
         impact_err = jnp.sqrt(jnp.sum((impact[:2] - s.target[:2]) ** 2))
         step = s.step + 1
         at_limit = (step >= self.cfg.max_steps) & ~failed & ~landed

@@ -115,10 +115,11 @@ PRIVILEGED_RANGE_KEYS: tuple[str, ...] = (
 """The ``randomization`` entries :func:`privileged_observation` normalises over (with
 ``friction_sampling``, whether the friction factor is read on a linear or a log scale)."""
 
-OTHER_RANDOMIZATION_KEYS = ("actuation", "obs_noise", "velocity_noise", "valve_spread", "valve_coupling")
+OTHER_RANDOMIZATION_KEYS = ("actuation", "obs_noise", "velocity_noise", "valve_spread", "valve_coupling", "wind_mps")
 """The ``randomization`` entries the environment reads besides ``PRIVILEGED_RANGE_KEYS``
 (sim_twin.training.mjx_env: actuation "lag" or "hydraulic", observation-noise stds, velocity-reference
-noise, machine-wide valve slowness spread, which valve parameters that slowness sets)."""
+noise, machine-wide valve slowness spread, which valve parameters that slowness sets, the largest
+wind speed; the wind is not among the critic's inputs)."""
 
 VALVE_COUPLINGS = ("delay_lag", "all")
 """Which hydraulic parameters the machine-wide slowness g ~ U(0, 1) sets (with ``valve_spread``
@@ -169,7 +170,7 @@ def check_randomization(rand: dict, where: str = "env.randomization", keys: tupl
             r = rand[name]
             if not (isinstance(r, (list, tuple)) and len(r) == 2 and all(isinstance(x, (int, float)) for x in r) and r[0] <= r[1]):
                 raise ValueError(f"{where}.{name} must be a range [lo, hi] with lo <= hi, not {r!r}")
-    for name in ("gain_error", *RELEASE_DELAY_DEFAULTS, "velocity_noise", "valve_spread"):
+    for name in ("gain_error", *RELEASE_DELAY_DEFAULTS, "velocity_noise", "valve_spread", "wind_mps"):
         if name in rand and not (isinstance(rand[name], (int, float)) and rand[name] >= 0):
             raise ValueError(f"{where}.{name} must be a number >= 0, not {rand[name]!r}")
     if rand.get("friction_sampling", "uniform") not in FRICTION_SAMPLINGS:
@@ -211,6 +212,9 @@ class Randomization:
     std of the velocity-reference noise [fraction of the joint's velocity limit]; ``valve_spread``
     per-joint spread of the valve speed around one machine-wide slowness (1: independent per joint);
     ``valve_coupling`` which valve parameters that slowness sets (VALVE_COUPLINGS);
+    ``wind_mps`` the largest speed [m/s] of a steady horizontal wind drawn per episode (direction
+    uniform, speed uniform in [0, wind_mps]; 0: no wind, nothing computed) whose share of the
+    payload's drag moves the landing (sim_twin.twin.effects.site.wind_landing_shift);
     ``obs_noise`` (:class:`ObsNoise`). Defaults: ``RANDOMIZATION_DEFAULTS``,
     ``RELEASE_DELAY_DEFAULTS``, ``GAIN_ERROR_DEFAULT``, ``VELOCITY_NOISE_DEFAULT`` (CHOSEN).
     """
@@ -234,6 +238,7 @@ class Randomization:
     valve_spread: float = 1.0
     friction_sampling: str = "uniform"
     valve_coupling: str = "delay_lag"
+    wind_mps: float = 0.0
     obs_noise: ObsNoise = field(default_factory=ObsNoise)
 
     @classmethod
