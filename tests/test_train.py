@@ -440,7 +440,9 @@ def test_per_iteration_syncs_and_tf32_train_as_the_plain_run_and_refuse_non_bool
     cfg["training"].update(per_iteration_syncs=True, tf32_matmul=True)
     path = tmp_path / "fast.json"
     path.write_text(json.dumps(cfg))
+    assert not torch.backends.cuda.matmul.allow_tf32
     assert train.run(_args(tmp_path / "fast", iterations=3, seed=5, config=path)) == 0
+    assert not torch.backends.cuda.matmul.allow_tf32  # the run put the process-wide flag back
     assert train.run(_args(tmp_path / "plain", iterations=3, seed=5)) == 0
 
     def curve(name):

@@ -267,6 +267,7 @@ class TrainingRun:
         import torch
 
         torch.manual_seed(seed + 1000 * proc.rank)
+        self._tf32_before = torch.backends.cuda.matmul.allow_tf32  # a process-wide flag: run() puts it back
         if self.training.tf32_matmul:  # rollout and update alike (TrainingSection); no effect on the CPU
             torch.backends.cuda.matmul.allow_tf32 = True  # (cuDNN's TF32 is on by default; the networks have no convolutions)
             log.info("TF32 matrix products on")
@@ -299,6 +300,13 @@ class TrainingRun:
         self._chunks = 0
         self._end_it = self.runner.current_learning_iteration  # the count this call trains to (train())
         self._chunk_from, self._chunk_t = self._end_it, time.time()  # the running chunk's first count and start time
+
+    def restore_process_settings(self) -> None:
+        """Put back what the run set for the whole process (``training.tf32_matmul``'s torch flag),
+        so that a caller that trains in its own process (a test, a notebook) gets it as it was."""
+        import torch
+
+        torch.backends.cuda.matmul.allow_tf32 = self._tf32_before
 
     def clock(self) -> float:
         """Training wall time of the run, s, resumed runs included (the curve's last wall_s on)."""
@@ -455,8 +463,11 @@ def run(args: argparse.Namespace) -> int:
     anything is written."""
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     training = TrainingRun(args)
-    training.train()
-    training.finish()
+    try:
+        training.train()
+        training.finish()
+    finally:
+        training.restore_process_settings()
     return 0
 
 
