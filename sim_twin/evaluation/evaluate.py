@@ -60,7 +60,9 @@ def throw_batch(policy_path: str | Path, mode: str, distance_m: float, seeds: li
         One dict per throw: ``seed``, ``status`` ("landed", a failure, or "refused" with the
         executor's ``reason``), ``held_releases`` (release flags the release check held) and for
         landed throws ``impact_m``, ``downrange_error_m``, ``crossrange_error_m`` (m),
-        ``duration_s`` (swing start to impact), ``release_after_s``.
+        ``duration_s`` (swing start to impact), ``release_after_s``, and the payload's release as
+        the simulated machine flew it: ``release_pos_m`` (3,) m, ``release_vel_mps`` (3,) m/s
+        (machine frame, at the opening) and ``flight_s`` (opening to impact).
 
     Raises:
         ValueError, OSError: the policy or profile cannot be loaded.
@@ -99,8 +101,17 @@ def throw_batch(policy_path: str | Path, mode: str, distance_m: float, seeds: li
                 duration_s=(outcome.impact.impact_stamp_s - swing) if swing is not None else None,
                 release_after_s=(outcome.release_stamp_s - swing) if swing is not None else None,
             )
+            if sim.impact is not None:
+                row.update(release_pos_m=sim.impact.release_pos_m.tolist(), release_vel_mps=sim.impact.release_vel_mps.tolist(),
+                           flight_s=sim.impact.impact_time_s - sim.impact.opening_time_s)
         rows.append(row)
     return rows
+
+
+def throw_seeds(seed: int, target_index: int, throws: int) -> list[int]:
+    """The start-pose seeds of ``throws`` throws at the ``target_index``-th target of an evaluation
+    or site matrix made with ``seed``: the same start poses at that target in every profile."""
+    return [seed * 1_000_003 + target_index * 100_000 + k for k in range(throws)]
 
 
 SWEEP_DISTANCES = 5
@@ -226,7 +237,7 @@ def evaluate(
     workers = workers or os.cpu_count() or 1
     jobs = []
     for i, d in enumerate(distances_m):
-        seeds = [seed * 1_000_003 + i * 100_000 + k for k in range(throws)]
+        seeds = throw_seeds(seed, i, throws)
         jobs += [(d, seeds[j : j + batch]) for j in range(0, throws, batch)]
     results: dict[float, list[dict]] = {d: [] for d in distances_m}
     t0, done = time.time(), 0

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_twin.evaluation.evaluate import summarise, throw_batch
+from sim_twin.evaluation.evaluate import summarise, throw_batch, throw_seeds
 from sim_twin.twin.pools import process_pool
 
 log = logging.getLogger(__name__)
@@ -113,7 +113,7 @@ def run_matrix(policy: Path, mode: str, targets: list[float], throws: int, profi
     jobs = []
     for name, _ in profiles:
         for i, d in enumerate(targets):
-            seeds = [seed * 1_000_003 + i * 100_000 + k for k in range(throws)]  # same start poses in every profile
+            seeds = throw_seeds(seed, i, throws)  # same start poses in every profile
             jobs += [(name, d, seeds[j : j + batch]) for j in range(0, throws, batch)]
     results: dict[tuple[str, float], list[dict]] = {(name, d): [] for name, _ in profiles for d in targets}
     t0 = time.time()

@@ -3,9 +3,9 @@
 ``python tests/benchmarks/release_flight.py NAME=POLICY.onnx ... --out reports/<name>`` throws every
 policy at the nominal twin's far targets (``--targets``, m, on the throwing axis), ``--throws`` throws
 each from the seeds' random start poses (seeds as the site matrix's seed 0: target index x 100000 +
-throw), by the runtime's executor as evaluation does (sim_twin.evaluation.evaluate.throw_batch). For
-each landed throw it reads the payload's release state from the simulated machine
-(``SimulatedMachine.impact``: position and velocity at the opening) and flies that same release
+throw), by evaluation's own throw loop (sim_twin.evaluation.evaluate.throw_batch). For each landed
+throw it takes the payload's release as the simulated machine flew it (the row's ``release_pos_m``
+and ``release_vel_mps``, at the opening) and flies that same release
 again under the air of a reality profile (``--air``, default the windy site: drag Cd 0.5 and a
 5 m/s cross wind; the profile's other effects, which act before the release, are not applied).
 
@@ -33,46 +33,31 @@ WINDY = REPO / "sim_twin" / "profiles" / "windy_site.json"
 
 
 def flights(policy: Path, distance_m: float, seeds: list[int], air) -> list[dict]:
-    """One row per landed throw of ``policy`` at ``distance_m`` on the nominal twin (2D): the
-    release (``p0`` (3,) m, ``v0`` (3,) m/s, machine frame), flight time, swing time and the
-    landing drag-free and under ``air`` (an EffectStack with flight_accel)."""
-    from runtime.executor import ExecutorConfig, ThrowExecutor
-    from runtime.policy import PolicyRunner
-    from runtime.protocol.messages import ThrowRequest
-    from runtime.release_check import ReleaseCheck
-    from sim_twin.evaluation.evaluate import target_on_axis
+    """One row per landed throw of ``policy`` at ``distance_m`` on the nominal twin (2D), thrown by
+    sim_twin.evaluation.evaluate.throw_batch: the release's speed, elevation and height, the flight
+    and release-command times, and how far ``air`` (an EffectStack) moves the landing of that same
+    release, downrange and across (RK4 flights, sim_twin.twin.effects.payload.integrate_flight)."""
+    from sim_twin.evaluation.evaluate import target_on_axis, throw_batch
     from sim_twin.twin.effects.payload import integrate_flight
-    from sim_twin.twin.engines import make_machine
-    from sim_twin.twin.profile import RealityProfile
-    from sim_twin.twin.twin_machine import TwinMachine, run_throw
 
-    runner = PolicyRunner.load(policy)
-    config = ExecutorConfig()
-    check = ReleaseCheck.load() if config.release_check_radius_m is not None else None
+    target = target_on_axis("2d", distance_m)
+    u = np.array(target[:2], float) / np.linalg.norm(target[:2])  # the target direction (downrange)
+    accel = air.flight_accel if air.has("flight_accel") else None
     rows = []
-    for seed in seeds:
-        sim = make_machine("mujoco", RealityProfile(), seed=seed)
-        sim.reset(cabin_turn=0.0)
-        twin = TwinMachine(sim, "eval")
-        executor = ThrowExecutor({"2d": runner}, config=config, release_check=check)
-        target = target_on_axis("2d", distance_m)
-        outcome, events = run_throw(twin, executor, ThrowRequest(throw_id=f"f-{seed}", machine_id="eval", mode="2d", target_m=target))
-        if outcome is None or outcome.status != "landed" or sim.impact is None:
+    for r in throw_batch(policy, "2d", distance_m, seeds):
+        if r["status"] != "landed" or "release_pos_m" not in r:
             continue
-        imp = sim.impact
-        swing = next((e.stamp_s for e in events if e.phase == "swinging"), None)
-        p0, v0 = np.asarray(imp.release_pos_m, float), np.asarray(imp.release_vel_mps, float)
-        _t, _p, _v, _t_air, hit_air = integrate_flight(p0, v0, air.flight_accel if air.has("flight_accel") else None)
-        _t, _p, _v, _t_free, hit_free = integrate_flight(p0, v0, None)
-        u = np.array(target[:2], float) / np.linalg.norm(target[:2])  # the target direction (downrange)
+        p0, v0 = np.asarray(r["release_pos_m"], float), np.asarray(r["release_vel_mps"], float)
+        *_, hit_air = integrate_flight(p0, v0, accel)
+        *_, hit_free = integrate_flight(p0, v0, None)
         d = np.asarray(hit_air[:2]) - np.asarray(hit_free[:2])
         rows.append({
-            "seed": seed, "speed_mps": float(np.linalg.norm(v0)),
+            "seed": r["seed"], "speed_mps": float(np.linalg.norm(v0)),
             "elevation_deg": float(np.degrees(np.arctan2(v0[2], np.linalg.norm(v0[:2])))), "height_m": float(p0[2]),
-            "flight_s": float(imp.impact_time_s - imp.opening_time_s),
-            "release_after_s": float(outcome.release_stamp_s - swing) if swing is not None else float("nan"),
+            "flight_s": float(r["flight_s"]),
+            "release_after_s": float("nan") if r["release_after_s"] is None else float(r["release_after_s"]),
             "air_downrange_m": float(d @ u), "air_crossrange_m": float(d[0] * -u[1] + d[1] * u[0]),
-            "downrange_error_m": float(outcome.downrange_error_m),
+            "downrange_error_m": float(r["downrange_error_m"]),
         })
     return rows
 
@@ -91,6 +76,7 @@ def main() -> None:
     p.add_argument("--air", type=Path, default=WINDY, help="reality profile whose flight effects fly the releases again")
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args()
+    from sim_twin.evaluation.evaluate import throw_seeds
     from sim_twin.provenance import git_commit
     from sim_twin.twin.profile import RealityProfile
 
@@ -100,7 +86,7 @@ def main() -> None:
     for spec in args.policies:
         name, path = spec.split("=", 1)
         for i, t in enumerate(targets):
-            seeds = [int(round((t - 7.5) / 0.5)) * 100000 + k for k in range(args.throws)]
+            seeds = throw_seeds(0, int(round((t - 7.5) / 0.5)), args.throws)  # the 2D matrix's targets 7.5:10:0.5
             rows = flights(Path(path), t, seeds, air)
             s = summary(rows)
             results.append({"policy": name, "path": path, "target_m": t, **s, "throws": rows})
