@@ -94,7 +94,7 @@ def test_collect_brings_back_the_state_that_resumes_each_run_in_one_file(tmp_pat
     with tarfile.open(here / "runs" / "state" / "resumable.tar") as t:
         files = sorted(m.name for m in t.getmembers() if m.isfile())
     assert files == ["runs/resumable/checkpoint.pt", "runs/resumable/config.json", "runs/resumable/curve.csv",
-                     "runs/resumable/matrices/site_matrix_2d_it25.json"]
+                     "runs/resumable/logs/machine1.log.gz", "runs/resumable/matrices/site_matrix_2d_it25.json"]
     assert not (work / ".state").exists()
 
 
@@ -125,3 +125,41 @@ def test_after_starts_the_next_run_once_the_previous_one_has_stopped(tmp_path):
     assert second[0].split(" ", 2)[2] == ("-m sim_twin.training.train --mode 2d --config cfg.json --log-dir runs/second "
                                           "--gate-workers 2 --max-minutes 600 --seed 23 --note two words")
     assert not subprocess.run(["pgrep", "-f", "slinger-[a]fter"], capture_output=True).stdout  # the waiter is gone
+
+
+def test_state_keeps_the_gpu_record_the_machine_logs_and_the_candidate_under_test(tmp_path):
+    """A run resumed on a second machine keeps the first machine's GPU record and log, and the gate's
+    candidate under test (matrix_gate.json's pending) comes along so that the resumed gate judges it
+    again; the other candidates stay behind."""
+    import json
+
+    src = tmp_path / "runs" / "throw2d-x"
+    for rel in ["checkpoint.pt", "config.json", "accelerators.json", "logs/machine1.log.gz",
+                "candidates/checkpoint_550.onnx", "candidates/checkpoint_575.onnx", "candidates/checkpoint_575.pt"]:
+        (src / rel).parent.mkdir(parents=True, exist_ok=True)
+        (src / rel).write_text(rel)
+    (src / "matrices").mkdir()
+    (src / "matrices" / "matrix_gate.json").write_text(json.dumps({"results": [], "pending": {
+        "iteration": 575, "onnx": "runs/throw2d-x/candidates/checkpoint_575.onnx", "train_wall_s": 646.0, "seed_index": 1}}))
+    r = _state(tmp_path, str(src), "throw2d-x")
+    assert r.returncode == 0, r.stderr
+    with tarfile.open(tmp_path / "runs" / "state" / "throw2d-x.tar") as t:
+        files = sorted(m.name for m in t.getmembers() if m.isfile())
+    assert files == [f"runs/throw2d-x/{rel}" for rel in ["accelerators.json", "candidates/checkpoint_575.onnx", "checkpoint.pt",
+                                                          "config.json", "logs/machine1.log.gz", "matrices/matrix_gate.json"]]
+
+
+def test_collect_names_each_machines_log_in_turn(tmp_path):
+    """On a resumed run's machine the log is machine2 (machine1 came with the state), however often
+    that machine collects."""
+    work, out = tmp_path / "work", tmp_path / "out"
+    out.mkdir()
+    _run_dir(work, "resumed", card_iteration=None)
+    (work / "runs" / "resumed" / "logs").mkdir()
+    (work / "runs" / "resumed" / "logs" / "machine1.log.gz").write_text("first machine")
+    for _ in range(2):
+        assert _collect(work, out).returncode == 0
+    with tarfile.open(out / "resumed.tar") as t:
+        logs = sorted(m.name for m in t.getmembers() if "/logs/" in m.name)
+        assert t.extractfile("runs/resumed/logs/machine1.log.gz").read() == b"first machine"
+    assert logs == ["runs/resumed/logs/machine1.log.gz", "runs/resumed/logs/machine2.log.gz"]

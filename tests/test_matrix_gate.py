@@ -125,3 +125,59 @@ def test_an_unreadable_matrix_report_ends_its_candidate_without_a_verdict(tmp_pa
         assert gate.wait(60) is None and not gate.busy and gate.results == []
         assert gate.submit(2, "y.onnx", 0.0)
         gate.stop()
+
+
+class SlowSecondSeed(FakeGate):
+    """Seed 0's matrix ends at once; seed 1's runs until stopped (a machine taken away mid-matrix)."""
+
+    def command(self, onnx, seed, out):
+        if seed == self.seeds[1]:
+            return [sys.executable, "-c", "import time; time.sleep(600)"]
+        return super().command(onnx, seed, out)
+
+
+def test_a_resumed_run_judges_the_candidate_under_test_again_from_its_seed(tmp_path):
+    """The candidate under test is in matrix_gate.json with the seed it reached; a gate built on that
+    state (the resumed run) judges it again from that seed, the seed it met staying met, and its
+    verdict counts with the checkpoint's own training wall time."""
+    import time
+
+    FakeGate.passing = {5}
+    onnx = tmp_path / "cand" / "checkpoint_5.onnx"
+    onnx.parent.mkdir()
+    onnx.write_text("policy")
+    gate = SlowSecondSeed(tmp_path, "2d", seeds=[0, 1], workers=1, clock=lambda: 700.0)
+    assert gate.submit(5, str(onnx), train_wall_s=645.0)
+    deadline = time.time() + 60
+    while not gate.results and time.time() < deadline:
+        gate.poll()
+        time.sleep(0.05)
+    state = json.loads((tmp_path / "matrix_gate.json").read_text())
+    assert state["pending"] == {"iteration": 5, "onnx": str(onnx), "train_wall_s": 645.0, "seed_index": 1}
+    gate.stop()  # the machine goes away while seed 1's matrix runs
+
+    resumed = FakeGate(tmp_path, "2d", seeds=[0, 1], workers=1, clock=lambda: 900.0, judge_after_pass=True)
+    assert resumed.resume_pending()
+    assert not resumed.resume_pending()  # once
+    passed = resumed.wait(60)
+    assert [(r.iteration, r.seed, r.passed) for r in resumed.results] == [(5, 0, True), (5, 1, True)]
+    assert passed["iteration"] == 5 and passed["train_wall_s"] == 645.0 and passed["verdict_wall_s"] == 900.0
+    assert json.loads((tmp_path / "matrix_gate.json").read_text())["pending"] is None
+
+
+def test_a_finished_or_missing_candidate_is_not_judged_again(tmp_path):
+    """After the last verdict of a candidate the state names none under test; a pending candidate
+    whose ONNX file did not come along with the state is dropped, and the gate takes new ones."""
+    FakeGate.passing = set()
+    gate = FakeGate(tmp_path, "2d", seeds=[0, 1], workers=1)
+    _run(gate, 2)
+    assert json.loads((tmp_path / "matrix_gate.json").read_text())["pending"] is None
+    assert not FakeGate(tmp_path, "2d", seeds=[0, 1], workers=1).resume_pending()
+
+    state = json.loads((tmp_path / "matrix_gate.json").read_text())
+    state["pending"] = {"iteration": 9, "onnx": str(tmp_path / "gone.onnx"), "train_wall_s": 1.0, "seed_index": 1}
+    (tmp_path / "matrix_gate.json").write_text(json.dumps(state))
+    resumed = FakeGate(tmp_path, "2d", seeds=[0, 1], workers=1)
+    assert not resumed.resume_pending() and not resumed.busy
+    assert resumed.submit(10, "cand/checkpoint_10.onnx", 0.0)
+    resumed.stop()

@@ -461,3 +461,22 @@ def test_per_iteration_syncs_and_tf32_train_as_the_plain_run_and_refuse_non_bool
     path.write_text(json.dumps(cfg))
     with pytest.raises(ValueError, match="training.tf32_matmul must be true or false"):
         train.TrainingRun(_args(tmp_path / "bad", config=path))
+
+
+def test_max_run_minutes_counts_the_resumed_runs_earlier_time_and_max_minutes_does_not(tmp_path):
+    """A run whose curve already holds 60 minutes of training stops after the first chunk of its
+    resume under --max-run-minutes 30; --max-minutes 30 (this process's time) trains on."""
+    run = tmp_path / "run"
+    assert train.run(_args(tmp_path, iterations=2)) == 0
+    curve = run / "curve.csv"
+    lines = curve.read_text().splitlines()
+    col = lines[0].split(",").index("wall_s")
+    last = lines[-1].split(",")
+    last[col] = "3600.0"  # as if the first machine had trained for an hour
+    curve.write_text("\n".join([*lines[:-1], ",".join(last)]) + "\n")
+    ckpt = run / "checkpoint.pt"
+
+    assert train.run(_args(tmp_path, iterations=3, resume=ckpt, max_run_minutes=30)) == 0
+    assert torch.load(ckpt, weights_only=False)["iter"] == 3  # one chunk (iteration 3), then the budget
+    assert train.run(_args(tmp_path, iterations=2, resume=ckpt, max_minutes=30)) == 0
+    assert torch.load(ckpt, weights_only=False)["iter"] == 5

@@ -10,8 +10,10 @@ bar ends that candidate. A candidate that meets every bar on
 every seed has *passed*. By default the gate judges nothing after the first candidate that passed
 (the training stops there); with ``judge_after_pass`` it goes on judging newer checkpoints, for a
 training that runs past the bars (``slinger train --no-stop-at-bars``), and ``passes`` lists every
-candidate that passed. The state (every verdict) is saved to ``<dir>/matrix_gate.json`` after every
-change so a resumed training keeps it.
+candidate that passed. The state (every verdict, and the candidate under test with the seed it is
+at) is saved to ``<dir>/matrix_gate.json`` after every change so a resumed training keeps it: a
+resumed training's gate judges the candidate that was under test when the run stopped again from the
+seed it had reached (:meth:`MatrixGate.resume_pending`), where its ONNX file came along.
 
 :meth:`MatrixGate.watch` collects verdicts on a thread of its own as soon as a matrix process ends,
 so a verdict is on disk even when the training is stopped (or its machine taken away) before its next
@@ -124,11 +126,13 @@ class MatrixGate:
         self._lock = threading.RLock()  # the training's thread and the watch thread share the state
         self._watcher: threading.Thread | None = None
         self._unwatch = threading.Event()
+        self._pending: dict | None = None
         if self.state_path.exists():
             st = json.loads(self.state_path.read_text())
             self.results = [MatrixResult(**r) for r in st.get("results", [])]
             self.passed = st.get("passed")
             self.passes = st.get("passes", [self.passed] if self.passed else [])
+            self._pending = st.get("pending")  # the candidate under test when the state was saved
 
     @property
     def busy(self) -> bool:
@@ -141,6 +145,31 @@ class MatrixGate:
             if self.busy or (self.passed and not self.judge_after_pass):
                 return False
             self._cand = {"iteration": int(iteration), "onnx": str(onnx), "train_wall_s": float(train_wall_s), "seed_index": 0}
+            self._start_seed()
+            return True
+
+    def resume_pending(self) -> bool:
+        """Judge again the candidate that was under test when the saved state was written (a
+        training stopped, or its machine taken away, while a matrix ran), from the seed it had
+        reached: the seeds it met stay met. Call it once, before :meth:`watch`, in a resumed run.
+        The ONNX file is looked for where the state names it, else in ``candidates/`` beside the
+        gate's directory (a run resumed under another name). Returns whether a matrix started; a
+        candidate whose ONNX file is in neither place (a state packed without it) is dropped with a
+        warning."""
+        with self._lock:
+            cand, self._pending = self._pending, None
+            if cand is None or self.busy or (self.passed and not self.judge_after_pass):
+                return False
+            onnx = Path(cand["onnx"])
+            if not onnx.exists():  # a run resumed under another directory: its candidates/ beside matrices/
+                onnx = self.out_dir.parent / "candidates" / onnx.name
+                cand = {**cand, "onnx": str(onnx)}
+            if not onnx.exists():
+                log.warning("site matrix of iteration %d is not judged again: %s is not there", cand["iteration"], cand["onnx"])
+                return False
+            self._cand = {k: cand[k] for k in ("iteration", "onnx", "train_wall_s", "seed_index")}
+            log.info("judging iteration %d again from seed %d (under test when the run stopped)",
+                     cand["iteration"], self.seeds[cand["seed_index"]])
             self._start_seed()
             return True
 
@@ -177,6 +206,7 @@ class MatrixGate:
         self._proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=env)
         logf.close()
         self._lower_priority(self._proc.pid)
+        self.save()  # the candidate under test and its seed: a resumed run judges it again from there
 
     def _lower_priority(self, pid: int) -> None:
         """Raise the matrix process's niceness by GATE_NICENESS (its pool inherits it), so that the
@@ -214,6 +244,7 @@ class MatrixGate:
         except (OSError, ValueError, KeyError, TypeError) as e:
             log.error("site matrix of iteration %d seed %d failed (%s); see %s", c["iteration"], seed, e,
                       self.out_dir / "matrix_gate.log")
+            self.save(idle=True)  # not judged again on a resume either
             self._cand = None
             return self.passed
         res = MatrixResult(c["iteration"], seed, passed, n_miss, str(out), c["train_wall_s"], float(self.clock()), misses)
@@ -225,11 +256,11 @@ class MatrixGate:
             self.passes.append({"iteration": c["iteration"], "onnx": c["onnx"], "train_wall_s": c["train_wall_s"],
                                 "verdict_wall_s": res.verdict_wall_s})
             self.passed = self.passed or self.passes[-1]
-        self.save()  # on disk before the gate reads idle: a reader who sees busy False finds the verdict
         if next_seed:
             c["seed_index"] += 1
-            self._start_seed()
+            self._start_seed()  # saves the verdict with the candidate at its next seed
         else:
+            self.save(idle=True)  # on disk before the gate reads idle: a reader who sees busy False finds the verdict
             self._cand = None
         return self.passed
 
@@ -271,12 +302,15 @@ class MatrixGate:
                     self._proc.kill()
             self._proc, self._cand = None, None
 
-    def save(self) -> None:
-        """Write every verdict, ``passed`` and ``passes`` to ``matrix_gate.json`` (whole file, replaced
-        atomically so a reader never sees half of it)."""
+    def save(self, idle: bool = False) -> None:
+        """Write every verdict, ``passed``, ``passes`` and ``pending`` (the candidate under test:
+        ``iteration``, ``onnx``, ``train_wall_s``, ``seed_index``; null when idle, or with ``idle``: the
+        candidate's last verdict is in) to ``matrix_gate.json`` (whole file, replaced atomically so a
+        reader never sees half of it)."""
         with self._lock:
             tmp = self.state_path.with_suffix(".json.tmp")
+            pending = {k: self._cand[k] for k in ("iteration", "onnx", "train_wall_s", "seed_index")} if self._cand and not idle else None
             tmp.write_text(json.dumps(
                 {"mode": self.mode, "seeds": self.seeds, "throws": self.throws, "passed": self.passed, "passes": self.passes,
-                 "results": [asdict(r) for r in self.results]}, indent=2) + "\n")
+                 "pending": pending, "results": [asdict(r) for r in self.results]}, indent=2) + "\n")
             tmp.replace(self.state_path)

@@ -70,7 +70,11 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-envs", type=int, default=None, help="override the config's num_envs (per GPU)")
     parser.add_argument("--iterations", type=int, default=5000, help="most PPO iterations to run in this call")
     parser.add_argument("--chunk", type=int, default=25, help="iterations between checkpoints")
-    parser.add_argument("--max-minutes", type=float, default=None, help="stop after the chunk that passes this")
+    parser.add_argument("--max-minutes", type=float, default=None,
+                        help="stop after the chunk that passes this many minutes of this process's training")
+    parser.add_argument("--max-run-minutes", type=float, default=None,
+                        help="stop after the chunk at which the run's training wall time (the curve's wall_s, resumed "
+                             "runs included) passes this many minutes")
     parser.add_argument("--log-dir", type=Path, default=None, help="default runs/throw_<mode>")
     parser.add_argument("--tb-dir", type=Path, default=None, help="TensorBoard dir (default <log-dir>/tb)")
     parser.add_argument("--resume", type=Path, default=None, help="checkpoint.pt to resume from")
@@ -293,6 +297,8 @@ class TrainingRun:
             self.gate = MatrixGate(self.log_dir / "matrices", args.mode, [int(s) for s in str(args.gate_seeds).split(",")],
                                    throws=args.gate_throws, targets=args.gate_targets, workers=args.gate_workers,
                                    clock=self.clock, judge_after_pass=not self.stop_at_bars)
+            if args.resume:
+                self.gate.resume_pending()  # the candidate under test when the run stopped, from its seed
             self.gate.watch()  # verdicts are recorded when each matrix ends, not at the next checkpoint
         self.passed: dict | None = self.gate.passed if self.gate else None
         self.stop_reason = "iterations"
@@ -385,6 +391,8 @@ class TrainingRun:
         if self._bars_end_it:
             self.stop_reason = "bars met"
         elif self.args.max_minutes and (time.time() - self._start) / 60.0 > self.args.max_minutes:
+            self.stop_reason = "time budget"
+        elif getattr(self.args, "max_run_minutes", None) and self.clock() / 60.0 > self.args.max_run_minutes:
             self.stop_reason = "time budget"
         return self.stop_reason != "iterations"
 

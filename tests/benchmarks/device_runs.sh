@@ -14,8 +14,9 @@
 #                                                       # (candidate checkpoints left out but the exported one's),
 #                                                       # and $OUT/state.tar: every run's runs/state/<name>.tar
 #   bash tests/benchmarks/device_runs.sh state RUN_DIR NAME [DIR]  # runs/state/NAME.tar (or DIR/NAME.tar),
-#                                                       # gzip, from RUN_DIR's checkpoint, config, curve and
-#                                                       # gate verdicts, so that `start NAME` resumes it
+#                                                       # gzip, from RUN_DIR's checkpoint, config, curve, gate
+#                                                       # verdicts (and the candidate under test), GPU record and
+#                                                       # machine logs, so that `start NAME` resumes it
 #
 # To resume on the next machine, here: `tar xf <files_at>/state.tar` (it unpacks runs/state/<name>.tar)
 # and carry `runs/state` in the call that starts the runs again. Have it ready before the call that
@@ -84,9 +85,12 @@ collect() {
     for _ in $(seq 20); do
       [ $(( $(date +%s) - $(stat -c %Y $run/checkpoint.pt 2>/dev/null || echo 0) )) -ge 3 ] && break; sleep 1
     done
-    # the log goes inside the run's tar, where the tree keeps it: a call brings back a limited number of files
-    mkdir -p $run/logs && gzip -c $run/train.log > $run/logs/machine1.log.gz
-    tar cf $OUT/$name.tar --exclude="$run/candidates/*.pt" --exclude="$run/train.log" $run
+    # the log goes inside the run's tar, where the tree keeps it: a call brings back a limited number of files;
+    # a run resumed on another machine keeps the earlier machines' logs (from its state) and adds its own
+    mkdir -p $run/logs
+    [ -f $run/.machine ] || echo $(( $(ls $run/logs/machine*.log.gz 2>/dev/null | wc -l) + 1 )) > $run/.machine
+    gzip -c $run/train.log > $run/logs/machine$(cat $run/.machine).log.gz
+    tar cf $OUT/$name.tar --exclude="$run/candidates/*.pt" --exclude="$run/train.log" --exclude="$run/.machine" $run
     # but the checkpoint of the exported policy (a run that met the bars), which adapting it needs
     local card=$(ls $run/throw*.card.json 2>/dev/null | head -n 1) it
     if [ -n "$card" ]; then
@@ -116,7 +120,13 @@ state() {
   tmp=$(mktemp -d)
   mkdir -p "$tmp/runs/$name" "$dest"
   cp "$src/checkpoint.pt" "$src/config.json" "$tmp/runs/$name/"
-  for f in curve.csv matrices; do [ -e "$src/$f" ] && cp -r "$src/$f" "$tmp/runs/$name/"; done
+  for f in curve.csv matrices accelerators.json logs; do [ -e "$src/$f" ] && cp -r "$src/$f" "$tmp/runs/$name/"; done
+  # the candidate the gate had under test (matrix_gate.json's pending), which the resumed run judges again
+  local pending=$(python3 -c "import json, sys; p = json.load(open(sys.argv[1])).get('pending'); print(p['onnx'] if p else '')" \
+    "$src/matrices/matrix_gate.json" 2>/dev/null)
+  if [ -n "$pending" ] && [ -f "$src/candidates/$(basename $pending)" ]; then
+    mkdir -p "$tmp/runs/$name/candidates" && cp "$src/candidates/$(basename $pending)" "$tmp/runs/$name/candidates/"
+  fi
   # the gate's plots stay behind: their JSON and tables carry the same figures
   tar cf - -C "$tmp" --exclude="*.png" "runs/$name" | gzip -9 > "$dest/$name.tar"
   rm -rf "$tmp"
