@@ -56,7 +56,7 @@ class RewardScales:
             0: off). With gamma 1.0 no term made a later throw cost anything while the dense
             ``err_3d`` paid for every step the load was held near the target: the candidate 2D
             runs without forced release released later and later and ran 1-5 % of their episodes
-            (at times up to 18 %) into the time limit (reports/training_release_noise_2d.md, docs/training.md,
+            (at times up to 18 %) into the time limit (reports/training_release_noise_2d.md in the lab notebook, reports/ARCHIVE.md; docs/training.md,
             "γ 1.0 and the dense term"). A constant cost per held step is the time preference the
             discount gave, without the discount's share of the landing reward (CHOSEN value in the
             candidate 2D recipe).
