@@ -63,7 +63,7 @@ class RewardScales:
         hold_after_s: episode time [s] before which ``hold`` charges nothing (0: from the first step).
             Charged from the first step, the cost favoured the short far-target throw: both runs of
             the candidate recipe with ``hold`` 0.01 from the start took it (throw2d-scratch-c0 and
-            -c1, reports/training_scratch_2d_candidate.md), where eight of ten γ 1.0 runs without it took
+            -c1, reports/training_scratch_2d_candidate.md in the lab notebook), where eight of ten γ 1.0 runs without it took
             the long one. Charged only after a grace longer than either style's release, it leaves
             the styles' returns alike and still charges a load held on and on (docs/training.md,
             "γ 1.0 and the dense term").

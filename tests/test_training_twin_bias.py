@@ -1,0 +1,54 @@
+"""tests/benchmarks/training_twin_bias.py: its training-environment side and its twin side throw the
+same start poses and give finite landings and releases (a smoke test of the benchmark's two sides,
+not of its figures)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+jax = pytest.importorskip("jax")
+pytest.importorskip("onnxruntime")
+pytestmark = pytest.mark.torch  # the training extra (jax, mujoco-mjx)
+
+from runtime.observation import PHYSICS_PERIOD_S  # noqa: E402
+from sim_twin.evaluation.evaluate import target_on_axis, throw_seeds  # noqa: E402
+from tests.benchmarks.training_twin_bias import (  # noqa: E402
+    DEFAULT_CONFIG,
+    DEFAULT_POLICY,
+    EnvSide,
+    nominal_env_config,
+    paired,
+    twin_profile,
+    twin_start,
+    twin_throws,
+)
+
+FIELDS = ("downrange_m", "ballistic_downrange_m", "release_cmd_s", "opening_s", "speed_mps", "elevation_deg", "height_m", "flight_s")
+
+
+def test_both_sides_throw_the_same_starts_and_land():
+    seeds = throw_seeds(0, 5, 2)  # the site matrix's 10 m cell, its first two start poses
+    starts = [twin_start(s, twin_profile(False)) for s in seeds]
+    poses, delays = np.array([q for q, _ in starts]), np.array([d for _, d in starts])
+    targets = np.array([target_on_axis("2d", 10.0)] * len(seeds))
+
+    twin = twin_throws(DEFAULT_POLICY, 10.0, seeds, None)
+    side = EnvSide(DEFAULT_POLICY, nominal_env_config(DEFAULT_CONFIG, False))
+    state, _ = side.reset(jax.random.split(jax.random.PRNGKey(0), len(seeds)), poses.astype(np.float32), targets.astype(np.float32))
+    np.testing.assert_allclose(np.asarray(state.data.qpos), poses, atol=1e-6)  # the twin's start pose
+    np.testing.assert_allclose(np.asarray(state.target), targets, atol=1e-5)
+    env = side.throws(targets, poses, seeds, delays, "ceil")
+
+    for rows in (twin, env):
+        assert [r["seed"] for r in rows] == seeds
+        for r in rows:
+            assert r["landed"], r
+            assert all(math.isfinite(r[k]) for k in FIELDS), r
+            # both open after the twin's drawn delay, at the first physics step at or after it
+            steps = math.ceil(delays[seeds.index(r["seed"])] / PHYSICS_PERIOD_S - 1e-6)
+            assert r["opening_s"] - r["release_cmd_s"] == pytest.approx(steps * PHYSICS_PERIOD_S, abs=1e-6)
+    p = paired(twin, env)
+    assert p["pairs"] == len(seeds) and math.isfinite(p["downrange_m"][0])
