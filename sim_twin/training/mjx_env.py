@@ -38,6 +38,12 @@ until it reaches the ground, which ends the episode with the positive terminal r
 share of the payload's drag, to first order (sim_twin.twin.effects.site.wind_landing_shift; the CPU
 twin's ``wind`` effect integrates it).
 
+Machine (per episode): valve delay, lag, dead band and speed, passive friction, gripper mass, gain
+error and sensor latencies are drawn from ``randomization``'s ranges; with
+``randomization.nominal_fraction`` that share of the episodes gets the nominal machine instead
+(:func:`nominal_machine`), at the fast, light end of most ranges, where a policy right on average
+over them throws long (docs/training.md, "Four more seeds, and the far-target overshoot").
+
 Rewards (paper Sec. III-E): one function per term in sim_twin.training.rewards, weights in the config's
 ``env.rewards`` (typed: sim_twin.training.rewards.RewardScales); ``step`` returns every scaled term in
 ``info["reward_terms"]`` and the reward is their sum. Choices the paper leaves open are marked
@@ -206,6 +212,22 @@ def _graph_mode_arg(impl: str, graph_mode: str | None) -> dict:
     if graph_mode not in names:
         raise ValueError(f"unknown graph_mode {graph_mode!r}; known: {names or 'none (warp-lang is not installed)'}")
     return {"graph_mode": modes[graph_mode]}
+
+
+def nominal_machine() -> dict[str, float]:
+    """The nominal simulated machine in the training environment's per-episode terms, which
+    ``env.randomization.nominal_fraction`` of the episodes get instead of a draw from the ranges:
+    the twin's nominal valve (sim_twin.twin.hydraulics ``NOMINAL_DEAD_BAND``, ``NOMINAL_DELAY_S`` [s],
+    ``NOMINAL_LAG_S`` [s]), full-open speed, passive friction and gripper mass ×1, no gain error,
+    no encoder latency, the nominal gripper-IMU latency (sim_twin.twin.profile.SensorParams
+    ``imu_latency_s`` [s]), no grasp offset [m] and no episode shift of the release delay (its
+    per-throw jitter stays)."""
+    from sim_twin.twin.hydraulics import NOMINAL_DEAD_BAND, NOMINAL_DELAY_S, NOMINAL_LAG_S
+    from sim_twin.twin.profile import SensorParams
+
+    return {"dead_band": NOMINAL_DEAD_BAND, "valve_delay_s": NOMINAL_DELAY_S, "lag_s": NOMINAL_LAG_S, "velocity_scale": 1.0,
+            "friction_scale": 1.0, "gripper_mass_scale": 1.0, "gain": 1.0, "encoder_latency_s": 0.0,
+            "imu_latency_s": SensorParams().imu_latency_s, "grasp_m": 0.0, "release_delay_shift_s": 0.0}
 
 
 def _landing_xy(p: jax.Array, v: jax.Array, t: jax.Array | None = None) -> jax.Array:
@@ -418,7 +440,7 @@ class ThrowEnvCore:
         target = self._sample_target(ks[1], q[0])
         rd = self.rand
         delay_s = rd.release_delay_mean_s + rd.release_delay_std_s * jax.random.normal(ks[2])
-        delay_s = delay_s + jax.random.uniform(ks[7], (), minval=-1.0, maxval=1.0) * rd.release_delay_shift_s
+        shift_s = jax.random.uniform(ks[7], (), minval=-1.0, maxval=1.0) * rd.release_delay_shift_s
         lg = rd.lag_s
         gain = 1.0 + jax.random.uniform(ks[4], (4,), minval=-rd.gain_error, maxval=rd.gain_error)
         fr = rd.friction_scale
@@ -453,6 +475,22 @@ class ThrowEnvCore:
         kg = jax.random.split(jax.random.fold_in(key, 2))
         grasp = jnp.stack([jax.random.uniform(kg[0], (), minval=rd.grasp_forward_m[0], maxval=rd.grasp_forward_m[1]), 0.0,
                            jax.random.uniform(kg[1], (), minval=rd.grasp_up_m[0], maxval=rd.grasp_up_m[1])])
+        gripper_scale = jax.random.uniform(kh[6], (), minval=gm[0], maxval=gm[1])
+        dead_band, vscale = db[0] + frac_b * (db[1] - db[0]), vs[0] + frac_v * (vs[1] - vs[0])
+        if rd.nominal_fraction > 0.0:  # a config constant: with the option off nothing is drawn, key for key
+            nom = nominal_machine()
+            on = jax.random.uniform(jax.random.fold_in(key, 4)) < rd.nominal_fraction
+
+            def pick(nominal, drawn):
+                return jnp.where(on, jnp.asarray(nominal, jnp.asarray(drawn).dtype), drawn)
+
+            fric, gripper_scale, gain = pick(nom["friction_scale"], fric), pick(nom["gripper_mass_scale"], gripper_scale), pick(1.0, gain)
+            tau, dead_band, vscale = pick(nom["lag_s"], tau), pick(nom["dead_band"], dead_band), pick(nom["velocity_scale"], vscale)
+            valve_delay = pick(round(nom["valve_delay_s"] / PHYSICS_PERIOD_S), valve_delay)
+            nominal_lag = [round(nom[k] / PHYSICS_PERIOD_S) for k in ("encoder_latency_s", "imu_latency_s")]
+            sensor_lag = pick(jnp.asarray(nominal_lag, jnp.int32), sensor_lag)
+            grasp, shift_s = pick(jnp.zeros(3), grasp), pick(nom["release_delay_shift_s"], shift_s)
+        delay_s = delay_s + shift_s
         zeros6 = jnp.zeros(6)
         data = self.data0.replace(qpos=q, qvel=zeros6, ctrl=jnp.zeros(4), qfrc_applied=zeros6, time=jnp.zeros(()))
         pts = forward_kinematics(jnp, q, zeros6)
@@ -478,7 +516,7 @@ class ThrowEnvCore:
             sensor_lag=sensor_lag,
             phys_q=jnp.tile(q, (MAX_SENSOR_LAG_STEPS + 1, 1)),
             phys_qd=jnp.zeros((MAX_SENSOR_LAG_STEPS + 1, 6)),
-            gripper_scale=jax.random.uniform(kh[6], (), minval=gm[0], maxval=gm[1]),
+            gripper_scale=gripper_scale,
             x_ref=jnp.clip(q[:NUM_ACTIVE], self.lower, self.upper),
             tau=tau,
             gain=gain,
@@ -491,8 +529,8 @@ class ThrowEnvCore:
             peaks=jnp.zeros((2, 4)),
             valve_buf=jnp.zeros((MAX_VALVE_DELAY_STEPS + 1, 4)),
             valve_delay=jnp.clip(valve_delay, 0, MAX_VALVE_DELAY_STEPS).astype(jnp.int32),
-            dead_band=db[0] + frac_b * (db[1] - db[0]),
-            vscale=vs[0] + frac_v * (vs[1] - vs[0]),
+            dead_band=dead_band,
+            vscale=vscale,
             held_impact=_landing_xy(*self._held_payload(q, zeros6, grasp)) if self.w.release_slope else jnp.zeros(2),
             release_slope=jnp.zeros(()),
             wind=self._sample_wind(jax.random.fold_in(key, 3)),

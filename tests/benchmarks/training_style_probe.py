@@ -44,21 +44,20 @@ PROBE_KEY = 7
 def nominal_randomization(rand: dict) -> dict:
     """``rand`` (a config's ``env.randomization``) narrowed to the nominal simulated machine.
 
-    The valve model's nominal values are sim_twin.twin.hydraulics' (``NOMINAL_DEAD_BAND``,
-    ``NOMINAL_DELAY_S``, ``NOMINAL_LAG_S``), the sensing sim_twin.twin.profile.SensorParams'
-    defaults (encoder and gripper-IMU noise, 20 ms IMU latency); the release delay keeps its
+    The machine's nominal values are sim_twin.training.mjx_env.nominal_machine's (the twin's
+    nominal valve, ×1 speed, friction and gripper mass, 20 ms IMU latency), the sensing noise
+    sim_twin.twin.profile.SensorParams' defaults (encoder and gripper-IMU); the release delay keeps its
     per-throw jitter (``release_delay_std_s``) without the episode shift. Every joint gets the same
     valve (``valve_spread`` 0), full-open speed ×1 and no velocity-reference noise.
     """
-    from sim_twin.twin.hydraulics import NOMINAL_DEAD_BAND, NOMINAL_DELAY_S, NOMINAL_LAG_S
+    from sim_twin.training.mjx_env import nominal_machine
     from sim_twin.twin.profile import SensorParams
 
-    s = SensorParams()
+    s, nom = SensorParams(), nominal_machine()
     out = copy.deepcopy(rand)
-    out.update(dead_band=[NOMINAL_DEAD_BAND] * 2, valve_delay_s=[NOMINAL_DELAY_S] * 2, lag_s=[NOMINAL_LAG_S] * 2,
-               velocity_scale=[1.0, 1.0], velocity_noise=0.0, friction_scale=[1.0, 1.0], gripper_mass_scale=[1.0, 1.0],
-               encoder_latency_s=[0.0, 0.0], imu_latency_s=[s.imu_latency_s] * 2, release_delay_shift_s=0.0,
-               valve_spread=0.0,
+    out.update({k: [nom[k]] * 2 for k in ("dead_band", "valve_delay_s", "lag_s", "velocity_scale", "friction_scale",
+                                          "gripper_mass_scale", "encoder_latency_s", "imu_latency_s")})
+    out.update(velocity_noise=0.0, release_delay_shift_s=nom["release_delay_shift_s"], valve_spread=0.0,
                obs_noise={"q_active": s.encoder_noise_rad, "qd_active": s.encoder_rate_noise_radps,
                           "q_passive": s.imu_angle_noise_rad, "qd_passive": s.imu_rate_noise_radps})
     return out
