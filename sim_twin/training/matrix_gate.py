@@ -35,6 +35,10 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
+PENDING_KEYS = ("iteration", "onnx", "train_wall_s", "seed_index")
+"""What ``matrix_gate.json``'s ``pending`` keeps of the candidate under test (a resumed run's gate
+judges it again from ``seed_index``)."""
+
 
 @dataclass
 class MatrixResult:
@@ -167,7 +171,7 @@ class MatrixGate:
             if not onnx.exists():
                 log.warning("site matrix of iteration %d is not judged again: %s is not there", cand["iteration"], cand["onnx"])
                 return False
-            self._cand = {k: cand[k] for k in ("iteration", "onnx", "train_wall_s", "seed_index")}
+            self._cand = {k: cand[k] for k in PENDING_KEYS}
             log.info("judging iteration %d again from seed %d (under test when the run stopped)",
                      cand["iteration"], self.seeds[cand["seed_index"]])
             self._start_seed()
@@ -309,7 +313,7 @@ class MatrixGate:
         reader never sees half of it)."""
         with self._lock:
             tmp = self.state_path.with_suffix(".json.tmp")
-            pending = {k: self._cand[k] for k in ("iteration", "onnx", "train_wall_s", "seed_index")} if self._cand and not idle else None
+            pending = {k: self._cand[k] for k in PENDING_KEYS} if self._cand and not idle else None
             tmp.write_text(json.dumps(
                 {"mode": self.mode, "seeds": self.seeds, "throws": self.throws, "passed": self.passed, "passes": self.passes,
                  "pending": pending, "results": [asdict(r) for r in self.results]}, indent=2) + "\n")

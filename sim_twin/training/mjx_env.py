@@ -82,10 +82,11 @@ from sim_twin.training.privileged import PRIVILEGED_RANGE_KEYS, Randomization, c
 from sim_twin.training.rewards import RewardInputs, RewardScales, reward_terms, total_reward
 from sim_twin.twin.effects.payload import GRIPPER_CENTRE_LOCAL_M, gripper_frame_point
 from sim_twin.twin.effects.site import wind_landing_shift
-from sim_twin.twin.hydraulics import cylinder_step, dead_band_flow, lag_step
+from sim_twin.twin.hydraulics import NOMINAL_DEAD_BAND, NOMINAL_DELAY_S, NOMINAL_LAG_S, cylinder_step, dead_band_flow, lag_step
 from sim_twin.twin.initial_pose import pose_from_uniform, pose_is_valid
 from sim_twin.twin.model import PAYLOAD_RADIUS_M, load_model, passive_inertia
 from sim_twin.twin.physics import ballistic_impact_time, ballistic_position, passive_friction_force
+from sim_twin.twin.profile import SensorParams
 
 MAX_VALVE_DELAY_STEPS = 30  # longest valve transport delay the training env can model (0.30 s)
 MAX_SENSOR_LAG_STEPS = 5  # longest sensor latency the training env can model (0.05 s)
@@ -222,9 +223,6 @@ def nominal_machine() -> dict[str, float]:
     no encoder latency, the nominal gripper-IMU latency (sim_twin.twin.profile.SensorParams
     ``imu_latency_s`` [s]), no grasp offset [m] and no episode shift of the release delay (its
     per-throw jitter stays)."""
-    from sim_twin.twin.hydraulics import NOMINAL_DEAD_BAND, NOMINAL_DELAY_S, NOMINAL_LAG_S
-    from sim_twin.twin.profile import SensorParams
-
     return {"dead_band": NOMINAL_DEAD_BAND, "valve_delay_s": NOMINAL_DELAY_S, "lag_s": NOMINAL_LAG_S, "velocity_scale": 1.0,
             "friction_scale": 1.0, "gripper_mass_scale": 1.0, "gain": 1.0, "encoder_latency_s": 0.0,
             "imu_latency_s": SensorParams().imu_latency_s, "grasp_m": 0.0, "release_delay_shift_s": 0.0}
@@ -484,12 +482,12 @@ class ThrowEnvCore:
             def pick(nominal, drawn):
                 return jnp.where(on, jnp.asarray(nominal, jnp.asarray(drawn).dtype), drawn)
 
-            fric, gripper_scale, gain = pick(nom["friction_scale"], fric), pick(nom["gripper_mass_scale"], gripper_scale), pick(1.0, gain)
+            fric, gripper_scale, gain = pick(nom["friction_scale"], fric), pick(nom["gripper_mass_scale"], gripper_scale), pick(nom["gain"], gain)
             tau, dead_band, vscale = pick(nom["lag_s"], tau), pick(nom["dead_band"], dead_band), pick(nom["velocity_scale"], vscale)
             valve_delay = pick(round(nom["valve_delay_s"] / PHYSICS_PERIOD_S), valve_delay)
             nominal_lag = [round(nom[k] / PHYSICS_PERIOD_S) for k in ("encoder_latency_s", "imu_latency_s")]
             sensor_lag = pick(jnp.asarray(nominal_lag, jnp.int32), sensor_lag)
-            grasp, shift_s = pick(jnp.zeros(3), grasp), pick(nom["release_delay_shift_s"], shift_s)
+            grasp, shift_s = pick(nom["grasp_m"], grasp), pick(nom["release_delay_shift_s"], shift_s)
         delay_s = delay_s + shift_s
         zeros6 = jnp.zeros(6)
         data = self.data0.replace(qpos=q, qvel=zeros6, ctrl=jnp.zeros(4), qfrc_applied=zeros6, time=jnp.zeros(()))

@@ -52,14 +52,19 @@ def flights(policy: Path, distance_m: float, seeds: list[int], air) -> list[dict
         *_, hit_free = integrate_flight(p0, v0, None)
         d = np.asarray(hit_air[:2]) - np.asarray(hit_free[:2])
         rows.append({
-            "seed": r["seed"], "speed_mps": float(np.linalg.norm(v0)),
-            "elevation_deg": float(np.degrees(np.arctan2(v0[2], np.linalg.norm(v0[:2])))), "height_m": float(p0[2]),
-            "flight_s": float(r["flight_s"]),
+            "seed": r["seed"], **release_state(p0, v0), "flight_s": float(r["flight_s"]),
             "release_after_s": float("nan") if r["release_after_s"] is None else float(r["release_after_s"]),
             "air_downrange_m": float(d @ u), "air_crossrange_m": float(d[0] * -u[1] + d[1] * u[0]),
             "downrange_error_m": float(r["downrange_error_m"]),
         })
     return rows
+
+
+def release_state(p0: np.ndarray, v0: np.ndarray) -> dict:
+    """The payload's speed [m/s], elevation above the horizontal [deg] and height [m] at its release
+    from ``p0`` (3,) m with ``v0`` (3,) m/s, machine frame."""
+    return {"speed_mps": float(np.linalg.norm(v0)), "elevation_deg": float(np.degrees(np.arctan2(v0[2], np.linalg.norm(v0[:2])))),
+            "height_m": float(p0[2])}
 
 
 def summary(rows: list[dict]) -> dict:

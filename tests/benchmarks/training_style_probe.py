@@ -84,15 +84,24 @@ def play(onnx_path: Path, env_cfg: dict, envs: int, key: int, action_std: float 
     from sim_twin.training.mjx_env import EnvConfig, ThrowEnvCore
 
     core = ThrowEnvCore(EnvConfig.from_dict(env_cfg))
-    sess = ort.InferenceSession(str(onnx_path))
-    name = sess.get_inputs()[0].name
-    reset, step = jax.jit(jax.vmap(core.reset)), jax.jit(jax.vmap(core.step))
-    s, obs = reset(jax.random.split(jax.random.PRNGKey(key), envs))
-    done = np.zeros(envs, bool)
+    s, obs = jax.jit(jax.vmap(core.reset))(jax.random.split(jax.random.PRNGKey(key), envs))
+    yield from rollout(jax.jit(jax.vmap(core.step)), ort.InferenceSession(str(onnx_path)), s, obs, core.cfg.max_steps,
+                       key, action_std)
+
+
+def rollout(step, session, s, obs, max_steps: int, key: int = 0, action_std: float = 0.0):
+    """The episodes of a reset batch (EnvState ``s``, observations ``obs`` (envs, observation_size))
+    played by the exported actor (onnxruntime ``session``) through ``step`` (the jitted, vmapped
+    ThrowEnvCore.step) until every episode has ended or ``max_steps`` control steps; ``key`` and
+    ``action_std`` as :func:`play`'s, whose yields these are."""
+    import jax.numpy as jnp
+
+    name = session.get_inputs()[0].name
+    done = np.zeros(len(obs), bool)
     rng = np.random.default_rng(key)
-    for k in range(core.cfg.max_steps):
+    for k in range(max_steps):
         before = s
-        mean = sess.run(None, {name: np.asarray(obs, np.float32)})[0]
+        mean = session.run(None, {name: np.asarray(obs, np.float32)})[0]
         act = (mean + action_std * rng.standard_normal(mean.shape)).astype(np.float32) if action_std > 0 else mean
         s, obs, _, term, tout, info = step(s, jnp.asarray(act))
         yield k, before, s, {**info, "action_mean": mean, "action": act}, ~done

@@ -105,13 +105,12 @@ def release_row(target_xyz, p0, v0, flight_s: float) -> dict:
     in float64 drag-free flight (runtime.ballistics.ground_impact): its downrange error [m]."""
     from runtime.ballistics import ground_impact
     from runtime.throw_geometry import impact_errors
+    from tests.benchmarks.release_flight import release_state
 
     p0, v0 = np.asarray(p0, float), np.asarray(v0, float)
     u = np.asarray(target_xyz[:2], float) / np.hypot(*target_xyz[:2])
     hit, _ = ground_impact(p0, v0)
-    return {"speed_mps": float(np.linalg.norm(v0)),
-            "elevation_deg": float(np.degrees(np.arctan2(v0[2], np.linalg.norm(v0[:2])))),
-            "height_m": float(p0[2]), "release_downrange_m": float(p0[:2] @ u), "flight_s": float(flight_s),
+    return {**release_state(p0, v0), "release_downrange_m": float(p0[:2] @ u), "flight_s": float(flight_s),
             "ballistic_downrange_m": impact_errors(target_xyz, hit)[0]}
 
 
@@ -187,7 +186,6 @@ class EnvSide:
 
         self.core = fixed_start_env(env_cfg)
         self.sess = ort.InferenceSession(str(policy), providers=["CPUExecutionProvider"])
-        self.input = self.sess.get_inputs()[0].name
         self.reset = jax.jit(jax.vmap(self.core.reset_at))
         self.step = jax.jit(jax.vmap(self.core.step))
 
@@ -215,6 +213,7 @@ class EnvSide:
         from runtime.ballistics import ballistic_position
         from runtime.observation import CONTROL_PERIOD_S, PHYSICS_PERIOD_S
         from runtime.throw_geometry import impact_errors
+        from tests.benchmarks.training_style_probe import rollout
 
         n = len(poses)
         s, obs = self.reset(jax.random.split(jax.random.PRNGKey(key), n), jnp.asarray(poses, jnp.float32),
@@ -227,14 +226,10 @@ class EnvSide:
             old = getattr(s, name)
             s = s.replace(**{name: jnp.broadcast_to(jnp.asarray(value, old.dtype), old.shape)})
         delay_steps = np.asarray(s.delay_steps)
-        done, cmd_step = np.zeros(n, bool), np.full(n, -1)
+        cmd_step = np.full(n, -1)
         rows: list[dict] = [{"seed": int(seeds[i]), "landed": False, "status": "no end"} for i in range(n)]
-        for k in range(self.core.cfg.max_steps):
-            before_cmd = np.asarray(s.release_cmd)
-            action = self.sess.run(None, {self.input: np.asarray(obs, np.float32)})[0]
-            s, obs, _, term, tout, info = self.step(s, jnp.asarray(action))
-            live = ~done
-            cmd_step[live & np.asarray(s.release_cmd) & ~before_cmd] = k
+        for k, before, s, info, live in rollout(self.step, self.sess, s, obs, self.core.cfg.max_steps, key):
+            cmd_step[live & np.asarray(s.release_cmd) & ~np.asarray(before.release_cmd)] = k
             landed, failed = np.asarray(info["landed"]) & live, np.asarray(info["failed"]) & live
             for i in np.flatnonzero(failed):
                 rows[i]["status"] = "failed"
@@ -245,9 +240,6 @@ class EnvSide:
                                downrange_m=impact_errors(targets[i], ballistic_position(np, p0, v0, float(t_f)))[0],
                                release_cmd_s=t_cmd, opening_s=t_cmd + int(delay_steps[i]) * PHYSICS_PERIOD_S,
                                **release_row(targets[i], p0, v0, float(t_f)))
-            done |= np.asarray(term) | np.asarray(tout)
-            if done.all():
-                break
         return rows
 
 
