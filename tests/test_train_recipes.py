@@ -114,3 +114,13 @@ def test_the_candidate_recipe_changes_only_what_it_declares():
             assert run[hold] == 0.01 and run.get(grace, 0.0) == (5.0 if run_name[-2] == "d" else 0.0)
             continue
         assert run[err_3d] == recipe[err_3d] == 0.05
+
+
+def test_the_nominal_share_recipe_is_the_candidate_with_only_its_nominal_fraction():
+    """sim_twin/configs/throw_2d_nominal.json: the candidate with a quarter of the episodes on the nominal
+    machine (env.randomization.nominal_fraction), the change the far-target overshoot points to."""
+    candidate = _flat(_without_notes(ROOT / "sim_twin" / "configs" / "throw_2d_candidate.json"))
+    nominal = _flat(_without_notes(ROOT / "sim_twin" / "configs" / "throw_2d_nominal.json"))
+    changed = {k for k in candidate.keys() | nominal.keys() if candidate.get(k) != nominal.get(k)}
+    assert changed == {("env", "randomization", "nominal_fraction")}
+    assert nominal[("env", "randomization", "nominal_fraction")] == 0.25

@@ -143,3 +143,33 @@ def test_a_command_per_run_or_a_clear_error(tmp_path, monkeypatch):
     with pytest.raises(SystemExit):
         training_run_report.main()
     assert not (tmp_path / "bad.json").exists()
+
+
+def test_the_far_target_bias_is_the_farthest_targets_and_its_mean_counts_only_late_first_seed_matrices(tmp_path):
+    """far_bias reads the nominal and sensor-latency bias at the farthest target; the run's mean takes
+    the first gate seed's matrices from FAR_BIAS_FROM on, not earlier ones or other seeds'."""
+    from tests.benchmarks.training_run_report import FAR_BIAS_FROM, far_bias, run_report
+
+    rep = json.loads(MATRIX.read_text())
+    nominal = next(p for p in rep["profiles"] if p["name"] == "nominal")
+    far = max(nominal["targets"], key=lambda t: t["target_m"])
+    assert far["target_m"] == 10.0 and far_bias(rep)["nominal"] == round(far["bias_m"], 3)
+    assert far_bias({**rep, "mode": "3d"}) == {}
+
+    run = tmp_path / "run"
+    (run / "matrices").mkdir(parents=True)
+    results = []
+    for it, seed, shift in [(FAR_BIAS_FROM - 25, 0, 1.0), (FAR_BIAS_FROM, 0, 0.1), (FAR_BIAS_FROM + 25, 0, 0.3), (FAR_BIAS_FROM, 1, 5.0)]:
+        m = json.loads(MATRIX.read_text())
+        for p in m["profiles"]:
+            for t in p["targets"]:
+                t["bias_m"] = shift
+        name = f"site_matrix_2d_it{it}" + (f"_seed{seed}" if seed else "") + ".json"
+        (run / "matrices" / name).write_text(json.dumps(m))
+        results.append({"iteration": it, "seed": seed, "passed": False, "missing_cells": 1, "train_wall_s": 60.0 * it / 50,
+                        "misses": ["x"], "matrix_path": f"runs/run/matrices/{name}"})
+    (run / "matrices" / "matrix_gate.json").write_text(json.dumps({"seeds": [0, 1], "passed": None, "results": results}))
+    out, md = run_report(run, "gpu", "cmd", [], [])
+    assert out["mean_far_bias_m"] == {"nominal": 0.2, "sensor_latency": 0.2}
+    assert [r["far_bias_m"]["nominal"] for r in out["results"]] == [1.0, 0.1, 5.0, 0.3]
+    assert any(line.startswith(f"Mean far-target bias over the seed-0 matrices from iteration {FAR_BIAS_FROM} on (2)") for line in md)

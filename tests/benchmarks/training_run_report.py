@@ -10,6 +10,12 @@ section per run, and one line per run in the plot; ``--command``, given once, ma
 ``{name}`` and training ``{seed}``, or is given once per run; each ``--after-run`` matrix belongs to
 the run whose directory holds it.
 
+For 2D runs each row also gives the far-target bias (:func:`far_bias`: the mean landing minus the
+target at the matrix's farthest target, nominal and sensor-latency profiles), and the run's mean of it
+over the first gate seed's matrices from iteration ``FAR_BIAS_FROM`` on (after the curriculum stage of
+the candidate recipes): the overshoot that stalls runs of those recipes (docs/training.md, "Four more
+seeds, and the far-target overshoot").
+
 The report also summarises the run's ``curve.csv`` at up to ``CURVE_ROWS`` checkpoints (evenly
 spaced, the last included): landings, failures and time-outs per finished episode, mean impact
 error, return, episode length, action std and control steps per second with learning.
@@ -32,6 +38,27 @@ from pathlib import Path
 
 CURVE_ROWS = 14
 CELL_TICKS = (0, 1, 2, 3, 4, 6, 10, 20, 40, 66)  # labelled counts of cells missing a bar
+FAR_BIAS_PROFILES = ("nominal", "sensor_latency")
+"""The profiles whose far-target bias the report gives: the two whose 9.5-10 m accuracy the stalled
+candidate runs missed by an overshoot (throw2d-scratch-f0, -g0)."""
+FAR_BIAS_FROM = 400
+"""First iteration of a run's mean far-target bias: after the candidate recipes' curriculum stage at
+iteration 300 and the matrices just after it, which it unsettles (throw2d-scratch-g0: 49 cells short
+at iteration 325)."""
+
+
+def far_bias(rep: dict) -> dict[str, float]:
+    """Bias [m] (mean landing minus target, downrange, + long) at the farthest target of each of
+    ``FAR_BIAS_PROFILES`` in one site matrix (sim_twin.evaluation.matrix's JSON); {} for a 3D matrix
+    or one without those profiles."""
+    if rep.get("mode") != "2d":
+        return {}
+    out = {}
+    for prof in rep["profiles"]:
+        if prof["name"] in FAR_BIAS_PROFILES and prof["targets"]:
+            far = max(prof["targets"], key=lambda t: t["target_m"])
+            out[prof["name"]] = round(far["bias_m"], 3)
+    return out
 
 
 def exported_policy_sha256(run: Path) -> str | None:
@@ -95,9 +122,10 @@ def run_report(run: Path, gpu: str, command: str, after_run: list[Path], gate_un
     first_seed = gate["seeds"][0]
     per_profile: dict[str, list[tuple[float, int, bool]]] = {}
     for r in rows:
+        rep = json.loads(Path(run / "matrices" / Path(r["matrix_path"]).name).read_text())
+        r["far_bias_m"] = far_bias(rep)
         if r["seed"] != first_seed:
             continue
-        rep = json.loads(Path(run / "matrices" / Path(r["matrix_path"]).name).read_text())
         for prof in rep["profiles"]:
             per_profile.setdefault(prof["name"], []).append((r["train_wall_s"], r["iteration"], prof["pass"]))
     first_met = {}
@@ -105,6 +133,9 @@ def run_report(run: Path, gpu: str, command: str, after_run: list[Path], gate_un
         met = [(t, it) for t, it, ok in hist if ok]
         kept = bool(met) and all(ok for t, it, ok in hist if t >= met[0][0])
         first_met[name] = {"wall_min": round(met[0][0] / 60, 1) if met else None, "iteration": met[0][1] if met else None, "kept": kept}
+    late = [r["far_bias_m"] for r in rows if r["seed"] == first_seed and r["iteration"] >= FAR_BIAS_FROM and r["far_bias_m"]]
+    mean_far_bias = {name: round(sum(b[name] for b in late) / len(late), 3) for name in FAR_BIAS_PROFILES
+                     if late and all(name in b for b in late)}
     ckpt = run / "checkpoint.pt"
     policy_sha256 = exported_policy_sha256(run)
     passed = gate["passed"]
@@ -117,8 +148,11 @@ def run_report(run: Path, gpu: str, command: str, after_run: list[Path], gate_un
         "seeds": gate["seeds"],
         "passed": passed,
         "bars_wall_min": round(passed["train_wall_s"] / 60, 1) if passed else None,
-        "results": [{k: r[k] for k in ("iteration", "seed", "passed", "missing_cells", "train_wall_s", "misses", "after_run", "note")}
+        "results": [{k: r[k] for k in ("iteration", "seed", "passed", "missing_cells", "train_wall_s", "misses", "after_run", "note",
+                                       "far_bias_m")}
                     for r in rows],
+        "mean_far_bias_m": mean_far_bias,
+        "mean_far_bias_from_iteration": FAR_BIAS_FROM,
         "first_met_per_profile": first_met,
         "curve": curve_summary(run),
     }
@@ -127,11 +161,16 @@ def run_report(run: Path, gpu: str, command: str, after_run: list[Path], gate_un
           + (f"exported policy ONNX SHA-256 `{policy_sha256}`; " if policy_sha256 else "")
           + f"command `{command}`. Gate seeds {gate['seeds']}; every bar met on every seed: "
           f"**{verdict}**.", "",
-          "| iteration | training wall time [min] | seed | cells missing a bar (of 66) | misses |", "|---|---|---|---|---|"]
+          "| iteration | training wall time [min] | seed | cells missing a bar (of 66) | far-target bias, "
+          + " / ".join(FAR_BIAS_PROFILES) + " [m] | misses |", "|---|---|---|---|---|---|"]
     for r in rows:
         miss = "; ".join(r["misses"]) if r["missing_cells"] <= 6 else f"{r['missing_cells']} cells"
         it = f"{r['iteration']} ({r['note']})" if r["note"] else str(r["iteration"])
-        md.append(f"| {it} | {r['train_wall_s'] / 60:.1f} | {r['seed']} | {r['missing_cells']} | {miss} |")
+        bias = " / ".join(f"{r['far_bias_m'][n]:+.3f}" for n in FAR_BIAS_PROFILES) if len(r["far_bias_m"]) == len(FAR_BIAS_PROFILES) else "-"
+        md.append(f"| {it} | {r['train_wall_s'] / 60:.1f} | {r['seed']} | {r['missing_cells']} | {bias} | {miss} |")
+    if mean_far_bias:
+        md += ["", f"Mean far-target bias over the seed-{first_seed} matrices from iteration {FAR_BIAS_FROM} on ({len(late)}): "
+               + ", ".join(f"{n} {b:+.3f} m" for n, b in mean_far_bias.items()) + "."]
     md += ["", f"First checkpoint at which each profile met all its bars (seed {first_seed}):", "",
            "| profile | training wall time [min] | iteration | met at every later checkpoint |", "|---|---|---|---|"]
     for name, f in first_met.items():
@@ -210,7 +249,8 @@ def main() -> None:
         lines = [f"# {a.title or 'Training runs'}: wall time to the site-matrix bars", "",
                  f"Date {head['date']}, commit `{commit}`, {a.gpu}.", "",
                  "| run | training seed | far-target style by iteration 250 | every bar on every gate seed | "
-                 "training wall time to the bars [min] | last verdict |", "|---|---|---|---|---|---|"]
+                 f"training wall time to the bars [min] | mean far-target bias from iteration {FAR_BIAS_FROM}, "
+                 + " / ".join(FAR_BIAS_PROFILES) + " [m] | last verdict |", "|---|---|---|---|---|---|---|"]
         for r, _ in reports:
             last = r["results"][-1] if r["results"] else None
             seed = training_seed(Path(r["run"]))
@@ -220,7 +260,9 @@ def main() -> None:
                        + (" (after the run)" if last["after_run"] else "")) if last else "none"
             lines.append(f"| {Path(r['run']).name} | {seed} | {style_text} | "
                          f"{'yes, iteration ' + str(r['passed']['iteration']) if r['passed'] else 'no'} | "
-                         f"{r['bars_wall_min'] if r['bars_wall_min'] is not None else 'not met'} | {verdict} |")
+                         f"{r['bars_wall_min'] if r['bars_wall_min'] is not None else 'not met'} | "
+                         + (" / ".join(f"{r['mean_far_bias_m'][n]:+.3f}" for n in FAR_BIAS_PROFILES)
+                            if len(r["mean_far_bias_m"]) == len(FAR_BIAS_PROFILES) else "-") + f" | {verdict} |")
         a.out.with_suffix(".json").write_text(json.dumps({**head, "gpu": a.gpu, "runs": [r for r, _ in reports]}, indent=2) + "\n")
         for (r, md) in reports:
             lines += ["", f"## {Path(r['run']).name}", "", md[0][0].upper() + md[0][1:], *md[1:]]
