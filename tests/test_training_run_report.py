@@ -173,3 +173,31 @@ def test_the_far_target_bias_is_the_farthest_targets_and_its_mean_counts_only_la
     assert out["mean_far_bias_m"] == {"nominal": 0.2, "sensor_latency": 0.2}
     assert [r["far_bias_m"]["nominal"] for r in out["results"]] == [1.0, 0.1, 5.0, 0.3]
     assert any(line.startswith(f"Mean far-target bias over the seed-0 matrices from iteration {FAR_BIAS_FROM} on (2)") for line in md)
+
+
+def test_the_first_pass_counts_a_gate_seed_judged_after_the_run_but_not_a_held_out_seed():
+    """throw2d-scratch-g1: the gate passed iteration 575 on seed 0 and the machine went back while it ran
+    seed 1, which an after-run matrix met; the run met the bars there (10.8 min), not at the gate's
+    first full pass (775). A held-out seed's matrix alone does not make a pass, nor does a failed seed."""
+    from tests.benchmarks.training_run_report import first_pass, first_pass_text
+
+    def row(it, seed, ok, after=False):
+        return {"iteration": it, "seed": seed, "passed": ok, "after_run": after, "train_wall_s": it * 1.0, "note": None}
+
+    rows = [row(450, 0, True), row(450, 2, True, after=True), row(575, 0, True), row(575, 1, True, after=True),
+            row(775, 0, True), row(775, 1, True)]
+    first = first_pass(rows, [0, 1])
+    assert first == {"iteration": 575, "train_wall_s": 575.0, "after_run_seeds": [1]}
+    assert first_pass_text(first) == "iteration 575 (seed 1 after the run)"
+    assert first_pass(rows[4:], [0, 1])["after_run_seeds"] == [] and first_pass_text(first_pass(rows[4:], [0, 1])) == "iteration 775"
+    assert first_pass([row(575, 0, True), row(575, 1, False)], [0, 1]) is None
+
+
+def test_the_committed_g1_run_reports_its_bars_at_iteration_575():
+    from tests.benchmarks.training_run_report import run_report
+
+    run = ROOT / "policies" / "training" / "throw2d-scratch-g1"
+    out, md = run_report(run, "gpu", "cmd", [run / "matrices" / "site_matrix_2d_it575_seed1.json"], [])
+    assert out["passed"]["iteration"] == 775  # the gate's own verdict stays as it recorded it
+    assert out["first_pass"]["iteration"] == 575 and out["bars_wall_min"] == 10.8
+    assert "**yes, iteration 575 (seed 1 after the run) (10.8 min)**" in md[0]
