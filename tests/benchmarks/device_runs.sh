@@ -18,6 +18,9 @@
 #                                                       # verdicts (and the candidate under test), GPU record and
 #                                                       # machine logs, so that `start NAME` resumes it
 #
+# After the last call, here: `tar xf <files_at>/<name>.tar` and `python -m tests.benchmarks.keep_run runs/<name>`
+# (trims the run to what policies/training keeps) before it moves to policies/training.
+#
 # To resume on the next machine, here: `tar xf <files_at>/state.tar` (it unpacks runs/state/<name>.tar)
 # and carry `runs/state` in the call that starts the runs again. Have it ready before the call that
 # collects returns: a machine goes back 30 s after a call ends.

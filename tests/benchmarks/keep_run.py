@@ -1,0 +1,159 @@
+"""Trim a `slinger train` run brought back from a GPU machine to what policies/training keeps.
+
+``python -m tests.benchmarks.keep_run runs/<name> [--rows N ...] [--candidates N ...] [--dry-run]``
+
+A run that ``tests/benchmarks/device_runs.sh collect`` brought back holds every site matrix the gate
+ran with each throw's landing (``per_throw``, about 160 kB a matrix), the matrices' plots, every
+candidate the gate exported and the TensorBoard event directory. The runs kept in the tree
+(policies/training/README.md) hold:
+
+* per-throw rows only in the matrices of the iterations that decide the run (:func:`row_iterations`:
+  the first and last the gate judged, the far-target style's (the last at or before iteration 250,
+  tests/benchmarks/training_throw_style.py), the first that met every bar on every gate seed, the
+  exported policy's) and in every matrix of a held-out seed (one outside the gate's seeds, run after
+  the run); the other matrices keep their per-cell statistics and verdicts;
+* no matrix plots (the JSON and the Markdown tables carry the same figures);
+* of the gate's exported candidates (``candidates/checkpoint_<N>.onnx`` and ``.json``) those that
+  decide the run and are not its export (:func:`candidate_iterations`), and no ``.pt``;
+* the TensorBoard events as ``tb.tar.gz`` (``tar xzf tb.tar.gz && tensorboard --logdir tb``).
+
+``--rows`` and ``--candidates`` keep more. The checkpoint, config, curve, gate verdicts, logs and the
+export are left as they are. Prints what it removed and the run's size before and after.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tarfile
+from pathlib import Path
+
+STYLE_ITERATION_MAX = 250
+"""The far-target style is read from the gate's last seed-0 matrix at or before this iteration
+(tests/benchmarks/training_throw_style.py)."""
+
+
+def _gate(run: Path) -> dict:
+    path = run / "matrices" / "matrix_gate.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{run} has no matrices/matrix_gate.json: not a run with a site-matrix gate")
+    return json.loads(path.read_text())
+
+
+def exported_iteration(run: Path) -> int | None:
+    """The iteration of the run's exported policy (its model card's), or None without one."""
+    cards = sorted(run.glob("throw*.card.json"))
+    return int(json.loads(cards[0].read_text())["iteration"]) if cards else None
+
+
+def first_pass_iteration(gate: dict) -> int | None:
+    """The first iteration the gate's verdicts met on every gate seed (matrix_gate.json), or None."""
+    from tests.benchmarks.training_run_report import first_pass
+
+    rows = [{**r, "after_run": False} for r in gate["results"]]
+    first = first_pass(rows, gate["seeds"])
+    return first["iteration"] if first else None
+
+
+def row_iterations(run: Path) -> set[int]:
+    """The iterations whose matrices keep their per-throw rows (module docstring)."""
+    gate = _gate(run)
+    judged = sorted({r["iteration"] for r in gate["results"]})
+    keep = {judged[0], judged[-1]} if judged else set()
+    early = [it for it in judged if it <= STYLE_ITERATION_MAX]
+    if early:
+        keep.add(early[-1])
+    for it in (first_pass_iteration(gate), exported_iteration(run)):
+        if it is not None:
+            keep.add(it)
+    return keep
+
+
+def candidate_iterations(run: Path) -> set[int]:
+    """The gate's candidates kept beside the export: the first that met every bar on every gate seed
+    (where that is not the export), or, where none did, the last two the gate judged."""
+    gate = _gate(run)
+    exported = exported_iteration(run)
+    first = first_pass_iteration(gate)
+    if first is not None:
+        return set() if first == exported else {first}
+    return set(sorted({r["iteration"] for r in gate["results"]})[-2:])
+
+
+def _iteration_and_seed(path: Path) -> tuple[int, int]:
+    from sim_twin.training.matrix_gate import parse_matrix_file_name
+
+    return parse_matrix_file_name(path.name)
+
+
+def _size(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def keep_run(run: Path, rows: set[int] = frozenset(), candidates: set[int] = frozenset(), dry_run: bool = False) -> list[str]:
+    """Trim ``run`` in place (module docstring); ``rows`` and ``candidates`` add iterations to keep.
+    Returns what it did, one line per file or directory. With ``dry_run`` it changes nothing.
+
+    Raises:
+        FileNotFoundError: ``run`` has no ``matrices/matrix_gate.json``.
+    """
+    gate = _gate(run)
+    keep_rows = row_iterations(run) | set(rows)
+    keep_cands = candidate_iterations(run) | set(candidates)
+    done = []
+    for m in sorted((run / "matrices").glob("site_matrix_*_it*.json")):
+        it, seed = _iteration_and_seed(m)
+        if it in keep_rows or seed not in gate["seeds"]:
+            continue
+        rep = json.loads(m.read_text())
+        cells = [t for p in rep["profiles"] for t in p["targets"] if "per_throw" in t]
+        if cells:
+            done.append(f"per-throw rows dropped: {m.relative_to(run)}")
+            if not dry_run:
+                for t in cells:
+                    del t["per_throw"]
+                m.write_text(json.dumps(rep, indent=1) + "\n")
+    for png in sorted((run / "matrices").glob("*.png")):
+        done.append(f"removed: {png.relative_to(run)}")
+        if not dry_run:
+            png.unlink()
+    cand_dir = run / "candidates"
+    for f in sorted(cand_dir.glob("checkpoint_*")) if cand_dir.is_dir() else []:
+        it = int(f.name.split("_")[1].split(".")[0])
+        if f.suffix == ".pt" or it not in keep_cands:
+            done.append(f"removed: {f.relative_to(run)}")
+            if not dry_run:
+                f.unlink()
+    if cand_dir.is_dir() and not dry_run and not any(cand_dir.iterdir()):
+        cand_dir.rmdir()
+    tb = run / "tb"
+    if tb.is_dir():
+        done.append("tb/ packed as tb.tar.gz" + (" (beside the one there)" if (run / "tb.tar.gz").exists() else ""))
+        if not dry_run:
+            target = run / ("tb.tar.gz" if not (run / "tb.tar.gz").exists() else "tb.more.tar.gz")
+            with tarfile.open(target, "w:gz") as tar:
+                tar.add(tb, arcname="tb")
+            shutil.rmtree(tb)
+    return done
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", type=Path, nargs="+", help="run directories brought back by device_runs.sh collect")
+    p.add_argument("--rows", type=int, nargs="*", default=[], help="more iterations whose matrices keep per-throw rows")
+    p.add_argument("--candidates", type=int, nargs="*", default=[], help="more gate candidates to keep")
+    p.add_argument("--dry-run", action="store_true", help="say what would go, change nothing")
+    a = p.parse_args()
+    for run in a.runs:
+        before = _size(run)
+        done = keep_run(run, set(a.rows), set(a.candidates), a.dry_run)
+        print(f"{run}: rows kept in iterations {sorted(row_iterations(run) | set(a.rows))}, candidates kept "
+              f"{sorted(candidate_iterations(run) | set(a.candidates))}; {len(done)} changes"
+              + ("" if a.dry_run else f"; {before / 2**20:.1f} MiB -> {_size(run) / 2**20:.1f} MiB"))
+        for line in done:
+            print("  " + line)
+
+
+if __name__ == "__main__":
+    main()
