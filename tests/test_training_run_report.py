@@ -201,3 +201,19 @@ def test_the_committed_g1_run_reports_its_bars_at_iteration_575():
     assert out["passed"]["iteration"] == 775  # the gate's own verdict stays as it recorded it
     assert out["first_pass"]["iteration"] == 575 and out["bars_wall_min"] == 10.8
     assert "**yes, iteration 575 (seed 1 after the run) (10.8 min)**" in md[0]
+
+
+def test_the_summary_keeps_held_out_seeds_apart_from_the_last_gate_verdict(tmp_path, monkeypatch):
+    """-g2: the gate's last verdict is iteration 1075 on seed 1 (met); the after-run matrix of held-out
+    seed 2 is its own column, naming the cell it missed, not the run's last verdict."""
+    import sys
+
+    from tests.benchmarks import training_run_report
+
+    run = ROOT / "policies" / "training" / "throw2d-scratch-g2"
+    out = tmp_path / "g2"
+    monkeypatch.setattr(sys, "argv", ["training_run_report", str(run), str(ROOT / "policies" / "training" / "throw2d-scratch-g3"),
+                                      "--after-run", str(run / "matrices" / "site_matrix_2d_it1075_seed2.json"), "--out", str(out)])
+    training_run_report.main()
+    row = next(line for line in out.with_suffix(".md").read_text().splitlines() if line.startswith("| throw2d-scratch-g2 |"))
+    assert "| iteration 1075, seed 1: 0 cells missing | iteration 1075, seed 2: worn_gripper@8.5: success |" in row

@@ -279,9 +279,15 @@ def main() -> None:
                  f"Date {head['date']}, commit `{commit}`, {a.gpu}.", "",
                  "| run | training seed | far-target style by iteration 250 | every bar on every gate seed | "
                  f"training wall time to the bars [min] | mean far-target bias from iteration {FAR_BIAS_FROM}, "
-                 + " / ".join(FAR_BIAS_PROFILES) + " [m] | last verdict |", "|---|---|---|---|---|---|---|"]
+                 + " / ".join(FAR_BIAS_PROFILES) + " [m] | last verdict on a gate seed | held-out seeds |",
+                 "|---|---|---|---|---|---|---|---|"]
         for r, _ in reports:
-            last = r["results"][-1] if r["results"] else None
+            on_gate = [x for x in r["results"] if x["seed"] in r["seeds"]]
+            last = on_gate[-1] if on_gate else None
+            held_out = "; ".join(f"iteration {x['iteration']}, seed {x['seed']}: "
+                                 + ("every bar" if x["passed"] else "; ".join(x["misses"]) if x["missing_cells"] <= 3
+                                    else f"{x['missing_cells']} cells missing")
+                                 for x in r["results"] if x["seed"] not in r["seeds"]) or "-"
             seed = training_seed(Path(r["run"]))
             style = r["far_style"] = far_style(Path(r["run"]))
             style_text = f"{style['style']} ({style['far_duration_s']} s, iteration {style['style_iteration']})" if style else "-"
@@ -291,7 +297,7 @@ def main() -> None:
                          f"{'yes, ' + first_pass_text(r['first_pass']) if r['first_pass'] else 'no'} | "
                          f"{r['bars_wall_min'] if r['bars_wall_min'] is not None else 'not met'} | "
                          + (" / ".join(f"{r['mean_far_bias_m'][n]:+.3f}" for n in FAR_BIAS_PROFILES)
-                            if len(r["mean_far_bias_m"]) == len(FAR_BIAS_PROFILES) else "-") + f" | {verdict} |")
+                            if len(r["mean_far_bias_m"]) == len(FAR_BIAS_PROFILES) else "-") + f" | {verdict} | {held_out} |")
         a.out.with_suffix(".json").write_text(json.dumps({**head, "gpu": a.gpu, "runs": [r for r, _ in reports]}, indent=2) + "\n")
         for (r, md) in reports:
             lines += ["", f"## {Path(r['run']).name}", "", md[0][0].upper() + md[0][1:], *md[1:]]
