@@ -34,7 +34,8 @@ STYLE_ITERATION_MAX = 250
 (tests/benchmarks/training_throw_style.py)."""
 
 
-def _gate(run: Path) -> dict:
+def load_gate(run: Path) -> dict:
+    """The run's ``matrices/matrix_gate.json``. Raises FileNotFoundError for a run without a gate."""
     path = run / "matrices" / "matrix_gate.json"
     if not path.exists():
         raise FileNotFoundError(f"{run} has no matrices/matrix_gate.json: not a run with a site-matrix gate")
@@ -47,24 +48,33 @@ def exported_iteration(run: Path) -> int | None:
     return int(json.loads(cards[0].read_text())["iteration"]) if cards else None
 
 
-def first_pass_iteration(gate: dict) -> int | None:
-    """The first iteration the gate's verdicts met on every gate seed (matrix_gate.json), or None."""
+def first_pass_iteration(run: Path) -> int | None:
+    """The first iteration met on every gate seed, by the gate's verdicts (matrix_gate.json) or by a
+    gate seed's matrix in ``matrices/`` that the gate holds no verdict of (one run after the run, as
+    ``throw2d-scratch-g1``'s iteration 575 on seed 1; training_run_report.first_pass); None if none."""
     from tests.benchmarks.training_run_report import first_pass
 
+    gate = load_gate(run)
     rows = [{**r, "after_run": False} for r in gate["results"]]
+    judged = {(r["iteration"], r["seed"]) for r in rows}
+    for m in sorted((run / "matrices").glob("site_matrix_*_it*.json")):
+        it, seed = _iteration_and_seed(m)
+        if seed in gate["seeds"] and (it, seed) not in judged:
+            rows.append({"iteration": it, "seed": seed, "passed": bool(json.loads(m.read_text())["pass"]),
+                         "after_run": True, "train_wall_s": 0.0})
     first = first_pass(rows, gate["seeds"])
     return first["iteration"] if first else None
 
 
 def row_iterations(run: Path) -> set[int]:
     """The iterations whose matrices keep their per-throw rows (module docstring)."""
-    gate = _gate(run)
+    gate = load_gate(run)
     judged = sorted({r["iteration"] for r in gate["results"]})
     keep = {judged[0], judged[-1]} if judged else set()
     early = [it for it in judged if it <= STYLE_ITERATION_MAX]
     if early:
         keep.add(early[-1])
-    for it in (first_pass_iteration(gate), exported_iteration(run)):
+    for it in (first_pass_iteration(run), exported_iteration(run)):
         if it is not None:
             keep.add(it)
     return keep
@@ -73,9 +83,9 @@ def row_iterations(run: Path) -> set[int]:
 def candidate_iterations(run: Path) -> set[int]:
     """The gate's candidates kept beside the export: the first that met every bar on every gate seed
     (where that is not the export), or, where none did, the last two the gate judged."""
-    gate = _gate(run)
+    gate = load_gate(run)
     exported = exported_iteration(run)
-    first = first_pass_iteration(gate)
+    first = first_pass_iteration(run)
     if first is not None:
         return set() if first == exported else {first}
     return set(sorted({r["iteration"] for r in gate["results"]})[-2:])
@@ -98,7 +108,7 @@ def keep_run(run: Path, rows: set[int] = frozenset(), candidates: set[int] = fro
     Raises:
         FileNotFoundError: ``run`` has no ``matrices/matrix_gate.json``.
     """
-    gate = _gate(run)
+    gate = load_gate(run)
     keep_rows = row_iterations(run) | set(rows)
     keep_cands = candidate_iterations(run) | set(candidates)
     done = []

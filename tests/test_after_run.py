@@ -1,0 +1,56 @@
+"""tests/benchmarks/after_run.py: the held-out matrices and the paired deploy test that follow a run, for
+its first pass and its export, and only what the run lacks; the committed comparisons come out the same."""
+
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.benchmarks import after_run
+from tests.benchmarks.after_run import deciding_policies, plan
+
+ROOT = Path(__file__).resolve().parents[1]
+TRAINING = ROOT / "policies" / "training"
+
+
+def test_the_deciding_policies_are_the_first_pass_and_the_export():
+    h0 = TRAINING / "throw2d-scratch-h0"
+    assert deciding_policies(h0) == {500: h0 / "candidates" / "checkpoint_500.onnx", 925: h0 / "throw2d.onnx"}
+    g1 = TRAINING / "throw2d-scratch-g1"  # seed 1 of iteration 575 judged after the run; no export
+    assert deciding_policies(g1) == {575: g1 / "candidates" / "checkpoint_575.onnx"}
+    assert deciding_policies(TRAINING / "throw2d-scratch-g3") == {}  # met nothing, exported nothing
+
+
+def test_only_the_missing_held_out_matrices_are_run(tmp_path):
+    run = tmp_path / "throw2d-scratch-h0"
+    shutil.copytree(TRAINING / "throw2d-scratch-h0", run, ignore=shutil.ignore_patterns("checkpoint.pt", "tb.tar.gz", "logs"))
+    (run / "matrices" / "site_matrix_2d_it925_seed2.json").unlink()
+    steps = plan(run, [2], 2, ROOT)
+    runs = [argv for argv, out in steps if out is None]
+    assert len(runs) == 1 and runs[0][runs[0].index("--policy") + 1] == str(run / "throw2d.onnx")
+    assert runs[0][runs[0].index("--out") + 1] == str(run / "matrices" / "site_matrix_2d_it925_seed2.json")
+    assert runs[0][runs[0].index("--seed") + 1] == "2" and runs[0][runs[0].index("--throws") + 1] == "100"
+    assert [out.name for argv, out in steps if out is not None] == ["compare_with_deployed_it500.txt", "compare_with_deployed.txt"]
+    cmp = next(argv for argv, out in steps if out is not None)
+    assert cmp[cmp.index("--deployed") + 1:cmp.index("--candidate")] == [
+        "reports/site_matrix_2d.json", "reports/site_matrix_2d_seed1.json", "reports/site_matrix_2d_seed2.json"]
+
+
+def test_the_committed_comparison_comes_out_the_same(tmp_path, monkeypatch):
+    run = tmp_path / "throw2d-scratch-g2"
+    shutil.copytree(TRAINING / "throw2d-scratch-g2", run, ignore=shutil.ignore_patterns("checkpoint.pt", "tb.tar.gz", "logs"))
+    (run / "compare_with_deployed.txt").unlink()
+    monkeypatch.setattr(sys, "argv", ["after_run", str(run)])
+    after_run.main()
+    body = (run / "compare_with_deployed.txt").read_text().splitlines()[1:]
+    assert body == (TRAINING / "throw2d-scratch-g2" / "compare_with_deployed.txt").read_text().splitlines()[1:]
+    assert body[-1].startswith("candidate worse on 17 of 66 cells")
+
+
+def test_a_deciding_checkpoint_without_its_onnx_is_a_clear_error(tmp_path):
+    run = tmp_path / "throw2d-scratch-h1"
+    shutil.copytree(TRAINING / "throw2d-scratch-h1", run, ignore=shutil.ignore_patterns("checkpoint.pt", "tb.tar.gz", "logs"))
+    (run / "candidates" / "checkpoint_800.onnx").unlink()
+    with pytest.raises(FileNotFoundError, match="checkpoint_800.onnx: the ONNX file of iteration 800"):
+        deciding_policies(run)
