@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.benchmarks.keep_run import candidate_iterations, keep_run, row_iterations
+from tests.benchmarks.keep_run import candidate_iterations, decide, keep_run, row_iterations
 
 ROOT = Path(__file__).resolve().parents[1]
 H0 = ROOT / "policies" / "training" / "throw2d-scratch-h0"  # first pass 500, exported 925
@@ -40,12 +40,12 @@ def _has_rows(path: Path) -> bool:
 
 
 def test_the_deciding_iterations_of_a_run_that_met_the_bars():
-    assert row_iterations(H0) == {25, 150, 500, 925, 1200}  # first, style (<= 250), first pass, export, last
-    assert candidate_iterations(H0) == {500}  # the first pass; the export is throw2d.onnx
+    assert row_iterations(decide(H0)) == {25, 150, 500, 925, 1200}  # first, style (<= 250), first pass, export, last
+    assert candidate_iterations(decide(H0)) == {500}  # the first pass; the export is throw2d.onnx
 
 
 def test_a_run_that_never_met_keeps_its_last_two_candidates():
-    assert candidate_iterations(G3) == {825, 1050}
+    assert candidate_iterations(decide(G3)) == {825, 1050}
 
 
 def test_a_collected_run_is_trimmed_and_keeps_what_decides_it(tmp_path):

@@ -4,11 +4,11 @@ and the paired deploy test, for the checkpoints that decide the run.
 ``python -m tests.benchmarks.after_run policies/training/<run> [--held-out 2] [--workers 2] [--dry-run]``
 
 For the run's first checkpoint to meet every bar on every gate seed and for its exported policy
-(tests/benchmarks/keep_run.py: ``first_pass_iteration``, ``exported_iteration``; the gate's export
+(tests/benchmarks/keep_run.py ``decide``; the gate's export
 ``candidates/checkpoint_<N>.onnx`` or ``throw<mode>.onnx``) it
 
 1. runs the site matrix on each held-out seed that the run lacks, with the gate's own command
-   (``python -m sim_twin.evaluation.cli --policy <onnx> --matrix --seed S --throws 100 --workers W
+   (``python -m sim_twin.evaluation.cli --policy <onnx> --matrix --seed S --throws <the gate's> --workers W
    --out <run>/matrices/site_matrix_<mode>_it<N>_seed<S>.json``; about 3 minutes a matrix with 2
    workers on the 2-core host);
 2. writes the paired deploy test against the deployed policy's committed matrices of the same seeds
@@ -31,27 +31,24 @@ from pathlib import Path
 
 from sim_twin.evaluation import matrix_compare
 
-from tests.benchmarks.keep_run import load_gate, exported_iteration, first_pass_iteration
-
-THROWS = 100
-"""Throws per site-matrix cell, the gate's (sim_twin.training.matrix_gate)."""
+from tests.benchmarks.keep_run import RunDecision, decide
 
 
-def deciding_policies(run: Path) -> dict[int, Path]:
+def deciding_policies(run: Path, d: RunDecision | None = None) -> dict[int, Path]:
     """{iteration: ONNX file} of the run's first pass and its export (module docstring); {} for a run
     that met no bar on every gate seed and exported nothing.
+
+    ``d`` is the run's keep_run.decide where the caller has it.
 
     Raises:
         FileNotFoundError: the run has no gate (keep_run) or a deciding checkpoint's ONNX file is gone.
     """
-    load_gate(run)
+    d = d or decide(run)
     out = {}
-    exported = exported_iteration(run)
-    if exported is not None:
-        out[exported] = next(run.glob("throw*.onnx"))
-    first = first_pass_iteration(run)
-    if first is not None and first not in out:
-        out[first] = run / "candidates" / f"checkpoint_{first}.onnx"
+    if d.exported is not None:
+        out[d.exported] = next(run.glob("throw*.onnx"))
+    if d.first_pass is not None and d.first_pass not in out:
+        out[d.first_pass] = run / "candidates" / f"checkpoint_{d.first_pass}.onnx"
     for it, onnx in out.items():
         if not onnx.exists():
             raise FileNotFoundError(f"{onnx}: the ONNX file of iteration {it} is not in the run")
@@ -73,21 +70,20 @@ def deployed_matrix(root: Path, mode: str, seed: int) -> Path:
 def plan(run: Path, held_out: list[int], workers: int, root: Path) -> list[tuple[list[str], Path | None]]:
     """The commands, in order: (argv, None) for a matrix to run, (argv, file) for a comparison whose
     output goes to ``file``. Matrices already in the run are not run again."""
-    gate = load_gate(run)
-    mode = gate["mode"]
-    seeds = list(gate["seeds"]) + [s for s in held_out if s not in gate["seeds"]]
-    exported = exported_iteration(run)
+    d = decide(run)
+    mode, gate_seeds = d.gate["mode"], d.gate["seeds"]
+    seeds = list(gate_seeds) + [s for s in held_out if s not in gate_seeds]
     steps: list[tuple[list[str], Path | None]] = []
-    for it, onnx in sorted(deciding_policies(run).items()):
+    for it, onnx in sorted(deciding_policies(run, d).items()):
         for s in held_out:
             out = matrix_path(run, mode, it, s)
             if not out.exists():
                 steps.append(([sys.executable, "-m", "sim_twin.evaluation.cli", "--policy", str(onnx), "--matrix", "--seed", str(s),
-                               "--throws", str(THROWS), "--workers", str(workers), "--out", str(out)], None))
+                               "--throws", str(d.gate["throws"]), "--workers", str(workers), "--out", str(out)], None))
         cmp = [sys.executable, "-m", "sim_twin.evaluation.matrix_compare",
                "--deployed", *(str(deployed_matrix(root, mode, s).relative_to(root)) for s in seeds),
                "--candidate", *(str(matrix_path(run, mode, it, s)) for s in seeds)]
-        steps.append((cmp, run / ("compare_with_deployed.txt" if it == exported else f"compare_with_deployed_it{it}.txt")))
+        steps.append((cmp, run / ("compare_with_deployed.txt" if it == d.exported else f"compare_with_deployed_it{it}.txt")))
     return steps
 
 

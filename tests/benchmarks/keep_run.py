@@ -27,6 +27,7 @@ import argparse
 import json
 import shutil
 import tarfile
+from dataclasses import dataclass
 from pathlib import Path
 
 STYLE_ITERATION_MAX = 250
@@ -48,47 +49,57 @@ def exported_iteration(run: Path) -> int | None:
     return int(json.loads(cards[0].read_text())["iteration"]) if cards else None
 
 
-def first_pass_iteration(run: Path) -> int | None:
-    """The first iteration met on every gate seed, by the gate's verdicts (matrix_gate.json) or by a
-    gate seed's matrix in ``matrices/`` that the gate holds no verdict of (one run after the run, as
-    ``throw2d-scratch-g1``'s iteration 575 on seed 1; training_run_report.first_pass); None if none."""
-    from tests.benchmarks.training_run_report import first_pass
+@dataclass(frozen=True)
+class RunDecision:
+    """What decides a run, read once: its gate's state (``matrix_gate.json``), the first iteration met
+    on every gate seed (None if none) and its exported policy's iteration (None without an export)."""
+
+    gate: dict
+    first_pass: int | None
+    exported: int | None
+
+
+def decide(run: Path) -> RunDecision:
+    """The run's :class:`RunDecision`. The first pass counts the gate's verdicts and a gate seed's matrix
+    in ``matrices/`` that the gate holds no verdict of (one run after the run, as ``throw2d-scratch-g1``'s
+    iteration 575 on seed 1), read as training_run_report reads them (``after_run_row``, ``first_pass``).
+
+    Raises:
+        FileNotFoundError: ``run`` has no ``matrices/matrix_gate.json``.
+    """
+    from tests.benchmarks.training_run_report import after_run_row, first_pass, train_wall_s
 
     gate = load_gate(run)
     rows = [{**r, "after_run": False} for r in gate["results"]]
     judged = {(r["iteration"], r["seed"]) for r in rows}
+    later = []
     for m in sorted((run / "matrices").glob("site_matrix_*_it*.json")):
         it, seed = _iteration_and_seed(m)
         if seed in gate["seeds"] and (it, seed) not in judged:
-            rows.append({"iteration": it, "seed": seed, "passed": bool(json.loads(m.read_text())["pass"]),
-                         "after_run": True, "train_wall_s": 0.0})
+            later.append(m)
+    if later:
+        wall = train_wall_s(run)
+        rows += [after_run_row(run, m, wall) for m in later]
     first = first_pass(rows, gate["seeds"])
-    return first["iteration"] if first else None
+    return RunDecision(gate, first["iteration"] if first else None, exported_iteration(run))
 
 
-def row_iterations(run: Path) -> set[int]:
+def row_iterations(d: RunDecision) -> set[int]:
     """The iterations whose matrices keep their per-throw rows (module docstring)."""
-    gate = load_gate(run)
-    judged = sorted({r["iteration"] for r in gate["results"]})
+    judged = sorted({r["iteration"] for r in d.gate["results"]})
     keep = {judged[0], judged[-1]} if judged else set()
     early = [it for it in judged if it <= STYLE_ITERATION_MAX]
     if early:
         keep.add(early[-1])
-    for it in (first_pass_iteration(run), exported_iteration(run)):
-        if it is not None:
-            keep.add(it)
-    return keep
+    return keep | {it for it in (d.first_pass, d.exported) if it is not None}
 
 
-def candidate_iterations(run: Path) -> set[int]:
+def candidate_iterations(d: RunDecision) -> set[int]:
     """The gate's candidates kept beside the export: the first that met every bar on every gate seed
     (where that is not the export), or, where none did, the last two the gate judged."""
-    gate = load_gate(run)
-    exported = exported_iteration(run)
-    first = first_pass_iteration(run)
-    if first is not None:
-        return set() if first == exported else {first}
-    return set(sorted({r["iteration"] for r in gate["results"]})[-2:])
+    if d.first_pass is not None:
+        return set() if d.first_pass == d.exported else {d.first_pass}
+    return set(sorted({r["iteration"] for r in d.gate["results"]})[-2:])
 
 
 def _iteration_and_seed(path: Path) -> tuple[int, int]:
@@ -101,16 +112,19 @@ def _size(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
 
-def keep_run(run: Path, rows: set[int] = frozenset(), candidates: set[int] = frozenset(), dry_run: bool = False) -> list[str]:
-    """Trim ``run`` in place (module docstring); ``rows`` and ``candidates`` add iterations to keep.
-    Returns what it did, one line per file or directory. With ``dry_run`` it changes nothing.
+def keep_run(run: Path, rows: set[int] = frozenset(), candidates: set[int] = frozenset(), dry_run: bool = False,
+             decision: RunDecision | None = None) -> list[str]:
+    """Trim ``run`` in place (module docstring); ``rows`` and ``candidates`` add iterations to keep;
+    ``decision`` is the run's :func:`decide` where the caller has it. Returns what it did, one line per
+    file or directory. With ``dry_run`` it changes nothing.
 
     Raises:
         FileNotFoundError: ``run`` has no ``matrices/matrix_gate.json``.
     """
-    gate = load_gate(run)
-    keep_rows = row_iterations(run) | set(rows)
-    keep_cands = candidate_iterations(run) | set(candidates)
+    d = decision or decide(run)
+    gate = d.gate
+    keep_rows = row_iterations(d) | set(rows)
+    keep_cands = candidate_iterations(d) | set(candidates)
     done = []
     for m in sorted((run / "matrices").glob("site_matrix_*_it*.json")):
         it, seed = _iteration_and_seed(m)
@@ -156,10 +170,10 @@ def main() -> None:
     p.add_argument("--dry-run", action="store_true", help="say what would go, change nothing")
     a = p.parse_args()
     for run in a.runs:
-        before = _size(run)
-        done = keep_run(run, set(a.rows), set(a.candidates), a.dry_run)
-        print(f"{run}: rows kept in iterations {sorted(row_iterations(run) | set(a.rows))}, candidates kept "
-              f"{sorted(candidate_iterations(run) | set(a.candidates))}; {len(done)} changes"
+        before, d = _size(run), decide(run)
+        done = keep_run(run, set(a.rows), set(a.candidates), a.dry_run, d)
+        print(f"{run}: rows kept in iterations {sorted(row_iterations(d) | set(a.rows))}, candidates kept "
+              f"{sorted(candidate_iterations(d) | set(a.candidates))}; {len(done)} changes"
               + ("" if a.dry_run else f"; {before / 2**20:.1f} MiB -> {_size(run) / 2**20:.1f} MiB"))
         for line in done:
             print("  " + line)
