@@ -41,8 +41,10 @@ Phases (messages.ThrowPhase): preparing -> swinging -> released -> landed | fail
 * released: the policy keeps running (paper Sec. III). :meth:`on_impact` -> landed, with the
   impact errors of runtime.throw_geometry.impact_errors.
 * every tick of swinging/released: runtime.machine.clearance_violations (ground, cabin, joint
-  limit), non-finite state, no release within ``release_timeout_s`` of swing start and no impact
-  within ``impact_timeout_s`` of the release command each end the throw as failed.
+  limit), non-finite state, no release within ``release_timeout_s`` of swing start, a gripper
+  not reported open within ``opening_timeout_s`` of the release command (the gripper is then
+  commanded closed again) and no impact within ``impact_timeout_s`` of the release command each
+  end the throw as failed.
 * finality: a throw that a watchdog stopped never resumes. Every tick of a throw (any phase)
   fails it "machine link lost: ..." when two consecutive machine states lie more than
   ``max_state_gap_s`` apart in machine time (the machine or its link stalled: the machine's
@@ -54,7 +56,8 @@ Phases (messages.ThrowPhase): preparing -> swinging -> released -> landed | fail
   event with the detail "arm stopped: <reason>") and the throw still lands on its impact report
   (or fails at the impact timeout).
 
-Once a throw ends the executor is idle: valves neutral (references zero), gripper command kept.
+Once a throw ends the executor is idle: valves neutral (references zero), gripper command kept
+(but for a gripper that did not open, commanded closed).
 Every tick of a throw is recorded (runtime.telemetry.TelemetryRecorder).
 """
 
@@ -96,6 +99,15 @@ class ExecutorConfig:
         passive_still_radps: passive joints must be slower than this to start swinging.
         release_timeout_s: the policy must release within this time of swing start.
         impact_timeout_s: an impact must be reported within this time of the release command.
+        opening_timeout_s: the machine must report its gripper open (``MachineState.gripper_open``)
+            within this time of the release command, or the throw fails "gripper did not open" and
+            the gripper is commanded closed again. The opening command is sent once and never again
+            (runtime.service sends gripper commands on change): a machine drops an opening command
+            that answers a state older than runtime.protocol.messages.STALE_COMMAND_S (a stalled
+            runtime or link), and a resent one would release late, where nobody aimed. CHOSEN 1.0 s:
+            about four times the identified opening delay (258 ms mean, 15 ms standard deviation
+            over 39 releases, ../shared/reference/machine-spec.md) and three times the site matrix's
+            worn gripper (0.34 s).
         release_check_radius_m: a release flag whose predicted impact (runtime.release_check) is
             farther than this from the requested target is held, m; None switches the check off.
             CHOSEN 3.0 m: well above the predictor's error on normal throws of the deployed
@@ -117,6 +129,7 @@ class ExecutorConfig:
     passive_still_radps: float = 0.05
     release_timeout_s: float = 10.0
     impact_timeout_s: float = 6.0
+    opening_timeout_s: float = 1.0
     release_check_radius_m: float | None = DEFAULT_RADIUS_M
     max_state_gap_s: float = 0.2
     record_ticks: bool = True
@@ -372,6 +385,11 @@ class ThrowExecutor:
             return self._finish("failed", f"no release within {cfg.release_timeout_s:.0f} s", now)
         if th.release_stamp_s is not None and now - th.release_stamp_s > cfg.impact_timeout_s:
             return self._finish("failed", f"no impact within {cfg.impact_timeout_s:.0f} s of release", now)
+        if (th.release_stamp_s is not None and th.opening_stamp_s is None and not state.gripper_open
+                and now - th.release_stamp_s > cfg.opening_timeout_s):
+            self._gripper_cmd = False  # the payload is still held: an opening now would be a late release
+            return self._finish("failed", f"gripper did not open within {cfg.opening_timeout_s:.1f} s of the release command "
+                                "(the command was lost, or dropped at the machine as stale); payload still held", now)
         if th.arm_stopped is not None:  # a watchdog stopped the arm after the release: it stays stopped
             if th.opening_stamp_s is None and state.gripper_open:
                 th.opening_stamp_s = now

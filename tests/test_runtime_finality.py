@@ -437,3 +437,86 @@ def test_a_watchdog_after_the_release_stops_the_arm_and_the_throw_still_lands(tm
                           impact_stamp_s=st.stamp_s + 0.3, release_pos_m=[3.0, 0.0, 2.0], release_vel_mps=[5.0, 0.0, 3.0])
     done = ex.on_impact(impact).finished
     assert done is not None and done.status == "landed" and done.failure_reason is None
+
+
+def _released(policy: Path, throw_id: str) -> tuple[ThrowExecutor, TwinMachine, float]:
+    """An executor and twin ticked at 100 Hz until the policy's first release command; the
+    release's machine stamp (s)."""
+    ex = ThrowExecutor({"2d": PolicyRunner.load(policy)}, config=ExecutorConfig(release_check_radius_m=None))
+    twin = TwinMachine(SimulatedMachine(seed=2), "m1")
+    assert ex.start(ThrowRequest(throw_id=throw_id, machine_id="m1", mode="2d", target_m=TARGET), twin.state()) is None
+    for _ in range(50):
+        out = ex.tick(twin.state())
+        if out.gripper_open:
+            return ex, twin, twin.state().stamp_s
+        twin.step(out.valve_u, out.gripper_open)
+    raise AssertionError("the policy did not release")
+
+
+def test_a_lost_opening_command_fails_the_throw_and_commands_the_gripper_closed(tmp_path):
+    """Hazard RT14: the opening command is lost on the way or dropped by the machine as stale (a
+    stalled runtime): the gripper stays closed. The throw fails "gripper did not open" about a
+    second after the release command, not "no impact" six seconds later, and the gripper is
+    commanded closed, so that no opening arrives late. Against it: a gripper that opens after
+    its delay, and a worn one three times slower, are not failed."""
+    policy = write_test_policy(tmp_path, "2d", release_after_bias=2.0)  # releases at the first step
+    ex, twin, released_s = _released(policy, "g1")
+    assert ex.phase == "released"
+    commands, out = [], None
+    for _ in range(200):  # the machine never sees the opening: it keeps stepping with the gripper closed
+        twin.step(out.valve_u if out is not None else np.zeros(4), False)
+        out = ex.tick(twin.state())
+        commands.append(out.gripper_open)
+        if out.finished is not None:
+            break
+    done = out.finished
+    assert done is not None and done.status == "failed", done
+    assert done.failure_reason.startswith("gripper did not open within 1.0 s of the release command"), done.failure_reason
+    assert 1.0 < done.end_stamp_s - released_s <= 1.02 and done.opening_stamp_s is None
+    assert commands[0] and not commands[-1] and not any(out.valve_u) and not ex.busy
+    assert twin.sim.payload_attached  # still held: nothing was thrown
+
+    ex, twin, released_s = _released(policy, "g2")  # the twin's gripper opens after its delay (258 ms)
+    out = ex.tick(twin.state())
+    for _ in range(150):
+        twin.step(out.valve_u, out.gripper_open)
+        out = ex.tick(twin.state())
+        assert out.finished is None or not out.finished.failure_reason.startswith("gripper"), out.finished
+        if out.finished is not None:
+            break
+    assert ex.phase in ("released", "idle") and out.gripper_open
+
+    ex, twin, released_s = _released(policy, "g3")  # a worn gripper: open 0.9 s after the command
+    st = twin.state()
+    for k in range(1, 100):
+        out = ex.tick(st.model_copy(update={"stamp_s": released_s + 0.01 * k, "gripper_open": k >= 90}))
+        assert out.finished is None and out.gripper_open
+
+
+def test_the_runtime_sends_the_opening_once_and_closes_the_gripper_after_it_was_lost(tmp_path):
+    """Hazard RT14 through the runtime service: the one opening command is lost before the plant;
+    the throw fails "gripper did not open", the runtime does not resend the opening (it would be
+    a late release) and sends a closing command, which the plant obeys."""
+    from runtime.protocol.messages import GripperCommand
+
+    loop = Loop(write_test_policy(tmp_path, "2d", release_after_bias=2.0))
+    lost, on_gripper = [], loop.inbox.on_gripper
+
+    def lossy(sample) -> None:
+        if decode(GripperCommand, sample.to_bytes()).open:
+            lost.append(sample)
+            return
+        on_gripper(sample)
+
+    loop.inbox.on_gripper = lossy
+    _run(loop, 5)
+    assert decode(ThrowAck, loop.service.handle_throw(_throw("o1"))).accepted
+    for _ in range(600):
+        _run(loop, 1)
+        if loop.results:
+            break
+    result = loop.results[-1]
+    assert result.throw_id == "o1" and result.status == "failed"
+    assert result.failure_reason.startswith("gripper did not open within 1.0 s"), result.failure_reason
+    assert [g.open for g in loop.of(keys.gripper_cmd("m1"), GripperCommand)][-2:] == [True, False] and len(lost) == 1
+    assert not loop.inbox.gripper_open and loop.twin.sim.payload_attached
