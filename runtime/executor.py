@@ -41,7 +41,10 @@ Phases (messages.ThrowPhase): preparing -> swinging -> released -> landed | fail
 * released: the policy keeps running (paper Sec. III). :meth:`on_impact` -> landed, with the
   impact errors of runtime.throw_geometry.impact_errors.
 * every tick of swinging/released: runtime.machine.clearance_violations (ground, cabin, joint
-  limit), non-finite state, no release within ``release_timeout_s`` of swing start, a gripper
+  limit), non-finite state, no release within ``release_timeout_s`` of swing start, a payload
+  lost before the release command (the machine reports its gripper open or the payload no longer
+  attached: a gripper fault or a slipping load; the arm stops at once instead of swinging on with
+  nothing to throw), a gripper
   not reported open within ``opening_timeout_s`` of the release command (the gripper is then
   commanded closed again) and no impact within ``impact_timeout_s`` of the release command each
   end the throw as failed.
@@ -383,6 +386,9 @@ class ThrowExecutor:
                 return self._finish("failed", f"clearance violation: {why}", now)
         if th.release_stamp_s is None and now - th.swing_stamp_s > cfg.release_timeout_s:
             return self._finish("failed", f"no release within {cfg.release_timeout_s:.0f} s", now)
+        if th.release_stamp_s is None and (state.gripper_open or not state.payload_attached):
+            why = "the gripper opened" if state.gripper_open else "the payload is no longer attached"
+            return self._finish("failed", f"payload lost during the swing: {why} without a release command", now)
         if th.release_stamp_s is not None and now - th.release_stamp_s > cfg.impact_timeout_s:
             return self._finish("failed", f"no impact within {cfg.impact_timeout_s:.0f} s of release", now)
         if (th.release_stamp_s is not None and th.opening_stamp_s is None and not state.gripper_open

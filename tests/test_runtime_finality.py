@@ -520,3 +520,19 @@ def test_the_runtime_sends_the_opening_once_and_closes_the_gripper_after_it_was_
     assert result.failure_reason.startswith("gripper did not open within 1.0 s"), result.failure_reason
     assert [g.open for g in loop.of(keys.gripper_cmd("m1"), GripperCommand)][-2:] == [True, False] and len(lost) == 1
     assert not loop.inbox.gripper_open and loop.twin.sim.payload_attached
+
+
+@pytest.mark.parametrize("fault, why", [({"gripper_open": True}, "the gripper opened"),
+                                        ({"payload_attached": False}, "the payload is no longer attached")])
+def test_a_payload_lost_before_the_release_command_stops_the_arm_at_once(holding_path, fault, why):
+    """Hazard RT15: the gripper opens by itself or the load slips out mid-swing (no release was
+    commanded). The throw fails at the first state that shows it with valves neutral, instead of
+    swinging on with nothing to throw until the release timeout (10 s)."""
+    ex, twin = _executor_at_swing(holding_path)
+    out = ex.tick(twin.state())
+    assert out.finished is None and any(out.valve_u)  # swinging, valves driven
+    twin.step(out.valve_u, out.gripper_open)
+    out = ex.tick(twin.state().model_copy(update=fault))
+    assert out.finished is not None and out.finished.status == "failed"
+    assert out.finished.failure_reason == f"payload lost during the swing: {why} without a release command"
+    assert not any(out.valve_u) and not out.gripper_open and not ex.busy
