@@ -52,6 +52,8 @@ import threading
 import time
 from pathlib import Path
 
+import zenoh
+
 from runtime.command_auth import CommandVerifier, load_key
 from runtime.controller import JointVelocityController
 from runtime.entrypoint import module_main, stop_on_signals
@@ -79,6 +81,28 @@ CLOCK_OFFSET_ENV = "SLINGER_CLOCK_OFFSET_S"
 """Fault injection for tests only: this runtime's wall clock runs this many seconds off the
 host's (a host whose time sync failed), without touching the system clock."""
 
+
+
+def declare_publishers(session: zenoh.Session, machine_id: str) -> dict[str, zenoh.Publisher]:
+    """The runtime's publishers, by key (runtime.protocol.keys), with their Zenoh QoS.
+
+    Zenoh publishers drop a sample when the link's transmission queue of their priority is full
+    (congestion control DROP, its default for publications) and batch samples (express off). That
+    suits the 100 Hz streams, where each sample supersedes the last. It does not suit the messages
+    sent once: a GripperCommand goes out only when the command changes (runtime.service), so a
+    dropped opening leaves the payload in the gripper (hazard RT14, docs/safety.md), and the E-STOP's
+    AbortAck confirms a stop. These are sent express on priority lanes of their own, so that the
+    100 Hz valve stream and the status traffic cannot fill their queue: the GripperCommand on
+    INTERACTIVE_HIGH, the AbortAck on REAL_TIME (the lane of the server's E-STOP puts,
+    server.fleet.estop). Still DROP: BLOCK would park the control loop on a dead link.
+    """
+    plain = (keys.valve_cmd(machine_id), keys.status(machine_id), keys.runtime_state(machine_id))
+    pubs = {k: session.declare_publisher(k) for k in plain}
+    pubs[keys.gripper_cmd(machine_id)] = session.declare_publisher(
+        keys.gripper_cmd(machine_id), priority=zenoh.Priority.INTERACTIVE_HIGH, express=True)
+    pubs[keys.estop_ack(machine_id)] = session.declare_publisher(
+        keys.estop_ack(machine_id), priority=zenoh.Priority.REAL_TIME, express=True)
+    return pubs
 
 def offset_clock(offset_text: str | None):
     """The runtime's wall clock: time.time, shifted by ``offset_text`` seconds when given
@@ -205,11 +229,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             return EXIT_ALREADY_CLAIMED
         epoch = int(time.time() * 1000)
         verifier = CommandVerifier(key, epoch, wall_clock=wall_clock) if key is not None else None
-        pubs = {
-            k: session.declare_publisher(k)
-            for k in (keys.valve_cmd(machine_id), keys.gripper_cmd(machine_id), keys.status(machine_id),
-                      keys.runtime_state(machine_id), keys.estop_ack(machine_id))
-        }
+        pubs = declare_publishers(session, machine_id)
         outbox = Outbox(outbox_dir, zenoh_deliverer(session))
         status_pub = session.declare_publisher(keys.policy_status(machine_id))
         service = RuntimeService(machine_id, executor, lambda k, data: pubs[k].put(data), outbox.put,

@@ -4,7 +4,7 @@ Layout::
 
     slinger/machine/<machine_id>/state          MachineState     machine -> *        100 Hz pub
     slinger/machine/<machine_id>/valve_cmd      ValveCommand     runtime -> machine  100 Hz pub
-    slinger/machine/<machine_id>/gripper_cmd    GripperCommand   runtime -> machine  on change
+    slinger/machine/<machine_id>/gripper_cmd    GripperCommand   runtime -> machine  on change (express, INTERACTIVE_HIGH)
     slinger/machine/<machine_id>/impact         ImpactReport     machine -> *        per throw
     slinger/machine/<machine_id>/sim/reset      SimReset         runtime -> sim machine only
     slinger/machine/<machine_id>/alive          liveliness token of the machine bridge / plant
@@ -12,7 +12,7 @@ Layout::
     slinger/runtime/<machine_id>/throw          queryable: ThrowRequest -> ThrowAck
     slinger/runtime/<machine_id>/abort          queryable: AbortRequest -> AbortAck
     slinger/runtime/<machine_id>/estop          AbortRequest     server -> runtime   put (the E-STOP path)
-    slinger/runtime/<machine_id>/estop_ack      AbortAck         runtime -> server   per E-STOP put, after the latch is on disk
+    slinger/runtime/<machine_id>/estop_ack      AbortAck         runtime -> server   per E-STOP put, after the latch is on disk (express, REAL_TIME)
     slinger/runtime/<machine_id>/info           queryable: -> RuntimeInfo
     slinger/runtime/<machine_id>/status         ThrowStatus      runtime -> server   on change
     slinger/runtime/<machine_id>/estop_reset    queryable: EstopReset -> EstopResetAck
@@ -24,6 +24,10 @@ Layout::
     slinger/runtime/<machine_id>/policy/offer   queryable: PolicyOffer -> PolicyOfferAck
     slinger/runtime/<machine_id>/policy/status  PolicyUpdate     runtime -> server   on load / failure
     slinger/server/policy/<sha256>              queryable on the server: -> the ONNX file's bytes
+
+QoS: Zenoh's defaults (priority DATA, congestion control DROP, batched) unless marked; the runtime's
+publishers are declared by runtime.node.declare_publishers, the server's E-STOP puts go express on
+REAL_TIME (server.fleet.estop).
 
 Machine ids are restricted to ``[A-Za-z0-9_-]{1,64}`` so they can never inject key-expression
 wildcards (``*``, ``**``, ``$*``) or separators.
