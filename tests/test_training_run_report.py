@@ -171,6 +171,7 @@ def test_the_far_target_bias_is_the_farthest_targets_and_its_mean_counts_only_la
     (run / "matrices" / "matrix_gate.json").write_text(json.dumps({"seeds": [0, 1], "passed": None, "results": results}))
     out, md = run_report(run, "gpu", "cmd", [], [])
     assert out["mean_far_bias_m"] == {"nominal": 0.2, "sensor_latency": 0.2}
+    assert out["sd_far_bias_m"] == {"nominal": 0.141, "sensor_latency": 0.141}  # 0.1 and 0.3: sample standard deviation
     assert [r["far_bias_m"]["nominal"] for r in out["results"]] == [1.0, 0.1, 5.0, 0.3]
     assert any(line.startswith(f"Mean far-target bias over the seed-0 matrices from iteration {FAR_BIAS_FROM} on (2)") for line in md)
 

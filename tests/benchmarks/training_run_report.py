@@ -13,8 +13,9 @@ the run whose directory holds it.
 For 2D runs each row also gives the far-target bias (:func:`far_bias`: the mean landing minus the
 target at the matrix's farthest target, nominal and sensor-latency profiles), and the run's mean of it
 over the first gate seed's matrices from iteration ``FAR_BIAS_FROM`` on (after the curriculum stage of
-the candidate recipes): the overshoot that stalls runs of those recipes (docs/training.md, "Four more
-seeds, and the far-target overshoot").
+the candidate recipes) with its sample standard deviation over those matrices (how far it moves from
+checkpoint to checkpoint): the overshoot that stalls runs of those recipes (docs/training.md, "Four
+more seeds, and the far-target overshoot").
 
 The report also summarises the run's ``curve.csv`` at up to ``CURVE_ROWS`` checkpoints (evenly
 spaced, the last included): landings, failures and time-outs per finished episode, mean impact
@@ -34,6 +35,7 @@ import argparse
 import hashlib
 import json
 import platform
+import statistics
 import textwrap
 from datetime import UTC, datetime
 from pathlib import Path
@@ -138,6 +140,7 @@ def run_report(run: Path, gpu: str, command: str, after_run: list[Path], gate_un
     late = [r["far_bias_m"] for r in rows if r["seed"] == first_seed and r["iteration"] >= FAR_BIAS_FROM and r["far_bias_m"]]
     mean_far_bias = {name: round(sum(b[name] for b in late) / len(late), 3) for name in FAR_BIAS_PROFILES
                      if late and all(name in b for b in late)}
+    sd_far_bias = {name: round(statistics.stdev(b[name] for b in late), 3) for name in mean_far_bias} if len(late) > 1 else {}
     ckpt = run / "checkpoint.pt"
     policy_sha256 = exported_policy_sha256(run)
     passed = gate["passed"]
@@ -156,6 +159,7 @@ def run_report(run: Path, gpu: str, command: str, after_run: list[Path], gate_un
                                        "far_bias_m")}
                     for r in rows],
         "mean_far_bias_m": mean_far_bias,
+        "sd_far_bias_m": sd_far_bias,
         "mean_far_bias_from_iteration": FAR_BIAS_FROM,
         "first_met_per_profile": first_met,
         "curve": curve_summary(run),
@@ -174,7 +178,8 @@ def run_report(run: Path, gpu: str, command: str, after_run: list[Path], gate_un
         md.append(f"| {it} | {r['train_wall_s'] / 60:.1f} | {r['seed']} | {r['missing_cells']} | {bias} | {miss} |")
     if mean_far_bias:
         md += ["", f"Mean far-target bias over the seed-{first_seed} matrices from iteration {FAR_BIAS_FROM} on ({len(late)}): "
-               + ", ".join(f"{n} {b:+.3f} m" for n, b in mean_far_bias.items()) + "."]
+               + ", ".join(f"{n} {b:+.3f} m" + (f" (standard deviation {sd_far_bias[n]:.3f} m)" if n in sd_far_bias else "")
+                           for n, b in mean_far_bias.items()) + "."]
     md += ["", f"First checkpoint at which each profile met all its bars (seed {first_seed}):", "",
            "| profile | training wall time [min] | iteration | met at every later checkpoint |", "|---|---|---|---|"]
     for name, f in first_met.items():
@@ -278,8 +283,9 @@ def main() -> None:
         lines = [f"# {a.title or 'Training runs'}: wall time to the site-matrix bars", "",
                  f"Date {head['date']}, commit `{commit}`, {a.gpu}.", "",
                  "| run | training seed | far-target style by iteration 250 | every bar on every gate seed | "
-                 f"training wall time to the bars [min] | mean far-target bias from iteration {FAR_BIAS_FROM}, "
-                 + " / ".join(FAR_BIAS_PROFILES) + " [m] | last verdict on a gate seed | held-out seeds |",
+                 f"training wall time to the bars [min] | mean far-target bias from iteration {FAR_BIAS_FROM} "
+                 "(± its standard deviation over those matrices), " + " / ".join(FAR_BIAS_PROFILES)
+                 + " [m] | last verdict on a gate seed | held-out seeds |",
                  "|---|---|---|---|---|---|---|---|"]
         for r, _ in reports:
             on_gate = [x for x in r["results"] if x["seed"] in r["seeds"]]
@@ -296,7 +302,8 @@ def main() -> None:
             lines.append(f"| {Path(r['run']).name} | {seed} | {style_text} | "
                          f"{'yes, ' + first_pass_text(r['first_pass']) if r['first_pass'] else 'no'} | "
                          f"{r['bars_wall_min'] if r['bars_wall_min'] is not None else 'not met'} | "
-                         + (" / ".join(f"{r['mean_far_bias_m'][n]:+.3f}" for n in FAR_BIAS_PROFILES)
+                         + (" / ".join(f"{r['mean_far_bias_m'][n]:+.3f}" + (f" ± {r['sd_far_bias_m'][n]:.3f}" if n in r.get("sd_far_bias_m", {}) else "")
+                                       for n in FAR_BIAS_PROFILES)
                             if len(r["mean_far_bias_m"]) == len(FAR_BIAS_PROFILES) else "-") + f" | {verdict} | {held_out} |")
         a.out.with_suffix(".json").write_text(json.dumps({**head, "gpu": a.gpu, "runs": [r for r, _ in reports]}, indent=2) + "\n")
         for (r, md) in reports:
