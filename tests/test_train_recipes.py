@@ -124,3 +124,34 @@ def test_the_nominal_share_recipe_is_the_candidate_with_only_its_nominal_fractio
     changed = {k for k in candidate.keys() | nominal.keys() if candidate.get(k) != nominal.get(k)}
     assert changed == {("env", "randomization", "nominal_fraction")}
     assert nominal[("env", "randomization", "nominal_fraction")] == 0.25
+
+
+def test_the_centred_recipe_puts_the_nominal_machine_near_the_middle_of_its_ranges():
+    """sim_twin/configs/throw_2d_centred.json: the candidate with the ranges that had the nominal
+    machine at their fast, light end moved so that it sits near their middle (friction in its
+    logarithm), each keeping the slow or heavy end the site profiles need; nothing else changed."""
+    import math
+
+    from sim_twin.training.mjx_env import nominal_machine
+
+    rand = ("env", "randomization")
+    candidate = _flat(_without_notes(ROOT / "sim_twin" / "configs" / "throw_2d_candidate.json"))
+    centred = _flat(_without_notes(ROOT / "sim_twin" / "configs" / "throw_2d_centred.json"))
+    changed = {k for k in candidate.keys() | centred.keys() if candidate.get(k) != centred.get(k)}
+    moved = {"dead_band", "valve_delay_s", "lag_s", "velocity_scale", "friction_scale", "gripper_mass_scale"}
+    assert changed == {(*rand, name) for name in moved | {"friction_sampling"}}
+    assert centred[(*rand, "friction_sampling")] == "log_uniform"
+    nominal = nominal_machine()
+    for name in moved:
+        lo, hi = centred[(*rand, name)]
+        old_lo, old_hi = candidate[(*rand, name)]
+        assert lo <= old_lo and (hi == old_hi or name == "velocity_scale"), name  # wider, never narrower
+        if name == "velocity_scale":  # the slow end is the low one: kept, the fast end widened
+            assert lo == old_lo and hi > old_hi
+        if name == "friction_scale":
+            middle, width = math.sqrt(lo * hi), math.log(hi / lo)
+            assert abs(math.log(middle / nominal[name])) < 0.01 * width
+        else:
+            middle, width = (lo + hi) / 2, hi - lo
+            old_off = abs((old_lo + old_hi) / 2 - nominal[name]) / (old_hi - old_lo)
+            assert abs(middle - nominal[name]) / width < min(0.1, old_off), (name, middle, nominal[name])
