@@ -82,7 +82,6 @@ CLOCK_OFFSET_ENV = "SLINGER_CLOCK_OFFSET_S"
 host's (a host whose time sync failed), without touching the system clock."""
 
 
-
 def declare_publishers(session: zenoh.Session, machine_id: str) -> dict[str, zenoh.Publisher]:
     """The runtime's publishers, by key (runtime.protocol.keys), with their Zenoh QoS.
 
@@ -103,6 +102,7 @@ def declare_publishers(session: zenoh.Session, machine_id: str) -> dict[str, zen
     pubs[keys.estop_ack(machine_id)] = session.declare_publisher(
         keys.estop_ack(machine_id), priority=zenoh.Priority.REAL_TIME, express=True)
     return pubs
+
 
 def offset_clock(offset_text: str | None):
     """The runtime's wall clock: time.time, shifted by ``offset_text`` seconds when given

@@ -202,10 +202,16 @@ def test_a_late_state_is_dropped_and_fails_the_throw(holding_path):
     assert all(not any(v.u) for v in loop.of(keys.valve_cmd("m1"), ValveCommand, mark))
 
 
-def _executor_at_swing(policy: Path) -> tuple[ThrowExecutor, TwinMachine]:
+def _started(policy: Path, throw_id: str) -> tuple[ThrowExecutor, TwinMachine]:
+    """An executor (release check off) that has started throw ``throw_id`` on a simulated machine."""
     ex = ThrowExecutor({"2d": PolicyRunner.load(policy)}, config=ExecutorConfig(release_check_radius_m=None))
     twin = TwinMachine(SimulatedMachine(seed=2), "m1")
-    assert ex.start(ThrowRequest(throw_id="e1", machine_id="m1", mode="2d", target_m=TARGET), twin.state()) is None
+    assert ex.start(ThrowRequest(throw_id=throw_id, machine_id="m1", mode="2d", target_m=TARGET), twin.state()) is None
+    return ex, twin
+
+
+def _executor_at_swing(policy: Path) -> tuple[ThrowExecutor, TwinMachine]:
+    ex, twin = _started(policy, "e1")
     for _ in range(20):
         out = ex.tick(twin.state())
         twin.step(out.valve_u, out.gripper_open)
@@ -419,9 +425,7 @@ def test_a_watchdog_after_the_release_stops_the_arm_and_the_throw_still_lands(tm
     from runtime.protocol.messages import ImpactReport
 
     policy = write_test_policy(tmp_path, "2d", release_after_bias=2.0)  # releases at the first step
-    ex = ThrowExecutor({"2d": PolicyRunner.load(policy)}, config=ExecutorConfig(release_check_radius_m=None))
-    twin = TwinMachine(SimulatedMachine(seed=2), "m1")
-    assert ex.start(ThrowRequest(throw_id="r1", machine_id="m1", mode="2d", target_m=TARGET), twin.state()) is None
+    ex, twin = _started(policy, "r1")
     for _ in range(5):
         out = ex.tick(twin.state())
         twin.step(out.valve_u, out.gripper_open)
@@ -442,9 +446,7 @@ def test_a_watchdog_after_the_release_stops_the_arm_and_the_throw_still_lands(tm
 def _released(policy: Path, throw_id: str) -> tuple[ThrowExecutor, TwinMachine, float]:
     """An executor and twin ticked at 100 Hz until the policy's first release command; the
     release's machine stamp (s)."""
-    ex = ThrowExecutor({"2d": PolicyRunner.load(policy)}, config=ExecutorConfig(release_check_radius_m=None))
-    twin = TwinMachine(SimulatedMachine(seed=2), "m1")
-    assert ex.start(ThrowRequest(throw_id=throw_id, machine_id="m1", mode="2d", target_m=TARGET), twin.state()) is None
+    ex, twin = _started(policy, throw_id)
     for _ in range(50):
         out = ex.tick(twin.state())
         if out.gripper_open:

@@ -302,7 +302,7 @@ def main() -> None:
             lines.append(f"| {Path(r['run']).name} | {seed} | {style_text} | "
                          f"{'yes, ' + first_pass_text(r['first_pass']) if r['first_pass'] else 'no'} | "
                          f"{r['bars_wall_min'] if r['bars_wall_min'] is not None else 'not met'} | "
-                         + (" / ".join(f"{r['mean_far_bias_m'][n]:+.3f}" + (f" ± {r['sd_far_bias_m'][n]:.3f}" if n in r.get("sd_far_bias_m", {}) else "")
+                         + (" / ".join(f"{r['mean_far_bias_m'][n]:+.3f}" + (f" ± {r['sd_far_bias_m'][n]:.3f}" if n in r["sd_far_bias_m"] else "")
                                        for n in FAR_BIAS_PROFILES)
                             if len(r["mean_far_bias_m"]) == len(FAR_BIAS_PROFILES) else "-") + f" | {verdict} | {held_out} |")
         a.out.with_suffix(".json").write_text(json.dumps({**head, "gpu": a.gpu, "runs": [r for r, _ in reports]}, indent=2) + "\n")
