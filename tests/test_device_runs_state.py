@@ -127,26 +127,85 @@ def test_after_starts_the_next_run_once_the_previous_one_has_stopped(tmp_path):
     assert not subprocess.run(["pgrep", "-f", "slinger-[a]fter"], capture_output=True).stdout  # the waiter is gone
 
 
-def test_state_keeps_the_gpu_record_the_machine_logs_and_the_candidate_under_test(tmp_path):
-    """A run resumed on a second machine keeps the first machine's GPU record and log, and the gate's
-    candidate under test (matrix_gate.json's pending) comes along so that the resumed gate judges it
-    again; the other candidates stay behind."""
+def _run_with_pending(tmp_path: Path, candidate_files: list[str]) -> Path:
+    """A run directory whose gate had iteration 575 under test at seed index 1."""
     import json
 
     src = tmp_path / "runs" / "throw2d-x"
     for rel in ["checkpoint.pt", "config.json", "accelerators.json", "logs/machine1.log.gz",
-                "candidates/checkpoint_550.onnx", "candidates/checkpoint_575.onnx", "candidates/checkpoint_575.pt"]:
+                "candidates/checkpoint_550.onnx", "candidates/checkpoint_550.json", *candidate_files]:
         (src / rel).parent.mkdir(parents=True, exist_ok=True)
         (src / rel).write_text(rel)
     (src / "matrices").mkdir()
     (src / "matrices" / "matrix_gate.json").write_text(json.dumps({"results": [], "pending": {
         "iteration": 575, "onnx": "runs/throw2d-x/candidates/checkpoint_575.onnx", "train_wall_s": 646.0, "seed_index": 1}}))
+    return src
+
+
+class _PassingGate:
+    """A MatrixGate whose site matrix is a one-cell report that meets its bar (the files the
+    resumed gate looks for are what this test is about, not the matrix)."""
+
+    @staticmethod
+    def make(out_dir: Path):
+        import sys
+
+        from sim_twin.training.matrix_gate import MatrixGate
+
+        class Gate(MatrixGate):
+            def command(self, onnx, seed, out):
+                rep = {"pass": True, "profiles": [{"name": "nominal", "targets": [{"target_m": 10.0, "bars": {"accuracy": True}}]}]}
+                return [sys.executable, "-c", f"import json; open({out!r}, 'w').write(json.dumps({rep!r}))"]
+
+        return Gate(out_dir, "2d", seeds=[0, 1], workers=1, clock=lambda: 700.0, judge_after_pass=True)
+
+
+def test_state_carries_the_candidate_under_test_that_the_resumed_gate_judges_again(tmp_path):
+    """A run resumed on a second machine keeps the first machine's GPU record and log, and the gate's
+    candidate under test (matrix_gate.json's pending) comes along whole: its ONNX file, its manifest
+    (judging loads the policy through it) and its checkpoint (exporting it once it passed); the
+    other candidates stay behind. Unpacked, a gate on that state judges the candidate again from the
+    seed it had reached (a state carrying only the ONNX file left the resumed gate a matrix that
+    could not load the policy)."""
+    src = _run_with_pending(tmp_path, ["candidates/checkpoint_575.onnx", "candidates/checkpoint_575.json",
+                                       "candidates/checkpoint_575.pt"])
     r = _state(tmp_path, str(src), "throw2d-x")
     assert r.returncode == 0, r.stderr
-    with tarfile.open(tmp_path / "runs" / "state" / "throw2d-x.tar") as t:
+    assert "is not there" not in r.stderr
+    tar = tmp_path / "runs" / "state" / "throw2d-x.tar"
+    with tarfile.open(tar) as t:
         files = sorted(m.name for m in t.getmembers() if m.isfile())
-    assert files == [f"runs/throw2d-x/{rel}" for rel in ["accelerators.json", "candidates/checkpoint_575.onnx", "checkpoint.pt",
-                                                          "config.json", "logs/machine1.log.gz", "matrices/matrix_gate.json"]]
+    assert files == [f"runs/throw2d-x/{rel}" for rel in [
+        "accelerators.json", "candidates/checkpoint_575.json", "candidates/checkpoint_575.onnx", "candidates/checkpoint_575.pt",
+        "checkpoint.pt", "config.json", "logs/machine1.log.gz", "matrices/matrix_gate.json"]]
+
+    machine2 = tmp_path / "machine2"
+    machine2.mkdir()
+    subprocess.run(["tar", "xf", str(tar)], cwd=machine2, check=True)
+    gate = _PassingGate.make(machine2 / "runs" / "throw2d-x" / "matrices")
+    assert gate.resume_pending()
+    passed = gate.wait(60)
+    assert passed is not None and passed["iteration"] == 575 and passed["train_wall_s"] == 646.0
+    assert [(r.iteration, r.seed) for r in gate.results] == [(575, 1)]  # seed 0 had been met on the first machine
+
+
+def test_a_state_without_the_candidates_manifest_says_so_and_the_resumed_gate_drops_it(tmp_path, caplog):
+    """A candidate whose manifest is missing (a run directory trimmed by hand) is packed without it
+    with a warning on stderr; the resumed gate drops it with a warning naming the file instead of
+    starting a matrix that fails to load the policy, and takes new candidates."""
+    src = _run_with_pending(tmp_path, ["candidates/checkpoint_575.onnx", "candidates/checkpoint_575.pt"])
+    r = _state(tmp_path, str(src), "throw2d-x")
+    assert r.returncode == 0, r.stderr
+    assert "checkpoint_575.json is not there" in r.stderr
+    machine2 = tmp_path / "machine2"
+    machine2.mkdir()
+    subprocess.run(["tar", "xf", str(tmp_path / "runs" / "state" / "throw2d-x.tar")], cwd=machine2, check=True)
+    gate = _PassingGate.make(machine2 / "runs" / "throw2d-x" / "matrices")
+    with caplog.at_level("WARNING", logger="sim_twin.training.matrix_gate"):
+        assert not gate.resume_pending()
+    assert "checkpoint_575.json not there" in caplog.text and not gate.busy
+    assert gate.submit(600, str(machine2 / "c600.onnx"), 0.0)
+    gate.stop()
 
 
 def test_collect_names_each_machines_log_in_turn(tmp_path):

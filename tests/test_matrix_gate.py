@@ -145,7 +145,8 @@ def test_a_resumed_run_judges_the_candidate_under_test_again_from_its_seed(tmp_p
     FakeGate.passing = {5}
     onnx = tmp_path / "cand" / "checkpoint_5.onnx"
     onnx.parent.mkdir()
-    onnx.write_text("policy")
+    for suffix in (".onnx", ".json", ".pt"):  # the candidate's files: policy, manifest, checkpoint
+        onnx.with_suffix(suffix).write_text("policy")
     gate = SlowSecondSeed(tmp_path, "2d", seeds=[0, 1], workers=1, clock=lambda: 700.0)
     assert gate.submit(5, str(onnx), train_wall_s=645.0)
     deadline = time.time() + 60

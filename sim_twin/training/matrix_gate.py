@@ -39,6 +39,13 @@ PENDING_KEYS = ("iteration", "onnx", "train_wall_s", "seed_index")
 """What ``matrix_gate.json``'s ``pending`` keeps of the candidate under test (a resumed run's gate
 judges it again from ``seed_index``)."""
 
+CANDIDATE_SUFFIXES = (".onnx", ".json", ".pt")
+"""The files of one candidate, ``candidates/checkpoint_<iteration>`` with these suffixes: the ONNX file
+and its manifest, which judging it needs (``slinger evaluate`` loads the policy through its
+manifest), and the checkpoint, which exporting it needs once it passed (``TrainingRun.finish``). A
+state that resumes a run carries all three of the candidate under test
+(``tests/benchmarks/device_runs.sh state``)."""
+
 
 @dataclass
 class MatrixResult:
@@ -158,8 +165,9 @@ class MatrixGate:
         reached: the seeds it met stay met. Call it once, before :meth:`watch`, in a resumed run.
         The ONNX file is looked for where the state names it, else in ``candidates/`` beside the
         gate's directory (a run resumed under another name). Returns whether a matrix started; a
-        candidate whose ONNX file is in neither place (a state packed without it) is dropped with a
-        warning."""
+        candidate missing any of its files (:data:`CANDIDATE_SUFFIXES`: a state packed without
+        them) is dropped with a warning naming them, instead of starting a matrix that cannot load
+        the policy."""
         with self._lock:
             cand, self._pending = self._pending, None
             if cand is None or self.busy or (self.passed and not self.judge_after_pass):
@@ -168,8 +176,9 @@ class MatrixGate:
             if not onnx.exists():  # a run resumed under another directory: its candidates/ beside matrices/
                 onnx = self.out_dir.parent / "candidates" / onnx.name
                 cand = {**cand, "onnx": str(onnx)}
-            if not onnx.exists():
-                log.warning("site matrix of iteration %d is not judged again: %s is not there", cand["iteration"], cand["onnx"])
+            missing = [str(onnx.with_suffix(x)) for x in CANDIDATE_SUFFIXES if not onnx.with_suffix(x).exists()]
+            if missing:
+                log.warning("site matrix of iteration %d is not judged again: %s not there", cand["iteration"], ", ".join(missing))
                 return False
             self._cand = {k: cand[k] for k in PENDING_KEYS}
             log.info("judging iteration %d again from seed %d (under test when the run stopped)",

@@ -116,7 +116,7 @@ watch() {
 }
 
 state() {
-  # What resuming needs and nothing else (TensorBoard events and candidate checkpoints stay behind:
+  # What resuming needs and nothing else (TensorBoard events and the other candidates stay behind:
   # the tree and the carried paths of a device call share 64 MiB), under runs/NAME/ as `start` expects.
   local src=${1%/} name=$2 dest=${3:-runs/state} tmp
   [ -f "$src/checkpoint.pt" ] && [ -f "$src/config.json" ] || { echo "state: $src has no checkpoint.pt and config.json" >&2; return 1; }
@@ -124,11 +124,17 @@ state() {
   mkdir -p "$tmp/runs/$name" "$dest"
   cp "$src/checkpoint.pt" "$src/config.json" "$tmp/runs/$name/"
   for f in curve.csv matrices accelerators.json logs; do [ -e "$src/$f" ] && cp -r "$src/$f" "$tmp/runs/$name/"; done
-  # the candidate the gate had under test (matrix_gate.json's pending), which the resumed run judges again
+  # the candidate the gate had under test (matrix_gate.json's pending), which the resumed run judges again:
+  # its ONNX file and manifest (judging loads the policy through the manifest) and its checkpoint
+  # (exporting it once it passed); sim_twin.training.matrix_gate.CANDIDATE_SUFFIXES
   local pending=$(python3 -c "import json, sys; p = json.load(open(sys.argv[1])).get('pending'); print(p['onnx'] if p else '')" \
     "$src/matrices/matrix_gate.json" 2>/dev/null)
-  if [ -n "$pending" ] && [ -f "$src/candidates/$(basename $pending)" ]; then
-    mkdir -p "$tmp/runs/$name/candidates" && cp "$src/candidates/$(basename $pending)" "$tmp/runs/$name/candidates/"
+  if [ -n "$pending" ]; then
+    local stem=$src/candidates/$(basename ${pending%.onnx})
+    mkdir -p "$tmp/runs/$name/candidates"
+    for x in onnx json pt; do
+      [ -f "$stem.$x" ] && cp "$stem.$x" "$tmp/runs/$name/candidates/" || echo "state: $stem.$x is not there; the resumed gate will not judge it again" >&2
+    done
   fi
   # the gate's plots stay behind: their JSON and tables carry the same figures
   tar cf - -C "$tmp" --exclude="*.png" "runs/$name" | gzip -9 > "$dest/$name.tar"
