@@ -76,7 +76,7 @@ def test_a_bfloat16_update_trains_with_the_float32_actor_and_its_checkpoint_load
 def test_on_a_trained_actor_the_rounding_alone_passes_desired_kl_at_the_std_floor():
     """The committed throw2d-scratch-at actor (trained with the bfloat16 update): at its std floor
     0.05 the bfloat16 update's rounding alone is a KL above the recipe's desired_kl, with the actor
-    in float32 none (reports/training_policy_rounding_2d.md measures it on 65536 observations)."""
+    in float32 none (reports/training_policy_rounding_2d.md, in the lab notebook, measures it on 65536 observations)."""
     from pathlib import Path
 
     from sim_twin.training.export import load_actor

@@ -9,12 +9,12 @@ of about 0.5-1). Against a Gaussian of standard deviation σ that is a KL diverg
 Σ δ²/(2σ²) per sample and a log-ratio error of about δ/σ per action: at the recipes' std floor
 σ = 0.05 the rounding alone gives a KL of 0.011-0.014, above rsl_rl's adaptive-schedule target
 ``desired_kl`` 0.01, so the learning rate can only fall, and 12-18 % of the ratios leave PPO's
-clip range 0.2 with no change to the weights (``reports/training_policy_rounding_2d.md``).
+clip range 0.2 with no change to the weights (``reports/training_policy_rounding_2d.md``, in the lab notebook: reports/ARCHIVE.md).
 
 ``Float32MLPModel`` runs the actor with autocast switched off, so the update's policy mean is the
 rollout's to the bit and only the critic's arithmetic is bfloat16 (a value off by its rounding,
 at most 0.06 for values under 32, where the 2D episode returns are about 25, changes the value loss
-by far less than its size, 1.3-2.1 in the runs of reports/training_policy_rounding_2d.md).
+by far less than its size, 1.3-2.1 in the runs of reports/training_policy_rounding_2d.md, in the lab notebook).
 Select it in a recipe with ``runner.actor.class_name`` ``"sim_twin.training.models:Float32MLPModel"``
 (rsl_rl resolves "module:Class"); its state dict is MLPModel's, so checkpoints resume and export
 (sim_twin.training.export builds an MLPModel) either way.

@@ -1,0 +1,136 @@
+"""Where does a 2D policy's far-target bias sit between the nominal machine and its training
+distribution? Several ``tests.benchmarks.training_twin_bias --training-dist`` outputs side by side.
+
+    python -m tests.benchmarks.training_skew_report LABEL=BIAS.json [LABEL=BIAS.json ...] \
+        --out reports/training_skew_2d [--title TITLE]
+
+Each BIAS.json is a ``training_twin_bias --json`` output of one policy with ``--training-dist`` (and
+its default env-delay rollout ``env``). Per policy and target the report gives, in the MJX training
+environment and from the same start poses and targets (the site matrix's seed-0 poses):
+
+* the mean signed downrange error on the **nominal machine** (``env``: the config narrowed to the
+  nominal machine, the environment's own release delays) and on the **training distribution**
+  (``training-dist``: the config's own randomisation), each with its standard error;
+* the **skew**: nominal minus training distribution, paired throw by throw over the throws that landed
+  in both, with the standard error of the paired mean. A skew of zero means the nominal machine lands
+  where the policy's training distribution lands on average; a positive skew is the nominal machine
+  throwing long relative to the policy's own training (docs/training.md, "Four more seeds, and the
+  far-target overshoot").
+
+Writes ``<out>.json`` (per policy: the benchmark's arguments and the rows), ``<out>.md`` and
+``<out>.png`` (the skew against the target, one line per policy, ± 1 standard error). Raises
+SystemExit with a message for an input without the ``env`` or ``training-dist`` rollout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+from pathlib import Path
+
+
+def _mean_se(xs: list[float]) -> tuple[float, float]:
+    """Mean and standard error of the mean of ``xs`` (nan for fewer than two values)."""
+    if len(xs) < 2:
+        return (xs[0] if xs else math.nan), math.nan
+    return statistics.fmean(xs), statistics.stdev(xs) / math.sqrt(len(xs))
+
+
+def _relative(path: str) -> str:
+    """``path`` relative to the working directory where it lies under it (the benchmark records what it was given)."""
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd()))
+    except ValueError:
+        return path
+
+
+def skew_rows(bench: dict) -> list[dict]:
+    """Per target of one ``training_twin_bias`` output: nominal-machine and training-distribution bias
+    [m] with standard errors, and the paired skew (nominal - training distribution) [m].
+
+    Raises:
+        ValueError: the output has no ``env`` or no ``training-dist`` rollout.
+    """
+    env = bench.get("env", {})
+    for name in ("env", "training-dist"):
+        if name not in env:
+            raise ValueError(f"no '{name}' rollout (run training_twin_bias with --training-dist and env in --env-delay)")
+    rows = []
+    for target in env["env"]:
+        nom, dist = env["env"][target], env["training-dist"][target]
+        pairs = [(a["downrange_m"], b["downrange_m"]) for a, b in zip(nom, dist, strict=True)
+                 if a["landed"] and b["landed"]]
+        nb, ns = _mean_se([a["downrange_m"] for a in nom if a["landed"]])
+        db, ds = _mean_se([b["downrange_m"] for b in dist if b["landed"]])
+        sk, ss = _mean_se([a - b for a, b in pairs])
+        rows.append({"target_m": float(target), "throws": len(nom), "pairs": len(pairs),
+                     "nominal_bias_m": nb, "nominal_se_m": ns, "training_dist_bias_m": db, "training_dist_se_m": ds,
+                     "skew_m": sk, "skew_se_m": ss})
+    return rows
+
+
+def render(policies: list[dict], title: str) -> list[str]:
+    """The report's Markdown lines: one table of every policy and target."""
+    lines = [f"# {title}", "", "Positive = long; ± one standard error of the mean; skew = nominal machine - training "
+             "distribution, paired throw by throw (same start pose and target).", "",
+             "| policy | training config | target [m] | nominal machine [m] | training distribution [m] | skew [m] |",
+             "|---|---|---|---|---|---|"]
+    for p in policies:
+        for r in p["rows"]:
+            lines.append(f"| {p['label']} | `{p['config']}` | {r['target_m']:g} | {r['nominal_bias_m']:+.3f} ± {r['nominal_se_m']:.3f} "
+                         f"| {r['training_dist_bias_m']:+.3f} ± {r['training_dist_se_m']:.3f} | **{r['skew_m']:+.3f}** ± {r['skew_se_m']:.3f} |")
+    return lines + [""]
+
+
+def plot(policies: list[dict], path: Path) -> None:
+    """The skew against the target distance, one line per policy, error bars ± 1 SE."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    for k, p in enumerate(policies):
+        xs = [r["target_m"] + 0.04 * (k - len(policies) / 2) for r in p["rows"]]
+        ax.errorbar(xs, [r["skew_m"] for r in p["rows"]], yerr=[r["skew_se_m"] for r in p["rows"]], marker="o",
+                    capsize=3, label=p["label"])
+    ax.axhline(0.0, color="0.6", lw=0.8)
+    ax.set_xlabel("target distance [m]")
+    ax.set_ylabel("nominal - training distribution [m]")
+    ax.set_title("2D far-target bias: nominal machine - training distribution (MJX environment)", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("inputs", nargs="+", metavar="LABEL=BIAS.json", help="a label and a training_twin_bias --json output")
+    ap.add_argument("--out", type=Path, required=True, help="output stem (.json, .md, .png)")
+    ap.add_argument("--title", default="Far-target bias of 2D policies: nominal machine against the training distribution")
+    args = ap.parse_args(argv)
+    policies = []
+    for spec in args.inputs:
+        label, sep, path = spec.partition("=")
+        if not sep or not label:
+            raise SystemExit(f"training_skew_report: expected LABEL=BIAS.json, got {spec!r}")
+        bench = json.loads(Path(path).read_text())
+        try:
+            rows = skew_rows(bench)
+        except ValueError as e:
+            raise SystemExit(f"training_skew_report: {path}: {e}") from None
+        policies.append({"label": label, "policy": _relative(bench["args"]["policy"]), "config": _relative(bench["args"]["config"]),
+                         "benchmark_args": bench["args"], "rows": rows})
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".json").write_text(json.dumps({"title": args.title, "policies": policies}, indent=2) + "\n")
+    args.out.with_suffix(".md").write_text("\n".join(render(policies, args.title)))
+    plot(policies, args.out.with_suffix(".png"))
+    print("\n".join(render(policies, args.title)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
