@@ -110,6 +110,7 @@ SLOW_TESTS = {
     "tests/test_matrix_gate.py": "processes",
     "tests/test_device_runs_state.py::test_state_carries_the_candidate_under_test_that_the_resumed_gate_judges_again": "processes",
     "tests/test_device_runs_state.py::test_a_state_without_the_candidates_manifest_says_so_and_the_resumed_gate_drops_it": "processes",
+    "tests/test_device_runs_state.py::test_state_carries_the_candidates_that_met_the_bars_which_the_resumed_run_exports": "processes",
     "tests/test_pools.py": "processes",
     "tests/test_hazard_table.py::test_pytest_collects_every_named_test": "processes",
     "tests/test_plant.py::test_the_in_process_twin_runs_without_zenoh": "processes",

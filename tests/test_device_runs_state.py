@@ -128,7 +128,8 @@ def test_after_starts_the_next_run_once_the_previous_one_has_stopped(tmp_path):
 
 
 def _run_with_pending(tmp_path: Path, candidate_files: list[str]) -> Path:
-    """A run directory whose gate had iteration 575 under test at seed index 1."""
+    """A run directory whose gate had iteration 575 under test at seed index 1 (``candidate_files``: the
+    files under ``candidates/`` besides iteration 550's, which no state carries)."""
     import json
 
     src = tmp_path / "runs" / "throw2d-x"
@@ -187,6 +188,33 @@ def test_state_carries_the_candidate_under_test_that_the_resumed_gate_judges_aga
     passed = gate.wait(60)
     assert passed is not None and passed["iteration"] == 575 and passed["train_wall_s"] == 646.0
     assert [(r.iteration, r.seed) for r in gate.results] == [(575, 1)]  # seed 0 had been met on the first machine
+
+
+def test_state_carries_the_candidates_that_met_the_bars_which_the_resumed_run_exports(tmp_path):
+    """A run training past the bars (--no-stop-at-bars) exports the newest candidate that met them,
+    a run stopping at them the first: the state carries both (with the one under test) whole, and not
+    the passes between them, and a gate on the state unpacked under another name finds them."""
+    import json
+
+    files = [f"candidates/checkpoint_{it}.{x}" for it in (500, 575, 800, 1000) for x in ("onnx", "json", "pt")]
+    src = _run_with_pending(tmp_path, files)
+    gate_json = src / "matrices" / "matrix_gate.json"
+    state = json.loads(gate_json.read_text())
+    passes = [{"iteration": it, "onnx": f"runs/throw2d-x/candidates/checkpoint_{it}.onnx", "train_wall_s": it * 1.0,
+               "verdict_wall_s": it * 1.1} for it in (500, 800, 1000)]
+    state.update(passed=passes[0], passes=passes,
+                 pending={"iteration": 575, "onnx": "runs/throw2d-x/candidates/checkpoint_575.onnx", "train_wall_s": 575.0, "seed_index": 1})
+    gate_json.write_text(json.dumps(state))
+    r = _state(tmp_path, str(src), "throw2d-y")
+    assert r.returncode == 0 and "is not there" not in r.stderr, r.stderr
+    machine2 = tmp_path / "machine2"
+    machine2.mkdir()
+    subprocess.run(["tar", "xf", str(tmp_path / "runs" / "state" / "throw2d-y.tar")], cwd=machine2, check=True)
+    kept = sorted(p.name for p in (machine2 / "runs" / "throw2d-y" / "candidates").iterdir())
+    assert kept == [f"checkpoint_{it}.{x}" for it in (1000, 500, 575) for x in ("json", "onnx", "pt")]
+    gate = _PassingGate.make(machine2 / "runs" / "throw2d-y" / "matrices")
+    assert gate.passes[-1]["iteration"] == 1000 and gate.locate(gate.passes[-1]["onnx"]).with_suffix(".pt").exists()
+    assert gate.locate(gate.passed["onnx"]).with_suffix(".pt").read_text() == "candidates/checkpoint_500.pt"
 
 
 def test_a_state_without_the_candidates_manifest_says_so_and_the_resumed_gate_drops_it(tmp_path, caplog):

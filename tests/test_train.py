@@ -152,6 +152,54 @@ def test_the_run_stops_at_the_bars_or_trains_past_them(tmp_path, monkeypatch, st
         assert card["iteration"] == gate["passes"][-1]["iteration"] > gate["passed"]["iteration"]
 
 
+def test_a_run_resumed_from_its_state_elsewhere_exports_the_pass_it_carried(tmp_path, monkeypatch):
+    """--no-stop-at-bars: every candidate passes on the first machine; the run's state
+    (tests/benchmarks/device_runs.sh state, under another name) resumes on a second machine, where the
+    first machine's directory is gone and every candidate misses. The export is the first machine's
+    newest pass, found in the state, not a crash on its path there; a run whose state lacks that
+    checkpoint fails with a clear error."""
+    import json
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from sim_twin.training.matrix_gate import MatrixGate
+
+    def verdict(ok):
+        def command(self, onnx, seed, out):
+            rep = {"pass": ok, "profiles": [{"name": "nominal", "targets": [{"target_m": 10.0, "bars": {"accuracy": ok}}]}]}
+            return [sys.executable, "-c", f"import json; open({out!r}, 'w').write(json.dumps({rep!r}))"]
+        return command
+
+    monkeypatch.setattr(MatrixGate, "command", verdict(True))
+    first = tmp_path / "m1"
+    assert train.run(_args(first, gate=True, iterations=3, gate_seeds="0", gate_workers=1, gate_wait_minutes=5,
+                           no_stop_at_bars=True)) == 0
+    newest = json.loads((first / "run" / "matrices" / "matrix_gate.json").read_text())["passes"][-1]
+    script = Path(__file__).resolve().parents[1] / "tests" / "benchmarks" / "device_runs.sh"
+    second = tmp_path / "m2"
+    second.mkdir()
+    subprocess.run(["bash", str(script), "state", str(first / "run"), "moved", str(second)], check=True, capture_output=True)
+    shutil.rmtree(first)  # the first machine is gone
+    subprocess.run(["tar", "xf", "moved.tar"], cwd=second, check=True)
+    run2 = second / "runs" / "moved"
+
+    monkeypatch.setattr(MatrixGate, "command", verdict(False))
+    args = _args(tmp_path, gate=True, iterations=1, gate_seeds="0", gate_workers=1, gate_wait_minutes=5,
+                 no_stop_at_bars=True, resume=run2 / "checkpoint.pt", log_dir=run2)
+    assert train.run(args) == 0
+    card = json.loads((run2 / "throw2d.card.json").read_text())
+    assert card["bars_met"] is True and card["iteration"] == newest["iteration"]
+
+    (run2 / "candidates" / f"checkpoint_{newest['iteration']}.pt").unlink()  # a state without it
+    (run2 / "throw2d.onnx").unlink()
+    args = _args(tmp_path, gate=True, iterations=1, gate_seeds="0", gate_workers=1, gate_wait_minutes=5,
+                 no_stop_at_bars=True, resume=run2 / "checkpoint.pt", log_dir=run2)
+    with pytest.raises(FileNotFoundError, match=f"iteration {newest['iteration']}"):
+        train.run(args)
+
+
 def test_std_schedule_caps_the_learned_std():
     s = training_config.StdSchedule.from_dict({"start": 0.6, "end": 0.06, "iterations": 100})
     assert s.cap(0) == pytest.approx(0.6) and s.cap(50) == pytest.approx(0.6 * 0.1**0.5) and s.cap(500) == pytest.approx(0.06)

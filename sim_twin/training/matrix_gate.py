@@ -172,10 +172,8 @@ class MatrixGate:
             cand, self._pending = self._pending, None
             if cand is None or self.busy or (self.passed and not self.judge_after_pass):
                 return False
-            onnx = Path(cand["onnx"])
-            if not onnx.exists():  # a run resumed under another directory: its candidates/ beside matrices/
-                onnx = self.out_dir.parent / "candidates" / onnx.name
-                cand = {**cand, "onnx": str(onnx)}
+            onnx = self.locate(cand["onnx"])
+            cand = {**cand, "onnx": str(onnx)}
             missing = [str(onnx.with_suffix(x)) for x in CANDIDATE_SUFFIXES if not onnx.with_suffix(x).exists()]
             if missing:
                 log.warning("site matrix of iteration %d is not judged again: %s not there", cand["iteration"], ", ".join(missing))
@@ -185,6 +183,14 @@ class MatrixGate:
                      cand["iteration"], self.seeds[cand["seed_index"]])
             self._start_seed()
             return True
+
+    def locate(self, onnx: str) -> Path:
+        """Where a candidate's ONNX file named in the saved state is now: the path the state names
+        where that exists, else ``candidates/<file name>`` beside the gate's directory (a run resumed
+        under another directory or name, from a state that carried it: ``device_runs.sh state``).
+        The path returned may not exist (a state packed without the candidate)."""
+        path = Path(onnx)
+        return path if path.exists() else self.out_dir.parent / "candidates" / path.name
 
     def _candidate(self) -> dict:
         """The checkpoint under test (only called while one is).

@@ -435,7 +435,11 @@ class TrainingRun:
         """Rank 0: wait for a running matrix (``--gate-wait-minutes``), stop the gate, plot the curve
         and export the checkpoint that met the bars (with ``--no-stop-at-bars`` the newest such),
         else, where ``--export`` asks, the last one with a card saying the bars were not met.
-        Returns the ONNX written or None. Other ranks return None at once."""
+        Returns the ONNX written or None. Other ranks return None at once.
+
+        Raises:
+            FileNotFoundError: the checkpoint of the candidate that met the bars is not in the run
+                directory (a run resumed from a state that did not carry it)."""
         if not self.proc.main:
             return None
         from sim_twin.training import model_card
@@ -456,7 +460,13 @@ class TrainingRun:
         out = args.export or (self.log_dir / f"throw{args.mode}.onnx" if passed else None)
         if not out:
             return None
-        ckpt = Path(passed["onnx"]).with_suffix(".pt") if passed else self.log_dir / "checkpoint.pt"
+        ckpt = self.log_dir / "checkpoint.pt"
+        if passed and gate:  # the candidate's own checkpoint, where a resumed run's state put it
+            ckpt = gate.locate(passed["onnx"]).with_suffix(".pt")
+            if not ckpt.exists():
+                raise FileNotFoundError(f"the checkpoint that met the bars (iteration {passed['iteration']}) is not there: "
+                                        f"{ckpt} (a resume state without it); the verdicts are in {gate.state_path}, "
+                                        f"the run's newest checkpoint in {self.log_dir / 'checkpoint.pt'}")
         it = passed["iteration"] if passed else self.runner.current_learning_iteration
         name = args.name or f"{out.stem}-it{it}"  # the Policies page lists versions by name
         return _export(ckpt, self.cfg, out, name, command=getattr(args, "command", None), card=dict(

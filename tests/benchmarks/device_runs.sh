@@ -15,7 +15,7 @@
 #                                                       # and $OUT/state.tar: every run's runs/state/<name>.tar
 #   bash tests/benchmarks/device_runs.sh state RUN_DIR NAME [DIR]  # runs/state/NAME.tar (or DIR/NAME.tar),
 #                                                       # gzip, from RUN_DIR's checkpoint, config, curve, gate
-#                                                       # verdicts (and the candidate under test), GPU record and
+#                                                       # verdicts (and the gate's candidates: under test, passed), GPU record and
 #                                                       # machine logs, so that `start NAME` resumes it
 #
 # After the last call, here: `tar xf <files_at>/<name>.tar` and `python -m tests.benchmarks.keep_run runs/<name>`
@@ -124,18 +124,21 @@ state() {
   mkdir -p "$tmp/runs/$name" "$dest"
   cp "$src/checkpoint.pt" "$src/config.json" "$tmp/runs/$name/"
   for f in curve.csv matrices accelerators.json logs; do [ -e "$src/$f" ] && cp -r "$src/$f" "$tmp/runs/$name/"; done
-  # the candidate the gate had under test (matrix_gate.json's pending), which the resumed run judges again:
-  # its ONNX file and manifest (judging loads the policy through the manifest) and its checkpoint
-  # (exporting it once it passed); sim_twin.training.matrix_gate.CANDIDATE_SUFFIXES
-  local pending=$(python3 -c "import json, sys; p = json.load(open(sys.argv[1])).get('pending'); print(p['onnx'] if p else '')" \
+  # the candidates the resumed run needs (sim_twin.training.matrix_gate.CANDIDATE_SUFFIXES: ONNX file, manifest,
+  # checkpoint): the gate's candidate under test (matrix_gate.json's pending), which it judges again, and the
+  # candidates that met the bars, the first (`passed`) and the newest (`passes`), one of which the run exports
+  local cand cands=$(python3 -c "
+import json, sys
+g = json.load(open(sys.argv[1]))
+print(' '.join(sorted({c['onnx'] for c in [g.get('pending'), g.get('passed'), *(g.get('passes') or [])[-1:]] if c})))" \
     "$src/matrices/matrix_gate.json" 2>/dev/null)
-  if [ -n "$pending" ]; then
-    local stem=$src/candidates/$(basename ${pending%.onnx})
+  for cand in $cands; do
+    local stem=$src/candidates/$(basename ${cand%.onnx})
     mkdir -p "$tmp/runs/$name/candidates"
     for x in onnx json pt; do
-      [ -f "$stem.$x" ] && cp "$stem.$x" "$tmp/runs/$name/candidates/" || echo "state: $stem.$x is not there; the resumed gate will not judge it again" >&2
+      [ -f "$stem.$x" ] && cp "$stem.$x" "$tmp/runs/$name/candidates/" || echo "state: $stem.$x is not there; the resumed run cannot judge or export it" >&2
     done
-  fi
+  done
   # the gate's plots stay behind: their JSON and tables carry the same figures
   tar cf - -C "$tmp" --exclude="*.png" "runs/$name" | gzip -9 > "$dest/$name.tar"
   rm -rf "$tmp"
