@@ -126,6 +126,14 @@ def test_several_runs_make_one_report_with_each_runs_wall_time_style_and_command
     assert (ax["far_style"]["style"], ay["far_style"]["style"]) == ("long", "short")
     table = out.with_suffix(".md").read_text()
     assert "| throw2d-scratch-ay | 26 | short" in table and "| no | not met |" in table
+    import csv
+    import statistics
+
+    for r, run in zip(rep["runs"], runs, strict=True):  # the median throughput, read from the curve on its own
+        rows = list(csv.DictReader((run / "curve.csv").open()))
+        want = statistics.median(float(x["control_steps_per_s"]) for x in rows if float(x["iteration"]) >= 50)
+        assert r["median_control_steps_per_s"] == pytest.approx(want)
+        assert f"| {want / 1e6:.2f} |" in table
     assert out.with_suffix(".png").stat().st_size > 0
 
 

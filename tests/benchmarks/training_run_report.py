@@ -76,6 +76,21 @@ def exported_policy_sha256(run: Path) -> str | None:
     return json.loads(cards[0].read_text())["onnx_sha256"] if cards else None
 
 
+THROUGHPUT_FROM = 50
+"""First iteration of a run's median throughput: the first chunks include JAX's compilation."""
+
+
+def median_throughput(run: Path) -> float | None:
+    """Median control steps/s with learning (all processes, as ``curve.csv`` records each chunk) over
+    the checkpoints from iteration :data:`THROUGHPUT_FROM` on; None without such rows. On a machine
+    shared by several runs and their gates (tests/benchmarks/device_runs.sh) it is that run's share."""
+    from sim_twin.training.curve import TrainingCurve
+
+    rates = [r["control_steps_per_s"] for r in TrainingCurve.load_or_new(run / "curve.csv").rows
+             if r["iteration"] >= THROUGHPUT_FROM and r.get("control_steps_per_s") == r.get("control_steps_per_s")]
+    return statistics.median(rates) if rates else None
+
+
 def curve_summary(run: Path, rows: int = CURVE_ROWS) -> list[dict]:
     """Up to ``rows`` checkpoints of ``run/curve.csv``, evenly spaced with the last included, each
     {iteration, wall_min, landed_per_done, failed_per_done, timeouts_per_done (the rest of the
@@ -163,6 +178,8 @@ def run_report(run: Path, gpu: str, command: str, after_run: list[Path], gate_un
         "mean_far_bias_from_iteration": FAR_BIAS_FROM,
         "first_met_per_profile": first_met,
         "curve": curve_summary(run),
+        "median_control_steps_per_s": median_throughput(run),
+        "median_control_steps_per_s_from_iteration": THROUGHPUT_FROM,
     }
     verdict = f"yes, {first_pass_text(first)} ({out['bars_wall_min']} min)" if first else "no"
     md = [(f"checkpoint SHA-256 `{out['checkpoint_sha256']}`; " if out["checkpoint_sha256"] else "checkpoint not kept; ")
@@ -283,10 +300,11 @@ def main() -> None:
         lines = [f"# {a.title or 'Training runs'}: wall time to the site-matrix bars", "",
                  f"Date {head['date']}, commit `{commit}`, {a.gpu}.", "",
                  "| run | training seed | far-target style by iteration 250 | every bar on every gate seed | "
-                 f"training wall time to the bars [min] | mean far-target bias from iteration {FAR_BIAS_FROM} "
+                 f"training wall time to the bars [min] | median control steps/s with learning from iteration {THROUGHPUT_FROM} [M] "
+                 f"| mean far-target bias from iteration {FAR_BIAS_FROM} "
                  "(± its standard deviation over those matrices), " + " / ".join(FAR_BIAS_PROFILES)
                  + " [m] | last verdict on a gate seed | held-out seeds |",
-                 "|---|---|---|---|---|---|---|---|"]
+                 "|---|---|---|---|---|---|---|---|---|"]
         for r, _ in reports:
             on_gate = [x for x in r["results"] if x["seed"] in r["seeds"]]
             last = on_gate[-1] if on_gate else None
@@ -295,6 +313,8 @@ def main() -> None:
                                     else f"{x['missing_cells']} cells missing")
                                  for x in r["results"] if x["seed"] not in r["seeds"]) or "-"
             seed = training_seed(Path(r["run"]))
+            rate = r["median_control_steps_per_s"]
+            throughput = "-" if rate is None else f"{rate / 1e6:.2f}"
             style = r["far_style"] = far_style(Path(r["run"]))
             style_text = f"{style['style']} ({style['far_duration_s']} s, iteration {style['style_iteration']})" if style else "-"
             verdict = (f"iteration {last['iteration']}, seed {last['seed']}: {last['missing_cells']} cells missing"
@@ -302,6 +322,7 @@ def main() -> None:
             lines.append(f"| {Path(r['run']).name} | {seed} | {style_text} | "
                          f"{'yes, ' + first_pass_text(r['first_pass']) if r['first_pass'] else 'no'} | "
                          f"{r['bars_wall_min'] if r['bars_wall_min'] is not None else 'not met'} | "
+                         f"{throughput} | "
                          + (" / ".join(f"{r['mean_far_bias_m'][n]:+.3f}" + (f" ± {r['sd_far_bias_m'][n]:.3f}" if n in r["sd_far_bias_m"] else "")
                                        for n in FAR_BIAS_PROFILES)
                             if len(r["mean_far_bias_m"]) == len(FAR_BIAS_PROFILES) else "-") + f" | {verdict} | {held_out} |")
