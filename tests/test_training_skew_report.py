@@ -10,8 +10,10 @@ from tests.benchmarks import training_skew_report as skew
 
 
 def _bench(nominal: list[float | None], dist: list[float | None]) -> dict:
-    def rows(xs):
-        return [{"landed": x is not None, "downrange_m": 0.0 if x is None else x} for x in xs]
+    def rows(xs):  # the rows training_twin_bias writes, the release quantities left at 0
+        release = dict.fromkeys(("release_cmd_s", "opening_s", "speed_mps", "elevation_deg", "height_m",
+                                 "release_downrange_m", "flight_s", "ballistic_downrange_m"), 0.0)
+        return [{**release, "seed": k, "landed": x is not None, "downrange_m": 0.0 if x is None else x} for k, x in enumerate(xs)]
 
     return {"args": {"policy": "p.onnx", "config": "c.json"},
             "env": {"env": {"10.0": rows(nominal)}, "training-dist": {"10.0": rows(dist)}}}

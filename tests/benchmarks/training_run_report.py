@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
 import platform
 import statistics
 import textwrap
@@ -87,7 +88,7 @@ def median_throughput(run: Path) -> float | None:
     from sim_twin.training.curve import TrainingCurve
 
     rates = [r["control_steps_per_s"] for r in TrainingCurve.load_or_new(run / "curve.csv").rows
-             if r["iteration"] >= THROUGHPUT_FROM and r.get("control_steps_per_s") == r.get("control_steps_per_s")]
+             if r["iteration"] >= THROUGHPUT_FROM and math.isfinite(r.get("control_steps_per_s", math.nan))]
     return statistics.median(rates) if rates else None
 
 

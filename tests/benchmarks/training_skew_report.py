@@ -26,16 +26,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
-import statistics
 from pathlib import Path
 
-
-def _mean_se(xs: list[float]) -> tuple[float, float]:
-    """Mean and standard error of the mean of ``xs`` (nan for fewer than two values)."""
-    if len(xs) < 2:
-        return (xs[0] if xs else math.nan), math.nan
-    return statistics.fmean(xs), statistics.stdev(xs) / math.sqrt(len(xs))
+from tests.benchmarks.training_twin_bias import paired, side_summary
 
 
 def _relative(path: str) -> str:
@@ -60,14 +53,11 @@ def skew_rows(bench: dict) -> list[dict]:
     rows = []
     for target in env["env"]:
         nom, dist = env["env"][target], env["training-dist"][target]
-        pairs = [(a["downrange_m"], b["downrange_m"]) for a, b in zip(nom, dist, strict=True)
-                 if a["landed"] and b["landed"]]
-        nb, ns = _mean_se([a["downrange_m"] for a in nom if a["landed"]])
-        db, ds = _mean_se([b["downrange_m"] for b in dist if b["landed"]])
-        sk, ss = _mean_se([a - b for a, b in pairs])
-        rows.append({"target_m": float(target), "throws": len(nom), "pairs": len(pairs),
-                     "nominal_bias_m": nb, "nominal_se_m": ns, "training_dist_bias_m": db, "training_dist_se_m": ds,
-                     "skew_m": sk, "skew_se_m": ss})
+        n, d = side_summary(nom), side_summary(dist)
+        sk, ss, pairs = paired(nom, dist)["downrange_m"]  # by start-pose seed, over throws landed in both
+        rows.append({"target_m": float(target), "throws": len(nom), "pairs": pairs,
+                     "nominal_bias_m": n["bias_m"], "nominal_se_m": n["se_m"],
+                     "training_dist_bias_m": d["bias_m"], "training_dist_se_m": d["se_m"], "skew_m": sk, "skew_se_m": ss})
     return rows
 
 
