@@ -143,22 +143,19 @@ def _run_with_pending(tmp_path: Path, candidate_files: list[str]) -> Path:
     return src
 
 
-class _PassingGate:
-    """A MatrixGate whose site matrix is a one-cell report that meets its bar (the files the
-    resumed gate looks for are what this test is about, not the matrix)."""
+def _passing_gate(out_dir: Path):
+    """A MatrixGate on ``out_dir`` whose site matrix is a one-cell report that meets its bar (the
+    files the resumed gate looks for are what these tests are about, not the matrix)."""
+    import sys
 
-    @staticmethod
-    def make(out_dir: Path):
-        import sys
+    from sim_twin.training.matrix_gate import MatrixGate
 
-        from sim_twin.training.matrix_gate import MatrixGate
+    class Gate(MatrixGate):
+        def command(self, onnx, seed, out):
+            rep = {"pass": True, "profiles": [{"name": "nominal", "targets": [{"target_m": 10.0, "bars": {"accuracy": True}}]}]}
+            return [sys.executable, "-c", f"import json; open({out!r}, 'w').write(json.dumps({rep!r}))"]
 
-        class Gate(MatrixGate):
-            def command(self, onnx, seed, out):
-                rep = {"pass": True, "profiles": [{"name": "nominal", "targets": [{"target_m": 10.0, "bars": {"accuracy": True}}]}]}
-                return [sys.executable, "-c", f"import json; open({out!r}, 'w').write(json.dumps({rep!r}))"]
-
-        return Gate(out_dir, "2d", seeds=[0, 1], workers=1, clock=lambda: 700.0, judge_after_pass=True)
+    return Gate(out_dir, "2d", seeds=[0, 1], workers=1, clock=lambda: 700.0, judge_after_pass=True)
 
 
 def test_state_carries_the_candidate_under_test_that_the_resumed_gate_judges_again(tmp_path):
@@ -183,7 +180,7 @@ def test_state_carries_the_candidate_under_test_that_the_resumed_gate_judges_aga
     machine2 = tmp_path / "machine2"
     machine2.mkdir()
     subprocess.run(["tar", "xf", str(tar)], cwd=machine2, check=True)
-    gate = _PassingGate.make(machine2 / "runs" / "throw2d-x" / "matrices")
+    gate = _passing_gate(machine2 / "runs" / "throw2d-x" / "matrices")
     assert gate.resume_pending()
     passed = gate.wait(60)
     assert passed is not None and passed["iteration"] == 575 and passed["train_wall_s"] == 646.0
@@ -212,7 +209,7 @@ def test_state_carries_the_candidates_that_met_the_bars_which_the_resumed_run_ex
     subprocess.run(["tar", "xf", str(tmp_path / "runs" / "state" / "throw2d-y.tar")], cwd=machine2, check=True)
     kept = sorted(p.name for p in (machine2 / "runs" / "throw2d-y" / "candidates").iterdir())
     assert kept == [f"checkpoint_{it}.{x}" for it in (1000, 500, 575) for x in ("json", "onnx", "pt")]
-    gate = _PassingGate.make(machine2 / "runs" / "throw2d-y" / "matrices")
+    gate = _passing_gate(machine2 / "runs" / "throw2d-y" / "matrices")
     assert gate.passes[-1]["iteration"] == 1000 and gate.locate(gate.passes[-1]["onnx"]).with_suffix(".pt").exists()
     assert gate.locate(gate.passed["onnx"]).with_suffix(".pt").read_text() == "candidates/checkpoint_500.pt"
 
@@ -228,7 +225,7 @@ def test_a_state_without_the_candidates_manifest_says_so_and_the_resumed_gate_dr
     machine2 = tmp_path / "machine2"
     machine2.mkdir()
     subprocess.run(["tar", "xf", str(tmp_path / "runs" / "state" / "throw2d-x.tar")], cwd=machine2, check=True)
-    gate = _PassingGate.make(machine2 / "runs" / "throw2d-x" / "matrices")
+    gate = _passing_gate(machine2 / "runs" / "throw2d-x" / "matrices")
     with caplog.at_level("WARNING", logger="sim_twin.training.matrix_gate"):
         assert not gate.resume_pending()
     assert "checkpoint_575.json not there" in caplog.text and not gate.busy
