@@ -80,7 +80,6 @@ from runtime.observation import (
     build_observation,
     decode_action,
     num_actions,
-    observation_size,
 )
 from runtime.outcome import PhaseEvent, ThrowOutcome, TickOutput
 from runtime.policy import PolicyError, PolicyRunner
@@ -147,7 +146,7 @@ class _Throw:
     phase: str = "preparing"
     swing_stamp_s: float = 0.0
     swing_ticks: int = 0
-    q_hist: np.ndarray = field(default_factory=lambda: np.zeros((HISTORY_STEPS, 6)))
+    q_hist: np.ndarray = field(default_factory=lambda: np.zeros((HISTORY_STEPS, 6)))  # (policy.history_steps, 6) from the swing on
     qd_hist: np.ndarray = field(default_factory=lambda: np.zeros((HISTORY_STEPS, 6)))
     prev_action: np.ndarray | None = None
     qd_ref: np.ndarray = field(default_factory=lambda: np.zeros(NUM_ACTIVE))
@@ -159,7 +158,7 @@ class _Throw:
 
 
 def _pushed(hist: np.ndarray, newest: np.ndarray) -> np.ndarray:
-    """A new (HISTORY_STEPS, 6) history: ``newest`` (6,) in row 0, ``hist``'s rows 0..N-2 after it
+    """A new (H, 6) history: ``newest`` (6,) in row 0, ``hist``'s rows 0..N-2 after it
     (np.roll by one row and the new row written in, at a third of the cost)."""
     out = np.empty_like(hist)
     out[1:] = hist[:-1]
@@ -231,8 +230,8 @@ class ThrowExecutor:
         """Run each policy once on a zero observation and the release check's predictor once from
         the ready pose, so that the first throw does not pay for the inference sessions' and
         MuJoCo's first calls in its control loop (runtime.service: no throw before warm-up)."""
-        for mode, runner in self.policies.items():
-            runner.act(np.zeros(observation_size(mode), dtype=np.float32))
+        for runner in self.policies.values():
+            runner.act(np.zeros(runner.manifest["observation_size"], dtype=np.float32))
         if self._predictor is not None:
             q = np.array([0.0, *READY_POSE, 0.0, 0.0])
             self._predictor.predict(q, np.zeros(6), np.zeros(NUM_ACTIVE))
@@ -370,8 +369,9 @@ class ThrowExecutor:
 
     def _begin_swing(self, th: _Throw, state: MachineState) -> TickOutput:
         th.phase, th.swing_stamp_s, th.swing_ticks = "swinging", state.stamp_s, 0
-        th.q_hist[:] = np.asarray(state.q, dtype=float)
-        th.qd_hist[:] = np.asarray(state.qd, dtype=float)
+        steps = th.policy.history_steps  # as many control steps as this policy reads (its manifest)
+        th.q_hist = np.tile(np.asarray(state.q, dtype=float), (steps, 1))
+        th.qd_hist = np.tile(np.asarray(state.qd, dtype=float), (steps, 1))
         th.prev_action = np.zeros(num_actions(th.request.mode), dtype=np.float32)
         self.controller.reset()
         self._emit("swinging", state.stamp_s)

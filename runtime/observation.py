@@ -21,6 +21,12 @@ held, so the throw is planar in that frame). 3D observations use the machine fra
 text says "a history of three time steps" while its table lists k..k-3 (four); we follow the
 table. History steps are control steps (12.5 Hz).
 
+The history's length H is a policy's own (``history_steps`` of a training config's ``env``,
+default HISTORY_STEPS = 4, the paper's): the two history blocks hold ``nj * H`` values each, so a
+2D observation has 16 + 10 H values and a 3D one 17 + 12 H. A manifest's ``observation_layout``
+declares it (:func:`history_steps_of_layout`); the runtime keeps as many steps as the loaded policy
+reads.
+
 Action (paper eq. 2): normalised joint-velocity references of the mode's active joints in
 [-1, 1] (scaled by runtime.machine.ACTIVE_VELOCITY_LIMITS), then the release command; the
 gripper opens when the release command exceeds RELEASE_THRESHOLD.
@@ -32,7 +38,8 @@ from types import ModuleType
 
 from runtime.machine import ACTIVE_VELOCITY_LIMITS, forward_kinematics
 
-HISTORY_STEPS = 4
+HISTORY_STEPS = 4  # the paper's k..k-3 (Sec. III-D, its table); a policy may declare its own
+MAX_HISTORY_STEPS = 25  # 2 s of control steps: the most a manifest may declare
 CONTROL_PERIOD_S = 0.08  # 12.5 Hz policy (paper Sec. III-E)
 PHYSICS_PERIOD_S = 0.01  # 100 Hz simulation and low-level control
 SUBSTEPS = 8  # physics steps per control step
@@ -44,16 +51,25 @@ def num_actions(mode: str) -> int:
     return {"2d": 4, "3d": 5}[mode]
 
 
-def observation_layout(mode: str) -> list[tuple[str, int]]:
-    """(name, size) blocks of the observation vector in order; sizes sum to 56 (2D) / 65 (3D).
+def _history_joints(mode: str) -> int:
+    """Joints in each history step: 5 in 2D (no cabin_turn), 6 in 3D. KeyError for another mode."""
+    return {"2d": 5, "3d": 6}[mode]
+
+
+def observation_layout(mode: str, history_steps: int = HISTORY_STEPS) -> list[tuple[str, int]]:
+    """(name, size) blocks of the observation vector in order; sizes sum to 56 (2D) / 65 (3D) with
+    the default four history steps (16 + 10 H in 2D, 17 + 12 H in 3D).
 
     Raises:
         KeyError: for an unknown mode.
+        ValueError: ``history_steps`` outside 1..MAX_HISTORY_STEPS.
     """
-    nj = {"2d": 5, "3d": 6}[mode]
+    if not 1 <= history_steps <= MAX_HISTORY_STEPS:
+        raise ValueError(f"history_steps must be 1..{MAX_HISTORY_STEPS}, got {history_steps}")
+    nj = _history_joints(mode)
     return [
-        ("joint_pos_history", nj * HISTORY_STEPS),
-        ("joint_vel_history", nj * HISTORY_STEPS),
+        ("joint_pos_history", nj * history_steps),
+        ("joint_vel_history", nj * history_steps),
         ("previous_action", num_actions(mode)),
         ("gripper_centre_pos", 3),
         ("gripper_centre_vel", 3),
@@ -64,8 +80,33 @@ def observation_layout(mode: str) -> list[tuple[str, int]]:
     ]
 
 
-def observation_size(mode: str) -> int:
-    return sum(n for _, n in observation_layout(mode))
+def observation_size(mode: str, history_steps: int = HISTORY_STEPS) -> int:
+    """Length of the observation vector: sum of :func:`observation_layout`'s block sizes."""
+    return sum(n for _, n in observation_layout(mode, history_steps))
+
+
+def history_steps_of_layout(mode: str, layout) -> int:
+    """The history length H a manifest's ``observation_layout`` ([[block, size], ...]) declares:
+    its ``joint_pos_history`` size over the mode's history joints, checked by rebuilding the whole
+    layout for that H.
+
+    Raises:
+        ValueError: the layout is not :func:`observation_layout` (mode, H) for any H in
+            1..MAX_HISTORY_STEPS (its message names what differs).
+        KeyError: for an unknown mode.
+    """
+    nj = _history_joints(mode)
+    try:
+        size = int(dict((str(b), n) for b, n in layout)["joint_pos_history"])
+    except (TypeError, ValueError, KeyError) as e:
+        raise ValueError(f"observation_layout has no joint_pos_history block: {layout!r}") from e
+    steps, rest = divmod(size, nj)
+    if rest or not 1 <= steps <= MAX_HISTORY_STEPS:
+        raise ValueError(f"joint_pos_history of {size} values is not 1..{MAX_HISTORY_STEPS} steps of {nj} joints")
+    want = [list(b) for b in observation_layout(mode, steps)]
+    if [list(b) for b in layout] != want:
+        raise ValueError(f"observation_layout {layout!r} is not this runtime's for {steps} history steps ({want!r})")
+    return steps
 
 
 def _yaw_inverse(xp: ModuleType, v, yaw):
@@ -81,15 +122,16 @@ def build_observation(xp: ModuleType, mode: str, q_hist, qd_hist, prev_action, t
     Args:
         xp: array module (numpy or jax.numpy).
         mode: "2d" or "3d".
-        q_hist: (4, 6) joint positions at control steps k, k-1, k-2, k-3 (newest first).
-        qd_hist: (4, 6) joint velocities, same steps.
+        q_hist: (H, 6) joint positions at control steps k, k-1, ..., k-H+1 (newest first); H is
+            the policy's history length (HISTORY_STEPS = 4 by default).
+        qd_hist: (H, 6) joint velocities, same steps.
         prev_action: (num_actions(mode),) the previous policy action, as the policy output it
             (before clipping).
         target_m: (3,) target in the machine frame, m.
         opened: scalar 0/1, the gripper is open (payload free).
 
     Returns:
-        (observation_size(mode),) vector, dtype of ``q_hist``.
+        (observation_size(mode, H),) vector, dtype of ``q_hist``.
     """
     dtype = q_hist.dtype
     pts = forward_kinematics(xp, q_hist[0], qd_hist[0])

@@ -7,7 +7,8 @@ release threshold) or whose file does not hash to the manifest's SHA-256, and ch
 graph's input/output shapes and that it returns finite actions.
 
 Manifest fields (``format`` = ``slinger-policy/1``): name, mode, joint_order,
-observation_layout [[block, size], ...], observation_size, action_size, control_period_s,
+observation_layout [[block, size], ...] (its history blocks declare the policy's history length,
+runtime.observation.history_steps_of_layout), observation_size, action_size, control_period_s,
 release_threshold, target_range_m [min, max], onnx_sha256, input_name, output_name, training {...};
 optional ``aim_correction`` (a version adapted to a site, runtime.aim: checked against the copy
 sealed in the ONNX file's metadata) and ``site_profile`` (the site's fitted reality profile, used
@@ -29,7 +30,9 @@ from runtime.aim import ONNX_METADATA_KEY, AimCorrection, canonical_json
 from runtime.machine import JOINT_NAMES
 from runtime.observation import (
     CONTROL_PERIOD_S,
+    HISTORY_STEPS,
     RELEASE_THRESHOLD,
+    history_steps_of_layout,
     num_actions,
     observation_layout,
     observation_size,
@@ -89,14 +92,15 @@ def sha256_of(path: str | Path) -> str:
     return h.hexdigest()
 
 
-def expected_manifest_fields(mode: str) -> dict:
-    """The manifest fields that must equal this runtime's own definitions for ``mode``."""
+def expected_manifest_fields(mode: str, history_steps: int = HISTORY_STEPS) -> dict:
+    """The manifest fields that must equal this runtime's own definitions for ``mode`` and a policy
+    reading ``history_steps`` control steps of joint history (runtime.observation)."""
     return {
         "format": MANIFEST_FORMAT,
         "mode": mode,
         "joint_order": list(JOINT_NAMES),
-        "observation_layout": [list(b) for b in observation_layout(mode)],
-        "observation_size": observation_size(mode),
+        "observation_layout": [list(b) for b in observation_layout(mode, history_steps)],
+        "observation_size": observation_size(mode, history_steps),
         "action_size": num_actions(mode),
         "control_period_s": CONTROL_PERIOD_S,
         "release_threshold": RELEASE_THRESHOLD,
@@ -129,6 +133,11 @@ class PolicyRunner:
     @property
     def sha256(self) -> str:
         return self.manifest["onnx_sha256"]
+
+    @property
+    def history_steps(self) -> int:
+        """Control steps of joint history the policy reads (its manifest's observation_layout)."""
+        return history_steps_of_layout(self.mode, self.manifest["observation_layout"])
 
     @property
     def target_range_m(self) -> tuple[float, float]:
@@ -164,7 +173,11 @@ class PolicyRunner:
         mode = manifest.get("mode")
         if mode not in ("2d", "3d"):
             raise PolicyError(f"manifest mode must be '2d' or '3d', got {mode!r}")
-        for key, want in expected_manifest_fields(mode).items():
+        try:
+            history = history_steps_of_layout(mode, manifest.get("observation_layout") or [])
+        except ValueError as e:
+            raise PolicyError(f"manifest observation_layout does not match this runtime: {e}") from e
+        for key, want in expected_manifest_fields(mode, history).items():
             if manifest.get(key) != want:
                 raise PolicyError(f"manifest {key} = {manifest.get(key)!r} does not match this runtime ({want!r})")
         for key in ("name", "onnx_sha256", "target_range_m"):
@@ -181,12 +194,14 @@ class PolicyRunner:
         inputs, outputs = session.get_inputs(), session.get_outputs()
         if len(inputs) != 1 or len(outputs) < 1:
             raise PolicyError("policy graph must have one input and at least one output")
-        if inputs[0].shape[-1] != observation_size(mode):
-            raise PolicyError(f"policy input has {inputs[0].shape[-1]} features, mode {mode} needs {observation_size(mode)}")
+        n_obs = observation_size(mode, history)
+        if inputs[0].shape[-1] != n_obs:
+            raise PolicyError(f"policy input has {inputs[0].shape[-1]} features, mode {mode} with {history} history steps "
+                              f"needs {n_obs}")
         if outputs[0].shape[-1] != num_actions(mode):
             raise PolicyError(f"policy output has {outputs[0].shape[-1]} values, mode {mode} needs {num_actions(mode)}")
         runner = cls(manifest, onnx_path, session, _aim_correction(manifest, session))
-        probe = runner.act(np.zeros(observation_size(mode), dtype=np.float32))
+        probe = runner.act(np.zeros(n_obs, dtype=np.float32))
         if not np.all(np.isfinite(probe)):
             raise PolicyError("policy returns non-finite actions on a zero observation")
         return runner
@@ -248,10 +263,12 @@ def build_manifest(
     training: dict | None = None,
     input_name: str = "obs",
     output_name: str = "actions",
+    history_steps: int = HISTORY_STEPS,
 ) -> dict:
-    """The manifest of an exported policy (see module doc), hashing ``onnx_path``."""
+    """The manifest of an exported policy (see module doc) reading ``history_steps`` control steps
+    of joint history, hashing ``onnx_path``."""
     return {
-        **expected_manifest_fields(mode),
+        **expected_manifest_fields(mode, history_steps),
         "name": name,
         "target_range_m": [float(target_range_m[0]), float(target_range_m[1])],
         "onnx_sha256": sha256_of(onnx_path),

@@ -22,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 
-from runtime.observation import observation_size
 from runtime.policy import PolicyError, PolicyRunner
 from runtime.protocol.messages import PolicyOffer, PolicyOfferAck, PolicyUpdate, ValidationError, decode, encode
 
@@ -81,7 +80,7 @@ class PolicyUpdater:
             runner = PolicyRunner.load(path)
             if runner.mode != offer.mode:
                 raise PolicyError(f"a {runner.mode} policy offered for {offer.mode}")
-            runner.act(np.zeros(observation_size(runner.mode), dtype=np.float32))  # warmed before it runs a throw
+            runner.act(np.zeros(runner.manifest["observation_size"], dtype=np.float32))  # warmed before it runs a throw
         except Exception as e:  # noqa: BLE001  fetch errors, PolicyError, OSError
             log.error("policy %s (%s) not loaded: %s", offer.version, offer.mode, e)
             self._publish(offer, "failed", str(e))

@@ -8,7 +8,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-from runtime.observation import num_actions, observation_size
+from runtime.observation import HISTORY_STEPS, num_actions, observation_size
 from runtime.policy import build_manifest, write_manifest
 
 
@@ -19,15 +19,17 @@ def write_test_policy(
     seed: int = 0,
     release_after_bias: float = 0.0,
     target_range_m: tuple[float, float] = (5.0, 10.7),
+    history_steps: int = HISTORY_STEPS,
 ) -> Path:
-    """Write a small random linear-tanh ONNX policy (obs -> actions) with its manifest.
+    """Write a small random linear-tanh ONNX policy (obs -> actions) with its manifest, reading
+    ``history_steps`` control steps of joint history (runtime.observation).
 
     It is not a throwing policy; it exercises loading, checking and the control loop.
     The release output is ``tanh(...) + release_after_bias`` so a bias > 1.9 always releases.
     Returns the ONNX path.
     """
     rng = np.random.default_rng(seed)
-    n_obs, n_act = observation_size(mode), num_actions(mode)
+    n_obs, n_act = observation_size(mode, history_steps), num_actions(mode)
     w = (rng.normal(size=(n_obs, n_act)) * 0.01).astype(np.float32)
     b = np.zeros(n_act, dtype=np.float32)
     bias = np.zeros(n_act, dtype=np.float32)
@@ -49,7 +51,8 @@ def write_test_policy(
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"{name}.onnx"
     onnx.save(model, path)
-    write_manifest(path, build_manifest(path, mode, name, target_range_m, {"kind": "test fixture"}))
+    write_manifest(path, build_manifest(path, mode, name, target_range_m, {"kind": "test fixture"},
+                                        history_steps=history_steps))
     return path
 
 

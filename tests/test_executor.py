@@ -54,7 +54,7 @@ class RecordingPolicy:
     def __init__(self, runner, fail_at: int | None = None):
         self.runner, self.fail_at, self.observations = runner, fail_at, []
         self.mode, self.version, self.sha256, self.target_range_m = runner.mode, runner.version, runner.sha256, runner.target_range_m
-        self.aim_target = runner.aim_target
+        self.aim_target, self.history_steps = runner.aim_target, runner.history_steps
 
     def act(self, obs):
         self.observations.append(np.array(obs))

@@ -215,3 +215,47 @@ def test_a_graph_mode_is_checked_and_only_passed_to_the_warp_implementation():
     assert _graph_mode_arg("jax", "WARP") == {} and _graph_mode_arg("warp", None) == {}
     with pytest.raises(ValueError, match="unknown graph_mode 'BOGUS'"):
         _graph_mode_arg("warp", "BOGUS")
+
+
+def test_a_longer_history_recipe_trains_exports_and_loads_with_its_own_observation(tmp_path):
+    """sim_twin/configs/throw_2d_history.json (8 control steps of joint history): the environment's
+    observations are the runtime's for the same state (96 values), its history shifts one row per
+    control step, one PPO iteration runs on it, and the export declares 8 steps in its manifest's
+    observation_layout, which the runtime reads back."""
+    import copy
+
+    import torch
+    from rsl_rl.runners import OnPolicyRunner
+
+    from runtime.policy import PolicyRunner
+    from sim_twin.training.export import export_checkpoint
+    from sim_twin.training.vec_env import MjxThrowVecEnv
+
+    cfg = json.loads((CONFIG_DIR / "throw_2d_history.json").read_text())
+    env_cfg = EnvConfig.from_dict(cfg["env"])
+    core = ThrowEnvCore(env_cfg)
+    state, obs = jax.jit(core.reset)(jax.random.PRNGKey(5))
+    assert core.num_obs == 96 and obs.shape == (96,)
+    step, rng, previous = jax.jit(core.step), np.random.default_rng(1), state
+    for _ in range(10):
+        action = jnp.asarray(np.append(rng.uniform(-1, 1, core.num_act - 1), -1.0), dtype=jnp.float32)
+        previous, (state, obs, *_) = state, step(state, action)
+        np.testing.assert_array_equal(np.asarray(state.q_hist[1:]), np.asarray(previous.q_hist[:-1]))
+        np.testing.assert_array_equal(np.asarray(state.qd_hist[1:]), np.asarray(previous.qd_hist[:-1]))
+    as64 = {k: np.asarray(getattr(state, k), dtype=np.float64) for k in ("q_hist", "qd_hist", "prev_action", "target")}
+    obs_rt = build_observation(np, "2d", as64["q_hist"], as64["qd_hist"], as64["prev_action"], as64["target"], float(state.opened))
+    assert obs_rt.shape == (96,)
+    np.testing.assert_allclose(np.asarray(obs), obs_rt, rtol=2e-5, atol=2e-4)
+    assert np.ptp(as64["q_hist"][:, 1:], axis=0).max() > 1e-3  # eight different steps, not one repeated
+
+    cfg["num_envs"] = 8
+    cfg["runner"]["torch_compile_mode"] = None  # the recipe compiles for the GPU; minutes of CPU here for nothing tested
+    vec = MjxThrowVecEnv(env_cfg, 8, seed=3)
+    runner = OnPolicyRunner(vec, copy.deepcopy(cfg["runner"]), log_dir=None, device="cpu")
+    runner.learn(num_learning_iterations=1)
+    assert all(torch.isfinite(p).all() for p in runner.alg.actor.parameters())
+    runner.save(str(tmp_path / "model.pt"))
+    path = export_checkpoint(tmp_path / "model.pt", cfg, tmp_path / "h8.onnx", "h8")
+    manifest = json.loads(path.with_suffix(".json").read_text())
+    assert manifest["observation_size"] == 96 and manifest["observation_layout"][0] == ["joint_pos_history", 40]
+    assert PolicyRunner.load(path).history_steps == 8

@@ -54,7 +54,7 @@ class EarlyRelease:
     def __init__(self, runner: PolicyRunner, step: int):
         self.runner, self.step, self.calls, self.actions = runner, step, 0, []
         self.mode, self.version, self.sha256 = runner.mode, runner.version, runner.sha256
-        self.target_range_m, self.aim_target = runner.target_range_m, runner.aim_target
+        self.target_range_m, self.aim_target, self.history_steps = runner.target_range_m, runner.aim_target, runner.history_steps
         self.observations: list[np.ndarray] = []
 
     def act(self, obs):

@@ -126,6 +126,22 @@ def test_the_nominal_share_recipe_is_the_candidate_with_only_its_nominal_fractio
     assert nominal[("env", "randomization", "nominal_fraction")] == 0.25
 
 
+def test_the_history_recipe_is_the_candidate_with_only_a_longer_observation_history():
+    """sim_twin/configs/throw_2d_history.json: the candidate with 8 control steps of joint history
+    (env.history_steps) in place of the paper's 4, nothing else changed; its environment builds
+    96-value observations."""
+    from runtime.observation import observation_size
+    from sim_twin.training.mjx_env import EnvConfig
+
+    path = ROOT / "sim_twin" / "configs" / "throw_2d_history.json"
+    candidate = _flat(_without_notes(ROOT / "sim_twin" / "configs" / "throw_2d_candidate.json"))
+    history = _flat(_without_notes(path))
+    changed = {k for k in candidate.keys() | history.keys() if candidate.get(k) != history.get(k)}
+    assert changed == {("env", "history_steps")}
+    cfg = EnvConfig.from_dict(json.loads(path.read_text())["env"])
+    assert cfg.history_steps == 8 and observation_size("2d", cfg.history_steps) == 96
+
+
 def test_the_centred_recipe_puts_the_nominal_machine_near_the_middle_of_its_ranges():
     """sim_twin/configs/throw_2d_centred.json: the candidate with the ranges that had the nominal
     machine at their fast, light end moved so that it sits near their middle (friction in its

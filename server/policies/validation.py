@@ -85,7 +85,7 @@ def observation_sweep(runner, n: int, seed: int = 0) -> str | None:
     """Run ``runner`` (runtime.policy.PolicyRunner) on ``n`` observations spanning the bounds
     (module docstring); returns why it failed, or None."""
     from runtime.machine import ACTIVE_VELOCITY_LIMITS, JOINT_LOWER, JOINT_UPPER
-    from runtime.observation import HISTORY_STEPS, build_observation, num_actions
+    from runtime.observation import build_observation, num_actions
     from runtime.policy import PolicyError
     from runtime.throw_geometry import ARM_PLANE_OFFSET_M
 
@@ -95,10 +95,10 @@ def observation_sweep(runner, n: int, seed: int = 0) -> str | None:
     q_lo = np.where(np.isfinite(JOINT_LOWER), JOINT_LOWER, [-math.pi, 0, 0, 0, -0.8, -0.8])
     q_hi = np.where(np.isfinite(JOINT_UPPER), JOINT_UPPER, [math.pi, 0, 0, 0, 0.8, 0.8])
     qd_max = np.concatenate([1.5 * ACTIVE_VELOCITY_LIMITS, [3.0, 3.0]])
-    n_act = num_actions(mode)
+    n_act, steps = num_actions(mode), runner.history_steps
     for i in range(n):
-        q_hist = rng.uniform(q_lo, q_hi, size=(HISTORY_STEPS, 6))
-        qd_hist = rng.uniform(-qd_max, qd_max, size=(HISTORY_STEPS, 6))
+        q_hist = rng.uniform(q_lo, q_hi, size=(steps, 6))
+        qd_hist = rng.uniform(-qd_max, qd_max, size=(steps, 6))
         if i % 8 == 0:  # corners: every velocity at its bound
             qd_hist = np.sign(qd_hist) * qd_max
         d = (lo_d, hi_d)[i % 2] if i < 4 else rng.uniform(lo_d, hi_d)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from runtime.observation import num_actions, observation_size
+from runtime.observation import HISTORY_STEPS, num_actions, observation_size
 from runtime.policy import PolicyRunner, build_manifest, write_manifest
 
 log = logging.getLogger(__name__)
@@ -23,10 +23,16 @@ ONNX_OPSET = 17
 ONNX_IR_VERSION = 8
 
 
+def history_steps(cfg: dict) -> int:
+    """Control steps of joint history the config's actor reads (``env.history_steps``, else the
+    default runtime.observation.HISTORY_STEPS: configs written before the option have none)."""
+    return int(cfg["env"].get("history_steps", HISTORY_STEPS))
+
+
 def load_actor(checkpoint: Path, cfg: dict, cls=None):
     """The actor of an rsl_rl checkpoint as ``cls`` (default rsl_rl's MLPModel; a subclass such as
     sim_twin.training.models.Float32MLPModel takes the same state), built from ``cfg``'s
-    ``runner.actor`` for its mode's observation and action sizes (runtime.observation), its std
+    ``runner.actor`` for its mode's and history's observation and action sizes (runtime.observation), its std
     parameter converted where the checkpoint's parameterisation differs
     (critic_surgery.match_std_parameter), in eval mode.
 
@@ -40,7 +46,7 @@ def load_actor(checkpoint: Path, cfg: dict, cls=None):
     from sim_twin.training.critic_surgery import match_std_parameter
 
     mode = cfg["env"]["mode"]
-    obs = TensorDict({"policy": torch.zeros(1, observation_size(mode))}, batch_size=[1])
+    obs = TensorDict({"policy": torch.zeros(1, observation_size(mode, history_steps(cfg)))}, batch_size=[1])
     actor_cfg = copy.deepcopy(cfg["runner"]["actor"])
     actor_cfg.pop("class_name")
     actor = (cls or MLPModel)(obs, {"actor": ["policy"]}, "actor", num_actions(mode), **actor_cfg)
@@ -65,7 +71,7 @@ def export_checkpoint(checkpoint: Path, cfg: dict, out_path: Path, name: str) ->
     import torch
 
     mode = cfg["env"]["mode"]
-    n_obs = observation_size(mode)
+    n_obs = observation_size(mode, history_steps(cfg))
     actor, state = load_actor(checkpoint, cfg)
     wrapper = actor.as_onnx(verbose=False).eval()
     out_path = Path(out_path)
@@ -89,7 +95,8 @@ def export_checkpoint(checkpoint: Path, cfg: dict, out_path: Path, name: str) ->
         "num_envs": cfg.get("num_envs"),
         "config": cfg,
     }
-    manifest = build_manifest(out_path, mode, name, tuple(cfg["env"]["target_range_m"]), training)
+    manifest = build_manifest(out_path, mode, name, tuple(cfg["env"]["target_range_m"]), training,
+                              history_steps=history_steps(cfg))
     write_manifest(out_path, manifest)
     runner = PolicyRunner.load(out_path)  # raises PolicyError if the runtime would refuse it
     with torch.no_grad():

@@ -70,6 +70,8 @@ from mujoco import mjx
 from runtime.controller import ControllerGains, pid_ff_law
 from runtime.machine import ACTIVE_VELOCITY_LIMITS, JOINT_LOWER, JOINT_UPPER, NUM_ACTIVE, clearance_violations, forward_kinematics
 from runtime.observation import (
+    HISTORY_STEPS,
+    MAX_HISTORY_STEPS,
     PHYSICS_PERIOD_S,
     SUBSTEPS,
     build_observation,
@@ -145,6 +147,9 @@ class EnvConfig:
     forced_release: ForcedRelease = field(default_factory=ForcedRelease)
     far_targets: FarTargets = field(default_factory=FarTargets)
     randomization: Randomization = field(default_factory=Randomization)
+    history_steps: int = HISTORY_STEPS
+    """Control steps of joint positions and velocities in the actor's observation (runtime.observation;
+    the paper's four by default); the exported manifest's observation_layout declares it."""
     privileged_ranges: dict[str, Any] = field(default_factory=dict)
     """Ranges the critic's privileged inputs are normalised over where they differ from
     ``randomization`` (a fine-tuning config's base ranges; see sim_twin.training.privileged)."""
@@ -159,8 +164,8 @@ class EnvConfig:
 
         Raises:
             ValueError: unknown keys (randomisation entries included:
-                sim_twin.training.privileged.check_randomization), a missing reward weight, or a mode
-                other than 2d / 3d.
+                sim_twin.training.privileged.check_randomization), a missing reward weight, a mode
+                other than 2d / 3d, or a ``history_steps`` outside 1..MAX_HISTORY_STEPS.
         """
         d = dict(d)
         if d.get("mode", "2d") not in ("2d", "3d"):
@@ -174,6 +179,10 @@ class EnvConfig:
         if "randomization" in d:
             d["randomization"] = Randomization.from_dict(d["randomization"])
         check_randomization(d.get("privileged_ranges", {}), "env.privileged_ranges", PRIVILEGED_RANGE_KEYS)
+        if "history_steps" in d:
+            steps = d["history_steps"]
+            if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= MAX_HISTORY_STEPS:
+                raise ValueError(f"env.history_steps must be a whole number in 1..{MAX_HISTORY_STEPS}, not {steps!r}")
         if "far_targets" in d:
             far = dict(d["far_targets"])
             if "range_m" in far:
@@ -250,8 +259,8 @@ class EnvState:
 
     Attributes:
         data: mjx.Data of the physics (qpos, qvel (6,): 4 active then 2 passive joints).
-        q_hist, qd_hist: (4, 6) the last four measured joint positions / velocities, newest first
-            (what the observation is built from).
+        q_hist, qd_hist: (H, 6) the last H (``EnvConfig.history_steps``) measured joint positions /
+            velocities, newest first (what the observation is built from).
         prev_action: (num_act,) the previous action.
         target: (3,) ground target.
         step: () int32 control steps taken in this episode.
@@ -363,7 +372,7 @@ class ThrowEnvCore:
             Both give the same states (a reset depends only on its key).
 
     Methods ``reset(key)`` and ``step(state, action)`` are jit/vmap friendly.
-    Shapes: action (num_actions(mode),); observation (observation_size(mode),).
+    Shapes: action (num_actions(mode),); observation (observation_size(mode, cfg.history_steps),).
 
     Raises:
         ValueError: ``reset_slots`` outside (0, 1).
@@ -380,7 +389,7 @@ class ThrowEnvCore:
         self.joint_limits = joint_limits
         self.graph_mode = graph_mode
         self.mode = cfg.mode
-        self.num_obs = observation_size(cfg.mode)
+        self.num_obs = observation_size(cfg.mode, cfg.history_steps)
         self.num_act = num_actions(cfg.mode)
         mj_model = training_model(joint_limits)
         self.model = mjx.put_model(mj_model, impl=impl, **_graph_mode_arg(impl, graph_mode))
@@ -496,8 +505,8 @@ class ThrowEnvCore:
         e2 = jnp.sqrt(err[0] ** 2 + err[1] ** 2)
         state = EnvState(
             data=data,
-            q_hist=jnp.tile(q, (4, 1)),
-            qd_hist=jnp.zeros((4, 6)),
+            q_hist=jnp.tile(q, (self.cfg.history_steps, 1)),
+            qd_hist=jnp.zeros((self.cfg.history_steps, 6)),
             prev_action=jnp.zeros(self.num_act),
             target=target,
             step=jnp.zeros((), jnp.int32),
@@ -687,8 +696,8 @@ class ThrowEnvCore:
         terminated = failed | landed | (unreleased if w.no_release else jnp.zeros_like(unreleased))
         time_out = at_limit & ~terminated
         q_meas, qd_meas = self._measure(s, k_obs)
-        q_hist = jnp.concatenate([q_meas[None], s.q_hist[:3]])
-        qd_hist = jnp.concatenate([qd_meas[None], s.qd_hist[:3]])
+        q_hist = jnp.concatenate([q_meas[None], s.q_hist[:-1]])
+        qd_hist = jnp.concatenate([qd_meas[None], s.qd_hist[:-1]])
         s = s.replace(
             step=step, err2_min=jnp.minimum(s.err2_min, err2), err3_min=jnp.minimum(s.err3_min, err3),
             q_hist=q_hist, qd_hist=qd_hist, prev_action=action,

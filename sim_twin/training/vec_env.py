@@ -47,7 +47,7 @@ class MjxThrowVecEnv(VecEnv):
             step; a fraction: reset only the finished environments).
         unroll_substeps, joint_limits, graph_mode: see :class:`sim_twin.training.mjx_env.ThrowEnvCore`.
 
-    Shapes: observations ``policy`` (num_envs, observation_size(mode)), ``privileged``
+    Shapes: observations ``policy`` (num_envs, observation_size(mode, cfg.history_steps)), ``privileged``
     (num_envs, PRIVILEGED_SIZE); actions (num_envs, num_actions(mode));
     rewards and dones (num_envs,).
     """
