@@ -31,6 +31,7 @@ from runtime.machine import JOINT_NAMES
 from runtime.observation import (
     CONTROL_PERIOD_S,
     HISTORY_STEPS,
+    MAX_HISTORY_STEPS,
     RELEASE_THRESHOLD,
     history_steps_of_layout,
     num_actions,
@@ -197,7 +198,7 @@ class PolicyRunner:
         n_obs = observation_size(mode, history)
         if inputs[0].shape[-1] != n_obs:
             raise PolicyError(f"policy input has {inputs[0].shape[-1]} features, mode {mode} with {history} history steps "
-                              f"needs {n_obs}")
+                              f"needs {n_obs}{_history_hint(mode, inputs[0].shape[-1])}")
         if outputs[0].shape[-1] != num_actions(mode):
             raise PolicyError(f"policy output has {outputs[0].shape[-1]} values, mode {mode} needs {num_actions(mode)}")
         runner = cls(manifest, onnx_path, session, _aim_correction(manifest, session))
@@ -234,6 +235,15 @@ class PolicyRunner:
         if name is None:  # looked up once: get_inputs() builds its NodeArgs again on every call
             name = self._input_name = self._session.get_inputs()[0].name
         return self._session.run(None, {name: obs})[0][0]
+
+
+def _history_hint(mode: str, n_inputs) -> str:
+    """'' or, where an input of ``n_inputs`` values fits ``mode`` with another history length, a
+    clause naming it (for the refusal message)."""
+    for steps in range(1, MAX_HISTORY_STEPS + 1):
+        if n_inputs == observation_size(mode, steps):
+            return f" (it fits {steps} history steps: declare history_steps {steps})"
+    return ""
 
 
 def _aim_correction(manifest: dict, session) -> AimCorrection | None:

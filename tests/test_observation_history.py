@@ -60,7 +60,7 @@ def test_the_runtime_refuses_a_manifest_whose_history_does_not_fit_its_graph(tmp
     # the graph reads 96 values; a manifest that declares the paper's 4 steps (56) does not fit it
     manifest.update(observation_layout=[list(b) for b in observation_layout("2d")], observation_size=56)
     path.with_suffix(".json").write_text(json.dumps(manifest))
-    with pytest.raises(PolicyError, match="policy input has 96 features, mode 2d with 4 history steps needs 56"):
+    with pytest.raises(PolicyError, match=r"policy input has 96 features, mode 2d with 4 history steps needs 56 \(it fits 8 history steps"):
         PolicyRunner.load(path)
     manifest.update(observation_layout=[["joint_pos_history", 40]], observation_size=96)
     path.with_suffix(".json").write_text(json.dumps(manifest))

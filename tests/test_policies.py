@@ -30,7 +30,11 @@ def test_upload_rejections_with_reasons(client, tmp_path, quick_eval):
     assert r.status_code == 422 and "not a loadable ONNX model" in r.json()["detail"]
     p3 = write_test_policy(tmp_path / "p3", "3d")
     r = upload(client, p3, mode="2d")
-    assert r.status_code == 422 and "features, mode 2d needs" in r.json()["detail"]
+    assert r.status_code == 422 and "features, mode 2d with 4 history steps needs 56" in r.json()["detail"]
+    h8 = write_test_policy(tmp_path / "h8", "2d", history_steps=8)
+    r = upload(client, h8)  # trained with 8 history steps, uploaded as the default 4: refused, the fit named
+    assert r.status_code == 422 and "needs 56 (it fits 8 history steps: declare history_steps 8)" in r.json()["detail"]
+    assert upload(client, h8, history_steps=0).status_code == 422
     nan = write_test_policy(tmp_path / "nan", "2d", release_after_bias=float("nan"))
     r = upload(client, nan)
     assert r.status_code == 422 and "non-finite" in r.json()["detail"]
@@ -55,6 +59,13 @@ def test_upload_evaluates_in_the_twin_and_compare(client, tmp_path, quick_eval):
     assert cmp[0]["twin"][0]["target_m"] == 8.0 and cmp[0]["logged"] == []
     assert client.get("/api/policies/compare", params={"ids": [999]}).status_code == 404
     assert [a["action"] for a in client.get("/api/audit", params={"action": "policy_upload"}).json()] == ["policy_upload"]
+    # a policy that reads 8 control steps of history, declared at upload: stored with that layout and
+    # evaluated in the twin, whose executor keeps 8 steps for it
+    h8 = write_test_policy(tmp_path / "h8", "2d", release_after_bias=2.0, history_steps=8)
+    r = upload(client, h8, name="h8", history_steps=8)
+    assert r.status_code == 201, r.text
+    done = wait_for(lambda: (x := client.get(f"/api/policies/{r.json()['id']}").json())["evaluation_status"] == "done" and x, 60)
+    assert done["metrics"]["targets"][0]["throws"] == 2
 
 
 def test_only_admins_upload_and_promote(client, tmp_path):

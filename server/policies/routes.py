@@ -10,6 +10,7 @@ from fastapi import APIRouter, File, Form, Path, Query, UploadFile
 from pydantic import BaseModel, Field
 from sqlalchemy import select
 
+from runtime.observation import HISTORY_STEPS, MAX_HISTORY_STEPS
 from server.accounts.auth import record_audit
 from server.analysis.accuracy import accuracy
 from server.api.deps import AdminDep, PoliciesDep, SessionDep, SessionsDep, ViewerDep, authorised_or_audited
@@ -88,16 +89,18 @@ async def upload_policy(
     target_min_m: float = Form(5.0, gt=0, le=COORD_LIMIT_M, allow_inf_nan=False),
     target_max_m: float = Form(10.7, gt=0, le=COORD_LIMIT_M, allow_inf_nan=False),
     notes: str | None = Form(None, max_length=2000),
+    history_steps: int = Form(HISTORY_STEPS, ge=1, le=MAX_HISTORY_STEPS,
+                              description="control steps of joint history the policy reads (runtime.observation; 4, the paper's)"),
 ) -> PolicyOut:
-    """Upload a policy version: the manifest is generated from the mode and metadata; the file is
-    refused with the reason if it is not ONNX, has the wrong input/output shapes for the mode or
-    produces non-finite actions. An accepted version is evaluated in the twin in the background
+    """Upload a policy version: the manifest is generated from the mode and metadata (its
+    observation layout from ``history_steps``); the file is refused with the reason if it is not
+    ONNX, has the wrong input/output shapes for the mode and history or produces non-finite actions. An accepted version is evaluated in the twin in the background
     (``evaluation_status`` pending -> running -> done, ``metrics``)."""
     data = await file.read()
     from starlette.concurrency import run_in_threadpool
 
     row = await run_in_threadpool(policies.upload, data, mode, name,
-                                  (target_min_m, target_max_m), notes, user.username)
+                                  (target_min_m, target_max_m), notes, user.username, history_steps=history_steps)
     return policy_out(row)
 
 

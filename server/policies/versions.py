@@ -21,6 +21,7 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from runtime.observation import HISTORY_STEPS
 from runtime.policy import build_manifest
 from runtime.protocol import keys
 from runtime.protocol.messages import (
@@ -80,8 +81,9 @@ class PolicyService:
 
     # --- upload ------------------------------------------------------------------------------
     def upload(self, data: bytes, mode: str, name: str, target_range_m: tuple[float, float], notes: str | None,
-               username: str, evaluate: bool = True) -> PolicyVersion:
-        """Validate and store a policy version; start its twin evaluation.
+               username: str, evaluate: bool = True, history_steps: int = HISTORY_STEPS) -> PolicyVersion:
+        """Validate and store a policy version reading ``history_steps`` control steps of joint
+        history (runtime.observation); start its twin evaluation.
 
         Raises:
             Refused: with the reason (not ONNX, wrong shapes for the mode, non-finite
@@ -98,7 +100,8 @@ class PolicyService:
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "upload.onnx"
             path.write_bytes(data)
-            manifest = build_manifest(path, mode, name, (lo, hi), {"notes": notes or "", "uploaded_by": username})
+            manifest = build_manifest(path, mode, name, (lo, hi), {"notes": notes or "", "uploaded_by": username},
+                                      history_steps=history_steps)
             path.with_suffix(".json").write_text(json.dumps(manifest))
             # loaded and probed in a limited child process, never in the API (a tiny file can ask
             # onnxruntime for gigabytes): server.policies.validation
