@@ -142,6 +142,20 @@ def test_the_history_recipe_is_the_candidate_with_only_a_longer_observation_hist
     assert cfg.history_steps == 8 and observation_size("2d", cfg.history_steps) == 96
 
 
+def test_the_3d_history_recipe_is_the_3d_recipe_with_only_a_longer_observation_history():
+    """sim_twin/configs/throw_3d_history.json: throw_3d.json with 8 control steps of joint history,
+    nothing else changed; its environment builds 113-value observations."""
+    from runtime.observation import observation_size
+    from sim_twin.training.mjx_env import EnvConfig
+
+    path = ROOT / "sim_twin" / "configs" / "throw_3d_history.json"
+    recipe = _flat(_without_notes(ROOT / "sim_twin" / "configs" / "throw_3d.json"))
+    history = _flat(_without_notes(path))
+    assert {k for k in recipe.keys() | history.keys() if recipe.get(k) != history.get(k)} == {("env", "history_steps")}
+    cfg = EnvConfig.from_dict(json.loads(path.read_text())["env"])
+    assert cfg.mode == "3d" and observation_size("3d", cfg.history_steps) == 113
+
+
 def test_the_centred_recipe_puts_the_nominal_machine_near_the_middle_of_its_ranges():
     """sim_twin/configs/throw_2d_centred.json: the candidate with the ranges that had the nominal
     machine at their fast, light end moved so that it sits near their middle (friction in its
