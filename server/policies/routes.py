@@ -94,7 +94,8 @@ async def upload_policy(
 ) -> PolicyOut:
     """Upload a policy version: the manifest is generated from the mode and metadata (its
     observation layout from ``history_steps``); the file is refused with the reason if it is not
-    ONNX, has the wrong input/output shapes for the mode and history or produces non-finite actions. An accepted version is evaluated in the twin in the background
+    ONNX, has the wrong input/output shapes for the mode and history or produces non-finite
+    actions. An accepted version is evaluated in the twin in the background
     (``evaluation_status`` pending -> running -> done, ``metrics``)."""
     data = await file.read()
     from starlette.concurrency import run_in_threadpool

@@ -86,7 +86,7 @@ class PolicyService:
         history (runtime.observation); start its twin evaluation.
 
         Raises:
-            Refused: with the reason (not ONNX, wrong shapes for the mode, non-finite
+            Refused: with the reason (not ONNX, wrong shapes for the mode and history, non-finite
                 actions on a small observation sweep, over the memory or time limit of the
                 check, bad range). Conflict: this file is already a version.
         """
