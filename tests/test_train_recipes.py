@@ -142,6 +142,31 @@ def test_the_history_recipe_is_the_candidate_with_only_a_longer_observation_hist
     assert cfg.history_steps == 8 and observation_size("2d", cfg.history_steps) == 96
 
 
+def test_the_sites_recipe_is_the_history_recipe_widened_at_its_curriculum_stage():
+    """sim_twin/configs/throw_2d_sites.json: the history recipe whose curriculum stage also widens the
+    randomisation over the worn gripper's friction and release delay and the windy site's wind, nothing
+    else changed; before the stage its environment is the history recipe's, after it the worn gripper's
+    friction (x10) and 340 ms release delay lie inside the ranges and episodes draw a wind."""
+    from sim_twin.training.config import CurriculumStage
+    from sim_twin.training.privileged import Randomization
+
+    path = ROOT / "sim_twin" / "configs" / "throw_2d_sites.json"
+    history = _flat(_without_notes(ROOT / "sim_twin" / "configs" / "throw_2d_history.json"))
+    sites = _flat(_without_notes(path))
+    stage = ("training", "curriculum_stage", "randomization")
+    changed = {k for k in history.keys() | sites.keys() if history.get(k) != sites.get(k)}
+    assert changed == {(*stage, "friction_scale"), (*stage, "friction_sampling"), (*stage, "release_delay_shift_s"),
+                       (*stage, "wind_mps")}
+    cfg = json.loads(path.read_text())
+    before, after = CurriculumStage.from_dict(cfg["training"]["curriculum_stage"]).env_dicts(cfg["env"])
+    assert before["randomization"] == cfg["env"]["randomization"]
+    wide = Randomization.from_dict(after["randomization"])
+    assert wide.friction_scale[0] <= 1.0 and wide.friction_scale[1] >= 10.0 and wide.friction_sampling == "log_uniform"
+    worn_delay_s = 0.34  # sim_twin/profiles/worn_gripper.json
+    assert wide.release_delay_mean_s + wide.release_delay_shift_s + 2 * wide.release_delay_std_s >= worn_delay_s
+    assert wide.wind_mps == 5.0  # sim_twin/profiles/windy_site.json
+
+
 def test_the_3d_history_recipe_is_the_3d_recipe_with_only_a_longer_observation_history():
     """sim_twin/configs/throw_3d_history.json: throw_3d.json with 8 control steps of joint history,
     nothing else changed; its environment builds 113-value observations."""
