@@ -182,3 +182,65 @@ def test_a_finished_or_missing_candidate_is_not_judged_again(tmp_path):
     assert not resumed.resume_pending() and not resumed.busy
     assert resumed.submit(10, "cand/checkpoint_10.onnx", 0.0)
     resumed.stop()
+
+
+class CopyingGate(MatrixGate):
+    """Judges committed site matrices: iteration i's matrix on every seed is a copy of ``sources[i]``
+    (with its seed set to the gate's), so the comparison with the deployed policy runs on real throws."""
+
+    sources: dict[int, str] = {}
+
+    def command(self, onnx, seed, out):
+        src = self.sources[int(onnx.rsplit("_", 1)[1].split(".")[0])]
+        return [sys.executable, "-c", f"import json; r = json.load(open({src!r})); r['seed'] = {seed}; json.dump(r, open({out!r}, 'w'))"]
+
+
+def test_a_run_past_the_bars_exports_the_pass_worse_than_the_deployed_on_the_fewest_cells(tmp_path):
+    """With compare_with every pass is paired-tested against the deployed policy on the gate's seeds:
+    the deployed policy's own matrix is worse on no cell, throw2d-scratch-n1's iteration 3075 (seed 0)
+    on two (friction x3 9.5-10 m); choose_pass takes the fewest, the newest among equals."""
+    from pathlib import Path
+
+    from sim_twin.training.matrix_gate import choose_pass
+
+    root = Path(__file__).resolve().parents[1]
+    deployed = root / "reports" / "site_matrix_2d.json"
+    n1 = root / "policies" / "training" / "throw2d-scratch-n1" / "matrices" / "site_matrix_2d_it3075.json"
+    CopyingGate.sources = {1: str(deployed), 2: str(n1), 3: str(deployed), 4: str(n1)}
+    gate = CopyingGate(tmp_path, "2d", seeds=[0], workers=1, judge_after_pass=True, compare_with=[deployed])
+    for it in (1, 2):
+        _run(gate, it)
+    assert [(p["iteration"], p["worse_than_deployed"]) for p in gate.passes] == [(1, 0), (2, 2)]
+    assert gate.passes[1]["worse_cells"] == ["friction_x3@9.5", "friction_x3@10"]
+    assert choose_pass(gate.passes)["iteration"] == 1  # not the newest: it is worse on two cells
+    _run(gate, 3)
+    assert choose_pass(gate.passes)["iteration"] == 3  # as few worse cells, newer
+    again = CopyingGate(tmp_path, "2d", seeds=[0], workers=1, judge_after_pass=True)  # the counts survive a restart
+    assert [p["worse_than_deployed"] for p in again.passes] == [0, 2, 0]
+
+
+def test_choose_pass_without_comparisons_is_the_newest():
+    from sim_twin.training.matrix_gate import choose_pass
+
+    assert choose_pass([]) is None
+    assert choose_pass([{"iteration": 1}, {"iteration": 2}])["iteration"] == 2
+    # a pass whose comparison failed ranks after every compared one
+    assert choose_pass([{"iteration": 1, "worse_than_deployed": 3}, {"iteration": 2, "worse_than_deployed": None}])["iteration"] == 1
+
+
+def test_deployed_matrices_that_do_not_fit_the_gate_are_refused_before_training(tmp_path):
+    import pytest
+    from pathlib import Path
+
+    reports = Path(__file__).resolve().parents[1] / "reports"
+    with pytest.raises(ValueError, match="2 gate seeds"):
+        MatrixGate(tmp_path, "2d", seeds=[0, 1], compare_with=[reports / "site_matrix_2d.json"])
+    with pytest.raises(ValueError, match="not 2d on gate seed 0"):
+        MatrixGate(tmp_path, "2d", seeds=[0], compare_with=[reports / "site_matrix_2d_seed1.json"])
+    with pytest.raises(ValueError, match="not 3d"):
+        MatrixGate(tmp_path, "3d", seeds=[0], compare_with=[reports / "site_matrix_2d.json"])
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(ValueError, match="not a site-matrix report"):
+        MatrixGate(tmp_path, "2d", seeds=[0], compare_with=[tmp_path / "bad.json"])
+    with pytest.raises(OSError):
+        MatrixGate(tmp_path, "2d", seeds=[0], compare_with=[tmp_path / "missing.json"])

@@ -15,6 +15,16 @@ at) is saved to ``<dir>/matrix_gate.json`` after every change so a resumed train
 resumed training's gate judges the candidate that was under test when the run stopped again from the
 seed it had reached (:meth:`MatrixGate.resume_pending`), where its ONNX file came along.
 
+With ``compare_with`` (the deployed policy's site matrices of the gate's seeds, ``slinger train
+--gate-compare-with``) every candidate that passed is also compared with the deployed policy by the
+paired deploy test on the gate's seeds (sim_twin.evaluation.matrix_compare: the cells where it lands
+further off, Holm-corrected); its entry in ``passes`` records ``worse_than_deployed`` (the count) and
+``worse_cells``, and a run past the bars exports the pass with the fewest such cells, the newest among
+equals (:func:`choose_pass`), instead of the newest. Why: late in a run a far cell's landing bias moves
+by several centimetres from checkpoint to checkpoint (throw2d-scratch-n1's nominal 10 m bias +0.017 to
++0.157 m, seed 0), so the newest pass is one draw of that motion; a deployable policy is one no worse
+than the deployed on any cell (docs/training.md, "Deploying a new version").
+
 :meth:`MatrixGate.watch` collects verdicts on a thread of its own as soon as a matrix process ends,
 so a verdict is on disk even when the training is stopped (or its machine taken away) before its next
 checkpoint; the training loop then only reads ``passed`` and hands over candidates.
@@ -93,6 +103,19 @@ def parse_matrix_file_name(name: str) -> tuple[int, int]:
     return int(m.group(1)), int(m.group(2) or 0)
 
 
+def choose_pass(passes: list[dict]) -> dict | None:
+    """The pass a run past the bars exports: where the gate compared the passes with the deployed
+    policy (``worse_than_deployed`` not None), the one with the fewest cells worse, the newest among
+    equals; passes without a comparison (older states, a failed comparison) only where none has
+    one; else the newest. None for no pass."""
+    if not passes:
+        return None
+    compared = [p for p in passes if p.get("worse_than_deployed") is not None]
+    if compared:
+        return min(reversed(compared), key=lambda p: p["worse_than_deployed"])  # min keeps the first: the newest
+    return passes[-1]
+
+
 GATE_NICENESS = 10
 """How much lower than the training process the site-matrix processes run (Unix niceness)."""
 
@@ -111,17 +134,27 @@ class MatrixGate:
         reserve_cores: cores left to the training process when ``workers`` is not given.
         clock: function returning the training wall time now [s].
         judge_after_pass: keep judging new candidates after one passed (see module doc).
+        compare_with: the deployed policy's site-matrix reports with per-throw data, one per seed in
+            ``seeds``' order, to compare every pass with (see module doc); None: no comparison.
 
     Raises:
-        ValueError: no seeds or fewer than 1 throw.
+        ValueError: no seeds or fewer than 1 throw; ``compare_with`` not one report per seed, or a
+            report that is not JSON, of another mode or of another start-pose seed.
+        OSError: a ``compare_with`` file cannot be read.
     """
 
     def __init__(self, out_dir: Path, mode: str, seeds: list[int], throws: int = 100, targets: str | None = None,
-                 workers: int | None = None, reserve_cores: int = 3, clock=None, judge_after_pass: bool = False):
+                 workers: int | None = None, reserve_cores: int = 3, clock=None, judge_after_pass: bool = False,
+                 compare_with: list[Path] | None = None):
         if not seeds:
             raise ValueError("the gate needs at least one seed")
         if throws < 1:
             raise ValueError("throws must be >= 1")
+        self.compare_with = [str(p) for p in compare_with or []]
+        self._deployed = [self._deployed_matrix(Path(p), mode, seed) for p, seed in zip(self.compare_with, seeds)]
+        if self.compare_with and len(self.compare_with) != len(seeds):
+            raise ValueError(f"compare_with: {len(self.compare_with)} site matrices for {len(seeds)} gate seeds {seeds}: "
+                             "give the deployed policy's matrix of each gate seed, in their order")
         self.out_dir = Path(out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.mode, self.seeds, self.throws, self.targets = mode, list(seeds), throws, targets
@@ -144,6 +177,34 @@ class MatrixGate:
             self.passed = st.get("passed")
             self.passes = st.get("passes", [self.passed] if self.passed else [])
             self._pending = st.get("pending")  # the candidate under test when the state was saved
+
+    @staticmethod
+    def _deployed_matrix(path: Path, mode: str, seed: int) -> dict:
+        try:
+            rep = json.loads(path.read_text())
+        except ValueError as e:
+            raise ValueError(f"{path}: not a site-matrix report ({e})") from e
+        if rep.get("mode") != mode or int(rep.get("seed", -1)) != seed:
+            raise ValueError(f"{path}: the site matrix of mode {rep.get('mode')} on seed {rep.get('seed')}, "
+                             f"not {mode} on gate seed {seed}")
+        return rep
+
+    def _compare(self, iteration: int) -> dict:
+        """``{"worse_than_deployed": n, "worse_cells": ["profile@target", ...]}`` of the passed
+        candidate ``iteration`` against the deployed policy's matrices (module doc); n None with the
+        reason where the comparison failed (logged: the pass stands, it only ranks last)."""
+        from sim_twin.evaluation.matrix_compare import compare
+
+        try:
+            mine = {r.seed: r.matrix_path for r in self.results if r.iteration == iteration}
+            comp = compare(self._deployed, [json.loads(Path(mine[s]).read_text()) for s in self.seeds])
+        except (OSError, ValueError, KeyError) as e:
+            log.error("iteration %d: the paired test against the deployed policy failed: %s", iteration, e)
+            return {"worse_than_deployed": None, "worse_cells": [], "compare_error": str(e)}
+        worse = [f"{c.profile}@{c.target_m:g}" for c in comp.cells if c.worse]
+        log.info("iteration %d: worse than the deployed policy on %d cells by the paired test%s", iteration, len(worse),
+                 f" ({', '.join(worse)})" if worse else "")
+        return {"worse_than_deployed": len(worse), "worse_cells": worse}
 
     @property
     def busy(self) -> bool:
@@ -273,7 +334,7 @@ class MatrixGate:
         next_seed = res.passed and c["seed_index"] + 1 < len(self.seeds)
         if res.passed and not next_seed:
             self.passes.append({"iteration": c["iteration"], "onnx": c["onnx"], "train_wall_s": c["train_wall_s"],
-                                "verdict_wall_s": res.verdict_wall_s})
+                                "verdict_wall_s": res.verdict_wall_s, **(self._compare(c["iteration"]) if self._deployed else {})})
             self.passed = self.passed or self.passes[-1]
         if next_seed:
             c["seed_index"] += 1

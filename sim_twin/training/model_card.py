@@ -66,13 +66,16 @@ def describe_accelerators(segments: list[dict], to_iteration: int) -> str:
 
 
 def build_card(*, command: str, cfg: dict, iteration: int, train_wall_s: float, verdict_wall_s: float | None,
-               gpus: str, world_size: int, matrices: list[dict], bars_met: bool, policy_sha256: str) -> dict:
+               gpus: str, world_size: int, matrices: list[dict], bars_met: bool, policy_sha256: str,
+               commit: str | None = None) -> dict:
     """The card as a dict (see write_card for the files). ``gpus``: the accelerator line
-    (:func:`accelerator`, or :func:`describe_accelerators` for a run trained on more than one)."""
+    (:func:`accelerator`, or :func:`describe_accelerators` for a run trained on more than one);
+    ``commit``: the commit that trained it where that is not this checkout's (a card written after the
+    run, sim_twin.training.late_export), by default :func:`sim_twin.provenance.git_commit`."""
     return {
         "command": command,
         "config_sha256": config_sha256(cfg),
-        "git_commit": git_commit(),
+        "git_commit": commit or git_commit(),
         "accelerator": gpus,
         "processes": world_size,
         "num_envs_per_process": cfg.get("num_envs"),
@@ -108,3 +111,22 @@ def write_card(onnx_path: Path, card: dict) -> tuple[Path, Path]:
         lines.append(f"| {r['iteration']} | {r['seed']} | {'yes' if r['passed'] else 'no'} | {r['missing_cells']} | {Path(r['matrix_path']).name} |")
     m.write_text("\n".join(lines) + "\n")
     return j, m
+
+
+def attach_card(onnx_path: Path, cfg: dict, command: str, card: dict) -> dict:
+    """Build the card of the exported policy ``onnx_path`` (:func:`build_card` with ``card``'s
+    keyword arguments but the policy's SHA-256, which is read from the file), write it beside the
+    policy (:func:`write_card`) and into its manifest's ``training.model_card``. Returns the card.
+
+    Raises:
+        FileNotFoundError: ``onnx_path`` or its manifest (``<stem>.json``) is missing.
+        KeyError: the manifest has no ``training`` section (not written by sim_twin.training.export)."""
+    from runtime.policy import sha256_of, write_manifest
+
+    onnx_path = Path(onnx_path)
+    c = build_card(command=command, cfg=cfg, policy_sha256=sha256_of(onnx_path), **card)
+    write_card(onnx_path, c)
+    manifest = json.loads(onnx_path.with_suffix(".json").read_text())
+    manifest["training"]["model_card"] = c
+    write_manifest(onnx_path, manifest)
+    return c

@@ -10,7 +10,8 @@ when ``--iterations`` or ``--max-minutes`` run out, nothing is exported unless `
 (then the last checkpoint, its card saying the bars were not met). With ``--no-stop-at-bars`` the
 training runs on to ``--iterations`` / ``--max-minutes``, the gate judging newer checkpoints, and the
 newest checkpoint that met every bar is exported (its matrices feed the deploy comparison,
-sim_twin.evaluation.matrix_compare).
+sim_twin.evaluation.matrix_compare); with ``--gate-compare-with`` the gate runs that comparison on its
+seeds for every pass and the pass worse than the deployed policy on the fewest cells is exported.
 
 The iterations run in one ``learn()`` of rsl_rl's runner with per-iteration callbacks
 (sim_twin.training.runner.CallbackRunner; :class:`TrainingRun` says which), cut into chunks of
@@ -95,6 +96,10 @@ def build_parser(parser: argparse.ArgumentParser) -> None:
                         help="stop at the first checkpoint that meets every bar (default); with --no-stop-at-bars "
                              "train on to --iterations / --max-minutes, the gate judging newer checkpoints, and "
                              "export the newest one that met every bar")
+    parser.add_argument("--gate-compare-with", default=None, metavar="MATRIX[,MATRIX...]",
+                        help="the deployed policy's site matrices of the gate seeds, in their order (e.g. reports/site_matrix_2d.json,"
+                             "reports/site_matrix_2d_seed1.json): every pass is compared with it by the paired deploy test and "
+                             "--no-stop-at-bars exports the pass worse on the fewest cells (sim_twin.training.matrix_gate)")
     parser.add_argument("--gate-wait-minutes", type=float, default=0.0,
                         help="at the end, wait this long for a running matrix")
     parser.add_argument("--physics", choices=["jax", "warp"], default="jax", help="MJX implementation")
@@ -296,7 +301,9 @@ class TrainingRun:
         if getattr(args, "gate", False) and proc.main:
             self.gate = MatrixGate(self.log_dir / "matrices", args.mode, [int(s) for s in str(args.gate_seeds).split(",")],
                                    throws=args.gate_throws, targets=args.gate_targets, workers=args.gate_workers,
-                                   clock=self.clock, judge_after_pass=not self.stop_at_bars)
+                                   clock=self.clock, judge_after_pass=not self.stop_at_bars,
+                                   compare_with=[Path(x) for x in str(args.gate_compare_with).split(",")]
+                                   if getattr(args, "gate_compare_with", None) else None)
             if args.resume:
                 self.gate.resume_pending()  # the candidate under test when the run stopped, from its seed
             self.gate.watch()  # verdicts are recorded when each matrix ends, not at the next checkpoint
@@ -433,7 +440,8 @@ class TrainingRun:
 
     def finish(self) -> Path | None:
         """Rank 0: wait for a running matrix (``--gate-wait-minutes``), stop the gate, plot the curve
-        and export the checkpoint that met the bars (with ``--no-stop-at-bars`` the newest such),
+        and export the checkpoint that met the bars (with ``--no-stop-at-bars`` the newest such, or with
+        ``--gate-compare-with`` the one worse than the deployed policy on the fewest cells: matrix_gate.choose_pass),
         else, where ``--export`` asks, the last one with a card saying the bars were not met.
         Returns the ONNX written or None. Other ranks return None at once.
 
@@ -443,6 +451,7 @@ class TrainingRun:
         if not self.proc.main:
             return None
         from sim_twin.training import model_card
+        from sim_twin.training.matrix_gate import choose_pass
 
         args, gate = self.args, self.gate
         if gate and not self._bars_end_it and args.gate_wait_minutes > 0:
@@ -451,7 +460,7 @@ class TrainingRun:
         if gate:
             gate.stop()
             if gate.passes and not self.stop_at_bars:
-                self.passed = gate.passes[-1]  # the newest that met every bar
+                self.passed = choose_pass(gate.passes)  # the newest that met every bar, or the fewest cells worse than the deployed
         passed = self.passed
         log.info("training stopped (%s) at iteration %d after %.1f min", "bars met" if self._bars_end_it else self.stop_reason,
                  self.runner.current_learning_iteration, self.clock() / 60)
@@ -493,19 +502,13 @@ def _export(checkpoint: Path, cfg: dict, out: Path, name: str, card: dict | None
     """Export ``checkpoint`` to ONNX + manifest; with ``card`` also write the model card (naming
     ``command``, by default this process's command line) and put it into the manifest's
     ``training`` section."""
-    from runtime.policy import sha256_of, write_manifest
     from sim_twin.training import model_card
     from sim_twin.training.export import export_checkpoint
 
     export_checkpoint(checkpoint, cfg, out, name=name)
     if card is not None:
         card = {"gpus": model_card.accelerator(), **card}  # the run's own record where it passes one (TrainingRun.finish)
-        c = model_card.build_card(command=command or shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]), cfg=cfg,
-                                  policy_sha256=sha256_of(out), **card)
-        model_card.write_card(out, c)
-        manifest = json.loads(out.with_suffix(".json").read_text())
-        manifest["training"]["model_card"] = c
-        write_manifest(out, manifest)
+        model_card.attach_card(out, cfg, command or shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]), card)
     return out
 
 
