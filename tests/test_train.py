@@ -152,6 +152,36 @@ def test_the_run_stops_at_the_bars_or_trains_past_them(tmp_path, monkeypatch, st
         assert card["iteration"] == gate["passes"][-1]["iteration"] > gate["passed"]["iteration"]
 
 
+def test_a_run_past_the_bars_compared_with_the_deployed_exports_the_pass_worse_on_the_fewest_cells(tmp_path, monkeypatch):
+    """--gate-compare-with: the gate's matrices here are committed ones, the deployed policy's own
+    (worse on no cell against itself) for odd iterations and throw2d-scratch-n1's iteration 3075 (worse
+    on two cells, seed 0) for even ones; every pass records its count and the export is the pass worse
+    on the fewest cells, the newest among equals, whatever was judged."""
+    import json
+    import sys
+    from pathlib import Path
+
+    from sim_twin.training.matrix_gate import MatrixGate
+
+    root = Path(__file__).resolve().parents[1]
+    deployed = root / "reports" / "site_matrix_2d.json"
+    n1 = root / "policies" / "training" / "throw2d-scratch-n1" / "matrices" / "site_matrix_2d_it3075.json"
+
+    def copying(self, onnx, seed, out):
+        src = deployed if int(onnx.rsplit("_", 1)[1].split(".")[0]) % 2 else n1
+        return [sys.executable, "-c", f"import shutil; shutil.copyfile({str(src)!r}, {out!r})"]
+
+    monkeypatch.setattr(MatrixGate, "command", copying)
+    args = _args(tmp_path, gate=True, iterations=4, gate_seeds="0", gate_workers=1, gate_wait_minutes=5,
+                 no_stop_at_bars=True, gate_compare_with=deployed)
+    assert train.run(args) == 0
+    passes = json.loads((tmp_path / "run" / "matrices" / "matrix_gate.json").read_text())["passes"]
+    assert passes and all(p["worse_than_deployed"] == (0 if p["iteration"] % 2 else 2) for p in passes)
+    fewest = min(p["worse_than_deployed"] for p in passes)
+    card = json.loads((tmp_path / "run" / "throw2d.card.json").read_text())
+    assert card["iteration"] == max(p["iteration"] for p in passes if p["worse_than_deployed"] == fewest)
+
+
 def test_a_run_resumed_from_its_state_elsewhere_exports_the_pass_it_carried(tmp_path, monkeypatch):
     """--no-stop-at-bars: every candidate passes on the first machine; the run's state
     (tests/benchmarks/device_runs.sh state, under another name) resumes on a second machine, where the

@@ -53,8 +53,8 @@ CANDIDATE_SUFFIXES = (".onnx", ".json", ".pt")
 """The files of one candidate, ``candidates/checkpoint_<iteration>`` with these suffixes: the ONNX file
 and its manifest, which judging it needs (``slinger evaluate`` loads the policy through its
 manifest), and the checkpoint, which exporting it needs once it passed (``TrainingRun.finish``). A
-state that resumes a run carries all three of the candidate under test and of the first and the newest
-candidate that passed (``tests/benchmarks/device_runs.sh state``)."""
+state that resumes a run carries all three of the candidate under test, of the first and the newest
+candidate that passed and of the one :func:`choose_pass` picks (``tests/benchmarks/device_runs.sh state``)."""
 
 
 @dataclass

@@ -126,12 +126,16 @@ state() {
   for f in curve.csv matrices accelerators.json logs; do [ -e "$src/$f" ] && cp -r "$src/$f" "$tmp/runs/$name/"; done
   # the candidates the resumed run needs (sim_twin.training.matrix_gate.CANDIDATE_SUFFIXES: ONNX file, manifest,
   # checkpoint): the gate's candidate under test (matrix_gate.json's pending), which it judges again, and the
-  # candidates that met the bars, the first (`passed`) and the newest (`passes`), one of which the run exports
+  # candidates that met the bars, the first (`passed`), the newest (`passes`) and the one a run past the bars
+  # exports (matrix_gate.choose_pass: with --gate-compare-with the one worse than the deployed on the fewest cells)
   local cand cands=$(python3 -c "
 import json, sys
+sys.path.insert(0, sys.argv[2])
+from sim_twin.training.matrix_gate import choose_pass
 g = json.load(open(sys.argv[1]))
-print(' '.join(sorted({c['onnx'] for c in [g.get('pending'), g.get('passed'), *(g.get('passes') or [])[-1:]] if c})))" \
-    "$src/matrices/matrix_gate.json" 2>/dev/null)
+passes = g.get('passes') or []
+print(' '.join(sorted({c['onnx'] for c in [g.get('pending'), g.get('passed'), *passes[-1:], choose_pass(passes)] if c})))" \
+    "$src/matrices/matrix_gate.json" "$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)" 2>/dev/null)
   for cand in $cands; do
     local stem=$src/candidates/$(basename ${cand%.onnx})
     mkdir -p "$tmp/runs/$name/candidates"
