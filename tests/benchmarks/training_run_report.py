@@ -342,7 +342,10 @@ def plot_cells(curves: dict[str, list[tuple[float, int]]], path: Path, title: st
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    many = len(curves) > 6  # the legend goes beside the axes, where it hides no line
+    fig, ax = plt.subplots(figsize=(9.0 if many else 6.5, 3.8))
+    if len(curves) > 10:  # the default cycle has 10 colours: no two runs share one
+        ax.set_prop_cycle(color=plt.get_cmap("tab20").colors)
     for name, pts in curves.items():
         ax.plot([t for t, _ in pts], [n for _, n in pts], "o-", label=name)
     ax.set_yscale("symlog", linthresh=1)
@@ -353,10 +356,12 @@ def plot_cells(curves: dict[str, list[tuple[float, int]]], path: Path, title: st
     ax.yaxis.set_minor_locator(matplotlib.ticker.NullLocator())
     ax.set_xlabel("training wall time [min]")
     ax.set_ylabel("site-matrix cells missing a bar")
-    ax.set_title(textwrap.fill(title, 90) + "\ncells missing a bar (first gate seed, 66 cells)", fontsize=9)
+    # a report's title can run to a paragraph (its provenance keeps it whole): two lines of it here
+    ax.set_title(textwrap.fill(textwrap.shorten(title, 180, placeholder=" ..."), 90)
+                 + "\ncells missing a bar (first gate seed, 66 cells)", fontsize=9)
     ax.grid(alpha=0.3)
     if len(curves) > 1:
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=8, **({"loc": "upper left", "bbox_to_anchor": (1.01, 1.0)} if many else {}))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
