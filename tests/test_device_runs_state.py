@@ -247,3 +247,26 @@ def test_collect_names_each_machines_log_in_turn(tmp_path):
         logs = sorted(m.name for m in t.getmembers() if "/logs/" in m.name)
         assert t.extractfile("runs/resumed/logs/machine1.log.gz").read() == b"first machine"
     assert logs == ["runs/resumed/logs/machine1.log.gz", "runs/resumed/logs/machine2.log.gz"]
+
+
+def test_state_carries_the_pass_a_compared_run_exports(tmp_path):
+    """With --gate-compare-with a run past the bars exports the pass worse than the deployed policy
+    on the fewest cells (matrix_gate.choose_pass), here one between the first and the newest: the
+    state carries it too."""
+    import json
+
+    files = [f"candidates/checkpoint_{it}.{x}" for it in (500, 800, 1000) for x in ("onnx", "json", "pt")]
+    src = _run_with_pending(tmp_path, files)
+    gate_json = src / "matrices" / "matrix_gate.json"
+    state = json.loads(gate_json.read_text())
+    passes = [{"iteration": it, "onnx": f"runs/throw2d-x/candidates/checkpoint_{it}.onnx", "train_wall_s": it * 1.0,
+               "verdict_wall_s": it * 1.1, "worse_than_deployed": worse} for it, worse in ((500, 4), (800, 1), (1000, 3))]
+    state.update(passed=passes[0], passes=passes, pending=None)
+    gate_json.write_text(json.dumps(state))
+    r = _state(tmp_path, str(src), "throw2d-z")
+    assert r.returncode == 0 and "is not there" not in r.stderr, r.stderr
+    machine2 = tmp_path / "machine2"
+    machine2.mkdir()
+    subprocess.run(["tar", "xf", str(tmp_path / "runs" / "state" / "throw2d-z.tar")], cwd=machine2, check=True)
+    kept = sorted(p.name for p in (machine2 / "runs" / "throw2d-z" / "candidates").iterdir())
+    assert kept == [f"checkpoint_{it}.{x}" for it in (1000, 500, 800) for x in ("json", "onnx", "pt")]
