@@ -40,8 +40,24 @@ def _has_rows(path: Path) -> bool:
 
 
 def test_the_deciding_iterations_of_a_run_that_met_the_bars():
-    assert row_iterations(decide(H0)) == {25, 150, 500, 925, 1200}  # first, style (<= 250), first pass, export, last
-    assert candidate_iterations(decide(H0)) == {500}  # the first pass; the export is throw2d.onnx
+    # first, style (<= 250), every pass (500, 725 and the export 925: their paired tests can be run again), last
+    assert row_iterations(decide(H0)) == {25, 150, 500, 725, 925, 1200}
+    assert candidate_iterations(decide(H0)) == {500}  # the first pass; the export (the newest pass) is throw2d.onnx
+
+
+def test_the_pass_a_compared_run_exports_keeps_its_candidate(tmp_path):
+    """With --gate-compare-with a run past the bars exports the pass worse than the deployed policy on
+    the fewest cells (matrix_gate.choose_pass): a run whose export is another (the newest, written by
+    hand after the run, say) keeps that pass's candidate beside the first."""
+    run = tmp_path / "run"
+    shutil.copytree(H0 / "matrices", run / "matrices")
+    (run / "throw2d.card.json").write_text(json.dumps({"iteration": 925}))
+    gate = json.loads((run / "matrices" / "matrix_gate.json").read_text())
+    for p, worse in zip(gate["passes"], (3, 1, 2)):
+        p["worse_than_deployed"] = worse
+    (run / "matrices" / "matrix_gate.json").write_text(json.dumps(gate))
+    d = decide(run)
+    assert (d.first_pass, d.exported) == (500, 925) and candidate_iterations(d) == {500, 725}
 
 
 def test_a_run_that_never_met_keeps_its_last_two_candidates():
@@ -53,8 +69,9 @@ def test_a_collected_run_is_trimmed_and_keeps_what_decides_it(tmp_path):
     gate_before = (run / "matrices" / "matrix_gate.json").read_text()
     done = keep_run(run)
     m = run / "matrices"
-    assert not _has_rows(m / "site_matrix_2d_it725.json") and not _has_rows(m / "site_matrix_2d_it1100.json")
+    assert not _has_rows(m / "site_matrix_2d_it1100.json")  # judged, not a pass
     assert _has_rows(m / "site_matrix_2d_it500.json") and _has_rows(m / "site_matrix_2d_it925.json")
+    assert _has_rows(m / "site_matrix_2d_it725.json")  # a pass between the first and the export
     assert _has_rows(m / "site_matrix_2d_it500_seed2.json")  # a held-out seed's matrix keeps its rows
     assert json.loads((m / "site_matrix_2d_it725.json").read_text())["pass"] is not None  # the verdicts stay
     assert not list(m.glob("*.png"))
@@ -64,7 +81,7 @@ def test_a_collected_run_is_trimmed_and_keeps_what_decides_it(tmp_path):
         assert "tb/events.out.tfevents.1" in tar.getnames()
     assert (run / "checkpoint.pt").read_bytes() == b"ckpt" and (run / "throw2d.onnx").exists()
     assert (m / "matrix_gate.json").read_text() == gate_before
-    assert any("it725" in line for line in done)
+    assert any("it1100" in line for line in done)
 
 
 def test_a_dry_run_changes_nothing(tmp_path):

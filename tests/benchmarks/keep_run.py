@@ -9,7 +9,7 @@ candidate the gate exported and the TensorBoard event directory. The runs kept i
 
 * per-throw rows only in the matrices of the iterations that decide the run (:func:`row_iterations`:
   the first and last the gate judged, the far-target style's (the last at or before iteration 250,
-  tests/benchmarks/training_throw_style.py), the first that met every bar on every gate seed, the
+  tests/benchmarks/training_throw_style.py), every one that met every bar on every gate seed, the
   exported policy's) and in every matrix of a held-out seed (one outside the gate's seeds, run after
   the run); the other matrices keep their per-cell statistics and verdicts;
 * no matrix plots (the JSON and the Markdown tables carry the same figures);
@@ -85,20 +85,28 @@ def decide(run: Path) -> RunDecision:
 
 
 def row_iterations(d: RunDecision) -> set[int]:
-    """The iterations whose matrices keep their per-throw rows (module docstring)."""
+    """The iterations whose matrices keep their per-throw rows (module docstring), every checkpoint
+    that met every bar on every gate seed among them: the paired test against the deployed policy
+    that ranks a run's passes (sim_twin.training.matrix_gate.choose_pass) reads the rows, so it can be
+    run again on any of them."""
     judged = sorted({r["iteration"] for r in d.gate["results"]})
     keep = {judged[0], judged[-1]} if judged else set()
     early = [it for it in judged if it <= STYLE_ITERATION_MAX]
     if early:
         keep.add(early[-1])
-    return keep | {it for it in (d.first_pass, d.exported) if it is not None}
+    passes = {int(p["iteration"]) for p in d.gate.get("passes") or [] if p}
+    return keep | passes | {it for it in (d.first_pass, d.exported) if it is not None}
 
 
 def candidate_iterations(d: RunDecision) -> set[int]:
     """The gate's candidates kept beside the export: the first that met every bar on every gate seed
-    (where that is not the export), or, where none did, the last two the gate judged."""
+    and the one a run past the bars exports (sim_twin.training.matrix_gate.choose_pass), where they are
+    not the export, or, where none met them, the last two the gate judged."""
+    from sim_twin.training.matrix_gate import choose_pass
+
     if d.first_pass is not None:
-        return set() if d.first_pass == d.exported else {d.first_pass}
+        chosen = choose_pass([p for p in d.gate.get("passes") or [] if p])
+        return {it for it in (d.first_pass, chosen and int(chosen["iteration"])) if it and it != d.exported}
     return set(sorted({r["iteration"] for r in d.gate["results"]})[-2:])
 
 
