@@ -187,29 +187,37 @@ def test_state_carries_the_candidate_under_test_that_the_resumed_gate_judges_aga
     assert [(r.iteration, r.seed) for r in gate.results] == [(575, 1)]  # seed 0 had been met on the first machine
 
 
+def _state_of_passes(tmp_path: Path, iterations: tuple[int, ...], name: str, passes: list[dict], pending: dict | None) -> Path:
+    """A run with every file of the candidates ``iterations`` and a gate state holding ``passes`` (the first
+    as ``passed``) and ``pending``, packed by ``state`` as NAME without a complaint and unpacked on a
+    second machine; returns the unpacked run directory."""
+    import json
+
+    files = [f"candidates/checkpoint_{it}.{x}" for it in iterations for x in ("onnx", "json", "pt")]
+    src = _run_with_pending(tmp_path, files)
+    gate_json = src / "matrices" / "matrix_gate.json"
+    state = json.loads(gate_json.read_text())
+    state.update(passed=passes[0], passes=passes, pending=pending)
+    gate_json.write_text(json.dumps(state))
+    r = _state(tmp_path, str(src), name)
+    assert r.returncode == 0 and "is not there" not in r.stderr, r.stderr
+    machine2 = tmp_path / "machine2"
+    machine2.mkdir()
+    subprocess.run(["tar", "xf", str(tmp_path / "runs" / "state" / f"{name}.tar")], cwd=machine2, check=True)
+    return machine2 / "runs" / name
+
+
 def test_state_carries_the_candidates_that_met_the_bars_which_the_resumed_run_exports(tmp_path):
     """A run training past the bars (--no-stop-at-bars) exports the newest candidate that met them,
     a run stopping at them the first: the state carries both (with the one under test) whole, and not
     the passes between them, and a gate on the state unpacked under another name finds them."""
-    import json
-
-    files = [f"candidates/checkpoint_{it}.{x}" for it in (500, 575, 800, 1000) for x in ("onnx", "json", "pt")]
-    src = _run_with_pending(tmp_path, files)
-    gate_json = src / "matrices" / "matrix_gate.json"
-    state = json.loads(gate_json.read_text())
     passes = [{"iteration": it, "onnx": f"runs/throw2d-x/candidates/checkpoint_{it}.onnx", "train_wall_s": it * 1.0,
                "verdict_wall_s": it * 1.1} for it in (500, 800, 1000)]
-    state.update(passed=passes[0], passes=passes,
-                 pending={"iteration": 575, "onnx": "runs/throw2d-x/candidates/checkpoint_575.onnx", "train_wall_s": 575.0, "seed_index": 1})
-    gate_json.write_text(json.dumps(state))
-    r = _state(tmp_path, str(src), "throw2d-y")
-    assert r.returncode == 0 and "is not there" not in r.stderr, r.stderr
-    machine2 = tmp_path / "machine2"
-    machine2.mkdir()
-    subprocess.run(["tar", "xf", str(tmp_path / "runs" / "state" / "throw2d-y.tar")], cwd=machine2, check=True)
-    kept = sorted(p.name for p in (machine2 / "runs" / "throw2d-y" / "candidates").iterdir())
+    pending = {"iteration": 575, "onnx": "runs/throw2d-x/candidates/checkpoint_575.onnx", "train_wall_s": 575.0, "seed_index": 1}
+    run2 = _state_of_passes(tmp_path, (500, 575, 800, 1000), "throw2d-y", passes, pending)
+    kept = sorted(p.name for p in (run2 / "candidates").iterdir())
     assert kept == [f"checkpoint_{it}.{x}" for it in (1000, 500, 575) for x in ("json", "onnx", "pt")]
-    gate = _passing_gate(machine2 / "runs" / "throw2d-y" / "matrices")
+    gate = _passing_gate(run2 / "matrices")
     assert gate.passes[-1]["iteration"] == 1000 and gate.locate(gate.passes[-1]["onnx"]).with_suffix(".pt").exists()
     assert gate.locate(gate.passed["onnx"]).with_suffix(".pt").read_text() == "candidates/checkpoint_500.pt"
 
@@ -253,20 +261,8 @@ def test_state_carries_the_pass_a_compared_run_exports(tmp_path):
     """With --gate-compare-with a run past the bars exports the pass worse than the deployed policy
     on the fewest cells (matrix_gate.choose_pass), here one between the first and the newest: the
     state carries it too."""
-    import json
-
-    files = [f"candidates/checkpoint_{it}.{x}" for it in (500, 800, 1000) for x in ("onnx", "json", "pt")]
-    src = _run_with_pending(tmp_path, files)
-    gate_json = src / "matrices" / "matrix_gate.json"
-    state = json.loads(gate_json.read_text())
     passes = [{"iteration": it, "onnx": f"runs/throw2d-x/candidates/checkpoint_{it}.onnx", "train_wall_s": it * 1.0,
                "verdict_wall_s": it * 1.1, "worse_than_deployed": worse} for it, worse in ((500, 4), (800, 1), (1000, 3))]
-    state.update(passed=passes[0], passes=passes, pending=None)
-    gate_json.write_text(json.dumps(state))
-    r = _state(tmp_path, str(src), "throw2d-z")
-    assert r.returncode == 0 and "is not there" not in r.stderr, r.stderr
-    machine2 = tmp_path / "machine2"
-    machine2.mkdir()
-    subprocess.run(["tar", "xf", str(tmp_path / "runs" / "state" / "throw2d-z.tar")], cwd=machine2, check=True)
-    kept = sorted(p.name for p in (machine2 / "runs" / "throw2d-z" / "candidates").iterdir())
+    run2 = _state_of_passes(tmp_path, (500, 800, 1000), "throw2d-z", passes, None)
+    kept = sorted(p.name for p in (run2 / "candidates").iterdir())
     assert kept == [f"checkpoint_{it}.{x}" for it in (1000, 500, 800) for x in ("json", "onnx", "pt")]

@@ -25,7 +25,7 @@ import sys
 from pathlib import Path
 
 from sim_twin.training import model_card
-from sim_twin.training.matrix_gate import choose_pass
+from sim_twin.training.matrix_gate import choose_pass, saved_passes
 
 
 def chosen_pass(gate: dict, first: bool = False) -> dict:
@@ -35,7 +35,7 @@ def chosen_pass(gate: dict, first: bool = False) -> dict:
 
     Raises:
         ValueError: no checkpoint met every bar on every gate seed."""
-    passes = gate.get("passes") or ([gate["passed"]] if gate.get("passed") else [])
+    passes = saved_passes(gate)
     chosen = passes[0] if first and passes else choose_pass(passes)
     if chosen is None:
         raise ValueError("no checkpoint of this run met every bar on every gate seed: nothing to export")

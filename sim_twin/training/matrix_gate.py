@@ -103,6 +103,12 @@ def parse_matrix_file_name(name: str) -> tuple[int, int]:
     return int(m.group(1)), int(m.group(2) or 0)
 
 
+def saved_passes(state: dict) -> list[dict]:
+    """Every pass of a saved ``matrix_gate.json`` (``state``), oldest first: its ``passes``, or for a
+    state written before the gate kept them, its one ``passed`` (none where that is null)."""
+    return state.get("passes") or ([state["passed"]] if state.get("passed") else [])
+
+
 def choose_pass(passes: list[dict]) -> dict | None:
     """The pass a run past the bars exports: where the gate compared the passes with the deployed
     policy (``worse_than_deployed`` not None), the one with the fewest cells worse, the newest among
@@ -150,11 +156,10 @@ class MatrixGate:
             raise ValueError("the gate needs at least one seed")
         if throws < 1:
             raise ValueError("throws must be >= 1")
-        self.compare_with = [str(p) for p in compare_with or []]
-        self._deployed = [self._deployed_matrix(Path(p), mode, seed) for p, seed in zip(self.compare_with, seeds)]
-        if self.compare_with and len(self.compare_with) != len(seeds):
-            raise ValueError(f"compare_with: {len(self.compare_with)} site matrices for {len(seeds)} gate seeds {seeds}: "
+        if compare_with and len(compare_with) != len(seeds):
+            raise ValueError(f"compare_with: {len(compare_with)} site matrices for {len(seeds)} gate seeds {seeds}: "
                              "give the deployed policy's matrix of each gate seed, in their order")
+        self._deployed = [self._deployed_matrix(Path(p), mode, seed) for p, seed in zip(compare_with or [], seeds)]
         self.out_dir = Path(out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.mode, self.seeds, self.throws, self.targets = mode, list(seeds), throws, targets
@@ -175,7 +180,7 @@ class MatrixGate:
             st = json.loads(self.state_path.read_text())
             self.results = [MatrixResult(**r) for r in st.get("results", [])]
             self.passed = st.get("passed")
-            self.passes = st.get("passes", [self.passed] if self.passed else [])
+            self.passes = saved_passes(st)
             self._pending = st.get("pending")  # the candidate under test when the state was saved
 
     @staticmethod

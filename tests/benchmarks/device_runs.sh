@@ -131,9 +131,9 @@ state() {
   local cand cands=$(python3 -c "
 import json, sys
 sys.path.insert(0, sys.argv[2])
-from sim_twin.training.matrix_gate import choose_pass
+from sim_twin.training.matrix_gate import choose_pass, saved_passes
 g = json.load(open(sys.argv[1]))
-passes = g.get('passes') or []
+passes = saved_passes(g)
 print(' '.join(sorted({c['onnx'] for c in [g.get('pending'), g.get('passed'), *passes[-1:], choose_pass(passes)] if c})))" \
     "$src/matrices/matrix_gate.json" "$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)" 2>/dev/null)
   for cand in $cands; do

@@ -94,7 +94,9 @@ def row_iterations(d: RunDecision) -> set[int]:
     early = [it for it in judged if it <= STYLE_ITERATION_MAX]
     if early:
         keep.add(early[-1])
-    passes = {int(p["iteration"]) for p in d.gate.get("passes") or [] if p}
+    from sim_twin.training.matrix_gate import saved_passes
+
+    passes = {int(p["iteration"]) for p in saved_passes(d.gate)}
     return keep | passes | {it for it in (d.first_pass, d.exported) if it is not None}
 
 
@@ -102,10 +104,10 @@ def candidate_iterations(d: RunDecision) -> set[int]:
     """The gate's candidates kept beside the export: the first that met every bar on every gate seed
     and the one a run past the bars exports (sim_twin.training.matrix_gate.choose_pass), where they are
     not the export, or, where none met them, the last two the gate judged."""
-    from sim_twin.training.matrix_gate import choose_pass
+    from sim_twin.training.matrix_gate import choose_pass, saved_passes
 
     if d.first_pass is not None:
-        chosen = choose_pass([p for p in d.gate.get("passes") or [] if p])
+        chosen = choose_pass(saved_passes(d.gate))
         return {it for it in (d.first_pass, chosen and int(chosen["iteration"])) if it and it != d.exported}
     return set(sorted({r["iteration"] for r in d.gate["results"]})[-2:])
 

@@ -28,6 +28,8 @@ import subprocess
 from datetime import UTC, datetime
 from pathlib import Path
 
+from sim_twin.training.matrix_gate import saved_passes
+
 STYLE_BY_ITERATION = 250
 """The style is read from the last seed-0 matrix judged at or before this iteration (~7 min)."""
 LONG_STYLE_S = 3.6
@@ -146,7 +148,7 @@ def run_style(src: RunSource, by_iteration: int = STYLE_BY_ITERATION) -> dict:
     else:
         raise ValueError(f"{src.spec}: no seed-0 site matrix where a nominal 10 m throw landed")
     wall = {r["iteration"]: r["train_wall_s"] for r in gate["results"]}
-    passed = gate.get("passes") or ([gate["passed"]] if gate.get("passed") else [])
+    passed = saved_passes(gate)
     if passed:
         first = min(passed, key=lambda p: p["iteration"])
         outcome = {"met": True, "iteration": first["iteration"], "train_wall_min": round(first["train_wall_s"] / 60, 1)}
