@@ -343,7 +343,8 @@ def plot_cells(curves: dict[str, list[tuple[float, int]]], path: Path, title: st
     import matplotlib.pyplot as plt
 
     many = len(curves) > 6  # the legend goes beside the axes, where it hides no line
-    fig, ax = plt.subplots(figsize=(9.0 if many else 6.5, 3.8))
+    columns = 2 if len(curves) > 12 else 1  # more than 12 rows of legend run off the figure's 3.8 in
+    fig, ax = plt.subplots(figsize=(6.5 + 2.5 * columns if many else 6.5, 3.8))
     if len(curves) > 10:  # the default cycle has 10 colours: no two runs share one
         ax.set_prop_cycle(color=plt.get_cmap("tab20").colors)
     for name, pts in curves.items():
@@ -361,7 +362,8 @@ def plot_cells(curves: dict[str, list[tuple[float, int]]], path: Path, title: st
                  + "\ncells missing a bar (first gate seed, 66 cells)", fontsize=9)
     ax.grid(alpha=0.3)
     if len(curves) > 1:
-        ax.legend(fontsize=8, **({"loc": "upper left", "bbox_to_anchor": (1.01, 1.0)} if many else {}))
+        ax.legend(fontsize=8, ncol=columns,
+                  **({"loc": "upper left", "bbox_to_anchor": (1.01, 1.0)} if many else {}))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
