@@ -349,13 +349,24 @@ def test_both_spellings_of_the_curriculum_stage_are_refused_together():
 def test_a_reward_stage_changes_the_rewards_once_and_leaves_the_rest(tmp_path, monkeypatch):
     """training.curriculum_stage with ``rewards`` only: the environment is reconfigured once, at the
     first chunk boundary at or after its iteration, with the named reward entries changed and every
-    other reward entry and the randomisation as the recipe has them."""
+    other reward entry and the randomisation as the recipe has them. The same run's
+    training.desired_kl_stage: the updates before its iteration aim at the recipe's KL, those from
+    it on at the stage's."""
     import json
+
+    from rsl_rl.algorithms import PPO
 
     from sim_twin.training.vec_env import MjxThrowVecEnv
 
     seen = []
     orig_init, orig_reconf = MjxThrowVecEnv.__init__, MjxThrowVecEnv.reconfigure
+    kl_aims, orig_update = [], PPO.update
+
+    def update(self, *a, **kw):
+        kl_aims.append(self.desired_kl)
+        return orig_update(self, *a, **kw)
+
+    monkeypatch.setattr(PPO, "update", update)
 
     def init(self, cfg, *a, **kw):
         seen.append(("init", cfg))
@@ -370,6 +381,7 @@ def test_a_reward_stage_changes_the_rewards_once_and_leaves_the_rest(tmp_path, m
     cfg = training_config.load_config("2d", None)
     cfg["env"]["rewards"]["hold"] = 0.0
     cfg["training"]["curriculum_stage"] = {"iteration": 2, "rewards": {"hold": 0.02, "hold_after_s": 4.0}}
+    cfg["training"]["desired_kl_stage"] = {"iteration": 1, "desired_kl": 0.002}
     path = tmp_path / "staged.json"
     path.write_text(json.dumps(cfg))
     assert train.run(_args(tmp_path, iterations=3, chunk=1, config=path)) == 0
@@ -378,6 +390,33 @@ def test_a_reward_stage_changes_the_rewards_once_and_leaves_the_rest(tmp_path, m
     assert (before.rewards.hold, after.rewards.hold, after.rewards.hold_after_s) == (0.0, 0.02, 4.0)
     assert after.rewards.landing == before.rewards.landing and after.randomization == before.randomization
     assert json.loads((tmp_path / "run" / "config.json").read_text())["training"]["curriculum_stage"]["iteration"] == 2
+    assert kl_aims == [cfg["runner"]["algorithm"]["desired_kl"], 0.002, 0.002]
+
+
+@pytest.mark.parametrize(("stage", "match"), [
+    ({"iteration": 100}, "needs exactly 'iteration' and 'desired_kl'"),
+    ({"iteration": 100, "desired_kl": 0.002, "lr": 1e-4}, "needs exactly"),
+    ({"iteration": -1, "desired_kl": 0.002}, "iteration must be"),
+    ({"iteration": 100, "desired_kl": 0.0}, "desired_kl must be > 0"),
+    ({"iteration": 100, "desired_kl": float("nan")}, "desired_kl"),
+    ([100, 0.002], "needs exactly"),
+])
+def test_the_desired_kl_stage_refuses_bad_input(stage, match):
+    with pytest.raises(ValueError, match=match):
+        training_config.TrainingSection.from_dict({"desired_kl_stage": stage})
+
+
+def test_the_desired_kl_stage_needs_the_adaptive_schedule_and_writes_nothing_without_it(tmp_path):
+    import json
+
+    cfg = training_config.load_config("2d", None)
+    cfg["runner"]["algorithm"]["schedule"] = "fixed"
+    cfg["training"]["desired_kl_stage"] = {"iteration": 100, "desired_kl": 0.002}
+    path = tmp_path / "fixed.json"
+    path.write_text(json.dumps(cfg))
+    with pytest.raises(ValueError, match="needs runner.algorithm.schedule 'adaptive'"):
+        train.run(_args(tmp_path, config=path))
+    assert not (tmp_path / "run").exists()
 
 
 def test_gate_from_iteration_refuses_bad_input(tmp_path):

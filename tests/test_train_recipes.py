@@ -171,6 +171,23 @@ def test_the_sites_recipe_is_the_history_recipe_widened_at_its_curriculum_stage(
     assert wide.wind_mps == windy["sim_twin.diagnosis.unmodelled:CrossWind"]["wind_mps"]
 
 
+def test_the_settle_recipe_is_the_sites_recipe_with_only_a_smaller_kl_aim_late():
+    """sim_twin/configs/throw_2d_sites_settle.json: throw_2d_sites.json with training.desired_kl_stage
+    (a quarter of the recipe's KL aim, from an iteration past the sites recipe's curriculum stage),
+    nothing else changed."""
+    from sim_twin.training.config import TrainingSection
+
+    path = ROOT / "sim_twin" / "configs" / "throw_2d_sites_settle.json"
+    sites = _flat(_without_notes(ROOT / "sim_twin" / "configs" / "throw_2d_sites.json"))
+    settle = _flat(_without_notes(path))
+    changed = {k for k in sites.keys() | settle.keys() if sites.get(k) != settle.get(k)}
+    assert changed == {("training", "desired_kl_stage", "iteration"), ("training", "desired_kl_stage", "desired_kl")}
+    cfg = json.loads(path.read_text())
+    section = TrainingSection.from_dict(cfg["training"])
+    assert section.desired_kl_stage.desired_kl == cfg["runner"]["algorithm"]["desired_kl"] / 4
+    assert section.desired_kl_stage.iteration > section.curriculum_stage.iteration
+
+
 def _profile_params(name: str) -> dict[str, dict]:
     """{effect: params} of the site profile sim_twin/profiles/<name>.json."""
     profile = json.loads((ROOT / "sim_twin" / "profiles" / f"{name}.json").read_text())

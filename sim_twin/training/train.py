@@ -252,6 +252,9 @@ class TrainingRun:
         if args.num_envs:
             cfg["num_envs"] = args.num_envs
         self.training = resolve_training(cfg, args.seed)
+        schedule_kind = cfg["runner"].get("algorithm", {}).get("schedule")
+        if self.training.desired_kl_stage and schedule_kind != "adaptive":
+            raise ValueError(f"training.desired_kl_stage needs runner.algorithm.schedule 'adaptive' (the KL aim steers it), not {schedule_kind!r}")
         stage = self.training.curriculum_stage
         env_before, env_after = stage.env_dicts(cfg["env"]) if stage else (cfg["env"], cfg["env"])
         self.env_after: dict = env_after
@@ -350,8 +353,9 @@ class TrainingRun:
 
     def _start_chunk(self, done: int) -> None:
         """Before the chunk that starts after ``done`` iterations: apply the curriculum stage once
-        the recipe's stage is reached, cap the std at the schedule's value for ``done``, and
-        start the chunk's throw statistics and timer."""
+        the recipe's stage is reached, cap the std at the schedule's value for ``done``, set PPO's
+        KL aim from the desired-KL stage once reached, and start the chunk's throw statistics and
+        timer."""
         from sim_twin.training.mjx_env import EnvConfig
 
         stage, schedule = self.training.curriculum_stage, self.training.std_schedule
@@ -361,6 +365,10 @@ class TrainingRun:
             log.info("curriculum stage at iteration %d: randomisation %s, rewards %s", done, stage.randomization, stage.rewards)
         if schedule:
             apply_std_cap(self.runner, schedule.cap(done), schedule.release_floor)
+        kl_stage = self.training.desired_kl_stage
+        if kl_stage and done >= kl_stage.iteration and self.runner.alg.desired_kl != kl_stage.desired_kl:
+            self.runner.alg.desired_kl = kl_stage.desired_kl
+            log.info("desired KL stage at iteration %d: PPO's adaptive learning rate now aims at %g", done, kl_stage.desired_kl)
         self.env.reset_stats()
         self._chunk_from, self._chunk_t = done, time.time()
 
