@@ -246,13 +246,17 @@ def resolve_training(cfg: dict, seed_override: int | None) -> TrainingSection:
     actually used.
 
     Raises:
-        ValueError: neither gives a seed, the seed is not an integer, or what
-            :meth:`TrainingSection.from_dict` refuses in the section.
+        ValueError: neither gives a seed, the seed is not an integer, a ``desired_kl_stage`` without
+            rsl_rl's adaptive schedule (``runner.algorithm.schedule``, which the KL aim steers), or
+            what :meth:`TrainingSection.from_dict` refuses in the section.
     """
     training = cfg.setdefault("training", {})
     seed = seed_override if seed_override is not None else training.get("seed")
     section = TrainingSection.from_dict({**training, "seed": seed})
     if section.seed is None:
         raise ValueError("the config has no training.seed: pass --seed")
+    schedule_kind = cfg.get("runner", {}).get("algorithm", {}).get("schedule")
+    if section.desired_kl_stage and schedule_kind != "adaptive":
+        raise ValueError(f"training.desired_kl_stage needs runner.algorithm.schedule 'adaptive' (the KL aim steers it), not {schedule_kind!r}")
     training["seed"] = section.seed
     return section

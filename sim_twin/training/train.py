@@ -252,9 +252,6 @@ class TrainingRun:
         if args.num_envs:
             cfg["num_envs"] = args.num_envs
         self.training = resolve_training(cfg, args.seed)
-        schedule_kind = cfg["runner"].get("algorithm", {}).get("schedule")
-        if self.training.desired_kl_stage and schedule_kind != "adaptive":
-            raise ValueError(f"training.desired_kl_stage needs runner.algorithm.schedule 'adaptive' (the KL aim steers it), not {schedule_kind!r}")
         stage = self.training.curriculum_stage
         env_before, env_after = stage.env_dicts(cfg["env"]) if stage else (cfg["env"], cfg["env"])
         self.env_after: dict = env_after
