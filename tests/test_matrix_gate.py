@@ -244,3 +244,21 @@ def test_deployed_matrices_that_do_not_fit_the_gate_are_refused_before_training(
         MatrixGate(tmp_path, "2d", seeds=[0], compare_with=[tmp_path / "bad.json"])
     with pytest.raises(OSError):
         MatrixGate(tmp_path, "2d", seeds=[0], compare_with=[tmp_path / "missing.json"])
+
+
+def test_finish_chooses_among_the_passes_whose_checkpoint_is_here(tmp_path):
+    """A run resumed from a state that lacks a pass's checkpoint (throw2d-scratch-n1's 3075) cannot
+    export that pass: exportable_passes leaves it out, so finish chooses among the rest."""
+    from sim_twin.training.matrix_gate import choose_pass
+
+    FakeGate.passing = {1, 2}
+    cand = tmp_path / "candidates"
+    cand.mkdir()
+    gate = FakeGate(tmp_path / "matrices", "2d", seeds=[0], workers=1, judge_after_pass=True)
+    for it in (1, 2):
+        assert gate.submit(it, str(cand / f"checkpoint_{it}.onnx"), train_wall_s=60.0 * it)
+        gate.wait(60)
+    assert [p["iteration"] for p in gate.passes] == [1, 2] and gate.exportable_passes() == []
+    (cand / "checkpoint_1.pt").write_bytes(b"x")
+    assert [p["iteration"] for p in gate.exportable_passes()] == [1]
+    assert choose_pass(gate.exportable_passes())["iteration"] == 1  # not the newest (2): its checkpoint is gone

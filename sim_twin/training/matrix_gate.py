@@ -258,6 +258,12 @@ class MatrixGate:
         path = Path(onnx)
         return path if path.exists() else self.out_dir.parent / "candidates" / path.name
 
+    def exportable_passes(self) -> list[dict]:
+        """The passes (oldest first) whose checkpoint is here (:meth:`locate`'s ONNX path with the
+        suffix ``.pt``): ``finish`` chooses among these, since a run resumed from a state packed
+        without a pass's checkpoint cannot export that pass. Empty where none is here."""
+        return [p for p in self.passes if self.locate(p["onnx"]).with_suffix(".pt").exists()]
+
     def _candidate(self) -> dict:
         """The checkpoint under test (only called while one is).
 

@@ -446,13 +446,14 @@ class TrainingRun:
     def finish(self) -> Path | None:
         """Rank 0: wait for a running matrix (``--gate-wait-minutes``), stop the gate, plot the curve
         and export the checkpoint that met the bars (with ``--no-stop-at-bars`` the newest such, or with
-        ``--gate-compare-with`` the one worse than the deployed policy on the fewest cells: matrix_gate.choose_pass),
+        ``--gate-compare-with`` the one worse than the deployed policy on the fewest cells: matrix_gate.choose_pass,
+        among the passes whose checkpoint is here: MatrixGate.exportable_passes),
         else, where ``--export`` asks, the last one with a card saying the bars were not met.
         Returns the ONNX written or None. Other ranks return None at once.
 
         Raises:
             FileNotFoundError: the checkpoint of the candidate that met the bars is not in the run
-                directory (a run resumed from a state that did not carry it)."""
+                directory (a run resumed from a state that carried none of its passes' checkpoints)."""
         if not self.proc.main:
             return None
         from sim_twin.training import model_card
@@ -465,7 +466,12 @@ class TrainingRun:
         if gate:
             gate.stop()
             if gate.passes and not self.stop_at_bars:
-                self.passed = choose_pass(gate.passes)  # the newest that met every bar, or the fewest cells worse than the deployed
+                here = gate.exportable_passes()
+                if len(here) < len(gate.passes):
+                    log.warning("passes without their checkpoint here (a resume state without them), not chosen: iterations %s",
+                                [p["iteration"] for p in gate.passes if p not in here])
+                # the newest that met every bar, or the fewest cells worse than the deployed; all where none is here
+                self.passed = choose_pass(here or gate.passes)
         passed = self.passed
         log.info("training stopped (%s) at iteration %d after %.1f min", "bars met" if self._bars_end_it else self.stop_reason,
                  self.runner.current_learning_iteration, self.clock() / 60)
