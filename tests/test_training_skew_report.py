@@ -44,3 +44,16 @@ def test_an_input_without_the_training_distribution_is_refused(tmp_path):
     with pytest.raises(SystemExit, match="expected LABEL=BIAS.json"):
         skew.main([str(tmp_path / "a.json"), "--out", str(tmp_path / "skew")])
     assert not list(tmp_path.glob("skew*"))
+
+
+def test_the_training_winds_shift_is_given_where_the_distribution_draws_one(tmp_path):
+    bench = _bench([0.10, 0.12], [0.00, 0.04])
+    (row,) = skew.skew_rows(bench)
+    assert row["training_wind_m"] is None  # no wind drawn: the column says "-"
+    for r, w in zip(bench["env"]["training-dist"]["10.0"], (-0.02, -0.04), strict=True):
+        r["wind_mean_downrange_m"] = w
+    (row,) = skew.skew_rows(bench)
+    assert row["training_wind_m"] == pytest.approx(-0.03) and row["training_wind_se_m"] == pytest.approx(0.01)
+    (tmp_path / "a.json").write_text(json.dumps(bench))
+    assert skew.main([f"a={tmp_path / 'a.json'}", "--out", str(tmp_path / "skew")]) == 0
+    assert "| -0.030 ± 0.010 |" in (tmp_path / "skew.md").read_text()

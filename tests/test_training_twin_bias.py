@@ -47,8 +47,34 @@ def test_both_sides_throw_the_same_starts_and_land():
         for r in rows:
             assert r["landed"], r
             assert all(math.isfinite(r[k]) for k in FIELDS), r
+            assert "wind_downrange_m" not in r  # still air: no wind shift
             # both open after the twin's drawn delay, at the first physics step at or after it
             steps = math.ceil(delays[seeds.index(r["seed"])] / PHYSICS_PERIOD_S - 1e-6)
             assert r["opening_s"] - r["release_cmd_s"] == pytest.approx(steps * PHYSICS_PERIOD_S, abs=1e-6)
     p = paired(twin, env)
     assert p["pairs"] == len(seeds) and math.isfinite(p["downrange_m"][0])
+
+
+def test_the_environment_is_the_one_after_the_curriculum_stage_and_the_nominal_machine_is_calm():
+    """A policy of the sites recipe finished training in the stage's ranges (friction x0.5-10, wind
+    up to 5 m/s): the training distribution is those, the nominal machine throws in still air, and a
+    landing in the wind is moved by the environment's own wind shift."""
+    from tests.benchmarks.training_twin_bias import REPO
+
+    cfg = REPO / "sim_twin" / "configs" / "throw_2d_sites.json"
+    dist = nominal_env_config(cfg, False, nominal=False)["randomization"]
+    assert dist["friction_scale"] == [0.5, 10.0] and dist["wind_mps"] == 5.0
+    nominal = nominal_env_config(cfg, False)["randomization"]
+    assert nominal["friction_scale"] == [1.0, 1.0] and nominal["wind_mps"] == 0.0
+    assert "wind_mps" not in nominal_env_config(DEFAULT_CONFIG, False)["randomization"]  # a recipe without stage or wind: as it was
+
+    seeds = throw_seeds(0, 5, 2)
+    starts = [twin_start(s, twin_profile(False)) for s in seeds]
+    poses = np.array([q for q, _ in starts])
+    targets = np.array([target_on_axis("2d", 10.0)] * len(seeds))
+    env_cfg = nominal_env_config(DEFAULT_CONFIG, False, nominal=False)
+    env_cfg["randomization"] = {**env_cfg["randomization"], "wind_mps": 5.0}
+    for w in EnvSide(DEFAULT_POLICY, env_cfg).throws(targets, poses, seeds):
+        assert w["landed"] and w["wind_downrange_m"] != 0.0 and abs(w["wind_downrange_m"]) < 1.0
+        assert -0.2 < w["wind_mean_downrange_m"] < 0.0  # on average a wind takes from a throw (quadratic drag)
+        assert w["downrange_m"] == pytest.approx(w["ballistic_downrange_m"] + w["wind_downrange_m"], abs=0.02)

@@ -28,7 +28,7 @@ import argparse
 import json
 from pathlib import Path
 
-from tests.benchmarks.training_twin_bias import paired, side_summary
+from tests.benchmarks.training_twin_bias import mean_se, paired, side_summary
 
 
 def _relative(path: str) -> str:
@@ -41,7 +41,12 @@ def _relative(path: str) -> str:
 
 def skew_rows(bench: dict) -> list[dict]:
     """Per target of one ``training_twin_bias`` output: nominal-machine and training-distribution bias
-    [m] with standard errors, and the paired skew (nominal - training distribution) [m].
+    [m] with standard errors, the paired skew (nominal - training distribution) [m], and where the
+    training distribution draws a wind, the mean downrange shift of its landings over the config's
+    winds, each throw's own release averaged over every wind (``wind_mean_downrange_m``,
+    training_twin_bias.mean_wind_shift; ``training_wind_m`` with its standard error over the throws;
+    None without wind): what the air takes from the training distribution's throws on average, which
+    the nominal machine, in still air, does not lose.
 
     Raises:
         ValueError: the output has no ``env`` or no ``training-dist`` rollout.
@@ -55,9 +60,12 @@ def skew_rows(bench: dict) -> list[dict]:
         nom, dist = env["env"][target], env["training-dist"][target]
         n, d = side_summary(nom), side_summary(dist)
         sk, ss, pairs = paired(nom, dist)["downrange_m"]  # by start-pose seed, over throws landed in both
+        windy = [r["wind_mean_downrange_m"] for r in dist if r.get("landed") and "wind_mean_downrange_m" in r]
+        wind, wind_se, _ = mean_se(windy) if windy else (None, None, 0)
         rows.append({"target_m": float(target), "throws": len(nom), "pairs": pairs,
                      "nominal_bias_m": n["bias_m"], "nominal_se_m": n["se_m"],
-                     "training_dist_bias_m": d["bias_m"], "training_dist_se_m": d["se_m"], "skew_m": sk, "skew_se_m": ss})
+                     "training_dist_bias_m": d["bias_m"], "training_dist_se_m": d["se_m"], "skew_m": sk, "skew_se_m": ss,
+                     "training_wind_m": wind, "training_wind_se_m": wind_se})
     return rows
 
 
@@ -65,12 +73,15 @@ def render(policies: list[dict], title: str) -> list[str]:
     """The report's Markdown lines: one table of every policy and target."""
     lines = [f"# {title}", "", "Positive = long; ± one standard error of the mean; skew = nominal machine - training "
              "distribution, paired throw by throw (same start pose and target).", "",
-             "| policy | training config | target [m] | nominal machine [m] | training distribution [m] | skew [m] |",
-             "|---|---|---|---|---|---|"]
+             "| policy | training config | target [m] | nominal machine [m] | training distribution [m] | skew [m] "
+             "| of the training distribution, its winds' shift [m] |",
+             "|---|---|---|---|---|---|---|"]
     for p in policies:
         for r in p["rows"]:
+            wind = "-" if r.get("training_wind_m") is None else f"{r['training_wind_m']:+.3f} ± {r['training_wind_se_m']:.3f}"
             lines.append(f"| {p['label']} | `{p['config']}` | {r['target_m']:g} | {r['nominal_bias_m']:+.3f} ± {r['nominal_se_m']:.3f} "
-                         f"| {r['training_dist_bias_m']:+.3f} ± {r['training_dist_se_m']:.3f} | **{r['skew_m']:+.3f}** ± {r['skew_se_m']:.3f} |")
+                         f"| {r['training_dist_bias_m']:+.3f} ± {r['training_dist_se_m']:.3f} | **{r['skew_m']:+.3f}** ± {r['skew_se_m']:.3f} "
+                         f"| {wind} |")
     return lines + [""]
 
 

@@ -14,9 +14,9 @@ the policy throws twice from the SAME start pose:
   MuJoCo twin with its valve model, sensing and release-delay jitter); its landed rows carry the
   release as the twin flew it (``release_pos_m``, ``release_vel_mps``, ``flight_s``) and the
   measured impact (downrange error, with the nominal 2 cm impact-measurement noise);
-* **env**: the MJX training environment (sim_twin.training.mjx_env.ThrowEnvCore, on the CPU)
-  narrowed to the nominal machine (tests.benchmarks.training_style_probe.nominal_randomization:
-  nominal valves, friction and gripper mass x1, nominal sensing, release delay 258 ms with its
+* **env**: the MJX training environment (sim_twin.training.mjx_env.ThrowEnvCore, on the CPU), the
+  config after its curriculum stage narrowed to the nominal machine in still air
+  (tests.benchmarks.training_style_probe.nominal_randomization: nominal valves, friction and gripper mass x1, nominal sensing, release delay 258 ms with its
   15 ms jitter), forced release off, reset to the twin's start pose and target; the ONNX policy
   (onnxruntime, its mean action) acts on the environment's observations. The landing is the
   environment's own: drag-free flight from the payload's state at the opening (runtime.ballistics).
@@ -40,7 +40,8 @@ throws are deterministic.
 
 Two further env rollouts, for where the policy's bias comes from rather than the chain's:
 ``--training-dist`` throws the same starts with the config's own randomisation (the distribution the
-policy was trained on), ``--env-set`` (repeatable) on the nominal machine with per-episode
+policy was trained on: after the config's curriculum stage, :func:`trained_env`; where it draws a wind,
+each landing moved by the episode's wind as the environment moves it, ``wind_downrange_m``), ``--env-set`` (repeatable) on the nominal machine with per-episode
 parameters of the EnvState set after the reset (e.g. ``fric=2.0``, ``valve_delay=14`` steps,
 ``tau=0.2``, ``gripper_scale=1.15``, ``sensor_lag=[1,2]``). Their paired lines compare them with the
 twin all the same (different machines: differences there are the machine's, not the chain's).
@@ -114,6 +115,23 @@ def release_row(target_xyz, p0, v0, flight_s: float) -> dict:
             "ballistic_downrange_m": impact_errors(target_xyz, hit)[0]}
 
 
+def mean_wind_shift(target_xyz, p0, v0, flight_s: float, wind_mps: float, speeds: int = 20, directions: int = 72) -> float:
+    """The mean downrange shift [m] (+ long) of a release's landing over the training environment's
+    winds (sim_twin.training.mjx_env.ThrowEnvCore._sample_wind: direction uniform, speed uniform in
+    [0, ``wind_mps``] m/s): sim_twin.twin.effects.site.wind_landing_shift averaged by the midpoint
+    rule over ``speeds`` x ``directions`` winds. The release: ``p0`` (3,) m, ``v0`` (3,) m/s machine
+    frame, ``flight_s`` its drag-free flight time; ``target_xyz`` (3,) sets the downrange direction.
+    Quadratic drag makes it negative: on average a wind takes from a throw."""
+    from sim_twin.twin.effects.site import wind_landing_shift
+
+    u = np.asarray(target_xyz[:2], float) / np.hypot(*target_xyz[:2])
+    speed = (np.arange(speeds) + 0.5) / speeds * wind_mps
+    az = (np.arange(directions) + 0.5) / directions * 2.0 * np.pi - np.pi
+    shifts = [wind_landing_shift(np, np.asarray(p0, float), np.asarray(v0, float), flight_s, w * np.array([np.cos(a), np.sin(a)]))
+              for w in speed for a in az]
+    return float(np.mean(np.asarray(shifts) @ u))
+
+
 # --- twin side -----------------------------------------------------------------------------------
 def twin_throws(policy: Path, distance_m: float, seeds: list[int], profile_path: str | None) -> list[dict]:
     """The twin's throws (sim_twin.evaluation.evaluate.throw_batch, as the site matrix) as rows:
@@ -135,17 +153,35 @@ def twin_throws(policy: Path, distance_m: float, seeds: list[int], profile_path:
 
 
 # --- training-environment side -------------------------------------------------------------------
+def trained_env(config: dict) -> dict:
+    """The config's ``env`` mapping as its policies finished training in it: with the curriculum
+    stage applied (``training.curriculum_stage`` or its older spelling; sim_twin.training.config.
+    CurriculumStage.env_dicts, the mapping the training switches to), else as configured. A policy
+    judged here is one trained past the stage (the recipes' stages are at iteration 300).
+
+    Raises:
+        ValueError: the config's training section or its merged stage is refused (the training's
+            own checks)."""
+    from sim_twin.training.config import TrainingSection
+
+    stage = TrainingSection.from_dict(config.get("training", {})).curriculum_stage
+    return stage.env_dicts(config["env"])[1] if stage else config["env"]
+
+
 def nominal_env_config(config_path: Path, noiseless: bool, nominal: bool = True) -> dict:
-    """The ``env`` mapping of a training config narrowed to the nominal machine
-    (training_style_probe.nominal_randomization), forced release off; ``noiseless`` also drops the
-    observation noise, the IMU latency and the release-delay jitter. With ``nominal`` False the
-    config's own randomisation stays (the training distribution), forced release still off."""
+    """The ``env`` mapping of a training config (:func:`trained_env`: after its curriculum stage)
+    narrowed to the nominal machine (training_style_probe.nominal_randomization, in still air),
+    forced release off; ``noiseless`` also drops the observation noise, the IMU latency and the
+    release-delay jitter. With ``nominal`` False the config's own randomisation after the stage stays
+    (the training distribution the policy finished in, its wind included), forced release still off."""
     from tests.benchmarks.training_style_probe import nominal_randomization, without_forced_release
 
-    env = without_forced_release(json.loads(Path(config_path).read_text())["env"])
+    env = without_forced_release(trained_env(json.loads(Path(config_path).read_text())))
     if not nominal:
         return env
     rand = nominal_randomization(env["randomization"])
+    if rand.get("wind_mps"):
+        rand["wind_mps"] = 0.0  # the nominal machine throws in still air (the twin's nominal profile)
     if noiseless:
         rand.update(release_delay_std_s=0.0, imu_latency_s=[0.0, 0.0],
                     obs_noise={"q_active": 0.0, "qd_active": 0.0, "q_passive": 0.0, "qd_passive": 0.0})
@@ -205,7 +241,11 @@ class EnvSide:
                 to the field's shape and dtype).
 
         Returns:
-            Rows as :func:`twin_throws`' (downrange_m: the environment's own landing).
+            Rows as :func:`twin_throws`' (downrange_m: the environment's own landing, its wind's
+            shift included where the config draws one; then ``wind_downrange_m`` is that shift's
+            downrange part [m], + long: sim_twin.twin.effects.site.wind_landing_shift, and
+            ``wind_mean_downrange_m`` its mean over the config's winds for the same release,
+            :func:`mean_wind_shift`).
         """
         import jax
         import jax.numpy as jnp
@@ -213,6 +253,7 @@ class EnvSide:
         from runtime.ballistics import ballistic_position
         from runtime.observation import CONTROL_PERIOD_S, PHYSICS_PERIOD_S
         from runtime.throw_geometry import impact_errors
+        from sim_twin.twin.effects.site import wind_landing_shift
         from tests.benchmarks.training_style_probe import rollout
 
         n = len(poses)
@@ -236,8 +277,15 @@ class EnvSide:
             for i in np.flatnonzero(landed):
                 p0, v0, t_f = (np.asarray(a[i], float) for a in (s.ball_p0, s.ball_v0, s.t_flight))
                 t_cmd = cmd_step[i] * CONTROL_PERIOD_S
+                hit = ballistic_position(np, p0, v0, float(t_f))
+                calm = impact_errors(targets[i], hit)[0]
+                wind = {}
+                if self.core.rand.wind_mps > 0.0:  # the environment's landing: the drag-free one moved by the wind
+                    hit = hit + np.concatenate([wind_landing_shift(np, p0, v0, float(t_f), np.asarray(s.wind[i], float)), [0.0]])
+                    wind = {"wind_downrange_m": impact_errors(targets[i], hit)[0] - calm,
+                            "wind_mean_downrange_m": mean_wind_shift(targets[i], p0, v0, float(t_f), self.core.rand.wind_mps)}
                 rows[i].update(landed=True, status="landed", held_releases=0,
-                               downrange_m=impact_errors(targets[i], ballistic_position(np, p0, v0, float(t_f)))[0],
+                               downrange_m=impact_errors(targets[i], hit)[0], **wind,
                                release_cmd_s=t_cmd, opening_s=t_cmd + int(delay_steps[i]) * PHYSICS_PERIOD_S,
                                **release_row(targets[i], p0, v0, float(t_f)))
         return rows
