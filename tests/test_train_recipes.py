@@ -188,6 +188,24 @@ def test_the_settle_recipe_is_the_sites_recipe_with_only_a_smaller_kl_aim_late()
     assert section.desired_kl_stage.iteration > section.curriculum_stage.iteration
 
 
+def test_the_fewer_winds_recipe_is_the_settle_recipe_with_wind_in_a_quarter_of_the_episodes():
+    """sim_twin/configs/throw_2d_sites_fewer_winds.json: throw_2d_sites_settle.json with the stage's
+    wind in a quarter of the episodes (randomization.wind_fraction 0.25), nothing else changed; the
+    merged stage is one the training accepts."""
+    from sim_twin.training.config import TrainingSection
+    from sim_twin.training.privileged import Randomization
+
+    path = ROOT / "sim_twin" / "configs" / "throw_2d_sites_fewer_winds.json"
+    settle = _flat(_without_notes(ROOT / "sim_twin" / "configs" / "throw_2d_sites_settle.json"))
+    fewer = _flat(_without_notes(path))
+    changed = {k for k in settle.keys() | fewer.keys() if settle.get(k) != fewer.get(k)}
+    assert changed == {("training", "curriculum_stage", "randomization", "wind_fraction")}
+    cfg = json.loads(path.read_text())
+    _, after = TrainingSection.from_dict(cfg["training"]).curriculum_stage.env_dicts(cfg["env"])
+    wide = Randomization.from_dict(after["randomization"])
+    assert wide.wind_fraction == 0.25 and wide.wind_mps == 5.0
+
+
 def _profile_params(name: str) -> dict[str, dict]:
     """{effect: params} of the site profile sim_twin/profiles/<name>.json."""
     profile = json.loads((ROOT / "sim_twin" / "profiles" / f"{name}.json").read_text())

@@ -54,10 +54,10 @@ def test_the_jax_shift_is_the_numpy_one():
         np.testing.assert_allclose(np.asarray(got), ref, atol=2e-4)
 
 
-def _env(wind_mps: float) -> ThrowEnvCore:
+def _env(wind_mps: float, **more) -> ThrowEnvCore:
     env = json.loads((CONFIG_DIR / "throw_2d.json").read_text())["env"]
     env = {**env, "forced_release": {**env["forced_release"], "probability": 0.0},
-           "randomization": {**env["randomization"], "wind_mps": wind_mps}}
+           "randomization": {**env["randomization"], "wind_mps": wind_mps, **more}}
     return ThrowEnvCore(EnvConfig.from_dict(env))
 
 
@@ -71,6 +71,20 @@ def test_episodes_draw_winds_up_to_the_largest_speed_in_every_direction_and_none
     assert np.all(calm == 0.0)
     with pytest.raises(ValueError, match="wind_mps"):
         _env(-1.0)
+
+
+def test_a_share_of_windy_episodes_leaves_the_others_in_still_air():
+    """``wind_fraction`` 0.25: about a quarter of the episodes draw a wind, and the same winds as with
+    every episode windy (the same key, the speed kept or zeroed); outside [0, 1] it is refused."""
+    keys = jax.random.split(jax.random.PRNGKey(1), 2000)
+    every = np.asarray(jax.vmap(_env(5.0)._sample_wind)(keys))
+    share = np.asarray(jax.vmap(_env(5.0, wind_fraction=0.25)._sample_wind)(keys))
+    windy = np.linalg.norm(share, axis=1) > 0.0
+    assert 0.21 < windy.mean() < 0.29  # 500 expected of 2000; 4 binomial standard deviations is 0.039
+    np.testing.assert_allclose(share[windy], every[windy])
+    for bad in (-0.1, 1.5, True, "half"):
+        with pytest.raises(ValueError, match="wind_fraction must be a number in"):
+            _env(5.0, wind_fraction=bad)
 
 
 def test_the_environment_lands_the_payload_where_the_wind_moves_it():

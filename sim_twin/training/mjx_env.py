@@ -34,9 +34,9 @@ twin's ``grasp_offset`` effect; a payload gripped off-centre); the release comma
 gripper after the release delay (sampled per episode around the identified 258 ms); the payload
 then leaves from where it is held with that point's velocity and flies ballistically (analytic)
 until it reaches the ground, which ends the episode with the positive terminal reward. With
-``randomization.wind_mps`` a steady horizontal wind drawn per episode moves the landing by its
-share of the payload's drag, to first order (sim_twin.twin.effects.site.wind_landing_shift; the CPU
-twin's ``wind`` effect integrates it).
+``randomization.wind_mps`` a steady horizontal wind drawn per episode (in the share
+``wind_fraction`` of the episodes) moves the landing by its share of the payload's drag, to first
+order (sim_twin.twin.effects.site.wind_landing_shift; the CPU twin's ``wind`` effect integrates it).
 
 Machine (per episode): valve delay, lag, dead band and speed, passive friction, gripper mass, gain
 error and sensor latencies are drawn from ``randomization``'s ranges; with
@@ -545,13 +545,16 @@ class ThrowEnvCore:
         return state, self.observe(state)
 
     def _sample_wind(self, key) -> jnp.ndarray:
-        """The episode's wind (2,) m/s: direction uniform, speed uniform in [0, ``wind_mps``];
-        zeros (and no draw) when the recipe has none."""
+        """The episode's wind (2,) m/s: direction uniform, speed uniform in [0, ``wind_mps``], in
+        the share ``wind_fraction`` of the episodes (still air in the others); zeros (and no draw)
+        when the recipe has none."""
         w = self.rand.wind_mps
         if w <= 0.0:  # a config constant: without wind the other draws are unchanged, key for key
             return jnp.zeros(2)
         k1, k2 = jax.random.split(key)
         speed = jax.random.uniform(k1, (), minval=0.0, maxval=w)
+        if self.rand.wind_fraction < 1.0:  # a config constant: every episode windy draws nothing more
+            speed = jnp.where(jax.random.uniform(jax.random.fold_in(key, 1)) < self.rand.wind_fraction, speed, 0.0)
         az = jax.random.uniform(k2, (), minval=-jnp.pi, maxval=jnp.pi)
         return speed * jnp.stack([jnp.cos(az), jnp.sin(az)])
 

@@ -116,11 +116,12 @@ PRIVILEGED_RANGE_KEYS: tuple[str, ...] = (
 ``friction_sampling``, whether the friction factor is read on a linear or a log scale)."""
 
 OTHER_RANDOMIZATION_KEYS = ("actuation", "obs_noise", "velocity_noise", "valve_spread", "valve_coupling", "wind_mps",
-                            "nominal_fraction")
+                            "wind_fraction", "nominal_fraction")
 """The ``randomization`` entries the environment reads besides ``PRIVILEGED_RANGE_KEYS``
 (sim_twin.training.mjx_env: actuation "lag" or "hydraulic", observation-noise stds, velocity-reference
 noise, machine-wide valve slowness spread, which valve parameters that slowness sets, the largest
-wind speed; the wind is not among the critic's inputs)."""
+wind speed and the share of windy episodes, the share of nominal machines; the wind is not among the
+critic's inputs)."""
 
 VALVE_COUPLINGS = ("delay_lag", "all")
 """Which hydraulic parameters the machine-wide slowness g ~ U(0, 1) sets (with ``valve_spread``
@@ -174,9 +175,10 @@ def check_randomization(rand: dict, where: str = "env.randomization", keys: tupl
     for name in ("gain_error", *RELEASE_DELAY_DEFAULTS, "velocity_noise", "valve_spread", "wind_mps"):
         if name in rand and not (isinstance(rand[name], (int, float)) and rand[name] >= 0):
             raise ValueError(f"{where}.{name} must be a number >= 0, not {rand[name]!r}")
-    frac = rand.get("nominal_fraction", 0.0)
-    if isinstance(frac, bool) or not (isinstance(frac, (int, float)) and 0.0 <= frac <= 1.0):
-        raise ValueError(f"{where}.nominal_fraction must be a number in [0, 1], not {frac!r}")
+    for name, default in (("nominal_fraction", 0.0), ("wind_fraction", 1.0)):
+        frac = rand.get(name, default)
+        if isinstance(frac, bool) or not (isinstance(frac, (int, float)) and 0.0 <= frac <= 1.0):
+            raise ValueError(f"{where}.{name} must be a number in [0, 1], not {frac!r}")
     if rand.get("friction_sampling", "uniform") not in FRICTION_SAMPLINGS:
         raise ValueError(f"{where}.friction_sampling must be one of {list(FRICTION_SAMPLINGS)}, not {rand['friction_sampling']!r}")
     if rand.get("friction_sampling") == "log_uniform" and rand.get("friction_scale", RANDOMIZATION_DEFAULTS["friction_scale"])[0] <= 0:
@@ -218,7 +220,8 @@ class Randomization:
     ``valve_coupling`` which valve parameters that slowness sets (VALVE_COUPLINGS);
     ``wind_mps`` the largest speed [m/s] of a steady horizontal wind drawn per episode (direction
     uniform, speed uniform in [0, wind_mps]; 0: no wind, nothing computed) whose share of the
-    payload's drag moves the landing (sim_twin.twin.effects.site.wind_landing_shift);
+    payload's drag moves the landing (sim_twin.twin.effects.site.wind_landing_shift), in the share
+    ``wind_fraction`` [0, 1] of the episodes (default 1: every episode; the others in still air);
     ``nominal_fraction`` the share of episodes [0, 1] whose machine is the nominal one instead of a
     draw from the ranges (:func:`sim_twin.training.mjx_env.nominal_machine`: the twin's nominal
     valves, friction and gripper mass ×1, no encoder latency, the nominal IMU latency, no grasp
@@ -247,6 +250,7 @@ class Randomization:
     friction_sampling: str = "uniform"
     valve_coupling: str = "delay_lag"
     wind_mps: float = 0.0
+    wind_fraction: float = 1.0
     nominal_fraction: float = 0.0
     obs_noise: ObsNoise = field(default_factory=ObsNoise)
 
