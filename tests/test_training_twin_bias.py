@@ -78,3 +78,17 @@ def test_the_environment_is_the_one_after_the_curriculum_stage_and_the_nominal_m
         assert w["landed"] and w["wind_downrange_m"] != 0.0 and abs(w["wind_downrange_m"]) < 1.0
         assert -0.2 < w["wind_mean_downrange_m"] < 0.0  # on average a wind takes from a throw (quadratic drag)
         assert w["downrange_m"] == pytest.approx(w["ballistic_downrange_m"] + w["wind_downrange_m"], abs=0.02)
+
+
+def test_the_winds_mean_loss_is_a_loss_growing_as_the_squared_wind_and_scaled_by_the_windy_share():
+    """mean_wind_shift: zero without wind; negative (on average a wind takes from a throw, quadratic
+    drag); to second order in the wind, so twice the largest speed about four times the loss; a
+    quarter of the episodes windy a quarter of it."""
+    from tests.benchmarks.training_twin_bias import mean_wind_shift
+
+    release = (np.array([10.0, 0.0, 0.0]), np.array([2.8, 0.0, 2.5]), np.array([6.8, 0.0, 2.9]), 1.0)
+    assert mean_wind_shift(*release, 0.0) == 0.0
+    full = mean_wind_shift(*release, 5.0)
+    assert -0.2 < full < 0.0
+    assert 3.5 < full / mean_wind_shift(*release, 2.5) < 4.5
+    assert mean_wind_shift(*release, 5.0, wind_fraction=0.25) == pytest.approx(full / 4)

@@ -115,11 +115,13 @@ def release_row(target_xyz, p0, v0, flight_s: float) -> dict:
             "ballistic_downrange_m": impact_errors(target_xyz, hit)[0]}
 
 
-def mean_wind_shift(target_xyz, p0, v0, flight_s: float, wind_mps: float, speeds: int = 20, directions: int = 72) -> float:
+def mean_wind_shift(target_xyz, p0, v0, flight_s: float, wind_mps: float, wind_fraction: float = 1.0,
+                    speeds: int = 20, directions: int = 72) -> float:
     """The mean downrange shift [m] (+ long) of a release's landing over the training environment's
     winds (sim_twin.training.mjx_env.ThrowEnvCore._sample_wind: direction uniform, speed uniform in
-    [0, ``wind_mps``] m/s): sim_twin.twin.effects.site.wind_landing_shift averaged by the midpoint
-    rule over ``speeds`` x ``directions`` winds. The release: ``p0`` (3,) m, ``v0`` (3,) m/s machine
+    [0, ``wind_mps``] m/s, in the share ``wind_fraction`` of the episodes, still air in the others):
+    sim_twin.twin.effects.site.wind_landing_shift averaged by the midpoint rule over ``speeds`` x
+    ``directions`` winds, times ``wind_fraction``. The release: ``p0`` (3,) m, ``v0`` (3,) m/s machine
     frame, ``flight_s`` its drag-free flight time; ``target_xyz`` (3,) sets the downrange direction.
     Quadratic drag makes it negative: on average a wind takes from a throw."""
     from sim_twin.twin.effects.site import wind_landing_shift
@@ -129,7 +131,7 @@ def mean_wind_shift(target_xyz, p0, v0, flight_s: float, wind_mps: float, speeds
     az = (np.arange(directions) + 0.5) / directions * 2.0 * np.pi - np.pi
     shifts = [wind_landing_shift(np, np.asarray(p0, float), np.asarray(v0, float), flight_s, w * np.array([np.cos(a), np.sin(a)]))
               for w in speed for a in az]
-    return float(np.mean(np.asarray(shifts) @ u))
+    return wind_fraction * float(np.mean(np.asarray(shifts) @ u))
 
 
 # --- twin side -----------------------------------------------------------------------------------
@@ -283,7 +285,8 @@ class EnvSide:
                 if self.core.rand.wind_mps > 0.0:  # the environment's landing: the drag-free one moved by the wind
                     hit = hit + np.concatenate([wind_landing_shift(np, p0, v0, float(t_f), np.asarray(s.wind[i], float)), [0.0]])
                     wind = {"wind_downrange_m": impact_errors(targets[i], hit)[0] - calm,
-                            "wind_mean_downrange_m": mean_wind_shift(targets[i], p0, v0, float(t_f), self.core.rand.wind_mps)}
+                            "wind_mean_downrange_m": mean_wind_shift(targets[i], p0, v0, float(t_f), self.core.rand.wind_mps,
+                                                                     self.core.rand.wind_fraction)}
                 rows[i].update(landed=True, status="landed", held_releases=0,
                                downrange_m=impact_errors(targets[i], hit)[0], **wind,
                                release_cmd_s=t_cmd, opening_s=t_cmd + int(delay_steps[i]) * PHYSICS_PERIOD_S,
