@@ -181,7 +181,7 @@ def test_a_run_resumed_from_its_state_elsewhere_exports_the_pass_it_carried(tmp_
     (tests/benchmarks/device_runs.sh state, under another name) resumes on a second machine, where the
     first machine's directory is gone and every candidate misses. The export is the first machine's
     newest pass, found in the state, not a crash on its path there; a run whose state lacks that
-    checkpoint fails with a clear error."""
+    checkpoint exports the newest pass whose checkpoint it has, and one with none fails with a clear error."""
     import json
     import shutil
     import subprocess
@@ -218,9 +218,17 @@ def test_a_run_resumed_from_its_state_elsewhere_exports_the_pass_it_carried(tmp_
 
     (run2 / "candidates" / f"checkpoint_{newest['iteration']}.pt").unlink()  # a state without it
     (run2 / "throw2d.onnx").unlink()
+    here = sorted(int(c.stem.split("_")[1]) for c in (run2 / "candidates").glob("checkpoint_*.pt"))
     args = _args(tmp_path, gate=True, iterations=1, gate_seeds="0", gate_workers=1, gate_wait_minutes=5,
                  no_stop_at_bars=True, resume=run2 / "checkpoint.pt", log_dir=run2)
-    with pytest.raises(FileNotFoundError, match=f"iteration {newest['iteration']}"):
+    assert here  # the state carries an older pass's checkpoint too: the newest of those is exported instead
+    assert train.run(args) == 0
+    card = json.loads((run2 / "throw2d.card.json").read_text())
+    assert card["iteration"] == max(here) < newest["iteration"]
+    for c in (run2 / "candidates").glob("checkpoint_*.pt"):
+        c.unlink()
+    (run2 / "throw2d.onnx").unlink()
+    with pytest.raises(FileNotFoundError, match=f"iteration {newest['iteration']}"):  # no pass's checkpoint: a clear error
         train.run(args)
 
 
