@@ -72,7 +72,8 @@ def skew_rows(bench: dict) -> list[dict]:
 def render(policies: list[dict], title: str) -> list[str]:
     """The report's Markdown lines: one table of every policy and target."""
     lines = [f"# {title}", "", "Positive = long; ± one standard error of the mean; skew = nominal machine - training "
-             "distribution, paired throw by throw (same start pose and target).", "",
+             "distribution, paired throw by throw (same start pose and target); the winds' shift: each landed throw's "
+             "release averaged over the recipe's winds (training_twin_bias.mean_wind_shift), then over the throws.", "",
              "| policy | training config | target [m] | nominal machine [m] | training distribution [m] | skew [m] "
              "| of the training distribution, its winds' shift [m] |",
              "|---|---|---|---|---|---|---|"]
