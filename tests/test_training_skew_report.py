@@ -57,3 +57,16 @@ def test_the_training_winds_shift_is_given_where_the_distribution_draws_one(tmp_
     (tmp_path / "a.json").write_text(json.dumps(bench))
     assert skew.main([f"a={tmp_path / 'a.json'}", "--out", str(tmp_path / "skew")]) == 0
     assert "| -0.030 ± 0.010 |" in (tmp_path / "skew.md").read_text()
+
+
+def test_parameter_settings_are_tabled_with_their_paired_change_from_the_nominal_machine(tmp_path):
+    bench = _bench([0.10, 0.12], [0.00, 0.04])
+    bench["env"]["valve_delay=14"] = {"10.0": [dict(r, downrange_m=r["downrange_m"] - 0.1) for r in bench["env"]["env"]["10.0"]]}
+    bench["env"]["twin"] = {"10.0": bench["env"]["env"]["10.0"]}  # a rollout of the chain, not a setting
+    (row,) = skew.setting_rows(bench)
+    assert row["setting"] == "valve_delay=14" and row["bias_m"] == pytest.approx(0.01) and row["change_m"] == pytest.approx(-0.1)
+    assert skew.setting_rows(_bench([0.1], [0.0])) == []
+    (tmp_path / "a.json").write_text(json.dumps(bench))
+    assert skew.main([f"a={tmp_path / 'a.json'}", "--out", str(tmp_path / "skew")]) == 0
+    md = (tmp_path / "skew.md").read_text()
+    assert "| `valve_delay=14` | +0.010 ± 0.010 (-0.100) |" in md and "`twin`" not in md

@@ -69,6 +69,28 @@ def skew_rows(bench: dict) -> list[dict]:
     return rows
 
 
+ROLLOUTS_OF_THE_CHAIN = ("env", "twin", "twin-ceil", "training-dist")
+"""training_twin_bias's rollouts that are not a parameter setting (``--env-set``)."""
+
+
+def setting_rows(bench: dict) -> list[dict]:
+    """Per ``--env-set`` rollout of one ``training_twin_bias`` output (the nominal machine with some
+    per-episode parameters set, e.g. to their training distribution's mean) and target: its bias [m]
+    with standard error, and its change from the nominal machine, paired throw by throw (setting -
+    nominal). [] for an output without such rollouts."""
+    env = bench.get("env", {})
+    rows = []
+    for name, per in env.items():
+        if name in ROLLOUTS_OF_THE_CHAIN:
+            continue
+        for target, thrown in per.items():
+            b = side_summary(thrown)
+            ch, ch_se, pairs = paired(thrown, env["env"][target])["downrange_m"]
+            rows.append({"setting": name, "target_m": float(target), "bias_m": b["bias_m"], "se_m": b["se_m"],
+                         "change_m": ch, "change_se_m": ch_se, "pairs": pairs})
+    return rows
+
+
 def render(policies: list[dict], title: str) -> list[str]:
     """The report's Markdown lines: one table of every policy and target."""
     lines = [f"# {title}", "", "Positive = long; ± one standard error of the mean; skew = nominal machine - training "
@@ -83,6 +105,17 @@ def render(policies: list[dict], title: str) -> list[str]:
             lines.append(f"| {p['label']} | `{p['config']}` | {r['target_m']:g} | {r['nominal_bias_m']:+.3f} ± {r['nominal_se_m']:.3f} "
                          f"| {r['training_dist_bias_m']:+.3f} ± {r['training_dist_se_m']:.3f} | **{r['skew_m']:+.3f}** ± {r['skew_se_m']:.3f} "
                          f"| {wind} |")
+    for p in policies:
+        if not p.get("settings"):
+            continue
+        targets = sorted({r["target_m"] for r in p["settings"]})
+        lines += ["", f"**{p['label']}: the nominal machine with parameters set** (EnvState fields after the reset; "
+                  "bias [m], and in brackets its change from the nominal machine, paired throw by throw)", "",
+                  "| setting | " + " | ".join(f"{t:g} m" for t in targets) + " |", "|---|" + "---|" * len(targets)]
+        for name in dict.fromkeys(r["setting"] for r in p["settings"]):
+            cells = {r["target_m"]: r for r in p["settings"] if r["setting"] == name}
+            lines.append(f"| `{name}` | " + " | ".join(
+                f"{cells[t]['bias_m']:+.3f} ± {cells[t]['se_m']:.3f} ({cells[t]['change_m']:+.3f})" for t in targets) + " |")
     return lines + [""]
 
 
@@ -125,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError as e:
             raise SystemExit(f"training_skew_report: {path}: {e}") from None
         policies.append({"label": label, "policy": _relative(bench["args"]["policy"]), "config": _relative(bench["args"]["config"]),
-                         "benchmark_args": bench["args"], "rows": rows})
+                         "benchmark_args": bench["args"], "rows": rows, "settings": setting_rows(bench)})
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".json").write_text(json.dumps({"title": args.title, "policies": policies}, indent=2) + "\n")
     args.out.with_suffix(".md").write_text("\n".join(render(policies, args.title)))
