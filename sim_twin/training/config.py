@@ -205,6 +205,14 @@ class TrainingSection:
     tf32_matmul: bool = False
     desired_kl_stage: DesiredKlStage | None = None
 
+    def env_dicts(self, env: dict) -> tuple[dict, dict]:
+        """(before, after): the config's ``env`` mapping before and after the curriculum stage
+        (:meth:`CurriculumStage.env_dicts`), or ``env`` twice without a stage.
+
+        Raises:
+            ValueError: the stage's merged randomisation or rewards are refused."""
+        return self.curriculum_stage.env_dicts(env) if self.curriculum_stage else (env, env)
+
     @classmethod
     def from_dict(cls, d: dict) -> TrainingSection:
         known = [f.name for f in fields(cls)]

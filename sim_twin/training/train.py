@@ -252,8 +252,7 @@ class TrainingRun:
         if args.num_envs:
             cfg["num_envs"] = args.num_envs
         self.training = resolve_training(cfg, args.seed)
-        stage = self.training.curriculum_stage
-        env_before, env_after = stage.env_dicts(cfg["env"]) if stage else (cfg["env"], cfg["env"])
+        env_before, env_after = self.training.env_dicts(cfg["env"])
         self.env_after: dict = env_after
         env_cfg = EnvConfig.from_dict(env_before)
         if env_cfg.mode != args.mode:

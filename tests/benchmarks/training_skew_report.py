@@ -28,7 +28,7 @@ import argparse
 import json
 from pathlib import Path
 
-from tests.benchmarks.training_twin_bias import mean_se, paired, side_summary
+from tests.benchmarks.training_twin_bias import DELAY_CHOICES, mean_se, paired, side_summary
 
 
 def _relative(path: str) -> str:
@@ -69,7 +69,7 @@ def skew_rows(bench: dict) -> list[dict]:
     return rows
 
 
-ROLLOUTS_OF_THE_CHAIN = ("env", "twin", "twin-ceil", "training-dist")
+ROLLOUTS_OF_THE_CHAIN = (*DELAY_CHOICES, "training-dist")
 """training_twin_bias's rollouts that are not a parameter setting (``--env-set``)."""
 
 

@@ -16,8 +16,8 @@ the policy throws twice from the SAME start pose:
   measured impact (downrange error, with the nominal 2 cm impact-measurement noise);
 * **env**: the MJX training environment (sim_twin.training.mjx_env.ThrowEnvCore, on the CPU), the
   config after its curriculum stage narrowed to the nominal machine in still air
-  (tests.benchmarks.training_style_probe.nominal_randomization: nominal valves, friction and gripper mass x1, nominal sensing, release delay 258 ms with its
-  15 ms jitter), forced release off, reset to the twin's start pose and target; the ONNX policy
+  (tests.benchmarks.training_style_probe.nominal_randomization: nominal valves, friction and gripper
+  mass x1, nominal sensing, release delay 258 ms with its 15 ms jitter), forced release off, reset to the twin's start pose and target; the ONNX policy
   (onnxruntime, its mean action) acts on the environment's observations. The landing is the
   environment's own: drag-free flight from the payload's state at the opening (runtime.ballistics).
 
@@ -40,10 +40,11 @@ throws are deterministic.
 
 Two further env rollouts, for where the policy's bias comes from rather than the chain's:
 ``--training-dist`` throws the same starts with the config's own randomisation (the distribution the
-policy was trained on: after the config's curriculum stage, :func:`trained_env`; where it draws a wind,
-each landing moved by the episode's wind as the environment moves it, ``wind_downrange_m``), ``--env-set`` (repeatable) on the nominal machine with per-episode
-parameters of the EnvState set after the reset (e.g. ``fric=2.0``, ``valve_delay=14`` steps,
-``tau=0.2``, ``gripper_scale=1.15``, ``sensor_lag=[1,2]``). Their paired lines compare them with the
+policy was trained on: after the config's curriculum stage, :func:`trained_env`; where it draws a
+wind, each landing moved by the episode's wind as the environment moves it, ``wind_downrange_m``),
+``--env-set`` (repeatable) on the nominal machine with per-episode parameters of the EnvState set
+after the reset (e.g. ``fric=2.0``, ``valve_delay=14`` steps, ``tau=0.2``, ``gripper_scale=1.15``,
+``sensor_lag=[1,2]``). Their paired lines compare them with the
 twin all the same (different machines: differences there are the machine's, not the chain's).
 
 ``--json`` writes the summaries and every throw's row. One process on the CPU: about 0.1 s per twin
@@ -166,8 +167,7 @@ def trained_env(config: dict) -> dict:
             own checks)."""
     from sim_twin.training.config import TrainingSection
 
-    stage = TrainingSection.from_dict(config.get("training", {})).curriculum_stage
-    return stage.env_dicts(config["env"])[1] if stage else config["env"]
+    return TrainingSection.from_dict(config.get("training", {})).env_dicts(config["env"])[1]
 
 
 def nominal_env_config(config_path: Path, noiseless: bool, nominal: bool = True) -> dict:
