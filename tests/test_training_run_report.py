@@ -153,6 +153,22 @@ def test_a_command_per_run_or_a_clear_error(tmp_path, monkeypatch):
     assert not (tmp_path / "bad.json").exists()
 
 
+def test_a_run_given_twice_is_refused_before_anything_is_written(tmp_path, monkeypatch, capsys):
+    """A run listed twice would get two table rows and two sections (a re-run once did: -n3 three times)."""
+    import sys
+
+    from tests.benchmarks import training_run_report
+
+    run = ROOT / "policies" / "training" / "throw2d-scratch-ax"
+    other = ROOT / "policies" / "training" / "throw2d-scratch-ay"
+    monkeypatch.setattr(sys, "argv", ["r", str(run), str(other), str(run / ".." / run.name), "--out", str(tmp_path / "dup")])
+    with pytest.raises(SystemExit):
+        training_run_report.main()
+    err = capsys.readouterr().err
+    assert "given more than once" in err and "throw2d-scratch-ax" in err and "throw2d-scratch-ay" not in err
+    assert not (tmp_path / "dup.json").exists()
+
+
 def test_the_far_target_bias_is_the_farthest_targets_and_its_mean_counts_only_late_first_seed_matrices(tmp_path):
     """far_bias reads the nominal and sensor-latency bias at the farthest target; the run's mean takes
     the first gate seed's matrices from FAR_BIAS_FROM on, not earlier ones or other seeds'."""

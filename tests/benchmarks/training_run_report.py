@@ -279,6 +279,9 @@ def main() -> None:
     p.add_argument("--gate-unrecorded", type=Path, nargs="*", default=[],
                    help="site matrices the gate ran during the training whose verdict matrix_gate.json lacks")
     a = p.parse_args()
+    twice = sorted({str(r) for r in a.runs if sum(x.resolve() == r.resolve() for x in a.runs) > 1})
+    if twice:
+        p.error(f"run directories given more than once: {', '.join(twice)} (one section and one table row per run)")
     commands = a.command or ["slinger train --mode 2d"]
     if len(commands) not in (1, len(a.runs)):
         p.error(f"--command given {len(commands)} times for {len(a.runs)} runs: give it once or once per run")
