@@ -18,8 +18,18 @@ def test_the_deciding_policies_are_the_first_pass_and_the_export():
     h0 = TRAINING / "throw2d-scratch-h0"
     assert deciding_policies(h0) == {500: h0 / "candidates" / "checkpoint_500.onnx", 925: h0 / "throw2d.onnx"}
     g1 = TRAINING / "throw2d-scratch-g1"  # seed 1 of iteration 575 judged after the run; no export
-    assert deciding_policies(g1) == {575: g1 / "candidates" / "checkpoint_575.onnx"}
+    assert deciding_policies(g1) == {575: g1 / "candidates" / "checkpoint_575.onnx",  # the first pass and
+                                     1025: g1 / "candidates" / "checkpoint_1025.onnx"}  # the one it would export
     assert deciding_policies(TRAINING / "throw2d-scratch-g3") == {}  # met nothing, exported nothing
+
+
+def test_a_run_stopped_before_its_export_is_followed_for_the_pass_it_would_export():
+    """-n4 stopped on the device time with eight passes: the first (325) and the one with the fewest
+    cells worse than the deployed policy, the newest among equals (1550), not the other 2-cell pass (1375)."""
+    n4 = TRAINING / "throw2d-scratch-n4"
+    assert deciding_policies(n4) == {325: n4 / "candidates" / "checkpoint_325.onnx", 1550: n4 / "candidates" / "checkpoint_1550.onnx"}
+    l0 = TRAINING / "throw2d-scratch-l0"  # kept before keep_run kept that pass's ONNX: the first pass alone
+    assert list(deciding_policies(l0)) == [675]
 
 
 def test_only_the_missing_held_out_matrices_are_run(tmp_path):

@@ -5,7 +5,8 @@ and the paired deploy test, for the checkpoints that decide the run.
 
 For the run's first checkpoint to meet every bar on every gate seed and for its exported policy
 (tests/benchmarks/keep_run.py ``decide``; the gate's export
-``candidates/checkpoint_<N>.onnx`` or ``throw<mode>.onnx``) it
+``candidates/checkpoint_<N>.onnx`` or ``throw<mode>.onnx``), or, for a run stopped before its export,
+the pass its finish would have exported (``deciding_policies``), it
 
 1. runs the site matrix on each held-out seed that the run lacks, with the gate's own command
    (``python -m sim_twin.evaluation.cli --policy <onnx> --matrix --seed S --throws <the gate's> --workers W
@@ -35,8 +36,10 @@ from tests.benchmarks.keep_run import RunDecision, decide
 
 
 def deciding_policies(run: Path, d: RunDecision | None = None) -> dict[int, Path]:
-    """{iteration: ONNX file} of the run's first pass and its export (module docstring); {} for a run
-    that met no bar on every gate seed and exported nothing.
+    """{iteration: ONNX file} of the run's first pass and its export (module docstring), and for a run
+    stopped before its export (the device time) the pass its finish would have exported
+    (sim_twin.training.matrix_gate.choose_pass, the one keep_run keeps) where its ONNX file is in the
+    run; {} for a run that met no bar on every gate seed and exported nothing.
 
     ``d`` is the run's keep_run.decide where the caller has it.
 
@@ -49,6 +52,13 @@ def deciding_policies(run: Path, d: RunDecision | None = None) -> dict[int, Path
         out[d.exported] = next(run.glob("throw*.onnx"))
     if d.first_pass is not None and d.first_pass not in out:
         out[d.first_pass] = run / "candidates" / f"checkpoint_{d.first_pass}.onnx"
+    if d.exported is None:
+        from sim_twin.training.matrix_gate import choose_pass, saved_passes
+
+        chosen = choose_pass(saved_passes(d.gate))
+        onnx = run / "candidates" / f"checkpoint_{int(chosen['iteration'])}.onnx" if chosen else None
+        if onnx is not None and onnx.exists():  # runs kept before keep_run kept it lack it (-l0)
+            out.setdefault(int(chosen["iteration"]), onnx)
     for it, onnx in out.items():
         if not onnx.exists():
             raise FileNotFoundError(f"{onnx}: the ONNX file of iteration {it} is not in the run")
