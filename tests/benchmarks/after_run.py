@@ -32,13 +32,13 @@ from pathlib import Path
 
 from sim_twin.evaluation import matrix_compare
 
-from tests.benchmarks.keep_run import RunDecision, decide
+from tests.benchmarks.keep_run import RunDecision, chosen_pass, decide
 
 
 def deciding_policies(run: Path, d: RunDecision | None = None) -> dict[int, Path]:
     """{iteration: ONNX file} of the run's first pass and its export (module docstring), and for a run
     stopped before its export (the device time) the pass its finish would have exported
-    (sim_twin.training.matrix_gate.choose_pass, the one keep_run keeps) where its ONNX file is in the
+    (keep_run.chosen_pass, the one keep_run keeps) where its ONNX file is in the
     run; {} for a run that met no bar on every gate seed and exported nothing.
 
     ``d`` is the run's keep_run.decide where the caller has it.
@@ -52,13 +52,11 @@ def deciding_policies(run: Path, d: RunDecision | None = None) -> dict[int, Path
         out[d.exported] = next(run.glob("throw*.onnx"))
     if d.first_pass is not None and d.first_pass not in out:
         out[d.first_pass] = run / "candidates" / f"checkpoint_{d.first_pass}.onnx"
-    if d.exported is None:
-        from sim_twin.training.matrix_gate import choose_pass, saved_passes
-
-        chosen = choose_pass(saved_passes(d.gate))
-        onnx = run / "candidates" / f"checkpoint_{int(chosen['iteration'])}.onnx" if chosen else None
-        if onnx is not None and onnx.exists():  # runs kept before keep_run kept it lack it (-l0)
-            out.setdefault(int(chosen["iteration"]), onnx)
+    chosen = chosen_pass(d) if d.exported is None else None
+    if chosen is not None:
+        onnx = run / "candidates" / f"checkpoint_{chosen}.onnx"
+        if onnx.exists():  # runs kept before keep_run kept it lack it (-l0)
+            out.setdefault(chosen, onnx)
     for it, onnx in out.items():
         if not onnx.exists():
             raise FileNotFoundError(f"{onnx}: the ONNX file of iteration {it} is not in the run")

@@ -100,15 +100,21 @@ def row_iterations(d: RunDecision) -> set[int]:
     return keep | passes | {it for it in (d.first_pass, d.exported) if it is not None}
 
 
-def candidate_iterations(d: RunDecision) -> set[int]:
-    """The gate's candidates kept beside the export: the first that met every bar on every gate seed
-    and the one a run past the bars exports (sim_twin.training.matrix_gate.choose_pass), where they are
-    not the export, or, where none met them, the last two the gate judged."""
+def chosen_pass(d: RunDecision) -> int | None:
+    """The iteration of the pass a run past the bars exports (sim_twin.training.matrix_gate.choose_pass
+    over the gate's saved passes); None where no checkpoint passed."""
     from sim_twin.training.matrix_gate import choose_pass, saved_passes
 
+    chosen = choose_pass(saved_passes(d.gate))
+    return int(chosen["iteration"]) if chosen else None
+
+
+def candidate_iterations(d: RunDecision) -> set[int]:
+    """The gate's candidates kept beside the export: the first that met every bar on every gate seed
+    and the one a run past the bars exports (:func:`chosen_pass`), where they are not the export, or,
+    where none met them, the last two the gate judged."""
     if d.first_pass is not None:
-        chosen = choose_pass(saved_passes(d.gate))
-        return {it for it in (d.first_pass, chosen and int(chosen["iteration"])) if it and it != d.exported}
+        return {it for it in (d.first_pass, chosen_pass(d)) if it and it != d.exported}
     return set(sorted({r["iteration"] for r in d.gate["results"]})[-2:])
 
 
