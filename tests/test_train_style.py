@@ -8,7 +8,16 @@ from pathlib import Path
 
 import pytest
 
-from tests.benchmarks.training_throw_style import LONG_STYLE_S, RunSource, far_throw, kept_rows, run_style, style_of
+from tests.benchmarks.training_throw_style import (
+    LONG_STYLE_S,
+    RunSource,
+    duration_spread,
+    far_throw,
+    kept_rows,
+    run_style,
+    spread_by_duration,
+    style_of,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 RUNS = ROOT / "policies" / "training"
@@ -132,3 +141,34 @@ def test_kept_rows_keep_the_other_runs_of_a_report_made_the_same_way(tmp_path):
         kept_rows(report, {"envs": 256, "key": 7}, [], "runs")
     with pytest.raises(ValueError, match="probe_key None differs"):  # a setting the report did not record
         kept_rows(report, {"envs": 128, "probe_key": 7}, [], "runs")
+
+
+def _spread_run(tmp_path: Path, name: str, cells: dict[int, tuple[float | None, float, float]]) -> RunSource:
+    """A run whose seed-0 matrices have the nominal 10 m cell (duration s, σ m, bias m) per iteration."""
+    run = tmp_path / name
+    (run / "matrices").mkdir(parents=True)
+    for it, (dur, sigma, bias) in cells.items():
+        cell = {"target_m": 10.0, "mean_duration_s": dur, "sigma_downrange_m": sigma, "bias_m": bias,
+                "landed": 0 if dur is None else 100, "success_rate": 1.0}
+        (run / "matrices" / f"site_matrix_2d_it{it}.json").write_text(json.dumps({"profiles": [{"name": "nominal", "targets": [cell]}]}))
+    (run / "matrices" / "site_matrix_2d_it500_seed1.json").write_text("not read")  # not seed 0
+    return RunSource(str(run))
+
+
+def test_duration_spread_reads_the_span_and_judges_the_nominal_accuracy_bar(tmp_path):
+    src = _spread_run(tmp_path, "throw2d-scratch-t", {250: (3.0, 0.2, 0.0), 300: (3.5, 0.12, 0.01), 400: (4.4, 0.06, 0.15),
+                                                      500: (4.2, 0.05, -0.02), 600: (None, 0.0, 0.0), 1400: (4.5, 0.05, 0.0)})
+    pts = duration_spread(src)
+    assert [p["iteration"] for p in pts] == [300, 400, 500]  # 250 before the stage, 600 did not land, 1400 past the span
+    assert [p["accuracy"] for p in pts] == [False, False, True]  # σ over the bar; bias over it; both within
+
+
+def test_spread_by_duration_bins_the_matrices_and_counts_the_bars(tmp_path):
+    pts = duration_spread(_spread_run(tmp_path, "a", {300: (3.5, 0.12, 0.0), 400: (3.7, 0.08, 0.0)}))
+    pts += duration_spread(_spread_run(tmp_path, "b", {300: (4.1, 0.06, 0.12), 400: (4.7, 0.05, 0.0), 500: (4.0, 0.07, 0.0)}))
+    bins = spread_by_duration(pts, edges=(3.6, 4.0))
+    assert [(b["lo_s"], b["hi_s"], b["matrices"], b["runs"]) for b in bins] == [(None, 3.6, 1, 1), (3.6, 4.0, 1, 1), (4.0, None, 3, 1)]
+    assert (bins[0]["sigma_share"], bins[1]["sigma_share"], bins[2]["sigma_share"]) == (0.0, 1.0, 1.0)
+    assert bins[2]["accuracy_share"] == 0.67 and bins[2]["median_sigma_m"] == 0.06  # 4.1 s overshoots by 0.12 m
+    assert spread_by_duration([], edges=(4.0,))[0] == {"lo_s": None, "hi_s": 4.0, "matrices": 0, "runs": 0,
+                                                       "median_sigma_m": None, "sigma_share": None, "accuracy_share": None}

@@ -28,6 +28,9 @@ import subprocess
 from datetime import UTC, datetime
 from pathlib import Path
 
+import numpy as np
+
+from sim_twin.evaluation.matrix import cell_bars
 from sim_twin.training.matrix_gate import saved_passes
 
 STYLE_BY_ITERATION = 250
@@ -212,6 +215,79 @@ def term_split(rows: list[dict], curves: list[dict[int, dict[str, float]]],
     return out
 
 
+SPREAD_ITERATIONS = (300, 1300)
+"""Iterations whose seed-0 matrices enter the duration-spread table: from the curriculum stage (300) to
+about 20 minutes of training (~1300 on one H200)."""
+SIGMA_BAR_M = 0.10
+"""The nominal 2D cell's σ downrange bar [m] (sim_twin.evaluation.matrix.cell_bars)."""
+SPREAD_EDGES_S = (3.6, 4.0, 4.3, 4.6)
+"""Nominal 10 m throw durations [s] between the duration-spread table's bins."""
+
+
+def duration_spread(src: RunSource, iterations: tuple[int, int] = SPREAD_ITERATIONS) -> list[dict]:
+    """Every seed-0 gate matrix of the run from ``iterations[0]`` to ``iterations[1]`` (inclusive) whose
+    nominal 10 m throws landed: [{run, iteration, duration_s, sigma_m, bias_m, accuracy}], ``accuracy``
+    the cell's accuracy bar (sim_twin.evaluation.matrix.cell_bars: |bias| and σ downrange ≤ 0.10 m);
+    a run without gate matrices gives []."""
+    out = []
+    for it in sorted(int(m.group(1)) for n in src.list("matrices") if (m := _MATRIX.search(n))):
+        if not iterations[0] <= it <= iterations[1]:
+            continue
+        matrix = json.loads(src.read(f"matrices/site_matrix_2d_it{it}.json"))
+        cell = next(t for p in matrix["profiles"] if p["name"] == "nominal"
+                    for t in p["targets"] if abs(t["target_m"] - FAR_TARGET_M) < 1e-6)
+        if cell.get("mean_duration_s") is None or not cell.get("landed"):
+            continue
+        out.append({"run": src.name, "iteration": it, "duration_s": round(cell["mean_duration_s"], 3),
+                    "sigma_m": round(cell["sigma_downrange_m"], 4), "bias_m": round(cell["bias_m"], 4),
+                    "accuracy": cell_bars("2d", "nominal", False, cell)["accuracy"]})
+    return out
+
+
+def spread_by_duration(points: list[dict], edges: tuple[float, ...] = SPREAD_EDGES_S) -> list[dict]:
+    """duration_spread points binned by the 10 m throw's duration at ``edges`` [s]: per bin {lo_s, hi_s
+    (None at the open ends), matrices, runs, median_sigma_m, sigma_share, accuracy_share}: the shares of
+    the bin's matrices whose nominal 10 m σ downrange is within its 0.10 m bar and whose cell met its
+    whole accuracy bar (σ and bias); None for an empty bin."""
+    bounds = [None, *edges, None]
+    rows = []
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        inside = [p for p in points if (lo is None or p["duration_s"] >= lo) and (hi is None or p["duration_s"] < hi)]
+        sig = sorted(p["sigma_m"] for p in inside)
+        rows.append({"lo_s": lo, "hi_s": hi, "matrices": len(inside), "runs": len({p["run"] for p in inside}),
+                     "median_sigma_m": None if not sig else round(float(np.median(sig)), 3),
+                     "sigma_share": None if not inside else round(sum(p["sigma_m"] <= SIGMA_BAR_M for p in inside) / len(inside), 2),
+                     "accuracy_share": None if not inside else round(sum(p["accuracy"] for p in inside) / len(inside), 2)})
+    return rows
+
+
+def plot_spread(points: list[dict], rows: list[dict], path: Path) -> None:
+    """σ downrange of the nominal 10 m cell against its mean throw duration, one dot per seed-0 matrix,
+    filled where the run met every bar on the gate seeds (``rows``: run_style rows), the 0.10 m bar
+    dashed; matplotlib, to ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    met = {r["run"] for r in rows if r["outcome"]["met"]}
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for ok, style in ((True, {"color": "tab:blue", "label": "run met every bar"}),
+                      (False, {"facecolors": "none", "edgecolors": "tab:red", "label": "run did not"})):
+        sel = [p for p in points if (p["run"] in met) == ok]
+        ax.scatter([p["duration_s"] for p in sel], [p["sigma_m"] for p in sel], s=18, **style)
+    ax.axhline(SIGMA_BAR_M, ls="--", color="grey", lw=1, label="nominal σ bar 0.10 m")
+    for e in SPREAD_EDGES_S:
+        ax.axvline(e, ls=":", color="lightgrey", lw=1)
+    ax.set_xlabel("nominal 10 m throw: mean duration, start to landing [s]")
+    ax.set_ylabel("nominal 10 m: σ downrange [m]")
+    ax.set_title(f"Seed-0 gate matrices, iterations {SPREAD_ITERATIONS[0]}-{SPREAD_ITERATIONS[1]}, {len(met)} of {len(rows)} runs met (at any time)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def outcome_text(o: dict) -> str:
     """The gate's outcome of a run_style row in words."""
     if o["met"]:
@@ -225,6 +301,8 @@ def main() -> None:
     p.add_argument("runs", nargs="+", help="run directories or REV:PATH")
     p.add_argument("--out", type=Path, required=True, help="report stem (writes .json and .md)")
     p.add_argument("--by-iteration", type=int, default=STYLE_BY_ITERATION)
+    p.add_argument("--spread", action="store_true",
+                   help="add the duration-spread table (SPREAD_ITERATIONS, SPREAD_EDGES_S) and its plot, <out>_spread.png")
     args = p.parse_args()
     sources = [RunSource(s) for s in args.runs]
     rows = [run_style(src, args.by_iteration) for src in sources]
@@ -236,6 +314,11 @@ def main() -> None:
     report = {"date": datetime.now(UTC).isoformat(timespec="seconds"), "commit": commit,
               "long_style_s": LONG_STYLE_S, "by_iteration": args.by_iteration, "far_target_m": FAR_TARGET_M, "runs": rows,
               "term_split": {"runs": [rows[i]["run"] for i in same_recipe], "by_term": split}}
+    if args.spread:
+        points = [pt for src in sources for pt in duration_spread(src)]
+        report["duration_spread"] = {"iterations": list(SPREAD_ITERATIONS), "edges_s": list(SPREAD_EDGES_S),
+                                     "bins": spread_by_duration(points), "points": points}
+        plot_spread(points, rows, args.out.parent / f"{args.out.name}_spread.png")
     args.out.with_suffix(".json").write_text(json.dumps(report, indent=1) + "\n")
     md = ["# 2D from-scratch runs: far-target throw style against the gate's outcome\n",
           f"Date {report['date']}, commit `{commit}`. Style: the nominal {FAR_TARGET_M:g} m throw's mean duration "
@@ -257,6 +340,17 @@ def main() -> None:
             cells.append("-" if c is None else f"{c['long'][0]:.3g}-{c['long'][1]:.3g} / {c['short'][0]:.3g}-{c['short'][1]:.3g}"
                          + (" **separates**" if c["separates"] else ""))
         md.append(f"| {term} | " + " | ".join(cells) + " |")
+    if args.spread:
+        ds = report["duration_spread"]
+        md += ["", f"## The 10 m throw's duration and its spread (seed-0 matrices, iterations {SPREAD_ITERATIONS[0]}-{SPREAD_ITERATIONS[1]})\n",
+               "Every seed-0 gate matrix of these runs in that span whose nominal 10 m throws landed, binned by the throw's "
+               f"mean duration; the accuracy bar is |bias| and σ ≤ 0.10 m. Plot: `{args.out.name}_spread.png`.\n",
+               "| 10 m throw duration | matrices | runs | median σ | σ ≤ 0.10 m | accuracy bar met (σ and bias) |", "|---|---|---|---|---|---|"]
+        for b in ds["bins"]:
+            span = f"< {b['hi_s']} s" if b["lo_s"] is None else (f"≥ {b['lo_s']} s" if b["hi_s"] is None else f"{b['lo_s']}-{b['hi_s']} s")
+            pct = {k: "-" if b[k] is None else f"{b[k]:.0%}" for k in ("sigma_share", "accuracy_share")}
+            md.append(f"| {span} | {b['matrices']} | {b['runs']} | {'-' if b['median_sigma_m'] is None else b['median_sigma_m']} m | "
+                      f"{pct['sigma_share']} | {pct['accuracy_share']} |")
     args.out.with_suffix(".md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 
