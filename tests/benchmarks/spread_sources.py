@@ -106,6 +106,10 @@ def _sigma(e: np.ndarray) -> float | None:
     return float(e.std(ddof=1)) if len(e) > 1 else None
 
 
+def _mean(e: np.ndarray) -> float | None:
+    return float(e.mean()) if len(e) else None
+
+
 def _fmt(x: float | None) -> str:
     return "-" if x is None else f"{x:.3f}"
 
@@ -113,8 +117,9 @@ def _fmt(x: float | None) -> str:
 def cell(rows: list[dict]) -> dict:
     """Summary of one cell: landed count, bias and sigma of the downrange error (m), the median
     time from the swing's start to the release command (s) and the sigma of the throws released
-    up to it and after it (m), the number of first-swing throws (released within FIRST_SWING_S)
-    and the sigma of those and of the later ones (m; None for fewer than two), the median absolute
+    up to it and after it (m), the number of first-swing throws (released within FIRST_SWING_S),
+    the sigma of those and of the later ones (m; None for fewer than two) and their mean errors
+    (m; None for none: two release swings whose means differ add to the cell's sigma), the median absolute
     release sensitivity (m/s), the spread it implies with the nominal 15 ms release-delay sigma (m)
     and every row of :func:`throws`."""
     landed = [r for r in rows if r["status"] == "landed"]
@@ -127,6 +132,7 @@ def cell(rows: list[dict]) -> dict:
             "release_after_s_median": float(np.median(t)),
             "sigma_early_half_m": float(e[early].std(ddof=1)), "sigma_late_half_m": float(e[~early].std(ddof=1)),
             "first_swing_throws": int(first.sum()), "sigma_first_swing_m": _sigma(e[first]), "sigma_later_m": _sigma(e[~first]),
+            "bias_first_swing_m": _mean(e[first]), "bias_later_m": _mean(e[~first]),
             "release_sensitivity_mps_median": float(np.median(s)), "jitter_spread_m": float(np.median(s) * 0.015),
             "rows": [_rounded(r) for r in rows]}
 
@@ -179,7 +185,8 @@ def main() -> None:
     from sim_twin.twin.pools import process_pool
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--policy", action="append", default=[], help="2D ONNX policy (repeat to compare)")
+    ap.add_argument("--policy", action="append", default=[],
+                    help="2D ONNX policy, or NAME=PATH to label it NAME in the report (repeat to compare)")
     ap.add_argument("--checkpoint", action="append", default=[], type=Path,
                     help="rsl_rl checkpoint of the 2D recipe, exported to ONNX first (repeatable)")
     ap.add_argument("--config", type=Path, default=Path("sim_twin/configs/throw_2d.json"), help="the checkpoints' training config")
@@ -203,6 +210,11 @@ def main() -> None:
 
         name = ckpt.parent.name
         args.policy.append(str(export_checkpoint(ckpt, json.loads(args.config.read_text()), Path(tmp.name) / f"{name}.onnx", name)))
+    labels = {}  # path -> the report's name for it (NAME=PATH), else the manifest's version
+    for i, spec in enumerate(args.policy):
+        name, sep, path = spec.partition("=")
+        if sep and not Path(spec).exists():
+            args.policy[i], labels[path] = path, name
     targets = [float(x) for x in args.targets.split(",")]
     variants = args.variants.split(",")
     bad = [d for d in targets if d not in TARGETS_2D] + [v for v in variants if v not in VARIANTS]
@@ -226,13 +238,15 @@ def main() -> None:
     for pol in args.policy:
         for v in variants:
             for d in targets:
-                c = {"policy": PolicyRunner.load(pol).version, "policy_file": Path(pol).name, "policy_sha256": sha256_of(pol), "variant": v, "target_m": d, **cell(results[(pol, v, d)])}
+                name = labels.get(pol) or PolicyRunner.load(pol).version
+                c = {"policy": name, "policy_file": Path(pol).name, "policy_sha256": sha256_of(pol), "variant": v, "target_m": d, **cell(results[(pol, v, d)])}
                 report.append(c)
-                print(f"{Path(pol).name:24s} {v:18s} {d:4.1f} m  landed {c['landed']:3d}/{c['throws']}  bias {c['bias_m']:+.3f}  "
+                print(f"{c['policy']:24s} {v:18s} {d:4.1f} m  landed {c['landed']:3d}/{c['throws']}  bias {c['bias_m']:+.3f}  "
                       f"sigma {c['sigma_downrange_m']:.3f} m  release at {c['release_after_s_median']:.2f} s (median; sigma before "
                       f"{c['sigma_early_half_m']:.3f}, after {c['sigma_late_half_m']:.3f} m)  release sensitivity {c['release_sensitivity_mps_median']:.2f} m/s "
                       f"(x 15 ms = {c['jitter_spread_m']:.3f} m)  first swing {c['first_swing_throws']} throws, sigma "
-                      f"{_fmt(c['sigma_first_swing_m'])}, later {_fmt(c['sigma_later_m'])} m", flush=True)
+                      f"{_fmt(c['sigma_first_swing_m'])}, later {_fmt(c['sigma_later_m'])} m (bias {_fmt(c['bias_first_swing_m'])}, "
+                      f"{_fmt(c['bias_later_m'])})", flush=True)
     print(f"wall {time.time() - t0:.0f} s")
     tmp.cleanup()
     if args.out:
