@@ -17,6 +17,7 @@ from tests.benchmarks.training_throw_style import (
     run_style,
     spread_by_duration,
     style_of,
+    swing_switch,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -172,3 +173,22 @@ def test_spread_by_duration_bins_the_matrices_and_counts_the_bars(tmp_path):
     assert bins[2]["accuracy_share"] == 0.67 and bins[2]["median_sigma_m"] == 0.06  # 4.1 s overshoots by 0.12 m
     assert spread_by_duration([], edges=(4.0,))[0] == {"lo_s": None, "hi_s": 4.0, "matrices": 0, "runs": 0,
                                                        "median_sigma_m": None, "sigma_share": None, "accuracy_share": None}
+
+
+def _switch_run(tmp_path: Path, durations: dict[int, list[float | None]]) -> RunSource:
+    """A run whose seed-0 matrices have nominal cells at 7.5-10 m (0.5 m apart) lasting ``durations`` [s]."""
+    run = tmp_path / "throw2d-scratch-s"
+    (run / "matrices").mkdir(parents=True)
+    for it, ds in durations.items():
+        cells = [{"target_m": 7.5 + 0.5 * i, "mean_duration_s": d} for i, d in enumerate(ds)]
+        (run / "matrices" / f"site_matrix_2d_it{it}.json").write_text(json.dumps({"profiles": [{"name": "nominal", "targets": cells[::-1]}]}))
+    return RunSource(str(run))
+
+
+def test_swing_switch_is_the_nearest_target_thrown_on_a_later_swing_and_its_median(tmp_path):
+    src = _switch_run(tmp_path, {200: [4.0] * 6, 300: [2.1, 2.2, 2.3, 3.3, 4.0, 4.5], 400: [2.1, 2.2, 2.3, 2.6, 3.0, 3.6],
+                                 500: [2.0, 2.1, 2.2, 2.5, 2.9, 3.1], 600: [2.0, 2.1, 3.5, None, 4.0, 4.2]})
+    sw = swing_switch(src)
+    assert sw["per_matrix"] == {300: 9.0, 400: 10.0, 500: None, 600: 8.5}  # 200 before the stage; 500 all on the first swing
+    assert sw["median_target_m"] == 9.0
+    assert swing_switch(_switch_run(tmp_path / "b", {300: [2.0] * 6}))["median_target_m"] is None

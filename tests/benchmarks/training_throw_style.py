@@ -244,6 +244,28 @@ def duration_spread(src: RunSource, iterations: tuple[int, int] = SPREAD_ITERATI
     return out
 
 
+LATER_SWING_S = 3.2
+"""A nominal cell whose throws last this long on average [s] (start to landing) is thrown mostly on a later
+swing: first-swing throws of 7.5-10 m last 2.0-2.7 s and later-swing ones 3.6-4.9 s in the runs' matrices
+(tests/benchmarks/spread_sources.py splits them by the release command's time)."""
+
+
+def swing_switch(src: RunSource, iterations: tuple[int, int] = SPREAD_ITERATIONS) -> dict:
+    """Where the run's nominal throws change from the first swing to a later one: per seed-0 gate matrix
+    from ``iterations[0]`` to ``iterations[1]``, the nearest target whose nominal throws last LATER_SWING_S
+    or more on average (None where none does), and their median over the matrices (None where none has one):
+    {"run", "per_matrix": {iteration: target_m | None}, "median_target_m"}."""
+    per = {}
+    for it in sorted(int(m.group(1)) for n in src.list("matrices") if (m := _MATRIX.search(n))):
+        if not iterations[0] <= it <= iterations[1]:
+            continue
+        nominal = next(p for p in json.loads(src.read(f"matrices/site_matrix_2d_it{it}.json"))["profiles"] if p["name"] == "nominal")
+        per[it] = next((t["target_m"] for t in sorted(nominal["targets"], key=lambda t: t["target_m"])
+                        if t.get("mean_duration_s") is not None and t["mean_duration_s"] >= LATER_SWING_S), None)
+    found = [v for v in per.values() if v is not None]
+    return {"run": src.name, "per_matrix": per, "median_target_m": float(np.median(found)) if found else None}
+
+
 def spread_by_duration(points: list[dict], edges: tuple[float, ...] = SPREAD_EDGES_S) -> list[dict]:
     """duration_spread points binned by the 10 m throw's duration at ``edges`` [s]: per bin {lo_s, hi_s
     (None at the open ends), matrices, runs, median_sigma_m, sigma_share, accuracy_share}: the shares of
@@ -317,7 +339,8 @@ def main() -> None:
     if args.spread:
         points = [pt for src in sources for pt in duration_spread(src)]
         report["duration_spread"] = {"iterations": list(SPREAD_ITERATIONS), "edges_s": list(SPREAD_EDGES_S),
-                                     "bins": spread_by_duration(points), "points": points}
+                                     "bins": spread_by_duration(points), "points": points,
+                                     "swing_switch": [swing_switch(src) for src in sources]}
         plot_spread(points, rows, args.out.parent / f"{args.out.name}_spread.png")
     args.out.with_suffix(".json").write_text(json.dumps(report, indent=1) + "\n")
     md = ["# 2D from-scratch runs: far-target throw style against the gate's outcome\n",
@@ -351,6 +374,15 @@ def main() -> None:
             pct = {k: "-" if b[k] is None else f"{b[k]:.0%}" for k in ("sigma_share", "accuracy_share")}
             md.append(f"| {span} | {b['matrices']} | {b['runs']} | {'-' if b['median_sigma_m'] is None else b['median_sigma_m']} m | "
                       f"{pct['sigma_share']} | {pct['accuracy_share']} |")
+    if args.spread:
+        md += ["", f"## Where the nominal throws change to a later swing (seed-0 matrices, iterations {SPREAD_ITERATIONS[0]}-{SPREAD_ITERATIONS[1]})\n",
+               f"Per matrix the nearest target whose nominal throws last {LATER_SWING_S} s or more on average (start to landing), "
+               "the median over the matrices; the outcome as above.\n",
+               "| run | median switch target | per matrix | outcome |", "|---|---|---|---|"]
+        for row, sw in zip(rows, report["duration_spread"]["swing_switch"], strict=True):
+            per = " ".join(f"{it}: {'-' if t is None else f'{t:g} m'}" for it, t in sw["per_matrix"].items())
+            med = "-" if sw["median_target_m"] is None else f"{sw['median_target_m']:g} m"
+            md.append(f"| `{row['run']}` | {med} | {per or '-'} | {outcome_text(row['outcome'])} |")
     args.out.with_suffix(".md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
 
