@@ -106,6 +106,24 @@ def _sigma(e: np.ndarray) -> float | None:
     return float(e.std(ddof=1)) if len(e) > 1 else None
 
 
+ACTIVE_2D = slice(1, 4)
+"""The start pose's boom, dipper (rad) and telescope (m) in runtime.machine.JOINT_NAMES order: what the start
+pose draws in 2D (the turn is 0 and the gripper hangs at rest below them)."""
+
+
+def start_pose_offset(start_q: list[list[float]], first: np.ndarray) -> dict:
+    """How far the first-swing and the later-swing throws' start poses lie from the cell's typical one:
+    the mean over each group of the Euclidean norm of the start pose's boom, dipper and telescope, each
+    standardised over the cell's landed throws (its mean and standard deviation), {"start_pose_offset_first",
+    "start_pose_offset_later"} (dimensionless; None for an empty group). ``start_q``: (N, 6) start poses,
+    ``first``: (N,) bool."""
+    if not start_q:
+        return {"start_pose_offset_first": None, "start_pose_offset_later": None}
+    q = np.asarray(start_q, dtype=float)[:, ACTIVE_2D]
+    z = np.linalg.norm((q - q.mean(axis=0)) / np.where(q.std(axis=0) > 0, q.std(axis=0), 1.0), axis=1)
+    return {"start_pose_offset_first": _mean(z[first]), "start_pose_offset_later": _mean(z[~first])}
+
+
 def _mean(e: np.ndarray) -> float | None:
     return float(e.mean()) if len(e) else None
 
@@ -133,6 +151,7 @@ def cell(rows: list[dict]) -> dict:
             "sigma_early_half_m": float(e[early].std(ddof=1)), "sigma_late_half_m": float(e[~early].std(ddof=1)),
             "first_swing_throws": int(first.sum()), "sigma_first_swing_m": _sigma(e[first]), "sigma_later_m": _sigma(e[~first]),
             "bias_first_swing_m": _mean(e[first]), "bias_later_m": _mean(e[~first]),
+            **start_pose_offset([r["start_q"] for r in landed], first),
             "release_sensitivity_mps_median": float(np.median(s)), "jitter_spread_m": float(np.median(s) * 0.015),
             "rows": [_rounded(r) for r in rows]}
 
@@ -196,7 +215,18 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None, help="JSON report (and its plot beside it, .png)")
     ap.add_argument("--plot-only", action="store_true", help="only draw the plot of the existing --out report")
+    ap.add_argument("--resummarise", action="store_true",
+                    help="summarise the existing --out report's cells again from their stored throws (cell()), and plot")
     args = ap.parse_args()
+    if args.resummarise:
+        if not args.out:
+            ap.error("--resummarise needs --out")
+        data = json.loads(args.out.read_text())
+        keep = ("policy", "policy_file", "policy_sha256", "variant", "target_m")
+        data["cells"] = [{**{k: c[k] for k in keep}, **cell(c["rows"])} for c in data["cells"]]
+        args.out.write_text(json.dumps(data, indent=1) + "\n")
+        plot(data, args.out.with_suffix(".png"))
+        return
     if args.plot_only:
         if not args.out:
             ap.error("--plot-only needs --out")
