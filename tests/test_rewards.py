@@ -263,21 +263,27 @@ def test_the_environment_charges_hold_until_the_policy_commands_the_release():
 
 def _hold_paid(hold_after_s: float, actions: str) -> list[float]:
     """The ``hold`` term of each step of one MJX episode (the candidate 2D recipe, ``hold`` 0.01 after
-    ``hold_after_s``) played with ``actions``: ``k`` keeps the release flag at -1, ``r`` raises it to
-    1; no step may end the episode."""
+    ``hold_after_s``) played with ``actions`` (:func:`_term_paid`)."""
+    return _term_paid("hold", {"hold": 0.01, "hold_after_s": hold_after_s}, actions)
+
+
+def _term_paid(term: str, rewards: dict[str, float], actions: str) -> list[float]:
+    """The reward term ``term`` of each step of one MJX episode of the candidate 2D recipe with its
+    ``rewards`` updated, played with ``actions``: ``k`` keeps the release flag at -1, ``r`` raises it
+    to 1; no step may end the episode."""
     from sim_twin.training.mjx_env import ThrowEnvCore
 
     env = json.loads((CONFIG_DIR / "throw_2d_candidate.json").read_text())["env"]
-    env = {**env, "rewards": {**env["rewards"], "hold": 0.01, "hold_after_s": hold_after_s}}
+    env = {**env, "rewards": {**env["rewards"], **rewards}}
     core = ThrowEnvCore(EnvConfig.from_dict(env))
     state, _ = jax.jit(core.reset)(jax.random.PRNGKey(5))
     step = jax.jit(core.step)
     flag = {"k": -1.0, "r": 1.0}
     paid = []
     for a in actions:
-        state, _, _, term, _, info = step(state, jnp.asarray([0.0, 0.0, 0.0, flag[a]]))
-        paid.append(float(info["reward_terms"]["hold"]))
-        assert not bool(term)
+        state, _, _, ended, _, info = step(state, jnp.asarray([0.0, 0.0, 0.0, flag[a]]))
+        paid.append(float(info["reward_terms"][term]))
+        assert not bool(ended)
     return paid
 
 
@@ -287,3 +293,32 @@ def test_the_environment_counts_the_grace_in_control_periods():
     fourth pay, and the release command ends the cost."""
     paid = _hold_paid(0.2, "kkkkrk")
     np.testing.assert_allclose(paid, [0.0, 0.0, -0.01, -0.01, 0.0, 0.0], atol=1e-7)
+
+
+def test_early_release_costs_the_released_steps_up_to_its_time_and_nothing_after():
+    """The ``early_release`` cost: -early_release for a step that ends with the release commanded at an
+    episode time up to ``early_release_s`` (inclusive), 0 before the command and after that time; off (0)
+    in the committed recipes."""
+    x = _inputs(np.random.default_rng(3), 512)
+    assert SCALES.early_release == 0.0
+    assert np.all(np.asarray(jax.vmap(lambda xi: reward_terms(xi, SCALES))(x)["early_release"]) == 0)
+    scales = RewardScales(**{**SCALES.__dict__, "early_release": 0.5, "early_release_s": 2.0})
+    cost = np.asarray(jax.vmap(lambda xi: reward_terms(xi, scales))(x)["early_release"])
+    released, early = np.asarray(x.released), np.asarray(x.elapsed_s) <= 2.0
+    assert (released & early).any() and (released & ~early).any() and (~released & early).any()
+    np.testing.assert_allclose(cost[released & early], -0.5, rtol=1e-6)
+    assert np.all(cost[~released | ~early] == 0)
+    edge = x._replace(elapsed_s=jnp.full_like(x.elapsed_s, 2.0), released=jnp.ones_like(x.released))
+    np.testing.assert_allclose(np.asarray(jax.vmap(lambda xi: reward_terms(xi, scales))(edge)["early_release"]), -0.5, rtol=1e-6)
+
+
+def test_the_environment_charges_an_early_release_from_its_command_to_its_time():
+    """In the MJX environment the cost starts at the step whose action raises the flag and falls on every
+    step that ends by ``early_release_s`` (0.2 s: the steps ending at 0.08 and 0.16 s; the release at
+    the second), so an earlier release pays for more steps; a release after that time pays nothing."""
+    paid = _term_paid("early_release", {"early_release": 0.5, "early_release_s": 0.2}, "krkk")
+    np.testing.assert_allclose(paid, [0.0, -0.5, 0.0, 0.0], atol=1e-7)
+    paid = _term_paid("early_release", {"early_release": 0.5, "early_release_s": 0.2}, "rkkk")
+    np.testing.assert_allclose(paid, [-0.5, -0.5, 0.0, 0.0], atol=1e-7)
+    late = _term_paid("early_release", {"early_release": 0.5, "early_release_s": 0.2}, "kkkr")
+    np.testing.assert_allclose(late, [0.0, 0.0, 0.0, 0.0], atol=1e-7)

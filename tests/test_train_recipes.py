@@ -255,3 +255,18 @@ def test_the_centred_recipe_puts_the_nominal_machine_near_the_middle_of_its_rang
             middle, width = (lo + hi) / 2, hi - lo
             old_off = abs((old_lo + old_hi) / 2 - nominal[name]) / (old_hi - old_lo)
             assert abs(middle - nominal[name]) / width < min(0.1, old_off), (name, middle, nominal[name])
+
+
+def test_the_later_swing_recipe_is_the_fewer_winds_recipe_with_a_cost_on_first_swing_releases():
+    """sim_twin/configs/throw_2d_sites_later_swing.json: throw_2d_sites_fewer_winds.json with the
+    early_release cost (0.5 per control step that ends with the release commanded by 2.0 s), nothing
+    else changed; the rewards load."""
+    from sim_twin.training.rewards import RewardScales
+
+    path = ROOT / "sim_twin" / "configs" / "throw_2d_sites_later_swing.json"
+    fewer = _flat(_without_notes(ROOT / "sim_twin" / "configs" / "throw_2d_sites_fewer_winds.json"))
+    later = _flat(_without_notes(path))
+    changed = {k for k in fewer.keys() | later.keys() if fewer.get(k) != later.get(k)}
+    assert changed == {("env", "rewards", "early_release"), ("env", "rewards", "early_release_s")}
+    w = RewardScales.from_dict(json.loads(path.read_text())["env"]["rewards"])
+    assert (w.early_release, w.early_release_s) == (0.5, 2.0)

@@ -67,6 +67,18 @@ class RewardScales:
             the long one. Charged only after a grace longer than either style's release, it leaves
             the styles' returns alike and still charges a load held on and on (docs/training.md,
             "γ 1.0 and the dense term").
+        early_release: cost per control step that ends with the release commanded while the episode is
+            no older than ``early_release_s`` (>= 0; 0: off): a release commanded at t costs about
+            early_release x (early_release_s - t) / 0.08 s, so an early swing's release pays more the
+            earlier it comes and one after ``early_release_s`` nothing. Why (CHOSEN, untested on a GPU when
+            written): the 2D runs that stalled with the curriculum stage release their 9.5-10 m throws on the
+            first swing from some start poses and on a later one from others, the two groups landing
+            0.15-0.17 m apart, where the runs that met the bars commit to one swing
+            (policies/training/throw2d-scratch-n5/spread_sources_it675.json; docs/training.md, "Three more
+            seeds of the fewer-winds recipe"); a cost on first-swing releases removes the choice.
+        early_release_s: episode time [s] up to which a commanded release is charged ``early_release``
+            (2.0 in throw_2d_sites_later_swing.json: the 2D policies' first-swing releases come at
+            0.9-1.6 s, tests/benchmarks/spread_sources.py FIRST_SWING_S).
     """
 
     delta_err: float
@@ -85,6 +97,8 @@ class RewardScales:
     release_slope: float = 0.0
     hold: float = 0.0
     hold_after_s: float = 0.0
+    early_release: float = 0.0
+    early_release_s: float = 0.0
 
     @classmethod
     def from_dict(cls, d: dict) -> RewardScales:
@@ -192,6 +206,12 @@ def cost_hold(x: RewardInputs, w: RewardScales) -> jnp.ndarray:
     return -(~x.released & (x.elapsed_s > w.hold_after_s)).astype(jnp.float32)
 
 
+def cost_early_release(x: RewardInputs, w: RewardScales) -> jnp.ndarray:
+    """1 for a control step that ends with the release commanded at an episode time no later than
+    ``early_release_s``, else 0 (returned negative: a cost)."""
+    return -(x.released & (x.elapsed_s <= w.early_release_s)).astype(jnp.float32)
+
+
 REWARD_TERMS = {
     "delta_err": reward_delta_err,
     "err_3d": reward_err_3d,
@@ -204,6 +224,7 @@ REWARD_TERMS = {
     "no_release": reward_no_release,
     "release_slope": cost_release_slope,
     "hold": cost_hold,
+    "early_release": cost_early_release,
 }
 """Term name (= its scale's name in RewardScales) -> unscaled term function."""
 
