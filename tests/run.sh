@@ -43,7 +43,8 @@ if [ $# -gt 0 ]; then exec python -m pytest -q --durations=25 "$@"; fi
 # The whole suite in three runs: the fast tier on two processes (its tests are safe in parallel,
 # docs/development.md#test-tiers); the system tier's training tests (torch and no other system marker:
 # CPU-bound JAX and PyTorch work with no process, browser, service or real-time bound) on two processes
-# too (9.1 min in one, 6.1 in two on a quiet 2-core host); then the rest of the system tier in one (its
+# too (quiet 2-core host, JAX's compilation cache warm: 9.1 min in one process, 6.1 in two; from a fresh
+# clone, whose cache misses, 13.6 in two); then the rest of the system tier in one (its
 # processes, stacks and real-time limits would compete for the cores).
 TRAINING_ONLY="torch and not (browser or processes or root or postgres or redis or slow or acceptance)"
 python -m pytest -q -m "not system" -n 2 --dist loadfile
