@@ -101,8 +101,8 @@ class RunSource:
         return sorted(Path(x).name for x in r.stdout.split())
 
 
-def far_throw(matrix: dict, target_m: float = FAR_TARGET_M) -> dict:
-    """The nominal profile's cell at ``target_m`` of a site matrix: {duration_s, sigma_m, bias_m}.
+def nominal_cell(matrix: dict, target_m: float = FAR_TARGET_M) -> dict:
+    """The nominal profile's cell at ``target_m`` of a site matrix, as the matrix holds it.
 
     Raises:
         ValueError: the matrix has no nominal cell at that target.
@@ -111,8 +111,30 @@ def far_throw(matrix: dict, target_m: float = FAR_TARGET_M) -> dict:
         if p["name"] == "nominal":
             for t in p["targets"]:
                 if abs(t["target_m"] - target_m) < 1e-6:
-                    return {"duration_s": t["mean_duration_s"], "sigma_m": t["sigma_downrange_m"], "bias_m": t["bias_m"]}
+                    return t
     raise ValueError(f"site matrix {matrix.get('policy_version', '?')} has no nominal cell at {target_m} m")
+
+
+def far_throw(matrix: dict, target_m: float = FAR_TARGET_M) -> dict:
+    """The nominal profile's cell at ``target_m`` of a site matrix: {duration_s, sigma_m, bias_m}.
+
+    Raises:
+        ValueError: the matrix has no nominal cell at that target.
+    """
+    t = nominal_cell(matrix, target_m)
+    return {"duration_s": t["mean_duration_s"], "sigma_m": t["sigma_downrange_m"], "bias_m": t["bias_m"]}
+
+
+def seed0_iterations(src: RunSource) -> list[int]:
+    """Iterations of the run's seed-0 gate matrices (``matrices/site_matrix_2d_it<N>.json``), ascending."""
+    return sorted(int(m.group(1)) for n in src.list("matrices") if (m := _MATRIX.search(n)))
+
+
+def seed0_matrices(src: RunSource, iterations: tuple[int, int]) -> list[tuple[int, dict]]:
+    """(iteration, matrix) of the run's seed-0 gate matrices from ``iterations[0]`` to ``iterations[1]``
+    (inclusive), ascending."""
+    return [(it, json.loads(src.read(f"matrices/site_matrix_2d_it{it}.json")))
+            for it in seed0_iterations(src) if iterations[0] <= it <= iterations[1]]
 
 
 def style_of(duration_s: float) -> str:
@@ -137,7 +159,7 @@ def run_style(src: RunSource, by_iteration: int = STYLE_BY_ITERATION) -> dict:
     except FileNotFoundError:
         cfg = {}  # an early run kept no config: its README names the recipe
     gate = json.loads(src.read("matrices/matrix_gate.json"))
-    seed0 = sorted(int(m.group(1)) for n in src.list("matrices") if (m := _MATRIX.search(n)))
+    seed0 = seed0_iterations(src)
     early = [i for i in seed0 if i <= by_iteration]
     if not early:
         raise FileNotFoundError(f"{src.spec}: no seed-0 site matrix by iteration {by_iteration}")
@@ -230,12 +252,8 @@ def duration_spread(src: RunSource, iterations: tuple[int, int] = SPREAD_ITERATI
     the cell's accuracy bar (sim_twin.evaluation.matrix.cell_bars: |bias| and σ downrange ≤ 0.10 m);
     a run without gate matrices gives []."""
     out = []
-    for it in sorted(int(m.group(1)) for n in src.list("matrices") if (m := _MATRIX.search(n))):
-        if not iterations[0] <= it <= iterations[1]:
-            continue
-        matrix = json.loads(src.read(f"matrices/site_matrix_2d_it{it}.json"))
-        cell = next(t for p in matrix["profiles"] if p["name"] == "nominal"
-                    for t in p["targets"] if abs(t["target_m"] - FAR_TARGET_M) < 1e-6)
+    for it, matrix in seed0_matrices(src, iterations):
+        cell = nominal_cell(matrix)
         if cell.get("mean_duration_s") is None or not cell.get("landed"):
             continue
         out.append({"run": src.name, "iteration": it, "duration_s": round(cell["mean_duration_s"], 3),
@@ -256,10 +274,8 @@ def swing_switch(src: RunSource, iterations: tuple[int, int] = SPREAD_ITERATIONS
     or more on average (None where none does), and their median over the matrices (None where none has one):
     {"run", "per_matrix": {iteration: target_m | None}, "median_target_m"}."""
     per = {}
-    for it in sorted(int(m.group(1)) for n in src.list("matrices") if (m := _MATRIX.search(n))):
-        if not iterations[0] <= it <= iterations[1]:
-            continue
-        nominal = next(p for p in json.loads(src.read(f"matrices/site_matrix_2d_it{it}.json"))["profiles"] if p["name"] == "nominal")
+    for it, matrix in seed0_matrices(src, iterations):
+        nominal = next(p for p in matrix["profiles"] if p["name"] == "nominal")
         per[it] = next((t["target_m"] for t in sorted(nominal["targets"], key=lambda t: t["target_m"])
                         if t.get("mean_duration_s") is not None and t["mean_duration_s"] >= LATER_SWING_S), None)
     found = [v for v in per.values() if v is not None]
@@ -374,12 +390,11 @@ def main() -> None:
             pct = {k: "-" if b[k] is None else f"{b[k]:.0%}" for k in ("sigma_share", "accuracy_share")}
             md.append(f"| {span} | {b['matrices']} | {b['runs']} | {'-' if b['median_sigma_m'] is None else b['median_sigma_m']} m | "
                       f"{pct['sigma_share']} | {pct['accuracy_share']} |")
-    if args.spread:
         md += ["", f"## Where the nominal throws change to a later swing (seed-0 matrices, iterations {SPREAD_ITERATIONS[0]}-{SPREAD_ITERATIONS[1]})\n",
                f"Per matrix the nearest target whose nominal throws last {LATER_SWING_S} s or more on average (start to landing), "
                "the median over the matrices; the outcome as above.\n",
                "| run | median switch target | per matrix | outcome |", "|---|---|---|---|"]
-        for row, sw in zip(rows, report["duration_spread"]["swing_switch"], strict=True):
+        for row, sw in zip(rows, ds["swing_switch"], strict=True):
             per = " ".join(f"{it}: {'-' if t is None else f'{t:g} m'}" for it, t in sw["per_matrix"].items())
             med = "-" if sw["median_target_m"] is None else f"{sw['median_target_m']:g} m"
             md.append(f"| `{row['run']}` | {med} | {per or '-'} | {outcome_text(row['outcome'])} |")
