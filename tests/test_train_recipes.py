@@ -270,3 +270,19 @@ def test_the_later_swing_recipe_is_the_fewer_winds_recipe_with_a_cost_on_first_s
     assert changed == {("env", "rewards", "early_release"), ("env", "rewards", "early_release_s")}
     w = RewardScales.from_dict(json.loads(path.read_text())["env"]["rewards"])
     assert (w.early_release, w.early_release_s) == (0.5, 2.0)
+
+
+def test_the_later_swing_delay_recipe_widens_only_the_stages_release_delay_shift_to_cover_the_worn_gripper():
+    """sim_twin/configs/throw_2d_sites_later_swing_delay.json: throw_2d_sites_later_swing.json with the
+    curriculum stage's release-delay episode shift at ±90 ms, nothing else changed; the worn gripper's
+    opening delay (sim_twin/profiles/worn_gripper.json) lies inside the shifted range and outside the
+    later-swing recipe's."""
+    base = ROOT / "sim_twin" / "configs"
+    later = _flat(_without_notes(base / "throw_2d_sites_later_swing.json"))
+    delay = _flat(_without_notes(base / "throw_2d_sites_later_swing_delay.json"))
+    key = ("training", "curriculum_stage", "randomization", "release_delay_shift_s")
+    assert {k for k in later.keys() | delay.keys() if later.get(k) != delay.get(k)} == {key}
+    worn = next(e for e in json.loads((ROOT / "sim_twin" / "profiles" / "worn_gripper.json").read_text())["effects"]
+                if e["effect"] == "release_delay")
+    nominal_s = delay[("env", "randomization", "release_delay_mean_s")]
+    assert later[key] < worn["params"]["mean_s"] - nominal_s <= delay[key]
