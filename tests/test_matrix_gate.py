@@ -262,3 +262,33 @@ def test_finish_chooses_among_the_passes_whose_checkpoint_is_here(tmp_path):
     (cand / "checkpoint_1.pt").write_bytes(b"x")
     assert [p["iteration"] for p in gate.exportable_passes()] == [1]
     assert choose_pass(gate.exportable_passes())["iteration"] == 1  # not the newest (2): its checkpoint is gone
+
+
+def test_a_run_resumed_with_a_comparison_it_did_not_have_ranks_its_earlier_passes_too(tmp_path):
+    """throw2d-scratch-o0 stopped at the bars without --gate-compare-with and resumes past them with it:
+    the passes in its saved state are compared when the gate loads it (from the matrices beside it, their
+    recorded paths relative to another working directory), so choose_pass can still export the earlier
+    pass that is worse on fewer cells than a newer one."""
+    import shutil
+    from pathlib import Path
+
+    from sim_twin.training.matrix_gate import choose_pass
+
+    root = Path(__file__).resolve().parents[1]
+    deployed = root / "reports" / "site_matrix_2d.json"
+    n1 = root / "policies" / "training" / "throw2d-scratch-n1" / "matrices" / "site_matrix_2d_it3075.json"
+    CopyingGate.sources = {1: str(deployed), 2: str(n1)}
+    first = CopyingGate(tmp_path, "2d", seeds=[0], workers=1, judge_after_pass=True)  # no comparison
+    _run(first, 1)
+    assert [p["iteration"] for p in first.passes] == [1] and "worse_than_deployed" not in first.passes[0]
+    moved = tmp_path / "elsewhere"  # the run's directory as another machine unpacks it
+    shutil.copytree(tmp_path, moved, ignore=shutil.ignore_patterns("elsewhere"))
+    state = json.loads((moved / "matrix_gate.json").read_text())
+    for r in state["results"]:
+        r["matrix_path"] = "runs/gone/matrices/" + Path(r["matrix_path"]).name
+    (moved / "matrix_gate.json").write_text(json.dumps(state))
+    resumed = CopyingGate(moved, "2d", seeds=[0], workers=1, judge_after_pass=True, compare_with=[deployed])
+    assert [(p["iteration"], p["worse_than_deployed"]) for p in resumed.passes] == [(1, 0)]
+    _run(resumed, 2)
+    assert [(p["iteration"], p["worse_than_deployed"]) for p in resumed.passes] == [(1, 0), (2, 2)]
+    assert choose_pass(resumed.passes)["iteration"] == 1

@@ -23,7 +23,9 @@ further off, Holm-corrected); its entry in ``passes`` records ``worse_than_deplo
 equals (:func:`choose_pass`), instead of the newest. Why: late in a run a far cell's landing bias moves
 by several centimetres from checkpoint to checkpoint (throw2d-scratch-n1's nominal 10 m bias +0.017 to
 +0.157 m, seed 0), so the newest pass is one draw of that motion; a deployable policy is one no worse
-than the deployed on any cell (docs/training.md, "Deploying a new version").
+than the deployed on any cell (docs/training.md, "Deploying a new version"). A run resumed with
+``compare_with`` that it did not have before (it stopped at the bars, say) has its earlier passes compared
+when the gate loads its state, from the matrices in ``out_dir``, so that they rank with the new ones.
 
 :meth:`MatrixGate.watch` collects verdicts on a thread of its own as soon as a matrix process ends,
 so a verdict is on disk even when the training is stopped (or its machine taken away) before its next
@@ -182,6 +184,10 @@ class MatrixGate:
             self.passed = st.get("passed")
             self.passes = saved_passes(st)
             self._pending = st.get("pending")  # the candidate under test when the state was saved
+        if self._deployed:  # passes of a run resumed with --gate-compare-with it did not have: rank them too
+            for p in self.passes:
+                if "worse_than_deployed" not in p:
+                    p.update(self._compare(p["iteration"]))
 
     @staticmethod
     def _deployed_matrix(path: Path, mode: str, seed: int) -> dict:
@@ -201,8 +207,8 @@ class MatrixGate:
         from sim_twin.evaluation.matrix_compare import compare
 
         try:
-            mine = {r.seed: r.matrix_path for r in self.results if r.iteration == iteration}
-            comp = compare(self._deployed, [json.loads(Path(mine[s]).read_text()) for s in self.seeds])
+            mine = {r.seed: self._matrix_file(r.matrix_path) for r in self.results if r.iteration == iteration}
+            comp = compare(self._deployed, [json.loads(mine[s].read_text()) for s in self.seeds])
         except (OSError, ValueError, KeyError) as e:
             log.error("iteration %d: the paired test against the deployed policy failed: %s", iteration, e)
             return {"worse_than_deployed": None, "worse_cells": [], "compare_error": str(e)}
@@ -210,6 +216,12 @@ class MatrixGate:
         log.info("iteration %d: worse than the deployed policy on %d cells by the paired test%s", iteration, len(worse),
                  f" ({', '.join(worse)})" if worse else "")
         return {"worse_than_deployed": len(worse), "worse_cells": worse}
+
+    def _matrix_file(self, recorded: str) -> Path:
+        """A verdict's matrix report: the path it recorded, or where it is not (a run whose directory
+        moved: recorded relative to another working directory) the file of that name in ``out_dir``."""
+        path = Path(recorded)
+        return path if path.exists() else self.out_dir / path.name
 
     @property
     def busy(self) -> bool:
