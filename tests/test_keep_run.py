@@ -1,6 +1,6 @@
 """tests/benchmarks/keep_run.py trims a run brought back from a GPU machine to what the tree keeps: per-throw
 rows only where they decide the run, no matrix plots, only the deciding gate candidates and no candidate
-checkpoints, TensorBoard events packed; and it leaves the checkpoint, the gate's verdicts and the export."""
+checkpoints but the pass's a resume past the bars would export, TensorBoard events packed; and it leaves the checkpoint, the gate's verdicts and the export."""
 
 import json
 import shutil
@@ -75,7 +75,10 @@ def test_a_collected_run_is_trimmed_and_keeps_what_decides_it(tmp_path):
     assert _has_rows(m / "site_matrix_2d_it500_seed2.json")  # a held-out seed's matrix keeps its rows
     assert json.loads((m / "site_matrix_2d_it725.json").read_text())["pass"] is not None  # the verdicts stay
     assert not list(m.glob("*.png"))
-    assert sorted(p.name for p in (run / "candidates").iterdir()) == ["checkpoint_500.json", "checkpoint_500.onnx"]
+    # the first pass's ONNX file and manifest; the pass a resume past the bars would export (the newest, 925,
+    # also the export) whole, its checkpoint too (MatrixGate.exportable_passes needs it)
+    assert sorted(p.name for p in (run / "candidates").iterdir()) == [
+        "checkpoint_500.json", "checkpoint_500.onnx", "checkpoint_925.json", "checkpoint_925.onnx", "checkpoint_925.pt"]
     assert not (run / "tb").exists()
     with tarfile.open(run / "tb.tar.gz") as tar:
         assert "tb/events.out.tfevents.1" in tar.getnames()

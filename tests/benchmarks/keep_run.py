@@ -14,7 +14,10 @@ candidate the gate exported and the TensorBoard event directory. The runs kept i
   the run); the other matrices keep their per-cell statistics and verdicts;
 * no matrix plots (the JSON and the Markdown tables carry the same figures);
 * of the gate's exported candidates (``candidates/checkpoint_<N>.onnx`` and ``.json``) those that
-  decide the run and are not its export (:func:`candidate_iterations`), and no ``.pt``;
+  decide the run and are not its export (:func:`candidate_iterations`), and no ``.pt`` but the
+  candidate of the pass a run past the bars exports (:func:`chosen_pass`, with its ONNX file and
+  manifest, its export or not): a run resumed past the bars can export that pass only with its
+  checkpoint there (sim_twin.training.matrix_gate.MatrixGate.exportable_passes);
 * the TensorBoard events as ``tb.tar.gz`` (``tar xzf tb.tar.gz && tensorboard --logdir tb``).
 
 ``--rows`` and ``--candidates`` keep more. The checkpoint, config, curve, gate verdicts, logs and the
@@ -141,6 +144,7 @@ def keep_run(run: Path, rows: set[int] = frozenset(), candidates: set[int] = fro
     gate = d.gate
     keep_rows = row_iterations(d) | set(rows)
     keep_cands = candidate_iterations(d) | set(candidates)
+    resume = chosen_pass(d)  # its .pt too (module docstring)
     done = []
     for m in sorted((run / "matrices").glob("site_matrix_*_it*.json")):
         it, seed = _iteration_and_seed(m)
@@ -161,7 +165,7 @@ def keep_run(run: Path, rows: set[int] = frozenset(), candidates: set[int] = fro
     cand_dir = run / "candidates"
     for f in sorted(cand_dir.glob("checkpoint_*")) if cand_dir.is_dir() else []:
         it = int(f.name.split("_")[1].split(".")[0])
-        if f.suffix == ".pt" or it not in keep_cands:
+        if it != resume and (f.suffix == ".pt" or it not in keep_cands):
             done.append(f"removed: {f.relative_to(run)}")
             if not dry_run:
                 f.unlink()
