@@ -111,6 +111,14 @@ def saved_passes(state: dict) -> list[dict]:
     return state.get("passes") or ([state["passed"]] if state.get("passed") else [])
 
 
+def _recorded_file(recorded: str, directory: Path) -> Path:
+    """A file a saved gate state names: the path it recorded where that exists, else the file of that
+    name in ``directory`` (a run resumed under another working directory or name, from a state that
+    carried it: ``device_runs.sh state``). The path returned may not exist."""
+    path = Path(recorded)
+    return path if path.exists() else directory / path.name
+
+
 def choose_pass(passes: list[dict]) -> dict | None:
     """The pass a run past the bars exports: where the gate compared the passes with the deployed
     policy (``worse_than_deployed`` not None), the one with the fewest cells worse, the newest among
@@ -207,7 +215,7 @@ class MatrixGate:
         from sim_twin.evaluation.matrix_compare import compare
 
         try:
-            mine = {r.seed: self._matrix_file(r.matrix_path) for r in self.results if r.iteration == iteration}
+            mine = {r.seed: _recorded_file(r.matrix_path, self.out_dir) for r in self.results if r.iteration == iteration}
             comp = compare(self._deployed, [json.loads(mine[s].read_text()) for s in self.seeds])
         except (OSError, ValueError, KeyError) as e:
             log.error("iteration %d: the paired test against the deployed policy failed: %s", iteration, e)
@@ -216,12 +224,6 @@ class MatrixGate:
         log.info("iteration %d: worse than the deployed policy on %d cells by the paired test%s", iteration, len(worse),
                  f" ({', '.join(worse)})" if worse else "")
         return {"worse_than_deployed": len(worse), "worse_cells": worse}
-
-    def _matrix_file(self, recorded: str) -> Path:
-        """A verdict's matrix report: the path it recorded, or where it is not (a run whose directory
-        moved: recorded relative to another working directory) the file of that name in ``out_dir``."""
-        path = Path(recorded)
-        return path if path.exists() else self.out_dir / path.name
 
     @property
     def busy(self) -> bool:
@@ -267,8 +269,7 @@ class MatrixGate:
         where that exists, else ``candidates/<file name>`` beside the gate's directory (a run resumed
         under another directory or name, from a state that carried it: ``device_runs.sh state``).
         The path returned may not exist (a state packed without the candidate)."""
-        path = Path(onnx)
-        return path if path.exists() else self.out_dir.parent / "candidates" / path.name
+        return _recorded_file(onnx, self.out_dir.parent / "candidates")
 
     def exportable_passes(self) -> list[dict]:
         """The passes (oldest first) whose checkpoint is here (:meth:`locate`'s ONNX path with the
