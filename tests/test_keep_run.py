@@ -1,6 +1,7 @@
 """tests/benchmarks/keep_run.py trims a run brought back from a GPU machine to what the tree keeps: per-throw
-rows only where they decide the run, no matrix plots, only the deciding gate candidates and no candidate
-checkpoints but the pass's a resume past the bars would export, TensorBoard events packed; and it leaves the checkpoint, the gate's verdicts and the export."""
+rows only where they decide the run, no matrix plots, only the deciding gate candidates, no candidate
+checkpoint but that of the pass a resume past the bars would export, TensorBoard events packed; and it
+leaves the checkpoint, the gate's verdicts and the export."""
 
 import json
 import shutil
