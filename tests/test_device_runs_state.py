@@ -1,11 +1,13 @@
 """`tests/benchmarks/device_runs.sh state RUN_DIR NAME` packs what resuming a run needs into
 runs/state/NAME.tar (gzip), laid out as `device_runs.sh start NAME` unpacks it, and nothing else;
 a directory without a checkpoint is refused and writes nothing; `collect` brings back what resuming
-needs; `after PREV NAME ...` starts NAME only once PREV has stopped (runs in turn on one GPU)."""
+needs, in each run's own tar too (a state.tar over a device call's 16 MiB file limit is left out);
+`after PREV NAME ...` starts NAME only once PREV has stopped, also where PREV is itself queued by an
+`after` (runs in turn on one GPU)."""
 
 import subprocess
-import time
 import tarfile
+import time
 from pathlib import Path
 
 SCRIPT = Path(__file__).resolve().parents[1] / "tests" / "benchmarks" / "device_runs.sh"
@@ -98,9 +100,10 @@ def test_collect_brings_back_the_state_that_resumes_each_run_in_one_file(tmp_pat
     assert not (work / ".state").exists()
 
 
-def test_after_starts_the_next_run_once_the_previous_one_has_stopped(tmp_path):
+def _fake_runs(tmp_path: Path):
     """`start` runs `python3 -m sim_twin.training.train ...`: a stand-in python3 on PATH records when
-    each run starts and ends (2 s), so the order is checked without training anything."""
+    each run starts and ends (2 s), so the order is checked without training anything. Returns the
+    work directory and a function running the script there."""
     work, fake = tmp_path / "work", tmp_path / "bin"
     (work / "tests" / "benchmarks").mkdir(parents=True)
     (work / "tests" / "benchmarks" / "device_runs.sh").write_text(SCRIPT.read_text())
@@ -112,6 +115,19 @@ def test_after_starts_the_next_run_once_the_previous_one_has_stopped(tmp_path):
     def sh(*args: str) -> subprocess.CompletedProcess:
         return subprocess.run(["bash", str(SCRIPT), *args], env=env, capture_output=True, text=True, timeout=60)
 
+    return work, sh
+
+
+def _times(log: Path, deadline_s: float = 40) -> dict[str, float]:
+    """{"start": t, "end": t} of a stand-in run's log, once it has ended (within ``deadline_s``)."""
+    deadline = time.time() + deadline_s
+    while time.time() < deadline and "end" not in (log.read_text() if log.exists() else ""):
+        time.sleep(0.5)
+    return {k: float(v.split()[0]) for k, v in (line.split(" ", 1) for line in log.read_text().splitlines())}
+
+
+def test_after_starts_the_next_run_once_the_previous_one_has_stopped(tmp_path):
+    work, sh = _fake_runs(tmp_path)
     assert sh("start", "first", "2d", "cfg.json", "2", "--seed", "21").returncode == 0
     r = sh("after", "first", "second", "2d", "cfg.json", "2", "--seed", "23", "--note", "two words")
     assert r.returncode == 0 and "second starts once first has stopped" in r.stdout, r.stderr
@@ -125,6 +141,19 @@ def test_after_starts_the_next_run_once_the_previous_one_has_stopped(tmp_path):
     assert second[0].split(" ", 2)[2] == ("-m sim_twin.training.train --mode 2d --config cfg.json --log-dir runs/second "
                                           "--gate-workers 2 --max-minutes 600 --seed 23 --note two words")
     assert not subprocess.run(["pgrep", "-f", "slinger-[a]fter"], capture_output=True).stdout  # the waiter is gone
+
+
+def test_after_a_queued_run_waits_for_it_too(tmp_path):
+    """Three runs in turn on one GPU, both `after`s issued at once: the third waits for the second, which
+    is still queued behind the first when the third's waiter starts (it once found no `second` training
+    and started at once, two runs sharing the GPU)."""
+    work, sh = _fake_runs(tmp_path)
+    assert sh("start", "first", "2d", "cfg.json", "2").returncode == 0
+    assert sh("after", "first", "second", "2d", "cfg.json", "2").returncode == 0
+    assert sh("after", "second", "third", "2d", "cfg.json", "2").returncode == 0
+    third = _times(work / "runs" / "third" / "train.log")
+    first, second = (_times(work / "runs" / n / "train.log", 1) for n in ("first", "second"))
+    assert first["end"] <= second["start"] and second["end"] <= third["start"], (first, second, third)
 
 
 def _run_with_pending(tmp_path: Path, candidate_files: list[str]) -> Path:
@@ -266,3 +295,42 @@ def test_state_carries_the_pass_a_compared_run_exports(tmp_path):
     run2 = _state_of_passes(tmp_path, (500, 800, 1000), "throw2d-z", passes, None)
     kept = sorted(p.name for p in (run2 / "candidates").iterdir())
     assert kept == [f"checkpoint_{it}.{x}" for it in (1000, 500, 800) for x in ("json", "onnx", "pt")]
+
+
+def test_a_run_tar_resumes_the_run_where_the_state_is_too_large_to_come_back(tmp_path):
+    """A device call brings back files of 16 MiB at most: four runs' state.tar once did not come back.
+    Over the limit (set to 1 byte here) collect leaves it out and says how to resume; each run's tar
+    carries the candidates' checkpoints its state needs (the gate's passed and pending ones, not the
+    others), so `state` on the unpacked run here packs the whole resume state."""
+    import json
+    import os
+    import sys
+
+    work, out = tmp_path / "work", tmp_path / "out"
+    out.mkdir()
+    _run_dir(work, "big", card_iteration=None)
+    run = work / "runs" / "big"
+    (run / "config.json").write_text("{}")
+    for it in (50, 75):
+        for x in ("onnx", "json", "pt"):
+            (run / "candidates" / f"checkpoint_{it}.{x}").write_text(f"{it}.{x}")
+    (run / "matrices").mkdir()
+    (run / "matrices" / "matrix_gate.json").write_text(json.dumps({"results": [], "passed": {
+        "iteration": 50, "onnx": "runs/big/candidates/checkpoint_50.onnx", "train_wall_s": 50.0}, "pending": {
+        "iteration": 75, "onnx": "runs/big/candidates/checkpoint_75.onnx", "train_wall_s": 75.0, "seed_index": 0}}))
+    env = {"PATH": f"{os.path.dirname(sys.executable)}:/usr/bin:/bin", "SLINGER_RUNS_WORK": str(work), "OUT": str(out),
+           "SLINGER_STATE_MAX_BYTES": "1"}
+    r = subprocess.run(["bash", str(SCRIPT), "collect"], env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert not (out / "state.tar").exists() and "state.tar over 1 bytes, left out" in r.stdout
+    with tarfile.open(out / "big.tar") as t:
+        pts = sorted(m.name for m in t.getmembers() if m.name.endswith(".pt"))
+    assert pts == ["runs/big/candidates/checkpoint_50.pt", "runs/big/candidates/checkpoint_75.pt", "runs/big/checkpoint.pt"]
+    here = tmp_path / "here"
+    here.mkdir()
+    subprocess.run(["tar", "xf", str(out / "big.tar")], cwd=here, check=True)
+    r = _state(here, "runs/big", "big")
+    assert r.returncode == 0 and "is not there" not in r.stderr, r.stderr
+    with tarfile.open(here / "runs" / "state" / "big.tar") as t:
+        kept = sorted(m.name.rsplit("/", 1)[1] for m in t.getmembers() if "/candidates/" in m.name)
+    assert kept == [f"checkpoint_{it}.{x}" for it in (50, 75) for x in ("json", "onnx", "pt")]

@@ -10,9 +10,10 @@
 #                                                       # PREV has stopped (several runs one after another on
 #                                                       # one GPU: set CUDA_VISIBLE_DEVICES for both)
 #   bash tests/benchmarks/device_runs.sh watch MINUTES  # progress every minute (ends early once no run trains), then collect
-#   bash tests/benchmarks/device_runs.sh collect        # $OUT/<name>.tar per run, its log as logs/machine1.log.gz
-#                                                       # (candidate checkpoints left out but the exported one's),
-#                                                       # and $OUT/state.tar: every run's runs/state/<name>.tar
+#   bash tests/benchmarks/device_runs.sh collect        # $OUT/<name>.tar per run (gzip), its log as logs/machine1.log.gz
+#                                                       # (candidate checkpoints left out but the exported one's and
+#                                                       # those its resume state needs), and $OUT/state.tar: every
+#                                                       # run's runs/state/<name>.tar (left out when over 16 MiB)
 #   bash tests/benchmarks/device_runs.sh state RUN_DIR NAME [DIR]  # runs/state/NAME.tar (or DIR/NAME.tar),
 #                                                       # gzip, from RUN_DIR's checkpoint, config, curve, gate
 #                                                       # verdicts (and the gate's candidates: under test, passed), GPU record and
@@ -21,7 +22,8 @@
 # After the last call, here: `tar xf <files_at>/<name>.tar` and `python -m tests.benchmarks.keep_run runs/<name>`
 # (trims the run to what policies/training keeps) before it moves to policies/training.
 #
-# To resume on the next machine, here: `tar xf <files_at>/state.tar` (it unpacks runs/state/<name>.tar)
+# To resume on the next machine, here: `tar xf <files_at>/state.tar` (it unpacks runs/state/<name>.tar;
+# where it was too large to come back: `tar xf <files_at>/<name>.tar`, then `state runs/<name> <name>`)
 # and carry `runs/state` in the call that starts the runs again. Have it ready before the call that
 # collects returns: a machine goes back 30 s after a call ends.
 #
@@ -38,6 +40,7 @@
 # training wall times measured this way are upper bounds of a run alone on the GPU.
 set -u
 WORK=${SLINGER_RUNS_WORK:-/tmp/slinger-runs}  # the copy the runs work in (tests set another)
+STATE_MAX_BYTES=${SLINGER_STATE_MAX_BYTES:-16777216}  # the largest file a device call brings back (tests set less)
 export PYTHONPATH=/tmp/site:$WORK PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
 
 install() {
@@ -65,8 +68,11 @@ start() {
 after() {
   # A detached waiter: the `[ ]` keeps the pattern from matching the waiter's own command line, and
   # `slinger-after` is what `watch` looks for so that it does not collect between two runs.
+  # PREV may itself be queued by an `after` issued just before: that waiter's command line (and `start`'s
+  # until it has launched the training) holds `device_runs.sh start PREV`, so this one waits while PREV is
+  # queued or training. Queued is asked first: asked second, PREV could start between the two questions.
   local prev=$1; shift
-  setsid nohup bash -c "while pgrep -f -- 'log-dir runs/$prev[ ]' >/dev/null; do sleep 5; done
+  setsid nohup bash -c "while pgrep -f -- 'device_runs.sh start $prev[ ]' >/dev/null || pgrep -f -- 'log-dir runs/$prev[ ]' >/dev/null; do sleep 5; done
     exec bash tests/benchmarks/device_runs.sh start $(printf '%q ' "$@")" slinger-after >> runs/after.log 2>&1 < /dev/null &
   echo "$1 starts once $prev has stopped (waiter pid $!)"
 }
@@ -93,16 +99,23 @@ collect() {
     mkdir -p $run/logs
     [ -f $run/.machine ] || echo $(( $(ls $run/logs/machine*.log.gz 2>/dev/null | wc -l) + 1 )) > $run/.machine
     gzip -c $run/train.log > $run/logs/machine$(cat $run/.machine).log.gz
-    tar cf $OUT/$name.tar --exclude="$run/candidates/*.pt" --exclude="$run/train.log" --exclude="$run/.machine" $run
-    # but the checkpoint of the exported policy (a run that met the bars), which adapting it needs
-    local card=$(ls $run/throw*.card.json 2>/dev/null | head -n 1) it
-    if [ -n "$card" ]; then
-      it=$(python3 -c "import json, sys; print(json.load(open(sys.argv[1]))['iteration'])" "$card")
-      [ -f $run/candidates/checkpoint_$it.pt ] && tar rf $OUT/$name.tar $run/candidates/checkpoint_$it.pt
-    fi
+    # The candidates' checkpoints stay behind but the exported policy's (which adapting it needs) and those a
+    # resume state carries (state_candidates), so that the run's tar alone resumes it (`state` here) where
+    # state.tar does not come back. gzip (tar xf reads it): the matrices' per-throw rows compress well.
+    local card=$(ls $run/throw*.card.json 2>/dev/null | head -n 1) keep=() c
+    [ -n "$card" ] && keep+=("$run/candidates/checkpoint_$(python3 -c "import json, sys; print(json.load(open(sys.argv[1]))['iteration'])" "$card").pt")
+    for c in $(state_candidates $run); do keep+=("$run/candidates/$(basename ${c%.onnx}).pt"); done
+    local skip=()
+    for c in $run/candidates/*.pt; do [ -f "$c" ] && [[ ! " ${keep[*]} " =~ " $c " ]] && skip+=("--exclude=$c"); done
+    tar czf $OUT/$name.tar "${skip[@]}" --exclude="$run/train.log" --exclude="$run/.machine" $run
     [ -f $run/checkpoint.pt ] && [ -f $run/config.json ] && state $run $name $WORK/.state/runs/state >/dev/null
   done
-  [ -d $WORK/.state ] && tar cf $OUT/state.tar -C $WORK/.state runs && rm -rf $WORK/.state
+  if [ -d $WORK/.state ]; then
+    tar cf $OUT/state.tar -C $WORK/.state runs && rm -rf $WORK/.state
+    # a device call brings back files of 16 MiB at most: a larger state.tar would be left out; the runs' tars carry it
+    [ $(stat -c %s $OUT/state.tar) -le $STATE_MAX_BYTES ] || { rm $OUT/state.tar
+      echo "state.tar over $STATE_MAX_BYTES bytes, left out: here, tar xf each run's tar, then bash $0 state runs/NAME NAME"; }
+  fi
   ls -la $OUT
 }
 
@@ -115,6 +128,21 @@ watch() {
   collect
 }
 
+state_candidates() {
+  # The candidates (ONNX paths as the gate recorded them) that resuming the run in $1 needs: the gate's
+  # candidate under test (matrix_gate.json's pending), which it judges again, and the candidates that met
+  # the bars, the first (`passed`), the newest (`passes`) and the one a run past the bars exports
+  # (matrix_gate.choose_pass: with --gate-compare-with the one worse than the deployed on the fewest cells)
+  python3 -c "
+import json, sys
+sys.path.insert(0, sys.argv[2])
+from sim_twin.training.matrix_gate import choose_pass, saved_passes
+g = json.load(open(sys.argv[1]))
+passes = saved_passes(g)
+print(' '.join(sorted({c['onnx'] for c in [g.get('pending'), g.get('passed'), *passes[-1:], choose_pass(passes)] if c})))" \
+    "$1/matrices/matrix_gate.json" "$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)" 2>/dev/null
+}
+
 state() {
   # What resuming needs and nothing else (TensorBoard events and the other candidates stay behind:
   # the tree and the carried paths of a device call share 64 MiB), under runs/NAME/ as `start` expects.
@@ -124,19 +152,10 @@ state() {
   mkdir -p "$tmp/runs/$name" "$dest"
   cp "$src/checkpoint.pt" "$src/config.json" "$tmp/runs/$name/"
   for f in curve.csv matrices accelerators.json logs; do [ -e "$src/$f" ] && cp -r "$src/$f" "$tmp/runs/$name/"; done
-  # the candidates the resumed run needs (sim_twin.training.matrix_gate.CANDIDATE_SUFFIXES: ONNX file, manifest,
-  # checkpoint): the gate's candidate under test (matrix_gate.json's pending), which it judges again, and the
-  # candidates that met the bars, the first (`passed`), the newest (`passes`) and the one a run past the bars
-  # exports (matrix_gate.choose_pass: with --gate-compare-with the one worse than the deployed on the fewest cells)
-  local cand cands=$(python3 -c "
-import json, sys
-sys.path.insert(0, sys.argv[2])
-from sim_twin.training.matrix_gate import choose_pass, saved_passes
-g = json.load(open(sys.argv[1]))
-passes = saved_passes(g)
-print(' '.join(sorted({c['onnx'] for c in [g.get('pending'), g.get('passed'), *passes[-1:], choose_pass(passes)] if c})))" \
-    "$src/matrices/matrix_gate.json" "$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)" 2>/dev/null)
-  for cand in $cands; do
+  # the candidates the resumed run needs (state_candidates), each with its files
+  # (sim_twin.training.matrix_gate.CANDIDATE_SUFFIXES: ONNX file, manifest, checkpoint)
+  local cand
+  for cand in $(state_candidates "$src"); do
     local stem=$src/candidates/$(basename ${cand%.onnx})
     mkdir -p "$tmp/runs/$name/candidates"
     for x in onnx json pt; do
