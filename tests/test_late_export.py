@@ -62,3 +62,20 @@ def test_bad_input_is_refused_and_changes_nothing(unfinished, capsys):
     (unfinished / "throw2d.onnx").write_bytes(b"already")
     assert main([str(unfinished), "--command", "slinger train", "--commit", "abc"]) == 2
     assert "has an export" in capsys.readouterr().err and (unfinished / "throw2d.onnx").read_bytes() == b"already"
+
+
+def test_another_pass_is_carded_in_place_and_the_export_left_alone(unfinished, capsys):
+    """``--iteration N`` writes the card of that pass beside its candidate (the card finish would have
+    written had it exported it) and copies nothing; a non-pass is refused, naming the passes."""
+    want = json.loads((H0 / "throw2d.card.json").read_text())
+    cand = unfinished / "candidates" / "checkpoint_925.onnx"
+    before = cand.read_bytes()
+    assert main([str(unfinished), "--command", want["command"], "--commit", want["git_commit"], "--iteration", "900"]) == 2
+    assert "iteration 900 did not meet every bar" in capsys.readouterr().err
+    assert not (unfinished / "candidates" / "checkpoint_925.card.json").exists()
+    out = late_export(unfinished, want["command"], want["git_commit"], iteration=925)
+    assert out == cand and cand.read_bytes() == before and not (unfinished / "throw2d.onnx").exists()
+    assert json.loads((unfinished / "candidates" / "checkpoint_925.card.json").read_text()) == want
+    assert json.loads(cand.with_suffix(".json").read_text())["training"]["model_card"] == want
+    with pytest.raises(FileExistsError, match="has its card"):
+        late_export(unfinished, want["command"], want["git_commit"], iteration=925)
