@@ -286,3 +286,32 @@ def test_the_later_swing_delay_recipe_widens_only_the_stages_release_delay_shift
                 if e["effect"] == "release_delay")
     nominal_s = delay[("env", "randomization", "release_delay_mean_s")]
     assert later[key] < worn["params"]["mean_s"] - nominal_s <= delay[key]
+
+
+def test_the_3d_sites_recipe_is_the_3d_recipe_widened_over_the_worn_gripper_at_its_stage():
+    """sim_twin/configs/throw_3d_sites.json: throw_3d.json with a curriculum stage that widens only the
+    passive friction (log-uniform) and the release-delay shift, nothing else changed; before the stage
+    its environment is the 3D recipe's, after it the worn gripper's friction (x10) and 340 ms opening
+    delay lie inside the ranges, which they did not before."""
+    from sim_twin.training.config import CurriculumStage
+    from sim_twin.training.privileged import Randomization
+    from sim_twin.twin.effects.friction import PassiveFriction
+
+    path = ROOT / "sim_twin" / "configs" / "throw_3d_sites.json"
+    recipe = _flat(_without_notes(ROOT / "sim_twin" / "configs" / "throw_3d.json"))
+    sites = _flat(_without_notes(path))
+    stage = ("training", "curriculum_stage")
+    changed = {k for k in recipe.keys() | sites.keys() if recipe.get(k) != sites.get(k)}
+    assert changed == {(*stage, "iteration"), (*stage, "randomization", "friction_scale"),
+                       (*stage, "randomization", "friction_sampling"), (*stage, "randomization", "release_delay_shift_s")}
+    cfg = json.loads(path.read_text())
+    before, after = CurriculumStage.from_dict(cfg["training"]["curriculum_stage"]).env_dicts(cfg["env"])
+    assert before["randomization"] == cfg["env"]["randomization"] and before["mode"] == after["mode"] == "3d"
+    narrow, wide = Randomization.from_dict(before["randomization"]), Randomization.from_dict(after["randomization"])
+    worn = _profile_params("worn_gripper")
+    nominal = {p.name: p.nominal for p in PassiveFriction.params}
+    worn_friction = max(worn["passive_friction"][k] / nominal[k] for k in nominal)
+    assert narrow.friction_scale[1] < worn_friction <= wide.friction_scale[1] and wide.friction_sampling == "log_uniform"
+    worn_delay_s = worn["release_delay"]["mean_s"]
+    assert narrow.release_delay_mean_s + narrow.release_delay_shift_s < worn_delay_s
+    assert worn_delay_s <= wide.release_delay_mean_s + wide.release_delay_shift_s
