@@ -3,11 +3,15 @@ the 200-rollout Monte Carlo impact ellipse, both through the HTTP API (POST /api
 the console calls: a job run by a `slinger worker` process started here) and of
 sim_twin.preview.preview.preview_throw alone.
 
-Run: ``python tests/benchmarks/bench_preview.py [--repeats 10] [--profile P] [--processes N ...]``.
+Run: ``python tests/benchmarks/bench_preview.py [--repeats 10] [--profile P] [--processes N ...]
+[--policy NAME=path.onnx ...] [--out report.json]``.
 Prints median / max wall seconds per case and the bar (0.3 s single rollout, 1.5 s for 200
 rollouts), the function alone with its Monte Carlo in 1 and in 2 processes, and for the
 function alone also the CPU seconds of this process (what the wall time is on an idle core when
-the machine is shared); no assertions. The default profile is the server's default site profile
+the machine is shared); no assertions. With ``--policy`` given more than once the function-alone
+cases run for each 2D policy in turn in one run (a candidate's preview cost beside the deployed
+policy's: a policy whose throws last longer previews longer); the HTTP part always uses the
+deployed policy. ``--out`` writes the printed lines and each case's median and max as JSON. The default profile is the server's default site profile
 (sim_twin.preview.preview.DEFAULT_SITE_PROFILE: parameter ranges, start-state model, release jitter).
 The HTTP part uses the app with a loopback Zenoh peer and a fake runtime that reports the trained
 2D policy from different start poses (tests.conftest.FakeRuntime).
@@ -32,19 +36,20 @@ POLICY = REPO / "policies" / "throw2d.onnx"
 TARGETS = [[d, -0.292, 0.0] for d in (7.5, 8.0, 8.5, 9.0, 9.5)]
 
 
-def bench_function(repeats: int, profile_path: Path | None, processes: int = 0) -> tuple[dict, dict]:
-    """preview_throw alone; with ``processes`` >= 2 its Monte Carlo runs in a pool of that many
-    processes (as a worker runs it, Settings.preview_processes). CPU is this process's only."""
+def bench_function(repeats: int, profile_path: Path | None, processes: int = 0, policy_path: Path = POLICY) -> tuple[dict, dict]:
+    """preview_throw alone with the 2D policy ``policy_path``; with ``processes`` >= 2 its Monte Carlo
+    runs in a pool of that many processes (as a worker runs it, Settings.preview_processes). CPU is
+    this process's only. Returns ({rollouts: [wall s]}, {rollouts: [CPU s]})."""
     from runtime.policy import PolicyRunner
+    from sim_twin.preview.preview import PreviewRequest, preview_throw, site_profile, warm_up
     from sim_twin.twin.initial_pose import sample_pose
     from sim_twin.twin.pools import process_pool
-    from sim_twin.preview.preview import PreviewRequest, preview_throw, site_profile, warm_up
 
     pool = None
     if processes >= 2:
         pool = process_pool(processes)
         warm_up(pool, processes)
-    policy = PolicyRunner.load(POLICY)
+    policy = PolicyRunner.load(policy_path)
     profile = site_profile(None, profile_path)
     rng = np.random.default_rng(0)
     preview_throw(policy, PreviewRequest("2d", TARGETS[0], sample_pose(rng, cabin_turn=0.0).tolist(), [0.0] * 6, rollouts=24), profile)  # imports
@@ -111,21 +116,42 @@ def main() -> int:
     ap.add_argument("--no-http", action="store_true")
     ap.add_argument("--processes", type=int, action="append", default=[],
                     help="Monte Carlo processes of the function runs (repeatable; default 1 and 2)")
+    ap.add_argument("--policy", action="append", default=[],
+                    help="NAME=path.onnx of a 2D policy for the function runs (repeatable; default the deployed one)")
+    ap.add_argument("--out", type=Path, default=None, help="also write the lines and figures as JSON here")
     args = ap.parse_args()
     import os
 
-    print(f"cores: {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}")
+    policies = []
+    for spec in args.policy or [f"deployed={POLICY}"]:
+        name, sep, path = spec.partition("=")
+        if not sep or not Path(path).is_file():
+            ap.error(f"--policy {spec!r}: give NAME=path.onnx of an existing file")
+        policies.append((name, Path(path)))
+    lines = [f"cores: {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}"]
+    print(lines[0])
     cases = []
-    for n in args.processes or [1, 2]:
-        wall, cpu = bench_function(args.repeats, args.profile, n)
-        cases += [(f"preview_throw() x{n}", wall), (f"preview_throw() x{n} CPU", cpu)]
+    for name, path in policies:
+        label = "" if len(policies) == 1 else f"{name} "
+        for n in args.processes or [1, 2]:
+            wall, cpu = bench_function(args.repeats, args.profile, n, path)
+            cases += [(f"{label}preview_throw() x{n}", wall), (f"{label}preview_throw() x{n} CPU", cpu)]
     if not args.no_http:
         cases.append(("POST /api/previews", bench_http(args.repeats)))
+    figures = []
     for name, res in cases:
         for rollouts, times in res.items():
             bar = 0.3 if rollouts == 1 else 1.5
-            print(f"{name:22s} rollouts={rollouts:3d}: median {statistics.median(times):.3f} s, "
-                  f"max {max(times):.3f} s over {len(times)} (bar {bar} s)")
+            lines.append(f"{name:22s} rollouts={rollouts:3d}: median {statistics.median(times):.3f} s, "
+                         f"max {max(times):.3f} s over {len(times)} (bar {bar} s)")
+            print(lines[-1])
+            figures.append({"case": name, "rollouts": rollouts, "median_s": round(statistics.median(times), 4),
+                            "max_s": round(max(times), 4), "n": len(times), "bar_s": bar})
+    lines.append(f"load average after: {os.getloadavg()[0]:.1f}")
+    print(lines[-1])
+    if args.out:
+        args.out.write_text(json.dumps({"policies": {n: str(p) for n, p in policies}, "figures": figures, "output": lines},
+                                       indent=2) + "\n")
     return 0
 
 
