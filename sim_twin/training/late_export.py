@@ -77,9 +77,9 @@ def late_export(run: Path, command: str, commit: str, first: bool = False, itera
         if not path.exists():
             raise FileNotFoundError(f"{path}: the candidate of iteration {it} did not come back with the run")
     if iteration is not None:
-        out = src
-        if out.with_name(out.stem + ".card.json").exists():
-            raise FileExistsError(f"{out.with_name(out.stem + '.card.json')} exists: iteration {it} has its card")
+        out, card = src, model_card.card_paths(src)[0]
+        if card.exists():
+            raise FileExistsError(f"{card} exists: iteration {it} has its card")
     else:
         out = run / f"throw{gate['mode']}.onnx"
         if out.exists():
@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError) as e:
         print(f"late_export: {e}", file=sys.stderr)
         return 2
-    card = json.loads(out.with_name(out.stem + ".card.json").read_text())
+    card = json.loads(model_card.card_paths(out)[0].read_text())
     print(f"{out}: iteration {card['iteration']}, ONNX SHA-256 {card['onnx_sha256']}")
     return 0
 

@@ -89,11 +89,16 @@ def build_card(*, command: str, cfg: dict, iteration: int, train_wall_s: float, 
     }
 
 
-def write_card(onnx_path: Path, card: dict) -> tuple[Path, Path]:
-    """Write ``<stem>.card.json`` and ``<stem>.card.md`` beside ``onnx_path``; returns both paths."""
+def card_paths(onnx_path: Path) -> tuple[Path, Path]:
+    """(``<stem>.card.json``, ``<stem>.card.md``) beside the policy ``onnx_path``: where :func:`write_card` writes."""
     onnx_path = Path(onnx_path)
-    j = onnx_path.with_name(onnx_path.stem + ".card.json")
-    m = onnx_path.with_name(onnx_path.stem + ".card.md")
+    return onnx_path.with_name(onnx_path.stem + ".card.json"), onnx_path.with_name(onnx_path.stem + ".card.md")
+
+
+def write_card(onnx_path: Path, card: dict) -> tuple[Path, Path]:
+    """Write ``<stem>.card.json`` and ``<stem>.card.md`` beside ``onnx_path`` (:func:`card_paths`); returns both paths."""
+    onnx_path = Path(onnx_path)
+    j, m = card_paths(onnx_path)
     j.write_text(json.dumps(card, indent=2) + "\n")
     lines = [
         f"# Model card: {onnx_path.name}", "",
