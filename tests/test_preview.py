@@ -163,25 +163,41 @@ def test_site_uncertainty_widens_the_ellipse(policy):
     assert site["ellipse"]["semi_major_m"] > jitter["ellipse"]["semi_major_m"]
 
 
+# The 2D preview of the server's default site profile at seed 3 (24 rollouts) as taken, by the policy
+# file's SHA-256: (nominal impact, (param rollouts, failed, impacts), Monte Carlo mean impact,
+# sigma downrange, sigma crossrange, first three impacts).
+PINNED_PREVIEWS = {
+    # throw2d-robust-i, commit e91987a
+    "076dc49795f077d34cf1e70d43639ef6c2b8335cecf90cd9f4322e5389c7f136": (
+        [8.60690392039864, -0.29200137679336013, 0.0], (2, 0, 24), [8.546015915763567, -0.2800550019944746, 0.0],
+        0.011622993884556506, 0.01845273730084017, [[8.5502, -0.2983], [8.5325, -0.2986], [8.5457, -0.2983]]),
+    # throw2d-scratch-o0-it2000, commit 07fe6e5 (policies/training/deployment.md)
+    "866ce38e386fb48cdfc69b49c4da86fee90ccf46e4084f50f10fd60ae502d186": (
+        [8.541522604206047, -0.29197538012880814, 0.0], (2, 0, 24), [8.524045308099987, -0.2819408193775291, 0.0],
+        0.03585860358835065, 0.01875953650871613, [[8.5059, -0.2995], [8.4637, -0.2995], [8.4988, -0.2995]]),
+}
+
+
 def test_the_ellipse_of_fixed_seeds_is_the_one_it_was(policy):
     """The rollouts' CPU cuts (issue 45, item 8: the controller's float law, the scalar clearance
     check, the valves' tables, one noise draw per sensing effect, ...) change no number: a 2D
     preview of the server's default site profile at seed 3 gives the nominal impact and the
-    Monte Carlo of commit e91987a (bit for bit on the development VM; the tolerance leaves room
-    for another CPU's libm). Skipped when the 2D policy file is another version."""
+    Monte Carlo taken with that policy file (:data:`PINNED_PREVIEWS`; bit for bit on the development
+    VM; the tolerance leaves room for another CPU's libm). Skipped for a policy file not pinned there."""
     from sim_twin.preview.preview import site_profile
 
-    if policy.sha256 != "076dc49795f077d34cf1e70d43639ef6c2b8335cecf90cd9f4322e5389c7f136":
-        pytest.skip("another 2D policy version than the one the values were taken with")
+    if policy.sha256 not in PINNED_PREVIEWS:
+        pytest.skip("a 2D policy version whose preview values were not taken")
+    impact, counts, mean, sigma_down, sigma_cross, first = PINNED_PREVIEWS[policy.sha256]
     req = PreviewRequest("2d", TARGET, Q0, [0.0] * 6, rollouts=24, seed=3)
     s = preview_throw(policy, req, site_profile(None, None))
     mc = s["mc"]
-    assert s["impact_m"] == pytest.approx([8.60690392039864, -0.29200137679336013, 0.0], abs=1e-9)
-    assert (mc["param_rollouts"], mc["failed_rollouts"], len(mc["impacts_m"])) == (2, 0, 24)
-    assert mc["mean_impact_m"] == pytest.approx([8.546015915763567, -0.2800550019944746, 0.0], abs=1e-9)
-    assert mc["sigma_downrange_m"] == pytest.approx(0.011622993884556506, abs=1e-9)
-    assert mc["sigma_crossrange_m"] == pytest.approx(0.01845273730084017, abs=1e-9)
-    assert mc["impacts_m"][:3] == [[8.5502, -0.2983], [8.5325, -0.2986], [8.5457, -0.2983]]
+    assert s["impact_m"] == pytest.approx(impact, abs=1e-9)
+    assert (mc["param_rollouts"], mc["failed_rollouts"], len(mc["impacts_m"])) == counts
+    assert mc["mean_impact_m"] == pytest.approx(mean, abs=1e-9)
+    assert mc["sigma_downrange_m"] == pytest.approx(sigma_down, abs=1e-9)
+    assert mc["sigma_crossrange_m"] == pytest.approx(sigma_cross, abs=1e-9)
+    assert mc["impacts_m"][:3] == first
 
 
 # --- API ----------------------------------------------------------------------------------------
