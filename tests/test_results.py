@@ -154,6 +154,25 @@ def test_stamp_keeps_the_reports_layout(tmp_path, indent):
     assert all(c.strip().startswith(('"date"', '"command"')) for c in changed) or indent is None
 
 
+def test_stamp_keeps_per_throw_lists_on_one_line(tmp_path):
+    """An indented report whose per-throw lists are on one line each (a site matrix, written by
+    sim_twin.provenance.compact_json) keeps them so when stamped: the lists are not spread one
+    value per line, and the data read back are the same."""
+    from sim_twin.provenance import compact_json
+
+    root = _fake_repo(tmp_path, "0" * 64)
+    report = root / "reports" / "matrix.json"
+    body = {"profiles": [{"name": "nominal", "per_throw": {"seed": list(range(100)), "error_m": [k / 1000 for k in range(100)]}}]}
+    report.write_text(compact_json(body) + "\n")
+    before = len(report.read_text().splitlines())
+    stamp = ["--root", str(root), "--stamp", str(report), "--title", "New", "--host", "a host", "--command", "do it"]
+    assert results.main(stamp) == 0
+    text = report.read_text()
+    assert json.loads(text)["profiles"] == body["profiles"]
+    assert '"seed": [0, 1, 2,' in text and len(text.splitlines()) < before + 20  # the provenance block's lines only
+    assert results.json_indent(text) == 1
+
+
 def test_stamp_refuses_a_missing_policy_or_title(tmp_path):
     root = _fake_repo(tmp_path, "0" * 64)
     report = root / "reports" / "r.json"

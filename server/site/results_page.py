@@ -482,14 +482,19 @@ def stamp(report: Path, title: str, command: str, policies: list[Path], root: Pa
     if note:
         block["note"] = note
     body = {"provenance": block, **{k: v for k, v in body.items() if k != "provenance"}}
-    Path(report).write_text(json.dumps(body, indent=json_indent(text)) + "\n")
+    from sim_twin.provenance import compact_json, has_one_line_lists
+
+    indent = json_indent(text)
+    out = compact_json(body, indent) if indent and has_one_line_lists(text) else json.dumps(body, indent=indent)
+    Path(report).write_text(out + "\n")
     return block
 
 
 def json_indent(text: str) -> int | None:
     """The indent of a JSON object's text (spaces before its second line's first key), None when
     the object is on one line; a stamped report keeps its writer's layout, so a re-stamp changes
-    the provenance lines only and a compact report with per-throw lists stays compact."""
+    the provenance lines only: a report on one line stays on one line, and an indented one whose
+    per-throw lists are on one line each (sim_twin.provenance.compact_json) keeps them so."""
     lines = text.strip().splitlines()
     if len(lines) < 2:
         return None

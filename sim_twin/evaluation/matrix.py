@@ -17,9 +17,7 @@ process pool.
 
 from __future__ import annotations
 
-import json
 import logging
-import re
 import time
 from concurrent.futures import as_completed
 from pathlib import Path
@@ -27,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from sim_twin.evaluation.evaluate import summarise, throw_batch, throw_seeds
+from sim_twin.provenance import compact_json
 from sim_twin.twin.pools import process_pool
 
 log = logging.getLogger(__name__)
@@ -196,11 +195,8 @@ def plot(reports: list[dict], out: Path) -> None:
 
 def dumps(report: dict) -> str:
     """JSON of a report, indented, with every list of plain values (the per-throw data) on one
-    line: a third of the size of fully indented JSON. Only the line breaks and indents that
-    ``json.dumps`` put between items go (a JSON string holds no raw line break), so the data
-    read back are the same."""
-    return re.sub(r"\[\n\s*([^\[\]{}]*?)\n\s*\]", lambda m: "[" + re.sub(r",\n\s*", ", ", m.group(1)) + "]",
-                  json.dumps(report, indent=1))
+    line (sim_twin.provenance.compact_json)."""
+    return compact_json(report)
 
 
 def write(report: dict, out: Path) -> None:
