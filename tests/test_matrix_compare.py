@@ -49,6 +49,30 @@ def test_failed_throws_where_the_deployed_policy_landed_are_worse_on_success():
     assert [(c.profile, c.worse_on, c.landed_deployed, c.landed_candidate) for c in bad] == [("heavy_load", ("success",), 100, 80)]
 
 
+def test_failures_spread_thinly_over_the_cells_fail_more_often_though_no_cell_is_worse(capsys):
+    """Two ground-stops in each of many cells: no cell's McNemar test can see them (p 0.25 each),
+    the pooled one does (p 2^-24), and the deploy rule's verdict is worse; one stop in all is not."""
+    cells = [("nominal", 7.0 + 0.5 * k) for k in range(12)]
+    dep = {cell: [0.05] * 100 for cell in cells}
+    cand = {cell: [None, None] + [0.05] * 98 for cell in cells}
+    comp = matrix_compare.compare([_report(dep)], [_report(cand)])
+    assert comp.worse_cells == 0 and (comp.pooled_lost, comp.pooled_won) == (24, 0)
+    assert comp.fails_more and comp.worse and comp.p_pooled_success == pytest.approx(0.5 ** 24)
+    assert "FAILS MORE OFTEN" in matrix_compare.table(comp)
+    one = {**dep, cells[0]: [None] + [0.05] * 99}
+    assert not matrix_compare.compare([_report(dep)], [_report(one)]).worse
+
+
+def test_the_command_exits_1_when_the_candidate_fails_more_often(tmp_path):
+    cells = [("nominal", 7.0 + 0.5 * k) for k in range(12)]
+    (tmp_path / "d.json").write_text(json.dumps(_report({cell: [0.05] * 100 for cell in cells})))
+    (tmp_path / "c.json").write_text(json.dumps(_report({cell: [None, None] + [0.05] * 98 for cell in cells})))
+    assert matrix_compare.main(["--deployed", str(tmp_path / "d.json"), "--candidate", str(tmp_path / "c.json"),
+                                "--out", str(tmp_path / "o.json")]) == 1
+    out = json.loads((tmp_path / "o.json").read_text())
+    assert out["worse_cells"] == 0 and out["fails_more"] is True and out["pooled_lost"] == 24
+
+
 def test_seeds_pool_into_one_comparison_per_cell():
     rng = np.random.default_rng(1)
     dep = [_report(_draw(rng), seed0=s * 1000) for s in range(3)]

@@ -210,8 +210,9 @@ class MatrixGate:
 
     def _compare(self, iteration: int) -> dict:
         """``{"worse_than_deployed": n, "worse_cells": ["profile@target", ...]}`` of the passed
-        candidate ``iteration`` against the deployed policy's matrices (module doc); n None with the
-        reason where the comparison failed (logged: the pass stands, it only ranks last)."""
+        candidate ``iteration`` against the deployed policy's matrices (module doc; a candidate that fails
+        more often over all cells counts one more, ``"all cells@success"``); n None with the reason where
+        the comparison failed (logged: the pass stands, it only ranks last)."""
         from sim_twin.evaluation.matrix_compare import compare
 
         try:
@@ -221,6 +222,8 @@ class MatrixGate:
             log.error("iteration %d: the paired test against the deployed policy failed: %s", iteration, e)
             return {"worse_than_deployed": None, "worse_cells": [], "compare_error": str(e)}
         worse = [f"{c.profile}@{c.target_m:g}" for c in comp.cells if c.worse]
+        if comp.fails_more:  # failures spread over the cells (matrix_compare's pooled success test) count as one more
+            worse.append("all cells@success")
         log.info("iteration %d: worse than the deployed policy on %d cells by the paired test%s", iteration, len(worse),
                  f" ({', '.join(worse)})" if worse else "")
         return {"worse_than_deployed": len(worse), "worse_cells": worse}
