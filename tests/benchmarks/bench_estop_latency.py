@@ -8,13 +8,16 @@ simulated machine (SimReset: a new payload at a random pose) and wait until it i
 A click counts only if the valve command just before it was not neutral (the arm was moving). A throw the runtime refuses (e.g. the simulated machine says it is
 behind real time under the load) is counted and retried; such refusals are reported.
 
-Run: ``PYTHONPATH=. python tests/benchmarks/bench_estop_latency.py --clicks 30`` (nice it on a
-shared machine). Prints p50/p95/p99/max of click->neutral and of click->HTTP reply, in ms.
+Run: ``PYTHONPATH=. python tests/benchmarks/bench_estop_latency.py --clicks 30 [--out
+reports/estop_latency.json]`` (nice it on a shared machine). Prints p50/p95/p99/max of
+click->neutral and of click->HTTP reply, in ms; ``--out`` writes them as a report (each click's
+times and the figures, :func:`report`), to be stamped with ``slinger results --stamp``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import random
 import signal
@@ -32,6 +35,34 @@ sys.path.insert(0, str(REPO))
 from tests.fault_stack import FaultStack, ValveWatch, burner, orphans, stop_proc  # noqa: E402
 
 log = logging.getLogger("bench_estop")
+
+
+def report(out: dict, burners: int) -> dict:
+    """The report of a :func:`run` result: ``clicks`` (each counted click's click->neutral and
+    click->reply times, ms, 0.1 ms) and ``figures`` (p50 / p95 / p99 / max of click->neutral against
+    the goal p99 <= 100 ms, p50 / p99 / max of click->reply), the layout of reports/estop_latency.json.
+
+    Raises:
+        ValueError: no click was counted.
+    """
+    if not out["neutral_s"]:
+        raise ValueError("no click counted: nothing to report")
+    n, r = np.asarray(out["neutral_s"]) * 1e3, np.asarray(out["reply_s"]) * 1e3
+    p = lambda a, q: f"{np.percentile(a, q):.1f}"  # noqa: E731
+    conditions = (f"{n.size} clicks on swinging throws of the deployed 2D policy; quiet host plus the benchmark's "
+                  f"{burners} CPU burners")
+    return {
+        "clicks": [{"click": i + 1, "neutral_ms": round(float(a), 1), "reply_ms": round(float(b), 1)} for i, (a, b) in enumerate(zip(n, r))],
+        "figures": [
+            {"what": "click -> first neutral ValveCommand, p50 / p95 / p99 / max", "unit": "ms",
+             "value": f"{p(n, 50)} / {p(n, 95)} / {p(n, 99)} / {n.max():.1f}", "bar": "p99 <= 100 ms",
+             "met": bool(np.percentile(n, 99) <= 100.0), "conditions": conditions},
+            {"what": "click -> HTTP reply (stop confirmed, audited), p50 / p99 / max", "unit": "ms",
+             "value": f"{p(r, 50)} / {p(r, 99)} / {r.max():.1f}",
+             "conditions": (f"same clicks; {out['not_moving']} clicks discarded, {len(out['refusals'])} throws refused, "
+                            f"{len(out['orphans'])} orphaned processes")},
+        ],
+    }
 
 
 def _pct(values: list[float]) -> str:
@@ -136,6 +167,7 @@ def main() -> int:
     parser.add_argument("--policy", type=Path, default=REPO / "policies" / "throw2d.onnx")
     parser.add_argument("--keep", type=Path, default=None, help="run in this directory and keep the logs")
     parser.add_argument("--max-minutes", type=float, default=8.0, help="stop clicking after this long")
+    parser.add_argument("--out", type=Path, default=None, help="write the report (JSON) here")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)
@@ -145,6 +177,9 @@ def main() -> int:
     print(f"clicks discarded (valves already neutral before the click): {out['not_moving']}")
     print(f"throws refused by the runtime meanwhile: {len(out['refusals'])} {sorted(set(out['refusals']))[:3]}")
     print(f"orphaned processes: {len(out['orphans'])}")
+    if args.out:
+        args.out.write_text(json.dumps(report(out, args.burners), indent=1) + "\n")
+        print(f"report: {args.out} (stamp it: slinger results --stamp {args.out} ...)")
     return 0
 
 
