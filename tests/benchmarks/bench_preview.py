@@ -150,9 +150,30 @@ def main() -> int:
     lines.append(f"load average after: {os.getloadavg()[0]:.1f}")
     print(lines[-1])
     if args.out:
-        args.out.write_text(json.dumps({"policies": {n: str(p) for n, p in policies}, "figures": figures, "output": lines},
-                                       indent=2) + "\n")
+        report = {"policies": {n: str(p) for n, p in policies}, "figures": report_figures(figures), "measures": figures,
+                  "output": lines}
+        args.out.write_text(json.dumps(report, indent=2) + "\n")
     return 0
+
+
+def report_figures(measures: list[dict]) -> list[dict]:
+    """The report's figures (docs/results.md's layout: what, value, unit, bar, met, conditions) of
+    the wall-time measures ``[{"case", "rollouts", "median_s", "max_s", "n", "bar_s"}]`` main prints:
+    one per case and rollout count, CPU-time cases left out; the bar applies to the median."""
+    out = []
+    for m in measures:
+        case = m["case"]
+        if case.endswith(" CPU"):
+            continue
+        kind = "single-rollout preview" if m["rollouts"] == 1 else f"{m['rollouts']}-impact ellipse preview"
+        if "preview_throw() x" in case:
+            label, _, n = case.partition("preview_throw() x")
+            what = f"{label}{kind} " + ("in one process" if n == "1" else f"with {n} Monte Carlo processes")
+        else:
+            what = f"{case}, {kind}"
+        out.append({"what": f"{what}, median / max", "value": f"{m['median_s']:.3f} / {m['max_s']:.3f}", "unit": "s",
+                    "bar": f"median <= {m['bar_s']} s", "met": m["median_s"] <= m["bar_s"], "conditions": f"{m['n']} previews"})
+    return out
 
 
 if __name__ == "__main__":
