@@ -8,7 +8,9 @@ dataset, the 3D policy's to 30 logged 3D throws of the same site (``dataset_3d``
 
 Bar (issue 9): 2D |bias| <= 0.10 m at every target 7.5-10 m, 3D |bias| <= 0.20 m at 7-9.5 m.
 
-Run (each step is skipped when its output exists, so a stopped run resumes)::
+Run (each step is skipped when its output exists, so a stopped run resumes; the outputs lie under
+``--work``/<the policies' SHA-256 prefixes> (:func:`work_dir`), so a run with other policy files
+never reuses them)::
 
     nice -n 10 python tests/benchmarks/adaptation_report.py --work /tmp/adapt \\
         --profiles heavy_load windy_site worn_gripper --out reports/adaptation
@@ -35,6 +37,16 @@ BAR_M = {"2d": 0.10, "3d": 0.20}
 
 
 NO_RUN = False  # --report-only: read what exists, run nothing
+
+
+def work_dir(base: Path, policies: dict[str, Path]) -> Path:
+    """The run's working directory: ``base/<mode>-<first 12 hex digits of the policy file's SHA-256>``
+    joined over ``policies`` (mode -> ONNX file), e.g. ``/tmp/adaptation/2d-866ce38e386f``: a resumed run
+    reuses the steps of the same policy files only (a dataset logged with another policy is not this
+    one's). Raises OSError when a policy file cannot be read."""
+    from runtime.policy import sha256_of
+
+    return base / "_".join(f"{m}-{sha256_of(policies[m])[:12]}" for m in sorted(policies))
 
 
 def _slinger(*args: str) -> None:
@@ -189,7 +201,9 @@ def main() -> int:
     global NO_RUN
     NO_RUN = args.report_only
     t0 = time.time()
-    entries = [run_profile(p, args.work, args.modes, args.diag_throws, args.adapt_throws, args.rounds, args.eval_throws, args.before_throws,
+    work = work_dir(args.work, {m: POLICIES[m] for m in args.modes})
+    log.info("working directory %s", work)
+    entries = [run_profile(p, work, args.modes, args.diag_throws, args.adapt_throws, args.rounds, args.eval_throws, args.before_throws,
                            anchor=not args.no_anchor) for p in args.profiles]
     commit = _git("rev-parse", "--short", "HEAD")
     report = {"commit": commit, "anchor": not args.no_anchor, "diag_throws": args.diag_throws, "adapt_throws": args.adapt_throws, "rounds": args.rounds, "eval_throws": args.eval_throws,
