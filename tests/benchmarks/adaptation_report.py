@@ -201,7 +201,8 @@ def main() -> int:
     global NO_RUN
     NO_RUN = args.report_only
     t0 = time.time()
-    work = work_dir(args.work, {m: POLICIES[m] for m in args.modes})
+    # the diagnosis dataset is logged with the 2D policy whatever the modes: it keys the directory too
+    work = work_dir(args.work, {m: POLICIES[m] for m in {"2d", *args.modes}})
     log.info("working directory %s", work)
     entries = [run_profile(p, work, args.modes, args.diag_throws, args.adapt_throws, args.rounds, args.eval_throws, args.before_throws,
                            anchor=not args.no_anchor) for p in args.profiles]
