@@ -112,6 +112,15 @@ def _pool(reports: list[dict]) -> dict[tuple[str, float, int], tuple[float, floa
     return pooled
 
 
+def _p_fails_more(lost: int, won: int) -> float:
+    """One-sided exact McNemar p-value that the candidate fails more often: ``lost`` discordant pairs
+    where it failed and the deployed policy landed, ``won`` the reverse (binomial, p = 1/2); 1 with
+    no discordant pair."""
+    from scipy import stats
+
+    return float(stats.binomtest(lost, lost + won, 0.5, alternative="greater").pvalue) if lost + won else 1.0
+
+
 def _holm(pvalues: list[float], alpha: float) -> list[bool]:
     """Holm's step-down rejections of ``pvalues`` at family-wise error rate ``alpha``."""
     order = sorted(range(len(pvalues)), key=lambda i: pvalues[i])
@@ -160,7 +169,7 @@ def compare(deployed: list[dict], candidate: list[dict], alpha: float = ALPHA) -
         lost = sum(1 for a, b in zip(d, c) if a is not None and b is None)  # candidate failed, deployed landed
         won = sum(1 for a, b in zip(d, c) if a is None and b is not None)
         lost_all, won_all = lost_all + lost, won_all + won
-        p_success = float(stats.binomtest(lost, lost + won, 0.5, alternative="greater").pvalue) if lost + won else 1.0
+        p_success = _p_fails_more(lost, won)
         both = [(math.hypot(*a), math.hypot(*b)) for a, b in zip(d, c) if a is not None and b is not None]
         diffs = [b - a for a, b in both]
         p_miss = float(stats.wilcoxon(diffs, alternative="greater").pvalue) if any(diffs) else 1.0
@@ -168,7 +177,7 @@ def compare(deployed: list[dict], candidate: list[dict], alpha: float = ALPHA) -
             profile, target, len(seeds), sum(a is not None for a in d), sum(b is not None for b in c), len(both),
             sum(a for a, _ in both) / len(both) if both else None, sum(b for _, b in both) / len(both) if both else None,
             p_success, p_miss))
-    p_pooled = float(stats.binomtest(lost_all, lost_all + won_all, 0.5, alternative="greater").pvalue) if lost_all + won_all else 1.0
+    p_pooled = _p_fails_more(lost_all, won_all)
     reject = _holm([p for r in raw for p in (r.p_success, r.p_miss)] + [p_pooled], alpha)
     out = []
     for i, r in enumerate(raw):

@@ -130,22 +130,24 @@ def main() -> int:
         policies.append((name, Path(path)))
     lines = [f"cores: {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}"]
     print(lines[0])
-    cases = []
+    cases = []  # (printed name, {"policy", "processes", "clock"}, {rollouts: times})
     for name, path in policies:
         label = "" if len(policies) == 1 else f"{name} "
         for n in args.processes or [1, 2]:
             wall, cpu = bench_function(args.repeats, args.profile, n, path)
-            cases += [(f"{label}preview_throw() x{n}", wall), (f"{label}preview_throw() x{n} CPU", cpu)]
+            case = {"policy": label.strip(), "processes": n}
+            cases += [(f"{label}preview_throw() x{n}", {**case, "clock": "wall"}, wall),
+                      (f"{label}preview_throw() x{n} CPU", {**case, "clock": "cpu"}, cpu)]
     if not args.no_http:
-        cases.append(("POST /api/previews", bench_http(args.repeats)))
+        cases.append(("POST /api/previews", {"policy": "", "processes": None, "clock": "wall"}, bench_http(args.repeats)))
     figures = []
-    for name, res in cases:
+    for name, case, res in cases:
         for rollouts, times in res.items():
             bar = 0.3 if rollouts == 1 else 1.5
             lines.append(f"{name:22s} rollouts={rollouts:3d}: median {statistics.median(times):.3f} s, "
                          f"max {max(times):.3f} s over {len(times)} (bar {bar} s)")
             print(lines[-1])
-            figures.append({"case": name, "rollouts": rollouts, "median_s": round(statistics.median(times), 4),
+            figures.append({"case": name, **case, "rollouts": rollouts, "median_s": round(statistics.median(times), 4),
                             "max_s": round(max(times), 4), "n": len(times), "bar_s": bar})
     lines.append(f"load average after: {os.getloadavg()[0]:.1f}")
     print(lines[-1])
@@ -158,23 +160,22 @@ def main() -> int:
 
 def report_figures(measures: list[dict]) -> list[dict]:
     """The report's figures (docs/results.md's layout: what, value, unit, bar, met, conditions) of
-    the wall-time measures ``[{"case", "rollouts", "median_s", "max_s", "n", "bar_s"}]`` main prints:
-    one per case and rollout count, CPU-time cases left out; the bar applies to the median."""
+    the measures main prints (``[{"case", "policy", "processes", "clock", "rollouts", "median_s", "max_s",
+    "n", "bar_s"}]``; ``processes`` None for the HTTP case): one per wall-clock case and rollout count,
+    CPU-time cases left out; the bar applies to the median."""
     out = []
     for m in measures:
-        case = m["case"]
-        if case.endswith(" CPU"):
+        if m["clock"] == "cpu":
             continue
         kind = "single-rollout preview" if m["rollouts"] == 1 else f"{m['rollouts']}-impact ellipse preview"
-        if "preview_throw() x" in case:
-            label, _, n = case.partition("preview_throw() x")
-            what = f"{label}{kind} " + ("in one process" if n == "1" else f"with {n} Monte Carlo processes")
+        if m["processes"] is None:
+            what = f"{m['case']}, {kind}"
         else:
-            what = f"{case}, {kind}"
+            where = "in one process" if m["processes"] == 1 else f"with {m['processes']} Monte Carlo processes"
+            what = " ".join(s for s in (m["policy"], kind, where) if s)
         out.append({"what": f"{what}, median / max", "value": f"{m['median_s']:.3f} / {m['max_s']:.3f}", "unit": "s",
                     "bar": f"median <= {m['bar_s']} s", "met": m["median_s"] <= m["bar_s"], "conditions": f"{m['n']} previews"})
     return out
-
 
 if __name__ == "__main__":
     raise SystemExit(main())
